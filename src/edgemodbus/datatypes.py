@@ -1,0 +1,210 @@
+"""Data types, data formats and Modbus areas: the vocabulary shared by every layer."""
+
+from __future__ import annotations
+
+import enum
+
+
+class Area(enum.Enum):
+    """A Modbus data area, by the function code that reads it (MODBUS Application
+    Protocol v1.1b3, 4.3 and 6.1-6.4)."""
+
+    COIL = 1
+    DISCRETE_INPUT = 2
+    HOLDING_REGISTER = 3
+    INPUT_REGISTER = 4
+
+    @property
+    def read_function(self) -> int:
+        return self.value
+
+    @property
+    def is_bit(self) -> bool:
+        return self in (Area.COIL, Area.DISCRETE_INPUT)
+
+    @property
+    def writable(self) -> bool:
+        return self in (Area.COIL, Area.HOLDING_REGISTER)
+
+    @property
+    def max_read(self) -> int:
+        """Largest quantity one request may read (2000 bits, 125 registers)."""
+        return 2000 if self.is_bit else 125
+
+    @property
+    def short_name(self) -> str:
+        return _AREA_SHORT[self]
+
+
+_AREA_SHORT = {
+    Area.COIL: "coil",
+    Area.DISCRETE_INPUT: "di",
+    Area.HOLDING_REGISTER: "hr",
+    Area.INPUT_REGISTER: "ir",
+}
+
+
+class DataType(enum.Enum):
+    """Device data types of the seed (plus NG's Timestamp/Binary and BCD)."""
+
+    BOOLEAN = "Boolean"
+    BYTE = "Byte"
+    SBYTE = "Sbyte"
+    CHAR = "Char"
+    INT16 = "Int16"
+    UINT16 = "UInt16"
+    INT32 = "Int32"
+    UINT32 = "UInt32"
+    INT64 = "Int64"
+    UINT64 = "UInt64"
+    FLOAT = "Float"
+    DOUBLE = "Double"
+    STRING = "String"
+    DATETIME = "DateTime"
+    TIMESTAMP = "Timestamp"
+    BINARY = "Binary"
+    BCD16 = "BCD16"
+    BCD32 = "BCD32"
+
+    @classmethod
+    def parse(cls, name: str) -> DataType:
+        """Case-insensitive; accepts the seed's and NG's spellings (Float32, Float64...)."""
+        found = _TYPE_ALIASES.get(name.strip().lower())
+        if found is None:
+            allowed = ", ".join(t.value for t in cls)
+            raise ValueError(f"unknown data type {name!r} (use one of {allowed})")
+        return found
+
+    @property
+    def registers(self) -> int:
+        """Registers the type occupies by default (String/Binary: none, use quantity)."""
+        return _REGISTERS[self]
+
+    @property
+    def is_integer(self) -> bool:
+        return self in _INTEGER_RANGES
+
+    @property
+    def is_numeric(self) -> bool:
+        return self.is_integer or self in (DataType.FLOAT, DataType.DOUBLE)
+
+    @property
+    def integer_range(self) -> tuple[int, int]:
+        """Inclusive (min, max) of an integer type's values."""
+        return _INTEGER_RANGES[self]
+
+    @property
+    def needs_quantity(self) -> bool:
+        return self in (DataType.STRING, DataType.BINARY)
+
+
+_TYPE_ALIASES: dict[str, DataType] = {t.value.lower(): t for t in DataType}
+_TYPE_ALIASES.update(
+    {
+        "bool": DataType.BOOLEAN,
+        "float32": DataType.FLOAT,
+        "single": DataType.FLOAT,
+        "float64": DataType.DOUBLE,
+        "int8": DataType.SBYTE,
+        "uint8": DataType.BYTE,
+        "short": DataType.INT16,
+        "ushort": DataType.UINT16,
+        "int": DataType.INT32,
+        "uint": DataType.UINT32,
+        "long": DataType.INT64,
+        "ulong": DataType.UINT64,
+    }
+)
+
+_REGISTERS = {
+    DataType.BOOLEAN: 1,
+    DataType.BYTE: 1,
+    DataType.SBYTE: 1,
+    DataType.CHAR: 1,
+    DataType.INT16: 1,
+    DataType.UINT16: 1,
+    DataType.BCD16: 1,
+    DataType.INT32: 2,
+    DataType.UINT32: 2,
+    DataType.FLOAT: 2,
+    DataType.BCD32: 2,
+    DataType.DATETIME: 2,
+    DataType.TIMESTAMP: 2,
+    DataType.INT64: 4,
+    DataType.UINT64: 4,
+    DataType.DOUBLE: 4,
+    DataType.STRING: 0,
+    DataType.BINARY: 0,
+}
+
+_INTEGER_RANGES = {
+    DataType.BYTE: (0, 0xFF),
+    DataType.SBYTE: (-0x80, 0x7F),
+    DataType.INT16: (-0x8000, 0x7FFF),
+    DataType.UINT16: (0, 0xFFFF),
+    DataType.INT32: (-0x8000_0000, 0x7FFF_FFFF),
+    DataType.UINT32: (0, 0xFFFF_FFFF),
+    DataType.INT64: (-0x8000_0000_0000_0000, 0x7FFF_FFFF_FFFF_FFFF),
+    DataType.UINT64: (0, 0xFFFF_FFFF_FFFF_FFFF),
+    DataType.BCD16: (0, 9999),
+    DataType.BCD32: (0, 99_999_999),
+}
+
+
+class DataFormat(enum.Enum):
+    """Byte order of multi-byte values: (byte swap inside each register) x (word order).
+
+    ABCD is big-endian throughout (the Modbus default, Application Protocol 4.2);
+    BADC swaps the bytes of each register; CDAB swaps the register order; DCBA both.
+    Applied uniformly to every width (ABCD -> ABCDEFGH for 64-bit values).
+    """
+
+    ABCD = "ABCD"
+    BADC = "BADC"
+    CDAB = "CDAB"
+    DCBA = "DCBA"
+
+    @classmethod
+    def parse(cls, name: str) -> DataFormat:
+        try:
+            return cls(name.strip().upper())
+        except ValueError:
+            raise ValueError(
+                f"unknown data format {name!r} (use ABCD, BADC, CDAB or DCBA)"
+            ) from None
+
+    @classmethod
+    def from_orders(cls, byte_order: str, word_order: str) -> DataFormat:
+        """NG-style byteOrder/wordOrder ('BigEndian'/'LittleEndian') as one format."""
+        byte_swap = _endian_is_little("byteOrder", byte_order)
+        word_swap = _endian_is_little("wordOrder", word_order)
+        return cls.from_flags(byte_swap, word_swap)
+
+    @classmethod
+    def from_flags(cls, byte_swap: bool, word_swap: bool) -> DataFormat:
+        return _FORMAT_BY_FLAGS[(byte_swap, word_swap)]
+
+    @property
+    def byte_swap(self) -> bool:
+        return self in (DataFormat.BADC, DataFormat.DCBA)
+
+    @property
+    def word_swap(self) -> bool:
+        return self in (DataFormat.CDAB, DataFormat.DCBA)
+
+
+_FORMAT_BY_FLAGS = {
+    (False, False): DataFormat.ABCD,
+    (True, False): DataFormat.BADC,
+    (False, True): DataFormat.CDAB,
+    (True, True): DataFormat.DCBA,
+}
+
+
+def _endian_is_little(field: str, value: str) -> bool:
+    key = value.strip().lower().replace("_", "").replace("-", "")
+    if key in ("bigendian", "big", "be"):
+        return False
+    if key in ("littleendian", "little", "le"):
+        return True
+    raise ValueError(f"{field} {value!r}: use BigEndian or LittleEndian")
