@@ -10,12 +10,24 @@
 #include <time.h>
 #include <unistd.h>
 
+/* Drop whatever input is already pending (a reply we gave up on, noise, an answer to
+ * a broadcast) so that it cannot be taken as the answer to the request we send next:
+ * RTU frames carry no transaction id (Modbus over Serial Line v1.02, 2.5.1). */
+static void emb_drop_pending(modbus_t *ctx)
+{
+    int saved = errno;
+
+    (void)emb_discard_input(modbus_get_socket(ctx), 0, 0);
+    errno = saved;
+}
+
 /* Read one block with function code 1, 2, 3 or 4 (Modbus Application Protocol
  * v1.1b3, 6.1-6.4).  dest holds nb bytes (bits, one per byte) or nb registers. */
 int emb_read(modbus_t *ctx, int slave, int function, int addr, int nb, void *dest)
 {
     if (modbus_set_slave(ctx, slave) == -1)
         return -1;
+    emb_drop_pending(ctx);
     switch (function) {
     case 1:
         return modbus_read_bits(ctx, addr, nb, (uint8_t *)dest);
@@ -39,6 +51,7 @@ int emb_transact_raw(modbus_t *ctx, int slave, const uint8_t *req, int req_len, 
 {
     if (modbus_set_slave(ctx, slave) == -1)
         return -1;
+    emb_drop_pending(ctx);
     if (modbus_send_raw_request(ctx, req, req_len) == -1)
         return -1;
     return modbus_receive_confirmation(ctx, rsp);
