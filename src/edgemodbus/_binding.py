@@ -34,14 +34,13 @@ except ImportError as exc:  # pragma: no cover - depends on the build
     ) from exc
 
 
-def _check_build() -> None:
-    """Refuse an extension compiled from other C sources than this checkout holds."""
-    root = Path(__file__).resolve().parents[2]
+def check_fingerprint(built: str, root: Path) -> None:
+    """Refuse an extension compiled from other C sources than ``root`` (a source
+    checkout) holds; an installed wheel has no csrc/ next to it and is not checked."""
     if not ((root / "csrc").is_dir() and (root / "build_ffi.py").is_file()):
-        return  # an installed wheel: built from the sources it shipped with
+        return
     from ._sourcehash import source_hash
 
-    built = ffi.string(lib.emb_source_hash()).decode()
     current = source_hash(root)
     if built != current:
         raise ImportError(
@@ -49,6 +48,11 @@ def _check_build() -> None:
             f"{root / 'csrc'} now holds ({current}); rebuild it: `make build` "
             "(or pip install -e .)"
         )
+
+
+def _check_build() -> None:
+    built = ffi.string(lib.emb_source_hash()).decode()
+    check_fingerprint(built, Path(__file__).resolve().parents[2])
 
 
 _check_build()

@@ -197,11 +197,12 @@ class Link:
             self._sock.close()
 
     def _wait_turn(self) -> None:
-        """Keep the inter-frame silence and the per-line request interval."""
-        if self._pace:
+        """Keep the inter-frame silence, the request interval and the turnaround delay."""
+        if self._ready_at:
             delay = self._ready_at - time.monotonic()
             if delay > 0:
                 time.sleep(delay)
+            self._ready_at = 0.0
 
     def _done(self, extra_delay: float = 0.0) -> None:
         if self._pace or extra_delay:
@@ -250,6 +251,8 @@ class Link:
             raise ModbusConnectionError(f"{self.endpoint.describe()}: link is down")
         self._wait_turn()
         self.stats.requests += 1
+        if self._trace:
+            self._log_frame("TX", slave, struct.pack(">BHH", area.read_function, address, count))
         start = time.monotonic()
         try:
             block = self._ctx.read(slave, area.read_function, address, count)
@@ -260,8 +263,7 @@ class Link:
         self.stats.responses += 1
         self.stats.rtt_total += time.monotonic() - start
         if self._trace:
-            log.debug("%s RX slave %d FC%02d @%d: %s", self.endpoint.describe(), slave,
-                      area.read_function, address, block.to_list())
+            self._log_frame("RX", slave, _read_reply_pdu(area, block.to_list()))
         return block
 
     # -- writes (Modbus Application Protocol v1.1b3, 6.5, 6.6, 6.11, 6.12, 6.16) ------
@@ -275,11 +277,8 @@ class Link:
         n = len(values)
         if not 1 <= n <= _binding.MAX_WRITE_BITS:
             raise ValueError(f"write of {n} coils: must be 1..{_binding.MAX_WRITE_BITS}")
-        packed = bytearray((n + 7) // 8)
-        for i, bit in enumerate(values):
-            if bit:
-                packed[i // 8] |= 1 << (i % 8)
-        self._write(slave, struct.pack(">BHHB", 15, address, n, len(packed)) + bytes(packed))
+        packed = _pack_bits(values)
+        self._write(slave, struct.pack(">BHHB", 15, address, n, len(packed)) + packed)
 
     def write_registers(self, slave: int, address: int, values: Sequence[int]) -> None:
         n = len(values)
@@ -299,7 +298,7 @@ class Link:
         self._wait_turn()
         self.stats.requests += 1
         if self._trace:
-            log.debug("%s TX slave %d %s", self.endpoint.describe(), slave, pdu.hex(" "))
+            self._log_frame("TX", slave, pdu)
         if slave == 0:  # broadcast: no reply (Modbus over Serial Line v1.02, 2.1)
             try:
                 self._ctx.send(0, pdu)
@@ -312,7 +311,7 @@ class Link:
         try:
             adu = self._ctx.transact(slave, pdu)
             if self._trace:
-                log.debug("%s RX %s", self.endpoint.describe(), adu.hex(" "))
+                log.debug("%s RX %s", self.endpoint.describe(), adu.hex(" ").upper())
             self._check_write_reply(slave, pdu, adu)
         except ModbusError as exc:
             raise self._fail(exc) from None
@@ -320,6 +319,18 @@ class Link:
             self._done()
         self.stats.responses += 1
         self.stats.rtt_total += time.monotonic() - start
+
+    def _log_frame(self, direction: str, slave: int, pdu: bytes) -> None:
+        """Frame trace at DEBUG: the bytes on the wire, e.g. "TX 01 03 00 00 00 0A C5 CD".
+        libmodbus does not hand frames out, so reads are rebuilt from the request and the
+        decoded reply (identical to the wire for every valid frame); MBAP headers, whose
+        transaction id libmodbus keeps to itself, are shown as the unit id only."""
+        frame = bytes([slave]) + pdu
+        if self._mbap:
+            text = f"[MBAP unit {slave}] {pdu.hex(' ').upper()}"
+        else:
+            text = (frame + crc16(frame)).hex(" ").upper()
+        log.debug("%s %s %s", self.endpoint.describe(), direction, text)
 
     def _check_write_reply(self, slave: int, pdu: bytes, adu: bytes) -> None:
         """Check a write's reply: unit, function, and the echo that libmodbus 3.1.6 does
@@ -354,6 +365,33 @@ class Link:
                 f"{what}: echo {reply[1:].hex(' ')} does not match the request "
                 f"{pdu[1:1 + echo_len].hex(' ')}"
             )
+
+
+def crc16(frame: bytes) -> bytes:
+    """CRC-16/MODBUS of an RTU frame, low byte first (Modbus over Serial Line v1.02,
+    6.2.2).  Used for the frame trace only: libmodbus checks real frames."""
+    crc = 0xFFFF
+    for byte in frame:
+        crc ^= byte
+        for _ in range(8):
+            crc = (crc >> 1) ^ 0xA001 if crc & 1 else crc >> 1
+    return struct.pack("<H", crc)
+
+
+def _pack_bits(values: Sequence[int | bool]) -> bytes:
+    """Bits, first in the low bit of the first byte (Application Protocol 6.1, 6.11)."""
+    packed = bytearray((len(values) + 7) // 8)
+    for i, bit in enumerate(values):
+        if bit:
+            packed[i // 8] |= 1 << (i % 8)
+    return bytes(packed)
+
+
+def _read_reply_pdu(area: Area, values: list[int]) -> bytes:
+    if area.is_bit:
+        packed = _pack_bits(values)
+        return bytes([area.read_function, len(packed)]) + packed
+    return struct.pack(f">BB{len(values)}H", area.read_function, 2 * len(values), *values)
 
 
 class Poller(Protocol):
