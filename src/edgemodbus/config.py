@@ -1,0 +1,1106 @@
+"""Configuration models of the seed's files (device file, ``modbusRtu.json``).
+
+Keys are accepted in camelCase (device file), PascalCase (``modbusRtu.json``) and
+snake_case: matching ignores case and underscores.  Python attribute names are the
+snake_case of the JSON keys.  Unknown keys are logged as warnings on logger
+``edgemodbus.config`` (path and key) and ignored.  Invalid input raises
+:class:`ConfigError`, one line per problem: path, value and what is allowed.
+
+Parity is stored as :class:`Parity` (a str enum of libmodbus's ``"N"``, ``"O"``,
+``"E"``); ``"None"/"Odd"/"Even"``, ``0/1/2`` and ``N/O/E`` are accepted.
+"""
+
+from __future__ import annotations
+
+import codecs
+import enum
+import json
+import logging
+import math
+import os
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from datetime import datetime
+from pathlib import Path
+from typing import Annotated, Any, ClassVar, Literal, TypeVar
+
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    GetCoreSchemaHandler,
+    ValidationError,
+    field_serializer,
+    field_validator,
+    model_validator,
+)
+from pydantic.alias_generators import to_camel
+from pydantic_core import CoreSchema, core_schema
+
+from .address import Address, check_span, parse_address
+from .datatypes import Area, DataFormat, DataType
+
+logger = logging.getLogger("edgemodbus.config")
+
+MAX_MS = 86_400_000
+"""Upper bound of every time setting (one day, in milliseconds)."""
+
+Transport = Literal["rtu", "rtu-over-tcp", "tcp"]
+AddressPrefixOption = Literal["function-code", "modicon"]
+ReportMode = Literal["change", "cycle"]
+Rs485Mode = Literal["none", "kernel", "rts-up", "rts-down"]
+
+
+# --------------------------------------------------------------------------- errors
+
+
+class _NoValue:
+    def __repr__(self) -> str:
+        return "<no value>"
+
+
+NO_VALUE: Any = _NoValue()
+
+
+@dataclass(frozen=True, slots=True)
+class Problem:
+    """One configuration problem: where (``communication.baudRate``), what, why."""
+
+    path: str
+    value: Any
+    message: str
+
+    def __str__(self) -> str:
+        where = self.path or "<root>"
+        if self.value is NO_VALUE:
+            return f"{where}: {self.message}"
+        return f"{where} {self.value!r}: {self.message}"
+
+
+class ConfigError(ValueError):
+    """Invalid configuration; ``problems`` lists every problem found, with its path."""
+
+    def __init__(self, problems: Sequence[Problem]) -> None:
+        self.problems = list(problems)
+        super().__init__("\n".join(str(p) for p in self.problems))
+
+    @classmethod
+    def from_validation_error(cls, exc: ValidationError, prefix: str = "") -> ConfigError:
+        """Translate pydantic's errors into problems with JSON-key paths."""
+        problems: list[Problem] = []
+        for err in exc.errors(include_url=False):
+            path = join_path(prefix, _loc_path(err["loc"]))
+            inner = (err.get("ctx") or {}).get("error")
+            if isinstance(inner, ConfigError):
+                problems.extend(
+                    Problem(join_path(path, p.path), p.value, p.message) for p in inner.problems
+                )
+                continue
+            message = err["msg"]
+            for head in ("Value error, ", "Assertion failed, "):
+                message = message.removeprefix(head)
+            value = err["input"]
+            if err["type"] == "missing" or not _is_scalar(value):
+                value = NO_VALUE
+            problems.append(Problem(path, value, message))
+        return cls(problems)
+
+
+def _is_scalar(value: Any) -> bool:
+    return value is None or isinstance(value, (str, int, float, bool))
+
+
+def _loc_path(loc: Sequence[int | str]) -> str:
+    path = ""
+    for part in loc:
+        path = f"{path}[{part}]" if isinstance(part, int) else join_path(path, part)
+    return path
+
+
+def join_path(prefix: str, rest: str) -> str:
+    """``a`` + ``b`` -> ``a.b``; ``a`` + ``[3].b`` -> ``a[3].b``; empty parts vanish."""
+    if not prefix:
+        return rest
+    if not rest:
+        return prefix
+    return prefix + rest if rest.startswith("[") else f"{prefix}.{rest}"
+
+
+# --------------------------------------------------------------------------- field helpers
+
+
+@dataclass(frozen=True, slots=True)
+class Range:
+    """Inclusive numeric range of a field (``hi=None``: no upper bound); ``None`` passes."""
+
+    lo: float
+    hi: float | None = None
+
+    def check(self, value: Any) -> Any:
+        if value is None:
+            return value
+        if isinstance(value, float) and not math.isfinite(value):
+            raise ValueError("must be a finite number")
+        if value < self.lo or (self.hi is not None and value > self.hi):
+            raise ValueError(f"must be {self.describe()}")
+        return value
+
+    def describe(self) -> str:
+        lo = _num(self.lo)
+        return f"{lo} or more" if self.hi is None else f"{lo}..{_num(self.hi)}"
+
+    def __get_pydantic_core_schema__(
+        self, source: Any, handler: GetCoreSchemaHandler
+    ) -> CoreSchema:
+        return core_schema.no_info_after_validator_function(self.check, handler(source))
+
+
+@dataclass(frozen=True, slots=True)
+class Choice:
+    """The only values a field accepts."""
+
+    values: tuple[Any, ...]
+
+    def check(self, value: Any) -> Any:
+        if value not in self.values:
+            raise ValueError(f"must be {' or '.join(repr(v) for v in self.values)}")
+        return value
+
+    def __get_pydantic_core_schema__(
+        self, source: Any, handler: GetCoreSchemaHandler
+    ) -> CoreSchema:
+        return core_schema.no_info_after_validator_function(self.check, handler(source))
+
+
+def _num(x: float) -> str:
+    return str(int(x)) if float(x).is_integer() else str(x)
+
+
+Ms = Annotated[int, Range(1, MAX_MS)]
+OptionalMs = Annotated[int | None, Range(1, MAX_MS)]
+
+
+def _check_encoding(value: str) -> str:
+    try:
+        codecs.lookup(value)
+    except LookupError:
+        raise ValueError(
+            "unknown text encoding (use a codec Python knows, e.g. utf-8, gbk)"
+        ) from None
+    return value
+
+
+def _lower_literal(value: Any) -> Any:
+    return value.strip().lower() if isinstance(value, str) else value
+
+
+def _timestamp(value: Any) -> Any:
+    """Cut ISO 8601 fractions to 6 digits (.NET writes 7: ...58.9644719Z)."""
+    if isinstance(value, str) and "." in value:
+        head, _, tail = value.partition(".")
+        digits = len(tail) - len(tail.lstrip("0123456789"))
+        if digits > 6:
+            value = f"{head}.{tail[:6]}{tail[digits:]}"
+    return value
+
+
+# --------------------------------------------------------------------------- key handling
+
+
+def _norm_key(key: str) -> str:
+    return key.replace("_", "").replace("-", "").lower()
+
+
+class _Model(BaseModel):
+    """Shared behaviour: forgiving key spelling, warnings for unknown keys, to_dict()."""
+
+    model_config = ConfigDict(
+        alias_generator=to_camel,
+        extra="ignore",
+        ser_json_bytes="base64",
+    )
+
+    _extra_keys: ClassVar[tuple[str, ...]] = ()
+    _where: ClassVar[str] = ""
+    _key_tables: ClassVar[dict[type, dict[str, str]]] = {}
+
+    @classmethod
+    def key_table(cls) -> dict[str, str]:
+        """Normalised key -> canonical camelCase key (fields and accepted aliases)."""
+        table = _Model._key_tables.get(cls)
+        if table is None:
+            table = {_norm_key(f.alias or n): f.alias or n for n, f in cls.model_fields.items()}
+            table.update({_norm_key(k): k for k in cls._extra_keys})
+            _Model._key_tables[cls] = table
+        return table
+
+    @classmethod
+    def normalize_keys(
+        cls, data: Mapping[Any, Any], where: str, prefix: str = ""
+    ) -> dict[str, Any]:
+        """Canonical keys; unknown keys are logged (``where`` names the place) and dropped.
+        A key given twice in different spellings is a ConfigError (paths from ``prefix``)."""
+        table = cls.key_table()
+        out: dict[str, Any] = {}
+        spelled: dict[str, str] = {}
+        problems: list[Problem] = []
+        for key, value in data.items():
+            canon = table.get(_norm_key(key)) if isinstance(key, str) else None
+            if canon is None:
+                logger.warning("%s: unknown key %r ignored", where or "<root>", key)
+                continue
+            if canon in out:
+                problems.append(
+                    Problem(
+                        join_path(prefix, canon), value, f"given twice (also as {spelled[canon]!r})"
+                    )
+                )
+                continue
+            out[canon] = value
+            spelled[canon] = key
+        if problems:
+            raise ConfigError(problems)
+        return out
+
+    @model_validator(mode="before")
+    @classmethod
+    def _accept_keys(cls, data: Any) -> Any:
+        if isinstance(data, Mapping):
+            return cls.normalize_keys(data, cls._where or cls.__name__)
+        return data
+
+    def to_dict(self) -> dict[str, Any]:
+        """camelCase, JSON-able dict (loads back to an equal model)."""
+        result: dict[str, Any] = self.model_dump(mode="json", by_alias=True)
+        return result
+
+
+# --------------------------------------------------------------------------- enums
+
+
+class Parity(str, enum.Enum):
+    """Serial parity, as libmodbus spells it."""
+
+    NONE = "N"
+    ODD = "O"
+    EVEN = "E"
+
+    @classmethod
+    def parse(cls, value: Any) -> Parity:
+        if isinstance(value, Parity):
+            return value
+        if isinstance(value, int) and not isinstance(value, bool):
+            found = _PARITY_NUMBERS.get(value)
+        elif isinstance(value, str):
+            found = _PARITY_NAMES.get(value.strip().lower())
+        else:
+            found = None
+        if found is None:
+            raise ValueError("use None|Odd|Even, 0|1|2 or N|O|E")
+        return found
+
+    @property
+    def number(self) -> int:
+        """The seed descriptor's numbering: 0 = None, 1 = Odd, 2 = Even."""
+        return {Parity.NONE: 0, Parity.ODD: 1, Parity.EVEN: 2}[self]
+
+
+_PARITY_NUMBERS = {0: Parity.NONE, 1: Parity.ODD, 2: Parity.EVEN}
+_PARITY_NAMES = {
+    "none": Parity.NONE,
+    "n": Parity.NONE,
+    "0": Parity.NONE,
+    "odd": Parity.ODD,
+    "o": Parity.ODD,
+    "1": Parity.ODD,
+    "even": Parity.EVEN,
+    "e": Parity.EVEN,
+    "2": Parity.EVEN,
+}
+
+
+class ItemStatus(str, enum.Enum):
+    """Quality of an item's value."""
+
+    UNKNOWN = "Unknown"
+    OK = "Ok"
+    INVALID = "Invalid"
+
+
+class DeviceDriverStatus(str, enum.Enum):
+    """Lifecycle state of a driver (DESIGN.md "Public API")."""
+
+    STOPPED = "Stopped"
+    DISABLED = "Disabled"
+    CONNECTING = "Connecting"
+    RUNNING = "Running"
+    OFFLINE = "Offline"
+    RECONNECTING = "Reconnecting"
+
+
+_E = TypeVar("_E", bound=enum.Enum)
+
+
+def _parse_enum_ci(enum_cls: type[_E], value: Any) -> Any:
+    """Case-insensitive lookup of a str enum by value; other input passes through."""
+    if isinstance(value, str) and not isinstance(value, enum_cls):
+        for member in enum_cls:
+            if member.value.lower() == value.strip().lower():
+                return member
+    return value
+
+
+def _parse_format(value: Any) -> Any:
+    if isinstance(value, str):
+        return DataFormat.parse(value)
+    return value
+
+
+# --------------------------------------------------------------------------- communication
+
+
+BAUD_RATES = (1200, 2400, 4800, 9600, 19200, 38400, 57600, 115200, 230400, 460800, 921600)
+"""Baud rates offered by the descriptor (any 1200..921600 is accepted)."""
+
+
+def _ui(
+    label: str,
+    category: str,
+    control: str,
+    *,
+    type_: str | None = None,
+    options: list[Any] | None = None,
+    data_source: str | None = None,
+    serial: bool = False,
+    tcp: bool = False,
+) -> dict[str, Any]:
+    """Descriptor metadata of one parameter (see descriptor.py)."""
+    ui: dict[str, Any] = {"label": label, "category": category, "controlType": control}
+    if type_ is not None:
+        ui["type"] = type_
+    if options is not None:
+        ui["options"] = options
+    if data_source is not None:
+        ui["dataSource"] = data_source
+    if serial or tcp:
+        ui["visibleWhen"] = {"useTcp": tcp}
+    return ui
+
+
+class DriverModbusRtuParameter(_Model):
+    """Communication parameters (the seed's ``modbusRtu.json`` plus ours).
+
+    Times are int milliseconds.  ``transport`` defaults from ``useTcp`` (true ->
+    ``rtu-over-tcp``); NG's ``maxGap``, ``maxBatch`` and ``byteOrder``/``wordOrder`` are
+    accepted for ``maxMergeAddressGap``, ``maxBlockReadRegisterCount`` and ``dataFormat``.
+    """
+
+    _extra_keys: ClassVar[tuple[str, ...]] = ("maxGap", "maxBatch", "byteOrder", "wordOrder")
+    _where: ClassVar[str] = "communication"
+
+    # Field order is the descriptor's order; json_schema_extra holds the descriptor's
+    # UI metadata (label, category, controlType, options, visibleWhen, dataSource).
+    com_port: str = Field(
+        default="COM1",
+        description="Serial COM port (e.g. COM1, /dev/ttyUSB0)",
+        json_schema_extra=_ui(
+            "串口号", "Connection", "dynamic-select", data_source="system:serial-ports", serial=True
+        ),
+    )
+    baud_rate: Annotated[int, Range(1200, 921600)] = Field(
+        default=9600,
+        description="Baud rate of the serial line",
+        json_schema_extra=_ui(
+            "波特率", "Connection", "select", options=list(BAUD_RATES), serial=True
+        ),
+    )
+    parity: Parity = Field(
+        default=Parity.NONE,
+        description="Parity setting (0=None, 1=Odd, 2=Even; also None/Odd/Even or N/O/E)",
+        json_schema_extra=_ui(
+            "校验位",
+            "Connection",
+            "select",
+            type_="int",
+            options=[
+                {"label": "None", "value": 0},
+                {"label": "Odd", "value": 1},
+                {"label": "Even", "value": 2},
+            ],
+            serial=True,
+        ),
+    )
+    data_bits: Annotated[int, Range(5, 8)] = Field(
+        default=8,
+        description="Number of data bits",
+        json_schema_extra=_ui("数据位", "Connection", "select", options=[5, 6, 7, 8], serial=True),
+    )
+    stop_bits: Annotated[int, Choice((1, 2))] = Field(
+        default=1,
+        description="Number of stop bits",
+        json_schema_extra=_ui(
+            "停止位",
+            "Connection",
+            "select",
+            options=[{"label": "1", "value": 1}, {"label": "2", "value": 2}],
+            serial=True,
+        ),
+    )
+    slave_id: Annotated[int, Range(0, 255)] = Field(
+        default=1,
+        description="Modbus slave id of the device: 1..247 on RTU lines (rtu, rtu-over-tcp), "
+        "0..255 as a Modbus TCP unit id",
+        json_schema_extra=_ui("站号", "Connection", "number"),
+    )
+    use_tcp: bool = Field(
+        default=False,
+        description="If true, use a TCP link (RTU frames over TCP unless transport says tcp) "
+        "instead of a serial port",
+        json_schema_extra=_ui("使用TCP透传", "Connection", "switch"),
+    )
+    tcp_host: str = Field(
+        default="127.0.0.1",
+        description="TCP host for RTU-over-TCP or Modbus TCP",
+        json_schema_extra=_ui("TCP主机", "Connection", "text", tcp=True),
+    )
+    tcp_port: Annotated[int, Range(1, 65535)] = Field(
+        default=502,
+        description="TCP port for RTU-over-TCP or Modbus TCP",
+        json_schema_extra=_ui("TCP端口", "Connection", "number", tcp=True),
+    )
+    transport: Transport = Field(
+        default="rtu",
+        description="rtu: serial RTU; rtu-over-tcp: raw RTU frames over TCP (DTU, serial "
+        "server); tcp: Modbus TCP (MBAP). When absent: rtu-over-tcp if useTcp, else rtu",
+        json_schema_extra=_ui("传输方式", "Connection", "select"),
+    )
+    connect_timeout: Ms = Field(
+        default=3000,
+        description="Timeout of a TCP connect (ms)",
+        json_schema_extra=_ui("连接超时(ms)", "Connection", "number", tcp=True),
+    )
+    reconnect_interval: Ms = Field(
+        default=5000,
+        description="Wait before reopening a lost link (ms)",
+        json_schema_extra=_ui("重连间隔(ms)", "Connection", "number"),
+    )
+    read_timeout: Ms = Field(
+        default=1000,
+        description="Response timeout of one request (ms)",
+        json_schema_extra=_ui("读超时(ms)", "Connection", "number"),
+    )
+    byte_timeout: Ms = Field(
+        default=200,
+        description="Timeout between two bytes of one reply (ms)",
+        json_schema_extra=_ui("字节间超时(ms)", "Connection", "number"),
+    )
+    read_cycle: Ms = Field(
+        default=1000,
+        description="Polling cycle (ms)",
+        json_schema_extra=_ui("读取周期(ms)", "Connection", "number"),
+    )
+    rs485: Rs485Mode = Field(
+        default="none",
+        description="RS-485 direction control: none, kernel (TIOCSRS485), rts-up, rts-down",
+        json_schema_extra=_ui("RS-485 方向控制", "Connection", "select", serial=True),
+    )
+    echo: bool = Field(
+        default=False,
+        description="The line echoes our own requests (some 2-wire adapters): skip the echo",
+        json_schema_extra=_ui("线路回显", "Connection", "switch"),
+    )
+    is_enable: bool = Field(
+        default=True,
+        description="Poll this device",
+        json_schema_extra=_ui("启用", "Connection", "switch"),
+    )
+    data_format: DataFormat = Field(
+        default=DataFormat.ABCD,
+        description="Default data format for communication (byte order x word order)",
+        json_schema_extra=_ui("数据格式", "Advanced", "select", type_="string"),
+    )
+    max_block_read_register_count: Annotated[int, Range(1, 125)] = Field(
+        default=120,
+        description="Maximum number of registers to read in a single block",
+        json_schema_extra=_ui("单块最大寄存器数", "Advanced", "number"),
+    )
+    is_block_read_require_address_continuous: bool = Field(
+        default=False,
+        description="Indicates if block read requires continuous addresses (gap 0)",
+        json_schema_extra=_ui("块读取地址需连续", "Advanced", "switch"),
+    )
+    max_merge_address_gap: Annotated[int, Range(0, 65535)] = Field(
+        default=10,
+        description="Maximum merge address gap when combining non-contiguous blocks",
+        json_schema_extra=_ui("最大合并空洞", "Advanced", "number"),
+    )
+    max_block_read_bit_count: Annotated[int, Range(1, 2000)] = Field(
+        default=2000,
+        description="Maximum number of coils/discrete inputs to read in a single block",
+        json_schema_extra=_ui("单块最大位数", "Advanced", "number"),
+    )
+    address_prefix: AddressPrefixOption = Field(
+        default="function-code",
+        description="Numeric address types: function-code (3=holding, 4=input) or modicon "
+        "(3=input, 4=holding)",
+        json_schema_extra=_ui("地址类型编号", "Advanced", "select"),
+    )
+    address_base: Annotated[int, Choice((0, 1))] = Field(
+        default=0,
+        description="0: address offsets are protocol (0-based) addresses; 1: they are 1-based",
+        json_schema_extra=_ui("地址起始", "Advanced", "select"),
+    )
+    retries: Annotated[int, Range(0, 10)] = Field(
+        default=1,
+        description="Retries of a failed read before its items go Invalid",
+        json_schema_extra=_ui("重试次数", "Advanced", "number"),
+    )
+    request_interval: Annotated[int, Range(0, MAX_MS)] = Field(
+        default=0,
+        description="Silence kept between two requests on the line (ms)",
+        json_schema_extra=_ui("请求间隔(ms)", "Advanced", "number"),
+    )
+    settle_timeout: Annotated[int | None, Range(0, MAX_MS)] = Field(
+        default=None,
+        description="After a timeout, discard late replies for this long before the next "
+        "request (ms); empty = readTimeout, 0 = off",
+        json_schema_extra=_ui("超时后静默(ms)", "Advanced", "number"),
+    )
+    offline_after_failed_cycles: Annotated[int, Range(1, 1000)] = Field(
+        default=3,
+        description="Failed cycles in a row before the device is reported Offline",
+        json_schema_extra=_ui("离线判定周期数", "Advanced", "number"),
+    )
+    max_backoff: Ms = Field(
+        default=60000,
+        description="Longest wait between attempts on an offline device or lost link (ms)",
+        json_schema_extra=_ui("最大退避(ms)", "Advanced", "number"),
+    )
+    report_mode: ReportMode = Field(
+        default="change",
+        description="change: report items whose value or status changed; cycle: every read",
+        json_schema_extra=_ui("上报方式", "Advanced", "select"),
+    )
+    encoding: str = Field(
+        default="utf-8",
+        description="Text encoding of String items (a Python codec, e.g. utf-8, gbk)",
+        json_schema_extra=_ui("字符串编码", "Advanced", "text"),
+    )
+    write_single_register_function: Annotated[int, Choice((6, 16))] = Field(
+        default=6,
+        description="Function code for writing a one-register value: 6 or 16",
+        json_schema_extra=_ui("单寄存器写功能码", "Advanced", "select"),
+    )
+    snapshot_interval: Annotated[int, Range(0, MAX_MS)] = Field(
+        default=0,
+        description="Publish a device snapshot this often (ms); 0 = off",
+        json_schema_extra=_ui("快照间隔(ms)", "Advanced", "number"),
+    )
+
+    @field_validator("parity", mode="before")
+    @classmethod
+    def _parity(cls, value: Any) -> Parity:
+        return Parity.parse(value)
+
+    @field_validator("data_format", mode="before")
+    @classmethod
+    def _format(cls, value: Any) -> Any:
+        return _parse_format(value)
+
+    @field_validator("transport", "address_prefix", "report_mode", "rs485", mode="before")
+    @classmethod
+    def _lower(cls, value: Any) -> Any:
+        return _lower_literal(value)
+
+    @field_validator("encoding")
+    @classmethod
+    def _encoding(cls, value: str) -> str:
+        return _check_encoding(value)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _ng_aliases(cls, data: Any) -> Any:
+        """NG spellings -> ours (after key normalisation); disagreements are errors."""
+        if not isinstance(data, Mapping):
+            return data
+        data = cls.normalize_keys(data, cls._where)
+        problems: list[Problem] = []
+        for ng, ours in (
+            ("maxGap", "maxMergeAddressGap"),
+            ("maxBatch", "maxBlockReadRegisterCount"),
+        ):
+            if ng in data:
+                value = data.pop(ng)
+                if ours in data and data[ours] != value:
+                    problems.append(Problem(ng, value, f"disagrees with {ours} {data[ours]!r}"))
+                else:
+                    data[ours] = value
+        if "byteOrder" in data or "wordOrder" in data:
+            byte_order = data.pop("byteOrder", "BigEndian")
+            word_order = data.pop("wordOrder", "BigEndian")
+            try:
+                fmt = DataFormat.from_orders(str(byte_order), str(word_order))
+            except ValueError as exc:
+                problems.append(Problem("byteOrder/wordOrder", NO_VALUE, str(exc)))
+            else:
+                given = data.get("dataFormat")
+                if given is not None and _parse_format_or_none(given) is not fmt:
+                    problems.append(
+                        Problem(
+                            "dataFormat", given, f"disagrees with byteOrder/wordOrder ({fmt.value})"
+                        )
+                    )
+                data["dataFormat"] = fmt
+        if problems:
+            raise ConfigError(problems)
+        return data
+
+    @model_validator(mode="after")
+    def _cross_checks(self) -> DriverModbusRtuParameter:
+        problems: list[Problem] = []
+        fields_set = self.model_fields_set
+        if "transport" not in fields_set:
+            self.transport = "rtu-over-tcp" if self.use_tcp else "rtu"
+        elif "use_tcp" not in fields_set:
+            self.use_tcp = self.transport != "rtu"
+        elif self.use_tcp != (self.transport != "rtu"):
+            problems.append(
+                Problem("useTcp", self.use_tcp, f"contradicts transport {self.transport!r}")
+            )
+        if self.transport == "tcp":
+            pass  # a Modbus TCP unit id may be 0..255
+        elif not 1 <= self.slave_id <= 247:
+            problems.append(
+                Problem(
+                    "slaveId",
+                    self.slave_id,
+                    f"must be 1..247 on an RTU line (transport {self.transport!r}); "
+                    "0..255 only as a Modbus TCP unit id",
+                )
+            )
+        if self.transport == "rtu" and not self.com_port.strip():
+            problems.append(Problem("comPort", self.com_port, "a serial port is required"))
+        if self.transport != "rtu" and not self.tcp_host.strip():
+            problems.append(Problem("tcpHost", self.tcp_host, "a host is required"))
+        if problems:
+            raise ConfigError(problems)
+        return self
+
+    @field_serializer("parity")
+    def _ser_parity(self, value: Parity) -> str:
+        return value.value
+
+    @property
+    def effective_settle_timeout(self) -> int:
+        """Settle time in ms: ``settleTimeout``, or ``readTimeout`` when unset."""
+        return self.read_timeout if self.settle_timeout is None else self.settle_timeout
+
+
+def _parse_format_or_none(value: Any) -> DataFormat | None:
+    try:
+        return DataFormat.parse(value) if isinstance(value, str) else value
+    except ValueError:
+        return None
+
+
+# --------------------------------------------------------------------------- organization
+
+
+class DeviceOrganizationParameter(_Model):
+    """The device's organisation record; its timing fields override communication's."""
+
+    _where: ClassVar[str] = "organization"
+
+    device_id: str | None = None
+    device_code: str | None = None
+    device_name: str | None = None
+    description: str | None = None
+    is_enable: bool | None = None
+    connect_timeout: OptionalMs = None
+    reconnect_interval: OptionalMs = None
+    read_cycle: OptionalMs = None
+    created_at: datetime | None = None
+    last_modified: datetime | None = None
+    metadata: dict[str, Any] = Field(default_factory=dict)
+
+    @field_validator("created_at", "last_modified", mode="before")
+    @classmethod
+    def _ts(cls, value: Any) -> Any:
+        return _timestamp(value)
+
+
+_OVERRIDES = ("read_cycle", "connect_timeout", "reconnect_interval")
+
+
+def effective_parameters(
+    org: DeviceOrganizationParameter | None, comm: DriverModbusRtuParameter
+) -> DriverModbusRtuParameter:
+    """A copy of ``comm`` with the organisation's readCycle/connectTimeout/
+    reconnectInterval applied where set."""
+    update = (
+        {}
+        if org is None
+        else {name: getattr(org, name) for name in _OVERRIDES if getattr(org, name) is not None}
+    )
+    return comm.model_copy(update=update)
+
+
+def device_enabled(org: DeviceOrganizationParameter | None, comm: DriverModbusRtuParameter) -> bool:
+    """A device is polled when the organisation (if it says) and communication enable it."""
+    org_ok = org is None or org.is_enable is None or org.is_enable
+    return bool(org_ok and comm.is_enable)
+
+
+# --------------------------------------------------------------------------- items
+
+
+class DeviceAddressItem(_Model):
+    """One tag.  ``value``, ``status``, ``update_ts`` and ``error_reason`` are runtime
+    state set by the driver's worker thread: assignment is not validated (cheap)."""
+
+    _where: ClassVar[str] = "addressList[]"
+
+    name: str
+    address: str
+    device_data_type: DataType
+    converted_data_type: DataType | None = None
+    data_multiplier: float = 1.0
+    description: str = ""
+    unit: str = ""
+    update_ts: datetime | None = None
+    status: ItemStatus = ItemStatus.UNKNOWN
+    is_enable: bool = True
+    address_changed: bool = False
+    data_format: DataFormat | None = None
+    quantity: Annotated[int | None, Range(1, 65536)] = None
+    deadband: Annotated[float | None, Range(0)] = None
+    encoding: str | None = None
+    value: Any = None
+    error_reason: str | None = None
+
+    @field_validator("name")
+    @classmethod
+    def _name(cls, value: str) -> str:
+        if not value.strip():
+            raise ValueError("an item needs a non-empty name")
+        return value
+
+    @field_validator("address")
+    @classmethod
+    def _address(cls, value: str) -> str:
+        # Syntax only: prefix/base live in communication (checked by validate_items).
+        try:
+            parse_address(value)
+        except ValueError as exc:
+            try:
+                parse_address(value, base=1)
+            except ValueError:
+                raise ValueError(_strip_echo(value, exc)) from None
+        return value
+
+    @field_validator("device_data_type", mode="before")
+    @classmethod
+    def _device_type(cls, value: Any) -> Any:
+        return DataType.parse(value) if isinstance(value, str) else value
+
+    @field_validator("converted_data_type", mode="before")
+    @classmethod
+    def _converted_type(cls, value: Any) -> Any:
+        if value is None or (isinstance(value, str) and not value.strip()):
+            return None
+        return DataType.parse(value) if isinstance(value, str) else value
+
+    @field_validator("data_format", mode="before")
+    @classmethod
+    def _format(cls, value: Any) -> Any:
+        if isinstance(value, str) and not value.strip():
+            return None
+        return _parse_format(value)
+
+    @field_validator("status", mode="before")
+    @classmethod
+    def _status(cls, value: Any) -> Any:
+        return _parse_enum_ci(ItemStatus, value)
+
+    @field_validator("data_multiplier")
+    @classmethod
+    def _multiplier(cls, value: float) -> float:
+        if not math.isfinite(value) or value == 0:
+            raise ValueError("must be a finite number other than 0")
+        return value
+
+    @field_validator("encoding")
+    @classmethod
+    def _encoding(cls, value: str | None) -> str | None:
+        return None if value is None or not value.strip() else _check_encoding(value)
+
+    @field_validator("update_ts", mode="before")
+    @classmethod
+    def _ts(cls, value: Any) -> Any:
+        return _timestamp(value)
+
+    @field_serializer("converted_data_type")
+    def _ser_converted(self, value: DataType | None) -> str:
+        return "" if value is None else value.value
+
+
+def _strip_echo(text: str, exc: ValueError) -> str:
+    """parse_address's message without its leading ``'text': `` (the path shows it)."""
+    message = str(exc)
+    return message.removeprefix(f"{text!r}: ")
+
+
+ALLOWED_QUANTITIES: dict[DataType, tuple[int, ...]] = {
+    DataType.BOOLEAN: (1,),
+    DataType.BYTE: (1,),
+    DataType.SBYTE: (1,),
+    DataType.CHAR: (1,),
+    DataType.INT16: (1,),
+    DataType.UINT16: (1,),
+    DataType.BCD16: (1,),
+    DataType.INT32: (1, 2),
+    DataType.UINT32: (1, 2),
+    DataType.FLOAT: (1, 2),
+    DataType.BCD32: (1, 2),
+    DataType.INT64: (1, 2, 4),
+    DataType.UINT64: (1, 2, 4),
+    DataType.DOUBLE: (1, 2, 4),
+    DataType.DATETIME: (2, 4),
+    DataType.TIMESTAMP: (2, 4),
+}
+"""Register counts an item of each type may read (Smart Cast: fewer registers hold a
+smaller integer that is widened).  String and Binary take any quantity >= 1."""
+
+_AREA_NAMES = {
+    Area.COIL: "coil",
+    Area.DISCRETE_INPUT: "discrete input",
+    Area.HOLDING_REGISTER: "holding register",
+    Area.INPUT_REGISTER: "input register",
+}
+
+
+@dataclass(frozen=True, slots=True)
+class ParsedItem:
+    """An item checked against the communication options, ready for the planner/codec.
+
+    ``registers``: registers (register areas) or bits (1) the item occupies;
+    ``data_format`` and ``encoding`` are the effective ones (item's, else comm's)."""
+
+    item: DeviceAddressItem
+    address: Address
+    data_type: DataType
+    converted_type: DataType | None
+    data_format: DataFormat
+    registers: int
+    quantity: int | None
+    multiplier: float
+    deadband: float | None
+    encoding: str
+
+    @property
+    def name(self) -> str:
+        return self.item.name
+
+
+def _item_registers(
+    item: DeviceAddressItem, addr: Address, path: str, problems: list[Problem]
+) -> int:
+    """Registers/bits the item occupies; appends problems for type/area mismatches."""
+    dtype, quantity = item.device_data_type, item.quantity
+    if addr.area.is_bit or addr.bit is not None:
+        where = (
+            f"a {_AREA_NAMES[addr.area]} holds one bit"
+            if addr.area.is_bit
+            else "a bit address (.N) reads one bit"
+        )
+        if dtype is not DataType.BOOLEAN:
+            problems.append(Problem(f"{path}.deviceDataType", dtype.value, f"{where}: use Boolean"))
+        if quantity not in (None, 1):
+            problems.append(
+                Problem(f"{path}.quantity", quantity, f"{where}: use 1 or leave it out")
+            )
+        return 1
+    if dtype.needs_quantity:
+        if quantity is None:
+            problems.append(
+                Problem(
+                    f"{path}.quantity",
+                    NO_VALUE,
+                    f"{dtype.value} needs quantity (its length in registers)",
+                )
+            )
+            return 1
+        return quantity
+    if quantity is None:
+        return dtype.registers
+    allowed = ALLOWED_QUANTITIES[dtype]
+    if quantity not in allowed:
+        problems.append(
+            Problem(
+                f"{path}.quantity",
+                quantity,
+                f"{dtype.value} allows quantity {' or '.join(map(str, allowed))} (or leave it out)",
+            )
+        )
+        return dtype.registers
+    return quantity
+
+
+def validate_items(
+    items: Sequence[DeviceAddressItem], comm: DriverModbusRtuParameter
+) -> list[ParsedItem]:
+    """Check every item against ``comm`` (address prefix/base, type vs area, quantity,
+    span, unique names) and return them parsed, in order.  Raises one ConfigError
+    listing every problem with its path (``addressList[3].address`` ...)."""
+    problems: list[Problem] = []
+    parsed: list[ParsedItem] = []
+    first_index: dict[str, int] = {}
+    for i, item in enumerate(items):
+        path = f"addressList[{i}]"
+        before = len(problems)
+        if item.name in first_index:
+            problems.append(
+                Problem(
+                    f"{path}.name",
+                    item.name,
+                    f"duplicate item name (also addressList[{first_index[item.name]}])",
+                )
+            )
+        else:
+            first_index[item.name] = i
+        try:
+            addr = parse_address(item.address, comm.address_prefix, comm.address_base)
+        except ValueError as exc:
+            problems.append(
+                Problem(f"{path}.address", item.address, _strip_echo(item.address, exc))
+            )
+            continue
+        registers = _item_registers(item, addr, path, problems)
+        try:
+            check_span(addr, registers)
+        except ValueError as exc:
+            message = str(exc).removeprefix(f"{addr}: ")
+            problems.append(Problem(f"{path}.address", item.address, message))
+        if len(problems) > before:
+            continue
+        parsed.append(
+            ParsedItem(
+                item=item,
+                address=addr,
+                data_type=item.device_data_type,
+                converted_type=item.converted_data_type,
+                data_format=item.data_format or comm.data_format,
+                registers=registers,
+                quantity=item.quantity,
+                multiplier=item.data_multiplier,
+                deadband=item.deadband,
+                encoding=item.encoding or comm.encoding,
+            )
+        )
+    if problems:
+        raise ConfigError(problems)
+    return parsed
+
+
+# --------------------------------------------------------------------------- device file
+
+
+class DeviceConfig(_Model):
+    """A whole device file: driver type, organisation, communication, address list."""
+
+    driver_type: str = "DriverModbusRtu"
+    organization: DeviceOrganizationParameter = Field(default_factory=DeviceOrganizationParameter)
+    communication: DriverModbusRtuParameter = Field(default_factory=DriverModbusRtuParameter)
+    address_list: list[DeviceAddressItem] = Field(default_factory=list)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _nested_keys(cls, data: Any) -> Any:
+        """Warn about unknown nested keys with their full paths before pydantic sees them."""
+        if not isinstance(data, Mapping):
+            return data
+        data = cls.normalize_keys(data, "")
+        for key, model in (
+            ("organization", DeviceOrganizationParameter),
+            ("communication", DriverModbusRtuParameter),
+        ):
+            if isinstance(data.get(key), Mapping):
+                data[key] = model.normalize_keys(data[key], key, key)
+        items = data.get("addressList")
+        if isinstance(items, list):
+            data["addressList"] = [
+                DeviceAddressItem.normalize_keys(it, f"addressList[{i}]", f"addressList[{i}]")
+                if isinstance(it, Mapping)
+                else it
+                for i, it in enumerate(items)
+            ]
+        return data
+
+    @model_validator(mode="after")
+    def _items(self) -> DeviceConfig:
+        validate_items(self.address_list, self.communication)
+        return self
+
+    def parsed_items(self) -> list[ParsedItem]:
+        """The address list checked and parsed against the communication options."""
+        return validate_items(self.address_list, self.communication)
+
+    def effective_parameters(self) -> DriverModbusRtuParameter:
+        """Communication with the organisation's overrides applied."""
+        return effective_parameters(self.organization, self.communication)
+
+    @property
+    def enabled(self) -> bool:
+        return device_enabled(self.organization, self.communication)
+
+
+# --------------------------------------------------------------------------- loading
+
+_M = TypeVar("_M", bound=_Model)
+
+
+def _read_json(source: str | os.PathLike[str] | Mapping[str, Any]) -> tuple[Any, str]:
+    """(decoded JSON, name of the source for messages)."""
+    if isinstance(source, Mapping):
+        return dict(source), "<dict>"
+    if isinstance(source, str) and source.lstrip("\ufeff \t\r\n").startswith(("{", "[")):
+        text, name = source, "<json text>"
+    elif isinstance(source, (str, os.PathLike)):
+        name = os.fspath(source)
+        text = Path(name).read_text(encoding="utf-8-sig")
+    else:
+        raise TypeError(f"config source {source!r}: use a path, a str of JSON or a dict")
+    try:
+        return json.loads(text.lstrip("\ufeff")), name
+    except json.JSONDecodeError as exc:
+        raise ConfigError(
+            [
+                Problem(
+                    name,
+                    NO_VALUE,
+                    f"invalid JSON: {exc.msg} at line {exc.lineno} column {exc.colno}",
+                )
+            ]
+        ) from None
+
+
+def _load(model: type[_M], source: str | os.PathLike[str] | Mapping[str, Any]) -> _M:
+    data, name = _read_json(source)
+    if not isinstance(data, Mapping):
+        raise ConfigError([Problem(name, NO_VALUE, "the file must hold a JSON object")])
+    try:
+        return model.model_validate(data)
+    except ValidationError as exc:
+        raise ConfigError.from_validation_error(exc) from None
+
+
+def load_device_config(source: str | os.PathLike[str] | Mapping[str, Any]) -> DeviceConfig:
+    """Load a device file: a path, a str of JSON text, or a dict.  Raises ConfigError."""
+    return _load(DeviceConfig, source)
+
+
+def load_communication(
+    source: str | os.PathLike[str] | Mapping[str, Any],
+) -> DriverModbusRtuParameter:
+    """Load communication parameters alone (the seed's ``modbusRtu.json``)."""
+    return _load(DriverModbusRtuParameter, source)

@@ -1,0 +1,154 @@
+"""The driver descriptor (the seed's descriptor JSON), generated so that it cannot drift.
+
+Parameters come from :class:`~edgemodbus.config.DriverModbusRtuParameter`'s fields:
+their defaults, ranges, choices, descriptions and UI metadata (``json_schema_extra``).
+The address regex and examples come from :mod:`edgemodbus.address`.
+"""
+
+from __future__ import annotations
+
+import enum
+import types
+import typing
+from typing import Any, Literal
+
+from pydantic.fields import FieldInfo
+
+from .address import address_regex, check_base, check_prefix, parse_address, type_number
+from .config import Choice, DriverModbusRtuParameter, Parity, Range
+from .datatypes import Area, DataType
+
+DRIVER_TYPE = "DriverModbusRtu"
+
+EXAMPLE_KEYS: dict[str, Area] = {
+    "coil": Area.COIL,
+    "discreteInput": Area.DISCRETE_INPUT,
+    "holdingRegister": Area.HOLDING_REGISTER,
+    "inputRegister": Area.INPUT_REGISTER,
+}
+
+_AREA_TITLES = {
+    Area.COIL: "Coil",
+    Area.DISCRETE_INPUT: "Discrete Input",
+    Area.HOLDING_REGISTER: "Holding Register",
+    Area.INPUT_REGISTER: "Input Register",
+}
+
+
+def driver_descriptor(prefix: str = "function-code", base: int = 0) -> dict[str, Any]:
+    """The descriptor JSON (a dict) for the address options ``prefix`` and ``base``."""
+    prefix = check_prefix(prefix)
+    base = check_base(base)
+    return {
+        "protocolCategory": "Generic",
+        "driverType": DRIVER_TYPE,
+        "description": "Modbus RTU driver (serial RTU, RTU over TCP, Modbus TCP)",
+        "supportedDataTypes": [t.value for t in DataType],
+        "addressRegex": address_regex(prefix, base),
+        "supportsPresets": False,
+        "allowManualAddress": True,
+        "hasBuiltInAddresses": False,
+        "supportsDynamicBrowse": False,
+        "addressList": [],
+        "addressExamples": _examples(prefix, base),
+        "parameter": parameters(prefix, base),
+    }
+
+
+def _examples(prefix: str, base: int) -> dict[str, str]:
+    examples = {key: f"{type_number(area, prefix)}:00001" for key, area in EXAMPLE_KEYS.items()}
+    for key, area in EXAMPLE_KEYS.items():  # the examples must parse to their area
+        if parse_address(examples[key], prefix, base).area is not area:
+            raise RuntimeError(f"address example {key} {examples[key]!r} is not a {area}")
+    numbering = " ".join(
+        f"{type_number(area, prefix)}={_AREA_TITLES[area]}"
+        for area in sorted(_AREA_TITLES, key=lambda a: type_number(a, prefix))
+    )
+    scheme = "按读功能码编号" if prefix == "function-code" else "Modicon 编号"
+    offsets = "0..65535,协议地址(0 基)" if base == 0 else "1..65536,1 基(addressBase 1)"
+    examples["note"] = (
+        f"格式为 [<类型>:]<偏移>[.<位>],类型 {numbering}({scheme});"
+        "也可写 coil/c、di/discreteinput、hr/holding、ir/input(不区分大小写),省略类型即 hr;"
+        f"偏移为十进制 {offsets},可带前导零;.<位> (0..15) 仅用于 hr/ir 寄存器"
+    )
+    return examples
+
+
+def parameters(prefix: str = "function-code", base: int = 0) -> list[dict[str, Any]]:
+    """One descriptor entry per communication parameter, in field order."""
+    in_force: dict[str, Any] = {"addressPrefix": prefix, "addressBase": base}
+    order: dict[str, int] = {}
+    entries = []
+    for name, field in DriverModbusRtuParameter.model_fields.items():
+        ui = field.json_schema_extra
+        if not isinstance(ui, dict):
+            raise TypeError(f"DriverModbusRtuParameter.{name}: descriptor metadata missing")
+        key = field.alias or name
+        category = str(ui["category"])
+        order[category] = order.get(category, 0) + 1
+        entry: dict[str, Any] = {
+            "defaultValue": in_force.get(key, _ui_value(field.default)),
+            "description": field.description or "",
+            "label": ui["label"],
+            "name": key,
+            "orderNo": order[category],
+            "type": ui.get("type") or _ui_type(field),
+            "category": category,
+            "controlType": ui["controlType"],
+        }
+        options = ui.get("options", _options(field))
+        if options is not None:
+            entry["options"] = options
+        for meta in field.metadata:
+            if isinstance(meta, Range):
+                entry["min"] = _plain(meta.lo)
+                if meta.hi is not None:
+                    entry["max"] = _plain(meta.hi)
+        for extra in ("visibleWhen", "dataSource"):
+            if extra in ui:
+                entry[extra] = ui[extra]
+        entries.append(entry)
+    return entries
+
+
+def _plain(x: float) -> int | float:
+    return int(x) if float(x).is_integer() else x
+
+
+def _ui_value(value: Any) -> Any:
+    if isinstance(value, Parity):
+        return value.number
+    if isinstance(value, enum.Enum):
+        return value.value
+    return value
+
+
+def _base_types(field: FieldInfo) -> list[Any]:
+    annotation = field.annotation
+    origin = typing.get_origin(annotation)
+    if origin is typing.Union or origin is types.UnionType:
+        return [a for a in typing.get_args(annotation) if a is not type(None)]
+    return [annotation]
+
+
+def _ui_type(field: FieldInfo) -> str:
+    (kind,) = _base_types(field)
+    if kind is bool:
+        return "bool"
+    if kind is int:
+        return "int"
+    if kind is float:
+        return "double"
+    return "string"
+
+
+def _options(field: FieldInfo) -> list[Any] | None:
+    for meta in field.metadata:
+        if isinstance(meta, Choice):
+            return list(meta.values)
+    (kind,) = _base_types(field)
+    if typing.get_origin(kind) is Literal:
+        return list(typing.get_args(kind))
+    if isinstance(kind, type) and issubclass(kind, enum.Enum):
+        return [_ui_value(m) for m in kind]
+    return None

@@ -1,0 +1,226 @@
+"""Read planner: items -> as few read requests (blocks) as the merge rules allow.
+
+Pure and I/O-free.  The driver filters out disabled items and groups by slave before
+calling :func:`plan_reads`; the planner only knows areas, offsets and sizes.
+
+Rules (DESIGN.md "Planner"): per area, items sorted by offset (ties keep input order);
+a block grows while ``next.offset - block.end <= max_gap`` (end exclusive, so contiguous
+items have gap 0 and overlapping items share registers) and its span stays within the
+limit (``max_registers`` capped at 125, ``max_bits`` capped at 2000).  ``continuous``
+forces gap 0.  Areas never merge (FC03 and FC04 are different areas).  An item larger
+than the limit gets blocks of its own and is read in pieces; its :class:`Piece` entries
+say how to reassemble it.  Output order: by area value, then start.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Collection, Hashable, Iterable
+from dataclasses import dataclass
+from operator import itemgetter
+
+from .datatypes import Area
+
+REGISTER_CAP = 125
+BIT_CAP = 2000
+_ADDRESS_SPACE = 0x10000
+
+
+@dataclass(frozen=True, slots=True)
+class PlanItem:
+    """One thing to read: ``size`` registers (register areas) or bits from ``offset``."""
+
+    key: Hashable
+    area: Area
+    offset: int
+    size: int
+
+
+@dataclass(frozen=True, slots=True)
+class Piece:
+    """Registers ``[item_offset, item_offset + size)`` of item ``key`` are at
+    ``block_offset`` inside the block.  A whole item is one piece with item_offset 0."""
+
+    key: Hashable
+    item_offset: int
+    block_offset: int
+    size: int
+
+
+@dataclass(frozen=True, slots=True)
+class ReadBlock:
+    """One read request: ``count`` registers/bits of ``area`` from ``start``."""
+
+    area: Area
+    start: int
+    count: int
+    pieces: tuple[Piece, ...]
+
+    @property
+    def keys(self) -> tuple[Hashable, ...]:
+        return tuple(p.key for p in self.pieces)
+
+    @property
+    def end(self) -> int:
+        """First address after the block (exclusive)."""
+        return self.start + self.count
+
+
+@dataclass(frozen=True, slots=True)
+class Limits:
+    """Effective merge limits: span caps per kind of area and the allowed gap."""
+
+    registers: int
+    bits: int
+    gap: int
+
+    def span(self, area: Area) -> int:
+        return self.bits if area.is_bit else self.registers
+
+
+def make_limits(
+    max_registers: int = 120, max_bits: int = 2000, max_gap: int = 10, continuous: bool = False
+) -> Limits:
+    """Validate the settings and apply the protocol caps (125 registers, 2000 bits)."""
+    if max_registers < 1:
+        raise ValueError(f"max_registers {max_registers}: must be at least 1")
+    if max_bits < 1:
+        raise ValueError(f"max_bits {max_bits}: must be at least 1")
+    if max_gap < 0:
+        raise ValueError(f"max_gap {max_gap}: must be 0 or more")
+    return Limits(
+        min(max_registers, REGISTER_CAP), min(max_bits, BIT_CAP), 0 if continuous else max_gap
+    )
+
+
+# A run of (key, item_offset, absolute start, size) segments, sorted by start.
+_Segment = tuple[Hashable, int, int, int]
+
+
+def _merge(area: Area, segments: list[_Segment], span: int, gap: int) -> list[ReadBlock]:
+    """Greedy merge of segments sorted by start; every segment fits within ``span``."""
+    blocks: list[ReadBlock] = []
+    append = blocks.append
+    start = end = -_ADDRESS_SPACE - 1  # no open block: any segment fails the gap test
+    pieces: list[Piece] = []
+    for key, item_offset, seg_start, size in segments:
+        seg_end = seg_start + size
+        new_end = seg_end if seg_end > end else end
+        if seg_start - end <= gap and new_end - start <= span:
+            end = new_end
+        else:
+            if pieces:
+                append(ReadBlock(area, start, end - start, tuple(pieces)))
+            start, end, pieces = seg_start, seg_end, []
+        pieces.append(Piece(key, item_offset, seg_start - start, size))
+    if pieces:
+        append(ReadBlock(area, start, end - start, tuple(pieces)))
+    return blocks
+
+
+def _oversized(area: Area, key: Hashable, offset: int, size: int, span: int) -> list[ReadBlock]:
+    """Blocks of their own for an item larger than one block, in pieces of ``span``."""
+    return [
+        ReadBlock(area, offset + done, n, (Piece(key, done, 0, n),))
+        for done in range(0, size, span)
+        for n in (min(span, size - done),)
+    ]
+
+
+def plan_reads(
+    items: Iterable[PlanItem],
+    *,
+    max_registers: int = 120,
+    max_bits: int = 2000,
+    max_gap: int = 10,
+    continuous: bool = False,
+) -> list[ReadBlock]:
+    """Plan the read requests that cover every item exactly once (see module doc).
+
+    ``items`` must have distinct keys and lie within 0..65535; the driver passes only
+    enabled items.  Raises ValueError for a bad item or setting.
+    """
+    limits = make_limits(max_registers, max_bits, max_gap, continuous)
+    span_of = {area: limits.span(area) for area in Area}
+    by_area: dict[Area, list[_Segment]] = {area: [] for area in Area}
+    blocks: list[ReadBlock] = []
+    seen: set[Hashable] = set()
+    for item in items:
+        key, area, offset, size = item.key, item.area, item.offset, item.size
+        if key in seen:
+            raise ValueError(f"plan item {key!r}: duplicate key")
+        seen.add(key)
+        if size < 1 or offset < 0 or offset + size > _ADDRESS_SPACE:
+            raise ValueError(
+                f"plan item {key!r}: offset {offset} size {size} must lie within 0..65535"
+            )
+        span = span_of[area]
+        if size > span:
+            blocks.extend(_oversized(area, key, offset, size, span))
+        else:
+            by_area[area].append((key, 0, offset, size))
+    for area, segments in by_area.items():
+        segments.sort(key=_segment_start)  # stable: ties keep input order
+        blocks.extend(_merge(area, segments, span_of[area], limits.gap))
+    blocks.sort(key=_block_order)
+    return blocks
+
+
+_segment_start = itemgetter(2)
+
+
+def _block_order(block: ReadBlock) -> tuple[int, int]:
+    return block.area.value, block.start
+
+
+def split_block(
+    block: ReadBlock,
+    bad_keys: Collection[Hashable],
+    *,
+    max_registers: int = 120,
+    max_bits: int = 2000,
+    max_gap: int = 10,
+    continuous: bool = False,
+) -> list[ReadBlock]:
+    """Give each bad key's piece a block of its own and re-plan the block's other pieces
+    (same limits) in as few blocks as possible.  Keys not in the block are ignored."""
+    limits = make_limits(max_registers, max_bits, max_gap, continuous)
+    isolated: list[ReadBlock] = []
+    rest: list[_Segment] = []
+    for p in block.pieces:
+        start = block.start + p.block_offset
+        if p.key in bad_keys:
+            isolated.append(
+                ReadBlock(block.area, start, p.size, (Piece(p.key, p.item_offset, 0, p.size),))
+            )
+        else:
+            rest.append((p.key, p.item_offset, start, p.size))
+    rest.sort(key=_segment_start)
+    blocks = isolated + _merge(block.area, rest, limits.span(block.area), limits.gap)
+    blocks.sort(key=_block_order)
+    return blocks
+
+
+def _shrink(block: ReadBlock, indexes: list[int]) -> ReadBlock:
+    """A block over exactly the span of the given pieces of ``block`` (kept in order)."""
+    pieces = [block.pieces[i] for i in sorted(indexes)]
+    first = min(p.block_offset for p in pieces)
+    last = max(p.block_offset + p.size for p in pieces)
+    return ReadBlock(
+        block.area,
+        block.start + first,
+        last - first,
+        tuple(Piece(p.key, p.item_offset, p.block_offset - first, p.size) for p in pieces),
+    )
+
+
+def bisect_block(block: ReadBlock) -> list[ReadBlock]:
+    """Split a block of several pieces into two blocks of about half the pieces each
+    (by position), each shrunk to its pieces' span.  The driver recurses on a block
+    answered with exception 02 until the bad single items are found.  A block of one
+    piece comes back alone, unchanged."""
+    pieces = block.pieces
+    if len(pieces) < 2:
+        return [block]
+    by_position = sorted(range(len(pieces)), key=lambda i: (pieces[i].block_offset, i))
+    half = (len(by_position) + 1) // 2
+    return [_shrink(block, by_position[:half]), _shrink(block, by_position[half:])]
