@@ -1,0 +1,1383 @@
+"""A multi-slave Modbus RTU slave with fault injection, for the demo and for tests.
+
+One :class:`Simulator` plays every slave of one RS-485 "line". It serves raw RTU frames
+(slave id + PDU + CRC-16/MODBUS, no MBAP header) over TCP, as a transparent DTU or serial
+server would, and over a pseudo-terminal whose slave side a master opens as a serial
+port. Every TCP connection is a line of its own (its own receive buffer); the slaves and
+their data are shared by all lines.
+
+Values start DERIVED FROM THEIR ADDRESS (:func:`default_register`, :func:`default_bit`),
+so a value that came from the wrong request is detectable. Per-slave movers make values
+change over time (computed lazily from the clock at request time), and per-slave
+:class:`Faults` knobs, settable at runtime from any thread, misbehave on the wire in the
+ways real slaves, adapters and DTUs do.
+
+One background thread runs a ``selectors`` loop for every listener, connection and pty;
+delayed and chunked replies are scheduled on a timer heap, never slept on, so a slow
+slave does not hold up other connections, and an idle simulator blocks in ``select``.
+
+This module is pure Python (stdlib only) and never touches libmodbus, so it can check
+the master library from the outside.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import contextlib
+import dataclasses
+import functools
+import heapq
+import itertools
+import logging
+import math
+import os
+import random
+import selectors
+import signal
+import socket
+import struct
+import sys
+import threading
+import time
+import tty
+from array import array
+from collections.abc import Callable, Iterable, Sequence
+from typing import Any
+
+from .datatypes import Area
+
+__all__ = [
+    "CounterMover",
+    "Faults",
+    "FloatSineMover",
+    "Mover",
+    "RandomWalkMover",
+    "Simulator",
+    "SineMover",
+    "Slave",
+    "add_demo_movers",
+    "default_bit",
+    "default_register",
+    "main",
+]
+
+log = logging.getLogger(__name__)
+
+#: Highest unicast slave address (Modbus over Serial Line v1.02, 2.2: 1..247; 0 = broadcast).
+MAX_SLAVE_ID = 247
+DEFAULT_SIZE = 10_000
+
+# Function codes (Application Protocol v1.1b3, 6.1-6.16).
+_READ_COILS, _READ_DI, _READ_HR, _READ_IR = 0x01, 0x02, 0x03, 0x04
+_WRITE_COIL, _WRITE_REG, _WRITE_COILS, _WRITE_REGS, _MASK_WRITE = 0x05, 0x06, 0x0F, 0x10, 0x16
+_WRITE_FCS = frozenset({_WRITE_COIL, _WRITE_REG, _WRITE_COILS, _WRITE_REGS, _MASK_WRITE})
+_READ_AREA = {
+    _READ_COILS: Area.COIL,
+    _READ_DI: Area.DISCRETE_INPUT,
+    _READ_HR: Area.HOLDING_REGISTER,
+    _READ_IR: Area.INPUT_REGISTER,
+}
+
+# Exception codes (Application Protocol v1.1b3, 7).
+_ILLEGAL_FUNCTION, _ILLEGAL_ADDRESS, _ILLEGAL_VALUE, _SLAVE_FAILURE = 0x01, 0x02, 0x03, 0x04
+
+_RX_LIMIT = 4096  # a request is at most 256 bytes (Serial Line 2.5.1); more is garbage
+
+
+def default_register(slave: int, address: int) -> int:
+    """Initial value of holding and input register ``address`` of ``slave``."""
+    return (slave * 1000 + address) & 0xFFFF
+
+
+def default_bit(slave: int, address: int) -> bool:
+    """Initial value of coil and discrete input ``address`` of ``slave``."""
+    return (address + slave) % 2 == 0
+
+
+# --- CRC-16/MODBUS (Serial Line v1.02, 2.5.1.2 and appendix B): poly 0xA001 reflected,
+# init 0xFFFF, sent low byte first.
+
+
+def _make_crc_table() -> list[int]:
+    table = []
+    for byte in range(256):
+        crc = byte
+        for _ in range(8):
+            crc = (crc >> 1) ^ 0xA001 if crc & 1 else crc >> 1
+        table.append(crc)
+    return table
+
+
+_CRC_TABLE = _make_crc_table()
+
+
+def _crc16(data: bytes | bytearray | memoryview) -> int:
+    crc = 0xFFFF
+    for b in data:
+        crc = (crc >> 8) ^ _CRC_TABLE[(crc ^ b) & 0xFF]
+    return crc
+
+
+def _frame(slave: int, pdu: bytes) -> bytes:
+    """ADU = address + PDU + CRC (low byte first)."""
+    body = bytes([slave & 0xFF]) + pdu
+    return body + struct.pack("<H", _crc16(body))
+
+
+def _crc_ok(frame: bytes | bytearray) -> bool:
+    return len(frame) >= 4 and _crc16(frame[:-2]) == frame[-2] | (frame[-1] << 8)
+
+
+# --- request framing ------------------------------------------------------------------
+
+_NEED_MORE = -1
+_UNKNOWN = -2
+
+
+def _request_length(buf: bytearray, i: int) -> int:
+    """Length of the request frame starting at ``buf[i]``, computed from its PDU, or
+    _NEED_MORE (header incomplete) or _UNKNOWN (function code of unknown length)."""
+    avail = len(buf) - i
+    if avail < 2:
+        return _NEED_MORE
+    fc = buf[i + 1]
+    if fc in (1, 2, 3, 4, 5, 6):
+        return 8  # addr fc a_hi a_lo q_hi q_lo crc crc
+    if fc in (_WRITE_COILS, _WRITE_REGS):
+        if avail < 7:
+            return _NEED_MORE
+        return 9 + buf[i + 6]  # addr fc addr(2) qty(2) byte_count data crc(2)
+    if fc == _MASK_WRITE:
+        return 10  # addr fc addr(2) and(2) or(2) crc(2)
+    return _UNKNOWN
+
+
+def _split_frames(buf: bytearray, idle: bool) -> tuple[list[bytes], int, int]:
+    """Cut request frames with a valid CRC out of ``buf``.
+
+    Returns (frames, bytes consumed, bytes discarded as garbage). Without ``idle`` only
+    frames whose length the PDU fixes are cut and an incomplete tail is kept; with
+    ``idle`` (the line has been silent for t3.5, Serial Line 2.5.1.1) everything left is
+    resolved: a frame of unknown function code is the whole remainder if its CRC holds,
+    anything else is discarded one byte at a time until a valid frame lines up.
+    """
+    frames: list[bytes] = []
+    i = 0
+    discarded = 0
+    n = len(buf)
+    while i < n:
+        if buf[i] > MAX_SLAVE_ID:  # 248..255 are reserved addresses: garbage
+            i += 1
+            discarded += 1
+            continue
+        need = _request_length(buf, i)
+        if need in (_NEED_MORE, _UNKNOWN):
+            if idle:
+                rest = bytes(buf[i:])
+                if need == _UNKNOWN and _crc_ok(rest):
+                    frames.append(rest)
+                    i = n
+                else:
+                    i += 1
+                    discarded += 1
+                continue
+            if need == _UNKNOWN:
+                # Perhaps garbage before a frame of known length: look ahead for one.
+                j = _find_known_frame(buf, i + 1)
+                if j >= 0:
+                    discarded += j - i
+                    i = j
+                    continue
+            break
+        if n - i < need:
+            if idle:
+                i += 1
+                discarded += 1
+                continue
+            break
+        candidate = bytes(buf[i : i + need])
+        if _crc_ok(candidate):
+            frames.append(candidate)
+            i += need
+        else:
+            i += 1
+            discarded += 1
+    return frames, i, discarded
+
+
+def _find_known_frame(buf: bytearray, start: int) -> int:
+    for j in range(start, len(buf)):
+        if buf[j] > MAX_SLAVE_ID:
+            continue
+        need = _request_length(buf, j)
+        if need > 0 and len(buf) - j >= need and _crc_ok(buf[j : j + need]):
+            return j
+    return -1
+
+
+# --- movers ---------------------------------------------------------------------------
+
+
+class Mover:
+    """A register range whose values follow the clock (computed when read, no thread).
+
+    ``values(elapsed)`` gives the raw 16-bit registers ``elapsed`` seconds after the
+    mover was added to a slave.
+    """
+
+    area: Area
+    address: int
+
+    @property
+    def count(self) -> int:
+        raise NotImplementedError
+
+    def values(self, elapsed: float) -> list[int]:
+        raise NotImplementedError
+
+    def _check(self) -> None:
+        if self.area.is_bit:
+            raise ValueError(f"{type(self).__name__}: movers drive registers, not {self.area}")
+        if self.address < 0 or self.count < 1 or self.address + self.count > 0x10000:
+            raise ValueError(f"{type(self).__name__}: bad address range")
+
+
+@dataclasses.dataclass
+class CounterMover(Mover):
+    """``count`` registers counting up by ``step`` every ``interval_ms`` (wrapping at
+    16 bits); register i holds ``start + i + step * ticks``."""
+
+    area: Area = Area.HOLDING_REGISTER
+    address: int = 0
+    registers: int = 1
+    interval_ms: float = 1000.0
+    step: int = 1
+    start: int = 0
+
+    def __post_init__(self) -> None:
+        if self.interval_ms <= 0:
+            raise ValueError("CounterMover: interval_ms must be > 0")
+        self._check()
+
+    @property
+    def count(self) -> int:
+        return self.registers
+
+    def values(self, elapsed: float) -> list[int]:
+        ticks = int(elapsed * 1000.0 // self.interval_ms)
+        return [(self.start + i + self.step * ticks) & 0xFFFF for i in range(self.registers)]
+
+
+def _int16(value: float) -> int:
+    """Round and clip to int16, as the raw (two's complement) register."""
+    return max(-0x8000, min(0x7FFF, round(value))) & 0xFFFF
+
+
+@dataclasses.dataclass
+class SineMover(Mover):
+    """``count`` int16 registers following ``offset + amplitude * sin(2 pi t / period_s)``;
+    register i lags by i / registers of a period."""
+
+    area: Area = Area.HOLDING_REGISTER
+    address: int = 0
+    registers: int = 1
+    period_s: float = 10.0
+    amplitude: float = 1000.0
+    offset: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.period_s <= 0:
+            raise ValueError("SineMover: period_s must be > 0")
+        self._check()
+
+    @property
+    def count(self) -> int:
+        return self.registers
+
+    def values(self, elapsed: float) -> list[int]:
+        out = []
+        for i in range(self.registers):
+            phase = 2.0 * math.pi * (elapsed / self.period_s - i / self.registers)
+            out.append(_int16(self.offset + self.amplitude * math.sin(phase)))
+        return out
+
+
+@dataclasses.dataclass
+class RandomWalkMover(Mover):
+    """``count`` int16 registers each taking a +-``step`` random step every
+    ``interval_ms``, kept within [low, high]; deterministic for a given ``seed``."""
+
+    area: Area = Area.HOLDING_REGISTER
+    address: int = 0
+    registers: int = 1
+    interval_ms: float = 500.0
+    step: int = 10
+    start: int = 0
+    low: int = -1000
+    high: int = 1000
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.interval_ms <= 0 or self.low > self.high:
+            raise ValueError("RandomWalkMover: need interval_ms > 0 and low <= high")
+        self._check()
+        self._rng = random.Random(self.seed)
+        self._current = [min(self.high, max(self.low, self.start))] * self.registers
+        self._done = 0
+
+    @property
+    def count(self) -> int:
+        return self.registers
+
+    def values(self, elapsed: float) -> list[int]:
+        due = int(elapsed * 1000.0 // self.interval_ms)
+        # After a long quiet spell only the last steps matter to a reader.
+        steps = min(max(0, due - self._done), 1000)
+        self._done = max(self._done, due)
+        for _ in range(steps):
+            for i in range(self.registers):
+                v = self._current[i] + self._rng.choice((-self.step, self.step))
+                self._current[i] = min(self.high, max(self.low, v))
+        return [_int16(v) for v in self._current]
+
+
+@dataclasses.dataclass
+class FloatSineMover(Mover):
+    """A float32 at a register pair, big-endian word and byte order (ABCD, Application
+    Protocol 4.2), following ``offset + amplitude * sin(2 pi t / period_s)``."""
+
+    area: Area = Area.HOLDING_REGISTER
+    address: int = 0
+    period_s: float = 10.0
+    amplitude: float = 100.0
+    offset: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.period_s <= 0:
+            raise ValueError("FloatSineMover: period_s must be > 0")
+        self._check()
+
+    @property
+    def count(self) -> int:
+        return 2
+
+    def values(self, elapsed: float) -> list[int]:
+        v = self.offset + self.amplitude * math.sin(2.0 * math.pi * elapsed / self.period_s)
+        hi, lo = struct.unpack(">HH", struct.pack(">f", v))
+        return [hi, lo]
+
+
+# --- faults ---------------------------------------------------------------------------
+
+ExceptionRange = tuple[Area, int, int, int]
+"""(area, start, end exclusive, exception code) for :attr:`Faults.exception_ranges`."""
+
+
+@dataclasses.dataclass(slots=True)
+class Faults:
+    """Fault knobs of one slave. Assign fields at any time from any thread (each
+    assignment is atomic; use :meth:`Slave.set_faults` to change several together).
+
+    "every N" knobs count the replies they could apply to since that knob was last
+    changed and act on the Nth, 2Nth, ...; 0 disables. Each time a knob acts it is
+    counted in ``Slave.stats()["faults"][knob name]``.
+    """
+
+    silent: bool = False
+    """Never answer (the request is not executed either)."""
+    drop_every: int = 0
+    """Execute the request but do not send every Nth reply."""
+    delay: float = 0.0
+    """Seconds before a reply goes out (may exceed the master's timeout: a late reply)."""
+    corrupt_crc_every: int = 0
+    """Flip a bit of the CRC of every Nth reply."""
+    corrupt_data_every: int = 0
+    """Flip a bit of the last data byte of every Nth reply, keeping the original CRC."""
+    wrong_byte_count_every: int = 0
+    """Every Nth read reply carries one data unit (register or bit byte) too few (or,
+    for a single one, too many), with a consistent byte count and a valid CRC."""
+    answer_as: int | None = None
+    """Reply with this slave address instead of our own (valid CRC)."""
+    exception_ranges: list[ExceptionRange] = dataclasses.field(default_factory=list)
+    """Requests touching [start, end) of an area get that exception code. Assign a new
+    list rather than mutating this one from another thread."""
+    close_every: int = 0
+    """Close the TCP connection instead of answering every Nth request (on a pty the
+    request is just not answered)."""
+    trailing_garbage: bytes = b""
+    """Bytes sent right after each good frame."""
+    noise_before: bytes = b""
+    """Bytes sent right before each frame."""
+    split_reply: int = 0
+    """Send each reply in this many chunks, ``split_pause`` seconds apart (<= 1: off)."""
+    split_pause: float = 0.005
+    """Seconds between the chunks of a split reply."""
+    byte_delay: float = 0.0
+    """Send replies one byte at a time, this many seconds apart."""
+    truncate_every: int = 0
+    """Send only the first half of every Nth reply, then nothing."""
+    echo_request: bool = False
+    """Send the request bytes back before the reply (an RS-485 adapter echo)."""
+    random_reply_count: int = 0
+    """Answer the next N requests with random bytes (counts down to 0)."""
+    exception_for_other_function: bool = False
+    """Answer every request with an exception whose function code is not the request's
+    plus 0x80."""
+    answer_broadcast: bool = False
+    """Answer broadcast writes (a real slave must not, Serial Line 2.1)."""
+    refused_functions: frozenset[int] = frozenset()
+    """Function codes this slave does not implement: exception 01 (a device without
+    FC16 or FC22, say)."""
+
+    def clear(self) -> None:
+        """Back to a well-behaved slave."""
+        for f in dataclasses.fields(self):
+            if f.default_factory is not dataclasses.MISSING:
+                setattr(self, f.name, f.default_factory())
+            else:
+                setattr(self, f.name, f.default)
+
+
+# --- slaves ---------------------------------------------------------------------------
+
+# (seconds from now, bytes to send, or None: close the connection)
+_Action = tuple[float, bytes | None]
+
+
+class _Exc(Exception):
+    def __init__(self, code: int) -> None:
+        super().__init__(code)
+        self.code = code
+
+
+class Slave:
+    """One slave: four data areas, movers, fault knobs and counters. Thread-safe."""
+
+    def __init__(self, slave_id: int, size: int = DEFAULT_SIZE) -> None:
+        if not 1 <= slave_id <= MAX_SLAVE_ID:
+            raise ValueError(f"slave id {slave_id} out of 1..{MAX_SLAVE_ID}")
+        if not 1 <= size <= 0x10000:
+            raise ValueError(f"size {size} out of 1..65536")
+        self.slave_id = slave_id
+        self.size = size
+        self.faults = Faults()
+        self._lock = threading.Lock()
+        regs = array("H", [default_register(slave_id, a) for a in range(size)])
+        bits = bytearray(1 if default_bit(slave_id, a) else 0 for a in range(size))
+        self._regs = {Area.HOLDING_REGISTER: regs, Area.INPUT_REGISTER: array("H", regs)}
+        self._bits = {Area.COIL: bits, Area.DISCRETE_INPUT: bytearray(bits)}
+        self._movers: list[tuple[Mover, float]] = []
+        self._ticks: dict[str, tuple[int, int]] = {}
+        self._requests = 0
+        self._replies = 0
+        self._exceptions = 0
+        self._broadcasts = 0
+        self._faults_injected: collections.Counter[str] = collections.Counter()
+
+    def __repr__(self) -> str:
+        return f"Slave({self.slave_id}, size={self.size})"
+
+    # -- data access from the test/demo side
+
+    def get_registers(self, area: Area, address: int, count: int = 1) -> list[int]:
+        """Raw 16-bit values of a holding/input register range (movers applied)."""
+        regs = self._reg_area(area)
+        self._check_range(address, count)
+        with self._lock:
+            self._apply_movers(area, address, count)
+            return list(regs[address : address + count])
+
+    def set_registers(self, area: Area, address: int, values: Sequence[int]) -> None:
+        """Set registers; values in -32768..65535 (negative ones as two's complement)."""
+        regs = self._reg_area(area)
+        self._check_range(address, len(values))
+        for v in values:
+            if not -0x8000 <= v <= 0xFFFF:
+                raise ValueError(f"register value {v} out of 16 bits")
+        with self._lock:
+            for i, v in enumerate(values):
+                regs[address + i] = v & 0xFFFF
+
+    def set_float32(self, area: Area, address: int, value: float) -> None:
+        """Store a float32 at a register pair, ABCD (big-endian) order."""
+        self.set_registers(area, address, struct.unpack(">HH", struct.pack(">f", value)))
+
+    def get_bits(self, area: Area, address: int, count: int = 1) -> list[bool]:
+        bits = self._bit_area(area)
+        self._check_range(address, count)
+        with self._lock:
+            return [bool(b) for b in bits[address : address + count]]
+
+    def set_bits(self, area: Area, address: int, values: Sequence[bool | int]) -> None:
+        bits = self._bit_area(area)
+        self._check_range(address, len(values))
+        with self._lock:
+            for i, v in enumerate(values):
+                bits[address + i] = 1 if v else 0
+
+    def add_mover(self, mover: Mover) -> Mover:
+        """Drive a register range from the clock, starting now; returns the mover."""
+        self._reg_area(mover.area)
+        self._check_range(mover.address, mover.count)
+        with self._lock:
+            self._movers.append((mover, time.monotonic()))
+        return mover
+
+    def clear_movers(self) -> None:
+        """Stop every mover; registers keep their last computed values."""
+        with self._lock:
+            self._movers.clear()
+
+    def set_faults(self, **knobs: Any) -> None:
+        """Set several :class:`Faults` knobs at once, atomically for the serving thread."""
+        names = {f.name for f in dataclasses.fields(Faults)}
+        unknown = set(knobs) - names
+        if unknown:
+            raise AttributeError(f"unknown fault knob(s): {', '.join(sorted(unknown))}")
+        with self._lock:
+            for name, value in knobs.items():
+                setattr(self.faults, name, value)
+
+    def stats(self) -> dict[str, Any]:
+        """requests (unicast frames for us), replies (frames put on the wire),
+        exceptions (exception replies built), broadcasts (broadcasts executed) and
+        faults (times each knob acted, by knob name)."""
+        with self._lock:
+            return {
+                "requests": self._requests,
+                "replies": self._replies,
+                "exceptions": self._exceptions,
+                "broadcasts": self._broadcasts,
+                "faults": dict(self._faults_injected),
+            }
+
+    # -- helpers
+
+    def _reg_area(self, area: Area) -> array[int]:
+        if area.is_bit:
+            raise ValueError(f"{area} is a bit area")
+        return self._regs[area]
+
+    def _bit_area(self, area: Area) -> bytearray:
+        if not area.is_bit:
+            raise ValueError(f"{area} is a register area")
+        return self._bits[area]
+
+    def _check_range(self, address: int, count: int) -> None:
+        if address < 0 or count < 0 or address + count > self.size:
+            raise IndexError(f"range {address}+{count} outside 0..{self.size - 1}")
+
+    def _apply_movers(self, area: Area, address: int, count: int) -> None:
+        """Refresh movers overlapping [address, address+count). Lock held."""
+        if not self._movers:
+            return
+        now = time.monotonic()
+        regs = self._regs[area]
+        for mover, t0 in self._movers:
+            if (
+                mover.area is area
+                and mover.address < address + count
+                and (address < mover.address + mover.count)
+            ):
+                for i, v in enumerate(mover.values(now - t0)):
+                    regs[mover.address + i] = v
+
+    def _every(self, knob: str, n: int) -> bool:
+        """Count one more opportunity for an "every N" knob; True on every Nth."""
+        if n <= 0:
+            self._ticks.pop(knob, None)
+            return False
+        last_n, seen = self._ticks.get(knob, (n, 0))
+        seen = (0 if last_n != n else seen) + 1
+        self._ticks[knob] = (n, seen)
+        return seen % n == 0
+
+    def _fault(self, knob: str) -> None:
+        self._faults_injected[knob] += 1
+
+    # -- serving (called on the loop thread)
+
+    def _handle(self, raw: bytes, pdu: bytes, rng: random.Random, can_close: bool) -> list[_Action]:
+        """Answer one unicast request: the actions to put on the wire."""
+        with self._lock:
+            self._requests += 1
+            f = self.faults
+            if f.silent:
+                self._fault("silent")
+                return []
+            if self._every("close_every", f.close_every):
+                self._fault("close_every")
+                return [(0.0, None)] if can_close else []
+            actions: list[_Action] = []
+            if f.echo_request:
+                self._fault("echo_request")
+                actions.append((0.0, raw))
+            if f.random_reply_count > 0:
+                f.random_reply_count -= 1
+                self._fault("random_reply_count")
+                frame = rng.randbytes(rng.randint(3, 16))
+            else:
+                rpdu = self._execute(pdu)
+                if f.exception_for_other_function:
+                    self._fault("exception_for_other_function")
+                    other = 0x04 if pdu[0] == 0x03 else 0x03
+                    code = rpdu[1] if rpdu[0] & 0x80 else _SLAVE_FAILURE
+                    rpdu = bytes([0x80 | other, code])
+                if rpdu[0] & 0x80:
+                    self._exceptions += 1
+                elif rpdu[0] in _READ_AREA and self._every(
+                    "wrong_byte_count_every", f.wrong_byte_count_every
+                ):
+                    self._fault("wrong_byte_count_every")
+                    rpdu = _wrong_byte_count(rpdu)
+                address = self.slave_id
+                if f.answer_as is not None:
+                    self._fault("answer_as")
+                    address = f.answer_as
+                buf = bytearray(_frame(address, rpdu))
+                # Evaluate every knob so each one's count advances on every reply.
+                drop = self._every("drop_every", f.drop_every)
+                bad_data = self._every("corrupt_data_every", f.corrupt_data_every)
+                bad_crc = self._every("corrupt_crc_every", f.corrupt_crc_every)
+                truncate = self._every("truncate_every", f.truncate_every)
+                if drop:
+                    self._fault("drop_every")
+                    return actions
+                if bad_data:
+                    self._fault("corrupt_data_every")
+                    buf[-3] ^= 0x01  # last byte before the CRC is always data
+                if bad_crc:
+                    self._fault("corrupt_crc_every")
+                    buf[-2] ^= 0x01
+                if truncate:
+                    self._fault("truncate_every")
+                    del buf[max(1, len(buf) // 2) :]
+                frame = bytes(buf)
+            if f.noise_before:
+                self._fault("noise_before")
+                frame = f.noise_before + frame
+            if f.trailing_garbage:
+                self._fault("trailing_garbage")
+                frame = frame + f.trailing_garbage
+            delay = max(0.0, f.delay)
+            if delay > 0:
+                self._fault("delay")
+            if f.byte_delay > 0:
+                self._fault("byte_delay")
+            elif f.split_reply > 1:
+                self._fault("split_reply")
+            self._replies += 1
+            return actions + _spread(frame, delay, f.split_reply, f.split_pause, f.byte_delay)
+
+    def _handle_broadcast(self, pdu: bytes) -> list[_Action]:
+        """Execute a broadcast write (Serial Line 2.1: never answered, unless
+        ``answer_broadcast``)."""
+        with self._lock:
+            f = self.faults
+            if f.silent:
+                self._fault("silent")
+                return []
+            self._broadcasts += 1
+            rpdu = self._execute(pdu)
+            if not f.answer_broadcast:
+                return []
+            self._fault("answer_broadcast")
+            self._replies += 1
+            return [(max(0.0, f.delay), _frame(self.slave_id, rpdu))]
+
+    def _execute(self, pdu: bytes) -> bytes:
+        """Execute a request PDU; the response PDU (or exception PDU). Lock held."""
+        fc = pdu[0]
+        try:
+            if fc in self.faults.refused_functions:
+                self._fault("refused_functions")
+                raise _Exc(_ILLEGAL_FUNCTION)
+            if fc in _READ_AREA:
+                return self._read(fc, pdu)
+            if fc == _WRITE_COIL:
+                return self._write_coil(pdu)
+            if fc == _WRITE_REG:
+                return self._write_register(pdu)
+            if fc == _WRITE_COILS:
+                return self._write_coils(pdu)
+            if fc == _WRITE_REGS:
+                return self._write_registers(pdu)
+            if fc == _MASK_WRITE:
+                return self._mask_write(pdu)
+            raise _Exc(_ILLEGAL_FUNCTION)
+        except _Exc as e:
+            return bytes([(fc | 0x80) & 0xFF, e.code])
+
+    def _validate(self, area: Area, address: int, count: int) -> None:
+        """Address range (exception 02), then the fault knob ranges."""
+        if address + count > self.size:
+            raise _Exc(_ILLEGAL_ADDRESS)
+        for r_area, start, end, code in list(self.faults.exception_ranges):
+            if r_area is area and address < end and start < address + count:
+                raise _Exc(code)
+
+    def _read(self, fc: int, pdu: bytes) -> bytes:
+        # 6.1-6.4: quantity 1..2000 bits / 1..125 registers, else 03; range, else 02.
+        area = _READ_AREA[fc]
+        address, count = struct.unpack_from(">HH", pdu, 1)
+        if not 1 <= count <= area.max_read:
+            raise _Exc(_ILLEGAL_VALUE)
+        self._validate(area, address, count)
+        if area.is_bit:
+            data = _pack_bits(self._bits[area][address : address + count])
+        else:
+            self._apply_movers(area, address, count)
+            data = struct.pack(f">{count}H", *self._regs[area][address : address + count])
+        return bytes([fc, len(data)]) + data
+
+    def _write_coil(self, pdu: bytes) -> bytes:
+        # 6.5: value 0xFF00 = ON, 0x0000 = OFF, anything else 03; reply echoes the request.
+        address, value = struct.unpack_from(">HH", pdu, 1)
+        if value not in (0x0000, 0xFF00):
+            raise _Exc(_ILLEGAL_VALUE)
+        self._validate(Area.COIL, address, 1)
+        self._bits[Area.COIL][address] = 1 if value else 0
+        return pdu[:5]
+
+    def _write_register(self, pdu: bytes) -> bytes:
+        # 6.6: reply echoes the request.
+        address, value = struct.unpack_from(">HH", pdu, 1)
+        self._validate(Area.HOLDING_REGISTER, address, 1)
+        self._regs[Area.HOLDING_REGISTER][address] = value
+        return pdu[:5]
+
+    def _write_coils(self, pdu: bytes) -> bytes:
+        # 6.11: quantity 1..0x07B0 and byte count N = ceil(quantity / 8), else 03.
+        address, count, nbytes = struct.unpack_from(">HHB", pdu, 1)
+        if not 1 <= count <= 0x07B0 or nbytes != (count + 7) // 8 or len(pdu) != 6 + nbytes:
+            raise _Exc(_ILLEGAL_VALUE)
+        self._validate(Area.COIL, address, count)
+        bits = self._bits[Area.COIL]
+        for i in range(count):
+            bits[address + i] = (pdu[6 + i // 8] >> (i % 8)) & 1
+        return pdu[:5]
+
+    def _write_registers(self, pdu: bytes) -> bytes:
+        # 6.12: quantity 1..0x007B and byte count 2 * quantity, else 03.
+        address, count, nbytes = struct.unpack_from(">HHB", pdu, 1)
+        if not 1 <= count <= 0x007B or nbytes != 2 * count or len(pdu) != 6 + nbytes:
+            raise _Exc(_ILLEGAL_VALUE)
+        self._validate(Area.HOLDING_REGISTER, address, count)
+        regs = self._regs[Area.HOLDING_REGISTER]
+        regs[address : address + count] = array("H", struct.unpack_from(f">{count}H", pdu, 6))
+        return pdu[:5]
+
+    def _mask_write(self, pdu: bytes) -> bytes:
+        # 6.16: Result = (Current AND And_Mask) OR (Or_Mask AND (NOT And_Mask)); echo.
+        address, and_mask, or_mask = struct.unpack_from(">HHH", pdu, 1)
+        self._validate(Area.HOLDING_REGISTER, address, 1)
+        regs = self._regs[Area.HOLDING_REGISTER]
+        regs[address] = (regs[address] & and_mask) | (or_mask & ~and_mask & 0xFFFF)
+        return pdu[:7]
+
+
+def _pack_bits(bits: bytes | bytearray) -> bytes:
+    """Bits LSB first in each byte, the last byte zero-padded (Application Protocol 6.1)."""
+    out = bytearray((len(bits) + 7) // 8)
+    for i, b in enumerate(bits):
+        if b:
+            out[i // 8] |= 1 << (i % 8)
+    return bytes(out)
+
+
+def _wrong_byte_count(rpdu: bytes) -> bytes:
+    unit = 2 if rpdu[0] in (_READ_HR, _READ_IR) else 1
+    data = rpdu[2:]
+    data = data[:-unit] if len(data) > unit else data + bytes(unit)
+    return bytes([rpdu[0], len(data)]) + data
+
+
+def _spread(
+    frame: bytes, start: float, split: int, pause: float, byte_delay: float
+) -> list[_Action]:
+    if not frame:
+        return []
+    if byte_delay > 0:
+        return [(start + i * byte_delay, frame[i : i + 1]) for i in range(len(frame))]
+    if split > 1:
+        size = -(-len(frame) // min(split, len(frame)))
+        return [
+            (start + k * max(0.0, pause), frame[off : off + size])
+            for k, off in enumerate(range(0, len(frame), size))
+        ]
+    return [(start, frame)]
+
+
+# --- the line loop --------------------------------------------------------------------
+
+
+class _Line:
+    """One half-duplex "line": a TCP client connection or a pty master."""
+
+    def __init__(
+        self,
+        name: str,
+        silence: float,
+        sock: socket.socket | None = None,
+        fds: tuple[int, int] | None = None,
+    ) -> None:
+        self.name = name
+        self.silence = silence
+        self.sock = sock
+        self.fds = fds  # pty (master, slave); the slave end is held open so that the
+        # master never sees a hangup (EIO) between two clients
+        self.rx = bytearray()
+        self.out = bytearray()
+        self.last_rx = 0.0
+        self.idle_pending = False
+        self.closed = False
+
+    @property
+    def is_tcp(self) -> bool:
+        return self.sock is not None
+
+    def fileno(self) -> int:
+        if self.sock is not None:
+            return self.sock.fileno()
+        assert self.fds is not None
+        return self.fds[0]
+
+    def recv(self) -> bytes:
+        if self.sock is not None:
+            return self.sock.recv(4096)
+        assert self.fds is not None
+        return os.read(self.fds[0], 4096)
+
+    def send(self, data: bytes | bytearray) -> int:
+        if self.sock is not None:
+            return self.sock.send(data)
+        assert self.fds is not None
+        return os.write(self.fds[0], data)
+
+    def close(self) -> None:
+        if self.closed:
+            return
+        self.closed = True
+        if self.sock is not None:
+            self.sock.close()
+        if self.fds is not None:
+            for fd in self.fds:
+                with contextlib.suppress(OSError):
+                    os.close(fd)
+
+
+class Simulator:
+    """Many slaves on one simulated line, served over TCP and/or ptys.
+
+    >>> sim = Simulator(slaves=[1, 2, 3])
+    >>> sim.slave(2).faults.silent = True
+    >>> port = sim.serve_tcp("127.0.0.1", 0)  # starts the loop thread
+    >>> sim.stop()
+    """
+
+    def __init__(
+        self, slaves: Iterable[int] = (1,), size: int = DEFAULT_SIZE, *, seed: int | None = None
+    ) -> None:
+        self._size = size
+        self._slaves: dict[int, Slave] = {}
+        for sid in slaves:
+            self.add_slave(sid)
+        self._rng = random.Random(seed)
+        self._lock = threading.Lock()  # state, command queue, owned resources, line stats
+        self._state = "new"
+        self._thread: threading.Thread | None = None
+        self._sel: selectors.BaseSelector | None = None
+        self._wake_r: socket.socket | None = None
+        self._wake_w: socket.socket | None = None
+        self._commands: collections.deque[Callable[[], None]] = collections.deque()
+        self._timers: list[tuple[float, int, Callable[[], None]]] = []
+        self._seq = itertools.count()
+        self._owned: list[socket.socket | _Line] = []  # closed by stop()
+        self._lines: set[_Line] = set()  # loop thread only
+        self._line_stats: collections.Counter[str] = collections.Counter()
+        self.tcp_ports: list[int] = []
+        self.pty_paths: list[str] = []
+
+    # -- slaves
+
+    def add_slave(self, slave_id: int, size: int | None = None) -> Slave:
+        """Put another slave on the line (also while serving)."""
+        if slave_id in self._slaves:
+            raise ValueError(f"slave {slave_id} already exists")
+        slave = Slave(slave_id, self._size if size is None else size)
+        self._slaves[slave_id] = slave
+        return slave
+
+    def remove_slave(self, slave_id: int) -> None:
+        """Take a slave off the line: its address goes silent."""
+        del self._slaves[slave_id]
+
+    def slave(self, slave_id: int) -> Slave:
+        return self._slaves[slave_id]
+
+    @property
+    def slaves(self) -> list[Slave]:
+        return list(self._slaves.values())
+
+    def stats(self) -> dict[str, Any]:
+        """{"line": frames, discarded_bytes, unknown_slave, broadcasts, connections,
+        "slaves": {id: Slave.stats()}}."""
+        with self._lock:
+            line = {
+                k: self._line_stats[k]
+                for k in ("frames", "discarded_bytes", "unknown_slave", "broadcasts", "connections")
+            }
+        return {"line": line, "slaves": {s.slave_id: s.stats() for s in self.slaves}}
+
+    # -- lifecycle
+
+    def start(self) -> Simulator:
+        """Start the loop thread (serve_tcp/serve_pty do it when needed)."""
+        with self._lock:
+            if self._state == "running":
+                return self
+            if self._state == "stopped":
+                raise RuntimeError("simulator stopped; create a new one")
+            sel = selectors.DefaultSelector()
+            wake_r, wake_w = socket.socketpair()
+            wake_r.setblocking(False)
+            wake_w.setblocking(False)
+            sel.register(wake_r, selectors.EVENT_READ, self._on_wake)
+            self._sel, self._wake_r, self._wake_w = sel, wake_r, wake_w
+            self._thread = threading.Thread(
+                target=self._run, name="edgemodbus-simulator", daemon=True
+            )
+            self._state = "running"
+            self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        """Stop serving: close every socket and fd and join the thread. Idempotent."""
+        with self._lock:
+            if self._state == "stopped":
+                return
+            was_running = self._state == "running"
+            self._state = "stopped"
+        thread = self._thread
+        if was_running and thread is not None:
+            self._wake()
+            thread.join(10.0)
+            if thread.is_alive():
+                log.error("simulator loop did not stop within 10 s")
+        with self._lock:
+            owned, self._owned = self._owned, []
+        for res in owned:
+            res.close()
+        self._lines.clear()
+        if self._sel is not None:
+            self._sel.close()
+        for s in (self._wake_r, self._wake_w):
+            if s is not None:
+                s.close()
+
+    def __enter__(self) -> Simulator:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    # -- endpoints
+
+    def serve_tcp(self, host: str = "127.0.0.1", port: int = 0, *, silence: float = 0.02) -> int:
+        """Listen for raw RTU frames over TCP; returns the bound port. Each connection is
+        a line of its own; ``silence`` is the idle time that ends an unparsable frame."""
+        self.start()
+        family = socket.AF_INET6 if ":" in host else socket.AF_INET
+        sock = socket.socket(family, socket.SOCK_STREAM)
+        try:
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            sock.bind((host, port))
+            sock.listen(16)
+            sock.setblocking(False)
+        except BaseException:
+            sock.close()
+            raise
+        self._own(sock)
+        bound = int(sock.getsockname()[1])
+        self._call(lambda: self._register_listener(sock, silence))
+        self.tcp_ports.append(bound)
+        return bound
+
+    def serve_pty(self, *, baudrate: int = 9600, silence: float | None = None) -> str:
+        """Create a pty in raw mode and serve its master side; returns the path of the
+        slave side, for a master to open as a serial port. The frame-ending silence is
+        t3.5 at ``baudrate`` (11-bit characters, at least 1.75 ms: Serial Line 2.5.1.1)."""
+        self.start()
+        master, slave = os.openpty()
+        line = _Line("pty", 0.0, fds=(master, slave))
+        try:
+            tty.setraw(slave)  # no echo, no line discipline: bytes pass through untouched
+            os.set_blocking(master, False)
+            path = os.ttyname(slave)
+        except BaseException:
+            line.close()
+            raise
+        line.name = f"pty {path}"
+        line.silence = silence if silence is not None else max(3.5 * 11 / baudrate, 0.00175)
+        self._own(line)
+        self._call(lambda: self._register_line(line))
+        self.pty_paths.append(path)
+        return path
+
+    def disconnect_clients(self) -> int:
+        """Close every TCP client connection (the listeners stay): a link break.
+        Returns how many were closed."""
+        closed: list[int] = []
+
+        def drop() -> None:
+            for line in list(self._lines):
+                if line.is_tcp:
+                    self._close_line(line)
+                    closed.append(1)
+
+        self._call(drop)
+        return len(closed)
+
+    # -- plumbing between threads
+
+    def _own(self, res: socket.socket | _Line) -> None:
+        with self._lock:
+            if self._state == "stopped":
+                res.close()
+                raise RuntimeError("simulator stopped")
+            self._owned.append(res)
+
+    def _disown(self, res: socket.socket | _Line) -> None:
+        with self._lock, contextlib.suppress(ValueError):
+            self._owned.remove(res)
+
+    def _wake(self) -> None:
+        if self._wake_w is not None:
+            # A full buffer means the loop is already due to wake; OSError: closing.
+            with contextlib.suppress(OSError):
+                self._wake_w.send(b"\0")
+
+    def _call(self, fn: Callable[[], None]) -> None:
+        """Run ``fn`` on the loop thread and wait for it."""
+        if threading.current_thread() is self._thread:
+            fn()
+            return
+        done = threading.Event()
+        errors: list[BaseException] = []
+
+        def wrapped() -> None:
+            try:
+                fn()
+            except BaseException as e:
+                errors.append(e)
+            finally:
+                done.set()
+
+        with self._lock:
+            if self._state != "running":
+                raise RuntimeError("simulator not running")
+            self._commands.append(wrapped)
+        self._wake()
+        if not done.wait(10.0):
+            raise RuntimeError("simulator loop did not respond")
+        if errors:
+            raise errors[0]
+
+    # -- the loop (everything below runs on the loop thread)
+
+    def _run(self) -> None:
+        sel = self._sel
+        assert sel is not None
+        try:
+            while True:
+                with self._lock:
+                    commands = list(self._commands)
+                    self._commands.clear()
+                    stopping = self._state != "running"
+                for command in commands:
+                    command()
+                if stopping:
+                    return
+                self._run_timers()
+                timeout = None
+                if self._timers:
+                    timeout = max(0.0, self._timers[0][0] - time.monotonic())
+                for key, mask in sel.select(timeout):
+                    self._guarded(key.data, mask)
+        except Exception:
+            log.exception("simulator loop crashed")
+
+    @staticmethod
+    def _guarded(fn: Callable[..., None], *args: Any) -> None:
+        """A bug in one handler is logged; it must not take the whole line down."""
+        try:
+            fn(*args)
+        except Exception:
+            log.exception("simulator handler failed")
+
+    def _on_wake(self, mask: int) -> None:
+        assert self._wake_r is not None
+        try:
+            while self._wake_r.recv(4096):
+                pass
+        except BlockingIOError:
+            pass
+
+    def _at(self, due: float, fn: Callable[[], None]) -> None:
+        heapq.heappush(self._timers, (due, next(self._seq), fn))
+
+    def _run_timers(self) -> None:
+        now = time.monotonic()
+        while self._timers and self._timers[0][0] <= now:
+            _, _, fn = heapq.heappop(self._timers)
+            self._guarded(fn)
+
+    def _register_listener(self, sock: socket.socket, silence: float) -> None:
+        assert self._sel is not None
+        self._sel.register(sock, selectors.EVENT_READ, lambda mask: self._accept(sock, silence))
+
+    def _register_line(self, line: _Line) -> None:
+        assert self._sel is not None
+        self._lines.add(line)
+        self._sel.register(
+            line.fileno(), selectors.EVENT_READ, lambda mask: self._on_io(line, mask)
+        )
+
+    def _accept(self, listener: socket.socket, silence: float) -> None:
+        while True:
+            try:
+                conn, peer = listener.accept()
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError as e:  # e.g. EMFILE: leave it in the backlog
+                log.warning("simulator accept failed: %s", e)
+                return
+            conn.setblocking(False)
+            conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            line = _Line(f"tcp {peer}", silence, sock=conn)
+            try:
+                self._own(line)
+            except RuntimeError:
+                return
+            with self._lock:
+                self._line_stats["connections"] += 1
+            self._register_line(line)
+
+    def _close_line(self, line: _Line) -> None:
+        if line.closed:
+            return
+        assert self._sel is not None
+        with contextlib.suppress(KeyError, ValueError):
+            self._sel.unregister(line.fileno())
+        self._lines.discard(line)
+        line.close()
+        self._disown(line)
+
+    def _on_io(self, line: _Line, mask: int) -> None:
+        if mask & selectors.EVENT_WRITE:
+            self._flush(line)
+        if mask & selectors.EVENT_READ and not line.closed:
+            self._on_readable(line)
+
+    def _on_readable(self, line: _Line) -> None:
+        try:
+            data = line.recv()
+        except (BlockingIOError, InterruptedError):
+            return
+        except OSError as e:
+            log.debug("simulator %s: read failed: %s", line.name, e)
+            self._close_line(line)
+            return
+        if not data:
+            self._close_line(line)  # peer closed (a pty master never reads EOF)
+            return
+        line.last_rx = time.monotonic()
+        line.rx += data
+        if len(line.rx) > _RX_LIMIT:
+            with self._lock:
+                self._line_stats["discarded_bytes"] += len(line.rx) - _RX_LIMIT
+            del line.rx[: len(line.rx) - _RX_LIMIT]
+        self._parse(line, idle=False)
+        if line.rx and not line.idle_pending and not line.closed:
+            line.idle_pending = True
+            self._at(line.last_rx + line.silence, lambda: self._idle_check(line))
+
+    def _idle_check(self, line: _Line) -> None:
+        line.idle_pending = False
+        if line.closed or not line.rx:
+            return
+        due = line.last_rx + line.silence
+        if time.monotonic() < due:
+            line.idle_pending = True
+            self._at(due, lambda: self._idle_check(line))
+            return
+        self._parse(line, idle=True)
+
+    def _parse(self, line: _Line, idle: bool) -> None:
+        frames, consumed, discarded = _split_frames(line.rx, idle)
+        del line.rx[:consumed]
+        if discarded:
+            with self._lock:
+                self._line_stats["discarded_bytes"] += discarded
+        for raw in frames:
+            if line.closed:
+                return
+            self._serve(line, raw)
+
+    def _serve(self, line: _Line, raw: bytes) -> None:
+        with self._lock:
+            self._line_stats["frames"] += 1
+        address, pdu = raw[0], raw[1:-2]
+        actions: list[_Action] = []
+        if address == 0:
+            with self._lock:
+                self._line_stats["broadcasts"] += 1
+            if pdu[0] in _WRITE_FCS:  # Serial Line 2.1: broadcast is for writes only
+                for slave in self.slaves:  # those with answer_broadcast all answer: collision
+                    actions += slave._handle_broadcast(pdu)
+        else:
+            target = self._slaves.get(address)
+            if target is None:
+                with self._lock:
+                    self._line_stats["unknown_slave"] += 1
+                return  # nobody on the line has this address: silence
+            actions = target._handle(raw, pdu, self._rng, line.is_tcp)
+        now = time.monotonic()
+        for after, data in actions:
+            if after <= 0:
+                self._act(line, data)
+                if line.closed:
+                    return
+            else:
+                self._at(now + after, functools.partial(self._act, line, data))
+
+    def _act(self, line: _Line, data: bytes | None) -> None:
+        if line.closed:
+            return
+        if data is None:
+            self._close_line(line)
+            return
+        if line.out:
+            line.out += data
+            return
+        try:
+            sent = line.send(data)
+        except (BlockingIOError, InterruptedError):
+            sent = 0
+        except OSError as e:
+            log.debug("simulator %s: write failed: %s", line.name, e)
+            self._close_line(line)
+            return
+        if sent < len(data):
+            line.out += data[sent:]
+            assert self._sel is not None
+            self._sel.modify(
+                line.fileno(),
+                selectors.EVENT_READ | selectors.EVENT_WRITE,
+                lambda mask: self._on_io(line, mask),
+            )
+
+    def _flush(self, line: _Line) -> None:
+        try:
+            sent = line.send(line.out)
+        except (BlockingIOError, InterruptedError):
+            return
+        except OSError as e:
+            log.debug("simulator %s: write failed: %s", line.name, e)
+            self._close_line(line)
+            return
+        del line.out[:sent]
+        if not line.out:
+            assert self._sel is not None
+            self._sel.modify(
+                line.fileno(), selectors.EVENT_READ, lambda mask: self._on_io(line, mask)
+            )
+
+
+# --- command line ---------------------------------------------------------------------
+
+
+def _parse_ids(text: str) -> list[int]:
+    """'1,2,5-8' -> [1, 2, 5, 6, 7, 8]."""
+    ids: list[int] = []
+    for part in text.split(","):
+        part = part.strip()
+        if not part:
+            continue
+        if "-" in part:
+            lo, hi = (int(x) for x in part.split("-", 1))
+            ids.extend(range(lo, hi + 1))
+        else:
+            ids.append(int(part))
+    if not ids:
+        raise argparse.ArgumentTypeError("no slave ids")
+    return ids
+
+
+def add_demo_movers(slave: Slave) -> None:
+    """The demo's moving values: HR 0 counts every second, HR 1 is an int16 sine
+    (period 10 s, amplitude 1000), HR 2-3 a float32 ABCD sine (period 20 s,
+    amplitude 50, offset 20), IR 0-3 random walks."""
+    slave.add_mover(CounterMover(area=Area.HOLDING_REGISTER, address=0, interval_ms=1000))
+    slave.add_mover(SineMover(area=Area.HOLDING_REGISTER, address=1, period_s=10.0))
+    slave.add_mover(
+        FloatSineMover(
+            area=Area.HOLDING_REGISTER, address=2, period_s=20.0, amplitude=50.0, offset=20.0
+        )
+    )
+    slave.add_mover(
+        RandomWalkMover(area=Area.INPUT_REGISTER, address=0, registers=4, seed=slave.slave_id)
+    )
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``edgemodbus simulate``: serve slaves until SIGINT/SIGTERM.
+
+    Prints one line per endpoint (``tcp HOST:PORT``, ``pty PATH``) on stdout, flushed,
+    so that a script can read where to connect.
+    """
+    parser = argparse.ArgumentParser(
+        prog="edgemodbus simulate",
+        description="Multi-slave Modbus RTU simulator (raw RTU frames over TCP, or a pty).",
+    )
+    parser.add_argument("--host", default="127.0.0.1", help="listen address (127.0.0.1)")
+    parser.add_argument("--port", type=int, default=5020, help="TCP port, 0 = any (5020)")
+    parser.add_argument("--slaves", type=_parse_ids, default=[1], help="ids, e.g. 1,2,5-8")
+    parser.add_argument("--size", type=int, default=DEFAULT_SIZE, help="points per area")
+    parser.add_argument("--pty", action="store_true", help="also serve a pty")
+    parser.add_argument("--no-tcp", action="store_true", help="do not listen on TCP")
+    parser.add_argument("--movers", action="store_true", help="add the demo's moving values")
+    parser.add_argument("--seed", type=int, default=None, help="seed of random faults")
+    args = parser.parse_args(argv)
+
+    stop = threading.Event()
+    previous: dict[signal.Signals, Any] = {}
+    if threading.current_thread() is threading.main_thread():
+        for signum in (signal.SIGINT, signal.SIGTERM):
+            previous[signum] = signal.signal(signum, lambda *_: stop.set())
+    try:
+        with Simulator(args.slaves, args.size, seed=args.seed) as sim:
+            if args.movers:
+                for slave in sim.slaves:
+                    add_demo_movers(slave)
+            if not args.no_tcp:
+                port = sim.serve_tcp(args.host, args.port)
+                print(f"tcp {args.host}:{port}", flush=True)
+            if args.pty:
+                print(f"pty {sim.serve_pty()}", flush=True)
+            ids = ",".join(str(s) for s in args.slaves)
+            print(f"serving slaves {ids}; Ctrl-C to stop", file=sys.stderr, flush=True)
+            while not stop.wait(1.0):
+                pass
+    except OSError as e:
+        print(f"edgemodbus simulate: {e}", file=sys.stderr)
+        return 1
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
