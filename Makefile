@@ -49,11 +49,12 @@ unit: build
 integration: build
 	$(PYTEST) tests/integration
 
-# The C codec built with AddressSanitizer + UBSan, driven by the codec tests.
+# The C codec built with AddressSanitizer + UBSan (into build-asan/), driven by the codec
+# tests; --capture=sys lets a sanitizer report (written to fd 2) reach the terminal.
 test-asan: build
 	$(BIN)/python tools/asan_build.py && \
 	  ASAN_OPTIONS=detect_leaks=0 LD_PRELOAD="$$(gcc -print-file-name=libasan.so)" \
-	  EDGEMODBUS_NATIVE=asan $(PYTEST) -q -p no:cacheprovider tests/unit/test_codec*.py
+	  EDGEMODBUS_NATIVE=asan $(PYTEST) -q -p no:cacheprovider --capture=sys tests/unit/test_codec*.py
 
 bench: build
 	$(PYTEST) bench --benchmark-only --benchmark-columns=min,mean,median,rounds

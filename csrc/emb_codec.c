@@ -1,0 +1,541 @@
+/* edgemodbus value codec; see emb_codec.h for the contract. */
+#include "emb_codec.h"
+
+#include <float.h>
+#include <math.h>
+#include <string.h>
+
+/* A raw or converted value: which member holds it. */
+enum { NUM_INT, NUM_UINT, NUM_FLOAT };
+
+typedef struct emb_num {
+    int cls;
+    int64_t i;
+    uint64_t u;
+    double f;
+} emb_num;
+
+/* Milliseconds of 0001-01-01T00:00:00Z and 9999-12-31T23:59:59.999Z (Python datetime). */
+#define EMB_MS_MIN (-62135596800000LL)
+#define EMB_MS_MAX 253402300799999LL
+
+static inline uint16_t bswap16(uint16_t v) { return (uint16_t)((v << 8) | (v >> 8)); }
+
+/* Width in registers of a fixed-size wire value (0 for BYTES, which use nregs). */
+static unsigned wire_width(unsigned wire)
+{
+    switch (wire) {
+    case EMB_W_COIL: case EMB_W_REGBOOL: case EMB_W_REGBIT: case EMB_W_U8: case EMB_W_I8:
+    case EMB_W_U16: case EMB_W_I16: case EMB_W_BCD16:
+        return 1;
+    case EMB_W_U32: case EMB_W_I32: case EMB_W_F32: case EMB_W_BCD32: case EMB_W_SEC32:
+        return 2;
+    case EMB_W_U64: case EMB_W_I64: case EMB_W_F64: case EMB_W_MS64:
+        return 4;
+    default:
+        return 0;
+    }
+}
+
+/* Register k (0 = most significant) of a w-register value, in value order. */
+static inline uint16_t reg_at(const uint16_t *r, unsigned k, unsigned w, unsigned flags)
+{
+    uint16_t v = r[(flags & EMB_F_WORD_SWAP) ? w - 1 - k : k];
+    return (flags & EMB_F_BYTE_SWAP) ? bswap16(v) : v;
+}
+
+static uint64_t gather(const uint16_t *r, unsigned w, unsigned flags)
+{
+    uint64_t v = 0;
+    for (unsigned k = 0; k < w; k++)
+        v = (v << 16) | reg_at(r, k, w, flags);
+    return v;
+}
+
+/* Two's complement reinterpretation without implementation-defined casts. */
+static inline int64_t sext(uint64_t v, unsigned bits)
+{
+    if (bits == 64) {
+        int64_t s;
+        memcpy(&s, &v, sizeof s);
+        return s;
+    }
+    uint64_t sign = (uint64_t)1 << (bits - 1);
+    return (int64_t)(v ^ sign) - (int64_t)sign;
+}
+
+/* Packed decimal: every nibble 0..9, else -1. */
+static int64_t bcd_value(uint64_t v, unsigned digits)
+{
+    int64_t out = 0;
+    for (unsigned k = digits; k-- > 0;) {
+        unsigned nib = (unsigned)(v >> (4 * k)) & 0xF;
+        if (nib > 9)
+            return -1;
+        out = out * 10 + nib;
+    }
+    return out;
+}
+
+static double num_to_double(const emb_num *n)
+{
+    switch (n->cls) {
+    case NUM_INT: return (double)n->i;
+    case NUM_UINT: return (double)n->u;
+    default: return n->f;
+    }
+}
+
+static bool num_nonzero(const emb_num *n)
+{
+    switch (n->cls) {
+    case NUM_INT: return n->i != 0;
+    case NUM_UINT: return n->u != 0;
+    default: return n->f != 0.0; /* NaN is nonzero, as in C and Python */
+    }
+}
+
+/* Inclusive signed range of an integer target (U64 handled apart). */
+static void target_range(unsigned target, int64_t *lo, int64_t *hi)
+{
+    switch (target) {
+    case EMB_C_I8: *lo = -128; *hi = 127; break;
+    case EMB_C_U8: *lo = 0; *hi = 255; break;
+    case EMB_C_I16: *lo = -32768; *hi = 32767; break;
+    case EMB_C_U16: *lo = 0; *hi = 65535; break;
+    case EMB_C_I32: *lo = INT32_MIN; *hi = INT32_MAX; break;
+    case EMB_C_U32: *lo = 0; *hi = UINT32_MAX; break;
+    case EMB_C_BCD16: *lo = 0; *hi = 9999; break;
+    case EMB_C_BCD32: *lo = 0; *hi = 99999999; break;
+    case EMB_C_DATETIME: *lo = EMB_MS_MIN; *hi = EMB_MS_MAX; break;
+    default: *lo = INT64_MIN; *hi = INT64_MAX; break;
+    }
+}
+
+/* Convert to an integer target, rounding half to even; never wraps. */
+static int to_integer(emb_num *n, unsigned target, double *errval)
+{
+    if (n->cls == NUM_FLOAT) {
+        double f = n->f;
+        if (isnan(f)) {
+            *errval = f;
+            return EMB_E_NAN;
+        }
+        double d = nearbyint(f); /* default rounding mode: to nearest, ties to even */
+        if (target == EMB_C_U64) {
+            if (!(d >= 0.0 && d < 18446744073709551616.0)) {
+                *errval = f;
+                return EMB_E_RANGE;
+            }
+            n->cls = NUM_UINT;
+            n->u = (uint64_t)d;
+            return EMB_E_OK;
+        }
+        int64_t lo, hi;
+        target_range(target, &lo, &hi);
+        /* [-2^63, 2^63) is exact in double; narrower ranges are exact too. */
+        bool ok = (target == EMB_C_I64) ? (d >= -9223372036854775808.0 && d < 9223372036854775808.0)
+                                        : (d >= (double)lo && d <= (double)hi);
+        if (!ok) {
+            *errval = f;
+            return EMB_E_RANGE;
+        }
+        n->cls = NUM_INT;
+        n->i = (int64_t)d;
+        return EMB_E_OK;
+    }
+    if (target == EMB_C_U64) {
+        if (n->cls == NUM_INT) {
+            if (n->i < 0) {
+                *errval = (double)n->i;
+                return EMB_E_RANGE;
+            }
+            n->u = (uint64_t)n->i;
+            n->cls = NUM_UINT;
+        }
+        return EMB_E_OK;
+    }
+    int64_t lo, hi;
+    target_range(target, &lo, &hi);
+    if (n->cls == NUM_UINT) {
+        if (n->u > (uint64_t)hi) {
+            *errval = (double)n->u;
+            return EMB_E_RANGE;
+        }
+        n->i = (int64_t)n->u;
+        n->cls = NUM_INT;
+    }
+    if (n->i < lo || n->i > hi) {
+        *errval = (double)n->i;
+        return EMB_E_RANGE;
+    }
+    return EMB_E_OK;
+}
+
+static int convert(emb_num *n, unsigned target, double *errval)
+{
+    switch (target) {
+    case EMB_C_NONE:
+        return EMB_E_OK;
+    case EMB_C_BOOL:
+        n->u = num_nonzero(n);
+        n->cls = NUM_UINT;
+        return EMB_E_OK;
+    case EMB_C_F32: {
+        double f = num_to_double(n);
+        if (isfinite(f) && fabs(f) > FLT_MAX) {
+            *errval = f;
+            return EMB_E_RANGE;
+        }
+        n->f = f;
+        n->cls = NUM_FLOAT;
+        return EMB_E_OK;
+    }
+    case EMB_C_F64:
+        n->f = num_to_double(n);
+        n->cls = NUM_FLOAT;
+        return EMB_E_OK;
+    default:
+        return to_integer(n, target, errval);
+    }
+}
+
+/* The raw value of a fixed-size item at `offset` of data (registers, or bits for COIL). */
+static int read_raw(const emb_item *it, const void *data, emb_num *n, double *errval)
+{
+    unsigned fl = it->flags;
+    uint64_t v;
+    n->cls = NUM_UINT;
+    if (it->wire == EMB_W_COIL) {
+        n->u = ((const uint8_t *)data)[it->offset] != 0;
+        return EMB_E_OK;
+    }
+    const uint16_t *r = (const uint16_t *)data + it->offset;
+    switch (it->wire) {
+    case EMB_W_REGBOOL:
+        n->u = r[0] != 0;
+        return EMB_E_OK;
+    case EMB_W_REGBIT:
+        n->u = (gather(r, 1, fl) >> (it->bit & 15)) & 1;
+        return EMB_E_OK;
+    case EMB_W_U8:
+        n->u = gather(r, 1, fl) & 0xFF;
+        return EMB_E_OK;
+    case EMB_W_I8:
+        n->cls = NUM_INT;
+        n->i = sext(gather(r, 1, fl) & 0xFF, 8);
+        return EMB_E_OK;
+    case EMB_W_U16:
+        n->u = gather(r, 1, fl);
+        return EMB_E_OK;
+    case EMB_W_I16:
+        n->cls = NUM_INT;
+        n->i = sext(gather(r, 1, fl), 16);
+        return EMB_E_OK;
+    case EMB_W_U32:
+        n->u = gather(r, 2, fl);
+        return EMB_E_OK;
+    case EMB_W_I32:
+        n->cls = NUM_INT;
+        n->i = sext(gather(r, 2, fl), 32);
+        return EMB_E_OK;
+    case EMB_W_U64:
+        n->u = gather(r, 4, fl);
+        return EMB_E_OK;
+    case EMB_W_I64:
+    case EMB_W_MS64:
+        n->cls = NUM_INT;
+        n->i = sext(gather(r, 4, fl), 64);
+        return EMB_E_OK;
+    case EMB_W_SEC32:
+        n->cls = NUM_INT;
+        n->i = (int64_t)gather(r, 2, fl) * 1000;
+        return EMB_E_OK;
+    case EMB_W_F32: {
+        uint32_t w = (uint32_t)gather(r, 2, fl);
+        float f;
+        memcpy(&f, &w, sizeof f);
+        n->cls = NUM_FLOAT;
+        n->f = (double)f;
+        return EMB_E_OK;
+    }
+    case EMB_W_F64:
+        v = gather(r, 4, fl);
+        n->cls = NUM_FLOAT;
+        memcpy(&n->f, &v, sizeof n->f);
+        return EMB_E_OK;
+    case EMB_W_BCD16:
+    case EMB_W_BCD32: {
+        unsigned w = it->wire == EMB_W_BCD16 ? 1 : 2;
+        v = gather(r, w, fl);
+        int64_t d = bcd_value(v, 4 * w);
+        if (d < 0) {
+            *errval = (double)v;
+            return EMB_E_BCD;
+        }
+        n->u = (uint64_t)d;
+        return EMB_E_OK;
+    }
+    default:
+        return EMB_E_RANGE; /* unreachable for a checked plan */
+    }
+}
+
+/* Copy nregs registers as bytes in format order; returns the reported length. */
+static uint32_t read_bytes(const emb_item *it, const uint16_t *r, uint8_t *dst)
+{
+    unsigned q = it->nregs, fl = it->flags;
+    for (unsigned k = 0; k < q; k++) {
+        uint16_t w = reg_at(r, k, q, fl);
+        dst[2 * k] = (uint8_t)(w >> 8);
+        dst[2 * k + 1] = (uint8_t)w;
+    }
+    uint32_t len = 2u * q;
+    if (fl & EMB_F_STRIP)
+        while (len > 0 && dst[len - 1] == 0)
+            len--;
+    return len;
+}
+
+/* Store a converted value in its output group; returns the bits used for comparison. */
+static uint64_t store(const emb_plan *p, const emb_item *it, const emb_num *n)
+{
+    uint64_t bits;
+    switch (it->out) {
+    case EMB_O_I64: {
+        int64_t v = n->cls == NUM_INT ? n->i : n->cls == NUM_UINT ? sext(n->u, 64) : 0;
+        p->out_i64[it->slot] = v;
+        memcpy(&bits, &v, sizeof bits);
+        return bits;
+    }
+    case EMB_O_U64: {
+        uint64_t v = n->cls == NUM_UINT ? n->u : n->cls == NUM_INT ? (uint64_t)n->i : 0;
+        p->out_u64[it->slot] = v;
+        return v;
+    }
+    case EMB_O_F64: {
+        double f = num_to_double(n);
+        p->out_f64[it->slot] = f;
+        memcpy(&bits, &f, sizeof bits);
+        return bits;
+    }
+    default: { /* EMB_O_BOOL */
+        bool b = num_nonzero(n);
+        p->out_bool[it->slot] = b;
+        return b;
+    }
+    }
+}
+
+/* Whether a new value differs from the last reported one by more than the deadband. */
+static bool value_changed(const emb_item *it, uint64_t now, uint64_t was)
+{
+    if (now == was)
+        return false;
+    double db = it->deadband;
+    if (!(db > 0.0))
+        return true;
+    double a, b;
+    switch (it->out) {
+    case EMB_O_I64:
+        a = (double)sext(now, 64);
+        b = (double)sext(was, 64);
+        break;
+    case EMB_O_U64:
+        a = (double)now;
+        b = (double)was;
+        break;
+    case EMB_O_F64:
+        memcpy(&a, &now, sizeof a);
+        memcpy(&b, &was, sizeof b);
+        break;
+    default:
+        return true;
+    }
+    return !(fabs(a - b) <= db); /* NaN or infinities on one side: a change */
+}
+
+long emb_decode(emb_plan *p, const void *data, uint32_t count, int mode)
+{
+    const uint16_t *regs = data;
+    uint32_t n_err = 0, n_chg = 0;
+
+    for (uint32_t i = 0; i < p->n_items; i++) {
+        const emb_item *it = &p->items[i];
+        uint64_t now = 0;
+        int st;
+        /* nregs is the wire width for fixed-size items (emb_plan_check enforces it) */
+        if ((uint64_t)it->offset + it->nregs > count) {
+            st = EMB_E_MISSING;
+        } else if (it->wire == EMB_W_BYTES) {
+            uint32_t len = read_bytes(it, regs + it->offset, p->out_bytes + it->aux);
+            p->out_u64[it->slot] = len;
+            now = len;
+            st = EMB_E_OK;
+        } else {
+            emb_num n = {NUM_UINT, 0, 0, 0.0};
+            st = read_raw(it, data, &n, &p->errval[i]);
+            if (st == EMB_E_OK && (it->flags & (EMB_F_MULTIPLY | EMB_F_DIVIDE))) {
+                double x = num_to_double(&n);
+                n.f = (it->flags & EMB_F_DIVIDE) ? x / it->scale : x * it->scale;
+                n.cls = NUM_FLOAT;
+            }
+            if (st == EMB_E_OK)
+                st = convert(&n, it->target, &p->errval[i]);
+            if (st == EMB_E_OK)
+                now = store(p, it, &n);
+        }
+        p->status[i] = (uint8_t)st;
+        if (st != EMB_E_OK)
+            p->errs[n_err++] = i;
+        if (mode == EMB_MODE_VALUES)
+            continue;
+
+        /* ALL reports every item but lists only those whose result is not exactly the
+         * last reported one (failed items always), so the caller reuses the rest. */
+        bool report;
+        if (st != p->last_status[i])
+            report = true;
+        else if (st != EMB_E_OK)
+            report = mode == EMB_MODE_ALL;
+        else if (it->wire == EMB_W_BYTES)
+            report = memcmp(p->out_bytes + it->aux, p->last_bytes + it->aux, 2u * it->nregs) != 0;
+        else if (mode == EMB_MODE_ALL)
+            report = now != p->last[i];
+        else
+            report = value_changed(it, now, p->last[i]);
+        if (report) {
+            p->changed[n_chg++] = i;
+            p->last_status[i] = (uint8_t)st;
+            if (st == EMB_E_OK) {
+                p->last[i] = now;
+                if (it->wire == EMB_W_BYTES)
+                    memcpy(p->last_bytes + it->aux, p->out_bytes + it->aux, 2u * it->nregs);
+            }
+        }
+    }
+    p->n_errors = n_err;
+    return mode == EMB_MODE_VALUES ? (long)n_err : (long)n_chg;
+}
+
+void emb_reset(emb_plan *p)
+{
+    memset(p->last_status, EMB_E_UNREPORTED, p->n_items);
+}
+
+static bool group_fits(const emb_plan *p, const emb_item *it)
+{
+    switch (it->out) {
+    case EMB_O_I64: return it->slot < p->n_i64;
+    case EMB_O_U64: return it->slot < p->n_u64;
+    case EMB_O_F64: return it->slot < p->n_f64;
+    case EMB_O_BOOL: return it->slot < p->n_bool;
+    case EMB_O_BYTES:
+        return it->slot < p->n_u64 && (uint64_t)it->aux + 2u * it->nregs <= p->n_bytes;
+    default: return false;
+    }
+}
+
+long emb_plan_check(const emb_plan *p)
+{
+    if (p->n_items > 0 && (!p->items || !p->status || !p->errval || !p->errs || !p->changed ||
+                           !p->last || !p->last_status))
+        return -1;
+    if ((p->n_i64 && !p->out_i64) || (p->n_u64 && !p->out_u64) || (p->n_f64 && !p->out_f64) ||
+        (p->n_bool && !p->out_bool) || (p->n_bytes && (!p->out_bytes || !p->last_bytes)))
+        return -1;
+    for (uint32_t i = 0; i < p->n_items; i++) {
+        const emb_item *it = &p->items[i];
+        bool ok = it->wire >= EMB_W_COIL && it->wire <= EMB_W_LAST && it->target <= EMB_C_LAST
+                  && group_fits(p, it) && ((it->wire == EMB_W_COIL) == (p->bits != 0))
+                  && ((it->wire == EMB_W_BYTES) == (it->out == EMB_O_BYTES));
+        if (ok && it->wire == EMB_W_BYTES)
+            ok = it->nregs >= 1 && it->target == EMB_C_NONE
+                 && !(it->flags & (EMB_F_MULTIPLY | EMB_F_DIVIDE));
+        else if (ok)
+            ok = it->nregs == wire_width(it->wire) && it->bit <= 15;
+        if (ok && (it->flags & (EMB_F_MULTIPLY | EMB_F_DIVIDE)))
+            ok = isfinite(it->scale) && it->scale != 0.0;
+        if (!ok)
+            return (long)i + 1;
+    }
+    return 0;
+}
+
+/* Inverse of gather: register k of the value (0 = most significant) to its place. */
+static void scatter(uint64_t v, unsigned w, unsigned flags, uint16_t *regs)
+{
+    for (unsigned k = 0; k < w; k++) {
+        uint16_t word = (uint16_t)(v >> (16 * (w - 1 - k)));
+        regs[(flags & EMB_F_WORD_SWAP) ? w - 1 - k : k] =
+            (flags & EMB_F_BYTE_SWAP) ? bswap16(word) : word;
+    }
+}
+
+static int64_t bcd_pack(uint64_t v, unsigned digits)
+{
+    uint64_t out = 0;
+    for (unsigned k = 0; k < digits; k++) {
+        out |= (v % 10) << (4 * k);
+        v /= 10;
+    }
+    return v == 0 ? (int64_t)out : -1;
+}
+
+int emb_encode(const emb_item *it, uint64_t raw, double fval, const uint8_t *bytes,
+               uint32_t nbytes, uint16_t *regs, uint32_t max_regs)
+{
+    unsigned w = it->wire == EMB_W_BYTES ? it->nregs : wire_width(it->wire);
+    unsigned fl = it->flags;
+    if (w == 0 || w > max_regs)
+        return -1;
+    switch (it->wire) {
+    case EMB_W_COIL:
+    case EMB_W_REGBOOL:
+        regs[0] = raw != 0;
+        return 1;
+    case EMB_W_U8:
+    case EMB_W_I8:
+        scatter(raw & 0xFF, 1, fl, regs);
+        return 1;
+    case EMB_W_BCD16:
+    case EMB_W_BCD32: {
+        int64_t packed = bcd_pack(raw, 4 * w);
+        if (packed < 0)
+            return -1;
+        scatter((uint64_t)packed, w, fl, regs);
+        return (int)w;
+    }
+    case EMB_W_F32: {
+        if (isfinite(fval) && fabs(fval) > FLT_MAX)
+            return -1;
+        float f = (float)fval;
+        uint32_t u;
+        memcpy(&u, &f, sizeof u);
+        scatter(u, 2, fl, regs);
+        return 2;
+    }
+    case EMB_W_F64: {
+        uint64_t u;
+        memcpy(&u, &fval, sizeof u);
+        scatter(u, 4, fl, regs);
+        return 4;
+    }
+    case EMB_W_BYTES:
+        if (nbytes > 2u * w || (nbytes && !bytes))
+            return -1;
+        for (unsigned k = 0; k < w; k++) {
+            unsigned hi = 2 * k < nbytes ? bytes[2 * k] : 0;
+            unsigned lo = 2 * k + 1 < nbytes ? bytes[2 * k + 1] : 0;
+            uint16_t word = (uint16_t)(hi << 8 | lo);
+            regs[(fl & EMB_F_WORD_SWAP) ? w - 1 - k : k] =
+                (fl & EMB_F_BYTE_SWAP) ? bswap16(word) : word;
+        }
+        return (int)w;
+    case EMB_W_REGBIT:
+        return -1; /* a bit is written by read-modify-write of its register */
+    default: /* 16/32/64-bit integers, SEC32, MS64: two's complement bits */
+        scatter(w == 4 ? raw : raw & (((uint64_t)1 << (16 * w)) - 1), w, fl, regs);
+        return (int)w;
+    }
+}

@@ -1,0 +1,149 @@
+/* edgemodbus value codec: register blocks <-> values, with change detection.
+ *
+ * A read block is described once per plan by an array of emb_item (one per tag) inside an
+ * emb_plan that also points at the typed output arrays and at the per-item state of the
+ * last REPORTED result.  emb_decode() then decodes every item of a block in one call,
+ * writes each value into the output array of its group (int64, uint64, double, bool) and
+ * lists the items whose value or status changed.  Python materializes objects only for
+ * those (or pulls whole arrays with ffi.unpack).
+ *
+ * Reentrant: no globals, nothing allocated; a plan is used by one thread at a time.
+ *
+ * Byte order (MODBUS Application Protocol v1.1b3, 4.2: registers are big-endian): a value
+ * of w registers is rebuilt from the registers in word order (reversed when
+ * EMB_F_WORD_SWAP) with the two bytes of each register swapped when EMB_F_BYTE_SWAP.
+ * ABCD = neither, BADC = byte swap, CDAB = word swap, DCBA = both; for 64-bit values
+ * ABCD -> ABCDEFGH, CDAB -> GHEFCDAB, BADC -> BADCFEHG, DCBA -> HGFEDCBA.
+ */
+#ifndef EMB_CODEC_H
+#define EMB_CODEC_H
+
+#include <stdbool.h>
+#include <stdint.h>
+
+/* Wire kinds: how the item's registers (or bit) become a raw value. */
+#define EMB_W_COIL 1    /* coil / discrete input: one byte per bit, != 0 */
+#define EMB_W_REGBOOL 2 /* first register != 0 */
+#define EMB_W_REGBIT 3  /* bit `bit` (0 = LSB) of the register, after byte swap */
+#define EMB_W_U8 4      /* low byte of the register after byte swap */
+#define EMB_W_I8 5
+#define EMB_W_U16 6
+#define EMB_W_I16 7
+#define EMB_W_U32 8
+#define EMB_W_I32 9
+#define EMB_W_U64 10
+#define EMB_W_I64 11
+#define EMB_W_F32 12
+#define EMB_W_F64 13
+#define EMB_W_BCD16 14  /* packed decimal, 4 digits */
+#define EMB_W_BCD32 15  /* packed decimal, 8 digits, 2 registers */
+#define EMB_W_SEC32 16  /* uint32 Unix seconds, reported as int64 milliseconds */
+#define EMB_W_MS64 17   /* int64 Unix milliseconds */
+#define EMB_W_BYTES 18  /* nregs registers as bytes in format order */
+#define EMB_W_LAST 18
+
+/* Item flags. */
+#define EMB_F_BYTE_SWAP 0x01
+#define EMB_F_WORD_SWAP 0x02
+#define EMB_F_MULTIPLY 0x04 /* value = raw * scale (a double) */
+#define EMB_F_DIVIDE 0x08   /* value = raw / scale: scale is 1/multiplier, exact for 0.1 etc. */
+#define EMB_F_STRIP 0x10    /* BYTES: reported length excludes trailing NULs */
+
+/* Conversion targets (convertedDataType); NONE keeps the raw value's kind. */
+#define EMB_C_NONE 0
+#define EMB_C_BOOL 1
+#define EMB_C_I8 2
+#define EMB_C_U8 3
+#define EMB_C_I16 4
+#define EMB_C_U16 5
+#define EMB_C_I32 6
+#define EMB_C_U32 7
+#define EMB_C_I64 8
+#define EMB_C_U64 9
+#define EMB_C_BCD16 10    /* an integer 0..9999 */
+#define EMB_C_BCD32 11    /* an integer 0..99999999 */
+#define EMB_C_F32 12      /* a double whose magnitude fits a float32 */
+#define EMB_C_F64 13
+#define EMB_C_DATETIME 14 /* milliseconds within years 1..9999 (Python datetime) */
+#define EMB_C_LAST 14
+
+/* Output groups: which typed array holds the item's result (at index `slot`). */
+#define EMB_O_I64 0
+#define EMB_O_U64 1
+#define EMB_O_F64 2
+#define EMB_O_BOOL 3
+#define EMB_O_BYTES 4 /* bytes at out_bytes[aux], length in out_u64[slot] */
+
+/* Per-item status. */
+#define EMB_E_OK 0
+#define EMB_E_MISSING 1 /* registers past the end of the response */
+#define EMB_E_BCD 2     /* a BCD nibble above 9 */
+#define EMB_E_NAN 3     /* NaN cannot become an integer */
+#define EMB_E_RANGE 4   /* value outside the target type */
+#define EMB_E_UNREPORTED 255 /* state only: nothing reported yet */
+
+/* Decode modes. */
+#define EMB_MODE_VALUES 0 /* decode only; state untouched; errs lists the failed items */
+#define EMB_MODE_TRACK 1  /* decode, list changed items, remember what is reported */
+#define EMB_MODE_ALL 2    /* decode, report every item, remember it; `changed` lists the
+                           * items whose result differs exactly from the last report */
+
+typedef struct emb_item {
+    uint32_t offset;   /* first register (or bit) of the item inside the block */
+    uint32_t aux;      /* BYTES: offset in out_bytes / last_bytes */
+    uint32_t slot;     /* index in the output array of the item's group */
+    uint16_t nregs;    /* registers read: the wire width, or the byte count / 2 for BYTES */
+    uint8_t wire;      /* EMB_W_* */
+    uint8_t flags;     /* EMB_F_* */
+    uint8_t bit;       /* EMB_W_REGBIT: 0..15 */
+    uint8_t target;    /* EMB_C_* */
+    uint8_t out;       /* EMB_O_* */
+    uint8_t reserved;
+    double scale;      /* EMB_F_MULTIPLY: multiplier; EMB_F_DIVIDE: divisor */
+    double deadband;   /* absolute, on the final value; 0 = any change */
+} emb_item;
+
+typedef struct emb_plan {
+    const emb_item *items;
+    uint32_t n_items;
+    uint32_t bits;       /* nonzero: data holds one byte per bit (coils, discrete inputs) */
+    /* outputs, rewritten by each decode */
+    int64_t *out_i64;
+    uint64_t *out_u64;
+    double *out_f64;
+    bool *out_bool;
+    uint8_t *out_bytes;
+    uint32_t n_i64, n_u64, n_f64, n_bool, n_bytes; /* array lengths, checked by emb_plan_check */
+    uint8_t *status;     /* [n_items] EMB_E_* */
+    double *errval;      /* [n_items] the offending value of a failed item */
+    uint32_t *errs;      /* [n_items] indices of failed items */
+    uint32_t *changed;   /* [n_items] indices of reported items */
+    uint32_t n_errors;   /* written by each decode */
+    /* state: the last reported result of each item */
+    uint64_t *last;      /* [n_items] value bits */
+    uint8_t *last_status; /* [n_items] EMB_E_*, EMB_E_UNREPORTED before the first report */
+    uint8_t *last_bytes; /* [n_bytes] raw bytes of BYTES items */
+} emb_plan;
+
+/* 0 if every item fits the plan's arrays and is coherent; else 1 + the first bad item's
+ * index (or -1 when the plan itself is unusable).  Call once per plan, not per decode. */
+long emb_plan_check(const emb_plan *plan);
+
+/* Decode `count` registers (or bits) at `data` for every item of a checked plan.
+ * Returns the number of items listed in plan->changed (TRACK: the reported ones, whose
+ * value moved past the deadband or whose status changed; ALL: those whose result is not
+ * exactly the last reported one, plus every failed item) or, for VALUES, the number of
+ * failed items.  plan->n_errors and plan->errs always list the failed items. */
+long emb_decode(emb_plan *plan, const void *data, uint32_t count, int mode);
+
+/* Forget the reported state: the next TRACK decode reports every item. */
+void emb_reset(emb_plan *plan);
+
+/* Pack one raw value into the registers of `item` (its wire, nregs and byte/word swap):
+ * integers (two's complement) and BCD digits as `raw`, floats as `fval`, BYTES as
+ * `bytes` (NUL-padded).  Returns the register count written, or -1 if it cannot be
+ * packed (BCD out of range, float32 overflow, too many bytes, a bit item, small buffer). */
+int emb_encode(const emb_item *item, uint64_t raw, double fval, const uint8_t *bytes,
+               uint32_t nbytes, uint16_t *regs, uint32_t max_regs);
+
+#endif
