@@ -9,11 +9,11 @@ from collections.abc import Iterator
 import pytest
 from pymodbus import FramerType
 from pymodbus.client import ModbusTcpClient
+from tests.peers import PymodbusSlave, default_register
 
 from bench.conftest import cpu_per_call, report, scale
 from edgemodbus.bus import Bus, LineTiming, Link, TcpEndpoint
 from edgemodbus.datatypes import Area
-from tests.peers import PymodbusSlave, default_register
 
 EXPECTED = [default_register(1, "hr", a) for a in range(125)]
 

@@ -7,7 +7,22 @@ writes and reports with per-slave fault isolation.
 
 from __future__ import annotations
 
+from .address import Address, parse_address
+from .config import (
+    ConfigError,
+    DeviceAddressItem,
+    DeviceConfig,
+    DeviceDriverStatus,
+    DeviceOrganizationParameter,
+    DriverModbusRtuParameter,
+    ItemStatus,
+    Parity,
+    load_communication,
+    load_device_config,
+)
 from .datatypes import Area, DataFormat, DataType
+from .descriptor import driver_descriptor
+from .driver import DriverModbusRtu
 from .errors import (
     ModbusConnectionError,
     ModbusError,
@@ -19,13 +34,27 @@ from .errors import (
 __version__ = "0.1.0"
 
 __all__ = [
+    "Address",
     "Area",
+    "ConfigError",
     "DataFormat",
     "DataType",
+    "DeviceAddressItem",
+    "DeviceConfig",
+    "DeviceDriverStatus",
+    "DeviceOrganizationParameter",
+    "DriverModbusRtu",
+    "DriverModbusRtuParameter",
+    "ItemStatus",
     "ModbusConnectionError",
     "ModbusError",
     "ModbusExceptionResponse",
     "ModbusTimeoutError",
+    "Parity",
     "ProtocolError",
     "__version__",
+    "driver_descriptor",
+    "load_communication",
+    "load_device_config",
+    "parse_address",
 ]

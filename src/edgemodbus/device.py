@@ -1,0 +1,669 @@
+"""One polled slave on a line: its read plan, item state, fault handling and writes.
+
+A :class:`Device` is a bus poller: the line's worker thread calls ``poll_step`` when it
+is due, and each step reads one planned block, so writes queued by other threads run
+between two blocks.  Faults are handled per slave:
+
+* a timeout (after ``retries``) ends this slave's cycle: its remaining blocks are not
+  read and their items go Invalid ("device not responding"); after
+  ``offlineAfterFailedCycles`` such cycles the slave is ``Offline`` and is probed with
+  one request per backoff interval (doubling from readCycle up to maxBackoff), so a
+  dead slave costs the others at most one response timeout (plus settling) per interval;
+* an illegal-address exception (02) on a merged block splits the block in two, and
+  again, until only the bad addresses fail; the split is kept for later cycles;
+* CRC, protocol and other exception responses invalidate that block's items only.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Sequence
+from concurrent.futures import Future
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from typing import TYPE_CHECKING, Any, cast
+
+from ._binding import Block
+from .bus import Bus, Link
+from .codec import BlockDecoder, ValueSpec, encode
+from .config import DeviceDriverStatus, DriverModbusRtuParameter, ItemStatus, ParsedItem
+from .datatypes import Area
+from .errors import (
+    CrcError,
+    IllegalDataAddress,
+    IllegalFunction,
+    ModbusConnectionError,
+    ModbusError,
+    ModbusExceptionResponse,
+    ModbusTimeoutError,
+    ProtocolError,
+)
+from .normalize import normalize_value
+from .planner import Piece, PlanItem, ReadBlock, bisect_block, plan_reads
+
+if TYPE_CHECKING:
+    from .config import DeviceAddressItem
+    from .driver import DriverModbusRtu
+
+_MAX_WRITE_REGISTERS = 123  # FC16 (Modbus Application Protocol v1.1b3, 6.12)
+_MAX_WRITE_COILS = 1968  # FC15 (6.11)
+
+
+@dataclass
+class Counters:
+    """Per-device counters behind ``DriverModbusRtu.stats()``."""
+
+    requests: int = 0
+    responses: int = 0
+    timeouts: int = 0
+    crc_errors: int = 0
+    protocol_errors: int = 0
+    exceptions: dict[int, int] = field(default_factory=dict)
+    retries: int = 0
+    cycles: int = 0
+    failed_cycles: int = 0
+    overruns: int = 0
+    skipped_blocks: int = 0
+    last_cycle_time: float = 0.0
+    total_cycle_time: float = 0.0
+    max_cycle_time: float = 0.0
+    round_trip_total: float = 0.0
+    callback_errors: int = 0
+    callback_time: float = 0.0
+    values_changed: int = 0
+    writes: int = 0
+    write_errors: int = 0
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "requests": self.requests,
+            "responses": self.responses,
+            "timeouts": self.timeouts,
+            "crcErrors": self.crc_errors,
+            "protocolErrors": self.protocol_errors,
+            "exceptions": dict(self.exceptions),
+            "retries": self.retries,
+            "cycles": self.cycles,
+            "failedCycles": self.failed_cycles,
+            "overruns": self.overruns,
+            "skippedBlocks": self.skipped_blocks,
+            "lastCycleTime": self.last_cycle_time,
+            "avgCycleTime": self.total_cycle_time / self.cycles if self.cycles else 0.0,
+            "maxCycleTime": self.max_cycle_time,
+            "avgRoundTrip": self.round_trip_total / self.responses if self.responses else 0.0,
+            "callbackErrors": self.callback_errors,
+            "callbackTime": self.callback_time,
+            "valuesChanged": self.values_changed,
+            "writes": self.writes,
+            "writeErrors": self.write_errors,
+        }
+
+
+class ItemState:
+    """A configured item with what the driver needs to read, decode and write it."""
+
+    __slots__ = ("area", "bit", "item", "offset", "parsed", "size", "spec")
+
+    def __init__(self, parsed: ParsedItem) -> None:
+        self.parsed = parsed
+        self.item: DeviceAddressItem = parsed.item
+        self.area: Area = parsed.address.area
+        self.offset: int = parsed.address.offset
+        self.bit: int | None = parsed.address.bit
+        self.size: int = 1 if self.area.is_bit else parsed.registers
+        self.spec = ValueSpec(
+            name=parsed.item.name,
+            data_type=parsed.data_type,
+            data_format=parsed.data_format,
+            quantity=parsed.quantity,
+            bit=parsed.address.bit,
+            multiplier=parsed.multiplier,
+            converted_type=parsed.converted_type,
+            deadband=parsed.deadband or 0.0,
+            encoding=parsed.encoding,
+        )
+
+    def same_definition(self, other: ItemState) -> bool:
+        return (self.item.name, self.area, self.offset, self.spec) == (
+            other.item.name, other.area, other.offset, other.spec
+        )
+
+    def snapshot(self) -> dict[str, Any]:
+        item = self.item
+        return {
+            "address": item.address,
+            "value": _jsonable(item.value),
+            "status": _status_text(item.status),
+            "updateTs": item.update_ts.isoformat() if item.update_ts else None,
+            "errorReason": item.error_reason,
+        }
+
+
+class _Assembly:
+    """Registers of an item larger than one block, gathered over several blocks."""
+
+    __slots__ = ("decoder", "filled", "registers", "state")
+
+    def __init__(self, state: ItemState) -> None:
+        self.state = state
+        self.registers = [0] * state.size
+        self.filled = 0  # registers received in this cycle
+        self.decoder = BlockDecoder(state.area, state.size, [(0, state.spec)])
+
+
+@dataclass
+class _Slot:
+    """One planned read and how to decode it."""
+
+    block: ReadBlock
+    whole: list[ItemState]
+    decoder: BlockDecoder | None
+    partial: list[tuple[Piece, _Assembly]]
+
+    def states(self) -> list[ItemState]:
+        return self.whole + [asm.state for _, asm in self.partial]
+
+
+@dataclass
+class WriteOp:
+    """One write request: consecutive coils or registers of one area, or one bit."""
+
+    area: Area
+    address: int
+    registers: list[int] = field(default_factory=list)
+    bits: list[bool] = field(default_factory=list)
+    bit: int | None = None
+    updates: list[tuple[ItemState, Any]] = field(default_factory=list)
+
+    @property
+    def names(self) -> str:
+        return ", ".join(st.item.name for st, _ in self.updates)
+
+
+class Device:
+    """The poller of one slave.  All state below is touched by the bus worker only,
+    except ``status``, ``items`` and ``counters`` which other threads read."""
+
+    def __init__(
+        self,
+        driver: DriverModbusRtu,
+        code: str,
+        params: DriverModbusRtuParameter,
+        parsed: Sequence[ParsedItem],
+        logger: logging.Logger,
+    ) -> None:
+        self.driver = driver
+        self.code = code
+        self.log = logger
+        self.slave = params.slave_id
+        self.cycle = params.read_cycle / 1000
+        self.timeout = params.read_timeout / 1000
+        self.retries = params.retries
+        self.offline_after = params.offline_after_failed_cycles
+        self.max_backoff = params.max_backoff / 1000
+        self.report_all = params.report_mode == "cycle"
+        self.write_single_fc = params.write_single_register_function
+        self.snapshot_interval = params.snapshot_interval / 1000
+        self.params = params
+        self.counters = Counters()
+        self.status = DeviceDriverStatus.CONNECTING
+        self.active = False
+        self.bus: Bus | None = None
+        self.items: list[ItemState] = []
+        self.by_name: dict[str, ItemState] = {}
+        self.slots: list[_Slot] = []
+        self._install(parsed)
+        self.index = 0
+        self.due = 0.0
+        self.cycle_start = 0.0
+        self.failed_cycles = 0
+        self.offline = False
+        self.backoff = self.cycle
+        self.no_fc16 = False
+        self.no_fc22 = False
+        self.batch: list[DeviceAddressItem] = []
+        self.next_snapshot = 0.0
+
+    @property
+    def plan(self) -> list[ReadBlock]:
+        return [slot.block for slot in self.slots]
+
+    # -- lifecycle ---------------------------------------------------------------------
+    def start(self, bus: Bus) -> None:
+        self.bus = bus
+        self.active = True
+        self.due = time.monotonic()
+        bus.attach(self)
+
+    def stop(self) -> None:
+        self.active = False
+        self.status = DeviceDriverStatus.STOPPED
+
+    def _install(self, parsed: Sequence[ParsedItem]) -> None:
+        old = self.by_name
+        items = [ItemState(p) for p in parsed if p.item.is_enable]
+        for state in items:
+            prev = old.get(state.item.name)
+            if prev is not None and prev.item is not state.item and prev.same_definition(state):
+                _copy_runtime(prev.item, state.item)
+        self.items = items
+        self.by_name = {s.item.name: s for s in items}
+        blocks = build_plan([s.parsed for s in items], self.params)
+        self.slots = [self._make_slot(b) for b in blocks]
+
+    def _make_slot(self, block: ReadBlock) -> _Slot:
+        whole: list[ItemState] = []
+        specs: list[tuple[int, ValueSpec]] = []
+        partial: list[tuple[Piece, _Assembly]] = []
+        for piece in block.pieces:
+            state = self.items[cast(int, piece.key)]
+            if piece.item_offset == 0 and piece.size == state.size:
+                whole.append(state)
+                specs.append((piece.block_offset, state.spec))
+            else:
+                partial.append((piece, self._assembly(state)))
+        decoder = BlockDecoder(block.area, block.count, specs) if specs else None
+        return _Slot(block, whole, decoder, partial)
+
+    def _assembly(self, state: ItemState) -> _Assembly:
+        for slot in self.slots:
+            for _, asm in slot.partial:
+                if asm.state is state:
+                    return asm
+        return _Assembly(state)
+
+    def replace_items(self, parsed: Sequence[ParsedItem]) -> Future[None]:
+        """Swap in a new address list on the worker, between two reads."""
+        assert self.bus is not None
+
+        def swap(_link: Link) -> None:
+            self._install(parsed)
+            self.index = 0
+            self.due = time.monotonic()
+
+        return self.bus.submit(swap)
+
+    # -- the Poller protocol -----------------------------------------------------------
+    def next_due(self) -> float:
+        return self.due
+
+    def link_changed(self, up: bool, reason: str | None) -> None:
+        if not self.active:
+            return
+        self.index = 0
+        self.due = time.monotonic()
+        if up:
+            return
+        self.status = DeviceDriverStatus.RECONNECTING
+        for slot in self.slots:
+            self._invalidate(slot, f"link down: {reason}")
+        self._flush_batch()
+
+    def poll_step(self, link: Link) -> None:
+        if not self.active:
+            return
+        if self.index == 0:
+            self.cycle_start = time.monotonic()
+        slots = self.slots
+        if not slots:
+            self._end_cycle(failed=False)
+            return
+        slot = slots[self.index]
+        link.set_response_timeout(self.timeout)
+        error = self._read(link, slot)
+        if error is None:
+            if self.status is not DeviceDriverStatus.RUNNING:
+                self._back_online()
+            self.index += 1
+        elif isinstance(error, ModbusConnectionError):
+            self.index = 0  # the bus reports the link as down and reconnects
+            return
+        elif isinstance(error, ModbusTimeoutError):
+            reason = f"device not responding: {error}"
+            self.counters.skipped_blocks += len(slots) - self.index - 1
+            for rest in slots[self.index:]:
+                self._invalidate(rest, reason)
+            self._end_cycle(failed=True)
+            return
+        elif isinstance(error, IllegalDataAddress) and len(slot.block.pieces) > 1:
+            halves = bisect_block(slot.block)
+            self.slots[self.index:self.index + 1] = [self._make_slot(b) for b in halves]
+            self.log.info(
+                "%s: exception 02 on %s@%d+%d: split into %s", self.code,
+                slot.block.area.short_name, slot.block.start, slot.block.count,
+                ", ".join(f"@{b.start}+{b.count}" for b in halves),
+            )
+            return  # read the halves next, within this cycle
+        else:
+            if self.status is not DeviceDriverStatus.RUNNING and not isinstance(
+                error, ProtocolError
+            ):
+                self._back_online()  # an exception response: the slave is there
+            self._invalidate(slot, str(error))
+            self.index += 1
+        if self.index >= len(self.slots):
+            self._end_cycle(failed=False)
+
+    def _read(self, link: Link, slot: _Slot) -> ModbusError | None:
+        """Read one block (with retries for timeouts and CRC errors) and apply it."""
+        block = slot.block
+        counters = self.counters
+        attempts = 1 if self.offline else 1 + self.retries
+        for attempt in range(attempts):
+            counters.requests += 1
+            started = time.monotonic()
+            try:
+                data = link.read(self.slave, block.area, block.start, block.count)
+            except (ModbusTimeoutError, CrcError) as exc:
+                if isinstance(exc, CrcError):
+                    counters.crc_errors += 1
+                else:
+                    counters.timeouts += 1
+                if attempt + 1 < attempts and link.is_open:
+                    counters.retries += 1
+                    continue
+                return exc
+            except ModbusError as exc:
+                if isinstance(exc, ModbusExceptionResponse):
+                    counters.exceptions[exc.code] = counters.exceptions.get(exc.code, 0) + 1
+                elif isinstance(exc, ProtocolError):
+                    counters.protocol_errors += 1
+                return exc
+            counters.responses += 1
+            counters.round_trip_total += time.monotonic() - started
+            self._apply(slot, data)
+            return None
+        raise AssertionError("unreachable")  # pragma: no cover
+
+    def _apply(self, slot: _Slot, data: Block) -> None:
+        now = datetime.now(timezone.utc)
+        if slot.decoder is not None:
+            whole = slot.whole
+            for index, value, error in slot.decoder.decode(data, self.report_all):
+                self._set(whole[index], value, error, now)
+        if slot.partial:
+            values = data.to_list()
+            for piece, asm in slot.partial:
+                start = piece.block_offset
+                asm.registers[piece.item_offset:piece.item_offset + piece.size] = values[
+                    start:start + piece.size
+                ]
+                asm.filled += piece.size
+                if asm.filled >= asm.state.size:  # pieces never overlap: all arrived
+                    asm.filled = 0
+                    block = Block.from_values(asm.registers, bits=False)
+                    for _, value, error in asm.decoder.decode(block, self.report_all):
+                        self._set(asm.state, value, error, now)
+
+    # -- item state ----------------------------------------------------------------------
+    def _set(self, state: ItemState, value: Any, error: str | None, now: datetime) -> None:
+        item = state.item
+        if error is None:
+            item.value = value
+            item.status = ItemStatus.OK
+            item.error_reason = None
+        else:
+            item.status = ItemStatus.INVALID
+            item.error_reason = error
+        item.update_ts = now
+        self.counters.values_changed += 1
+        self._report(item)
+
+    def _invalidate(self, slot: _Slot, reason: str) -> None:
+        now = datetime.now(timezone.utc)
+        for state in slot.states():
+            item = state.item
+            changed = item.status is not ItemStatus.INVALID
+            item.status = ItemStatus.INVALID
+            item.error_reason = reason
+            item.update_ts = now
+            if changed or self.report_all:
+                self._report(item)
+        if slot.decoder is not None:
+            slot.decoder.reset()  # the next good read reports every item again
+        for _, asm in slot.partial:
+            asm.decoder.reset()
+            asm.filled = 0
+
+    def _report(self, item: DeviceAddressItem) -> None:
+        self.batch.append(item)
+        callback = self.driver.address_updated_callback
+        if callback is None:
+            return
+        started = time.perf_counter()
+        try:
+            callback(item)
+        except Exception:
+            self.counters.callback_errors += 1
+            self.log.exception("%s: address_updated_callback failed for item %r",
+                               self.code, item.name)
+        self.counters.callback_time += time.perf_counter() - started
+
+    def _flush_batch(self) -> None:
+        batch, self.batch = self.batch, []
+        callback = self.driver.addresses_updated_callback
+        if not batch or callback is None:
+            return
+        started = time.perf_counter()
+        try:
+            callback(batch)
+        except Exception:
+            self.counters.callback_errors += 1
+            self.log.exception("%s: addresses_updated_callback failed (%d items)",
+                               self.code, len(batch))
+        self.counters.callback_time += time.perf_counter() - started
+
+    # -- cycles and fault isolation --------------------------------------------------------
+    def _back_online(self) -> None:
+        if self.offline:
+            self.log.info("%s: slave %d answers again", self.code, self.slave)
+        self.status = DeviceDriverStatus.RUNNING
+        self.offline = False
+        self.failed_cycles = 0
+        self.backoff = self.cycle
+
+    def _end_cycle(self, failed: bool) -> None:
+        now = time.monotonic()
+        elapsed = now - self.cycle_start
+        counters = self.counters
+        counters.cycles += 1
+        counters.last_cycle_time = elapsed
+        counters.total_cycle_time += elapsed
+        counters.max_cycle_time = max(counters.max_cycle_time, elapsed)
+        self.index = 0
+        if failed:
+            counters.failed_cycles += 1
+            self.failed_cycles += 1
+        else:
+            self.failed_cycles = 0
+        if failed and self.failed_cycles >= self.offline_after:
+            if self.offline:
+                self.backoff = min(self.backoff * 2, self.max_backoff)
+            else:
+                self.offline = True
+                self.status = DeviceDriverStatus.OFFLINE
+                self.backoff = min(self.cycle, self.max_backoff)
+                self.log.warning("%s: slave %d offline after %d failed cycles; probing every "
+                                 "%.3g s and backing off", self.code, self.slave,
+                                 self.failed_cycles, self.backoff)
+            self.due = now + self.backoff
+        elif elapsed > self.cycle:
+            counters.overruns += 1
+            self.due = now  # no burst of catch-up cycles
+        else:
+            self.due = self.cycle_start + self.cycle
+        self._flush_batch()
+        if self.snapshot_interval and now >= self.next_snapshot:
+            self.next_snapshot = now + self.snapshot_interval
+            self.driver._publish(self)
+
+    # -- writes --------------------------------------------------------------------------
+    def submit_writes(self, ops: list[WriteOp]) -> Future[tuple[bool, str | None]]:
+        assert self.bus is not None
+        return self.bus.submit(lambda link: self._run_writes(link, ops))
+
+    def _run_writes(self, link: Link, ops: list[WriteOp]) -> tuple[bool, str | None]:
+        if not self.active:
+            return False, "device stopped before the write was sent"
+        link.set_response_timeout(self.timeout)
+        errors: list[str] = []
+        now = datetime.now(timezone.utc)
+        for i, op in enumerate(ops):
+            self.counters.writes += 1
+            try:
+                self._execute(link, op)
+            except ModbusError as exc:
+                self.counters.write_errors += 1
+                errors.append(f"{op.names}: {exc}")
+                if isinstance(exc, ModbusConnectionError):
+                    errors.extend(f"{o.names}: not sent (link down)" for o in ops[i + 1:])
+                    break
+                continue
+            for state, value in op.updates:
+                item = state.item
+                if self.report_all or item.value != value or item.status is not ItemStatus.OK:
+                    self._set(state, value, None, now)
+        return (False, "; ".join(errors)) if errors else (True, None)
+
+    def _execute(self, link: Link, op: WriteOp) -> None:
+        slave = self.slave
+        if op.area is Area.COIL:
+            if len(op.bits) == 1:
+                link.write_coil(slave, op.address, op.bits[0])
+            else:
+                link.write_coils(slave, op.address, op.bits)
+            return
+        if op.bit is not None:
+            self._write_bit(link, op.address, op.bit, op.bits[0])
+            return
+        regs = op.registers
+        if len(regs) == 1 and self.write_single_fc == 6:
+            link.write_register(slave, op.address, regs[0])
+            return
+        if not self.no_fc16:
+            try:
+                link.write_registers(slave, op.address, regs)
+                return
+            except IllegalFunction:
+                self.no_fc16 = True
+                self.log.warning("%s: slave %d refuses FC16; writing with FC06 from now on",
+                                 self.code, slave)
+        for offset, value in enumerate(regs):
+            link.write_register(slave, op.address + offset, value)
+
+    def _write_bit(self, link: Link, address: int, bit: int, on: bool) -> None:
+        """Set one bit of a holding register: FC22 mask write (6.16), else read-modify-
+        write with FC03 + FC06 (not atomic against other masters; logged once)."""
+        slave = self.slave
+        if not self.no_fc22:
+            try:
+                link.mask_write_register(slave, address, 0xFFFF ^ (1 << bit), int(on) << bit)
+                return
+            except IllegalFunction:
+                self.no_fc22 = True
+                self.log.warning("%s: slave %d refuses FC22; bit writes use read-modify-write",
+                                 self.code, slave)
+        current = link.read(slave, Area.HOLDING_REGISTER, address, 1).to_list()[0]
+        value = (current | (1 << bit)) if on else (current & ~(1 << bit) & 0xFFFF)
+        link.write_register(slave, address, value)
+
+
+def build_plan(items: Sequence[ParsedItem], params: DriverModbusRtuParameter) -> list[ReadBlock]:
+    """The read blocks of a device's enabled items; piece keys index ``items``."""
+    plan_items = [
+        PlanItem(i, p.address.area, p.address.offset, 1 if p.address.area.is_bit else p.registers)
+        for i, p in enumerate(items)
+        if p.item.is_enable
+    ]
+    return plan_reads(
+        plan_items,
+        max_registers=params.max_block_read_register_count,
+        max_bits=params.max_block_read_bit_count,
+        max_gap=params.max_merge_address_gap,
+        continuous=params.is_block_read_require_address_continuous,
+    )
+
+
+def plan_writes(device: Device, items: list[tuple[str, Any]]) -> list[WriteOp]:
+    """Normalize, encode and group a batch of writes (raises ValueError naming the item).
+
+    Contiguous registers (or coils) of one area are merged into one request, up to the
+    protocol's limits; bit-in-register items are written one by one.
+    """
+    if not items:
+        raise ValueError("nothing to write")
+    seen: set[str] = set()
+    single: list[WriteOp] = []
+    for name, raw in items:
+        state = device.by_name.get(name)
+        if state is None:
+            raise ValueError(f"unknown item {name!r}")
+        if name in seen:
+            raise ValueError(f"{name}: written twice in one batch")
+        seen.add(name)
+        if not state.area.writable:
+            raise ValueError(
+                f"{name}: {state.item.address} is a read-only "
+                f"{'discrete input' if state.area.is_bit else 'input register'}; "
+                "only coils and holding registers can be written"
+            )
+        spec = state.spec
+        value = normalize_value(name, spec.converted_type or spec.data_type, raw)
+        if state.area is Area.COIL or state.bit is not None:
+            on = bool(encode(spec, value)[0])
+            # the codec counts a register's bits after the format's byte swap
+            raw_bit = None if state.bit is None else state.bit ^ (
+                8 if spec.data_format.byte_swap else 0)
+            single.append(WriteOp(state.area, state.offset, bits=[on], bit=raw_bit,
+                                  updates=[(state, on)]))
+            continue
+        registers = encode(spec, value)
+        decoded = BlockDecoder(state.area, len(registers), [(0, spec)]).decode_values(
+            Block.from_values(registers, bits=False)
+        )[0]
+        single.append(WriteOp(state.area, state.offset, registers=registers,
+                              updates=[(state, decoded)]))
+    return _merge(single)
+
+
+def _merge(ops: list[WriteOp]) -> list[WriteOp]:
+    ops.sort(key=lambda o: (o.area.value, o.address))
+    merged: list[WriteOp] = []
+    for op in ops:
+        last = merged[-1] if merged else None
+        if last is not None and last.area is op.area and last.bit is None and op.bit is None:
+            if op.area is Area.COIL and last.address + len(last.bits) == op.address and len(
+                last.bits
+            ) < _MAX_WRITE_COILS:
+                last.bits.extend(op.bits)
+                last.updates.extend(op.updates)
+                continue
+            if op.area is Area.HOLDING_REGISTER and (
+                last.address + len(last.registers) == op.address
+                and len(last.registers) + len(op.registers) <= _MAX_WRITE_REGISTERS
+            ):
+                last.registers.extend(op.registers)
+                last.updates.extend(op.updates)
+                continue
+        merged.append(op)
+    return merged
+
+
+def _copy_runtime(src: DeviceAddressItem, dst: DeviceAddressItem) -> None:
+    dst.value = src.value
+    dst.status = src.status
+    dst.update_ts = src.update_ts
+    dst.error_reason = src.error_reason
+
+
+def _status_text(status: Any) -> str:
+    return str(getattr(status, "value", status))
+
+
+def _jsonable(value: Any) -> Any:
+    if isinstance(value, datetime):
+        return value.isoformat()
+    if isinstance(value, (bytes, bytearray)):
+        return bytes(value).hex()
+    return value

@@ -1,0 +1,270 @@
+"""DriverModbusRtu: one Modbus device (slave) polled on a shared line.
+
+The contract is the seed's ``DriverModbusRtu`` in the Python form of DESIGN.md: start,
+stop, hot update of the address list, writes (blocking and asyncio), callbacks,
+status, snapshot and stats.  Polling runs on the line's bus worker thread
+(:mod:`edgemodbus.bus`); this module plans, decodes through the C codec, keeps item
+state and isolates faults per slave.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from collections.abc import Callable, Iterable, Sequence
+from concurrent.futures import Future
+from typing import Any, ClassVar
+
+from . import bus as _bus
+from .bus import BusRegistry, Link, SerialPort, TcpEndpoint
+from .config import (
+    DeviceAddressItem,
+    DeviceDriverStatus,
+    DeviceOrganizationParameter,
+    DriverModbusRtuParameter,
+    device_enabled,
+    effective_parameters,
+    validate_items,
+)
+from .datatypes import Area
+from .device import Device, ItemState, WriteOp, plan_writes
+from .planner import ReadBlock
+
+Callback = Callable[[DeviceAddressItem], None]
+BatchCallback = Callable[[list[DeviceAddressItem]], None]
+SnapshotPublisher = Callable[[str, dict[str, Any]], None]
+
+
+class DriverModbusRtu:
+    """A Modbus RTU / RTU-over-TCP / Modbus TCP device driver (one slave).
+
+    Drivers whose lines are the same (same serial port, or same host:port) share one
+    bus worker; that is how many slaves on one RS-485 line are polled.
+    """
+
+    logger: ClassVar[logging.Logger] = logging.getLogger("edgemodbus.driver")
+    registry: ClassVar[BusRegistry] = _bus.registry
+
+    def __init__(self) -> None:
+        self.address_updated_callback: Callback | None = None
+        self.addresses_updated_callback: BatchCallback | None = None
+        self.snapshot_publisher: SnapshotPublisher | None = None
+        self._device: Device | None = None
+        self._last_device: Device | None = None  # keeps stats and snapshot after a stop
+        self._bus: _bus.Bus | None = None
+        self._line_stats: dict[str, Any] = {}
+        self._status = DeviceDriverStatus.STOPPED
+        self._params: DriverModbusRtuParameter | None = None
+        self._org: DeviceOrganizationParameter | None = None
+        self._enabled = False
+
+    # -- lifecycle ---------------------------------------------------------------------
+    def start_device(
+        self,
+        org_param: DeviceOrganizationParameter | None,
+        comm_param: DriverModbusRtuParameter,
+        addresses: Sequence[DeviceAddressItem],
+    ) -> bool:
+        """Start polling.  Returns True when polling started; False when the device is
+        disabled (status ``Disabled``) or the driver is already running (nothing done).
+        Raises ``ValueError`` for an invalid configuration (naming the item and field)
+        or a line already open with other serial settings."""
+        if self._device is not None:
+            self.logger.warning("%s: start_device: already running", self._code(org_param))
+            return False
+        params = effective_parameters(org_param, comm_param)
+        self._org, self._params = org_param, params
+        self._enabled = device_enabled(org_param, comm_param)
+        if not self._enabled:
+            self._status = DeviceDriverStatus.DISABLED
+            self.logger.info("%s: disabled, not polled", self._code(org_param))
+            return False
+        parsed = validate_items(list(addresses), params)
+        endpoint = _endpoint(params)
+        timing = _bus.LineTiming(
+            response_timeout=params.read_timeout / 1000,
+            byte_timeout=params.byte_timeout / 1000,
+            settle_timeout=None if params.settle_timeout is None else params.settle_timeout / 1000,
+            connect_timeout=params.connect_timeout / 1000,
+            reconnect_interval=params.reconnect_interval / 1000,
+            request_interval=params.request_interval / 1000,
+        )
+        bus = self.registry.acquire(endpoint, timing)
+        device = Device(self, self._code(org_param), params, parsed, self.logger)
+        self._bus, self._device, self._last_device = bus, device, None
+        self._status = DeviceDriverStatus.CONNECTING
+        device.start(bus)
+        self.logger.info(
+            "%s: polling slave %d on %s every %d ms (%d items, %d blocks)",
+            device.code, params.slave_id, endpoint.describe(), params.read_cycle,
+            len(parsed), len(device.plan),
+        )
+        return True
+
+    def stop_device(self) -> bool:
+        """Stop polling; pending writes of this device fail.  False if it was not running."""
+        device, bus = self._device, self._bus
+        if device is None or bus is None:
+            return False
+        device.stop()
+        bus.detach(device)
+        self._line_stats = bus.stats.as_dict()
+        self._device = self._bus = None
+        self._last_device = device
+        self.registry.release(bus)
+        self._status = DeviceDriverStatus.STOPPED
+        self.logger.info("%s: stopped", device.code)
+        return True
+
+    def update_addresses(self, addresses: Sequence[DeviceAddressItem]) -> None:
+        """Replace the address list while running: re-plan on the worker between two
+        reads.  New items start Unknown; removed items are no longer read; items whose
+        definition did not change keep their state.  Raises ValueError if invalid."""
+        if self._params is None:
+            raise RuntimeError("update_addresses before start_device")
+        parsed = validate_items(list(addresses), self._params)
+        if self._device is None:
+            return
+        self._device.replace_items(parsed).result()
+
+    # -- status --------------------------------------------------------------------------
+    @property
+    def device_driver_status(self) -> DeviceDriverStatus:
+        if self._device is not None:
+            return self._device.status
+        return self._status
+
+    def _set_status(self, status: DeviceDriverStatus) -> None:
+        self._status = status
+
+    @property
+    def is_enable(self) -> bool:
+        return self._enabled
+
+    @property
+    def data_item_count(self) -> int:
+        device = self._device or self._last_device
+        return len(device.items) if device is not None else 0
+
+    def read_plan(self) -> list[dict[str, Any]]:
+        """The read blocks in force: area, start, count and the names of their items."""
+        if self._device is None:
+            return []
+        return [_block_dict(b, self._device.items) for b in self._device.plan]
+
+    def snapshot(self) -> dict[str, Any]:
+        """The seed's runtime snapshot (JSON-able, camelCase keys)."""
+        device = self._device or self._last_device
+        items = device.items if device is not None else []
+        params = self._params
+        return {
+            "deviceCode": self._code(self._org),
+            "deviceDriverStatus": self.device_driver_status.value,
+            "readCycle": params.read_cycle if params is not None else None,
+            "dataItemCount": len(items),
+            "items": {s.item.name: s.snapshot() for s in items},
+        }
+
+    def stats(self) -> dict[str, Any]:
+        """Counters of this device and of its line (camelCase keys)."""
+        device = self._device or self._last_device
+        if device is None:
+            return {"deviceDriverStatus": self.device_driver_status.value}
+        result = device.counters.as_dict()
+        line = self._bus.stats.as_dict() if self._bus is not None else self._line_stats
+        result["reconnects"] = line.get("reconnects", 0)
+        result["line"] = line
+        result["deviceDriverStatus"] = self.device_driver_status.value
+        return result
+
+    # -- writes --------------------------------------------------------------------------
+    def write_address(self, name: str, value: Any) -> tuple[bool, str | None]:
+        """Write one item; True only once the slave confirmed it."""
+        return self.write_addresses([(name, value)])
+
+    def write_addresses(self, items: Iterable[tuple[str, Any]]) -> tuple[bool, str | None]:
+        """Write several items, merging contiguous registers (or coils) of one area into
+        as few requests as possible.  (False, reasons) if any write failed."""
+        prepared = self._prepare_writes(items)
+        if isinstance(prepared, str):
+            return False, prepared
+        return _wait_write(prepared)
+
+    async def write_address_async(self, name: str, value: Any) -> tuple[bool, str | None]:
+        return await self.write_addresses_async([(name, value)])
+
+    async def write_addresses_async(
+        self, items: Iterable[tuple[str, Any]]
+    ) -> tuple[bool, str | None]:
+        prepared = self._prepare_writes(items)
+        if isinstance(prepared, str):
+            return False, prepared
+        try:
+            return await asyncio.wrap_future(prepared)
+        except Exception as exc:
+            return False, str(exc)
+
+    def _prepare_writes(self, items: Iterable[tuple[str, Any]]) -> Future[Any] | str:
+        device = self._device
+        if device is None:
+            return "device is not running"
+        try:
+            ops: list[WriteOp] = plan_writes(device, list(items))
+        except ValueError as exc:
+            return str(exc)
+        return device.submit_writes(ops)
+
+    # -- helpers -------------------------------------------------------------------------
+    def _code(self, org: DeviceOrganizationParameter | None) -> str:
+        if org is not None and org.device_code:
+            return str(org.device_code)
+        return f"slave{self._params.slave_id}" if self._params is not None else "device"
+
+    def _publish(self, device: Device) -> None:
+        publisher = self.snapshot_publisher
+        if publisher is None:
+            return
+        try:
+            publisher(f"/real/{device.code}", self.snapshot())
+        except Exception:
+            self.logger.exception("%s: snapshot publisher failed", device.code)
+
+
+def _wait_write(future: Future[Any]) -> tuple[bool, str | None]:
+    try:
+        result: tuple[bool, str | None] = future.result()
+    except Exception as exc:
+        return False, str(exc)
+    return result
+
+
+def _endpoint(params: DriverModbusRtuParameter) -> SerialPort | TcpEndpoint:
+    if params.transport == "rtu":
+        return SerialPort(
+            port=params.com_port,
+            baudrate=params.baud_rate,
+            parity=_parity_letter(params.parity),
+            data_bits=params.data_bits,
+            stop_bits=params.stop_bits,
+            rs485=params.rs485,
+        )
+    return TcpEndpoint(params.tcp_host, params.tcp_port, params.transport)
+
+
+def _parity_letter(parity: Any) -> str:
+    text = str(getattr(parity, "value", parity))
+    return text[0].upper() if text else "N"
+
+
+def _block_dict(block: ReadBlock, items: Sequence[ItemState]) -> dict[str, Any]:
+    names = [items[p.key].item.name for p in block.pieces if isinstance(p.key, int)]
+    return {
+        "area": block.area.short_name,
+        "function": block.area.read_function,
+        "start": block.start,
+        "count": block.count,
+        "items": names,
+    }
+
+
+__all__ = ["Area", "DriverModbusRtu", "Link"]

@@ -1,0 +1,425 @@
+"""DriverModbusRtu end to end: libmodbus on our side, pymodbus (own process) on the other,
+and our simulator where a fault is needed."""
+
+from __future__ import annotations
+
+import asyncio
+import itertools
+import json
+import math
+import struct
+import threading
+import time
+from collections.abc import Callable, Iterator
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+import edgemodbus as em
+from edgemodbus.config import DeviceDriverStatus, ItemStatus
+from edgemodbus.simulator import Simulator
+from tests.peers import PymodbusSlave, default_bit, default_register
+
+DATA = Path(__file__).resolve().parents[1] / "data"
+
+
+def comm(port: int, slave: int = 1, **extra: Any) -> dict[str, Any]:
+    base: dict[str, Any] = {
+        "transport": "rtu-over-tcp", "tcpHost": "127.0.0.1", "tcpPort": port,
+        "slaveId": slave, "readTimeout": 300, "readCycle": 200, "reconnectInterval": 300,
+        "connectTimeout": 1000, "byteTimeout": 50,
+    }
+    base.update(extra)
+    return base
+
+
+def device(port: int, items: list[dict[str, Any]], slave: int = 1, **extra: Any) -> em.DeviceConfig:
+    return em.load_device_config({
+        "organization": {"deviceCode": f"dev{slave}"},
+        "communication": comm(port, slave, **extra),
+        "addressList": items,
+    })
+
+
+def wait_for(cond: Callable[[], bool], timeout: float = 5.0, what: str = "") -> None:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if cond():
+            return
+        time.sleep(0.02)
+    raise AssertionError(f"timed out waiting for {what or cond}")
+
+
+class Running:
+    """Start a driver for a config; stop it at the end of the with-block."""
+
+    def __init__(self, cfg: em.DeviceConfig, **callbacks: Any) -> None:
+        self.cfg = cfg
+        self.drv = em.DriverModbusRtu()
+        for name, fn in callbacks.items():
+            setattr(self.drv, name, fn)
+
+    def __enter__(self) -> em.DriverModbusRtu:
+        assert self.drv.start_device(self.cfg.organization, self.cfg.communication,
+                                     self.cfg.address_list)
+        return self.drv
+
+    def __exit__(self, *exc: object) -> None:
+        self.drv.stop_device()
+
+
+def all_ok(cfg: em.DeviceConfig) -> Callable[[], bool]:
+    return lambda: all(it.status is ItemStatus.OK for it in cfg.address_list)
+
+
+@pytest.fixture
+def slave() -> Iterator[PymodbusSlave]:
+    with PymodbusSlave("rtu-over-tcp", units=(1, 2), size=2000) as peer:
+        yield peer
+
+
+def test_seed_device_file_polls_its_tags(slave: PymodbusSlave) -> None:
+    raw = json.loads((DATA / "seed-device.json").read_text())
+    raw["organization"]["isEnable"] = True
+    raw["communication"]["tcpPort"] = slave.port
+    raw["communication"]["readTimeout"] = 500
+    cfg = em.load_device_config(raw)
+    with Running(cfg) as drv:
+        wait_for(all_ok(cfg), what="all seed items Ok")
+        assert drv.device_driver_status is DeviceDriverStatus.RUNNING
+        assert drv.data_item_count == len(cfg.address_list)
+    values = {it.name: it.value for it in cfg.address_list}
+    # "3:..." is read with FC03 (holding registers) under the default function-code
+    # prefix; the seed's slave id is 2; "pooled" is Int16 x0.1 converted to Float
+    assert values["pooled"] == pytest.approx(default_register(2, "hr", 5) * 0.1)
+    assert isinstance(values["pooled"], float)
+    for n in range(1, 13):
+        assert values[f"tag{n}"] == default_register(2, "hr", n)
+        assert isinstance(values[f"tag{n}"], int)
+    assert values["tag99"] == default_register(2, "hr", 99)
+
+
+def test_disabled_device_is_not_polled(slave: PymodbusSlave) -> None:
+    cfg = em.load_device_config(json.loads((DATA / "seed-device.json").read_text()))
+    drv = em.DriverModbusRtu()
+    assert drv.start_device(cfg.organization, cfg.communication, cfg.address_list) is False
+    assert drv.device_driver_status is DeviceDriverStatus.DISABLED
+    assert drv.stop_device() is False
+
+
+# every data type and format: write through the driver, check the slave's registers with
+# an independent encoder, read back through the driver
+ROUND_TRIP = [
+    ("Boolean", None, True), ("Byte", None, 200), ("Sbyte", None, -100), ("Int16", None, -1234),
+    ("UInt16", None, 54321), ("Int32", None, -123456), ("UInt32", None, 3_000_000_000),
+    ("Int64", None, -(2**40) - 7), ("UInt64", None, 2**63 + 11), ("Float", None, 123456.0),
+    ("Double", None, -1.0e-3), ("BCD16", None, 1234), ("BCD32", None, 12345678),
+    ("String", 5, "héllo"), ("Timestamp", 4, 1_700_000_000_123),
+    ("DateTime", 2, datetime(2026, 1, 18, 12, 16, 58, tzinfo=timezone.utc)),
+    ("Binary", 3, b"\x01\x02\x03\x04\xfe\xff"),
+]
+
+
+def _expected_registers(dtype: str, value: Any, fmt: str, quantity: int | None) -> list[int]:
+    """A plain struct-based encoder, independent of our C codec."""
+    big = {
+        "Int16": lambda v: struct.pack(">h", v), "UInt16": lambda v: struct.pack(">H", v),
+        "Int32": lambda v: struct.pack(">i", v), "UInt32": lambda v: struct.pack(">I", v),
+        "Int64": lambda v: struct.pack(">q", v), "UInt64": lambda v: struct.pack(">Q", v),
+        "Float": lambda v: struct.pack(">f", v), "Double": lambda v: struct.pack(">d", v),
+        "Byte": lambda v: struct.pack(">H", v), "Sbyte": lambda v: struct.pack(">H", v & 0xFF),
+        "Boolean": lambda v: struct.pack(">H", int(v)),
+        "BCD16": lambda v: bytes.fromhex(f"{v:04d}"), "BCD32": lambda v: bytes.fromhex(f"{v:08d}"),
+        "Timestamp": lambda v: struct.pack(">q", v),
+        "DateTime": lambda v: struct.pack(">I", int(v.timestamp())),
+    }
+    if dtype in ("String", "Binary"):
+        raw = value.encode() if isinstance(value, str) else value
+        raw = raw.ljust(2 * (quantity or 0), b"\0")
+    else:
+        raw = big[dtype](value)
+    regs = [raw[i] << 8 | raw[i + 1] for i in range(0, len(raw), 2)]
+    if fmt in ("BADC", "DCBA"):
+        regs = [((r & 0xFF) << 8) | (r >> 8) for r in regs]
+    if fmt in ("CDAB", "DCBA") and dtype not in ("String", "Binary"):
+        regs.reverse()
+    if fmt in ("CDAB", "DCBA") and dtype in ("String", "Binary"):
+        regs.reverse()
+    return regs
+
+
+@pytest.mark.parametrize("fmt", ["ABCD", "BADC", "CDAB", "DCBA"])
+def test_every_type_and_format_round_trips(slave: PymodbusSlave, fmt: str) -> None:
+    items = []
+    address = 100
+    for dtype, quantity, _ in ROUND_TRIP:
+        item: dict[str, Any] = {"name": dtype, "address": f"hr:{address}",
+                                "deviceDataType": dtype, "dataFormat": fmt}
+        if quantity:
+            item["quantity"] = quantity
+        items.append(item)
+        address += 10
+    items.append({"name": "Coil", "address": "coil:7", "deviceDataType": "Boolean"})
+    items.append({"name": "Bit", "address": "hr:90.5", "deviceDataType": "Boolean"})
+    cfg = device(slave.port, items)
+    with Running(cfg) as drv:
+        # address-derived values are not all valid BCD: wait for a first verdict only
+        wait_for(lambda: all(it.status is not ItemStatus.UNKNOWN for it in cfg.address_list),
+                 what="first read")
+        for (dtype, quantity, value), item in zip(ROUND_TRIP, cfg.address_list, strict=False):
+            ok, err = drv.write_address(dtype, value)
+            assert ok, (dtype, err)
+            offset = int(item.address.split(":")[1])
+            n = len(_expected_registers(dtype, value, fmt, quantity))
+            if dtype == "Boolean":  # a whole register, != 0 in any byte order
+                assert slave.registers(1, "hr", offset, 1) == [1]
+            elif dtype in ("Byte", "Sbyte"):
+                # one register; Byte/Sbyte live in the low byte after the byte swap
+                got = slave.registers(1, "hr", offset, 1)[0]
+                if fmt in ("BADC", "DCBA"):
+                    got = ((got & 0xFF) << 8) | (got >> 8)
+                assert got & 0xFF == value & 0xFF, dtype
+            else:
+                assert slave.registers(1, "hr", offset, n) == _expected_registers(
+                    dtype, value, fmt, quantity), dtype
+        assert drv.write_address("Coil", True) == (True, None)
+        assert drv.write_address("Bit", "true") == (True, None)
+        assert slave.bits(1, "co", 7, 1) == [True]
+        assert slave.registers(1, "hr", 90, 1)[0] == default_register(1, "hr", 90) | (1 << 5)
+        # the next cycles read back the same values from the slave
+        time.sleep(0.5)
+        wait_for(all_ok(cfg), what="read back")
+        for (dtype, _, value), item in zip(ROUND_TRIP, cfg.address_list, strict=False):
+            if isinstance(value, float):
+                assert item.value == pytest.approx(value, rel=1e-6), dtype
+            else:
+                assert item.value == value, dtype
+        assert cfg.address_list[-2].value is True and cfg.address_list[-1].value is True
+
+
+def test_two_slaves_share_a_line_and_a_dead_one_costs_one_timeout_per_backoff(
+    slave: PymodbusSlave,
+) -> None:
+    items = [{"name": f"r{i}", "address": f"hr:{i * 3}", "deviceDataType": "UInt16"}
+             for i in range(4)]
+    cycle_ms, timeout_ms = 200, 300
+    extra = {"readCycle": cycle_ms, "readTimeout": timeout_ms, "retries": 0,
+             "offlineAfterFailedCycles": 2, "maxBackoff": 1600}
+    cfgs = [device(slave.port, items, slave=s, **extra) for s in (1, 2, 3)]
+    drivers = [em.DriverModbusRtu() for _ in cfgs]
+    try:
+        for drv, cfg in zip(drivers, cfgs, strict=True):
+            assert drv.start_device(cfg.organization, cfg.communication, cfg.address_list)
+        wait_for(lambda: drivers[2].device_driver_status is DeviceDriverStatus.OFFLINE,
+                 timeout=6, what="slave 3 offline")
+        # one bus for the three devices
+        assert drivers[0]._bus is drivers[1]._bus is drivers[2]._bus
+        window = 3.0
+        before = {s: drv.stats() for s, drv in zip((1, 2, 3), drivers, strict=True)}
+        time.sleep(window)
+        after = {s: drv.stats() for s, drv in zip((1, 2, 3), drivers, strict=True)}
+        # backoff doubles from readCycle (0.2 s) up to maxBackoff (1.6 s): within 3 s at
+        # most 0.2 + 0.4 + 0.8 + 1.6 -> 4 probes, one request (one timeout) each
+        probes = after[3]["requests"] - before[3]["requests"]
+        assert 1 <= probes <= 4, probes
+        # (a snapshot may fall between a probe's request and its timeout)
+        assert probes - 1 <= after[3]["timeouts"] - before[3]["timeouts"] <= probes
+        # each probe holds the line for one timeout plus its settle time, nothing more:
+        # the others keep their cycle for the rest of the window
+        lost = probes * 2 * timeout_ms / 1000
+        for sid in (1, 2):
+            assert all(it.status is ItemStatus.OK for it in cfgs[sid - 1].address_list)
+            cycles = after[sid]["cycles"] - before[sid]["cycles"]
+            assert cycles >= (window - lost) / (cycle_ms / 1000) * 0.7, (cycles, probes)
+        dead = cfgs[2].address_list[0]
+        assert dead.status is ItemStatus.INVALID
+        assert "not responding" in (dead.error_reason or "")
+        assert dead.update_ts is not None
+        # no reconnects: a silent slave never reopens the link
+        assert after[1]["line"]["reconnects"] == 0
+    finally:
+        for drv in drivers:
+            drv.stop_device()
+
+
+def test_cycle_gap_of_good_slave_with_dead_neighbour(slave: PymodbusSlave) -> None:
+    """Measured: the good slave's cycle start-to-start never exceeds readCycle plus one
+    response timeout plus its settle time (plus slack) once the dead one is Offline."""
+    items = [{"name": "a", "address": "hr:0", "deviceDataType": "UInt16"}]
+    extra = {"readCycle": 100, "readTimeout": 200, "retries": 0, "offlineAfterFailedCycles": 1,
+             "maxBackoff": 1000, "reportMode": "cycle"}
+    good, dead = device(slave.port, items, 1, **extra), device(slave.port, items, 3, **extra)
+    stamps: list[float] = []
+    with Running(good, address_updated_callback=lambda it: stamps.append(time.monotonic())), \
+            Running(dead) as dead_drv:
+        wait_for(lambda: dead_drv.device_driver_status is DeviceDriverStatus.OFFLINE)
+        time.sleep(1.5)  # let the backoff grow to its cap (0.1, 0.2, 0.4, 0.8, 1.0 s)
+        stamps.clear()
+        probes = dead_drv.stats()["requests"]
+        time.sleep(3.0)
+        probes = dead_drv.stats()["requests"] - probes
+    gaps = [b - a for a, b in itertools.pairwise(stamps)]
+    assert 2 <= probes <= 4, probes  # one probe per backoff interval (1 s)
+    assert len(gaps) >= 15, gaps
+    limit = 0.1 + 0.2 + 0.2 + 0.15  # cycle + one timeout + its settle + slack
+    assert max(gaps) < limit, gaps
+    slow = [g for g in gaps if g > 0.16]
+    assert len(slow) <= probes, gaps  # only cycles that met a probe are late
+
+
+def test_server_restart_then_resume(slave: PymodbusSlave) -> None:
+    cfg = device(slave.port, [{"name": "x", "address": "hr:4", "deviceDataType": "UInt16"}])
+    with Running(cfg) as drv:
+        wait_for(all_ok(cfg))
+        slave.kill()
+        wait_for(lambda: drv.device_driver_status is DeviceDriverStatus.RECONNECTING)
+        item = cfg.address_list[0]
+        assert item.status is ItemStatus.INVALID and "link" in (item.error_reason or "")
+        assert item.value == default_register(1, "hr", 4)  # the last good value stays
+        ok, err = drv.write_address("x", 5)
+        assert not ok and err
+        slave.restart()
+        wait_for(lambda: drv.device_driver_status is DeviceDriverStatus.RUNNING, timeout=5)
+        wait_for(all_ok(cfg))
+        assert drv.stats()["reconnects"] >= 1
+
+
+def test_update_addresses_while_running(slave: PymodbusSlave) -> None:
+    cfg = device(slave.port, [{"name": "a", "address": "hr:1", "deviceDataType": "UInt16"},
+                              {"name": "b", "address": "hr:2", "deviceDataType": "UInt16"}])
+    with Running(cfg) as drv:
+        wait_for(all_ok(cfg))
+        new = em.load_device_config({
+            "communication": comm(slave.port),
+            "addressList": [{"name": "b", "address": "hr:2", "deviceDataType": "UInt16"},
+                            {"name": "c", "address": "ir:7", "deviceDataType": "UInt16"}],
+        }).address_list
+        assert new[1].status is ItemStatus.UNKNOWN
+        drv.update_addresses(new)
+        assert new[0].status is ItemStatus.OK  # unchanged item keeps its state
+        wait_for(lambda: new[1].status is ItemStatus.OK)
+        assert new[1].value == default_register(1, "ir", 7)
+        assert [b["items"] for b in drv.read_plan()] == [["b"], ["c"]]
+        assert set(drv.snapshot()["items"]) == {"b", "c"}
+        with pytest.raises(ValueError, match="addressList"):
+            drv.update_addresses(
+                [em.DeviceAddressItem(name="bad", address="hr:1.3", device_data_type="Int32")]
+            )
+
+
+def test_stop_with_a_write_pending_fails_cleanly() -> None:
+    with Simulator([1]) as sim:
+        port = sim.serve_tcp("127.0.0.1", 0)
+        cfg = device(port, [{"name": "w", "address": "hr:1", "deviceDataType": "UInt16"}],
+                     readTimeout=1000)
+        with Running(cfg) as drv:
+            wait_for(all_ok(cfg))
+            sim.slave(1).faults.delay = 0.4
+            results: list[tuple[bool, str | None]] = []
+            blocker = threading.Thread(target=lambda: results.append(drv.write_address("w", 7)))
+            second = threading.Thread(target=lambda: results.append(drv.write_address("w", 8)))
+            blocker.start()
+            time.sleep(0.05)
+            second.start()
+            time.sleep(0.05)
+            drv.stop_device()
+            blocker.join(5)
+            second.join(5)
+        assert len(results) == 2
+        failed = [r for r in results if not r[0]]
+        assert failed and all(r[1] for r in failed)
+        assert sim.slave(1).get_registers(em.Area.HOLDING_REGISTER, 1)[0] != 8
+
+
+def test_raising_callback_is_counted_and_polling_goes_on(slave: PymodbusSlave) -> None:
+    calls = []
+
+    def boom(item: em.DeviceAddressItem) -> None:
+        calls.append(item.name)
+        raise RuntimeError("host bug")
+
+    cfg = device(slave.port, [{"name": "a", "address": "hr:1", "deviceDataType": "UInt16"}],
+                 reportMode="cycle")
+    with Running(cfg, address_updated_callback=boom) as drv:
+        wait_for(lambda: len(calls) >= 3)
+        stats = drv.stats()
+        assert stats["callbackErrors"] >= 3
+        assert drv.device_driver_status is DeviceDriverStatus.RUNNING
+
+
+def test_write_to_input_register_or_unknown_item_fails_at_once(slave: PymodbusSlave) -> None:
+    cfg = device(slave.port, [{"name": "ir", "address": "ir:1", "deviceDataType": "UInt16"},
+                              {"name": "di", "address": "di:1", "deviceDataType": "Boolean"},
+                              {"name": "i16", "address": "hr:1", "deviceDataType": "Int16"}])
+    with Running(cfg) as drv:
+        ok, err = drv.write_address("ir", 1)
+        assert not ok and "read-only" in (err or "") and "input register" in (err or "")
+        ok, err = drv.write_address("di", True)
+        assert not ok and "discrete input" in (err or "")
+        ok, err = drv.write_address("nope", 1)
+        assert not ok and "unknown item 'nope'" in (err or "")
+        ok, err = drv.write_address("i16", 40000)
+        assert not ok and "i16" in (err or "") and "40000" in (err or "")
+        ok, err = drv.write_address("i16", "abc")
+        assert not ok and "'abc'" in (err or "")
+
+
+def test_write_addresses_merges_and_async_variants(slave: PymodbusSlave) -> None:
+    items = [{"name": f"r{i}", "address": f"hr:{300 + i}", "deviceDataType": "UInt16"}
+             for i in range(5)]
+    items.append({"name": "f", "address": "hr:305", "deviceDataType": "Float"})
+    cfg = device(slave.port, items)
+    with Running(cfg) as drv:
+        before = slave.request_count(1)
+        ok, err = drv.write_addresses([(f"r{i}", 10 + i) for i in range(5)] + [("f", 1.5)])
+        assert (ok, err) == (True, None)
+        assert slave.registers(1, "hr", 300, 7) == [10, 11, 12, 13, 14, *(
+            struct.unpack(">2H", struct.pack(">f", 1.5)))]
+        assert drv.stats()["writes"] == 1  # one FC16 for six items
+        assert slave.request_count(1) - before >= 1
+
+        async def go() -> tuple[tuple[bool, str | None], tuple[bool, str | None]]:
+            return (await drv.write_address_async("r0", "42"),
+                    await drv.write_addresses_async([("r1", 43), ("f", math.pi)]))
+
+        one, two = asyncio.run(go())
+        assert one == (True, None) and two == (True, None)
+        assert slave.registers(1, "hr", 300, 2) == [42, 43]
+        assert cfg.address_list[0].value == 42
+
+
+def test_fc16_refused_falls_back_to_fc06() -> None:
+    with Simulator([1]) as sim:
+        sim.slave(1).faults.refused_functions = frozenset({16})
+        port = sim.serve_tcp("127.0.0.1", 0)
+        cfg = device(port, [{"name": "v", "address": "hr:10", "deviceDataType": "UInt32"}])
+        with Running(cfg) as drv:
+            assert drv.write_address("v", 0x12345678) == (True, None)
+            assert sim.slave(1).get_registers(em.Area.HOLDING_REGISTER, 10, 2) == [0x1234, 0x5678]
+            assert drv.write_address("v", 7) == (True, None)
+            assert sim.slave(1).get_registers(em.Area.HOLDING_REGISTER, 10, 2) == [0, 7]
+            # refused once (exception 01), remembered: the second write went FC06 directly
+            assert drv.stats()["line"]["exceptions"] == {1: 1}
+
+
+def test_snapshot_and_stats_keys(slave: PymodbusSlave) -> None:
+    published: list[tuple[str, dict[str, Any]]] = []
+    cfg = device(slave.port, [{"name": "a", "address": "coil:2", "deviceDataType": "Boolean"}],
+                 snapshotInterval=100)
+    with Running(cfg, snapshot_publisher=lambda t, s: published.append((t, s))) as drv:
+        wait_for(all_ok(cfg))
+        wait_for(lambda: bool(published))
+        snap = drv.snapshot()
+        stats = drv.stats()
+    assert published[0][0] == "/real/dev1"
+    json.dumps(published[-1][1])  # JSON-able
+    assert snap["deviceCode"] == "dev1" and snap["dataItemCount"] == 1
+    assert snap["items"]["a"]["value"] is default_bit(1, "co", 2)
+    assert snap["items"]["a"]["status"] == "Ok"
+    for key in ("requests", "responses", "timeouts", "crcErrors", "protocolErrors", "exceptions",
+                "retries", "reconnects", "cycles", "overruns", "lastCycleTime", "avgCycleTime",
+                "maxCycleTime", "avgRoundTrip", "callbackErrors", "valuesChanged"):
+        assert key in stats, key
+    assert stats["cycles"] >= 1 and stats["requests"] >= 1
