@@ -1,0 +1,158 @@
+"""Wrapped report frames of edge MCUs (../shared/seeds/cloud-polling-and-edge-gateway.zh.md).
+
+An MCU between the device and a transparent DTU polls locally and pushes changes to
+the platform, wrapping each raw RTU frame so that the register address travels with it:
+
+    FF AA | register address (2 bytes, big-endian) | RTU frame with its CRC | 0D
+
+e.g. ``FFAA 0001 010302030578B7 0D`` reports holding register 1 = 773 of slave 1.  Writes
+go down wrapped the same way and the device echoes them, wrapped, as confirmation.
+This module parses such a byte stream incrementally (frames split over or packed into
+TCP segments) and builds wrapped requests; bad frames are dropped, logged with their
+hex and counted, and parsing resynchronises on the next header.
+"""
+
+from __future__ import annotations
+
+import logging
+import struct
+from dataclasses import dataclass
+
+from .bus import crc16
+
+log = logging.getLogger("edgemodbus.wrapped")
+
+HEADER = b"\xff\xaa"
+TAIL = 0x0D
+_PREFIX = 4  # header + register address
+_MAX_RTU = 256  # Modbus over Serial Line v1.02, 2.5.1: an RTU frame is at most 256 bytes
+
+
+@dataclass(frozen=True, slots=True)
+class Report:
+    """One wrapped frame: the wrapper's register address and the RTU frame inside."""
+
+    address: int
+    slave: int
+    function: int
+    data: bytes  # the PDU after the function code, CRC stripped
+    raw: bytes  # the whole wrapped frame, for logs
+
+    @property
+    def exception_code(self) -> int | None:
+        return self.data[0] if self.function & 0x80 else None
+
+    @property
+    def registers(self) -> list[int]:
+        """Registers of a read reply (FC03/04): byte count, then big-endian words."""
+        n = self.data[0] // 2
+        return list(struct.unpack_from(f">{n}H", self.data, 1))
+
+    @property
+    def bits(self) -> list[int]:
+        """Bits of a read reply (FC01/02), first in the low bit of the first byte; the
+        byte count carries whole bytes, so the caller knows how many are meaningful."""
+        return [(byte >> i) & 1 for byte in self.data[1:] for i in range(8)]
+
+
+def wrap(address: int, slave: int, pdu: bytes) -> bytes:
+    """A wrapped request: header, register address, RTU frame (CRC added), tail."""
+    if not 0 <= address <= 0xFFFF:
+        raise ValueError(f"register address {address}: must be 0..65535")
+    frame = bytes([slave]) + pdu
+    return HEADER + struct.pack(">H", address) + frame + crc16(frame) + bytes([TAIL])
+
+
+def _rtu_length(buf: bytearray, start: int) -> int | None:
+    """Length of the RTU frame at ``start`` from its function code (Application
+    Protocol v1.1b3, section 6), None if more bytes are needed, 0 if it cannot be one."""
+    if len(buf) < start + 2:
+        return None
+    function = buf[start + 1]
+    if function & 0x80:
+        return 5  # slave, function, exception code, CRC
+    if function in (1, 2, 3, 4):
+        if len(buf) < start + 3:
+            return None
+        count = buf[start + 2]
+        if count == 0 or (function in (3, 4) and count % 2):
+            return 0
+        return 3 + count + 2
+    if function in (5, 6, 15, 16):
+        return 8  # slave, function, address, value or quantity, CRC
+    if function == 22:
+        return 10
+    return 0
+
+
+class ReportParser:
+    """Incremental parser of a wrapped-report byte stream."""
+
+    def __init__(self, heartbeat: bytes = b"") -> None:
+        self._buf = bytearray()
+        self.heartbeat = heartbeat
+        self.frames = 0
+        self.dropped = 0
+        self.heartbeats = 0
+
+    def feed(self, data: bytes) -> list[Report]:
+        """Add received bytes; return the complete, valid frames found so far."""
+        buf = self._buf
+        buf += data
+        reports: list[Report] = []
+        while buf:
+            if self.heartbeat and buf.startswith(self.heartbeat):
+                del buf[: len(self.heartbeat)]
+                self.heartbeats += 1
+                continue
+            start = buf.find(HEADER)
+            if start != 0:
+                if start < 0:
+                    # keep a trailing 0xFF (maybe the first half of a header) or a
+                    # heartbeat's beginning; drop the rest as noise
+                    keep = 1 if buf.endswith(HEADER[:1]) else 0
+                    keep = max(keep, _partial(buf, self.heartbeat))
+                    noise = len(buf) - keep
+                    if noise:
+                        self._drop(bytes(buf[:noise]), "no FF AA header")
+                        del buf[:noise]
+                    break
+                self._drop(bytes(buf[:start]), "no FF AA header")
+                del buf[:start]
+            length = _rtu_length(buf, _PREFIX)
+            if length is None:
+                break
+            if length == 0 or length > _MAX_RTU:
+                self._drop(bytes(buf[:_PREFIX + 2]), "not a Modbus reply")
+                del buf[:2]
+                continue
+            end = _PREFIX + length + 1
+            if len(buf) < end:
+                break
+            frame = bytes(buf[:end])
+            rtu = frame[_PREFIX:-1]
+            if frame[-1] != TAIL:
+                self._drop(frame, "no 0D tail (length does not add up)")
+                del buf[:2]
+                continue
+            if crc16(rtu[:-2]) != rtu[-2:]:
+                self._drop(frame, "CRC error")
+                del buf[:2]
+                continue
+            del buf[:end]
+            self.frames += 1
+            address = struct.unpack_from(">H", frame, 2)[0]
+            reports.append(Report(address, rtu[0], rtu[1], rtu[2:-2], frame))
+        return reports
+
+    def _drop(self, raw: bytes, why: str) -> None:
+        self.dropped += 1
+        log.warning("wrapped report dropped (%s): %s", why, raw.hex(" ").upper())
+
+
+def _partial(buf: bytearray, pattern: bytes) -> int:
+    """How many trailing bytes of ``buf`` are a proper prefix of ``pattern``."""
+    for n in range(min(len(pattern) - 1, len(buf)), 0, -1):
+        if buf.endswith(pattern[:n]):
+            return n
+    return 0
