@@ -1,0 +1,558 @@
+"""Issue 5: the whole driver, 10,000 tags on 10 slaves over RTU-over-TCP.
+
+Client CPU (this process, all threads: time.process_time) per tag read, with the slaves
+played by our simulator in its own process, against two references measured in the
+same run on the same slave and the same block list:
+
+* the floor: a bare loop issuing the driver's block reads straight through libmodbus
+  (``_binding.Context``), no decoding: the I/O cost nothing can avoid;
+* pymodbus 3.16.1's sync client doing the same block reads plus
+  ``convert_from_registers`` for every item.
+
+The references run ON THE BUS WORKER (a job submitted while the drivers are attached,
+so polling pauses meanwhile), alternating with windows of driver polling: same thread,
+same moment, same slave.  Each figure is the best of its windows (the least disturbed
+on a shared machine); the median of the ratios of adjacent windows is shown as well.
+The line is kept busy (readCycle 10 ms: every cycle overruns), like the floor's loop.
+
+The driver is measured (a) with 1% and (b) with 100% of the values changing per cycle
+(a :class:`FlipMover` per changing item, or per block); the changed fraction is taken
+from ``stats()["valuesChanged"]``, not assumed.  Targets: (a) <= 1.3x floor, (b) <= 3x
+floor, pymodbus / (a) >= 5.  The memory test reports RSS growth per configured tag for
+100,000 tags (target <= 1 KB); it runs in a fresh process so that earlier tests do not
+hide allocations.  Nothing here asserts a speed: the figures go to the table and to
+``benchmark.extra_info``.
+
+EDGEMODBUS_BENCH_PROFILE=1 adds a cProfile of the bus worker during (a) and (b).
+"""
+
+from __future__ import annotations
+
+import cProfile
+import gc
+import io
+import multiprocessing
+import os
+import pstats
+import socket
+import statistics
+import time
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass
+from typing import Any, Literal, TypeVar
+
+import pytest
+from pymodbus import FramerType
+from pymodbus.client import ModbusTcpClient
+
+import edgemodbus as em
+from bench.conftest import QUICK, cpu_seconds, report, scale
+from bench.slave_process import Range, SimulatorProcess
+from edgemodbus._binding import Context
+from edgemodbus.bus import Bus, TcpEndpoint
+from edgemodbus.config import ItemStatus
+from edgemodbus.datatypes import Area
+
+SLAVES = list(range(1, 11))
+TAGS_PER_SLAVE = 1000
+BLOCK = 120  # maxBlockReadRegisterCount
+PROFILE = os.environ.get("EDGEMODBUS_BENCH_PROFILE") == "1"
+DT = ModbusTcpClient.DATATYPE
+T = TypeVar("T")
+
+# -- the tags ---------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Tag:
+    """One configured tag and how the pymodbus reference decodes the same registers."""
+
+    name: str
+    offset: int  # holding register
+    registers: int
+    config: dict[str, Any]
+    datatype: Any  # pymodbus DATATYPE
+    word_order: Literal["big", "little"] = "big"
+    bit: int | None = None  # bit of the register
+    boolean: bool = False  # whole register as a Boolean
+    scale: float = 1.0
+
+
+# A group of 20 tags, 31 registers (33 with the string), repeated: what a meter or a PLC
+# map looks like.  (type, format, registers, extra config, pymodbus datatype, word order)
+_GROUP: list[tuple[str, str | None, int, dict[str, Any], Any, Literal["big", "little"]]] = [
+    ("Int16", None, 1, {}, DT.INT16, "big"),
+    ("Int16", None, 1, {"dataMultiplier": 0.1, "convertedDataType": "Float"}, DT.INT16, "big"),
+    ("UInt16", None, 1, {}, DT.UINT16, "big"),
+    ("Int32", "CDAB", 2, {}, DT.INT32, "little"),
+    ("Float", "ABCD", 2, {}, DT.FLOAT32, "big"),
+    ("Int16", None, 1, {}, DT.INT16, "big"),
+    ("UInt16", None, 1, {}, DT.UINT16, "big"),
+    ("Int32", "CDAB", 2, {}, DT.INT32, "little"),
+    ("Float", "ABCD", 2, {}, DT.FLOAT32, "big"),
+    ("Double", "ABCD", 4, {}, DT.FLOAT64, "big"),
+    ("Int16", None, 1, {}, DT.INT16, "big"),
+    ("UInt16", None, 1, {}, DT.UINT16, "big"),
+    ("Bit", None, 1, {}, DT.UINT16, "big"),
+    ("Int32", "CDAB", 2, {}, DT.INT32, "little"),
+    ("Float", "ABCD", 2, {}, DT.FLOAT32, "big"),
+    ("Int16", None, 1, {}, DT.INT16, "big"),
+    ("UInt16", None, 1, {}, DT.UINT16, "big"),
+    ("Boolean", None, 1, {}, DT.UINT16, "big"),
+    ("Float", "ABCD", 2, {}, DT.FLOAT32, "big"),
+    ("UInt32", "ABCD", 2, {}, DT.UINT32, "big"),  # a String of 4 registers in 1 group of 5
+]
+
+
+def make_tags(slave: int, count: int = TAGS_PER_SLAVE) -> list[Tag]:
+    """``count`` tags of one slave, contiguous from holding register 0."""
+    tags: list[Tag] = []
+    offset = 0
+    for k in range(count):
+        group, pos = divmod(k, len(_GROUP))
+        kind, fmt, regs, extra, datatype, order = _GROUP[pos]
+        name = f"s{slave}_t{k}"
+        bit: int | None = None
+        scale_ = float(extra.get("dataMultiplier", 1.0))
+        if pos == len(_GROUP) - 1 and group % 5 == 0:
+            kind, fmt, regs, extra, datatype, order = "String", None, 4, {}, DT.STRING, "big"
+        config: dict[str, Any] = {"name": name, "deviceDataType": kind, **extra}
+        if kind == "Bit":
+            bit = 3
+            config.update(deviceDataType="Boolean", address=f"3:{offset}.{bit}")
+        else:
+            config["address"] = f"3:{offset}"
+        if fmt is not None:
+            config["dataFormat"] = fmt
+        if kind == "String":
+            config.update(quantity=regs, encoding="latin-1")
+        tags.append(Tag(name, offset, regs, config, datatype, order, bit,
+                        kind == "Boolean", scale_))
+        offset += regs
+    return tags
+
+
+def device_dict(port: int, slave: int, tags: list[Tag], read_cycle: int = 10) -> dict[str, Any]:
+    return {
+        "organization": {"deviceCode": f"bench{slave}"},
+        "communication": {
+            "transport": "rtu-over-tcp", "tcpHost": "127.0.0.1", "tcpPort": port,
+            "slaveId": slave, "readCycle": read_cycle, "readTimeout": 1000,
+            "byteTimeout": 200, "maxBlockReadRegisterCount": BLOCK, "dataFormat": "ABCD",
+        },
+        "addressList": [t.config for t in tags],
+    }
+
+
+def initial_registers(slave: int, tags: list[Tag]) -> list[tuple[int, Area, int, list[int]]]:
+    """Booleans start at 0 (so that a flip changes them), strings as ASCII text."""
+    writes: list[tuple[int, Area, int, list[int]]] = []
+    for t in tags:
+        if t.boolean:
+            writes.append((slave, Area.HOLDING_REGISTER, t.offset, [0]))
+        elif t.datatype is DT.STRING:
+            text = f"S{t.offset:07d}".encode()
+            regs = [text[i] << 8 | text[i + 1] for i in range(0, 2 * t.registers, 2)]
+            writes.append((slave, Area.HOLDING_REGISTER, t.offset, regs))
+    return writes
+
+
+# -- the line under test --------------------------------------------------------------------
+
+
+@dataclass
+class Line:
+    """The simulator process, the tags and configs of its 10 slaves, and the driver's
+    read plan (taken from ``read_plan()``), which the references read too."""
+
+    sim: SimulatorProcess
+    tags: dict[int, list[Tag]]
+    configs: dict[int, em.DeviceConfig]
+    blocks: list[tuple[int, int, int, list[Tag]]]  # slave, start, count, tags in it
+
+    @property
+    def n_tags(self) -> int:
+        return sum(len(t) for t in self.tags.values())
+
+
+@pytest.fixture(scope="module")
+def line() -> Iterator[Line]:
+    with SimulatorProcess(SLAVES, size=2000) as sim:
+        tags = {s: make_tags(s) for s in SLAVES}
+        sim.set_registers([w for s in SLAVES for w in initial_registers(s, tags[s])])
+        configs = {s: em.load_device_config(device_dict(sim.port, s, tags[s])) for s in SLAVES}
+        by_name = {t.name: t for ts in tags.values() for t in ts}
+        blocks: list[tuple[int, int, int, list[Tag]]] = []
+        with Drivers(configs) as drivers:
+            for s, drv in zip(SLAVES, drivers.drivers, strict=True):
+                for b in drv.read_plan():
+                    assert b["function"] == 3
+                    blocks.append((s, b["start"], b["count"], [by_name[n] for n in b["items"]]))
+        yield Line(sim, tags, configs, blocks)
+
+
+class Drivers:
+    """One DriverModbusRtu per config, all on the same endpoint (one bus worker);
+    started on enter once every item has been read, stopped on exit."""
+
+    def __init__(self, configs: dict[int, em.DeviceConfig]) -> None:
+        self.configs = configs
+        self.drivers: list[em.DriverModbusRtu] = []
+
+    def __enter__(self) -> Drivers:
+        try:
+            for cfg in self.configs.values():
+                drv = em.DriverModbusRtu()
+                self.drivers.append(drv)
+                assert drv.start_device(cfg.organization, cfg.communication, cfg.address_list)
+            self.wait_cycles(2, timeout=60)
+            for cfg in self.configs.values():
+                bad = [i.name for i in cfg.address_list if i.status is not ItemStatus.OK]
+                assert not bad, f"items not Ok: {bad[:5]}"
+        except BaseException:
+            self.stop()
+            raise
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    def stop(self) -> None:
+        for drv in self.drivers:
+            drv.stop_device()
+
+    def totals(self) -> tuple[int, int]:
+        """(tag reads, values changed) so far, summed over the drivers."""
+        reads = changed = 0
+        for drv in self.drivers:
+            st = drv.stats()
+            reads += st["cycles"] * drv.data_item_count
+            changed += st["valuesChanged"]
+        return reads, changed
+
+    def wait_cycles(self, n: int, timeout: float) -> None:
+        """Until every driver has completed ``n`` more cycles."""
+        start = [d.stats().get("cycles", 0) for d in self.drivers]
+        deadline = time.monotonic() + timeout
+        while any(d.stats().get("cycles", 0) < c + n
+                  for d, c in zip(self.drivers, start, strict=True)):
+            if time.monotonic() > deadline:
+                raise AssertionError(f"drivers did not complete {n} cycles in {timeout} s")
+            time.sleep(0.05)
+
+    @property
+    def bus(self) -> Bus:
+        """The one bus worker the drivers share."""
+        port = next(iter(self.configs.values())).communication.tcp_port
+        buses = [b for b in em.DriverModbusRtu.registry.buses()
+                 if isinstance(b.endpoint, TcpEndpoint) and b.endpoint.port == port]
+        assert len(buses) == 1, buses
+        return buses[0]
+
+    def on_worker(self, fn: Callable[[], T]) -> T:
+        """Run ``fn`` on the bus worker: polling pauses meanwhile, and the references
+        run on the same thread as the driver, between two of its windows."""
+        return self.bus.submit(lambda _link: fn()).result(120)
+
+
+# -- measurements -----------------------------------------------------------------------------
+
+
+@dataclass
+class Window:
+    """CPU seconds spent on ``tag_reads`` tag reads (``changed`` of them new values)."""
+
+    cpu: float
+    tag_reads: int
+    changed: int = 0
+
+    @property
+    def us_per_tag(self) -> float:
+        return self.cpu / self.tag_reads * 1e6
+
+    @property
+    def changed_fraction(self) -> float:
+        return self.changed / self.tag_reads
+
+
+def measure_driver(drivers: Drivers, seconds: float) -> Window:
+    """Process CPU and tag reads over ``seconds`` of polling (the main thread sleeps)."""
+    reads0, changed0 = drivers.totals()
+    cpu0 = cpu_seconds()
+    time.sleep(seconds)
+    cpu1 = cpu_seconds()
+    reads1, changed1 = drivers.totals()
+    return Window(cpu1 - cpu0, reads1 - reads0, changed1 - changed0)
+
+
+def _connect(port: int) -> socket.socket:
+    sock = socket.create_connection(("127.0.0.1", port), timeout=5)
+    sock.settimeout(None)
+    sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+    return sock
+
+
+def measure_floor(line: Line, passes: int) -> Window:
+    """The driver's block list read straight through libmodbus (a Context on a socket
+    of its own, as the bus opens it), nothing decoded.  ``passes`` is made odd: with
+    the warm-up pass every block is read an even number of times, so the values the
+    driver reads next have flipped as usual."""
+    passes |= 1
+    sock = _connect(line.sim.port)
+    ctx = Context.on_socket(sock.fileno(), "floor", mbap=False)
+    try:
+        ctx.set_timeouts(1.0, 0.2)
+        plan = [(s, start, count) for s, start, count, _ in line.blocks]
+        read = ctx.read
+        for s, start, count in plan:  # warm-up pass
+            read(s, 3, start, count)
+        cpu0 = cpu_seconds()
+        for _ in range(passes):
+            for s, start, count in plan:
+                read(s, 3, start, count)
+        return Window(cpu_seconds() - cpu0, passes * line.n_tags)
+    finally:
+        ctx.close()
+        sock.close()
+
+
+def _pymodbus_decoder(tag: Tag) -> Callable[[Sequence[int]], object]:
+    convert = ModbusTcpClient.convert_from_registers
+    datatype, order = tag.datatype, tag.word_order
+    if tag.bit is not None:
+        bit = tag.bit
+        return lambda regs: bool(convert(regs, DT.UINT16) >> bit & 1)  # type: ignore[operator]
+    if tag.boolean:
+        return lambda regs: bool(convert(regs, DT.UINT16))
+    if datatype is DT.STRING:
+        return lambda regs: convert(regs, DT.STRING, string_encoding="latin-1")
+    if tag.scale != 1.0:
+        factor = tag.scale
+        return lambda regs: convert(regs, datatype, order) * factor  # type: ignore[operator]
+    return lambda regs: convert(regs, datatype, order)
+
+
+def measure_pymodbus(line: Line, passes: int) -> Window:
+    """The same block reads with pymodbus' sync client, every item converted
+    (``passes`` made odd as in :func:`measure_floor`)."""
+    passes |= 1
+    client = ModbusTcpClient("127.0.0.1", port=line.sim.port, framer=FramerType.RTU, timeout=2)
+    assert client.connect()  # type: ignore[no-untyped-call]
+    try:
+        plan = [
+            (s, start, count,
+             [(t.offset - start, t.offset - start + t.registers, _pymodbus_decoder(t))
+              for t in tags])
+            for s, start, count, tags in line.blocks
+        ]
+
+        def one_pass() -> None:
+            for s, start, count, items in plan:
+                regs = client.read_holding_registers(start, count=count, device_id=s).registers
+                for lo, hi, decode in items:
+                    decode(regs[lo:hi])
+
+        one_pass()  # warm-up (and a check that every item decodes)
+        cpu0 = cpu_seconds()
+        for _ in range(passes):
+            one_pass()
+        return Window(cpu_seconds() - cpu0, passes * line.n_tags)
+    finally:
+        client.close()  # type: ignore[no-untyped-call]
+
+
+def flip_ranges(line: Line, fraction: float) -> list[Range]:
+    """Movers making ``fraction`` of the tags change on every read: one tag in each run
+    of 1/fraction (at a varying position, so of every type), or every block whole."""
+    if fraction >= 1:
+        return [(s, Area.HOLDING_REGISTER, start, count) for s, start, count, _ in line.blocks]
+    every = round(1 / fraction)
+    return [
+        (s, Area.HOLDING_REGISTER, t.offset, t.registers)
+        for s, tags in line.tags.items()
+        for k, t in enumerate(tags)
+        if k % every == (7 * (k // every) + s) % every
+    ]
+
+
+def profile_worker(drivers: Drivers, seconds: float) -> str:
+    """cProfile (thread CPU time) of the bus worker, enabled on it through a submitted
+    job.  Profiling inflates Python's share; read it for where, not for how much."""
+    prof = cProfile.Profile(time.thread_time)
+    drivers.on_worker(prof.enable)
+    time.sleep(seconds)
+    drivers.on_worker(prof.disable)
+    out = io.StringIO()
+    stats = pstats.Stats(prof, stream=out)
+    stats.sort_stats("tottime").print_stats(20)
+    return out.getvalue()
+
+
+# -- the benchmark ----------------------------------------------------------------------------
+
+SCENARIOS = (("a", 0.01), ("b", 1.0))
+
+
+@pytest.mark.timeout(300)
+def test_driver_cpu_per_tag(line: Line, benchmark: Any) -> None:
+    repeats = scale(4, 2)
+    window = 2.0 if not QUICK else 0.6
+    passes = scale(25, 5)  # ~20 ms of line time per pass
+    pym_passes = scale(9, 3)
+    runs: dict[str, list[Window]] = {"floor": [], "pymodbus": [], "a": [], "b": []}
+    pairs: dict[str, list[float]] = {"a": [], "b": [], "pym_a": []}
+    profiles: dict[str, str] = {}
+    try:
+        for key, fraction in SCENARIOS:
+            line.sim.flip(flip_ranges(line, fraction))
+            with Drivers(line.configs) as drivers:
+                for _ in range(repeats):
+                    # the references run on the bus worker, between two driver windows
+                    floor = drivers.on_worker(lambda: measure_floor(line, passes))
+                    ours = measure_driver(drivers, window)
+                    pym = drivers.on_worker(lambda: measure_pymodbus(line, pym_passes))
+                    runs["floor"].append(floor)
+                    runs[key].append(ours)
+                    runs["pymodbus"].append(pym)
+                    pairs[key].append(ours.us_per_tag / floor.us_per_tag)
+                    if key == "a":
+                        pairs["pym_a"].append(pym.us_per_tag / ours.us_per_tag)
+                if PROFILE:
+                    profiles[key] = profile_worker(drivers, window)
+                if key == "a":  # something for pytest-benchmark to record: a floor pass
+                    benchmark.pedantic(lambda: drivers.on_worker(lambda: measure_floor(line, 1)),
+                                       rounds=scale(5, 2), iterations=1)
+    finally:
+        line.sim.flip([])
+
+    def best(key: str) -> Window:
+        return min(runs[key], key=lambda w: w.us_per_tag)
+
+    floor, pym, a, b = best("floor"), best("pymodbus"), best("a"), best("b")
+    changed_a = statistics.mean(w.changed_fraction for w in runs["a"])
+    changed_b = statistics.mean(w.changed_fraction for w in runs["b"])
+    n_blocks = len(line.blocks)
+    per_block = line.n_tags / n_blocks
+    info: dict[str, Any] = {
+        "tags": line.n_tags,
+        "blocks": n_blocks,
+        "tags_per_block": per_block,
+        "floor_us_per_tag": floor.us_per_tag,
+        "floor_us_per_block": floor.us_per_tag * per_block,
+        "pymodbus_us_per_tag": pym.us_per_tag,
+        "a_us_per_tag": a.us_per_tag,
+        "b_us_per_tag": b.us_per_tag,
+        "a_changed_fraction": changed_a,
+        "b_changed_fraction": changed_b,
+        "ratio_a_floor": a.us_per_tag / floor.us_per_tag,
+        "ratio_b_floor": b.us_per_tag / floor.us_per_tag,
+        "ratio_pymodbus_a": pym.us_per_tag / a.us_per_tag,
+        "ratio_pymodbus_b": pym.us_per_tag / b.us_per_tag,
+        "paired_median_ratio_a_floor": statistics.median(pairs["a"]),
+        "paired_median_ratio_b_floor": statistics.median(pairs["b"]),
+        "paired_median_ratio_pymodbus_a": statistics.median(pairs["pym_a"]),
+        "a_tag_reads": sum(w.tag_reads for w in runs["a"]),
+        "b_tag_reads": sum(w.tag_reads for w in runs["b"]),
+        "all_us_per_tag": {k: [round(w.us_per_tag, 4) for w in v] for k, v in runs.items()},
+    }
+    benchmark.extra_info.update(info)
+    report(
+        f"client CPU per tag read: {line.n_tags} tags on 10 slaves, {n_blocks} blocks of "
+        f"<= {BLOCK} registers, RTU over TCP (best of {len(runs['floor'])} / {repeats})",
+        [
+            ("floor: bare libmodbus block reads, no decoding", floor.us_per_tag, "us/tag"),
+            ("  the same, per block read", info["floor_us_per_block"], "us/block"),
+            ("pymodbus 3.16.1 reads + convert_from_registers", pym.us_per_tag, "us/tag"),
+            ("(a) driver, 1% of values change", a.us_per_tag, "us/tag"),
+            ("    changed per tag read (valuesChanged)", 100 * changed_a, "%"),
+            ("(b) driver, all values change", b.us_per_tag, "us/tag"),
+            ("    changed per tag read (valuesChanged)", 100 * changed_b, "%"),
+            ("(a) / floor (target <= 1.3)", info["ratio_a_floor"], "x"),
+            ("    median of paired windows", info["paired_median_ratio_a_floor"], "x"),
+            ("(b) / floor (target <= 3)", info["ratio_b_floor"], "x"),
+            ("    median of paired windows", info["paired_median_ratio_b_floor"], "x"),
+            ("pymodbus / (a) (target >= 5)", info["ratio_pymodbus_a"], "x"),
+            ("    median of paired windows", info["paired_median_ratio_pymodbus_a"], "x"),
+            ("pymodbus / (b)", info["ratio_pymodbus_b"], "x"),
+        ],
+    )
+    for key, text in profiles.items():
+        print(f"\n--- cProfile of the bus worker, scenario ({key}) ---\n{text}")
+
+
+# -- memory ---------------------------------------------------------------------------------
+
+
+def _rss() -> int:
+    gc.collect()
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+
+
+def _start_and_read(configs: list[em.DeviceConfig], timeout: float) -> list[em.DriverModbusRtu]:
+    """Start a driver per config and wait until every item has been read once."""
+    drivers: list[em.DriverModbusRtu] = []
+    try:
+        for cfg in configs:
+            drv = em.DriverModbusRtu()
+            drivers.append(drv)
+            assert drv.start_device(cfg.organization, cfg.communication, cfg.address_list)
+        _wait(lambda: all(i.status is ItemStatus.OK for c in configs for i in c.address_list),
+              timeout)
+    except BaseException:
+        for drv in drivers:
+            drv.stop_device()
+        raise
+    return drivers
+
+
+def _memory_child(port: int, slaves: list[int], tags_per_slave: int) -> dict[str, float]:
+    """In a fresh process: RSS growth for configuring, starting and reading every tag."""
+    # first, a small device of the same kinds of tags: imports and one-off caches
+    warm = [em.load_device_config(device_dict(port, slaves[0], make_tags(slaves[0], 40)))]
+    for drv in _start_and_read(warm, 30):
+        drv.stop_device()
+    rss0 = _rss()
+    configs = [
+        em.load_device_config(device_dict(port, s, make_tags(s, tags_per_slave), read_cycle=1000))
+        for s in slaves
+    ]
+    rss1 = _rss()
+    drivers = _start_and_read(configs, 120)
+    rss2 = _rss()
+    for drv in drivers:
+        drv.stop_device()
+    return {"tags": len(slaves) * tags_per_slave, "config": rss1 - rss0, "running": rss2 - rss1}
+
+
+def _wait(cond: Callable[[], bool], timeout: float) -> None:
+    deadline = time.monotonic() + timeout
+    while not cond():
+        if time.monotonic() > deadline:
+            raise TimeoutError("not every item was read in time")
+        time.sleep(0.1)
+
+
+@pytest.mark.timeout(300)
+def test_memory_per_tag(benchmark: Any) -> None:
+    n_slaves = scale(100, 10)
+    slaves = list(range(1, n_slaves + 1))
+    with SimulatorProcess(slaves, size=2000) as sim:
+        ctx = multiprocessing.get_context("spawn")
+        with ctx.Pool(1) as pool:
+            m = pool.apply(_memory_child, (sim.port, slaves, TAGS_PER_SLAVE))
+    tags = m["tags"]
+    total = m["config"] + m["running"]
+    benchmark.extra_info.update(
+        tags=tags, bytes_per_tag=total / tags, config_bytes_per_tag=m["config"] / tags,
+        running_bytes_per_tag=m["running"] / tags,
+    )
+    report(
+        f"RSS growth per configured tag: {tags} tags on {n_slaves} slaves (fresh process)",
+        [
+            ("configs loaded (load_device_config)", m["config"] / tags, "B/tag"),
+            ("drivers started, every item read", m["running"] / tags, "B/tag"),
+            ("total (target <= 1024)", total / tags, "B/tag"),
+        ],
+    )
+    benchmark.pedantic(lambda: None, rounds=1, iterations=1)
