@@ -69,8 +69,13 @@ def _parser() -> argparse.ArgumentParser:
     demo.add_argument("--slaves", default="1,2,3", help="slave ids on the line (1,2,3)")
     demo.set_defaults(func=_demo)
 
-    run = sub.add_parser("run", help="poll devices from device files, print updates")
-    run.add_argument("files", nargs="+", type=Path)
+    run = sub.add_parser("run", help="poll devices from device files, print updates; or run "
+                         "the gateway service with --config-dir")
+    run.add_argument("files", nargs="*", type=Path)
+    run.add_argument("--config-dir", type=Path, default=None,
+                     help="gateway service: every device file in DIR; MQTT/metrics from "
+                     "DIR/gateway.json or --gateway; SIGHUP reloads, SIGTERM stops")
+    run.add_argument("--gateway", type=Path, default=None, help="gateway file (with --config-dir)")
     run.add_argument("--json", action="store_true", help="JSON lines instead of text")
     run.add_argument("--seconds", type=float, default=0.0, help="stop after N s (0 = ^C)")
     run.set_defaults(func=_run)
@@ -154,6 +159,16 @@ def _demo(args: argparse.Namespace) -> int:
 
 
 def _run(args: argparse.Namespace) -> int:
+    if args.config_dir is not None:
+        if args.files:
+            raise CliError("give device files or --config-dir, not both")
+        from .service import run_service
+
+        logging.getLogger("edgemodbus").setLevel(logging.DEBUG if args.verbose > 1 else
+                                                 logging.INFO)
+        return run_service(args.config_dir, args.gateway)
+    if not args.files:
+        raise CliError("give device files, or --config-dir DIR")
     drivers = []
     try:
         for file in args.files:

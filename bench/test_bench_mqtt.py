@@ -1,0 +1,233 @@
+"""Issue 8: what publishing to MQTT costs the gateway.
+
+10,000 UInt16 tags on 10 slaves (1,000 each) of one RTU-over-TCP line, played by our
+simulator in its own process; 1% of the values change on every read (a FlipMover on
+every 100th tag), checked from ``stats()["valuesChanged"]``.  A real mosquitto (own
+process) receives the updates and a subscriber (own process) counts what arrives.
+
+The same drivers run all along (polling as fast as the line allows); a publisher is
+attached (MQTT on) and detached (MQTT off) in alternating phases of the same run, and
+the client CPU of this process (time.process_time: every thread, the bus worker and the
+MQTT thread included) per tag read is compared.  Target: on / off <= 1.5 with the
+default item QoS 0; QoS 1 (paho's publish and a PUBACK per update) is reported beside
+it.  The benchmark fixture times the bus worker's side of MQTT: the batch callback
+handing 100 updates over.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import tempfile
+import textwrap
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from tests.mosquitto import Mosquitto
+
+import edgemodbus as em
+from bench.conftest import QUICK, cpu_seconds, report, scale
+from bench.slave_process import SimulatorProcess
+from edgemodbus.config import ItemStatus
+from edgemodbus.datatypes import Area
+from edgemodbus.mqtt import MqttPublisher
+
+SLAVES = list(range(1, 11))
+TAGS = 1000  # per slave
+CHANGING_EVERY = 100  # 1%
+PHASE_SECONDS = 1.5 if QUICK else 5.0
+PHASES = 2 if QUICK else 3  # pairs of off/on
+
+SUBSCRIBER = textwrap.dedent("""
+    import sys, threading
+    import paho.mqtt.client as paho
+    count = 0
+    lock = threading.Lock()
+    ready = threading.Event()
+    def on_message(client, userdata, msg):
+        global count
+        with lock:
+            count += 1
+    c = paho.Client(callback_api_version=paho.CallbackAPIVersion.VERSION2)
+    c.on_message = on_message
+    c.on_subscribe = lambda *a: ready.set()
+    c.connect("127.0.0.1", int(sys.argv[1]))
+    c.subscribe(sys.argv[2], qos=1)
+    c.loop_start()
+    ready.wait(10)
+    print("ready", flush=True)
+    for line in sys.stdin:  # each line asks for the count so far
+        with lock:
+            print(count, flush=True)
+    c.disconnect()
+    c.loop_stop()
+""")
+
+
+class Subscriber:
+    """A paho subscriber in its own process (its CPU is not ours)."""
+
+    def __init__(self, port: int, topic: str) -> None:
+        self.proc = subprocess.Popen(
+            [sys.executable, "-c", SUBSCRIBER, str(port), topic],
+            stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, bufsize=1,
+        )
+        assert self.proc.stdout is not None
+        assert self.proc.stdout.readline().strip() == "ready"
+
+    def count(self) -> int:
+        assert self.proc.stdin is not None and self.proc.stdout is not None
+        self.proc.stdin.write("?\n")
+        self.proc.stdin.flush()
+        return int(self.proc.stdout.readline())
+
+    def close(self) -> None:
+        assert self.proc.stdin is not None and self.proc.stdout is not None
+        self.proc.stdin.close()
+        try:
+            self.proc.wait(10)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait()
+        self.proc.stdout.close()
+
+
+def device(port: int, slave: int) -> em.DeviceConfig:
+    return em.load_device_config({
+        "organization": {"deviceCode": f"bench{slave}"},
+        "communication": {
+            "transport": "rtu-over-tcp", "tcpHost": "127.0.0.1", "tcpPort": port,
+            "slaveId": slave, "readCycle": 10, "readTimeout": 1000, "byteTimeout": 200,
+            "maxBlockReadRegisterCount": 120,
+        },
+        "addressList": [{"name": f"t{k}", "address": f"3:{k}", "deviceDataType": "UInt16"}
+                        for k in range(TAGS)],
+    })
+
+
+@pytest.fixture(scope="module")
+def setup() -> Iterator[tuple[SimulatorProcess, Mosquitto]]:
+    # a subscriber may lag behind thousands of updates a second: let mosquitto queue them
+    # all for it (its default drops QoS 1 messages beyond 1000 queued per client)
+    unlimited = ["max_queued_messages 0"]
+    with tempfile.TemporaryDirectory() as tmp, \
+            Mosquitto(Path(tmp), extra_config=unlimited) as broker, \
+            SimulatorProcess(SLAVES, size=TAGS + 10) as sim:
+        flips = sim.flip([(s, Area.HOLDING_REGISTER, k, 1)
+                          for s in SLAVES for k in range(0, TAGS, CHANGING_EVERY)])
+        assert flips == len(SLAVES) * TAGS // CHANGING_EVERY
+        yield sim, broker
+
+
+def _totals(drivers: list[em.DriverModbusRtu]) -> tuple[int, int]:
+    """(tag reads, values changed) so far over every driver."""
+    reads = changed = 0
+    for drv in drivers:
+        s = drv.stats()
+        reads += s["cycles"] * drv.data_item_count
+        changed += s["valuesChanged"]
+    return reads, changed
+
+
+def test_cpu_per_tag_read_mqtt_on_vs_off(setup: tuple[SimulatorProcess, Mosquitto],
+                                         benchmark: Any) -> None:
+    sim, broker = setup
+    configs = [device(sim.port, s) for s in SLAVES]
+    publishers = {qos: MqttPublisher({"port": broker.port, "qos": qos},
+                                     gateway_id=f"bench-q{qos}").start() for qos in (0, 1)}
+    subscriber = Subscriber(broker.port, "edgemodbus/+/+")
+    drivers: list[em.DriverModbusRtu] = []
+    modes: list[int | None] = [None, 0, 1]  # MQTT off, QoS 0, QoS 1
+    results: dict[int | None, list[float]] = {m: [0.0, 0.0, 0.0] for m in modes}
+    try:
+        for pub in publishers.values():
+            assert pub.wait_connected(10)
+        for cfg in configs:
+            drv = em.DriverModbusRtu()
+            assert drv.start_device(cfg.organization, cfg.communication, cfg.address_list)
+            drivers.append(drv)
+        deadline = time.monotonic() + 60
+        while not all(it.status is ItemStatus.OK for c in configs for it in c.address_list):
+            assert time.monotonic() < deadline, "tags not all read"
+            time.sleep(0.1)
+        time.sleep(1.0)  # warm up
+
+        for _ in range(PHASES):
+            for mode in modes:
+                pub = publishers[mode] if mode is not None else None
+                if pub is not None:
+                    for drv, cfg in zip(drivers, configs, strict=True):
+                        pub.attach(drv, cfg.organization.device_code)
+                time.sleep(0.3)  # let the switch settle
+                reads0, changed0 = _totals(drivers)
+                cpu0 = cpu_seconds()
+                time.sleep(PHASE_SECONDS)
+                cpu1 = cpu_seconds()
+                reads1, changed1 = _totals(drivers)
+                acc = results[mode]
+                acc[0] += cpu1 - cpu0
+                acc[1] += reads1 - reads0
+                acc[2] += changed1 - changed0
+                if pub is not None:
+                    for drv in drivers:
+                        pub.detach(drv)
+        stats = {qos: pub.stats() for qos, pub in publishers.items()}
+        published = sum(st["published"] for st in stats.values())
+        # every published update reached the subscriber
+        deadline = time.monotonic() + 15
+        while subscriber.count() < published:
+            assert time.monotonic() < deadline, (subscriber.count(), published)
+            time.sleep(0.1)
+        received = subscriber.count()
+
+        # the worker's side: the batch callback handing 100 updates to the publisher
+        drv = drivers[0]
+        publishers[0].attach(drv, "bench1")
+        callback = drv.addresses_updated_callback
+        assert callback is not None
+        batch = configs[0].address_list[:100]
+        benchmark.pedantic(lambda: callback(batch), rounds=scale(2000, 200), iterations=1)
+        publishers[0].detach(drv)
+    finally:
+        for drv in drivers:
+            drv.stop_device()
+        for pub in publishers.values():
+            pub.stop()
+        subscriber.close()
+
+    seconds = PHASES * PHASE_SECONDS
+    off_cpu, off_reads, off_changed = results[None]
+    per_off = off_cpu / off_reads
+    rows: list[tuple[str, float, str]] = [("MQTT off: CPU per tag read", per_off * 1e9, "ns")]
+    ratios: dict[int, float] = {}
+    for qos in (0, 1):
+        cpu, reads, changed = results[qos]
+        ratios[qos] = (cpu / reads) / per_off
+        rows += [
+            (f"MQTT QoS {qos}: CPU per tag read", cpu / reads * 1e9, "ns"),
+            (f"MQTT QoS {qos}: ratio to off" + (" (target <= 1.5)" if qos == 0 else ""),
+             ratios[qos], "x"),
+            (f"MQTT QoS {qos}: updates published per second", changed / seconds, "/s"),
+            (f"MQTT QoS {qos}: CPU, % of one core", 100 * cpu / seconds, "%"),
+            (f"MQTT QoS {qos}: values changed per read", 100 * changed / reads, "%"),
+        ]
+    rows += [
+        ("MQTT off: values changed per read", 100 * off_changed / off_reads, "%"),
+        ("MQTT off: tag reads per second", off_reads / seconds, "/s"),
+        ("MQTT off: CPU, % of one core", 100 * off_cpu / seconds, "%"),
+        ("MQTT QoS 0: updates dropped (queue full)", float(stats[0]["dropped"]), ""),
+        ("MQTT QoS 1: updates dropped (queue full)", float(stats[1]["dropped"]), ""),
+    ]
+    benchmark.extra_info.update(
+        ns_per_tag_read_off=per_off * 1e9, ratio_qos0=ratios[0], ratio_qos1=ratios[1],
+        published=published, received=received,
+    )
+    report("CPU per tag read, 10,000 tags, 1% changing per read, MQTT to mosquitto", rows)
+    for mode in modes:
+        cpu, reads, changed = results[mode]
+        assert 0.9 <= 100 * changed / reads <= 1.1, f"the 1% change did not happen ({mode})"
+    assert stats[0]["dropped"] == 0
+    assert received >= published > 0

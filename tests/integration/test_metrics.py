@@ -1,0 +1,166 @@
+"""Prometheus endpoint: scraped over real HTTP while drivers poll a pymodbus slave."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import time
+import urllib.request
+from collections.abc import Iterator
+from typing import Any
+
+import pytest
+from prometheus_client.parser import text_string_to_metric_families
+
+import edgemodbus as em
+from edgemodbus.config import ConfigError, DeviceDriverStatus
+from edgemodbus.metrics import MetricsExporter, MetricsSettings
+from edgemodbus.mqtt import MqttPublisher
+from tests.peers import ExceptionRange, PymodbusSlave, free_port
+
+Samples = dict[tuple[str, tuple[tuple[str, str], ...]], float]
+
+
+@pytest.fixture
+def slave() -> Iterator[PymodbusSlave]:
+    ranges = [ExceptionRange(50, 51, code=4, unit=1)]  # one block answers "device failure"
+    with PymodbusSlave("rtu-over-tcp", units=(1, 2), size=200,
+                       exception_ranges=ranges) as peer:
+        yield peer
+
+
+def start(port: int, slave_id: int, code: str, **comm: Any) -> em.DriverModbusRtu:
+    cfg = em.load_device_config({
+        "organization": {"deviceCode": code},
+        "communication": {
+            "transport": "rtu-over-tcp", "tcpHost": "127.0.0.1", "tcpPort": port,
+            "slaveId": slave_id, "readCycle": 50, "readTimeout": 150, "retries": 0,
+            "byteTimeout": 50, "maxMergeAddressGap": 0, **comm,
+        },
+        "addressList": [
+            {"name": "a", "address": "hr:0", "deviceDataType": "UInt16"},
+            {"name": "b", "address": "hr:50", "deviceDataType": "UInt16"},
+        ],
+    })
+    drv = em.DriverModbusRtu()
+    assert drv.start_device(cfg.organization, cfg.communication, cfg.address_list)
+    return drv
+
+
+def scrape(port: int) -> tuple[str, Samples]:
+    """GET /metrics with a real HTTP client; samples keyed by (name, sorted labels)."""
+    with urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=5) as resp:
+        assert resp.status == 200
+        assert resp.headers["Content-Type"].startswith("text/plain")
+        text = resp.read().decode()
+    samples: Samples = {}
+    for family in text_string_to_metric_families(text):
+        for s in family.samples:
+            samples[(s.name, tuple(sorted(s.labels.items())))] = s.value
+    return text, samples
+
+
+def lbl(**labels: str) -> tuple[tuple[str, str], ...]:
+    return tuple(sorted(labels.items()))
+
+
+def test_scrape_reports_device_and_line_counters_from_stats(slave: PymodbusSlave) -> None:
+    line = f"rtu-over-tcp://127.0.0.1:{slave.port}"
+    ok = start(slave.port, 1, "dev1")
+    silent = start(slave.port, 3, "dev3", offlineAfterFailedCycles=1000)  # nobody at 3
+    exporter = MetricsExporter({"port": 0})
+    publisher = MqttPublisher({"port": free_port()}, gateway_id="gw")  # never started
+    try:
+        exporter.attach(ok, "dev1", line)
+        publisher.attach(ok, "dev1")  # not connected: updates wait in its queue
+        exporter.attach(silent, None, line)  # the code comes from the driver
+        exporter.set_publisher(publisher)
+        port = exporter.start()
+        slave.set_registers(1, "hr", 0, [777])  # one update for the publisher's queue
+        deadline = time.monotonic() + 10
+        while (ok.stats().get("cycles", 0) < 5 or silent.stats().get("timeouts", 0) < 3
+               or publisher.stats()["queued"] < 1):
+            assert time.monotonic() < deadline, "no progress"
+            time.sleep(0.05)
+        _, live = scrape(port)
+        assert live[("edgemodbus_device_status", lbl(device="dev1", line=line,
+                                                     status="Running"))] == 1
+        assert live[("edgemodbus_device_status", lbl(device="dev1", line=line,
+                                                     status="Offline"))] == 0
+        ok.stop_device()
+        silent.stop_device()
+        text, samples = scrape(port)  # stopped drivers keep their counters: stable now
+    finally:
+        ok.stop_device()
+        silent.stop_device()
+        exporter.stop()
+        publisher.stop()
+    s1, s3 = ok.stats(), silent.stats()
+    d1, d3 = lbl(device="dev1", line=line), lbl(device="dev3", line=line)
+    for key, name in (("requests", "requests"), ("responses", "responses"),
+                      ("timeouts", "timeouts"), ("cycles", "cycles"),
+                      ("crcErrors", "crc_errors"), ("valuesChanged", "values_changed")):
+        assert samples[(f"edgemodbus_{name}_total", d1)] == s1[key], name
+        assert samples[(f"edgemodbus_{name}_total", d3)] == s3[key], name
+    assert s1["requests"] > 0 and s3["timeouts"] > 0 and s3["responses"] == 0
+    assert samples[("edgemodbus_exceptions_total", lbl(device="dev1", line=line, code="4"))] \
+        == s1["exceptions"][4] > 0
+    assert samples[("edgemodbus_device_status", lbl(device="dev1", line=line,
+                                                    status="Stopped"))] == 1
+    assert samples[("edgemodbus_items", d1)] == 2
+    # cycle and round-trip time: exact count and sum
+    assert samples[("edgemodbus_cycle_seconds_count", d1)] == s1["cycles"]
+    assert samples[("edgemodbus_cycle_seconds_sum", d1)] == pytest.approx(
+        s1["avgCycleTime"] * s1["cycles"])
+    assert samples[("edgemodbus_round_trip_seconds_count", d1)] == s1["responses"]
+    # the line once, with its own counters (both devices' requests)
+    line_key = ("edgemodbus_line_requests_total", lbl(line=line))
+    assert samples[line_key] == s1["line"]["requests"] >= s1["requests"] + s3["requests"] - 1
+    assert samples[("edgemodbus_line_reconnects_total", lbl(line=line))] == \
+        s1["line"]["reconnects"]
+    assert text.count("edgemodbus_line_requests_total{") == 1
+    # the publisher's counters
+    mqtt = publisher.stats()
+    assert samples[("edgemodbus_mqtt_connected", ())] == 0
+    assert samples[("edgemodbus_mqtt_queue_depth", ())] == mqtt["queued"] > 0
+    assert samples[("edgemodbus_mqtt_queue_size", ())] == 10_000
+    assert samples[("edgemodbus_mqtt_published_total", lbl(device="dev1"))] == 0
+    assert samples[("edgemodbus_mqtt_dropped_total", lbl(device="dev1"))] == 0
+
+
+def test_histogram_buckets_are_used_when_stats_carry_them() -> None:
+    class Source:
+        device_driver_status = DeviceDriverStatus.RUNNING
+        data_item_count = 3
+
+        def stats(self) -> dict[str, Any]:
+            return {
+                "cycles": 10, "requests": 12, "avgCycleTime": 0.02, "responses": 12,
+                "cycleTimeHistogram": {"buckets": [[0.01, 4], [0.05, 9], [float("inf"), 10]],
+                                       "sum": 0.2, "count": 10},
+                "line": {"requests": 12},
+            }
+
+    with MetricsExporter({"port": 0}) as exporter:
+        exporter.attach(Source(), "fake", "line0")
+        _, samples = scrape(exporter.port)
+    base = {"device": "fake", "line": "line0"}
+    assert samples[("edgemodbus_cycle_seconds_bucket", lbl(**base, le="0.01"))] == 4
+    assert samples[("edgemodbus_cycle_seconds_bucket", lbl(**base, le="0.05"))] == 9
+    assert samples[("edgemodbus_cycle_seconds_bucket", lbl(**base, le="+Inf"))] == 10
+    assert samples[("edgemodbus_cycle_seconds_sum", lbl(**base))] == 0.2
+    assert samples[("edgemodbus_requests_total", lbl(**base))] == 12
+
+
+def test_bad_metrics_settings_name_the_field() -> None:
+    with pytest.raises(ConfigError, match=r"metrics\.port 70000: must be 0\.\.65535"):
+        MetricsSettings.load({"port": 70000})
+
+
+def test_importing_edgemodbus_loads_neither_paho_nor_prometheus() -> None:
+    code = (
+        "import sys, edgemodbus, edgemodbus.mqtt, edgemodbus.metrics, edgemodbus.service\n"
+        "bad = [m for m in sys.modules if m.startswith(('paho', 'prometheus_client'))]\n"
+        "assert not bad, bad\n"
+    )
+    subprocess.run([sys.executable, "-c", code], check=True, timeout=60)

@@ -1,0 +1,303 @@
+"""MQTT publisher end to end: a real mosquitto (own process), a real paho subscriber, our
+driver polling a pymodbus slave (own process)."""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Iterator
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+import edgemodbus as em
+from edgemodbus.config import ConfigError, DeviceDriverStatus, ItemStatus
+from edgemodbus.mqtt import MqttPublisher, MqttSettings, encode_item, jsonable, parse_command
+from tests.mosquitto import Mosquitto, MqttProbe
+from tests.peers import PymodbusSlave, default_register, free_port
+
+P = "edgemodbus"
+
+
+@pytest.fixture
+def broker(tmp_path: Path) -> Iterator[Mosquitto]:
+    with Mosquitto(tmp_path / "broker") as peer:
+        yield peer
+
+
+@pytest.fixture
+def slave() -> Iterator[PymodbusSlave]:
+    with PymodbusSlave("rtu-over-tcp", units=(1,), size=200) as peer:
+        yield peer
+
+
+def device(port: int, code: str = "dev1", tags: int = 5, **comm: Any) -> em.DeviceConfig:
+    items: list[dict[str, Any]] = [
+        {"name": f"t{i}", "address": f"hr:{i}", "deviceDataType": "UInt16"} for i in range(tags)
+    ]
+    items += [
+        {"name": "sp", "address": "hr:100", "deviceDataType": "UInt16"},
+        {"name": "sp2", "address": "hr:101", "deviceDataType": "Int16", "dataMultiplier": 0.1},
+        {"name": "ro", "address": "ir:5", "deviceDataType": "UInt16"},
+    ]
+    base: dict[str, Any] = {
+        "transport": "rtu-over-tcp", "tcpHost": "127.0.0.1", "tcpPort": port, "slaveId": 1,
+        "readCycle": 100, "readTimeout": 300, "reconnectInterval": 300, "byteTimeout": 50,
+    }
+    base.update(comm)
+    return em.load_device_config(
+        {"organization": {"deviceCode": code}, "communication": base, "addressList": items}
+    )
+
+
+class Gateway:
+    """A publisher plus one driver: started on enter, stopped on exit."""
+
+    def __init__(self, broker_port: int, cfg: em.DeviceConfig, **settings: Any) -> None:
+        settings.setdefault("port", broker_port)
+        settings.setdefault("reconnectMin", 100)
+        settings.setdefault("reconnectMax", 400)
+        self.cfg = cfg
+        self.pub = MqttPublisher(settings, gateway_id="gw1")
+        self.drv = em.DriverModbusRtu()
+
+    def __enter__(self) -> Gateway:
+        self.pub.start()
+        self.pub.attach(self.drv, self.cfg.organization.device_code)
+        assert self.drv.start_device(self.cfg.organization, self.cfg.communication,
+                                     self.cfg.address_list)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.drv.stop_device()
+        self.pub.stop()
+
+
+def wait_until(cond: Any, timeout: float = 10.0, what: str = "") -> None:
+    deadline = time.monotonic() + timeout
+    while not cond():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out waiting for {what or cond}")
+        time.sleep(0.02)
+
+
+@pytest.mark.parametrize("qos", [0, 1])  # 0: our raw PUBLISH packets; 1: paho's publish()
+def test_item_updates_status_and_snapshot_reach_a_subscriber(
+    broker: Mosquitto, slave: PymodbusSlave, qos: int
+) -> None:
+    cfg = device(slave.port, snapshotInterval=200)
+    with MqttProbe(broker.port) as probe, Gateway(broker.port, cfg, qos=qos) as gw:
+        for i in range(5):
+            msg = probe.wait_for(f"{P}/dev1/t{i}")
+            body = msg.json()
+            assert body["value"] == default_register(1, "hr", i)
+            assert body["status"] == "Ok" and body["errorReason"] is None
+            assert datetime.fromisoformat(body["updateTs"]).tzinfo is not None
+            assert msg.qos == qos and not msg.retain
+        probe.wait_for(f"{P}/dev1/$status", lambda m: m.json()["status"] == "Running")
+        snap = probe.wait_for("/real/dev1", lambda m: m.json()["items"]["t2"]["status"] == "Ok")
+        assert snap.json()["deviceCode"] == "dev1" and snap.json()["gatewayId"] == "gw1"
+        assert snap.json()["items"]["t2"]["value"] == default_register(1, "hr", 2)
+
+        # report mode "change": an unchanged value is not published again...
+        cycles = gw.drv.stats()["cycles"]
+        wait_until(lambda: gw.drv.stats()["cycles"] >= cycles + 5, what="5 more cycles")
+        assert len(probe.on(f"{P}/dev1/t0")) == 1
+        # ...a changed one is, with its new value
+        slave.set_registers(1, "hr", 0, [4242])
+        assert probe.wait_for(f"{P}/dev1/t0", lambda m: m.json()["value"] == 4242)
+
+        # a subscriber that comes later gets the retained status, gateway and snapshot
+        with MqttProbe(broker.port) as late:
+            status = late.wait_for(f"{P}/dev1/$status")
+            assert status.retain and status.json()["status"] == "Running"
+            gateway = late.wait_for(f"{P}/$gateway/gw1")
+            assert gateway.retain and gateway.json()["status"] == "online"
+            assert late.wait_for("/real/dev1").retain
+        stats = gw.pub.stats()
+        assert stats["connected"] and stats["dropped"] == 0
+        assert stats["devices"]["dev1"]["published"] >= 9  # 8 items + the change
+    # a clean stop says so, retained
+    with MqttProbe(broker.port) as late:
+        offline = late.wait_for(f"{P}/$gateway/gw1")
+        assert offline.retain and offline.json()["status"] == "offline"
+        assert offline.json()["reason"] == "shutdown"
+        status = late.wait_for(f"{P}/dev1/$status")
+        assert status.retain and status.json()["status"] == "Stopped"
+
+
+def test_status_change_is_published_retained(broker: Mosquitto, slave: PymodbusSlave) -> None:
+    cfg = device(slave.port, offlineAfterFailedCycles=1, retries=0, readTimeout=200)
+    with MqttProbe(broker.port) as probe, Gateway(broker.port, cfg, statusCheckInterval=100):
+        probe.wait_for(f"{P}/dev1/$status", lambda m: m.json()["status"] == "Running")
+        mark = probe.mark()
+        slave.set_offline(1)
+        probe.wait_for(f"{P}/dev1/$status", lambda m: m.json()["status"] == "Offline",
+                       after=mark)
+        invalid = probe.wait_for(f"{P}/dev1/t1", lambda m: m.json()["status"] == "Invalid")
+        assert "not responding" in invalid.json()["errorReason"]
+        slave.set_offline(1, False)
+        probe.wait_for(f"{P}/dev1/$status", lambda m: m.json()["status"] == "Running",
+                       after=mark)
+        # each status published once per change, not once per check
+        statuses = [m.json()["status"] for m in probe.on(f"{P}/dev1/$status")[-2:]]
+        assert statuses == ["Offline", "Running"]
+
+
+def test_writes_from_mqtt_reach_the_slave_and_bad_payloads_get_error_replies(
+    broker: Mosquitto, slave: PymodbusSlave
+) -> None:
+    cfg = device(slave.port)
+    with MqttProbe(broker.port) as probe, Gateway(broker.port, cfg) as gw:
+        probe.wait_for(f"{P}/dev1/sp")
+        reply = f"{P}/dev1/$reply"
+
+        def command(topic: str, payload: bytes | str, request: str | None) -> dict[str, Any]:
+            mark = probe.mark()
+            probe.publish(topic, payload)
+            msg = probe.wait_for(reply, lambda m: m.json()["id"] == request, after=mark)
+            body: dict[str, Any] = msg.json()
+            return body
+
+        ok = command(f"{P}/dev1/set/sp", '{"value": 1234, "id": "a1"}', "a1")
+        assert ok["ok"] is True and ok["error"] is None and ok["items"] == ["sp"]
+        assert slave.registers(1, "hr", 100) == [1234]
+        assert probe.wait_for(f"{P}/dev1/sp", lambda m: m.json()["value"] == 1234)
+
+        ok = command(f"{P}/dev1/set", json.dumps({"items": {"sp": 7, "sp2": -1.5}, "id": 9}), 9)
+        assert ok["ok"] is True, ok
+        assert slave.registers(1, "hr", 100, 2) == [7, (-15) & 0xFFFF]
+        ok = command(f"{P}/dev1/set", json.dumps([["sp", 8], {"name": "sp2", "value": 2}]),
+                     None)
+        assert ok["ok"] is True and slave.registers(1, "hr", 100, 2) == [8, 20]
+        ok = command(f"{P}/dev1/set/sp", "99", None)  # a bare JSON value
+        assert ok["ok"] is True and slave.registers(1, "hr", 100) == [99]
+
+        bad = [
+            (f"{P}/dev1/set/nosuch", '{"value": 1, "id": "b1"}', "b1", "nosuch"),
+            (f"{P}/dev1/set/sp", '{"value": 70000, "id": "b2"}', "b2", "sp"),
+            (f"{P}/dev1/set/sp", '{"value": "abc", "id": "b3"}', "b3", "sp"),
+            (f"{P}/dev1/set/ro", '{"value": 1, "id": "b4"}', "b4", "read-only"),
+            (f"{P}/dev1/set/sp", '{"id": "b5"}', "b5", '"value"'),
+            (f"{P}/dev1/set", '{"id": "b6", "items": 5}', "b6", "items"),
+            (f"{P}/dev1/set", "{not json", None, "not JSON"),
+            (f"{P}/dev1/set", b"\xff\xfe\x00", None, "UTF-8"),
+            (f"{P}/dev1/set", '{"items": {}, "id": "b9"}', "b9", "no items"),
+        ]
+        for topic, payload, request, reason in bad:
+            body = command(topic, payload, request)
+            assert body["ok"] is False and reason in body["error"], (payload, body)
+        assert slave.registers(1, "hr", 100) == [99]  # none of them wrote anything
+        ok = command(f"{P}/dev1/set/sp", '{"value": 5, "id": "after"}', "after")
+        assert ok["ok"] is True and slave.registers(1, "hr", 100) == [5]
+        stats = gw.pub.stats()
+        assert stats["commands"] == 5 + len(bad)
+        assert stats["commandErrors"] == len(bad)
+        assert gw.drv.device_driver_status is DeviceDriverStatus.RUNNING
+
+
+def test_broker_restart_coalesces_snapshots_drops_updates_and_recovers(
+    broker: Mosquitto, slave: PymodbusSlave
+) -> None:
+    cfg = device(slave.port, tags=20, snapshotInterval=100)
+    probe = MqttProbe(broker.port).start()
+    with Gateway(broker.port, cfg, queueSize=5) as gw:
+        try:
+            probe.wait_for(f"{P}/dev1/t19")
+        finally:
+            probe.stop()
+        assert gw.pub.wait_connected(5)
+        broker.stop()
+        wait_until(lambda: not gw.pub.connected, what="publisher sees the broker go")
+        cycles = gw.drv.stats()["cycles"]
+        slave.set_registers(1, "hr", 0, [50_000 + i for i in range(20)])  # 20 updates
+        wait_until(lambda: gw.pub.stats()["dropped"] >= 15, what="queue overflow")
+        wait_until(lambda: gw.pub.stats()["snapshotsCoalesced"] >= 2, what="coalescing")
+        stats = gw.pub.stats()
+        assert stats["queued"] == 5 and stats["pendingSnapshots"] == 1
+        assert stats["devices"]["dev1"]["dropped"] == stats["dropped"]
+        # polling went on at full speed while the broker was away
+        wait_until(lambda: gw.drv.stats()["cycles"] >= cycles + 10, timeout=5,
+                   what="polling while the broker is down")
+        assert gw.drv.stats()["overruns"] == 0
+
+        broker.restart()  # no persistence: retained messages are gone
+        assert gw.pub.wait_connected(10)
+        with MqttProbe(broker.port) as probe:
+            # the new broker knew nothing: all of this was republished on reconnect (live
+            # or retained, depending on whether it came before our subscription)
+            assert probe.wait_for(f"{P}/$gateway/gw1").json()["status"] == "online"
+            assert probe.wait_for(f"{P}/dev1/$status").json()["status"] == "Running"
+            probe.wait_for("/real/dev1", lambda m: m.json()["items"]["t0"]["value"] == 50_000)
+            slave.set_registers(1, "hr", 3, [7])
+            assert probe.wait_for(f"{P}/dev1/t3", lambda m: m.json()["value"] == 7)
+        assert gw.pub.stats()["connects"] == 2
+
+
+def test_unreachable_broker_never_blocks_polling_or_stop(slave: PymodbusSlave) -> None:
+    cfg = device(slave.port)
+    gw = Gateway(free_port(), cfg, reconnectMin=50, reconnectMax=200)
+    with gw:
+        wait_until(lambda: gw.drv.stats().get("cycles", 0) >= 5, what="polling")
+        wait_until(lambda: gw.pub.stats()["connectFailures"] >= 2, what="retries")
+        started = time.monotonic()
+    assert time.monotonic() - started < 1.5
+    assert not gw.pub.connected
+
+
+def test_item_names_that_collide_with_command_topics_are_refused(broker: Mosquitto) -> None:
+    pub = MqttPublisher({"port": broker.port}, gateway_id="gw1")
+    try:
+        with pytest.raises(ValueError, match=r"item 'set' of device 'dev1'.*command topic"):
+            pub.check_item_names("dev1", ["ok", "set"])
+        with pytest.raises(ValueError, match=r"'\$status'.*status topic"):
+            pub.check_item_names("dev1", ["$status"])
+        with pytest.raises(ValueError, match=r"'a\+b'.*'\+', '#'"):
+            pub.check_item_names("dev1", ["a+b"])
+        with pytest.raises(ValueError, match="deviceCode 'a/b'"):
+            pub.check_item_names("a/b", ["x"])
+        pub.check_item_names("dev1", ["status", "reply", "settings"])
+    finally:
+        pub.stop()
+
+
+def test_settings_errors_name_the_field_the_value_and_what_is_allowed() -> None:
+    with pytest.raises(ConfigError) as err:
+        MqttSettings.load({"itemTopic": "{prefix}/{device}/{itemName}"})
+    assert str(err.value).startswith("mqtt.itemTopic '{prefix}/{device}/{itemName}': ")
+    assert "unknown placeholder {device}" in str(err.value)
+    assert "{deviceCode}" in str(err.value)
+    with pytest.raises(ConfigError, match=r"reconnectMax 100 must be >= reconnectMin"):
+        MqttSettings.load({"reconnectMin": 500, "reconnectMax": 100})
+    with pytest.raises(ValueError, match=r"qos.*3.*0 or 1 or 2"):
+        MqttPublisher({"qos": 3})
+    with pytest.raises(ValueError, match=r"commandTopic.*must end with /\{itemName\}"):
+        MqttPublisher({"commandTopic": "{prefix}/{itemName}/set"})
+    with pytest.raises(ValueError, match=r"topicPrefix 'a/#'.*wildcards"):
+        MqttPublisher({"topicPrefix": "a/#"})
+
+
+def test_item_payload_is_the_json_of_its_fields() -> None:
+    ts = datetime(2026, 1, 2, 3, 4, 5, 678000, tzinfo=timezone.utc)
+    for value in (0, -7, 2**70, 1.5, -0.0, 1e300, float("nan"), float("-inf"), True, False,
+                  None, "héllo \"x\"\n", b"\x01\xff", ts, [1, 2]):
+        for status, error in ((ItemStatus.OK, None), (ItemStatus.INVALID, 'bad "x"')):
+            body = json.loads(encode_item(value, status, ts, error))
+            assert body == {"value": jsonable(value), "status": status.value,
+                            "updateTs": ts.isoformat(), "errorReason": error}, value
+    assert json.loads(encode_item(1, ItemStatus.UNKNOWN, None, None))["updateTs"] is None
+
+
+def test_parse_command_forms() -> None:
+    assert parse_command("sp", b"12.5") == (None, [("sp", 12.5)])
+    assert parse_command("sp", b"true") == (None, [("sp", True)])
+    assert parse_command("name", b"hello world") == (None, [("name", "hello world")])
+    assert parse_command("sp", b'{"value": [1], "id": 3}') == (3, [("sp", [1])])
+    assert parse_command(None, b'{"a": 1, "b": false}') == (None, [("a", 1), ("b", False)])
+    assert parse_command(None, b'{"items": [["a", 1]], "id": "x"}') == ("x", [("a", 1)])
+    with pytest.raises(ValueError, match=r"items\[1\]"):
+        parse_command(None, b'[["a", 1], 7]')
+    with pytest.raises(ValueError, match="too large"):
+        parse_command("sp", b"1" * 70_000)
