@@ -1,69 +1,39 @@
 /* edgemodbus: transaction helpers around libmodbus 3.1.6.
  *
- * Each function does a whole step (select the slave, send, receive) so that the
- * Python bus worker makes one C call, with the GIL released, per Modbus transaction.
- * No globals, no allocation: callers own every buffer. */
+ * Each function does a whole step (drop stale input, send, skip an echo, receive, check)
+ * so that the Python bus worker makes one C call, with the GIL released, per Modbus
+ * transaction.  libmodbus frames the reply (lengths from the function code and byte
+ * count, byte timeout, CRC); the checks that tie a reply to its request are ours, because
+ * 3.1.6 does not make them all: it loses undefined exception codes, ignores the MBAP
+ * unit id and length, accepts a protocol id with one zero byte, and sends raw requests
+ * with transaction id 0.  No globals, no allocation: callers own every buffer. */
 #include "emb_io.h"
 
 #include <errno.h>
 #include <poll.h>
+#include <string.h>
+#include <sys/ioctl.h>
+#include <sys/socket.h>
+#include <sys/stat.h>
 #include <time.h>
 #include <unistd.h>
 
-/* Drop whatever input is already pending (a reply we gave up on, noise, an answer to
- * a broadcast) so that it cannot be taken as the answer to the request we send next:
- * RTU frames carry no transaction id (Modbus over Serial Line v1.02, 2.5.1). */
-static void emb_drop_pending(modbus_t *ctx)
-{
-    int saved = errno;
+#define EMB_MAX_ADU 260 /* MODBUS_TCP_MAX_ADU_LENGTH: rsp holds at least this much */
+#define EMB_MBAP 7      /* MBAP header (Modbus Messaging on TCP/IP v1.0b, 3.1.3) */
 
-    (void)emb_discard_input(modbus_get_socket(ctx), 0, 0);
-    errno = saved;
-}
-
-/* Read one block with function code 1, 2, 3 or 4 (Modbus Application Protocol
- * v1.1b3, 6.1-6.4).  dest holds nb bytes (bits, one per byte) or nb registers. */
-int emb_read(modbus_t *ctx, int slave, int function, int addr, int nb, void *dest)
+/* CRC-16/MODBUS, polynomial 0xA001 reflected, initial 0xFFFF (Modbus over Serial Line
+ * v1.02, 6.2.2); sent low byte first. */
+static uint16_t emb_crc16(const uint8_t *p, int n)
 {
-    if (modbus_set_slave(ctx, slave) == -1)
-        return -1;
-    emb_drop_pending(ctx);
-    switch (function) {
-    case 1:
-        return modbus_read_bits(ctx, addr, nb, (uint8_t *)dest);
-    case 2:
-        return modbus_read_input_bits(ctx, addr, nb, (uint8_t *)dest);
-    case 3:
-        return modbus_read_registers(ctx, addr, nb, (uint16_t *)dest);
-    case 4:
-        return modbus_read_input_registers(ctx, addr, nb, (uint16_t *)dest);
-    default:
-        errno = EINVAL;
-        return -1;
+    uint16_t crc = 0xFFFF;
+    int i, bit;
+
+    for (i = 0; i < n; i++) {
+        crc ^= p[i];
+        for (bit = 0; bit < 8; bit++)
+            crc = (crc & 1) ? (uint16_t)((crc >> 1) ^ 0xA001) : (uint16_t)(crc >> 1);
     }
-}
-
-/* Send a request PDU prefixed with the slave id (req[0] = slave, req[1] = function)
- * and receive the whole confirmation ADU into rsp (at least 260 bytes).  The caller
- * checks the reply (echo, exception, lengths): libmodbus 3.1.6 only checks the CRC
- * and, on RTU, that the slave id matches (returning 0 when it does not). */
-int emb_transact_raw(modbus_t *ctx, int slave, const uint8_t *req, int req_len, uint8_t *rsp)
-{
-    if (modbus_set_slave(ctx, slave) == -1)
-        return -1;
-    emb_drop_pending(ctx);
-    if (modbus_send_raw_request(ctx, req, req_len) == -1)
-        return -1;
-    return modbus_receive_confirmation(ctx, rsp);
-}
-
-/* Send without waiting for a reply: broadcast (slave 0) requests get none
- * (Modbus over Serial Line v1.02, 2.1). */
-int emb_send_raw(modbus_t *ctx, int slave, const uint8_t *req, int req_len)
-{
-    if (modbus_set_slave(ctx, slave) == -1)
-        return -1;
-    return modbus_send_raw_request(ctx, req, req_len);
+    return crc;
 }
 
 static long emb_elapsed_ms(const struct timespec *since)
@@ -75,34 +45,106 @@ static long emb_elapsed_ms(const struct timespec *since)
            (long)(now.tv_nsec - since->tv_nsec) / 1000000L;
 }
 
+static int emb_timeout_ms(modbus_t *ctx, int byte)
+{
+    uint32_t sec = 0, usec = 0;
+
+    if (byte)
+        modbus_get_byte_timeout(ctx, &sec, &usec);
+    else
+        modbus_get_response_timeout(ctx, &sec, &usec);
+    return (int)(sec * 1000U + (usec + 999U) / 1000U);
+}
+
+/* Wait until fd is readable (or reports a hangup or an error, which the next read
+ * returns) for up to ms: 1 readable, 0 timed out, -1 with errno.  poll(), not select():
+ * fds of 1024 and more are safe here. */
+static int emb_wait_readable(int fd, int ms)
+{
+    struct pollfd pfd;
+    struct timespec start;
+    long left;
+    int rc;
+
+    clock_gettime(CLOCK_MONOTONIC, &start);
+    pfd.fd = fd;
+    for (;;) {
+        left = ms - emb_elapsed_ms(&start);
+        pfd.events = POLLIN;
+        pfd.revents = 0;
+        rc = poll(&pfd, 1, left > 0 ? (int)left : 0);
+        if (rc == -1) {
+            if (errno == EINTR)
+                continue;
+            return -1;
+        }
+        if (rc == 0)
+            return 0;
+        if (pfd.revents & POLLNVAL) {
+            errno = EBADF;
+            return -1;
+        }
+        return 1;
+    }
+}
+
+/* The errno for end-of-file on fd: the peer closed the connection (ECONNRESET) on a
+ * socket; on a serial device, a tty that hung up (a USB adapter unplugged, a pty whose
+ * master side closed) reads EOF where writes fail with EIO: report EIO there too. */
+static int emb_eof_errno(int fd)
+{
+    struct stat st;
+
+    if (fstat(fd, &st) == 0 && !S_ISSOCK(st.st_mode))
+        return EIO;
+    return ECONNRESET;
+}
+
+/* Bytes already received on fd and not read yet (0 if the driver cannot tell). */
+static int emb_pending(int fd)
+{
+    int n = 0;
+
+    if (ioctl(fd, FIONREAD, &n) == -1)
+        return 0;
+    return n;
+}
+
 /* Discard input on fd.  RTU frames carry no transaction id, so a reply that comes
  * after the response timeout would be taken as the answer to the next request.
- * Waits up to total_ms for stray bytes, returning early once quiet_ms pass with
- * nothing new after the last byte; total_ms = 0 only takes what is already there.
- * Uses poll(), not select(): fds of 1024 and more are safe here.
+ * Waits up to total_ms for stray bytes; once bytes come, goes on until quiet_ms pass
+ * without a new one (a late reply still arriving as total_ms runs out is taken whole),
+ * but never past limit_ms (a line that never falls quiet).  total_ms = 0 and
+ * limit_ms = 0 only take what is already there.
  * Returns the number of bytes discarded, or -1 with errno set (ECONNRESET when the
- * peer closed the connection). */
-long emb_discard_input(int fd, int total_ms, int quiet_ms)
+ * peer closed the connection, EIO when a serial device went away). */
+long emb_discard_input(int fd, int total_ms, int quiet_ms, int limit_ms)
 {
     uint8_t sink[512];
     struct timespec start;
     long discarded = 0;
     long waited;
+    long timeout;
     struct pollfd pfd;
-    int timeout;
     int rc;
     ssize_t n;
 
+    if (limit_ms < total_ms)
+        limit_ms = total_ms;
     clock_gettime(CLOCK_MONOTONIC, &start);
     pfd.fd = fd;
     for (;;) {
         waited = emb_elapsed_ms(&start);
-        timeout = total_ms > waited ? (int)(total_ms - waited) : 0;
-        if (discarded > 0 && quiet_ms < timeout)
-            timeout = quiet_ms;
+        if (discarded == 0) {
+            timeout = total_ms - waited;
+        } else {
+            timeout = limit_ms - waited;
+            if (quiet_ms < timeout)
+                timeout = quiet_ms;
+        }
         pfd.events = POLLIN;
         pfd.revents = 0;
-        rc = poll(&pfd, 1, timeout);
+        rc = poll(&pfd, 1, timeout > 0 ? (int)timeout : 0);
         if (rc == -1) {
             if (errno == EINTR)
                 continue;
@@ -110,13 +152,13 @@ long emb_discard_input(int fd, int total_ms, int quiet_ms)
         }
         if (rc == 0)
             return discarded;
-        if (pfd.revents & (POLLERR | POLLNVAL)) {
-            errno = EIO;
+        if (pfd.revents & POLLNVAL) {
+            errno = EBADF;
             return -1;
         }
         n = read(fd, sink, sizeof(sink));
         if (n == 0) {
-            errno = ECONNRESET;
+            errno = emb_eof_errno(fd);
             return -1;
         }
         if (n < 0) {
@@ -126,4 +168,342 @@ long emb_discard_input(int fd, int total_ms, int quiet_ms)
         }
         discarded += n;
     }
+}
+
+/* Drop whatever input is already pending (a reply we gave up on, noise, an answer to
+ * a broadcast) so that it cannot be taken as the answer to the request we send next:
+ * RTU frames carry no transaction id (Modbus over Serial Line v1.02, 2.5.1).  A link
+ * found closed here fails the request before anything is sent. */
+static int emb_drop_pending(emb_link *lk, int fd)
+{
+    long n = emb_discard_input(fd, 0, 0, 0);
+
+    if (n == -1)
+        return -1;
+    lk->discarded += n;
+    return 0;
+}
+
+static int emb_write_all(int fd, const uint8_t *p, int n)
+{
+    ssize_t w;
+
+    while (n > 0) {
+        w = send(fd, p, (size_t)n, MSG_NOSIGNAL);
+        if (w == -1) {
+            if (errno == EINTR)
+                continue;
+            return -1;
+        }
+        p += w;
+        n -= (int)w;
+    }
+    return 0;
+}
+
+/* Send pdu (function code first) to slave; the ADU put on the wire goes to sent.
+ * Modbus TCP: we build the MBAP header ourselves with the next transaction id
+ * (libmodbus 3.1.6 sends raw requests with id 0, which would match any stale reply).
+ * RTU: libmodbus adds the CRC and drives RTS on serial lines. */
+static int emb_send_adu(modbus_t *ctx, emb_link *lk, int slave, const uint8_t *pdu,
+                        int pdu_len, uint8_t *sent, int *sent_len)
+{
+    uint16_t crc;
+
+    if (pdu_len < 1 || pdu_len > EMB_MAX_ADU - EMB_MBAP || slave < 0 || slave > 255) {
+        errno = EINVAL;
+        return -1;
+    }
+    if (lk->mbap) {
+        lk->tid = (lk->tid + 1U) & 0xFFFFU;
+        sent[0] = (uint8_t)(lk->tid >> 8);
+        sent[1] = (uint8_t)(lk->tid & 0xFF);
+        sent[2] = 0;
+        sent[3] = 0;
+        sent[4] = (uint8_t)((pdu_len + 1) >> 8);
+        sent[5] = (uint8_t)((pdu_len + 1) & 0xFF);
+        sent[6] = (uint8_t)slave;
+        memcpy(sent + EMB_MBAP, pdu, (size_t)pdu_len);
+        *sent_len = EMB_MBAP + pdu_len;
+        return emb_write_all(modbus_get_socket(ctx), sent, *sent_len);
+    }
+    if (pdu_len > 253) { /* RTU ADU: address + PDU + CRC <= 256 bytes (Serial Line 2.5.1) */
+        errno = EINVAL;
+        return -1;
+    }
+    sent[0] = (uint8_t)slave;
+    memcpy(sent + 1, pdu, (size_t)pdu_len);
+    crc = emb_crc16(sent, pdu_len + 1);
+    sent[pdu_len + 1] = (uint8_t)(crc & 0xFF);
+    sent[pdu_len + 2] = (uint8_t)(crc >> 8);
+    *sent_len = pdu_len + 3;
+    if (modbus_set_slave(ctx, slave) == -1)
+        return -1;
+    return modbus_send_raw_request(ctx, sent, pdu_len + 1) == -1 ? -1 : 0;
+}
+
+/* With the echo option: read back exactly the request's own bytes, which a 2-wire
+ * adapter without echo suppression puts on our receive line, before the reply. */
+static int emb_skip_echo(modbus_t *ctx, emb_link *lk, const uint8_t *sent, int sent_len)
+{
+    uint8_t echo[EMB_MAX_ADU];
+    int fd = modbus_get_socket(ctx);
+    int wait = emb_timeout_ms(ctx, 0);
+    int byte_ms = emb_timeout_ms(ctx, 1);
+    int got = 0;
+    int rc;
+    ssize_t n;
+
+    while (got < sent_len) {
+        rc = emb_wait_readable(fd, wait);
+        if (rc == -1)
+            return -1;
+        if (rc == 0) {
+            errno = got ? EMB_EPARTIAL : ETIMEDOUT;
+            return -1;
+        }
+        n = read(fd, echo + got, (size_t)(sent_len - got));
+        if (n == 0) {
+            errno = emb_eof_errno(fd);
+            return -1;
+        }
+        if (n < 0) {
+            if (errno == EINTR || errno == EAGAIN)
+                continue;
+            return -1;
+        }
+        got += (int)n;
+        if (byte_ms > 0)
+            wait = byte_ms;
+    }
+    lk->discarded += got;
+    if (memcmp(echo, sent, (size_t)sent_len) != 0) {
+        errno = EMB_EECHO;
+        return -1;
+    }
+    return 0;
+}
+
+/* Receive one frame with libmodbus: its length; 0 for an RTU frame from another slave
+ * (libmodbus drops those before their CRC); -1 with errno: ETIMEDOUT when nothing came,
+ * EMB_EPARTIAL when a frame stopped short (byte timeout).  wait_ms < 0: libmodbus waits
+ * the response timeout for the first byte; else we wait up to wait_ms for it.  The
+ * caller puts in rsp[0] a byte the frame cannot start with (the complement of the
+ * slave id or of the first MBAP byte): if it changed, bytes came. */
+static int emb_receive(modbus_t *ctx, int wait_ms, uint8_t *rsp)
+{
+    uint8_t mark = rsp[0];
+    int rc;
+
+    if (wait_ms >= 0) {
+        rc = emb_wait_readable(modbus_get_socket(ctx), wait_ms);
+        if (rc == -1)
+            return -1;
+        if (rc == 0) {
+            errno = ETIMEDOUT;
+            return -1;
+        }
+    }
+    rc = modbus_receive_confirmation(ctx, rsp);
+    if (rc == -1 && errno == ETIMEDOUT)
+        errno = (wait_ms >= 0 || rsp[0] != mark) ? EMB_EPARTIAL : ETIMEDOUT;
+    else if (rc == -1 && errno == ECONNRESET) /* libmodbus's word for EOF */
+        errno = emb_eof_errno(modbus_get_socket(ctx));
+    return rc;
+}
+
+/* 0 if rsp (len bytes) answers pdu sent to slave: a normal reply (*exc = -1) or an
+ * exception response to the request's function (*exc = its code, any of 0..255:
+ * Modbus Application Protocol v1.1b3, 7); else the EMB_E* errno saying why not.
+ * count: the byte count a read reply must carry (6.1-6.4), or -1 (writes: the caller
+ * checks their echo). */
+static int emb_check(const emb_link *lk, int slave, const uint8_t *pdu, int count,
+                     const uint8_t *rsp, int len, int *exc)
+{
+    int h = lk->mbap ? EMB_MBAP : 1;
+    int fc;
+
+    *exc = -1;
+    if (len < h + 2)
+        return EMB_ECOUNT;
+    if (lk->mbap) {
+        if ((unsigned)((rsp[0] << 8) | rsp[1]) != lk->tid)
+            return EMB_ETID;
+        if (rsp[2] != 0 || rsp[3] != 0)
+            return EMB_EPROTOID;
+        if (((rsp[4] << 8) | rsp[5]) != len - 6)
+            return EMB_EMBAPLEN;
+    }
+    if (rsp[h - 1] != slave)
+        return EMB_ESLAVE;
+    fc = rsp[h];
+    if (fc == (pdu[0] | 0x80)) {
+        *exc = rsp[h + 1];
+        return 0;
+    }
+    if (fc & 0x80)
+        return EMB_EOTHEREXC;
+    if (fc != pdu[0])
+        return EMB_EFUNCTION;
+    if (count >= 0 && rsp[h + 1] != count)
+        return EMB_ECOUNT;
+    return 0;
+}
+
+/* Did what came back start with our own request?  (Bytes libmodbus did not write keep
+ * the complement that emb_exchange put there, so they never match.) */
+static int emb_looks_like_echo(const uint8_t *rsp, const uint8_t *sent, int sent_len)
+{
+    int i = 0;
+
+    while (i < sent_len && rsp[i] == sent[i])
+        i++;
+    return i >= 5 || (i == sent_len && i > 0);
+}
+
+/* One request and its checked reply (see emb_check); returns the reply ADU length
+ * with the ADU in rsp, or -1 with errno (EMB_EEXCEPTION + code for an exception). */
+static int emb_exchange(modbus_t *ctx, emb_link *lk, int slave, const uint8_t *pdu,
+                        int pdu_len, int count, uint8_t *rsp)
+{
+    uint8_t sent[EMB_MAX_ADU];
+    uint8_t next[EMB_MAX_ADU];
+    int fd = modbus_get_socket(ctx);
+    int rtu = !lk->mbap;
+    struct timespec start;
+    int sent_len = 0;
+    int len, len2, err, err2, exc, exc2, i, wait, skipped = 0;
+
+    lk->rsp_len = 0;
+    if (emb_drop_pending(lk, fd) == -1)
+        return -1;
+    if (emb_send_adu(ctx, lk, slave, pdu, pdu_len, sent, &sent_len) == -1)
+        return -1;
+    if (rtu && lk->echo && emb_skip_echo(ctx, lk, sent, sent_len) == -1)
+        return -1;
+    for (i = 0; i < sent_len; i++)
+        rsp[i] = (uint8_t)~sent[i];
+    wait = -1; /* the first byte: libmodbus waits the response timeout */
+    clock_gettime(CLOCK_MONOTONIC, &start);
+    for (;;) {
+        len = emb_receive(ctx, wait, rsp);
+        if (len <= 0) {
+            err = len == 0 ? EMB_ESLAVE : errno;
+            if (err == ETIMEDOUT && skipped)
+                err = EMB_ETID; /* only replies to other requests came */
+            if (rtu && !lk->echo && err != ETIMEDOUT &&
+                emb_looks_like_echo(rsp, sent, sent_len))
+                err = EMB_EECHOSEEN;
+            errno = err;
+            return -1;
+        }
+        err = emb_check(lk, slave, pdu, count, rsp, len, &exc);
+        if (err != EMB_ETID)
+            break;
+        /* Modbus TCP: a reply to an earlier request (its transaction id says so) is
+         * skipped and ours is awaited for the rest of the response timeout. */
+        lk->discarded += len;
+        skipped++;
+        wait = emb_timeout_ms(ctx, 0) - (int)emb_elapsed_ms(&start);
+        if (wait <= 0) {
+            errno = EMB_ETID;
+            return -1;
+        }
+    }
+    /* Another whole frame right behind this one (a DTU that held a late reply and sends
+     * it with the next one, or repeats a reply): the last answer to this request wins,
+     * so a stale reply to an earlier request is never taken for this one. */
+    if (emb_pending(fd) >= (rtu ? 5 : EMB_MBAP + 2)) {
+        len2 = emb_receive(ctx, 0, next);
+        if (len2 > 0) {
+            err2 = emb_check(lk, slave, pdu, count, next, len2, &exc2);
+            if (err2 == 0) {
+                lk->discarded += len;
+                memcpy(rsp, next, (size_t)len2);
+                len = len2;
+                err = 0;
+                exc = exc2;
+            } else {
+                lk->discarded += len2;
+            }
+        }
+    }
+    lk->rsp_len = len; /* also when rejected: the caller may show why */
+    if (err) {
+        if (rtu && !lk->echo && emb_looks_like_echo(rsp, sent, sent_len))
+            err = EMB_EECHOSEEN;
+        errno = err;
+        return -1;
+    }
+    if (exc >= 0) {
+        errno = EMB_EEXCEPTION + exc;
+        return -1;
+    }
+    return len;
+}
+
+/* Read one block with function code 1, 2, 3 or 4 (Modbus Application Protocol
+ * v1.1b3, 6.1-6.4) into dest: nb bytes (bits, one per byte) or nb registers.  rsp
+ * (at least 260 bytes) receives the reply ADU.  Returns nb, or -1 with errno. */
+int emb_read(modbus_t *ctx, emb_link *lk, int slave, int function, int addr, int nb,
+             void *dest, uint8_t *rsp)
+{
+    uint8_t pdu[5];
+    const uint8_t *data;
+    int bits = function == 1 || function == 2;
+    int max = bits ? MODBUS_MAX_READ_BITS : MODBUS_MAX_READ_REGISTERS;
+    int count = bits ? (nb + 7) / 8 : 2 * nb;
+    int i;
+
+    if (function < 1 || function > 4 || nb < 1 || nb > max || addr < 0 || addr > 0xFFFF) {
+        errno = EINVAL;
+        return -1;
+    }
+    pdu[0] = (uint8_t)function;
+    pdu[1] = (uint8_t)(addr >> 8);
+    pdu[2] = (uint8_t)(addr & 0xFF);
+    pdu[3] = (uint8_t)(nb >> 8);
+    pdu[4] = (uint8_t)(nb & 0xFF);
+    if (emb_exchange(ctx, lk, slave, pdu, 5, count, rsp) == -1)
+        return -1;
+    data = rsp + (lk->mbap ? EMB_MBAP : 1) + 2;
+    if (bits) {
+        uint8_t *out = (uint8_t *)dest;
+
+        for (i = 0; i < nb; i++) /* first bit in the low bit of the first byte (6.1) */
+            out[i] = (uint8_t)((data[i / 8] >> (i % 8)) & 1);
+    } else {
+        uint16_t *out = (uint16_t *)dest;
+
+        for (i = 0; i < nb; i++) /* big-endian registers (4.2) */
+            out[i] = (uint16_t)((data[2 * i] << 8) | data[2 * i + 1]);
+    }
+    return nb;
+}
+
+/* Send a request PDU (function code first) to slave and receive its reply ADU into
+ * rsp (at least 260 bytes): header checked (slave or MBAP), function code checked,
+ * exception responses returned as errors.  The caller checks the rest (a write's echo).
+ * Returns the ADU length, or -1 with errno. */
+int emb_transact(modbus_t *ctx, emb_link *lk, int slave, const uint8_t *pdu, int pdu_len,
+                 uint8_t *rsp)
+{
+    return emb_exchange(ctx, lk, slave, pdu, pdu_len, -1, rsp);
+}
+
+/* Send without waiting for a reply: broadcast (slave 0) requests get none
+ * (Modbus over Serial Line v1.02, 2.1).  An echo is still read back. */
+int emb_send(modbus_t *ctx, emb_link *lk, int slave, const uint8_t *pdu, int pdu_len)
+{
+    uint8_t sent[EMB_MAX_ADU];
+    int sent_len = 0;
+
+    lk->rsp_len = 0;
+    if (emb_drop_pending(lk, modbus_get_socket(ctx)) == -1)
+        return -1;
+    if (emb_send_adu(ctx, lk, slave, pdu, pdu_len, sent, &sent_len) == -1)
+        return -1;
+    if (!lk->mbap && lk->echo && emb_skip_echo(ctx, lk, sent, sent_len) == -1)
+        return -1;
+    return 0;
 }

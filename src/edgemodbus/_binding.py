@@ -91,7 +91,7 @@ FD_SETSIZE = 1024  # libmodbus 3.1.6 FD_SETs the context's fd: a larger fd abort
 _ENOBASE: int = lib.MODBUS_ENOBASE
 _EMBXGTAR = _ENOBASE + 11
 _PROTOCOL_ERRNOS = {
-    _EMBXGTAR + 2: "bad data (wrong byte count, quantity or response length)",
+    _EMBXGTAR + 2: "bad data (a byte count too large for a frame, or a wrong length)",
     _EMBXGTAR + 3: "exception response does not match the request",
     _EMBXGTAR + 4: "unknown exception code",
     _EMBXGTAR + 5: "too many data",
@@ -112,10 +112,34 @@ _CONNECTION_ERRNOS = {
 }
 
 
+# errnos of our own reply checks (csrc/emb_io.c): what each says about the reply
+_EMB_EXCEPTION: int = lib.EMB_EEXCEPTION
+_EMB_PARTIAL: int = lib.EMB_EPARTIAL
+_EMB_PROTOCOL_ERRNOS = {
+    lib.EMB_EECHO: "the bytes read back as the echo of the request (option 'echo') "
+    "differ from it; does this line echo?",
+    lib.EMB_EECHOSEEN: "the reply starts with our own request: the line echoes requests "
+    "(an RS-485 adapter without echo suppression); set the 'echo' option",
+    lib.EMB_ESLAVE: "response from the wrong slave id",
+    lib.EMB_EFUNCTION: "function code of the reply is not the request's",
+    lib.EMB_EOTHEREXC: "exception response for another function code",
+    lib.EMB_ECOUNT: "byte count does not match the request",
+    lib.EMB_ETID: "only replies with another MBAP transaction id came (skipped as stale)",
+    lib.EMB_EPROTOID: "MBAP protocol id is not 0",
+    lib.EMB_EMBAPLEN: "MBAP length does not match the frame",
+}
+
+
 def error_from_errno(err: int, what: str) -> ModbusError:
     """Map an errno left by libmodbus (or by our csrc helpers) to a typed error."""
     if err == _errno.ETIMEDOUT:
         return ModbusTimeoutError(f"{what}: no response (timeout)")
+    if err == _EMB_PARTIAL:
+        return ModbusTimeoutError(f"{what}: incomplete reply (byte timeout)")
+    if _EMB_EXCEPTION <= err <= _EMB_EXCEPTION + 255:
+        return exception_for_code(err - _EMB_EXCEPTION, what)
+    if err in _EMB_PROTOCOL_ERRNOS:
+        return ProtocolError(f"{what}: {_EMB_PROTOCOL_ERRNOS[err]}")
     if _ENOBASE < err <= _EMBXGTAR:
         return exception_for_code(err - _ENOBASE, what)
     if err == _EMBXGTAR + 1:
@@ -181,6 +205,8 @@ class Context:
         self.bits = Block(ffi.new("uint8_t[]", MAX_READ_BITS), bits=True)
         self._rsp = ffi.new("uint8_t[]", MAX_ADU_LENGTH)
         self._req = ffi.new("uint8_t[]", MAX_ADU_LENGTH)
+        self._link = ffi.new("emb_link *")  # per-line state of csrc/emb_io.c
+        self._header = 1  # bytes before the PDU in a reply: slave id, or the MBAP header
 
     # -- construction ----------------------------------------------------------------
     @classmethod
@@ -193,8 +219,8 @@ class Context:
         """A context on a connected socket: MBAP framing if ``mbap``, else raw RTU frames."""
         if fd >= FD_SETSIZE:
             raise ModbusConnectionError(
-                f"{label}: socket fd {fd} >= {FD_SETSIZE}; libmodbus 3.1.6 cannot select() "
-                "on it (it would abort the process); close unused files or raise nothing here"
+                f"{label}: socket fd {fd} >= {FD_SETSIZE}: libmodbus 3.1.6 cannot select() "
+                "on it (it would abort the process); too many files are open in this process"
             )
         if mbap:
             ptr = lib.modbus_new_tcp(b"127.0.0.1", 502)  # address unused: we own the socket
@@ -202,7 +228,30 @@ class Context:
             ptr = lib.modbus_new_rtu(b"/dev/null", 9600, b"N", 8, 1)  # settings unused
         ctx = cls(ptr, label, owns_fd=False)
         lib.modbus_set_socket(ctx._ptr, fd)
+        if mbap:
+            ctx._link.mbap = 1
+            ctx._header = 7
         return ctx
+
+    def set_echo(self, on: bool) -> None:
+        """The line echoes every request (a 2-wire RS-485 adapter without echo
+        suppression): read the request's own bytes back before each reply.  RTU only."""
+        if on and self._link.mbap:
+            raise ValueError(f"{self.label}: the echo option applies to RTU framing only")
+        self._link.echo = 1 if on else 0
+
+    def take_discarded(self) -> int:
+        """Bytes thrown away since the last call (stale input, echoes, superseded
+        frames), counted by the C transaction helpers."""
+        n = int(self._link.discarded)
+        if n:
+            self._link.discarded = 0
+        return n
+
+    def last_reply(self) -> bytes:
+        """The reply ADU of the last transaction (for frame traces and error details);
+        empty when none was received whole."""
+        return bytes(ffi.buffer(self._rsp, self._link.rsp_len))
 
     def connect(self, rs485: str = "none", rts_delay_us: int | None = None) -> None:
         """Open the serial port of an ``rtu`` context and set its RS-485 mode."""
@@ -267,43 +316,69 @@ class Context:
     def read(self, slave: int, function: int, address: int, count: int) -> Block:
         """FC01-04 into this context's buffer; returns the (reused) :class:`Block`."""
         block = self.bits if function in (1, 2) else self.registers
-        rc = lib.emb_read(self._ptr, slave, function, address, count, block._ptr)
+        rc = lib.emb_read(self._ptr, self._link, slave, function, address, count, block._ptr,
+                          self._rsp)
         if rc == -1:
-            raise error_from_errno(
-                ffi.errno, f"slave {slave} FC{function:02d} @{address}+{count}"
-            )
+            raise self._error(ffi.errno, f"slave {slave} FC{function:02d} @{address}+{count}",
+                              function, 2 * count if function > 2 else (count + 7) // 8)
         block.count = rc
         return block
 
     def transact(self, slave: int, pdu: bytes) -> bytes:
         """Send ``pdu`` (function code first) to ``slave`` and return the reply ADU.
 
-        libmodbus checks only the CRC (RTU) here; the caller checks the rest.
+        The C side checks the header (slave id, or MBAP transaction id, protocol id,
+        length and unit id) and the function code, and raises exception responses; the
+        caller checks the rest (a write's echo).
         """
-        n = len(pdu) + 1
-        self._req[0] = slave
-        ffi.memmove(self._req + 1, pdu, len(pdu))
-        rc = lib.emb_transact_raw(self._ptr, slave, self._req, n, self._rsp)
-        what = f"slave {slave} FC{pdu[0]:02d}"
+        n = len(pdu)
+        ffi.memmove(self._req, pdu, n)
+        rc = lib.emb_transact(self._ptr, self._link, slave, self._req, n, self._rsp)
         if rc == -1:
-            raise error_from_errno(ffi.errno, what)
-        if rc == 0:  # libmodbus RTU: a frame from another slave id
-            raise ProtocolError(f"{what}: response from the wrong slave id")
+            raise self._error(ffi.errno, f"slave {slave} FC{pdu[0]:02d}", pdu[0], -1)
         return bytes(ffi.buffer(self._rsp, rc))
 
     def send(self, slave: int, pdu: bytes) -> None:
         """Send without waiting for a reply (broadcast)."""
-        self._req[0] = slave
-        ffi.memmove(self._req + 1, pdu, len(pdu))
-        if lib.emb_send_raw(self._ptr, slave, self._req, len(pdu) + 1) == -1:
+        n = len(pdu)
+        ffi.memmove(self._req, pdu, n)
+        if lib.emb_send(self._ptr, self._link, slave, self._req, n) == -1:
             raise error_from_errno(ffi.errno, f"broadcast FC{pdu[0]:02d}")
 
+    def _error(self, err: int, what: str, function: int, count: int) -> ModbusError:
+        """The typed error for ``err``, with what the rejected reply held when it says
+        more than the errno (which byte count, which unit, which function code)."""
+        exc = error_from_errno(err, what)
+        rsp = self.last_reply()
+        h = self._header
+        if len(rsp) < h + 2:
+            return exc
+        detail = ""
+        if err == lib.EMB_ECOUNT:
+            detail = f"{rsp[h + 1]}, expected {count}"
+        elif err == lib.EMB_ESLAVE:
+            detail = f"{rsp[h - 1]}"
+        elif err == lib.EMB_EFUNCTION:
+            detail = f"{rsp[h]:#04x}, expected {function:#04x}"
+        elif err == lib.EMB_EOTHEREXC:
+            detail = f"{rsp[h]:#04x} code {rsp[h + 1]:#04x}"
+        elif err == lib.EMB_EPROTOID:
+            detail = f"{rsp[2] << 8 | rsp[3]:#06x}"
+        elif err == lib.EMB_EMBAPLEN:
+            detail = f"{rsp[4] << 8 | rsp[5]}, frame has {len(rsp) - 6}"
+        if detail:
+            return type(exc)(f"{exc} ({detail})")
+        return exc
 
-def discard_input(fd: int, total_s: float, quiet_s: float) -> int:
-    """Throw away input on ``fd`` for up to ``total_s``, ending after ``quiet_s`` of
-    silence once something arrived (0 takes only what is pending).  Returns the byte
-    count; raises :class:`ModbusConnectionError` if the link failed or was closed."""
-    n = lib.emb_discard_input(fd, round(total_s * 1000), max(1, round(quiet_s * 1000)))
+
+def discard_input(fd: int, total_s: float, quiet_s: float, limit_s: float | None = None) -> int:
+    """Throw away input on ``fd``: wait up to ``total_s`` for stray bytes; once bytes
+    come, go on until ``quiet_s`` of silence, but never past ``limit_s`` (default
+    ``total_s`` + 1 s).  0 for both takes only what is pending.  Returns the byte count;
+    raises :class:`ModbusConnectionError` if the link failed or was closed."""
+    limit = total_s + 1.0 if limit_s is None else limit_s
+    n = lib.emb_discard_input(fd, round(total_s * 1000), max(1, round(quiet_s * 1000)),
+                              round(limit * 1000))
     if n == -1:
         raise error_from_errno(ffi.errno, f"fd {fd}: discarding input")
     return int(n)

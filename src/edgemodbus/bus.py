@@ -43,6 +43,9 @@ log = logging.getLogger("edgemodbus.bus")
 T = TypeVar("T")
 
 TRANSPORTS = ("rtu", "rtu-over-tcp", "tcp")
+# Silence that ends the discarding of a stray frame, at least: a slave or DTU that
+# trickles a late reply slower than the byte timeout must still be drained whole.
+_QUIET_FLOOR = 0.05
 _MBAP_LEN = 7  # transaction id, protocol id, length, unit id (Modbus Messaging on TCP/IP 3.1.3)
 
 
@@ -56,6 +59,7 @@ class SerialPort:
     data_bits: int = 8
     stop_bits: int = 1
     rs485: str = "none"  # none | kernel (TIOCSRS485) | rts-up | rts-down
+    echo: bool = False  # the adapter echoes every request (2-wire, no echo suppression)
 
     @property
     def key(self) -> tuple[str, ...]:
@@ -76,8 +80,13 @@ class SerialPort:
     def describe(self) -> str:
         return (
             f"{self.port} {self.baudrate} {self.data_bits}{self.parity}{self.stop_bits}"
-            f" rs485={self.rs485}"
+            f" rs485={self.rs485}" + (" echo" if self.echo else "")
         )
+
+    @property
+    def max_frame_time(self) -> float:
+        """Seconds to transmit the largest RTU frame (256 bytes, Serial Line 2.5.1)."""
+        return 256 * self.char_time
 
 
 @dataclass(frozen=True)
@@ -87,12 +96,16 @@ class TcpEndpoint:
     host: str
     port: int
     transport: str = "rtu-over-tcp"
+    echo: bool = False  # RTU over TCP: the serial side echoes every request
 
     def __post_init__(self) -> None:
         if self.transport not in ("rtu-over-tcp", "tcp"):
             raise ValueError(
                 f"transport {self.transport!r}: a TCP endpoint uses 'rtu-over-tcp' or 'tcp'"
             )
+        if self.echo and self.transport == "tcp":
+            raise ValueError("echo: a Modbus TCP (MBAP) link has no request echo; "
+                             "the option is for RTU lines")
         if not 1 <= self.port <= 65535:
             raise ValueError(f"tcpPort {self.port}: must be 1..65535")
 
@@ -101,7 +114,11 @@ class TcpEndpoint:
         return (self.transport, self.host, str(self.port))
 
     def describe(self) -> str:
-        return f"{self.transport}://{self.host}:{self.port}"
+        return f"{self.transport}://{self.host}:{self.port}" + (" echo" if self.echo else "")
+
+    @property
+    def max_frame_time(self) -> float:
+        return 0.0
 
 
 Endpoint = SerialPort | TcpEndpoint
@@ -115,7 +132,8 @@ class LineTiming:
     byte_timeout: float = 0.2
     settle_timeout: float | None = None  # None: the response timeout; 0 disables settling
     connect_timeout: float = 3.0
-    reconnect_interval: float = 5.0
+    reconnect_interval: float = 5.0  # first wait after a lost link or failed connect
+    max_backoff: float = 60.0  # the wait doubles per failed connect up to this
     request_interval: float = 0.0  # extra silence between requests, for slow devices
     turnaround_delay: float = 0.1  # after a broadcast, before the next request
 
@@ -137,6 +155,7 @@ class LineStats:
     link_errors: int = 0
     connects: int = 0
     reconnects: int = 0
+    connect_failures: int = 0
     discarded_bytes: int = 0
     rtt_total: float = 0.0
 
@@ -151,6 +170,7 @@ class LineStats:
             "linkErrors": self.link_errors,
             "connects": self.connects,
             "reconnects": self.reconnects,
+            "connectFailures": self.connect_failures,
             "discardedBytes": self.discarded_bytes,
             "avgRoundTrip": self.rtt_total / self.responses if self.responses else 0.0,
         }
@@ -173,11 +193,16 @@ class Link:
         self._fd = ctx.fd
         self._mbap = isinstance(endpoint, TcpEndpoint) and endpoint.transport == "tcp"
         self._gap = endpoint.frame_gap if isinstance(endpoint, SerialPort) else 0.0
-        self._quiet = max(timing.byte_timeout, 2 * self._gap)
+        self._quiet = max(timing.byte_timeout, 2 * self._gap, _QUIET_FLOOR)
+        # a stray frame still arriving when the settle time runs out is drained whole,
+        # but a line that never falls quiet does not hold the worker for ever
+        self._settle_limit = timing.settle + max(timing.settle, 0.5) + endpoint.max_frame_time
+        self._drain_limit = self._quiet + 0.5 + endpoint.max_frame_time
         self._pace = self._gap + timing.request_interval
         self._ready_at = 0.0
         self._timeouts = (-1.0, -1.0)
         self.is_open = True
+        self.close_reason: str | None = None  # the link error that closed it
         self._trace = log.isEnabledFor(logging.DEBUG)
 
     # -- bookkeeping -----------------------------------------------------------------
@@ -213,14 +238,17 @@ class Link:
         stats = self.stats
         if isinstance(exc, ModbusConnectionError):
             stats.link_errors += 1
+            self.close_reason = str(exc)
             self.close()
             return exc
         try:
             if isinstance(exc, ModbusTimeoutError):
+                # RTU has no transaction id: a reply that comes late must not be taken
+                # for the answer to the next request, so wait it out (settle) first
                 stats.timeouts += 1
                 if self.timing.settle > 0:
                     stats.discarded_bytes += _binding.discard_input(
-                        self._fd, self.timing.settle, self._quiet
+                        self._fd, self.timing.settle, self._quiet, self._settle_limit
                     )
             else:
                 if isinstance(exc, ProtocolError):
@@ -231,7 +259,7 @@ class Link:
                         stats.protocol_errors += 1
                     # the rest of a bad frame may still be on its way
                     stats.discarded_bytes += _binding.discard_input(
-                        self._fd, self._quiet, self._quiet
+                        self._fd, self._quiet, self._quiet, self._drain_limit
                     )
                 else:  # an exception response is a complete, valid frame
                     stats.responses += 1
@@ -239,6 +267,7 @@ class Link:
                     stats.exceptions[code] = stats.exceptions.get(code, 0) + 1
         except ModbusConnectionError as link_exc:
             stats.link_errors += 1
+            self.close_reason = str(link_exc)
             self.close()
             return link_exc
         return exc
@@ -259,11 +288,12 @@ class Link:
         except ModbusError as exc:
             raise self._fail(exc) from None
         finally:
+            self.stats.discarded_bytes += self._ctx.take_discarded()
+            if self._trace:
+                self._log_reply()
             self._done()
         self.stats.responses += 1
         self.stats.rtt_total += time.monotonic() - start
-        if self._trace:
-            self._log_frame("RX", slave, _read_reply_pdu(area, block.to_list()))
         return block
 
     # -- writes (Modbus Application Protocol v1.1b3, 6.5, 6.6, 6.11, 6.12, 6.16) ------
@@ -305,26 +335,27 @@ class Link:
             except ModbusError as exc:
                 raise self._fail(exc) from None
             finally:
+                self.stats.discarded_bytes += self._ctx.take_discarded()
                 self._done(self.timing.turnaround_delay)
             return
         start = time.monotonic()
         try:
             adu = self._ctx.transact(slave, pdu)
-            if self._trace:
-                log.debug("%s RX %s", self.endpoint.describe(), adu.hex(" ").upper())
             self._check_write_reply(slave, pdu, adu)
         except ModbusError as exc:
             raise self._fail(exc) from None
         finally:
+            self.stats.discarded_bytes += self._ctx.take_discarded()
+            if self._trace:
+                self._log_reply()
             self._done()
         self.stats.responses += 1
         self.stats.rtt_total += time.monotonic() - start
 
     def _log_frame(self, direction: str, slave: int, pdu: bytes) -> None:
         """Frame trace at DEBUG: the bytes on the wire, e.g. "TX 01 03 00 00 00 0A C5 CD".
-        libmodbus does not hand frames out, so reads are rebuilt from the request and the
-        decoded reply (identical to the wire for every valid frame); MBAP headers, whose
-        transaction id libmodbus keeps to itself, are shown as the unit id only."""
+        MBAP headers of requests, whose transaction id the C side picks, are shown as
+        the unit id only."""
         frame = bytes([slave]) + pdu
         if self._mbap:
             text = f"[MBAP unit {slave}] {pdu.hex(' ').upper()}"
@@ -332,10 +363,16 @@ class Link:
             text = (frame + crc16(frame)).hex(" ").upper()
         log.debug("%s %s %s", self.endpoint.describe(), direction, text)
 
+    def _log_reply(self) -> None:
+        reply = self._ctx.last_reply()
+        if reply:
+            log.debug("%s RX %s", self.endpoint.describe(), reply.hex(" ").upper())
+
     def _check_write_reply(self, slave: int, pdu: bytes, adu: bytes) -> None:
         """Check a write's reply: unit, function, and the echo that libmodbus 3.1.6 does
         not check (address/value for FC05/06, address/quantity for FC15/16, the whole
-        request for FC22)."""
+        request for FC22).  The C side has checked the header and function code already;
+        this check stands on its own (it is what the reply fuzzer exercises)."""
         what = f"slave {slave} FC{pdu[0]:02d} @{struct.unpack_from('>H', pdu, 1)[0]}"
         if self._mbap:
             if len(adu) < _MBAP_LEN + 2:
@@ -385,13 +422,6 @@ def _pack_bits(values: Sequence[int | bool]) -> bytes:
         if bit:
             packed[i // 8] |= 1 << (i % 8)
     return bytes(packed)
-
-
-def _read_reply_pdu(area: Area, values: list[int]) -> bytes:
-    if area.is_bit:
-        packed = _pack_bits(values)
-        return bytes([area.read_function, len(packed)]) + packed
-    return struct.pack(f">BB{len(values)}H", area.read_function, 2 * len(values), *values)
 
 
 class Poller(Protocol):
@@ -522,26 +552,34 @@ class Bus:
     # -- the worker ------------------------------------------------------------------
     def _run(self) -> None:
         next_connect = 0.0
+        failures = 0  # failed connects in a row
         try:
             while not self._stopping.is_set():
                 link = self._link
                 if link is None or not link.is_open:
                     if link is not None:
                         self._link_lost(link)
-                        next_connect = time.monotonic() + self._reconnect_delay()
+                        next_connect = time.monotonic() + self._reconnect_delay(0)
                     if time.monotonic() >= next_connect:
                         if self._connect():
+                            failures = 0
                             continue
-                        next_connect = time.monotonic() + self._reconnect_delay()
+                        failures += 1
+                        next_connect = time.monotonic() + self._reconnect_delay(failures)
                     self._serve_queue_while_down(next_connect)
                     continue
                 self._serve(link)
         finally:
             self._shutdown()
 
-    def _reconnect_delay(self) -> float:
-        base = self.timing.reconnect_interval
-        return base * random.uniform(0.8, 1.2)  # jitter: lines do not reconnect in step
+    def _reconnect_delay(self, failures: int) -> float:
+        """Wait before the next connect: reconnectInterval, doubled per failed connect
+        in a row up to maxBackoff, with +-20 % jitter so that lines do not reconnect
+        in step."""
+        timing = self.timing
+        base = timing.reconnect_interval * 2.0 ** max(0, min(failures - 1, 30))
+        base = max(timing.reconnect_interval, min(base, timing.max_backoff))
+        return base * random.uniform(0.8, 1.2)
 
     def _serve(self, link: Link) -> None:
         """One step while the link is up: a queued request, else the most overdue poller."""
@@ -603,10 +641,18 @@ class Bus:
     def _connect(self) -> bool:
         first = self.stats.connects == 0 and self.stats.reconnects == 0
         try:
-            link = self._open()
+            try:
+                link = self._open()
+            except ModbusError:
+                raise
+            except OSError as os_exc:  # e.g. EMFILE: no fd left for a socket
+                raise ModbusConnectionError(
+                    f"{self.endpoint.describe()}: cannot open the line: {os_exc}"
+                ) from None
         except ModbusError as exc:
             self.last_link_error = str(exc)
-            log.warning("%s: connect failed: %s", self.endpoint.describe(), exc)
+            self.stats.connect_failures += 1
+            log.warning("connect failed: %s", exc)  # exc names the line
             self._notify(False, str(exc))
             return False
         self._link = link
@@ -640,6 +686,7 @@ class Bus:
                 raise
         try:
             ctx.set_timeouts(timing.response_timeout, timing.byte_timeout)
+            ctx.set_echo(ep.echo)
         except ValueError:
             ctx.close()
             if sock is not None:
@@ -652,8 +699,10 @@ class Bus:
     def _link_lost(self, link: Link) -> None:
         self._link = None
         self.link_up = False
+        if link.close_reason:
+            self.last_link_error = link.close_reason
         reason = self.last_link_error or "link closed"
-        log.warning("%s: link down", self.endpoint.describe())
+        log.warning("%s: link down: %s", self.endpoint.describe(), reason)
         self._notify(False, reason)
 
     def _notify(self, up: bool, reason: str | None) -> None:

@@ -501,7 +501,17 @@ class Device:
     # -- writes --------------------------------------------------------------------------
     def submit_writes(self, ops: list[WriteOp]) -> Future[tuple[bool, str | None]]:
         assert self.bus is not None
-        return self.bus.submit(lambda link: self._run_writes(link, ops))
+        future = self.bus.submit(lambda link: self._run_writes(link, ops))
+
+        def count_unsent(done: Future[tuple[bool, str | None]]) -> None:
+            # the bus failed the job without running it (link down, bus stopped): the
+            # writes were not sent, and still count as failed writes
+            if done.cancelled() or done.exception() is not None:
+                self.counters.writes += len(ops)
+                self.counters.write_errors += len(ops)
+
+        future.add_done_callback(count_unsent)
+        return future
 
     def _run_writes(self, link: Link, ops: list[WriteOp]) -> tuple[bool, str | None]:
         if not self.active:

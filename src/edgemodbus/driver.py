@@ -87,6 +87,7 @@ class DriverModbusRtu:
             settle_timeout=None if params.settle_timeout is None else params.settle_timeout / 1000,
             connect_timeout=params.connect_timeout / 1000,
             reconnect_interval=params.reconnect_interval / 1000,
+            max_backoff=params.max_backoff / 1000,
             request_interval=params.request_interval / 1000,
         )
         bus = self.registry.acquire(endpoint, timing)
@@ -247,8 +248,9 @@ def _endpoint(params: DriverModbusRtuParameter) -> SerialPort | TcpEndpoint:
             data_bits=params.data_bits,
             stop_bits=params.stop_bits,
             rs485=params.rs485,
+            echo=params.echo,
         )
-    return TcpEndpoint(params.tcp_host, params.tcp_port, params.transport)
+    return TcpEndpoint(params.tcp_host, params.tcp_port, params.transport, echo=params.echo)
 
 
 def _parity_letter(parity: Any) -> str:

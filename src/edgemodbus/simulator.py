@@ -390,6 +390,8 @@ class Faults:
     """Execute the request but do not send every Nth reply."""
     delay: float = 0.0
     """Seconds before a reply goes out (may exceed the master's timeout: a late reply)."""
+    delay_every: int = 0
+    """Apply ``delay`` to every Nth reply only (0: to every reply)."""
     corrupt_crc_every: int = 0
     """Flip a bit of the CRC of every Nth reply."""
     corrupt_data_every: int = 0
@@ -399,12 +401,32 @@ class Faults:
     for a single one, too many), with a consistent byte count and a valid CRC."""
     answer_as: int | None = None
     """Reply with this slave address instead of our own (valid CRC)."""
+    patch: dict[int, int] = dataclasses.field(default_factory=dict)
+    """{index: byte} written into every ``patch_every``-th reply frame before its CRC is
+    computed (valid CRC): 0 is the slave address, 1 the function code, 2 a read reply's
+    byte count.  Indices past the frame are ignored.  Assign a new dict."""
+    patch_every: int = 0
+    """See ``patch`` (0: off)."""
+    raw_reply: bytes = b""
+    """Bytes sent verbatim, instead of the reply, to every ``raw_reply_every``-th
+    request (a crafted or oversized frame)."""
+    raw_reply_every: int = 0
+    """See ``raw_reply`` (0: off)."""
     exception_ranges: list[ExceptionRange] = dataclasses.field(default_factory=list)
     """Requests touching [start, end) of an area get that exception code. Assign a new
     list rather than mutating this one from another thread."""
     close_every: int = 0
     """Close the TCP connection instead of answering every Nth request (on a pty the
     request is just not answered)."""
+    cut_every: int = 0
+    """Send the first half of every Nth reply, then close the TCP connection: with a
+    reset (RST) if ``cut_with_reset``, else an orderly close (FIN).  On a pty only the
+    half frame goes out."""
+    cut_with_reset: bool = True
+    """See ``cut_every``."""
+    hold_reply_every: int = 0
+    """Hold back every Nth reply and send it in one write with the next one (a DTU that
+    buffers a late reply: two frames in one TCP segment)."""
     trailing_garbage: bytes = b""
     """Bytes sent right after each good frame."""
     noise_before: bytes = b""
@@ -441,8 +463,14 @@ class Faults:
 
 # --- slaves ---------------------------------------------------------------------------
 
-# (seconds from now, bytes to send, or None: close the connection)
-_Action = tuple[float, bytes | None]
+class _Reset:
+    """Action: reset the TCP connection (RST instead of FIN)."""
+
+
+_RESET = _Reset()
+
+# (seconds from now, bytes to send, None: close the connection, or _RESET)
+_Action = tuple[float, "bytes | _Reset | None"]
 
 
 class _Exc(Exception):
@@ -473,6 +501,7 @@ class Slave:
         self._replies = 0
         self._exceptions = 0
         self._broadcasts = 0
+        self._held = b""  # a reply held back by hold_reply_every
         self._faults_injected: collections.Counter[str] = collections.Counter()
 
     def __repr__(self) -> str:
@@ -617,6 +646,10 @@ class Slave:
                 f.random_reply_count -= 1
                 self._fault("random_reply_count")
                 frame = rng.randbytes(rng.randint(3, 16))
+            elif self._every("raw_reply_every", f.raw_reply_every if f.raw_reply else 0):
+                self._execute(pdu)
+                self._fault("raw_reply_every")
+                frame = bytes(f.raw_reply)
             else:
                 rpdu = self._execute(pdu)
                 if f.exception_for_other_function:
@@ -635,7 +668,13 @@ class Slave:
                 if f.answer_as is not None:
                     self._fault("answer_as")
                     address = f.answer_as
-                buf = bytearray(_frame(address, rpdu))
+                body = bytearray([address & 0xFF]) + rpdu
+                if self._every("patch_every", f.patch_every if f.patch else 0):
+                    self._fault("patch_every")
+                    for index, value in dict(f.patch).items():
+                        if 0 <= index < len(body):
+                            body[index] = value & 0xFF
+                buf = bytearray(_frame(body[0], bytes(body[1:])))
                 # Evaluate every knob so each one's count advances on every reply.
                 drop = self._every("drop_every", f.drop_every)
                 bad_data = self._every("corrupt_data_every", f.corrupt_data_every)
@@ -660,9 +699,22 @@ class Slave:
             if f.trailing_garbage:
                 self._fault("trailing_garbage")
                 frame = frame + f.trailing_garbage
+            if self._every("hold_reply_every", f.hold_reply_every):
+                self._fault("hold_reply_every")
+                self._held += frame
+                return actions
+            if self._held:
+                frame, self._held = self._held + frame, b""
             delay = max(0.0, f.delay)
-            if delay > 0:
+            if delay > 0 and (f.delay_every <= 0 or self._every("delay_every", f.delay_every)):
                 self._fault("delay")
+            else:
+                delay = 0.0
+            if self._every("cut_every", f.cut_every):
+                self._fault("cut_every")
+                half = frame[: max(1, len(frame) // 2)]
+                end: list[_Action] = [(delay, _RESET if f.cut_with_reset else None)]
+                return actions + [(delay, half)] + (end if can_close else [])
             if f.byte_delay > 0:
                 self._fault("byte_delay")
             elif f.split_reply > 1:
@@ -827,6 +879,8 @@ class _Line:
         self.sock = sock
         self.fds = fds  # pty (master, slave); the slave end is held open so that the
         # master never sees a hangup (EIO) between two clients
+        self.path = ""  # pty: the slave side's path
+        self.link = ""  # pty: a symlink to it made by serve_pty(link=...)
         self.rx = bytearray()
         self.out = bytearray()
         self.last_rx = 0.0
@@ -865,6 +919,10 @@ class _Line:
             for fd in self.fds:
                 with contextlib.suppress(OSError):
                     os.close(fd)
+        if self.link:
+            with contextlib.suppress(OSError):
+                if os.readlink(self.link) == self.path:
+                    os.unlink(self.link)
 
 
 class Simulator:
@@ -1004,10 +1062,18 @@ class Simulator:
         self.tcp_ports.append(bound)
         return bound
 
-    def serve_pty(self, *, baudrate: int = 9600, silence: float | None = None) -> str:
+    def serve_pty(
+        self,
+        *,
+        baudrate: int = 9600,
+        silence: float | None = None,
+        link: str | os.PathLike[str] | None = None,
+    ) -> str:
         """Create a pty in raw mode and serve its master side; returns the path of the
         slave side, for a master to open as a serial port. The frame-ending silence is
-        t3.5 at ``baudrate`` (11-bit characters, at least 1.75 ms: Serial Line 2.5.1.1)."""
+        t3.5 at ``baudrate`` (11-bit characters, at least 1.75 ms: Serial Line 2.5.1.1).
+        With ``link``, a symlink of that name points to it (replacing an old one), so a
+        master keeps one port name across :meth:`close_pty` and a new ``serve_pty``."""
         self.start()
         master, slave = os.openpty()
         line = _Line("pty", 0.0, fds=(master, slave))
@@ -1015,6 +1081,12 @@ class Simulator:
             tty.setraw(slave)  # no echo, no line discipline: bytes pass through untouched
             os.set_blocking(master, False)
             path = os.ttyname(slave)
+            line.path = path
+            if link is not None:
+                line.link = os.fspath(link)
+                with contextlib.suppress(FileNotFoundError):
+                    os.unlink(line.link)
+                os.symlink(path, line.link)
         except BaseException:
             line.close()
             raise
@@ -1024,6 +1096,25 @@ class Simulator:
         self._call(lambda: self._register_line(line))
         self.pty_paths.append(path)
         return path
+
+    def close_pty(self, path: str | os.PathLike[str]) -> None:
+        """The adapter disappears: close a pty served by :meth:`serve_pty` (``path`` is
+        its slave side or its link), so that a master holding it open gets EIO, and
+        remove the link."""
+        wanted = os.fspath(path)
+        found: list[_Line] = []
+
+        def drop() -> None:
+            for line in list(self._lines):
+                if line.fds is not None and wanted in (line.path, line.link):
+                    self._close_line(line)
+                    found.append(line)
+
+        self._call(drop)
+        if not found:
+            raise KeyError(f"no pty {wanted!r} is served")
+        with contextlib.suppress(ValueError):
+            self.pty_paths.remove(found[0].path)
 
     def disconnect_clients(self) -> int:
         """Close every TCP client connection (the listeners stay): a link break.
@@ -1252,10 +1343,18 @@ class Simulator:
             else:
                 self._at(now + after, functools.partial(self._act, line, data))
 
-    def _act(self, line: _Line, data: bytes | None) -> None:
+    def _act(self, line: _Line, data: bytes | _Reset | None) -> None:
         if line.closed:
             return
         if data is None:
+            self._close_line(line)
+            return
+        if isinstance(data, _Reset):
+            if line.sock is not None:  # linger 0: close() sends RST, not FIN
+                with contextlib.suppress(OSError):
+                    line.sock.setsockopt(
+                        socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0)
+                    )
             self._close_line(line)
             return
         if line.out:
