@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import operator
 import queue
 import random
 import socket
@@ -278,22 +279,25 @@ class Link:
         context's buffer: use it before the next request."""
         if not self.is_open:
             raise ModbusConnectionError(f"{self.endpoint.describe()}: link is down")
-        self._wait_turn()
-        self.stats.requests += 1
+        if self._ready_at:
+            self._wait_turn()
+        stats = self.stats
+        stats.requests += 1
         if self._trace:
-            self._log_frame("TX", slave, struct.pack(">BHH", area.read_function, address, count))
+            self._log_frame("TX", slave, struct.pack(">BHH", _READ_FC[area], address, count))
         start = time.monotonic()
         try:
-            block = self._ctx.read(slave, area.read_function, address, count)
+            block = self._ctx.read(slave, _READ_FC[area], address, count)
         except ModbusError as exc:
             raise self._fail(exc) from None
         finally:
-            self.stats.discarded_bytes += self._ctx.take_discarded()
+            stats.discarded_bytes += self._ctx.take_discarded()
             if self._trace:
                 self._log_reply()
-            self._done()
-        self.stats.responses += 1
-        self.stats.rtt_total += time.monotonic() - start
+            if self._pace:
+                self._done()
+        stats.responses += 1
+        stats.rtt_total += time.monotonic() - start
         return block
 
     # -- writes (Modbus Application Protocol v1.1b3, 6.5, 6.6, 6.11, 6.12, 6.16) ------
@@ -424,12 +428,15 @@ def _pack_bits(values: Sequence[int | bool]) -> bytes:
     return bytes(packed)
 
 
+_DUE = operator.attrgetter("due")
+_READ_FC = {area: area.read_function for area in Area}  # a dict beats the enum property
+
+
 class Poller(Protocol):
     """Something the bus worker calls when due: the driver's device polling."""
 
-    def next_due(self) -> float:
-        """``time.monotonic()`` of the next step."""
-        ...
+    due: float
+    """``time.monotonic()`` of the next step (read by the worker on every step)."""
 
     def poll_step(self, link: Link) -> None:
         """Do one request (one block read) on the worker thread."""
@@ -583,19 +590,15 @@ class Bus:
 
     def _serve(self, link: Link) -> None:
         """One step while the link is up: a queued request, else the most overdue poller."""
-        try:
-            item = self._queue.get_nowait()
-        except queue.Empty:
-            item = None
-        if item is not None:
-            self._handle(item, link)
+        if not self._queue.empty():
+            self._handle(self._queue.get_nowait(), link)
             return
         pollers = self._pollers
         if not pollers:
             self._handle(self._queue.get(), link)
             return
-        due, poller = min(((p.next_due(), p) for p in pollers), key=lambda x: x[0])
-        wait = due - time.monotonic()
+        poller = min(pollers, key=_DUE)
+        wait = poller.due - time.monotonic()
         if wait > 0:
             try:
                 item = self._queue.get(timeout=wait)

@@ -68,7 +68,6 @@ class Counters:
     last_cycle_time: float = 0.0
     total_cycle_time: float = 0.0
     max_cycle_time: float = 0.0
-    round_trip_total: float = 0.0
     callback_errors: int = 0
     callback_time: float = 0.0
     values_changed: int = 0
@@ -91,7 +90,6 @@ class Counters:
             "lastCycleTime": self.last_cycle_time,
             "avgCycleTime": self.total_cycle_time / self.cycles if self.cycles else 0.0,
             "maxCycleTime": self.max_cycle_time,
-            "avgRoundTrip": self.round_trip_total / self.responses if self.responses else 0.0,
             "callbackErrors": self.callback_errors,
             "callbackTime": self.callback_time,
             "valuesChanged": self.values_changed,
@@ -285,9 +283,6 @@ class Device:
         return self.bus.submit(swap)
 
     # -- the Poller protocol -----------------------------------------------------------
-    def next_due(self) -> float:
-        return self.due
-
     def link_changed(self, up: bool, reason: str | None) -> None:
         if not self.active:
             return
@@ -301,40 +296,81 @@ class Device:
         self._flush_batch()
 
     def poll_step(self, link: Link) -> None:
+        """Read the next block of this cycle.  The straight path (a good answer) is kept
+        short: it runs once per block for every device of a gateway."""
         if not self.active:
             return
-        if self.index == 0:
+        index = self.index
+        if index == 0:
             self.cycle_start = time.monotonic()
         slots = self.slots
         if not slots:
             self._end_cycle(failed=False)
             return
-        slot = slots[self.index]
+        slot = slots[index]
+        block = slot.block
         link.set_response_timeout(self.timeout)
-        error = self._read(link, slot)
-        if error is None:
-            if self.status is not DeviceDriverStatus.RUNNING:
-                self._back_online()
-            self.index += 1
-        elif isinstance(error, ModbusConnectionError):
-            self.index = 0  # the bus reports the link as down and reconnects
+        self.counters.requests += 1
+        try:
+            data = link.read(self.slave, block.area, block.start, block.count)
+        except ModbusError as exc:
+            self._read_failed(link, slot, exc)
             return
+        self._good_read(slot, data)
+
+    def _good_read(self, slot: _Slot, data: Block) -> None:
+        self.counters.responses += 1
+        self._apply(slot, data)
+        if self.status is not DeviceDriverStatus.RUNNING:
+            self._back_online()
+        self.index += 1
+        if self.index >= len(self.slots):
+            self._end_cycle(failed=False)
+
+    def _read_failed(self, link: Link, slot: _Slot, error: ModbusError) -> None:
+        """The slow path: retries (timeouts and CRC errors only), then fault handling."""
+        block = slot.block
+        counters = self.counters
+        retries = 0 if self.offline else self.retries
+        while True:
+            if isinstance(error, CrcError):
+                counters.crc_errors += 1
+            elif isinstance(error, ModbusTimeoutError):
+                counters.timeouts += 1
+            elif isinstance(error, ModbusExceptionResponse):
+                counters.exceptions[error.code] = counters.exceptions.get(error.code, 0) + 1
+            elif isinstance(error, ProtocolError):
+                counters.protocol_errors += 1
+            retryable = isinstance(error, (ModbusTimeoutError, CrcError))
+            if not (retryable and retries > 0 and link.is_open):
+                break
+            retries -= 1
+            counters.retries += 1
+            counters.requests += 1
+            try:
+                data = link.read(self.slave, block.area, block.start, block.count)
+            except ModbusError as exc:
+                error = exc
+                continue
+            self._good_read(slot, data)
+            return
+        slots = self.slots
+        if isinstance(error, ModbusConnectionError):
+            self.index = 0  # the bus reports the link as down and reconnects
         elif isinstance(error, ModbusTimeoutError):
             reason = f"device not responding: {error}"
-            self.counters.skipped_blocks += len(slots) - self.index - 1
+            counters.skipped_blocks += len(slots) - self.index - 1
             for rest in slots[self.index:]:
                 self._invalidate(rest, reason)
             self._end_cycle(failed=True)
-            return
-        elif isinstance(error, IllegalDataAddress) and len(slot.block.pieces) > 1:
-            halves = bisect_block(slot.block)
-            self.slots[self.index:self.index + 1] = [self._make_slot(b) for b in halves]
+        elif isinstance(error, IllegalDataAddress) and len(block.pieces) > 1:
+            halves = bisect_block(block)
+            slots[self.index:self.index + 1] = [self._make_slot(b) for b in halves]
             self.log.info(
                 "%s: exception 02 on %s@%d+%d: split into %s", self.code,
-                slot.block.area.short_name, slot.block.start, slot.block.count,
+                block.area.short_name, block.start, block.count,
                 ", ".join(f"@{b.start}+{b.count}" for b in halves),
-            )
-            return  # read the halves next, within this cycle
+            )  # the halves are read next, within this cycle
         else:
             if self.status is not DeviceDriverStatus.RUNNING and not isinstance(
                 error, ProtocolError
@@ -342,46 +378,19 @@ class Device:
                 self._back_online()  # an exception response: the slave is there
             self._invalidate(slot, str(error))
             self.index += 1
-        if self.index >= len(self.slots):
-            self._end_cycle(failed=False)
-
-    def _read(self, link: Link, slot: _Slot) -> ModbusError | None:
-        """Read one block (with retries for timeouts and CRC errors) and apply it."""
-        block = slot.block
-        counters = self.counters
-        attempts = 1 if self.offline else 1 + self.retries
-        for attempt in range(attempts):
-            counters.requests += 1
-            started = time.monotonic()
-            try:
-                data = link.read(self.slave, block.area, block.start, block.count)
-            except (ModbusTimeoutError, CrcError) as exc:
-                if isinstance(exc, CrcError):
-                    counters.crc_errors += 1
-                else:
-                    counters.timeouts += 1
-                if attempt + 1 < attempts and link.is_open:
-                    counters.retries += 1
-                    continue
-                return exc
-            except ModbusError as exc:
-                if isinstance(exc, ModbusExceptionResponse):
-                    counters.exceptions[exc.code] = counters.exceptions.get(exc.code, 0) + 1
-                elif isinstance(exc, ProtocolError):
-                    counters.protocol_errors += 1
-                return exc
-            counters.responses += 1
-            counters.round_trip_total += time.monotonic() - started
-            self._apply(slot, data)
-            return None
-        raise AssertionError("unreachable")  # pragma: no cover
+            if self.index >= len(slots):
+                self._end_cycle(failed=False)
 
     def _apply(self, slot: _Slot, data: Block) -> None:
-        now = datetime.now(timezone.utc)
+        reported: list[DeviceAddressItem] = []
+        now: datetime | None = None
         if slot.decoder is not None:
-            whole = slot.whole
-            for index, value, error in slot.decoder.decode(data, self.report_all):
-                self._set(whole[index], value, error, now)
+            changes = slot.decoder.decode(data, self.report_all)
+            if changes:
+                now = datetime.now(timezone.utc)
+                whole = slot.whole
+                for index, value, error in changes:
+                    reported.append(_set_item(whole[index].item, value, error, now))
         if slot.partial:
             values = data.to_list()
             for piece, asm in slot.partial:
@@ -394,50 +403,44 @@ class Device:
                     asm.filled = 0
                     block = Block.from_values(asm.registers, bits=False)
                     for _, value, error in asm.decoder.decode(block, self.report_all):
-                        self._set(asm.state, value, error, now)
+                        now = now or datetime.now(timezone.utc)
+                        reported.append(_set_item(asm.state.item, value, error, now))
+        if reported:
+            self.counters.values_changed += len(reported)
+            self._report(reported)
 
     # -- item state ----------------------------------------------------------------------
-    def _set(self, state: ItemState, value: Any, error: str | None, now: datetime) -> None:
-        item = state.item
-        if error is None:
-            item.value = value
-            item.status = ItemStatus.OK
-            item.error_reason = None
-        else:
-            item.status = ItemStatus.INVALID
-            item.error_reason = error
-        item.update_ts = now
-        self.counters.values_changed += 1
-        self._report(item)
-
     def _invalidate(self, slot: _Slot, reason: str) -> None:
         now = datetime.now(timezone.utc)
+        reported = []
         for state in slot.states():
             item = state.item
             changed = item.status is not ItemStatus.INVALID
-            item.status = ItemStatus.INVALID
-            item.error_reason = reason
-            item.update_ts = now
+            _set_item(item, None, reason, now)
             if changed or self.report_all:
-                self._report(item)
+                reported.append(item)
+        if reported:
+            self._report(reported)
         if slot.decoder is not None:
             slot.decoder.reset()  # the next good read reports every item again
         for _, asm in slot.partial:
             asm.decoder.reset()
             asm.filled = 0
 
-    def _report(self, item: DeviceAddressItem) -> None:
-        self.batch.append(item)
+    def _report(self, items: list[DeviceAddressItem]) -> None:
+        """Add items to this cycle's batch and call the per-item callback for each."""
+        self.batch += items
         callback = self.driver.address_updated_callback
         if callback is None:
             return
         started = time.perf_counter()
-        try:
-            callback(item)
-        except Exception:
-            self.counters.callback_errors += 1
-            self.log.exception("%s: address_updated_callback failed for item %r",
-                               self.code, item.name)
+        for item in items:
+            try:
+                callback(item)
+            except Exception:
+                self.counters.callback_errors += 1
+                self.log.exception("%s: address_updated_callback failed for item %r",
+                                   self.code, item.name)
         self.counters.callback_time += time.perf_counter() - started
 
     def _flush_batch(self) -> None:
@@ -530,10 +533,15 @@ class Device:
                     errors.extend(f"{o.names}: not sent (link down)" for o in ops[i + 1:])
                     break
                 continue
-            for state, value in op.updates:
-                item = state.item
-                if self.report_all or item.value != value or item.status is not ItemStatus.OK:
-                    self._set(state, value, None, now)
+            confirmed = [
+                _set_item(state.item, value, None, now)
+                for state, value in op.updates
+                if self.report_all or state.item.value != value
+                or state.item.status is not ItemStatus.OK
+            ]
+            if confirmed:
+                self.counters.values_changed += len(confirmed)
+                self._report(confirmed)
         return (False, "; ".join(errors)) if errors else (True, None)
 
     def _execute(self, link: Link, op: WriteOp) -> None:
@@ -660,11 +668,35 @@ def _merge(ops: list[WriteOp]) -> list[WriteOp]:
     return merged
 
 
+_OK = ItemStatus.OK
+_INVALID = ItemStatus.INVALID
+_RUNTIME_FIELDS = ("value", "status", "update_ts", "error_reason")
+
+
+def _set_item(
+    item: DeviceAddressItem, value: Any, error: str | None, now: datetime
+) -> DeviceAddressItem:
+    """Store a read result: the value and Ok, or Invalid with the reason (the last good
+    value stays).  Writes the item's ``__dict__`` directly: these runtime fields are not
+    validated on assignment, and pydantic's ``__setattr__`` (with its fields-set
+    bookkeeping) costs several times more on the hot path and memory per item."""
+    fields = item.__dict__
+    if error is None:
+        fields["value"] = value
+        if fields["status"] is not _OK:
+            fields["status"] = _OK
+        if fields["error_reason"] is not None:
+            fields["error_reason"] = None
+    else:
+        fields["status"] = _INVALID
+        fields["error_reason"] = error
+    fields["update_ts"] = now
+    return item
+
+
 def _copy_runtime(src: DeviceAddressItem, dst: DeviceAddressItem) -> None:
-    dst.value = src.value
-    dst.status = src.status
-    dst.update_ts = src.update_ts
-    dst.error_reason = src.error_reason
+    for name in _RUNTIME_FIELDS:
+        dst.__dict__[name] = src.__dict__[name]
 
 
 def _status_text(status: Any) -> str:

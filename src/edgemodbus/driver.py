@@ -174,6 +174,7 @@ class DriverModbusRtu:
         result = device.counters.as_dict()
         line = self._bus.stats.as_dict() if self._bus is not None else self._line_stats
         result["reconnects"] = line.get("reconnects", 0)
+        result["avgRoundTrip"] = line.get("avgRoundTrip", 0.0)
         result["line"] = line
         result["deviceDriverStatus"] = self.device_driver_status.value
         return result
