@@ -333,7 +333,7 @@ class BlockDecoder:
     time (the bus worker that owns the block).
     """
 
-    __slots__ = ("_compiled", "_indices", "_plan", "_reported", "area", "count", "specs")
+    __slots__ = ("_indices", "_offsets", "_plan", "_reported", "area", "count", "specs")
 
     def __init__(self, area: Area, count: int, items: Sequence[tuple[int, ValueSpec]]) -> None:
         if not (isinstance(count, int) and count >= 0):
@@ -351,7 +351,9 @@ class BlockDecoder:
         self.area = area
         self.count = count
         self.specs = [spec for _, spec in items]
-        self._compiled = compiled
+        self._offsets = [offset for offset, _ in items]
+        # the compiled items live on in the C plan only: error reasons, which are rare,
+        # compile their item again (see _reason), which keeps a decoder small per tag
         self._plan = CodecPlan(area.is_bit, [c.item for c in compiled], [c.post for c in compiled])
         self._indices = list(range(len(compiled)))
         # The tuple last reported for each item: mirrors the C state, so that a report of
@@ -359,7 +361,7 @@ class BlockDecoder:
         self._reported: list[Report] = []
 
     def _reason(self, index: int, code: int) -> str:
-        c = self._compiled[index]
+        c = _compile(self.specs[index], self.area, self._offsets[index])
         if code == _E["MISSING"]:
             return "not in response"
         v = self._plan.errval(index)
@@ -378,13 +380,35 @@ class BlockDecoder:
     def decode(self, block: Block, report_all: bool = False) -> list[Report]:
         """(index, value or None, error reason or None) of every item whose value or
         status changed since it was last reported (all of them when ``report_all``)."""
+        if report_all:
+            return self._decode_all(block)
+        plan = self._plan
+        if self._reported:
+            self._reported = []  # the report-all cache no longer mirrors the C state
+        n = plan.decode(block, _binding.CODEC_MODE_TRACK)
+        if not n:
+            return []
+        changed = plan.changed(n)
+        if n * 8 >= plan.n_items:  # many changed: convert the arrays in one go
+            values = plan.values()
+            errors = {k: self._reason(k, plan.status(k)) for k in plan.errors()}
+            return [(k, values[k], errors.get(k)) for k in changed]
+        status = plan.status_view
+        return [
+            (k, None, self._reason(k, status[k])) if status[k] else (k, plan.value(k), None)
+            for k in changed
+        ]
+
+    def _decode_all(self, block: Block) -> list[Report]:
+        """Report every item; keeps the last tuples so that only the items whose value
+        or status moved are rebuilt (reportMode "cycle" reports everything each read)."""
         plan = self._plan
         total = plan.n_items
         if not self._reported:
             plan.reset()  # no tuples cached: have C report every item
-        n = plan.decode(block, _binding.CODEC_MODE_ALL if report_all else _binding.CODEC_MODE_TRACK)
+        n = plan.decode(block, _binding.CODEC_MODE_ALL)
         reported = self._reported
-        if n == total or (report_all and 2 * n >= total):
+        if n == total or 2 * n >= total:
             # Most items are new: build every tuple in one go (a report of all items
             # holds the current value of each, so the rebuilt cache still mirrors C).
             values = plan.values()
@@ -394,22 +418,12 @@ class BlockDecoder:
                     reported[k] = (k, None, self._reason(k, plan.status(k)))
             self._reported = reported
             return reported[:]
-        if not n:
-            return reported[:] if report_all else []
-        changed = plan.changed(n)
-        if n * 8 >= total:
-            values = plan.values()
-            errs = {k: self._reason(k, plan.status(k)) for k in plan.errors()}
-            for k in changed:
-                reported[k] = (k, values[k], errs.get(k))
-        else:
+        if n:
             status = plan.status_view
-            for k in changed:
+            for k in plan.changed(n):
                 code = status[k]
                 reported[k] = (k, None, self._reason(k, code)) if code else (k, plan.value(k), None)
-        if report_all:
-            return reported[:]
-        return [reported[k] for k in changed]
+        return reported[:]
 
     def decode_values(self, block: Block) -> list[object]:
         """Every item's value (None where it failed); change tracking is not touched."""
