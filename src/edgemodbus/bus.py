@@ -19,6 +19,7 @@ import logging
 import operator
 import queue
 import random
+import select
 import socket
 import struct
 import threading
@@ -47,6 +48,8 @@ TRANSPORTS = ("rtu", "rtu-over-tcp", "tcp")
 # Silence that ends the discarding of a stray frame, at least: a slave or DTU that
 # trickles a late reply slower than the byte timeout must still be drained whole.
 _QUIET_FLOOR = 0.05
+_IDLE_SLICE = 0.05  # links with unsolicited frames: longest wait before checking the queue
+_MAX_IDLE = 3600.0  # a poller due "never" (report-only) still gets an idle step per hour
 _MBAP_LEN = 7  # transaction id, protocol id, length, unit id (Modbus Messaging on TCP/IP 3.1.3)
 
 
@@ -98,6 +101,8 @@ class TcpEndpoint:
     port: int
     transport: str = "rtu-over-tcp"
     echo: bool = False  # RTU over TCP: the serial side echoes every request
+    framing: str = "rtu"  # rtu | wrapped-report (RTU over TCP only)
+    heartbeat: bytes = b""  # a DTU's idle heartbeat packet, skipped (RTU over TCP only)
 
     def __post_init__(self) -> None:
         if self.transport not in ("rtu-over-tcp", "tcp"):
@@ -109,20 +114,52 @@ class TcpEndpoint:
                              "the option is for RTU lines")
         if not 1 <= self.port <= 65535:
             raise ValueError(f"tcpPort {self.port}: must be 1..65535")
+        if self.transport == "tcp" and (self.framing != "rtu" or self.heartbeat):
+            raise ValueError(f"framing {self.framing!r}/heartbeat: Modbus TCP (MBAP) has its "
+                             "own framing; use transport rtu-over-tcp or rtu-over-tcp-server")
 
     @property
     def key(self) -> tuple[str, ...]:
         return (self.transport, self.host, str(self.port))
 
     def describe(self) -> str:
-        return f"{self.transport}://{self.host}:{self.port}" + (" echo" if self.echo else "")
+        return f"{self.transport}://{self.host}:{self.port}" + (
+            " echo" if self.echo else "") + (
+            " wrapped" if self.framing == "wrapped-report" else "")
 
     @property
     def max_frame_time(self) -> float:
         return 0.0
 
 
-Endpoint = SerialPort | TcpEndpoint
+@dataclass(frozen=True)
+class DtuEndpoint:
+    """One DTU that dials in to our listen port (``rtu-over-tcp-server``): raw RTU
+    frames (or wrapped reports) over a TCP connection the DTU opened."""
+
+    listen_host: str
+    listen_port: int
+    dtu_id: str  # "" with registration none: the port's only DTU
+    echo: bool = False
+    framing: str = "rtu"  # rtu | wrapped-report
+    heartbeat: bytes = b""
+
+    @property
+    def key(self) -> tuple[str, ...]:
+        return ("dtu", self.listen_host, str(self.listen_port), self.dtu_id)
+
+    def describe(self) -> str:
+        name = self.dtu_id or "(single)"
+        return f"dtu {name}@{self.listen_host}:{self.listen_port}" + (
+            " echo" if self.echo else "") + (
+            " wrapped" if self.framing == "wrapped-report" else "")
+
+    @property
+    def max_frame_time(self) -> float:
+        return 0.0
+
+
+Endpoint = SerialPort | TcpEndpoint | DtuEndpoint
 
 
 @dataclass(frozen=True)
@@ -158,6 +195,9 @@ class LineStats:
     reconnects: int = 0
     connect_failures: int = 0
     discarded_bytes: int = 0
+    heartbeats: int = 0  # DTU heartbeat packets discarded
+    reports: int = 0  # wrapped report frames received unsolicited
+    dropped_frames: int = 0  # wrapped frames dropped (bad header, tail, CRC, length)
     rtt_total: float = 0.0
 
     def as_dict(self) -> dict[str, Any]:
@@ -173,6 +213,9 @@ class LineStats:
             "reconnects": self.reconnects,
             "connectFailures": self.connect_failures,
             "discardedBytes": self.discarded_bytes,
+            "heartbeats": self.heartbeats,
+            "reports": self.reports,
+            "droppedFrames": self.dropped_frames,
             "avgRoundTrip": self.rtt_total / self.responses if self.responses else 0.0,
         }
 
@@ -184,10 +227,16 @@ class Link:
     means the link is closed and the bus will reconnect.  Only the bus worker calls it.
     """
 
+    idle_fd: int | None = None
+    """A link that receives unsolicited frames (wrapped reports) sets this: the worker
+    then watches the fd while idle and calls :meth:`pump`."""
+
     def __init__(self, ctx: Context, endpoint: Endpoint, timing: LineTiming,
-                 stats: LineStats, sock: socket.socket | None) -> None:
+                 stats: LineStats, sock: socket.socket | None,
+                 on_close: Callable[[], None] | None = None) -> None:
         self._ctx = ctx
         self._sock = sock
+        self._on_close = on_close
         self.endpoint = endpoint
         self.timing = timing
         self.stats = stats
@@ -219,8 +268,13 @@ class Link:
             return
         self.is_open = False
         self._ctx.close()
+        if self._on_close is not None:
+            self._on_close()  # e.g. the DTU slot forgets the socket before it is closed
         if self._sock is not None:
             self._sock.close()
+
+    def pump(self) -> None:
+        """Read and dispatch what arrived unsolicited (links with ``idle_fd``)."""
 
     def _wait_turn(self) -> None:
         """Keep the inter-frame silence, the request interval and the turnaround delay."""
@@ -447,6 +501,15 @@ class Poller(Protocol):
         ...
 
 
+class Connector(Protocol):
+    """How a bus gets its link, for endpoints the bus cannot open itself (a DTU that
+    dials in: the listener hands its socket over)."""
+
+    def open(self, bus: Bus) -> Link:
+        """Return an open link, or raise :class:`ModbusConnectionError` (worker thread)."""
+        ...
+
+
 @dataclass
 class _Job:
     fn: Callable[[Link], Any]
@@ -460,9 +523,12 @@ class Bus:
     """A line and its worker thread.  Created by :class:`BusRegistry` (shared by every
     user of the same endpoint) or directly; ``start()`` then ``stop()``."""
 
-    def __init__(self, endpoint: Endpoint, timing: LineTiming | None = None) -> None:
+    def __init__(self, endpoint: Endpoint, timing: LineTiming | None = None,
+                 connector: Connector | None = None) -> None:
         self.endpoint = endpoint
         self.timing = timing or LineTiming()
+        self.connector = connector
+        self._connect_now = False  # a connector has a new link ready: take it at once
         self.stats = LineStats()
         self._queue: queue.SimpleQueue[Any] = queue.SimpleQueue()
         self._pollers: list[Poller] = []
@@ -518,6 +584,25 @@ class Bus:
     def pollers(self) -> tuple[Poller, ...]:
         return tuple(self._pollers)
 
+    def dispatch_report(self, report: Any) -> None:
+        """Hand an unsolicited wrapped report to every poller that takes reports (the
+        devices pick theirs by slave id and area).  Worker thread."""
+        for poller in self._pollers:
+            on_report = getattr(poller, "on_report", None)
+            if on_report is None:
+                continue
+            try:
+                on_report(report)
+            except Exception:
+                log.exception("%s: poller on_report failed", self.endpoint.describe())
+
+    def connect_now(self) -> None:
+        """A new link is ready (a DTU dialled in, maybe replacing its old connection):
+        drop the current link, if any, and open the new one without waiting for the
+        reconnect interval.  Any thread."""
+        self._connect_now = True
+        self._queue.put(None)
+
     # -- requests from any thread ------------------------------------------------------
     def submit(self, fn: Callable[[Link], T]) -> Future[T]:
         """Run ``fn(link)`` on the worker, before the next poll step."""
@@ -563,11 +648,16 @@ class Bus:
         try:
             while not self._stopping.is_set():
                 link = self._link
+                if link is not None and link.is_open and self._connect_now:
+                    link.close_reason = "replaced by a new connection"
+                    link.close()
                 if link is None or not link.is_open:
                     if link is not None:
+                        if self._connect_now and self._connect():
+                            continue  # replaced: the pollers see one "up", no "down"
                         self._link_lost(link)
                         next_connect = time.monotonic() + self._reconnect_delay(0)
-                    if time.monotonic() >= next_connect:
+                    if self._connect_now or time.monotonic() >= next_connect:
                         if self._connect():
                             failures = 0
                             continue
@@ -600,8 +690,11 @@ class Bus:
         poller = min(pollers, key=_DUE)
         wait = poller.due - time.monotonic()
         if wait > 0:
+            if link.idle_fd is not None:
+                self._idle_reads(link, wait)
+                return
             try:
-                item = self._queue.get(timeout=wait)
+                item = self._queue.get(timeout=min(wait, _MAX_IDLE))
             except queue.Empty:
                 return
             self._handle(item, link)
@@ -610,6 +703,23 @@ class Bus:
             poller.poll_step(link)
         except Exception:  # a poller bug must not kill the line
             log.exception("%s: poller failed", self.endpoint.describe())
+
+    def _idle_reads(self, link: Link, wait: float) -> None:
+        """Idle on a link that receives unsolicited frames: watch its socket in slices
+        of at most 50 ms, checking the queue between them (near zero CPU when quiet)."""
+        fd = link.idle_fd
+        assert fd is not None
+        poller = select.poll()
+        poller.register(fd, select.POLLIN | select.POLLERR | select.POLLHUP)
+        deadline = time.monotonic() + min(wait, _MAX_IDLE)
+        while link.is_open and self._queue.empty() and not self._connect_now:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                return
+            if poller.poll(1000 * min(left, _IDLE_SLICE)):
+                link.pump()
+        if not self._queue.empty():
+            self._handle(self._queue.get_nowait(), link)
 
     def _handle(self, item: Any, link: Link | None) -> None:
         if item is None or item is _STOP:
@@ -631,7 +741,7 @@ class Bus:
 
     def _serve_queue_while_down(self, until: float) -> None:
         """While disconnected: fail queued requests at once, sleep until the next try."""
-        while not self._stopping.is_set():
+        while not self._stopping.is_set() and not self._connect_now:
             wait = until - time.monotonic()
             if wait <= 0:
                 return
@@ -643,9 +753,10 @@ class Bus:
 
     def _connect(self) -> bool:
         first = self.stats.connects == 0 and self.stats.reconnects == 0
+        self._connect_now = False
         try:
             try:
-                link = self._open()
+                link = self.connector.open(self) if self.connector is not None else self._open()
             except ModbusError:
                 raise
             except OSError as os_exc:  # e.g. EMFILE: no fd left for a socket
@@ -653,9 +764,12 @@ class Bus:
                     f"{self.endpoint.describe()}: cannot open the line: {os_exc}"
                 ) from None
         except ModbusError as exc:
+            repeated = self.connector is not None and str(exc) == self.last_link_error
             self.last_link_error = str(exc)
             self.stats.connect_failures += 1
-            log.warning("connect failed: %s", exc)  # exc names the line
+            # exc names the line; a connector's same failure again (a DTU that has not
+            # dialled in yet) is not repeated at WARNING on every try
+            log.log(logging.DEBUG if repeated else logging.WARNING, "connect failed: %s", exc)
             self._notify(False, str(exc))
             return False
         self._link = link
@@ -672,6 +786,8 @@ class Bus:
     def _open(self) -> Link:
         ep = self.endpoint
         timing = self.timing
+        if isinstance(ep, DtuEndpoint):
+            raise ModbusConnectionError(f"{ep.describe()}: a DTU link needs a connector")
         if isinstance(ep, SerialPort):
             ctx = Context.rtu(ep.port, ep.baudrate, ep.parity, ep.data_bits, ep.stop_bits)
             try:
@@ -682,6 +798,12 @@ class Bus:
             sock = None
         else:
             sock = _connect_tcp(ep, timing.connect_timeout)
+            if ep.transport == "rtu-over-tcp" and (ep.framing != "rtu" or ep.heartbeat):
+                from .streamlink import StreamLink  # RTU framed in Python
+
+                return StreamLink(sock, ep, timing, self.stats, heartbeat=ep.heartbeat,
+                                  wrapped=ep.framing == "wrapped-report",
+                                  on_report=self.dispatch_report)
             try:
                 ctx = Context.on_socket(sock.fileno(), ep.describe(), mbap=ep.transport == "tcp")
             except ModbusError:
@@ -748,6 +870,22 @@ def _connect_tcp(ep: TcpEndpoint, timeout: float) -> socket.socket:
     return sock
 
 
+def open_socket_link(sock: socket.socket, endpoint: Endpoint, timing: LineTiming,
+                     stats: LineStats, on_close: Callable[[], None] | None = None) -> Link:
+    """A libmodbus RTU link on a connected socket we own (RTU over TCP, no MBAP).  On
+    failure the socket is left to the caller."""
+    ctx = Context.on_socket(sock.fileno(), endpoint.describe(), mbap=False)
+    try:
+        ctx.set_timeouts(timing.response_timeout, timing.byte_timeout)
+        ctx.set_echo(endpoint.echo)
+    except ValueError:
+        ctx.close()
+        raise
+    link = Link(ctx, endpoint, timing, stats, sock, on_close)
+    link._timeouts = (timing.response_timeout, timing.byte_timeout)
+    return link
+
+
 class BusRegistry:
     """Shares one :class:`Bus` among every user of the same endpoint (many slaves on one
     RS-485 line, many devices behind one serial server port)."""
@@ -756,7 +894,10 @@ class BusRegistry:
         self._lock = threading.Lock()
         self._buses: dict[tuple[str, ...], tuple[Bus, int]] = {}
 
-    def acquire(self, endpoint: Endpoint, timing: LineTiming | None = None) -> Bus:
+    def acquire(self, endpoint: Endpoint, timing: LineTiming | None = None,
+                connector: Callable[[], Connector] | None = None) -> Bus:
+        """The bus of ``endpoint``, started on first use; ``connector`` makes the
+        connector of a new bus (DTU links)."""
         with self._lock:
             entry = self._buses.get(endpoint.key)
             if entry is not None:
@@ -769,7 +910,7 @@ class BusRegistry:
                     )
                 self._buses[endpoint.key] = (bus, users + 1)
                 return bus
-            bus = Bus(endpoint, timing)
+            bus = Bus(endpoint, timing, connector() if connector is not None else None)
             bus.start()
             self._buses[endpoint.key] = (bus, 1)
             return bus

@@ -18,6 +18,7 @@ import json
 import logging
 import math
 import os
+import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from datetime import datetime
@@ -45,7 +46,9 @@ logger = logging.getLogger("edgemodbus.config")
 MAX_MS = 86_400_000
 """Upper bound of every time setting (one day, in milliseconds)."""
 
-Transport = Literal["rtu", "rtu-over-tcp", "tcp"]
+Transport = Literal["rtu-over-tcp-server", "rtu", "rtu-over-tcp", "tcp"]
+Framing = Literal["rtu", "wrapped-report"]
+Registration = Literal["none", "text", "hex", "regex"]
 AddressPrefixOption = Literal["function-code", "modicon"]
 ReportMode = Literal["change", "cycle"]
 Rs485Mode = Literal["none", "kernel", "rts-up", "rts-down"]
@@ -471,8 +474,71 @@ class DriverModbusRtuParameter(_Model):
     transport: Transport = Field(
         default="rtu",
         description="rtu: serial RTU; rtu-over-tcp: raw RTU frames over TCP (DTU, serial "
-        "server); tcp: Modbus TCP (MBAP). When absent: rtu-over-tcp if useTcp, else rtu",
+        "server); tcp: Modbus TCP (MBAP); rtu-over-tcp-server: listen for DTUs that dial "
+        "in (RTU frames over TCP). When absent: rtu-over-tcp if useTcp, else rtu",
         json_schema_extra=_ui("传输方式", "Connection", "select"),
+    )
+    listen_host: str = Field(
+        default="0.0.0.0",
+        description="rtu-over-tcp-server: address to listen on for DTUs",
+        json_schema_extra=_ui("监听地址", "Connection", "text", tcp=True),
+    )
+    listen_port: Annotated[int | None, Range(1, 65535)] = Field(
+        default=None,
+        description="rtu-over-tcp-server: port to listen on (empty = tcpPort); devices "
+        "naming one port share its listener",
+        json_schema_extra=_ui("监听端口", "Connection", "number", tcp=True),
+    )
+    dtu_id: str = Field(
+        default="",
+        description="rtu-over-tcp-server: the registration id of the DTU this device is "
+        "behind (text, hex bytes, or what registrationPattern extracts); empty only "
+        "with registration none",
+        json_schema_extra=_ui("DTU注册包ID", "Connection", "text", tcp=True),
+    )
+    registration: Registration = Field(
+        default="none",
+        description="rtu-over-tcp-server: how DTUs identify themselves: none (the port's "
+        "only DTU takes the connection), text (the first packet is dtuId), hex (the first "
+        "packet is the bytes dtuId spells in hex), regex (registrationPattern's first "
+        "group, else its whole match, is the id)",
+        json_schema_extra=_ui("注册包方式", "Connection", "select", tcp=True),
+    )
+    registration_pattern: str = Field(
+        default="",
+        description="rtu-over-tcp-server with registration regex: a regular expression "
+        "searched in the registration packet (Latin-1 text)",
+        json_schema_extra=_ui("注册包正则", "Connection", "text", tcp=True),
+    )
+    registration_length: Annotated[int | None, Range(1, 1024)] = Field(
+        default=None,
+        description="rtu-over-tcp-server: fixed length of the registration packet in bytes "
+        "(empty = as sent)",
+        json_schema_extra=_ui("注册包长度", "Connection", "number", tcp=True),
+    )
+    registration_timeout: Annotated[int, Range(1, MAX_MS)] = Field(
+        default=5000,
+        description="rtu-over-tcp-server: a DTU that has not registered within this time "
+        "is logged and closed (ms)",
+        json_schema_extra=_ui("注册超时(ms)", "Connection", "number", tcp=True),
+    )
+    heartbeat: str = Field(
+        default="",
+        description="Heartbeat packet DTUs send on idle links, as text (e.g. HB); "
+        "discarded wherever it arrives and counted",
+        json_schema_extra=_ui("心跳包", "Connection", "text", tcp=True),
+    )
+    heartbeat_hex: str = Field(
+        default="",
+        description="Heartbeat packet as hex bytes (e.g. FE); instead of heartbeat",
+        json_schema_extra=_ui("心跳包(HEX)", "Connection", "text", tcp=True),
+    )
+    framing: Framing = Field(
+        default="rtu",
+        description="rtu: plain RTU frames; wrapped-report: edge-MCU frames "
+        "FF AA + register address + RTU frame + 0D, with unsolicited reports "
+        "(RTU over TCP, client or listen mode)",
+        json_schema_extra=_ui("报文封装", "Connection", "select", tcp=True),
     )
     connect_timeout: Ms = Field(
         default=3000,
@@ -494,9 +560,10 @@ class DriverModbusRtuParameter(_Model):
         description="Timeout between two bytes of one reply (ms)",
         json_schema_extra=_ui("字节间超时(ms)", "Connection", "number"),
     )
-    read_cycle: Ms = Field(
+    read_cycle: Annotated[int, Range(0, MAX_MS)] = Field(
         default=1000,
-        description="Polling cycle (ms)",
+        description="Polling cycle (ms); 0 = no polling: report-only (framing "
+        "wrapped-report; on other framings nothing would update, which is logged)",
         json_schema_extra=_ui("读取周期(ms)", "Connection", "number"),
     )
     rs485: Rs485Mode = Field(
@@ -607,7 +674,8 @@ class DriverModbusRtuParameter(_Model):
     def _format(cls, value: Any) -> Any:
         return _parse_format(value)
 
-    @field_validator("transport", "address_prefix", "report_mode", "rs485", mode="before")
+    @field_validator("transport", "address_prefix", "report_mode", "rs485", "framing",
+                     "registration", mode="before")
     @classmethod
     def _lower(cls, value: Any) -> Any:
         return _lower_literal(value)
@@ -680,11 +748,70 @@ class DriverModbusRtuParameter(_Model):
             )
         if self.transport == "rtu" and not self.com_port.strip():
             problems.append(Problem("comPort", self.com_port, "a serial port is required"))
-        if self.transport != "rtu" and not self.tcp_host.strip():
+        if self.transport in ("rtu-over-tcp", "tcp") and not self.tcp_host.strip():
             problems.append(Problem("tcpHost", self.tcp_host, "a host is required"))
+        problems += self._dtu_checks()
         if problems:
             raise ConfigError(problems)
         return self
+
+    def _dtu_checks(self) -> list[Problem]:
+        """Listen mode, registration, heartbeat and framing options."""
+        problems: list[Problem] = []
+        server = self.transport == "rtu-over-tcp-server"
+        if server:
+            if not self.listen_host.strip():
+                problems.append(Problem("listenHost", self.listen_host, "a host is required"))
+            if self.registration != "none" and not self.dtu_id:
+                problems.append(Problem("dtuId", self.dtu_id, f"required with registration "
+                                        f"{self.registration!r}"))
+            if self.registration == "hex":
+                try:
+                    if not bytes.fromhex(self.dtu_id):
+                        raise ValueError
+                except ValueError:
+                    problems.append(Problem("dtuId", self.dtu_id, "registration hex needs hex "
+                                            "bytes, e.g. '38 36 31 30'"))
+            if self.registration == "regex":
+                try:
+                    re.compile(self.registration_pattern)
+                    if not self.registration_pattern:
+                        raise re.error("empty pattern")
+                except re.error as exc:
+                    problems.append(Problem("registrationPattern", self.registration_pattern,
+                                            f"not a regular expression: {exc}"))
+        if self.heartbeat and self.heartbeat_hex:
+            problems.append(Problem("heartbeatHex", self.heartbeat_hex,
+                                    "give heartbeat (text) or heartbeatHex, not both"))
+        if self.heartbeat_hex:
+            try:
+                if not bytes.fromhex(self.heartbeat_hex):
+                    raise ValueError
+            except ValueError:
+                problems.append(Problem("heartbeatHex", self.heartbeat_hex,
+                                        "must be hex bytes, e.g. 'FE'"))
+        if (self.heartbeat or self.heartbeat_hex) and self.transport not in (
+            "rtu-over-tcp", "rtu-over-tcp-server"
+        ):
+            problems.append(Problem("heartbeat", self.heartbeat or self.heartbeat_hex,
+                                    "heartbeats apply to RTU over TCP (rtu-over-tcp, "
+                                    "rtu-over-tcp-server)"))
+        if self.framing == "wrapped-report" and self.echo:
+            problems.append(Problem("echo", self.echo, "no echo option with framing "
+                                    "wrapped-report"))
+        return problems
+
+    @property
+    def heartbeat_bytes(self) -> bytes:
+        """The heartbeat packet as bytes (empty: none configured)."""
+        if self.heartbeat_hex:
+            return bytes.fromhex(self.heartbeat_hex)
+        return self.heartbeat.encode("latin-1", "replace")
+
+    @property
+    def effective_listen_port(self) -> int:
+        """listenPort, else tcpPort (the issue accepts tcpPort as the listen port)."""
+        return self.listen_port if self.listen_port is not None else self.tcp_port
 
     @field_serializer("parity")
     def _ser_parity(self, value: Parity) -> str:

@@ -17,6 +17,7 @@ between two blocks.  Faults are handled per slave:
 from __future__ import annotations
 
 import logging
+import math
 import time
 from collections.abc import Sequence
 from concurrent.futures import Future
@@ -45,6 +46,7 @@ from .planner import Piece, PlanItem, ReadBlock, bisect_block, plan_reads
 if TYPE_CHECKING:
     from .config import DeviceAddressItem
     from .driver import DriverModbusRtu
+    from .wrapped import Report
 
 _MAX_WRITE_REGISTERS = 123  # FC16 (Modbus Application Protocol v1.1b3, 6.12)
 _MAX_WRITE_COILS = 1968  # FC15 (6.11)
@@ -73,6 +75,7 @@ class Counters:
     values_changed: int = 0
     writes: int = 0
     write_errors: int = 0
+    reports: int = 0  # wrapped reports applied to this device
 
     def as_dict(self) -> dict[str, Any]:
         return {
@@ -95,6 +98,7 @@ class Counters:
             "valuesChanged": self.values_changed,
             "writes": self.writes,
             "writeErrors": self.write_errors,
+            "reports": self.reports,
         }
 
 
@@ -196,6 +200,7 @@ class Device:
         self.log = logger
         self.slave = params.slave_id
         self.cycle = params.read_cycle / 1000
+        self.report_only = params.read_cycle == 0  # wrapped reports only, never polled
         self.timeout = params.read_timeout / 1000
         self.retries = params.retries
         self.offline_after = params.offline_after_failed_cycles
@@ -222,6 +227,9 @@ class Device:
         self.no_fc22 = False
         self.batch: list[DeviceAddressItem] = []
         self.next_snapshot = 0.0
+        # wrapped reports: (function, address, count) -> the items inside and a decoder
+        self._report_decoders: dict[tuple[int, int, int],
+                                    tuple[list[ItemState], BlockDecoder | None]] = {}
 
     @property
     def plan(self) -> list[ReadBlock]:
@@ -231,7 +239,7 @@ class Device:
     def start(self, bus: Bus) -> None:
         self.bus = bus
         self.active = True
-        self.due = time.monotonic()
+        self.due = math.inf if self.report_only else time.monotonic()
         bus.attach(self)
 
     def stop(self) -> None:
@@ -247,6 +255,7 @@ class Device:
                 _copy_runtime(prev.item, state.item)
         self.items = items
         self.by_name = {s.item.name: s for s in items}
+        self._report_decoders = {}
         blocks = build_plan([s.parsed for s in items], self.params)
         self.slots = [self._make_slot(b) for b in blocks]
 
@@ -278,7 +287,7 @@ class Device:
         def swap(_link: Link) -> None:
             self._install(parsed)
             self.index = 0
-            self.due = time.monotonic()
+            self.due = math.inf if self.report_only else time.monotonic()
 
         return self.bus.submit(swap)
 
@@ -287,13 +296,51 @@ class Device:
         if not self.active:
             return
         self.index = 0
-        self.due = time.monotonic()
+        if self.report_only:
+            self.due = math.inf
+            if up:
+                self.status = DeviceDriverStatus.RUNNING  # ready for reports
+                return
+        else:
+            self.due = time.monotonic()
         if up:
             return
         self.status = DeviceDriverStatus.RECONNECTING
         for slot in self.slots:
             self._invalidate(slot, f"link down: {reason}")
         self._flush_batch()
+
+    def on_report(self, report: Report) -> None:
+        """An unsolicited wrapped report (edge MCU): update the items of this slave whose
+        registers (or bits) lie inside it, through the same codec and callbacks as
+        polled values.  Worker thread."""
+        if not self.active or report.slave != self.slave:
+            return
+        area = _REPORT_AREAS.get(report.function)
+        if area is None:
+            return  # an exception or a write's echo: nothing to store
+        values = report.bits if area.is_bit else report.registers
+        key = (report.function, report.address, len(values))
+        entry = self._report_decoders.get(key)
+        if entry is None:
+            start, end = report.address, report.address + len(values)
+            states = [s for s in self.items
+                      if s.area is area and start <= s.offset and s.offset + s.size <= end]
+            decoder = BlockDecoder(area, len(values), [(s.offset - start, s.spec)
+                                                       for s in states]) if states else None
+            entry = self._report_decoders[key] = (states, decoder)
+        states, decoder = entry
+        if decoder is None:
+            return
+        self.counters.reports += 1
+        changes = decoder.decode(Block.from_values(values, bits=area.is_bit), self.report_all)
+        if changes:
+            now = datetime.now(timezone.utc)
+            reported = [_set_item(states[i].item, value, error, now)
+                        for i, value, error in changes]
+            self.counters.values_changed += len(reported)
+            self._report(reported)
+            self._flush_batch()
 
     def poll_step(self, link: Link) -> None:
         """Read the next block of this cycle.  The straight path (a good answer) is kept
@@ -667,6 +714,8 @@ def _merge(ops: list[WriteOp]) -> list[WriteOp]:
         merged.append(op)
     return merged
 
+
+_REPORT_AREAS = {area.read_function: area for area in Area}  # FC01-04 of a report
 
 _OK = ItemStatus.OK
 _INVALID = ItemStatus.INVALID

@@ -16,7 +16,8 @@ from concurrent.futures import Future
 from typing import Any, ClassVar
 
 from . import bus as _bus
-from .bus import BusRegistry, Link, SerialPort, TcpEndpoint
+from . import dtu as _dtu
+from .bus import BusRegistry, DtuEndpoint, Link, SerialPort, TcpEndpoint
 from .config import (
     DeviceAddressItem,
     DeviceDriverStatus,
@@ -44,6 +45,7 @@ class DriverModbusRtu:
 
     logger: ClassVar[logging.Logger] = logging.getLogger("edgemodbus.driver")
     registry: ClassVar[BusRegistry] = _bus.registry
+    dtu_registry: ClassVar[_dtu.DtuRegistry] = _dtu.registry
 
     def __init__(self) -> None:
         self.address_updated_callback: Callback | None = None
@@ -52,6 +54,7 @@ class DriverModbusRtu:
         self._device: Device | None = None
         self._last_device: Device | None = None  # keeps stats and snapshot after a stop
         self._bus: _bus.Bus | None = None
+        self._slot: _dtu.DtuSlot | None = None  # listen mode: this device's DTU
         self._line_stats: dict[str, Any] = {}
         self._status = DeviceDriverStatus.STOPPED
         self._params: DriverModbusRtuParameter | None = None
@@ -90,7 +93,23 @@ class DriverModbusRtu:
             max_backoff=params.max_backoff / 1000,
             request_interval=params.request_interval / 1000,
         )
-        bus = self.registry.acquire(endpoint, timing)
+        if params.read_cycle == 0 and params.framing != "wrapped-report":
+            self.logger.warning("%s: readCycle 0 means report-only, but framing is %r: "
+                                "nothing will update this device's items",
+                                self._code(org_param), params.framing)
+        slot: _dtu.DtuSlot | None = None
+        if isinstance(endpoint, DtuEndpoint):
+            slot = self.dtu_registry.acquire(_port_settings(params), endpoint)
+            dtu_slot = slot
+            try:
+                bus = self.registry.acquire(endpoint, timing, connector=lambda: dtu_slot)
+            except BaseException:
+                self.dtu_registry.release(slot)
+                raise
+            slot.attach(bus)
+        else:
+            bus = self.registry.acquire(endpoint, timing)
+        self._slot = slot
         device = Device(self, self._code(org_param), params, parsed, self.logger)
         self._bus, self._device, self._last_device = bus, device, None
         self._status = DeviceDriverStatus.CONNECTING
@@ -113,6 +132,9 @@ class DriverModbusRtu:
         self._device = self._bus = None
         self._last_device = device
         self.registry.release(bus)
+        slot, self._slot = self._slot, None
+        if slot is not None:
+            self.dtu_registry.release(slot)
         self._status = DeviceDriverStatus.STOPPED
         self.logger.info("%s: stopped", device.code)
         return True
@@ -240,7 +262,16 @@ def _wait_write(future: Future[Any]) -> tuple[bool, str | None]:
     return result
 
 
-def _endpoint(params: DriverModbusRtuParameter) -> SerialPort | TcpEndpoint:
+def _endpoint(params: DriverModbusRtuParameter) -> SerialPort | TcpEndpoint | DtuEndpoint:
+    if params.framing == "wrapped-report" and params.transport not in (
+        "rtu-over-tcp", "rtu-over-tcp-server"
+    ):
+        raise ValueError(f"framing 'wrapped-report': needs transport rtu-over-tcp or "
+                         f"rtu-over-tcp-server, not {params.transport!r}")
+    if params.transport == "rtu-over-tcp-server":
+        return DtuEndpoint(params.listen_host, params.effective_listen_port, params.dtu_id,
+                           echo=params.echo, framing=params.framing,
+                           heartbeat=params.heartbeat_bytes)
     if params.transport == "rtu":
         return SerialPort(
             port=params.com_port,
@@ -251,7 +282,20 @@ def _endpoint(params: DriverModbusRtuParameter) -> SerialPort | TcpEndpoint:
             rs485=params.rs485,
             echo=params.echo,
         )
-    return TcpEndpoint(params.tcp_host, params.tcp_port, params.transport, echo=params.echo)
+    return TcpEndpoint(params.tcp_host, params.tcp_port, params.transport, echo=params.echo,
+                       framing=params.framing, heartbeat=params.heartbeat_bytes)
+
+
+def _port_settings(params: DriverModbusRtuParameter) -> _dtu.PortSettings:
+    return _dtu.PortSettings(
+        host=params.listen_host,
+        port=params.effective_listen_port,
+        registration=params.registration,
+        pattern=params.registration_pattern,
+        length=params.registration_length,
+        timeout=params.registration_timeout / 1000,
+        heartbeat=params.heartbeat_bytes,
+    )
 
 
 def _parity_letter(parity: Any) -> str:

@@ -49,6 +49,7 @@ from .datatypes import Area
 
 __all__ = [
     "CounterMover",
+    "DtuClient",
     "Faults",
     "FloatSineMover",
     "Mover",
@@ -886,6 +887,11 @@ class _Line:
         self.last_rx = 0.0
         self.idle_pending = False
         self.closed = False
+        # DTU-client mode (Simulator.dial)
+        self.heartbeat = b""
+        self.heartbeat_before_reply = False  # put a heartbeat in front of every reply
+        self.wrapped = False  # wrapped-report framing: FF AA addr RTU 0D
+        self.heartbeats_sent = 0
 
     @property
     def is_tcp(self) -> bool:
@@ -1042,9 +1048,11 @@ class Simulator:
 
     # -- endpoints
 
-    def serve_tcp(self, host: str = "127.0.0.1", port: int = 0, *, silence: float = 0.02) -> int:
+    def serve_tcp(self, host: str = "127.0.0.1", port: int = 0, *, silence: float = 0.02,
+                  wrapped: bool = False) -> int:
         """Listen for raw RTU frames over TCP; returns the bound port. Each connection is
-        a line of its own; ``silence`` is the idle time that ends an unparsable frame."""
+        a line of its own; ``silence`` is the idle time that ends an unparsable frame.
+        ``wrapped``: the connections use the edge MCU's wrapped frames (see :meth:`dial`)."""
         self.start()
         family = socket.AF_INET6 if ":" in host else socket.AF_INET
         sock = socket.socket(family, socket.SOCK_STREAM)
@@ -1058,7 +1066,7 @@ class Simulator:
             raise
         self._own(sock)
         bound = int(sock.getsockname()[1])
-        self._call(lambda: self._register_listener(sock, silence))
+        self._call(lambda: self._register_listener(sock, silence, wrapped))
         self.tcp_ports.append(bound)
         return bound
 
@@ -1116,6 +1124,16 @@ class Simulator:
         with contextlib.suppress(ValueError):
             self.pty_paths.remove(found[0].path)
 
+    def clients(self) -> list[DtuClient]:
+        """Handles of the TCP connections being served (to push wrapped reports)."""
+        found: list[DtuClient] = []
+
+        def collect() -> None:
+            found.extend(DtuClient(self, line) for line in self._lines if line.is_tcp)
+
+        self._call(collect)
+        return found
+
     def disconnect_clients(self) -> int:
         """Close every TCP client connection (the listeners stay): a link break.
         Returns how many were closed."""
@@ -1129,6 +1147,61 @@ class Simulator:
 
         self._call(drop)
         return len(closed)
+
+    def dial(
+        self,
+        host: str,
+        port: int,
+        *,
+        registration: bytes = b"",
+        heartbeat: bytes = b"",
+        heartbeat_interval: float = 0.0,
+        heartbeat_before_reply: bool = False,
+        wrapped: bool = False,
+        silence: float = 0.02,
+        timeout: float = 5.0,
+    ) -> DtuClient:
+        """DTU-client mode: connect to a master listening on ``host:port`` (as a 4G/
+        Ethernet DTU does), send ``registration`` first, then answer RTU requests as
+        this simulator's slaves.  ``heartbeat`` is sent every ``heartbeat_interval``
+        seconds (0: never) and, with ``heartbeat_before_reply``, in front of every
+        reply.  ``wrapped``: requests and replies use the edge MCU's wrapped frames
+        (FF AA + register address + RTU frame + 0D) and :meth:`DtuClient.push_report`
+        sends unsolicited reports."""
+        self.start()
+        sock = socket.create_connection((host, port), timeout=timeout)
+        try:
+            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            if registration:
+                sock.sendall(registration)
+            sock.setblocking(False)
+        except BaseException:
+            sock.close()
+            raise
+        local = sock.getsockname()
+        line = _Line(f"dtu {local[0]}:{local[1]}", silence, sock=sock)
+        line.heartbeat = heartbeat
+        line.heartbeat_before_reply = heartbeat_before_reply
+        line.wrapped = wrapped
+        self._own(line)
+
+        def register() -> None:
+            with self._lock:
+                self._line_stats["connections"] += 1
+            self._register_line(line)
+            if heartbeat and heartbeat_interval > 0:
+                self._at(time.monotonic() + heartbeat_interval,
+                         lambda: self._heartbeat_tick(line, heartbeat_interval))
+
+        self._call(register)
+        return DtuClient(self, line)
+
+    def _heartbeat_tick(self, line: _Line, interval: float) -> None:
+        if line.closed:
+            return
+        line.heartbeats_sent += 1
+        self._act(line, line.heartbeat)
+        self._at(time.monotonic() + interval, lambda: self._heartbeat_tick(line, interval))
 
     # -- plumbing between threads
 
@@ -1224,9 +1297,10 @@ class Simulator:
             _, _, fn = heapq.heappop(self._timers)
             self._guarded(fn)
 
-    def _register_listener(self, sock: socket.socket, silence: float) -> None:
+    def _register_listener(self, sock: socket.socket, silence: float, wrapped: bool) -> None:
         assert self._sel is not None
-        self._sel.register(sock, selectors.EVENT_READ, lambda mask: self._accept(sock, silence))
+        self._sel.register(sock, selectors.EVENT_READ,
+                           lambda mask: self._accept(sock, silence, wrapped))
 
     def _register_line(self, line: _Line) -> None:
         assert self._sel is not None
@@ -1235,7 +1309,7 @@ class Simulator:
             line.fileno(), selectors.EVENT_READ, lambda mask: self._on_io(line, mask)
         )
 
-    def _accept(self, listener: socket.socket, silence: float) -> None:
+    def _accept(self, listener: socket.socket, silence: float, wrapped: bool = False) -> None:
         while True:
             try:
                 conn, peer = listener.accept()
@@ -1247,6 +1321,7 @@ class Simulator:
             conn.setblocking(False)
             conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
             line = _Line(f"tcp {peer}", silence, sock=conn)
+            line.wrapped = wrapped
             try:
                 self._own(line)
             except RuntimeError:
@@ -1306,6 +1381,9 @@ class Simulator:
         self._parse(line, idle=True)
 
     def _parse(self, line: _Line, idle: bool) -> None:
+        if line.wrapped:
+            self._parse_wrapped(line)
+            return
         frames, consumed, discarded = _split_frames(line.rx, idle)
         del line.rx[:consumed]
         if discarded:
@@ -1316,7 +1394,42 @@ class Simulator:
                 return
             self._serve(line, raw)
 
-    def _serve(self, line: _Line, raw: bytes) -> None:
+    def _parse_wrapped(self, line: _Line) -> None:
+        """Wrapped requests: FF AA, register address, RTU request, 0D; garbage before a
+        header and frames whose tail or CRC is wrong are discarded."""
+        buf = line.rx
+        discarded = 0
+        while buf:
+            start = buf.find(_WRAP_HEADER)
+            if start < 0:
+                keep = 1 if buf.endswith(_WRAP_HEADER[:1]) else 0
+                discarded += len(buf) - keep
+                del buf[: len(buf) - keep]
+                break
+            discarded += start
+            del buf[:start]
+            need = _request_length(buf, 4)
+            if need == _NEED_MORE:
+                break
+            if need == _UNKNOWN or (len(buf) >= 4 + need + 1 and (
+                buf[4 + need] != 0x0D or not _crc_ok(buf[4 : 4 + need])
+            )):
+                discarded += 2
+                del buf[:2]
+                continue
+            if len(buf) < 4 + need + 1:
+                break
+            address = (buf[2] << 8) | buf[3]
+            raw = bytes(buf[4 : 4 + need])
+            del buf[: 4 + need + 1]
+            self._serve(line, raw, wrap_address=address)
+            if line.closed:
+                return
+        if discarded:
+            with self._lock:
+                self._line_stats["discarded_bytes"] += discarded
+
+    def _serve(self, line: _Line, raw: bytes, wrap_address: int | None = None) -> None:
         with self._lock:
             self._line_stats["frames"] += 1
         address, pdu = raw[0], raw[1:-2]
@@ -1334,6 +1447,9 @@ class Simulator:
                     self._line_stats["unknown_slave"] += 1
                 return  # nobody on the line has this address: silence
             actions = target._handle(raw, pdu, self._rng, line.is_tcp)
+        if wrap_address is not None:
+            actions = [(after, _wrap(wrap_address, data) if isinstance(data, bytes) else data)
+                       for after, data in actions]
         now = time.monotonic()
         for after, data in actions:
             if after <= 0:
@@ -1349,6 +1465,11 @@ class Simulator:
         if data is None:
             self._close_line(line)
             return
+        if isinstance(data, bytes) and line.heartbeat_before_reply and line.heartbeat and (
+            data != line.heartbeat
+        ):
+            line.heartbeats_sent += 1
+            data = line.heartbeat + data
         if isinstance(data, _Reset):
             if line.sock is not None:  # linger 0: close() sends RST, not FIN
                 with contextlib.suppress(OSError):
@@ -1392,6 +1513,54 @@ class Simulator:
             self._sel.modify(
                 line.fileno(), selectors.EVENT_READ, lambda mask: self._on_io(line, mask)
             )
+
+
+_WRAP_HEADER = b"\xff\xaa"
+
+
+def _wrap(address: int, frame: bytes) -> bytes:
+    """An edge MCU's wrapped frame: FF AA, register address (big-endian), RTU frame, 0D."""
+    return _WRAP_HEADER + struct.pack(">H", address & 0xFFFF) + frame + b"\x0d"
+
+
+class DtuClient:
+    """One dialled-in DTU connection of a :class:`Simulator` (see :meth:`Simulator.dial`)."""
+
+    def __init__(self, sim: Simulator, line: _Line) -> None:
+        self._sim = sim
+        self._line = line
+
+    @property
+    def closed(self) -> bool:
+        return self._line.closed
+
+    @property
+    def heartbeats_sent(self) -> int:
+        return self._line.heartbeats_sent
+
+    def send(self, data: bytes) -> None:
+        """Put raw bytes on the connection (heartbeats, garbage, hand-made frames)."""
+        self._sim._call(lambda: self._sim._act(self._line, bytes(data)))
+
+    def push_report(self, slave: int, area: Area, address: int, count: int) -> bytes:
+        """Send an unsolicited wrapped report of ``count`` registers (or bits) of
+        ``slave`` from ``address``, with the values the slave holds now; returns it."""
+        target = self._sim.slave(slave)
+        pdu = struct.pack(">BHH", area.read_function, address, count)
+        out: list[bytes] = []
+
+        def push() -> None:
+            rpdu = target._execute(pdu)
+            frame = _wrap(address, _frame(slave, rpdu))
+            out.append(frame)
+            self._sim._act(self._line, frame)
+
+        self._sim._call(push)
+        return out[0]
+
+    def close(self) -> None:
+        """The DTU drops its connection."""
+        self._sim._call(lambda: self._sim._close_line(self._line))
 
 
 # --- command line ---------------------------------------------------------------------
