@@ -27,7 +27,7 @@ $(BIN)/python:
 	$(PY) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip 'setuptools>=77' 'cffi>=2' wheel
 
-.stamp-install: pyproject.toml setup.py build_ffi.py $(CSRC) | deps $(BIN)/python
+.stamp-install: pyproject.toml setup.py build_ffi.py src/edgemodbus/_sourcehash.py $(CSRC) | deps $(BIN)/python
 	$(BIN)/python -m pip install -q --no-build-isolation -e '.[test,bench]'
 	@touch $@
 
@@ -63,12 +63,13 @@ bench-quick: build
 	EDGEMODBUS_BENCH_QUICK=1 $(PYTEST) bench --benchmark-only -q \
 	  --benchmark-min-rounds=3 --benchmark-max-time=0.2 --benchmark-columns=min,mean,rounds
 
-# Bounded fuzzing (tools/fuzz.py): the C codec under libFuzzer with ASan, UBSan and
-# LeakSanitizer (Debian's clang, installed when missing), then the hypothesis fuzz tests of
-# our Python frame checks.  Findings are kept in build/fuzz/artifacts/.
+# Bounded fuzzing (tools/fuzz.py): our C (the codec, and the reply handling of emb_io.c
+# against libmodbus) under libFuzzer with ASan, UBSan and LeakSanitizer (Debian's clang,
+# installed when missing), then the hypothesis fuzz tests of our Python frame checks.
+# Findings are kept in build/fuzz/artifacts/; FUZZ_SECONDS is the libFuzzer time in all.
 FUZZ_DEB           := clang
 FUZZ_SECONDS       ?= 300
-FUZZ_QUICK_SECONDS ?= 35
+FUZZ_QUICK_SECONDS ?= 40
 define fuzz_deps
 	@missing=""; for p in $(FUZZ_DEB); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
 	if [ -n "$$missing" ]; then \
@@ -82,7 +83,7 @@ fuzz: build
 	$(fuzz_deps)
 	$(BIN)/python tools/fuzz.py --seconds $(FUZZ_SECONDS) --examples 5000
 
-# CI's short run: about 45 s in all.
+# CI's short run: about 55 s in all.
 fuzz-quick: build
 	$(fuzz_deps)
 	$(BIN)/python tools/fuzz.py --seconds $(FUZZ_QUICK_SECONDS) --examples 300

@@ -420,7 +420,8 @@ long emb_decode(emb_plan *p, const void *data, uint32_t count, int mode)
 
 void emb_reset(emb_plan *p)
 {
-    memset(p->last_status, EMB_E_UNREPORTED, p->n_items);
+    if (p->n_items) /* memset(NULL, .., 0) is undefined: an empty plan may have no array */
+        memset(p->last_status, EMB_E_UNREPORTED, p->n_items);
 }
 
 static bool group_fits(const emb_plan *p, const emb_item *it)

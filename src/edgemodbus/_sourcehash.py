@@ -11,10 +11,12 @@ from pathlib import Path
 
 
 def source_hash(root: Path) -> str:
-    """Hash build_ffi.py and every .c/.h file under root/csrc (paths and contents)."""
+    """Hash what the extension is built from (paths and contents): build_ffi.py, the
+    top-level csrc/*.c and *.h and the cdefs; not csrc/fuzz/, which it does not include."""
     digest = hashlib.sha256()
+    csrc = root / "csrc"
     files = [root / "build_ffi.py"]
-    files += sorted(p for p in (root / "csrc").rglob("*") if p.suffix in (".c", ".h"))
+    files += sorted([*csrc.glob("*.c"), *csrc.glob("*.h"), *(csrc / "cdefs").glob("*.h")])
     for path in files:
         digest.update(path.relative_to(root).as_posix().encode())
         digest.update(b"\0")

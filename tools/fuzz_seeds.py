@@ -1,0 +1,214 @@
+"""Write the seed corpora of the fuzzers in csrc/fuzz/ into a directory per harness.
+
+Small inputs in each harness's byte layout (see the comment at the top of the harness).
+fuzz_codec: every wire kind in every byte order, conversions that fail (range, NaN, BCD
+digits), scaled values, coils, strings, an absurd plan and a plan with a NULL array, each
+with a program of decode steps; the wire/flag/target numbers are read from
+csrc/emb_codec.h, so the seeds follow the codec if its constants move.
+fuzz_frames: good and bad replies to reads and writes, RTU and Modbus TCP: exception
+responses, another slave's reply, a stale reply before ours, two replies at once, an
+echo, a short frame.
+
+    python tools/fuzz_seeds.py build/fuzz   # writes build/fuzz/seeds-codec, seeds-frames
+"""
+
+from __future__ import annotations
+
+import re
+import struct
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+# rd_double() selectors of the harness's table
+SCALE_1, SCALE_10, SCALE_0_1 = 0, 1, 2
+DEADBAND_0, DEADBAND_0_5, NAN_SEL = 12, 7, 14
+
+# run_step() ops (op % 6)
+TRACK2, ALL2, VALUES, RESET, MUTATE, SHORTER = range(6)
+
+
+def codec_constants() -> dict[str, int]:
+    """EMB_* constants of csrc/emb_codec.h, without the prefix ("W_U16": 6, ...)."""
+    text = (ROOT / "csrc" / "emb_codec.h").read_text()
+    pattern = r"#define EMB_(\w+)\s+(0x[0-9A-Fa-f]+|\d+)"
+    return {m[1]: int(m[2], 0) for m in re.finditer(pattern, text)}
+
+
+K = codec_constants()
+
+WIDTH = {
+    **dict.fromkeys(["COIL", "REGBOOL", "REGBIT", "U8", "I8", "U16", "I16", "BCD16"], 1),
+    **dict.fromkeys(["U32", "I32", "F32", "BCD32", "SEC32"], 2),
+    **dict.fromkeys(["U64", "I64", "F64", "MS64"], 4),
+}
+
+
+@dataclass
+class Item:
+    wire: str
+    offset: int
+    flags: int = 0
+    target: str = "NONE"
+    out: str | None = None
+    bit: int = 0
+    nregs: int | None = None  # BYTES only
+    scale: int = SCALE_1
+    deadband: int = DEADBAND_0
+
+    def natural_out(self) -> str:
+        if self.wire in ("COIL", "REGBOOL", "REGBIT"):
+            return "BOOL"
+        if self.wire == "U64":
+            return "U64"
+        if self.wire in ("F32", "F64") or self.flags & (K["F_MULTIPLY"] | K["F_DIVIDE"]):
+            return "F64"
+        return "BYTES" if self.wire == "BYTES" else "I64"
+
+    def pack(self) -> bytes:
+        """Production layout: wire flags target out bit nregs_sel, offset, scale, deadband."""
+        nsel = self.nregs if self.wire == "BYTES" else WIDTH[self.wire]
+        return struct.pack(
+            ">6BH2B",
+            K["W_" + self.wire],
+            self.flags,
+            K["C_" + self.target],
+            K["O_" + (self.out or self.natural_out())],
+            self.bit,
+            nsel or 0,
+            self.offset,
+            self.scale,
+            self.deadband,
+        )
+
+
+def seed(items: list[Item], count: int, data: bytes, *, bits: bool = False,
+         steps: tuple[int, ...] = (TRACK2, MUTATE, TRACK2, ALL2, VALUES, RESET, SHORTER),
+         after: bytes = b"\x00\x03\x12\x34\x00\x05", raw: int = 0x0102030405060708,
+         ctl_extra: int = 0, null_sel: int | None = None) -> bytes:
+    """One input: header, items, steps, encode selectors (19 bytes), block, step args."""
+    ctl = (1 if bits else 0) | ctl_extra | (4 if null_sel is not None else 0)
+    out = bytes([ctl]) + (bytes([null_sel]) if null_sel is not None else b"")
+    out += struct.pack(">HB", count, len(items)) + b"".join(it.pack() for it in items)
+    out += bytes([len(steps), *steps])
+    out += struct.pack(">QBBB", raw, 1, 2, 8) + bytes(8)  # raw, fval sel, max_regs, nbytes
+    return out + data + after
+
+
+def registers(values: list[int]) -> bytes:
+    return struct.pack(f">{len(values)}H", *values)
+
+
+def seeds() -> dict[str, bytes]:
+    swap = {"ABCD": 0, "BADC": K["F_BYTE_SWAP"], "CDAB": K["F_WORD_SWAP"],
+            "DCBA": K["F_BYTE_SWAP"] | K["F_WORD_SWAP"]}
+    fixed = [w for w in WIDTH if w != "COIL"]
+    ramp = registers([(0x1111 * k + 0x0102) & 0xFFFF for k in range(64)])
+    out: dict[str, bytes] = {}
+    for name, flags in swap.items():
+        items, at = [], 0
+        for w in fixed:
+            items.append(Item(w, at, flags=flags, bit=at % 16))
+            at += WIDTH[w]
+        out[f"wires-{name}"] = seed(items, at, ramp[: 2 * at])
+    scaled = K["F_DIVIDE"]
+    out["scaled-deadband"] = seed(
+        [Item("I16", 0, flags=scaled, scale=SCALE_10, deadband=DEADBAND_0_5),
+         Item("U32", 1, flags=K["F_MULTIPLY"], scale=SCALE_0_1),
+         Item("F32", 3, target="I16", out="I64"),
+         Item("F64", 5, target="U64", out="U64", deadband=DEADBAND_0_5)],
+        9, registers([0xFFFE, 0, 1000, 0x7FC0, 0, 0x4059, 0, 0, 0]),
+    )
+    out["conversions"] = seed(
+        [Item("I16", 0, target="U8"), Item("U16", 1, target="BCD16"),
+         Item("BCD16", 2), Item("BCD32", 3), Item("SEC32", 5, target="DATETIME"),
+         Item("MS64", 7, target="DATETIME"), Item("F32", 11, target="F32"),
+         Item("F64", 13, target="F32", out="F64"), Item("U64", 17, target="I8", out="I64"),
+         Item("I8", 21, target="BOOL", out="BOOL")],
+        22, registers([0xFF80, 0x1234, 0x12A4, 0x9999, 0x9999, 0xFFFF, 0xFFFF, 0x8000, 0, 0, 0,
+                       0x7F80, 0, 0x7FF0, 0, 0, 1, 0xFFFF, 0xFFFF, 0xFFFF, 0xFFFF, 0x00FF]),
+    )
+    out["coils"] = seed([Item("COIL", k) for k in range(16)], 16,
+                        bytes([k % 3 == 0 for k in range(16)]), bits=True)
+    out["strings"] = seed(
+        [Item("BYTES", 0, flags=K["F_STRIP"], nregs=5), Item("BYTES", 5, nregs=3),
+         Item("BYTES", 8, flags=K["F_STRIP"] | K["F_BYTE_SWAP"], nregs=2)],
+        10, b"hello\x00\x00\x00\x00\x00abcdef\x00\x00\x00\x00\x00\x00\x00\x00",
+    )
+    out["missing"] = seed([Item("U64", 60), Item("U16", 124), Item("BYTES", 100, nregs=125)], 125,
+                          ramp * 2, steps=(SHORTER, TRACK2, RESET, ALL2))
+    # absurd layout: raw slots, aux and lengths (ctl bit 1); most of it is refused
+    # wire flags target out bit nregs_sel, offset, scale (NaN), deadband (inf), slot, aux,
+    # nregs, and (nregs_sel odd) the offset's high half
+    absurd_item = struct.pack(">6BH2BHHHH", 18, 0xFF, 0, 4, 99, 1, 0xFFFF, NAN_SEL, NAN_SEL + 1,
+                              0, 0xFFF0, 0xFFFF, 0xFFFF)
+    out["absurd"] = (bytes([2]) + struct.pack(">HB", 256, 1) + absurd_item
+                     + struct.pack(">5H", 1, 1, 1, 1, 1000) + bytes([2, TRACK2, ALL2]) + bytes(19))
+    out["null-array"] = seed([Item("U16", 0)], 1, b"\x00\x01", null_sel=1)
+    out["empty-plan"] = seed([], 0, b"", null_sel=6)
+    return out
+
+
+# -- fuzz_frames ------------------------------------------------------------------------
+
+MBAP, ECHO, TRANSACT, SEND, ECHO_FIRST, FIXUP, WRONG_TID, CLOSE = 1, 2, 8, 12, 16, 32, 64, 128
+
+
+def frame_seed(ctl: int, slave: int, function: int, addr: int, nb: int, frames: list[bytes],
+               *, tid: int = 0x1233, stale: bytes = b"", pdu: bytes = b"",
+               rest: bytes = b"") -> bytes:
+    """ctl, slave, function-1, addr, nb, tid, stale bytes, [pdu], frames, raw rest."""
+    out = struct.pack(">BBBHHH", ctl, slave, function - 1, addr, nb, tid)
+    out += bytes([len(stale)]) + stale
+    if ctl & 12 >= TRANSACT:
+        out += bytes([len(pdu)]) + pdu
+    out += bytes([len(frames)]) + b"".join(bytes([len(f)]) + f for f in frames)
+    return out + rest
+
+
+def frame_seeds() -> dict[str, bytes]:
+    regs = bytes([1, 3, 4, 0x12, 0x34, 0xAB, 0xCD])  # slave 1, FC03, 2 registers
+    write = bytes([6, 0, 1, 0, 3])  # FC06 register 1 = 3
+    return {
+        "rtu-read": frame_seed(FIXUP, 1, 3, 0, 2, [regs]),
+        "rtu-read-coils": frame_seed(FIXUP, 1, 1, 0, 10, [bytes([1, 1, 2, 0xFF, 0x03])]),
+        "rtu-read-input": frame_seed(FIXUP, 9, 4, 7, 1, [bytes([9, 4, 2, 0x80, 0x01])]),
+        "rtu-exception": frame_seed(FIXUP, 1, 3, 0, 2, [bytes([1, 0x83, 2])]),
+        "rtu-other-slave": frame_seed(FIXUP, 1, 3, 0, 2, [bytes([2, *regs[1:]])]),
+        "rtu-wrong-count": frame_seed(FIXUP, 1, 3, 0, 3, [regs]),
+        "rtu-two-replies": frame_seed(FIXUP, 1, 3, 0, 2, [regs, bytes([1, 3, 4, 0, 1, 0, 2])]),
+        "rtu-stale-first": frame_seed(FIXUP, 1, 3, 0, 2, [regs], stale=b"\x01\x03\x04\x00"),
+        "rtu-echo": frame_seed(FIXUP | ECHO | ECHO_FIRST, 1, 3, 0, 2, [regs]),
+        "rtu-echo-unexpected": frame_seed(FIXUP | ECHO_FIRST, 1, 3, 0, 2, [regs]),
+        "rtu-short-then-close": frame_seed(CLOSE, 1, 3, 0, 2, [regs[:4]]),
+        "rtu-write": frame_seed(FIXUP | TRANSACT, 1, 3, 0, 0, [bytes([1, *write])], pdu=write),
+        "rtu-write-exception": frame_seed(FIXUP | TRANSACT, 1, 3, 0, 0, [bytes([1, 0x86, 4])],
+                                          pdu=write),
+        "rtu-broadcast": frame_seed(SEND, 0, 3, 0, 0, [], pdu=write),
+        "tcp-read": frame_seed(MBAP | FIXUP, 1, 3, 0, 2, [regs]),
+        "tcp-read-other-tid-first": frame_seed(MBAP | FIXUP | WRONG_TID, 1, 3, 0, 2,
+                                               [regs, regs]),
+        "tcp-exception": frame_seed(MBAP | FIXUP, 1, 4, 0, 2, [bytes([1, 0x84, 0x0B])]),
+        "tcp-write": frame_seed(MBAP | FIXUP | TRANSACT, 1, 3, 0, 0, [bytes([1, *write])],
+                                pdu=write),
+        "tcp-raw-header": frame_seed(MBAP, 1, 3, 0, 2, [bytes([0x12, 0x34, 0, 0, 0, 7]) + regs]),
+    }
+
+
+def write_seeds(directory: Path) -> dict[str, int]:
+    """Seeds of each harness in directory/seeds-<harness>; returns the counts."""
+    counts = {}
+    for harness, corpus in (("codec", seeds()), ("frames", frame_seeds())):
+        target = directory / f"seeds-{harness}"
+        target.mkdir(parents=True, exist_ok=True)
+        for name, data in corpus.items():
+            (target / name).write_bytes(data)
+        counts[harness] = len(corpus)
+    return counts
+
+
+if __name__ == "__main__":
+    target = Path(sys.argv[1]) if len(sys.argv) > 1 else ROOT / "build" / "fuzz"
+    print(f"fuzz_seeds: {write_seeds(target)} seeds in {target}")
