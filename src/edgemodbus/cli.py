@@ -148,13 +148,7 @@ def _demo(args: argparse.Namespace) -> int:
             )
             items = [it.model_copy(deep=True) for it in cfg.address_list]
             drivers.append(_start(org, comm, items, json_lines=False))
-        try:
-            _wait(args.seconds)
-        finally:
-            for drv in drivers:
-                drv.stop_device()
-        for drv in drivers:
-            _summary(drv)
+        _poll_until_done(drivers, args.seconds)
     return 0
 
 
@@ -178,12 +172,11 @@ def _run(args: argparse.Namespace) -> int:
                 print(f"{file}: device is disabled (isEnable false), not polled",
                       file=sys.stderr)
             drivers.append(drv)
-        _wait(args.seconds)
-    finally:
+    except BaseException:
         for drv in drivers:
             drv.stop_device()
-    for drv in drivers:
-        _summary(drv)
+        raise
+    _poll_until_done(drivers, args.seconds)
     return 0
 
 
@@ -262,6 +255,18 @@ def _one_item(args: argparse.Namespace) -> tuple[DriverModbusRtu, DeviceAddressI
     drv = DriverModbusRtu()
     drv.start_device(cfg.organization, cfg.communication, cfg.address_list)
     return drv, cfg.address_list[0]
+
+
+def _poll_until_done(drivers: list[DriverModbusRtu], seconds: float) -> None:
+    """Let the drivers poll for ``seconds`` (0: until Ctrl-C or SIGTERM), stop them,
+    then print one summary line each."""
+    try:
+        _wait(seconds)
+    finally:
+        for drv in drivers:
+            drv.stop_device()
+    for drv in drivers:
+        _summary(drv)
 
 
 def _wait(seconds: float) -> None:
