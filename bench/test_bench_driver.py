@@ -49,9 +49,10 @@ import edgemodbus as em
 from bench.conftest import QUICK, cpu_seconds, report, scale
 from bench.slave_process import Range, SimulatorProcess
 from edgemodbus._binding import Context
-from edgemodbus.bus import Bus, TcpEndpoint
+from edgemodbus.bus import Bus
 from edgemodbus.config import ItemStatus
 from edgemodbus.datatypes import Area
+from edgemodbus.line import TcpEndpoint
 
 SLAVES = list(range(1, 11))
 TAGS_PER_SLAVE = 1000

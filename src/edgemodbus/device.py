@@ -26,7 +26,7 @@ from datetime import datetime, timezone
 from typing import TYPE_CHECKING, Any, cast
 
 from ._binding import Block
-from .bus import Bus, Link
+from .bus import Bus
 from .codec import BlockDecoder, ValueSpec, encode
 from .config import DeviceDriverStatus, DriverModbusRtuParameter, ItemStatus, ParsedItem
 from .datatypes import Area
@@ -40,6 +40,7 @@ from .errors import (
     ModbusTimeoutError,
     ProtocolError,
 )
+from .link import Link
 from .normalize import normalize_value
 from .planner import Piece, PlanItem, ReadBlock, bisect_block, plan_reads
 

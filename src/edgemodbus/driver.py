@@ -17,7 +17,7 @@ from typing import Any, ClassVar
 
 from . import bus as _bus
 from . import dtu as _dtu
-from .bus import BusRegistry, DtuEndpoint, Link, SerialPort, TcpEndpoint
+from .bus import BusRegistry
 from .config import (
     DeviceAddressItem,
     DeviceDriverStatus,
@@ -29,6 +29,8 @@ from .config import (
 )
 from .datatypes import Area
 from .device import Device, ItemState, WriteOp, plan_writes
+from .line import DtuEndpoint, LineTiming, SerialPort, TcpEndpoint
+from .link import Link
 from .planner import ReadBlock
 
 Callback = Callable[[DeviceAddressItem], None]
@@ -84,7 +86,7 @@ class DriverModbusRtu:
             return False
         parsed = validate_items(list(addresses), params)
         endpoint = _endpoint(params)
-        timing = _bus.LineTiming(
+        timing = LineTiming(
             response_timeout=params.read_timeout / 1000,
             byte_timeout=params.byte_timeout / 1000,
             settle_timeout=None if params.settle_timeout is None else params.settle_timeout / 1000,

@@ -29,8 +29,10 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from ._binding import FD_SETSIZE
-from .bus import Bus, DtuEndpoint, LineTiming, Link, open_socket_link
+from .bus import Bus
 from .errors import ModbusConnectionError, ModbusError
+from .line import DtuEndpoint, LineTiming
+from .link import Link, open_socket_link
 
 log = logging.getLogger("edgemodbus.dtu")
 

@@ -25,7 +25,6 @@ import time
 from collections.abc import Callable
 
 from ._binding import Block
-from .bus import _QUIET_FLOOR, _READ_FC, Endpoint, LineStats, LineTiming, Link, crc16, log
 from .datatypes import Area
 from .errors import (
     CrcError,
@@ -35,6 +34,8 @@ from .errors import (
     ProtocolError,
     exception_for_code,
 )
+from .line import Endpoint, LineStats, LineTiming
+from .link import QUIET_FLOOR, READ_FC, Link, crc16, log
 from .wrapped import Report, ReportParser, wrap
 
 _POLL_IN = select.POLLIN | select.POLLERR | select.POLLHUP
@@ -66,7 +67,7 @@ class StreamLink(Link):
         self._fd = sock.fileno()
         self._mbap = False
         self._gap = 0.0
-        self._quiet = max(timing.byte_timeout, _QUIET_FLOOR)
+        self._quiet = max(timing.byte_timeout, QUIET_FLOOR)
         self._settle_limit = timing.settle + max(timing.settle, 0.5)
         self._drain_limit = self._quiet + 0.5
         self._pace = timing.request_interval
@@ -186,7 +187,7 @@ class StreamLink(Link):
         if self._ready_at:
             self._wait_turn()
         self.stats.requests += 1
-        fc = _READ_FC[area]
+        fc = READ_FC[area]
         nbytes = (count + 7) // 8 if area.is_bit else 2 * count
         start = time.monotonic()
         try:

@@ -18,7 +18,7 @@ import logging
 import struct
 from dataclasses import dataclass
 
-from .bus import crc16
+from .link import crc16
 
 log = logging.getLogger("edgemodbus.wrapped")
 

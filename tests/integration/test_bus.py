@@ -9,7 +9,7 @@ from concurrent.futures import Future
 
 import pytest
 
-from edgemodbus.bus import Bus, BusRegistry, LineTiming, SerialPort, TcpEndpoint
+from edgemodbus.bus import Bus, BusRegistry
 from edgemodbus.datatypes import Area
 from edgemodbus.errors import (
     IllegalDataAddress,
@@ -18,6 +18,7 @@ from edgemodbus.errors import (
     ModbusTimeoutError,
     SlaveDeviceBusy,
 )
+from edgemodbus.line import LineTiming, SerialPort, TcpEndpoint
 from tests.peers import ExceptionRange, PtyPair, PymodbusSlave, default_bit, default_register
 
 FAST = LineTiming(response_timeout=0.5, byte_timeout=0.05, reconnect_interval=0.3,

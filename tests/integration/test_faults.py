@@ -22,7 +22,7 @@ from typing import Any
 import pytest
 
 import edgemodbus as em
-from edgemodbus.bus import Bus, LineTiming, Link, TcpEndpoint, crc16
+from edgemodbus.bus import Bus
 from edgemodbus.config import DeviceDriverStatus, ItemStatus
 from edgemodbus.datatypes import Area
 from edgemodbus.errors import (
@@ -35,6 +35,8 @@ from edgemodbus.errors import (
     SlaveDeviceBusy,
     SlaveDeviceFailure,
 )
+from edgemodbus.line import LineTiming, TcpEndpoint
+from edgemodbus.link import Link, crc16
 from edgemodbus.simulator import Simulator, default_bit, default_register
 
 HR = Area.HOLDING_REGISTER

@@ -10,7 +10,6 @@ import socket
 import pytest
 
 from edgemodbus import _binding
-from edgemodbus.bus import crc16
 from edgemodbus.errors import (
     CrcError,
     GatewayTargetFailedToRespond,
@@ -24,6 +23,7 @@ from edgemodbus.errors import (
     SlaveDeviceBusy,
     exception_for_code,
 )
+from edgemodbus.link import crc16
 
 ENOBASE = 112345678  # MODBUS_ENOBASE in modbus.h
 

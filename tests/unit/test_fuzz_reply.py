@@ -22,8 +22,8 @@ import struct
 from hypothesis import HealthCheck, event, given, settings
 from hypothesis import strategies as st
 
-from edgemodbus.bus import Link
 from edgemodbus.errors import ModbusError, ModbusExceptionResponse, ProtocolError
+from edgemodbus.link import Link
 from edgemodbus.simulator import Slave, _crc_ok, _frame, _split_frames
 
 EXAMPLES = int(os.environ.get("EDGEMODBUS_FUZZ_EXAMPLES", "200"))
@@ -39,7 +39,7 @@ units = st.integers(1, 247)
 
 @st.composite
 def write_pdus(draw: st.DrawFn) -> bytes:
-    """A write request PDU as bus.Link builds it (FC05, 06, 15, 16, 22)."""
+    """A write request PDU as link.Link builds it (FC05, 06, 15, 16, 22)."""
     fc = draw(st.sampled_from([5, 6, 15, 16, 22]))
     address = draw(u16)
     if fc == 5:

@@ -1,0 +1,174 @@
+"""What a line is: its endpoint (serial port, TCP peer, DTU behind a listener), its
+timing, and the counters its worker keeps.  Plain data, shared by the bus and the link."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+
+@dataclass(frozen=True)
+class SerialPort:
+    """Settings of a serial line (Modbus over Serial Line v1.02, 2.5)."""
+
+    port: str
+    baudrate: int = 9600
+    parity: str = "N"  # N, E or O
+    data_bits: int = 8
+    stop_bits: int = 1
+    rs485: str = "none"  # none | kernel (TIOCSRS485) | rts-up | rts-down
+    echo: bool = False  # the adapter echoes every request (2-wire, no echo suppression)
+
+    @property
+    def key(self) -> tuple[str, ...]:
+        return ("rtu", self.port)
+
+    @property
+    def char_time(self) -> float:
+        """Seconds per character: start + data + parity + stop bits."""
+        bits = 1 + self.data_bits + (0 if self.parity == "N" else 1) + self.stop_bits
+        return bits / self.baudrate
+
+    @property
+    def frame_gap(self) -> float:
+        """Silence between frames: 3.5 characters, fixed at 1.75 ms above 19200 baud
+        (Modbus over Serial Line v1.02, 2.5.1.1)."""
+        return 0.00175 if self.baudrate > 19200 else 3.5 * self.char_time
+
+    def describe(self) -> str:
+        return (
+            f"{self.port} {self.baudrate} {self.data_bits}{self.parity}{self.stop_bits}"
+            f" rs485={self.rs485}" + (" echo" if self.echo else "")
+        )
+
+    @property
+    def max_frame_time(self) -> float:
+        """Seconds to transmit the largest RTU frame (256 bytes, Serial Line 2.5.1)."""
+        return 256 * self.char_time
+
+
+@dataclass(frozen=True)
+class TcpEndpoint:
+    """A TCP peer: raw RTU frames without MBAP ("rtu-over-tcp") or Modbus TCP ("tcp")."""
+
+    host: str
+    port: int
+    transport: str = "rtu-over-tcp"
+    echo: bool = False  # RTU over TCP: the serial side echoes every request
+    framing: str = "rtu"  # rtu | wrapped-report (RTU over TCP only)
+    heartbeat: bytes = b""  # a DTU's idle heartbeat packet, skipped (RTU over TCP only)
+
+    def __post_init__(self) -> None:
+        if self.transport not in ("rtu-over-tcp", "tcp"):
+            raise ValueError(
+                f"transport {self.transport!r}: a TCP endpoint uses 'rtu-over-tcp' or 'tcp'"
+            )
+        if self.echo and self.transport == "tcp":
+            raise ValueError("echo: a Modbus TCP (MBAP) link has no request echo; "
+                             "the option is for RTU lines")
+        if not 1 <= self.port <= 65535:
+            raise ValueError(f"tcpPort {self.port}: must be 1..65535")
+        if self.transport == "tcp" and (self.framing != "rtu" or self.heartbeat):
+            raise ValueError(f"framing {self.framing!r}/heartbeat: Modbus TCP (MBAP) has its "
+                             "own framing; use transport rtu-over-tcp or rtu-over-tcp-server")
+
+    @property
+    def key(self) -> tuple[str, ...]:
+        return (self.transport, self.host, str(self.port))
+
+    def describe(self) -> str:
+        return f"{self.transport}://{self.host}:{self.port}" + (
+            " echo" if self.echo else "") + (
+            " wrapped" if self.framing == "wrapped-report" else "")
+
+    @property
+    def max_frame_time(self) -> float:
+        return 0.0
+
+
+@dataclass(frozen=True)
+class DtuEndpoint:
+    """One DTU that dials in to our listen port (``rtu-over-tcp-server``): raw RTU
+    frames (or wrapped reports) over a TCP connection the DTU opened."""
+
+    listen_host: str
+    listen_port: int
+    dtu_id: str  # "" with registration none: the port's only DTU
+    echo: bool = False
+    framing: str = "rtu"  # rtu | wrapped-report
+    heartbeat: bytes = b""
+
+    @property
+    def key(self) -> tuple[str, ...]:
+        return ("dtu", self.listen_host, str(self.listen_port), self.dtu_id)
+
+    def describe(self) -> str:
+        name = self.dtu_id or "(single)"
+        return f"dtu {name}@{self.listen_host}:{self.listen_port}" + (
+            " echo" if self.echo else "") + (
+            " wrapped" if self.framing == "wrapped-report" else "")
+
+    @property
+    def max_frame_time(self) -> float:
+        return 0.0
+
+
+Endpoint = SerialPort | TcpEndpoint | DtuEndpoint
+
+
+@dataclass(frozen=True)
+class LineTiming:
+    """Timeouts and pacing of a line, in seconds."""
+
+    response_timeout: float = 1.0
+    byte_timeout: float = 0.2
+    settle_timeout: float | None = None  # None: the response timeout; 0 disables settling
+    connect_timeout: float = 3.0
+    reconnect_interval: float = 5.0  # first wait after a lost link or failed connect
+    max_backoff: float = 60.0  # the wait doubles per failed connect up to this
+    request_interval: float = 0.0  # extra silence between requests, for slow devices
+    turnaround_delay: float = 0.1  # after a broadcast, before the next request
+
+    @property
+    def settle(self) -> float:
+        return self.response_timeout if self.settle_timeout is None else self.settle_timeout
+
+
+@dataclass
+class LineStats:
+    """Counters of one line, updated by its worker only."""
+
+    requests: int = 0
+    responses: int = 0
+    timeouts: int = 0
+    crc_errors: int = 0
+    protocol_errors: int = 0
+    exceptions: dict[int, int] = field(default_factory=dict)
+    link_errors: int = 0
+    connects: int = 0
+    reconnects: int = 0
+    connect_failures: int = 0
+    discarded_bytes: int = 0
+    heartbeats: int = 0  # DTU heartbeat packets discarded
+    reports: int = 0  # wrapped report frames received unsolicited
+    dropped_frames: int = 0  # wrapped frames dropped (bad header, tail, CRC, length)
+    rtt_total: float = 0.0
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "requests": self.requests,
+            "responses": self.responses,
+            "timeouts": self.timeouts,
+            "crcErrors": self.crc_errors,
+            "protocolErrors": self.protocol_errors,
+            "exceptions": dict(self.exceptions),
+            "linkErrors": self.link_errors,
+            "connects": self.connects,
+            "reconnects": self.reconnects,
+            "connectFailures": self.connect_failures,
+            "discardedBytes": self.discarded_bytes,
+            "heartbeats": self.heartbeats,
+            "reports": self.reports,
+            "droppedFrames": self.dropped_frames,
+            "avgRoundTrip": self.rtt_total / self.responses if self.responses else 0.0,
+        }
