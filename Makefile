@@ -37,7 +37,7 @@ demo: build
 	$(BIN)/edgemodbus demo
 
 lint: build
-	$(BIN)/ruff check src tests bench
+	$(BIN)/ruff check src tests bench tools
 	$(BIN)/mypy
 
 test: build lint

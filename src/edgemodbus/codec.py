@@ -34,7 +34,7 @@ from . import _binding
 from ._binding import Block, CodecItem, CodecPlan
 from .datatypes import Area, DataFormat, DataType
 
-__all__ = ["BlockDecoder", "Report", "ValueSpec", "check_spec", "encode", "merge_bit"]
+__all__ = ["BlockDecoder", "Report", "ValueSpec", "check_spec", "encode", "register_bit"]
 
 _W = _binding.codec_constants("W")
 _F = _binding.codec_constants("F")
@@ -555,19 +555,17 @@ def _encode_time(spec: ValueSpec, value: object, wire: str) -> int:
     return raw
 
 
-def merge_bit(spec: ValueSpec, register: int, value: object) -> int:
-    """The register with the item's bit set to ``value`` (read-modify-write of a bit item);
-    the bit is counted after the byte swap, as when it is read."""
+def register_bit(spec: ValueSpec) -> int:
+    """The position on the wire of a bit item's bit: the item's bit is counted after the
+    format's byte swap (as when it is read), so under BADC/DCBA bit 3 is wire bit 11."""
     if spec.bit is None:
         raise ValueError(f"item {spec.name!r} is not a bit of a register")
-    pos = spec.bit ^ 8 if spec.data_format.byte_swap else spec.bit
-    mask = 1 << pos
-    return (register | mask) if _as_bool(spec, value) else (register & ~mask & 0xFFFF)
+    return spec.bit ^ 8 if spec.data_format.byte_swap else spec.bit
 
 
 def encode(spec: ValueSpec, value: object) -> list[int]:
     """The registers to write for ``value`` (or [0 | 1] for a Boolean: a coil, a bit of a
-    register — merge it with :func:`merge_bit` — or a whole register).  Applies the
+    register — at :func:`register_bit` — or a whole register).  Applies the
     inverse of the converted type and multiplier, then the item's format."""
     check_spec(spec, Area.HOLDING_REGISTER)
     t = spec.data_type

@@ -27,7 +27,7 @@ from typing import TYPE_CHECKING, Any, cast
 
 from ._binding import Block
 from .bus import Bus
-from .codec import BlockDecoder, ValueSpec, encode
+from .codec import BlockDecoder, ValueSpec, encode, register_bit
 from .config import DeviceDriverStatus, DriverModbusRtuParameter, ItemStatus, ParsedItem
 from .datatypes import Area
 from .errors import (
@@ -694,9 +694,7 @@ def plan_writes(device: Device, items: list[tuple[str, Any]]) -> list[WriteOp]:
         value = normalize_value(name, spec.converted_type or spec.data_type, raw)
         if state.area is Area.COIL or state.bit is not None:
             on = bool(encode(spec, value)[0])
-            # the codec counts a register's bits after the format's byte swap
-            raw_bit = None if state.bit is None else state.bit ^ (
-                8 if spec.data_format.byte_swap else 0)
+            raw_bit = None if state.bit is None else register_bit(spec)
             single.append(WriteOp(state.area, state.offset, bits=[on], bit=raw_bit,
                                   updates=[(state, on)]))
             continue

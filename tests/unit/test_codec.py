@@ -8,7 +8,7 @@ import math
 import pytest
 
 from edgemodbus._binding import Block
-from edgemodbus.codec import BlockDecoder, ValueSpec, check_spec, encode, merge_bit
+from edgemodbus.codec import BlockDecoder, ValueSpec, check_spec, encode, register_bit
 from edgemodbus.datatypes import Area, DataFormat, DataType
 
 HR = Area.HOLDING_REGISTER
@@ -168,12 +168,14 @@ def test_coils_and_bits_of_registers() -> None:
     assert one(ValueSpec("x", T.BOOLEAN), 0) is False
 
 
-def test_bit_writes_merge_into_the_register() -> None:
+def test_bit_writes_target_the_wire_bit() -> None:
     spec = ValueSpec("b", T.BOOLEAN, bit=3)
     assert encode(spec, True) == [1]
-    assert merge_bit(spec, 0xFF00, True) == 0xFF08
-    assert merge_bit(spec, 0xFFFF, False) == 0xFFF7
-    assert merge_bit(ValueSpec("b", T.BOOLEAN, F.BADC, bit=3), 0, True) == 0x0800
+    assert register_bit(spec) == 3
+    assert register_bit(ValueSpec("b", T.BOOLEAN, F.BADC, bit=3)) == 11
+    assert register_bit(ValueSpec("b", T.BOOLEAN, F.DCBA, bit=12)) == 4
+    with pytest.raises(ValueError, match="not a bit"):
+        register_bit(ValueSpec("b", T.BOOLEAN))
     assert encode(ValueSpec("c", T.BOOLEAN), "false") == [0]
 
 
