@@ -106,10 +106,10 @@ class Counters:
 class ItemState:
     """A configured item with what the driver needs to read, decode and write it."""
 
-    __slots__ = ("area", "bit", "item", "offset", "parsed", "size", "spec")
+    __slots__ = ("area", "bit", "item", "offset", "size", "spec")
 
     def __init__(self, parsed: ParsedItem) -> None:
-        self.parsed = parsed
+        # the ParsedItem itself is not kept: a gateway holds tens of thousands of these
         self.item: DeviceAddressItem = parsed.item
         self.area: Area = parsed.address.area
         self.offset: int = parsed.address.offset
@@ -253,7 +253,8 @@ class Device:
 
     def _install(self, parsed: Sequence[ParsedItem]) -> None:
         old = self.by_name
-        items = [ItemState(p) for p in parsed if p.item.is_enable]
+        enabled = [p for p in parsed if p.item.is_enable]
+        items = [ItemState(p) for p in enabled]
         for state in items:
             prev = old.get(state.item.name)
             if prev is not None and prev.item is not state.item and prev.same_definition(state):
@@ -261,7 +262,7 @@ class Device:
         self.items = items
         self.by_name = {s.item.name: s for s in items}
         self._report_decoders = {}
-        blocks = build_plan([s.parsed for s in items], self.params)
+        blocks = build_plan(enabled, self.params)
         self.slots = [self._make_slot(b) for b in blocks]
 
     def _make_slot(self, block: ReadBlock) -> _Slot:
