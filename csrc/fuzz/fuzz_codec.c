@@ -44,35 +44,8 @@
 #define MAX_REGS 257
 #define MAX_BITS 2049
 
-#define CHECK(cond)                                                                       \
-    do {                                                                                  \
-        if (!(cond)) {                                                                    \
-            fprintf(stderr, "fuzz_codec: contract violated at line %d: %s\n", __LINE__,   \
-                    #cond);                                                               \
-            abort();                                                                      \
-        }                                                                                 \
-    } while (0)
-
-/* --- input reader ------------------------------------------------------------------- */
-
-typedef struct reader {
-    const uint8_t *p;
-    size_t n;
-} reader;
-
-static uint8_t rd8(reader *r)
-{
-    if (r->n == 0)
-        return 0;
-    r->n--;
-    return *r->p++;
-}
-
-static uint16_t rd16(reader *r)
-{
-    uint16_t hi = rd8(r);
-    return (uint16_t)(hi << 8 | rd8(r));
-}
+#define FUZZ_NAME "fuzz_codec"
+#include "fuzz_input.h"
 
 static uint64_t rd64(reader *r)
 {

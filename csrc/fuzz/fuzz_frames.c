@@ -47,33 +47,8 @@ ssize_t send(int fd, const void *buf, size_t n, int flags);
 #include <stdio.h>
 #include <stdlib.h>
 
-#define CHECK(cond)                                                                       \
-    do {                                                                                  \
-        if (!(cond)) {                                                                    \
-            fprintf(stderr, "fuzz_frames: contract violated at line %d: %s\n", __LINE__,  \
-                    #cond);                                                               \
-            abort();                                                                      \
-        }                                                                                 \
-    } while (0)
-
-typedef struct reader {
-    const uint8_t *p;
-    size_t n;
-} reader;
-
-static uint8_t rd8(reader *r)
-{
-    if (r->n == 0)
-        return 0;
-    r->n--;
-    return *r->p++;
-}
-
-static uint16_t rd16(reader *r)
-{
-    uint16_t hi = rd8(r);
-    return (uint16_t)(hi << 8 | rd8(r));
-}
+#define FUZZ_NAME "fuzz_frames"
+#include "fuzz_input.h"
 
 /* What the peer sends once the request is out. */
 static struct script {
