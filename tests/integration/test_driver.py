@@ -21,6 +21,7 @@ import edgemodbus as em
 from edgemodbus.config import DeviceDriverStatus, ItemStatus
 from edgemodbus.simulator import Simulator
 from tests.peers import PymodbusSlave, default_bit, default_register
+from tests.waiting import wait_for
 
 DATA = Path(__file__).resolve().parents[1] / "data"
 
@@ -41,15 +42,6 @@ def device(port: int, items: list[dict[str, Any]], slave: int = 1, **extra: Any)
         "communication": comm(port, slave, **extra),
         "addressList": items,
     })
-
-
-def wait_for(cond: Callable[[], bool], timeout: float = 5.0, what: str = "") -> None:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if cond():
-            return
-        time.sleep(0.02)
-    raise AssertionError(f"timed out waiting for {what or cond}")
 
 
 class Running:

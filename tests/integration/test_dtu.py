@@ -17,21 +17,13 @@ from edgemodbus import dtu
 from edgemodbus.config import DeviceDriverStatus, ItemStatus
 from edgemodbus.datatypes import Area
 from edgemodbus.simulator import Simulator, default_register
+from tests.waiting import wait_for
 
 
 def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
-
-
-def wait_for(cond: Callable[[], bool], timeout: float = 8.0, what: str = "") -> None:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if cond():
-            return
-        time.sleep(0.02)
-    raise AssertionError(f"timed out waiting for {what or cond}")
 
 
 def dtu_device(port: int, dtu_id: str, slave: int = 1, addresses: tuple[int, ...] = (0, 1, 7),

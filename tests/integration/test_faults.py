@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from datetime import datetime, timedelta, timezone
 from typing import Any
@@ -38,6 +38,7 @@ from edgemodbus.errors import (
 from edgemodbus.line import LineTiming, TcpEndpoint
 from edgemodbus.link import Link, crc16
 from edgemodbus.simulator import Simulator, default_bit, default_register
+from tests.waiting import wait_for
 
 HR = Area.HOLDING_REGISTER
 OK, INVALID = ItemStatus.OK, ItemStatus.INVALID
@@ -46,15 +47,6 @@ FRAME_10_REGS = 25  # slave + FC + byte count + 20 data bytes + CRC
 
 
 # --------------------------------------------------------------------------- helpers
-def wait_for(cond: Callable[[], bool], timeout: float = 8.0, what: str = "") -> None:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if cond():
-            return
-        time.sleep(0.01)
-    raise AssertionError(f"timed out after {timeout} s waiting for {what or cond}")
-
-
 def hr_items(start: int, count: int) -> list[dict[str, Any]]:
     return [{"name": f"hr{a}", "address": f"hr:{a}", "deviceDataType": "UInt16"}
             for a in range(start, start + count)]

@@ -17,6 +17,7 @@ from edgemodbus.config import ConfigError, DeviceDriverStatus, ItemStatus
 from edgemodbus.mqtt import MqttPublisher, MqttSettings, encode_item, jsonable, parse_command
 from tests.mosquitto import Mosquitto, MqttProbe
 from tests.peers import PymodbusSlave, default_register, free_port
+from tests.waiting import wait_for
 
 P = "edgemodbus"
 
@@ -75,14 +76,6 @@ class Gateway:
         self.pub.stop()
 
 
-def wait_until(cond: Any, timeout: float = 10.0, what: str = "") -> None:
-    deadline = time.monotonic() + timeout
-    while not cond():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out waiting for {what or cond}")
-        time.sleep(0.02)
-
-
 @pytest.mark.parametrize("qos", [0, 1])  # 0: our raw PUBLISH packets; 1: paho's publish()
 def test_item_updates_status_and_snapshot_reach_a_subscriber(
     broker: Mosquitto, slave: PymodbusSlave, qos: int
@@ -103,7 +96,7 @@ def test_item_updates_status_and_snapshot_reach_a_subscriber(
 
         # report mode "change": an unchanged value is not published again...
         cycles = gw.drv.stats()["cycles"]
-        wait_until(lambda: gw.drv.stats()["cycles"] >= cycles + 5, what="5 more cycles")
+        wait_for(lambda: gw.drv.stats()["cycles"] >= cycles + 5, what="5 more cycles")
         assert len(probe.on(f"{P}/dev1/t0")) == 1
         # ...a changed one is, with its new value
         slave.set_registers(1, "hr", 0, [4242])
@@ -210,16 +203,16 @@ def test_broker_restart_coalesces_snapshots_drops_updates_and_recovers(
             probe.stop()
         assert gw.pub.wait_connected(5)
         broker.stop()
-        wait_until(lambda: not gw.pub.connected, what="publisher sees the broker go")
+        wait_for(lambda: not gw.pub.connected, what="publisher sees the broker go")
         cycles = gw.drv.stats()["cycles"]
         slave.set_registers(1, "hr", 0, [50_000 + i for i in range(20)])  # 20 updates
-        wait_until(lambda: gw.pub.stats()["dropped"] >= 15, what="queue overflow")
-        wait_until(lambda: gw.pub.stats()["snapshotsCoalesced"] >= 2, what="coalescing")
+        wait_for(lambda: gw.pub.stats()["dropped"] >= 15, what="queue overflow")
+        wait_for(lambda: gw.pub.stats()["snapshotsCoalesced"] >= 2, what="coalescing")
         stats = gw.pub.stats()
         assert stats["queued"] == 5 and stats["pendingSnapshots"] == 1
         assert stats["devices"]["dev1"]["dropped"] == stats["dropped"]
         # polling went on at full speed while the broker was away
-        wait_until(lambda: gw.drv.stats()["cycles"] >= cycles + 10, timeout=5,
+        wait_for(lambda: gw.drv.stats()["cycles"] >= cycles + 10, timeout=5,
                    what="polling while the broker is down")
         assert gw.drv.stats()["overruns"] == 0
 
@@ -240,8 +233,8 @@ def test_unreachable_broker_never_blocks_polling_or_stop(slave: PymodbusSlave) -
     cfg = device(slave.port)
     gw = Gateway(free_port(), cfg, reconnectMin=50, reconnectMax=200)
     with gw:
-        wait_until(lambda: gw.drv.stats().get("cycles", 0) >= 5, what="polling")
-        wait_until(lambda: gw.pub.stats()["connectFailures"] >= 2, what="retries")
+        wait_for(lambda: gw.drv.stats().get("cycles", 0) >= 5, what="polling")
+        wait_for(lambda: gw.pub.stats()["connectFailures"] >= 2, what="retries")
         started = time.monotonic()
     assert time.monotonic() - started < 1.5
     assert not gw.pub.connected
