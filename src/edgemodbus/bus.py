@@ -125,6 +125,11 @@ class Bus:
     def running(self) -> bool:
         return self._thread is not None and not self._stopping.is_set()
 
+    def on_worker(self) -> bool:
+        """True on this bus's worker thread (in a callback), where waiting for a queued
+        job would wait forever."""
+        return threading.current_thread() is self._thread
+
     # -- pollers ---------------------------------------------------------------------
     def attach(self, poller: Poller) -> None:
         with self._pollers_lock:

@@ -290,11 +290,16 @@ class Device:
         """Swap in a new address list on the worker, between two reads."""
         assert self.bus is not None
 
-        def swap(_link: Link) -> None:
+        def swap(_link: Link | None = None) -> None:
             self._install(parsed)
             self.index = 0
             self.due = math.inf if self.report_only else time.monotonic()
 
+        if self.bus.on_worker():  # from a callback: the worker is between two reads
+            swap()
+            done: Future[None] = Future()
+            done.set_result(None)
+            return done
         return self.bus.submit(swap)
 
     # -- the Poller protocol -----------------------------------------------------------

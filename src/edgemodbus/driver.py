@@ -211,6 +211,12 @@ class DriverModbusRtu:
     def write_addresses(self, items: Iterable[tuple[str, Any]]) -> tuple[bool, str | None]:
         """Write several items, merging contiguous registers (or coils) of one area into
         as few requests as possible.  (False, reasons) if any write failed."""
+        bus = self._bus
+        if bus is not None and bus.on_worker():
+            return False, (
+                "write_address(es) called on the bus worker (from a callback) cannot wait "
+                "for its own line: use write_address(es)_async, or write from another thread"
+            )
         prepared = self._prepare_writes(items)
         if isinstance(prepared, str):
             return False, prepared

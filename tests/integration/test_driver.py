@@ -415,3 +415,26 @@ def test_snapshot_and_stats_keys(slave: PymodbusSlave) -> None:
                 "maxCycleTime", "avgRoundTrip", "callbackErrors", "valuesChanged"):
         assert key in stats, key
     assert stats["cycles"] >= 1 and stats["requests"] >= 1
+
+
+def test_callbacks_may_update_addresses_but_not_wait_for_a_write(slave: PymodbusSlave) -> None:
+    """A callback runs on the bus worker: a blocking write there would wait for itself."""
+    cfg = device(slave.port, [{"name": "a", "address": "hr:1", "deviceDataType": "UInt16"}])
+    results: list[tuple[bool, str | None]] = []
+    new_items = em.load_device_config({
+        "communication": comm(slave.port),
+        "addressList": [{"name": "b", "address": "hr:2", "deviceDataType": "UInt16"}],
+    }).address_list
+
+    runner = Running(cfg)
+
+    def on_item(item: em.DeviceAddressItem) -> None:
+        if not results:
+            results.append(runner.drv.write_address("a", 1))
+            runner.drv.update_addresses(new_items)
+
+    runner.drv.address_updated_callback = on_item
+    with runner:
+        wait_for(lambda: new_items[0].status is ItemStatus.OK, what="re-planned from a callback")
+    assert results[0][0] is False and "bus worker" in (results[0][1] or "")
+    assert slave.registers(1, "hr", 1, 1) == [default_register(1, "hr", 1)]  # not written
