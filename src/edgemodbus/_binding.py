@@ -324,6 +324,23 @@ class Context:
         block.count = rc
         return block
 
+    def read_decode(self, slave: int, function: int, address: int, count: int,
+                    plan: CodecPlan, mode: int) -> int:
+        """:meth:`read`, then decode the block through ``plan`` in the same C call;
+        returns the count the decode reports.  The block stays readable as with read."""
+        bits = function in (1, 2)
+        if bits != plan.bits:
+            raise ValueError(f"codec: a plan for {'registers' if bits else 'bits'} used "
+                             f"for FC{function:02d}")
+        block = self.bits if bits else self.registers
+        rc = lib.emb_read_decode(self._ptr, self._link, slave, function, address, count,
+                                 block._ptr, self._rsp, plan._plan, mode)
+        if rc == -1:
+            raise self._error(ffi.errno, f"slave {slave} FC{function:02d} @{address}+{count}",
+                              function, 2 * count if function > 2 else (count + 7) // 8)
+        block.count = count
+        return int(rc)
+
     def transact(self, slave: int, pdu: bytes) -> bytes:
         """Send ``pdu`` (function code first) to ``slave`` and return the reply ADU.
 

@@ -380,14 +380,27 @@ class BlockDecoder:
     def decode(self, block: Block, report_all: bool = False) -> list[Report]:
         """(index, value or None, error reason or None) of every item whose value or
         status changed since it was last reported (all of them when ``report_all``)."""
+        plan, mode = self.begin(report_all)
+        return self.finish(plan.decode(block, mode), report_all)
+
+    def begin(self, report_all: bool) -> tuple[CodecPlan, int]:
+        """The C plan and mode of the next decode, for a caller that runs it itself (the
+        bus reads and decodes a block in one C call); then call :meth:`finish`."""
         if report_all:
-            return self._decode_all(block)
-        plan = self._plan
+            if not self._reported:
+                self._plan.reset()  # no tuples cached: have C report every item
+            return self._plan, _binding.CODEC_MODE_ALL
         if self._reported:
             self._reported = []  # the report-all cache no longer mirrors the C state
-        n = plan.decode(block, _binding.CODEC_MODE_TRACK)
+        return self._plan, _binding.CODEC_MODE_TRACK
+
+    def finish(self, n: int, report_all: bool) -> list[Report]:
+        """The reports of a decode that returned ``n`` (see :meth:`decode`)."""
+        if report_all:
+            return self._finish_all(n)
         if not n:
             return []
+        plan = self._plan
         changed = plan.changed(n)
         if n * 8 >= plan.n_items:  # many changed: convert the arrays in one go
             values = plan.values()
@@ -399,16 +412,13 @@ class BlockDecoder:
             for k in changed
         ]
 
-    def _decode_all(self, block: Block) -> list[Report]:
+    def _finish_all(self, n: int) -> list[Report]:
         """Report every item; keeps the last tuples so that only the items whose value
         or status moved are rebuilt (reportMode "cycle" reports everything each read)."""
         plan = self._plan
         total = plan.n_items
-        if not self._reported:
-            plan.reset()  # no tuples cached: have C report every item
-        n = plan.decode(block, _binding.CODEC_MODE_ALL)
         reported = self._reported
-        if n == total or 2 * n >= total:
+        if n == total or 2 * n >= total or not reported:
             # Most items are new: build every tuple in one go (a report of all items
             # holds the current value of each, so the rebuilt cache still mirrors C).
             values = plan.values()

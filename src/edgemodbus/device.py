@@ -28,6 +28,7 @@ from typing import TYPE_CHECKING, Any, cast
 from ._binding import Block
 from .bus import Bus
 from .codec import BlockDecoder, ValueSpec, encode, register_bit
+from .codec import Report as Change
 from .config import DeviceDriverStatus, DriverModbusRtuParameter, ItemStatus, ParsedItem
 from .datatypes import Area
 from .errors import (
@@ -366,19 +367,26 @@ class Device:
             self._end_cycle(failed=False)
             return
         slot = slots[index]
-        block = slot.block
         link.set_response_timeout(self.timeout)
         self.counters.requests += 1
         try:
-            data = link.read(self.slave, block.area, block.start, block.count)
+            data, changes = self._read_slot(link, slot)
         except ModbusError as exc:
             self._read_failed(link, slot, exc)
             return
-        self._good_read(slot, data)
+        self._good_read(slot, data, changes)
 
-    def _good_read(self, slot: _Slot, data: Block) -> None:
+    def _read_slot(self, link: Link, slot: _Slot) -> tuple[Block, list[Change]]:
+        """Read a block and decode its whole items (one C call on the libmodbus path)."""
+        block = slot.block
+        if slot.decoder is None:
+            return link.read(self.slave, block.area, block.start, block.count), []
+        return link.read_decode(self.slave, block.area, block.start, block.count,
+                                slot.decoder, self.report_all)
+
+    def _good_read(self, slot: _Slot, data: Block, changes: list[Change]) -> None:
         self.counters.responses += 1
-        self._apply(slot, data)
+        self._apply(slot, data, changes)
         if self.status is not DeviceDriverStatus.RUNNING:
             self._back_online()
         self.index += 1
@@ -406,11 +414,11 @@ class Device:
             counters.retries += 1
             counters.requests += 1
             try:
-                data = link.read(self.slave, block.area, block.start, block.count)
+                data, changes = self._read_slot(link, slot)
             except ModbusError as exc:
                 error = exc
                 continue
-            self._good_read(slot, data)
+            self._good_read(slot, data, changes)
             return
         slots = self.slots
         if isinstance(error, ModbusConnectionError):
@@ -439,28 +447,28 @@ class Device:
             if self.index >= len(slots):
                 self._end_cycle(failed=False)
 
-    def _apply(self, slot: _Slot, data: Block) -> None:
+    def _apply(self, slot: _Slot, data: Block, changes: list[Change]) -> None:
+        """Store what a good read of ``slot`` changed: its whole items' ``changes`` (from
+        the decoder) and the items assembled from pieces."""
         reported: list[DeviceAddressItem] = []
         now: datetime | None = None
-        if slot.decoder is not None:
-            changes = slot.decoder.decode(data, self.report_all)
-            if changes:
-                now = datetime.now(timezone.utc)
-                items = slot.items
-                for index, value, error in changes:  # _set_item, inlined: the hot loop
-                    item = items[index]
-                    fields = item.__dict__
-                    if error is None:
-                        fields["value"] = value
-                        if fields["status"] is not _OK:
-                            fields["status"] = _OK
-                        if fields["error_reason"] is not None:
-                            fields["error_reason"] = None
-                    else:
-                        fields["status"] = _INVALID
-                        fields["error_reason"] = error
-                    fields["update_ts"] = now
-                    reported.append(item)
+        if changes:
+            now = datetime.now(timezone.utc)
+            items = slot.items
+            for index, value, error in changes:  # _set_item, inlined: the hot loop
+                item = items[index]
+                fields = item.__dict__
+                if error is None:
+                    fields["value"] = value
+                    if fields["status"] is not _OK:
+                        fields["status"] = _OK
+                    if fields["error_reason"] is not None:
+                        fields["error_reason"] = None
+                else:
+                    fields["status"] = _INVALID
+                    fields["error_reason"] = error
+                fields["update_ts"] = now
+                reported.append(item)
         if slot.partial:
             values = data.to_list()
             for piece, asm in slot.partial:

@@ -16,7 +16,8 @@ import time
 from collections.abc import Callable, Sequence
 
 from . import _binding
-from ._binding import Block, Context
+from ._binding import Block, CodecPlan, Context
+from .codec import BlockDecoder, Report
 from .datatypes import Area
 from .errors import (
     CrcError,
@@ -148,28 +149,47 @@ class Link:
     def read(self, slave: int, area: Area, address: int, count: int) -> Block:
         """Read ``count`` bits or registers (FC01-04).  The returned block is the
         context's buffer: use it before the next request."""
+        return self._read(slave, area, address, count, None, 0)[0]
+
+    def read_decode(self, slave: int, area: Area, address: int, count: int,
+                    decoder: BlockDecoder, report_all: bool) -> tuple[Block, list[Report]]:
+        """Read a block and decode it in one C call: the block, and the decoder's
+        reports (see :meth:`BlockDecoder.decode`)."""
+        plan, mode = decoder.begin(report_all)
+        block, n = self._read(slave, area, address, count, plan, mode)
+        return block, decoder.finish(n, report_all)
+
+    def _read(self, slave: int, area: Area, address: int, count: int,
+              plan: CodecPlan | None, mode: int) -> tuple[Block, int]:
         if not self.is_open:
             raise ModbusConnectionError(f"{self.endpoint.describe()}: link is down")
         if self._ready_at:
             self._wait_turn()
         stats = self.stats
         stats.requests += 1
+        function = READ_FC[area]
         if self._trace:
-            self._log_frame("TX", slave, struct.pack(">BHH", READ_FC[area], address, count))
+            self._log_frame("TX", slave, struct.pack(">BHH", function, address, count))
         start = time.monotonic()
+        ctx = self._ctx
+        n = 0
         try:
-            block = self._ctx.read(slave, READ_FC[area], address, count)
+            if plan is None:
+                block = ctx.read(slave, function, address, count)
+            else:
+                n = ctx.read_decode(slave, function, address, count, plan, mode)
+                block = ctx.bits if function < 3 else ctx.registers
         except ModbusError as exc:
             raise self._fail(exc) from None
         finally:
-            stats.discarded_bytes += self._ctx.take_discarded()
+            stats.discarded_bytes += ctx.take_discarded()
             if self._trace:
                 self._log_reply()
             if self._pace:
                 self._done()
         stats.responses += 1
         stats.rtt_total += time.monotonic() - start
-        return block
+        return block, n
 
     # -- writes (Modbus Application Protocol v1.1b3, 6.5, 6.6, 6.11, 6.12, 6.16) ------
     def write_coil(self, slave: int, address: int, value: bool) -> None:

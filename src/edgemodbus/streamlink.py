@@ -25,6 +25,8 @@ import time
 from collections.abc import Callable
 
 from ._binding import Block
+from .codec import BlockDecoder
+from .codec import Report as CodecReport
 from .datatypes import Area
 from .errors import (
     CrcError,
@@ -181,6 +183,12 @@ class StreamLink(Link):
         return found
 
     # -- transactions --------------------------------------------------------------------
+    def read_decode(self, slave: int, area: Area, address: int, count: int,
+                    decoder: BlockDecoder, report_all: bool) -> tuple[Block, list[CodecReport]]:
+        """Framed in Python: read, then decode (no combined C call on this path)."""
+        block = self.read(slave, area, address, count)
+        return block, decoder.decode(block, report_all)
+
     def read(self, slave: int, area: Area, address: int, count: int) -> Block:
         if not self.is_open:
             raise ModbusConnectionError(f"{self.endpoint.describe()}: link is down")
