@@ -16,6 +16,7 @@ between two blocks.  Faults are handled per slave:
 
 from __future__ import annotations
 
+import bisect
 import logging
 import math
 import time
@@ -54,6 +55,20 @@ _MAX_WRITE_REGISTERS = 123  # FC16 (Modbus Application Protocol v1.1b3, 6.12)
 _MAX_WRITE_COILS = 1968  # FC15 (6.11)
 
 
+# upper bounds (seconds) of the cycle-time histogram behind the Prometheus exporter
+CYCLE_BUCKETS = (0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0)
+
+
+def _histogram(bounds: tuple[float, ...], counts: list[int], total: float) -> dict[str, Any]:
+    """Cumulative buckets, Prometheus style: [[le, count <= le], ..., ["+Inf", all]]."""
+    buckets: list[list[Any]] = []
+    running = 0
+    for le, n in zip((*bounds, "+Inf"), counts, strict=True):
+        running += n
+        buckets.append([le, running])
+    return {"buckets": buckets, "sum": total, "count": running}
+
+
 @dataclass
 class Counters:
     """Per-device counters behind ``DriverModbusRtu.stats()``."""
@@ -72,6 +87,7 @@ class Counters:
     last_cycle_time: float = 0.0
     total_cycle_time: float = 0.0
     max_cycle_time: float = 0.0
+    cycle_hist: list[int] = field(default_factory=lambda: [0] * (len(CYCLE_BUCKETS) + 1))
     callback_errors: int = 0
     callback_time: float = 0.0
     values_changed: int = 0
@@ -95,6 +111,8 @@ class Counters:
             "lastCycleTime": self.last_cycle_time,
             "avgCycleTime": self.total_cycle_time / self.cycles if self.cycles else 0.0,
             "maxCycleTime": self.max_cycle_time,
+            "cycleTimeHistogram": _histogram(CYCLE_BUCKETS, self.cycle_hist,
+                                             self.total_cycle_time),
             "callbackErrors": self.callback_errors,
             "callbackTime": self.callback_time,
             "valuesChanged": self.values_changed,
@@ -552,6 +570,7 @@ class Device:
         counters.last_cycle_time = elapsed
         counters.total_cycle_time += elapsed
         counters.max_cycle_time = max(counters.max_cycle_time, elapsed)
+        counters.cycle_hist[bisect.bisect_left(CYCLE_BUCKETS, elapsed)] += 1
         self.index = 0
         if failed:
             counters.failed_cycles += 1

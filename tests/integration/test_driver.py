@@ -415,6 +415,11 @@ def test_snapshot_and_stats_keys(slave: PymodbusSlave) -> None:
                 "maxCycleTime", "avgRoundTrip", "callbackErrors", "valuesChanged"):
         assert key in stats, key
     assert stats["cycles"] >= 1 and stats["requests"] >= 1
+    hist = stats["cycleTimeHistogram"]
+    counts = [n for _, n in hist["buckets"]]
+    assert counts == sorted(counts) and hist["buckets"][-1] == ["+Inf", stats["cycles"]]
+    assert hist["count"] == stats["cycles"]
+    assert hist["sum"] == pytest.approx(stats["avgCycleTime"] * stats["cycles"])
 
 
 def test_callbacks_may_update_addresses_but_not_wait_for_a_write(slave: PymodbusSlave) -> None:
