@@ -38,16 +38,18 @@ class CliError(Exception):
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = _parser()
-    args = parser.parse_args(argv)
-    logging.basicConfig(
-        level=logging.DEBUG if args.verbose > 1 else logging.INFO if args.verbose else
-        logging.WARNING,
-        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
-    )
-    if args.command == "simulate":
+    argv = list(sys.argv[1:] if argv is None else argv)
+    command_at = next((i for i, a in enumerate(argv) if not a.startswith("-")), len(argv))
+    if argv[command_at:command_at + 1] == ["simulate"]:
+        # the simulator parses its own options (argparse.REMAINDER would not take options
+        # such as --port that follow a sub-command)
+        args = parser.parse_args([*argv[:command_at], "simulate"])
+        _configure_logging(args.verbose)
         from .simulator import main as simulate
 
-        return simulate(args.rest)
+        return simulate(argv[command_at + 1:])
+    args = parser.parse_args(argv)
+    _configure_logging(args.verbose)
     try:
         result: int = args.func(args)
         return result
@@ -56,6 +58,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     except KeyboardInterrupt:
         return 130
+
+
+def _configure_logging(verbose: int) -> None:
+    logging.basicConfig(
+        level=logging.DEBUG if verbose > 1 else logging.INFO if verbose else logging.WARNING,
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+    )
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -94,9 +103,8 @@ def _parser() -> argparse.ArgumentParser:
     plan.add_argument("file", type=Path)
     plan.set_defaults(func=_plan)
 
-    sim = sub.add_parser("simulate", help="serve simulated RTU slaves (see simulate -h)",
-                         add_help=False)
-    sim.add_argument("rest", nargs=argparse.REMAINDER)
+    sub.add_parser("simulate", help="serve simulated RTU slaves (see simulate -h)",
+                   add_help=False)
 
     desc = sub.add_parser("descriptor", help="print the driver descriptor JSON")
     desc.add_argument("--prefix", choices=["function-code", "modicon"], default="function-code")

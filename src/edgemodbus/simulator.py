@@ -1617,7 +1617,23 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--no-tcp", action="store_true", help="do not listen on TCP")
     parser.add_argument("--movers", action="store_true", help="add the demo's moving values")
     parser.add_argument("--seed", type=int, default=None, help="seed of random faults")
+    parser.add_argument("--dial", metavar="HOST:PORT", default=None,
+                        help="DTU-client mode: connect to a master listening there "
+                        "(rtu-over-tcp-server) instead of listening")
+    parser.add_argument("--registration", default="",
+                        help="with --dial: registration packet sent first (text)")
+    parser.add_argument("--heartbeat", default="", help="with --dial: heartbeat packet (text)")
+    parser.add_argument("--heartbeat-interval", type=float, default=0.0,
+                        help="with --dial: seconds between heartbeats (0: none)")
+    parser.add_argument("--wrapped", action="store_true",
+                        help="speak the edge MCU's wrapped report frames")
     args = parser.parse_args(argv)
+    dial: tuple[str, int] | None = None
+    if args.dial is not None:
+        host, _, port_text = args.dial.rpartition(":")
+        if not host or not port_text.isdigit() or not 1 <= int(port_text) <= 65535:
+            parser.error(f"--dial {args.dial!r}: use HOST:PORT with a port of 1..65535")
+        dial = (host, int(port_text))
 
     stop = threading.Event()
     previous: dict[signal.Signals, Any] = {}
@@ -1629,8 +1645,13 @@ def main(argv: Sequence[str] | None = None) -> int:
             if args.movers:
                 for slave in sim.slaves:
                     add_demo_movers(slave)
-            if not args.no_tcp:
-                port = sim.serve_tcp(args.host, args.port)
+            if dial is not None:
+                sim.dial(dial[0], dial[1], registration=args.registration.encode(),
+                         heartbeat=args.heartbeat.encode(),
+                         heartbeat_interval=args.heartbeat_interval, wrapped=args.wrapped)
+                print(f"dialled {dial[0]}:{dial[1]}", flush=True)
+            elif not args.no_tcp:
+                port = sim.serve_tcp(args.host, args.port, wrapped=args.wrapped)
                 print(f"tcp {args.host}:{port}", flush=True)
             if args.pty:
                 print(f"pty {sim.serve_pty()}", flush=True)

@@ -74,3 +74,36 @@ def test_demo_runs_and_summarises() -> None:
     summary = [line for line in text.splitlines() if line.startswith("Demo001-")]
     assert len(summary) == 2 and all("0 timeouts" in line for line in summary)
     assert all(" 0 cycles" not in line for line in summary)
+
+
+def test_simulate_dials_a_listening_driver() -> None:
+    """`edgemodbus simulate --dial` plays a DTU that dials in to a listen-mode driver."""
+    import edgemodbus as em
+    from tests.peers import free_port
+    from tests.waiting import wait_for
+
+    port = free_port()
+    cfg = em.load_device_config({
+        "communication": {"transport": "rtu-over-tcp-server", "listenHost": "127.0.0.1",
+                          "listenPort": port, "registration": "text", "dtuId": "DTU-7",
+                          "slaveId": 3, "readCycle": 200, "readTimeout": 500},
+        "addressList": [{"name": "r", "address": "hr:42", "deviceDataType": "UInt16"}],
+    })
+    drv = em.DriverModbusRtu()
+    assert drv.start_device(cfg.organization, cfg.communication, cfg.address_list)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "edgemodbus.cli", "simulate", "--dial", f"127.0.0.1:{port}",
+         "--registration", "DTU-7", "--slaves", "3"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )
+    try:
+        item = cfg.address_list[0]
+        wait_for(lambda: item.status is em.ItemStatus.OK, timeout=15, what="a value via the DTU")
+        assert item.value == (3 * 1000 + 42)  # the simulator's address-derived value
+        assert drv.device_driver_status is em.DeviceDriverStatus.RUNNING
+    finally:
+        proc.terminate()
+        proc.communicate(timeout=10)
+        drv.stop_device()
+    out = cli("simulate", "--dial", "nowhere")
+    assert out.returncode == 2 and "HOST:PORT" in out.stderr
