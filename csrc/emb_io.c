@@ -125,14 +125,12 @@ long emb_discard_input(int fd, int total_ms, int quiet_ms, int limit_ms)
     long discarded = 0;
     long waited;
     long timeout;
-    struct pollfd pfd;
     int rc;
     ssize_t n;
 
     if (limit_ms < total_ms)
         limit_ms = total_ms;
     clock_gettime(CLOCK_MONOTONIC, &start);
-    pfd.fd = fd;
     for (;;) {
         waited = emb_elapsed_ms(&start);
         if (discarded == 0) {
@@ -142,20 +140,11 @@ long emb_discard_input(int fd, int total_ms, int quiet_ms, int limit_ms)
             if (quiet_ms < timeout)
                 timeout = quiet_ms;
         }
-        pfd.events = POLLIN;
-        pfd.revents = 0;
-        rc = poll(&pfd, 1, timeout > 0 ? (int)timeout : 0);
-        if (rc == -1) {
-            if (errno == EINTR)
-                continue;
+        rc = emb_wait_readable(fd, timeout > 0 ? (int)timeout : 0);
+        if (rc == -1)
             return -1;
-        }
         if (rc == 0)
             return discarded;
-        if (pfd.revents & POLLNVAL) {
-            errno = EBADF;
-            return -1;
-        }
         n = read(fd, sink, sizeof(sink));
         if (n == 0) {
             errno = emb_eof_errno(fd);
