@@ -128,12 +128,11 @@ class MetricsExporter:
     def __init__(self, settings: MetricsSettings | Mapping[str, Any] | None = None, *,
                  gateway_id: str | None = None) -> None:
         try:
-            import prometheus_client  # noqa: F401
+            from prometheus_client import CollectorRegistry
         except ImportError:  # pragma: no cover - depends on the install
             raise ImportError(
                 "metrics need prometheus_client: pip install 'edgemodbus[metrics]'"
             ) from None
-        from prometheus_client import CollectorRegistry
 
         if settings is None:
             settings = MetricsSettings()
