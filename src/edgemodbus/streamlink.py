@@ -59,7 +59,11 @@ class StreamLink(Link):
         wrapped: bool = False,
         on_report: Callable[[Report], None] | None = None,
         on_close: Callable[[], None] | None = None,
+        initial: bytes = b"",
     ) -> None:
+        """``initial``: bytes that came on the socket before the link (after a DTU's
+        registration): taken as if received now (reports dispatched, heartbeats
+        counted), nothing having been asked yet."""
         # no libmodbus context: Link's attributes that its shared helpers use are set here
         self._sock = sock
         self._conn = sock
@@ -87,6 +91,8 @@ class StreamLink(Link):
         self._poll.register(self._fd, _POLL_IN)
         self.idle_fd = self._fd if wrapped else None
         sock.setblocking(False)
+        if initial:
+            self._take(initial, None)
 
     # -- bookkeeping ---------------------------------------------------------------------
     def set_response_timeout(self, seconds: float) -> None:

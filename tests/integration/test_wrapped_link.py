@@ -4,6 +4,7 @@ are dropped and counted.  The peer is our simulator in wrapped mode."""
 
 from __future__ import annotations
 
+import itertools
 import select
 import socket
 import struct
@@ -99,6 +100,21 @@ def test_report_only_device_takes_unsolicited_reports_in_listen_mode() -> None:
         client.push_report(1, Area.INPUT_REGISTER, 1, 2)
         wait_for(lambda: drv.stats()["line"]["reports"] >= 5)
         assert value_of(cfg, "r1") == 774 and drv.stats()["reports"] == 3
+
+
+def test_a_report_in_the_registration_segment_is_applied() -> None:
+    """The MCU registers and reports at once, in one TCP segment: the report after the
+    registration is neither lost nor taken for part of the id (the wrapped header ends
+    a text id)."""
+    port = free_port()
+    cfg = wrapped_device({"transport": "rtu-over-tcp-server", "listenHost": "127.0.0.1",
+                          "listenPort": port, "dtuId": "MCU1", "registration": "text",
+                          "readCycle": 0})
+    report = wrap(80, 1, bytes.fromhex("03021234"))
+    with Simulator(slaves=[1]) as sim, running(cfg) as drv:
+        sim.dial("127.0.0.1", port, registration=b"MCU1" + report, wrapped=True)
+        wait_for(lambda: value_of(cfg, "r80") == 0x1234, what="the report applied")
+        assert drv.stats()["reports"] == 1 and drv.stats()["line"]["droppedFrames"] == 0
 
 
 def test_client_mode_integrity_poll_and_wrapped_writes() -> None:
@@ -227,6 +243,6 @@ def test_a_report_that_looks_like_the_reply_but_has_another_count_is_a_report() 
         assert all(v == EagerMcu.polled(address) or (v - 9000) % 10 == address
                    for v in values), (name, values)
         # each report is followed by the polled value: the poll's reply was its own
-        for before, after in zip(values, values[1:]):
+        for before, after in itertools.pairwise(values):
             if before >= 9000:
                 assert after == EagerMcu.polled(address), (name, values)
