@@ -90,9 +90,7 @@ def expected_drops(pieces: list[bytes]) -> int:
             absorbing = False
         elif piece == BAD_CRC:
             drops, absorbing = drops + 1, False
-        elif piece in END_UNKNOWN:
-            drops, absorbing = drops + 1, True
-        elif not absorbing:
+        elif piece in END_UNKNOWN or not absorbing:  # a bad frame, or noise starting a run
             drops, absorbing = drops + 1, True
     return drops
 
