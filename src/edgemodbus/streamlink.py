@@ -6,9 +6,10 @@ Two cases need it, both on RTU-over-TCP sockets (client or listen mode):
   a request and its reply; libmodbus' RTU receive would take them for the start of the
   reply and fail.  Here they are skipped wherever they arrive and counted.
 * Wrapped report frames of an edge MCU (:mod:`edgemodbus.wrapped`): requests go out
-  wrapped (``FF AA`` + register address + RTU frame + ``0D``), the reply is the report
-  frame with the same slave, function and address, and reports that arrive unsolicited
-  (also while idle: the bus watches :attr:`idle_fd`) go to the bus's devices.
+  wrapped (``FF AA`` + register address + RTU frame + ``0D``), the reply is the frame
+  with the same slave, function and address and, for a read, the byte count the request
+  asks for; all other frames, also while a request waits (and while idle: the bus
+  watches :attr:`idle_fd`), are unsolicited reports and go to the bus's devices.
 
 The checks are those of the libmodbus path (csrc/emb_io.c): CRC, slave id, function
 code, exception responses, the byte count of a read, the echo of a write; after a
@@ -58,7 +59,11 @@ class StreamLink(Link):
         wrapped: bool = False,
         on_report: Callable[[Report], None] | None = None,
         on_close: Callable[[], None] | None = None,
+        initial: bytes = b"",
     ) -> None:
+        """``initial``: bytes that came on the socket before the link (after a DTU's
+        registration): taken as if received now (reports dispatched, heartbeats
+        counted), nothing having been asked yet."""
         # no libmodbus context: Link's attributes that its shared helpers use are set here
         self._sock = sock
         self._conn = sock
@@ -86,6 +91,8 @@ class StreamLink(Link):
         self._poll.register(self._fd, _POLL_IN)
         self.idle_fd = self._fd if wrapped else None
         sock.setblocking(False)
+        if initial:
+            self._take(initial, None)
 
     # -- bookkeeping ---------------------------------------------------------------------
     def set_response_timeout(self, seconds: float) -> None:
@@ -256,15 +263,21 @@ class StreamLink(Link):
         return self._receive_rtu(slave, pdu, nbytes, what)
 
     def _receive_wrapped(self, slave: int, pdu: bytes, nbytes: int | None, what: str) -> bytes:
-        """The reply is the wrapped frame of our slave, function and address; others that
-        come meanwhile are unsolicited reports.  No frame within the response timeout
-        is a timeout (a write then counts as not confirmed)."""
+        """The reply is the wrapped frame of our slave, function and address and, for a
+        read, with the byte count the request asks for (``nbytes``); every other frame
+        that comes meanwhile, also one of our slave, function and address with another
+        count (the MCU reporting a range that starts where we read), is an unsolicited
+        report, and the reply is still awaited.  No reply within the response timeout is
+        a timeout (a write then counts as not confirmed)."""
         fc = pdu[0]
         address = struct.unpack_from(">H", pdu, 1)[0]
 
         def ours(report: Report) -> bool:
-            return (report.slave == slave and report.address == address
-                    and report.function in (fc, fc | 0x80))
+            if report.slave != slave or report.address != address:
+                return False
+            if report.function == fc | 0x80:
+                return True
+            return report.function == fc and (nbytes is None or report.data[0] == nbytes)
 
         deadline = time.monotonic() + self._response_timeout
         while True:
@@ -276,8 +289,6 @@ class StreamLink(Link):
                 continue
             if report.function & 0x80:
                 raise exception_for_code(report.data[0], what)
-            if nbytes is not None and (not report.data or report.data[0] != nbytes):
-                raise ProtocolError(f"{what}: byte count does not match the request")
             return bytes([report.slave, report.function]) + report.data
 
     def _receive_rtu(self, slave: int, pdu: bytes, nbytes: int | None, what: str) -> bytes:

@@ -10,6 +10,11 @@ go down wrapped the same way and the device echoes them, wrapped, as confirmatio
 This module parses such a byte stream incrementally (frames split over or packed into
 TCP segments) and builds wrapped requests; bad frames are dropped, logged with their
 hex and counted, and parsing resynchronises on the next header.
+
+Counting: each bad frame, and each run of noise between frames, is one drop.  After a
+frame whose end is known (its length and 0D tail agree, the CRC does not) the bytes up to
+that end belong to it; after one whose end is unknown, the bytes up to the next header
+do.  Such bytes are discarded without being counted again.
 """
 
 from __future__ import annotations
@@ -94,6 +99,9 @@ class ReportParser:
         self.frames = 0
         self.dropped = 0
         self.heartbeats = 0
+        # bytes after the current position that belong to the last dropped frame (not
+        # another drop): a count, or None for "up to the next header"
+        self._absorb: int | None = 0
 
     def feed(self, data: bytes) -> list[Report]:
         """Add received bytes; return the complete, valid frames found so far."""
@@ -114,17 +122,17 @@ class ReportParser:
                     keep = max(keep, _partial(buf, self.heartbeat))
                     noise = len(buf) - keep
                     if noise:
-                        self._drop(bytes(buf[:noise]), "no FF AA header")
+                        self._noise(bytes(buf[:noise]))
                         del buf[:noise]
                     break
-                self._drop(bytes(buf[:start]), "no FF AA header")
+                self._noise(bytes(buf[:start]))
                 del buf[:start]
+            self._absorb = 0  # a header: a new frame begins
             length = _rtu_length(buf, _PREFIX)
             if length is None:
                 break
             if length == 0 or length > _MAX_RTU:
-                self._drop(bytes(buf[:_PREFIX + 2]), "not a Modbus reply")
-                del buf[:2]
+                self._bad(bytes(buf[:_PREFIX + 2]), "not a Modbus reply", None)
                 continue
             end = _PREFIX + length + 1
             if len(buf) < end:
@@ -132,18 +140,38 @@ class ReportParser:
             frame = bytes(buf[:end])
             rtu = frame[_PREFIX:-1]
             if frame[-1] != TAIL:
-                self._drop(frame, "no 0D tail (length does not add up)")
-                del buf[:2]
+                self._bad(frame, "no 0D tail (length does not add up)", None)
                 continue
             if crc16(rtu[:-2]) != rtu[-2:]:
-                self._drop(frame, "CRC error")
-                del buf[:2]
+                self._bad(frame, "CRC error", end)
                 continue
             del buf[:end]
             self.frames += 1
             address = struct.unpack_from(">H", frame, 2)[0]
             reports.append(Report(address, rtu[0], rtu[1], rtu[2:-2], frame))
         return reports
+
+    def _bad(self, raw: bytes, why: str, end: int | None) -> None:
+        """Drop the frame at the start of the buffer: count it, then skip its header
+        only (a real header may follow inside it); the rest of it, up to ``end`` if known,
+        else up to the next header, is not counted again."""
+        self._drop(raw, why)
+        del self._buf[:2]
+        self._absorb = None if end is None else end - 2
+
+    def _noise(self, raw: bytes) -> None:
+        """Discard bytes before a header: the rest of the last dropped frame, or noise
+        (one drop per run, however it is split over segments)."""
+        absorb = self._absorb
+        if absorb is None:
+            log.debug("wrapped report: %d more bytes of a dropped frame: %s", len(raw),
+                      raw.hex(" ").upper())
+            return
+        if len(raw) <= absorb:
+            self._absorb = absorb - len(raw)
+            return
+        self._drop(raw[absorb:], "no FF AA header")
+        self._absorb = None  # the run of noise goes on up to the next header
 
     def _drop(self, raw: bytes, why: str) -> None:
         self.dropped += 1

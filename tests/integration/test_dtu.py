@@ -6,11 +6,15 @@ registers and answers as RTU slaves.
 
 from __future__ import annotations
 
+import select
 import socket
+import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import ExitStack, contextmanager
 from typing import Any
+
+import pytest
 
 import edgemodbus as em
 from edgemodbus import dtu
@@ -169,3 +173,87 @@ def test_devices_on_one_port_must_agree_on_its_registration() -> None:
             drv.stop_device()
             raise AssertionError("conflicting registration accepted")
     assert dtu.registry.listener("127.0.0.1", port) is None  # stopped with its last device
+
+
+class SegmentedDtu:
+    """A DTU that dials in and sends its registration in TCP segments with short pauses
+    between them, then passes bytes through to a simulator's TCP port (its slaves)."""
+
+    def __init__(self, port: int, segments: Sequence[bytes], slave_port: int,
+                 pause: float = 0.05) -> None:
+        self._down = socket.create_connection(("127.0.0.1", slave_port))
+        self._up = socket.create_connection(("127.0.0.1", port))
+        self._up.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        for i, segment in enumerate(segments):
+            if i:
+                time.sleep(pause)
+            self._up.sendall(segment)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._relay, name="segmented-dtu")
+        self._thread.start()
+
+    def _relay(self) -> None:
+        pair = {self._up: self._down, self._down: self._up}
+        while not self._stop.is_set():
+            for sock in select.select(list(pair), [], [], 0.05)[0]:
+                try:
+                    data = sock.recv(4096)
+                except OSError:
+                    return
+                if not data:
+                    return
+                pair[sock].sendall(data)
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(5)
+        self._up.close()
+        self._down.close()
+
+
+@pytest.mark.parametrize(("mode", "short", "long", "short_reg", "long_segments"), [
+    ("text", "DTU1", "DTU10", b"DTU1", [b"DTU1", b"0"]),
+    ("hex", "0102", "010203", b"\x01\x02", [b"\x01\x02", b"\x03"]),
+    ("regex", "1", "10", b"ID:1\r\n", [b"ID:", b"1", b"0\r\n"]),
+])
+def test_a_registration_in_segments_is_never_taken_for_an_id_it_begins_with(
+        mode: str, short: str, long: str, short_reg: bytes, long_segments: list[bytes]) -> None:
+    """DTU10's registration arrives as "DTU1", then "0" (hex: 01 02, then 03; regex:
+    "ID:", "1", "0\\r\\n"): it is DTU10's, not DTU1's.  Each device shows its own DTU's
+    values, and DTU10's never appear on DTU1's device with status Ok."""
+    port = free_port()
+    extra: dict[str, Any] = {"registration": mode, "registrationTimeout": 3000}
+    if mode == "regex":
+        extra["registrationPattern"] = r"ID:(\d+)"
+    short_cfg = dtu_device(port, short, **extra)
+    long_cfg = dtu_device(port, long, **extra)
+    long_values = [2000, 2001, 2007]
+    on_short: list[tuple[Any, ItemStatus]] = []
+    with ExitStack() as stack:
+        sim_short = stack.enter_context(Simulator(slaves=[1]))
+        sim_long = stack.enter_context(Simulator(slaves=[1]))
+        sim_long.slave(1).set_registers(Area.HOLDING_REGISTER, 0, list(range(2000, 2008)))
+        short_drv, _ = stack.enter_context(running(short_cfg, long_cfg))
+        short_drv.address_updated_callback = lambda it: on_short.append((it.value, it.status))
+
+        def long_value_on_short() -> bool:
+            return any(v in long_values and st is ItemStatus.OK for v, st in on_short)
+
+        started = time.monotonic()
+        relay = SegmentedDtu(port, long_segments, sim_long.serve_tcp("127.0.0.1", 0))
+        stack.callback(relay.close)
+        wait_for(lambda: ok(long_cfg)() or long_value_on_short(), what=f"{long} Ok")
+        assert not long_value_on_short(), on_short
+        assert values(long_cfg) == long_values
+        assert time.monotonic() - started < 2.5  # well before the registration timeout
+        sim_short.dial("127.0.0.1", port, registration=short_reg)
+        wait_for(ok(short_cfg), what=f"{short} Ok")
+        assert values(short_cfg) == [default_register(1, a) for a in (0, 1, 7)]
+        requests = sim_long.slave(1).stats()["requests"]
+        wait_for(lambda: sim_long.slave(1).stats()["requests"] > requests + 3)
+        assert values(long_cfg) == long_values and values(short_cfg) == [
+            default_register(1, a) for a in (0, 1, 7)]
+        assert not long_value_on_short(), on_short
+        listener = dtu.registry.listener("127.0.0.1", port)
+        assert listener is not None
+        assert listener.stats["registered"] == 2 and listener.stats["unknown"] == 0

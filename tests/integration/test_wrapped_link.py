@@ -4,6 +4,11 @@ are dropped and counted.  The peer is our simulator in wrapped mode."""
 
 from __future__ import annotations
 
+import itertools
+import select
+import socket
+import struct
+import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -13,6 +18,7 @@ import edgemodbus as em
 from edgemodbus.config import DeviceDriverStatus, ItemStatus
 from edgemodbus.datatypes import Area
 from edgemodbus.simulator import DtuClient, Simulator
+from edgemodbus.wrapped import wrap
 from tests.integration.test_dtu import free_port, wait_for
 
 ADDRESSES = (1, 2, 30, 80)
@@ -78,15 +84,37 @@ def test_report_only_device_takes_unsolicited_reports_in_listen_mode() -> None:
         wait_for(lambda: value_of(cfg, "r1") == 773, what="single report applied")
         stats = drv.stats()
         assert stats["reports"] == 2
-        assert stats["line"]["droppedFrames"] >= 2  # bad CRC, then the noise before FF AA
+        assert stats["line"]["droppedFrames"] == 2  # bad CRC, then the noise 00 13
+        # a frame whose length and tail disagree is one drop, its rest is not noise
+        sim.slave(1).set_registers(Area.HOLDING_REGISTER, 1, [774])
+        client.send(bytes.fromhex("FFAA0001010302030578B70E"))
+        client.push_report(1, Area.HOLDING_REGISTER, 1, 1)
+        wait_for(lambda: value_of(cfg, "r1") == 774, what="report after a bad tail")
+        stats = drv.stats()
+        assert stats["line"]["droppedFrames"] == 3 and stats["reports"] == 3
         assert stats["line"]["heartbeats"] == 1
         assert stats["requests"] == 0  # report-only: never polled
         # a report for another slave or area touches nothing of this device
         sim.add_slave(2)
         client.push_report(2, Area.HOLDING_REGISTER, 1, 2)
         client.push_report(1, Area.INPUT_REGISTER, 1, 2)
-        wait_for(lambda: drv.stats()["line"]["reports"] >= 4)
-        assert value_of(cfg, "r1") == 773 and drv.stats()["reports"] == 2
+        wait_for(lambda: drv.stats()["line"]["reports"] >= 5)
+        assert value_of(cfg, "r1") == 774 and drv.stats()["reports"] == 3
+
+
+def test_a_report_in_the_registration_segment_is_applied() -> None:
+    """The MCU registers and reports at once, in one TCP segment: the report after the
+    registration is neither lost nor taken for part of the id (the wrapped header ends
+    a text id)."""
+    port = free_port()
+    cfg = wrapped_device({"transport": "rtu-over-tcp-server", "listenHost": "127.0.0.1",
+                          "listenPort": port, "dtuId": "MCU1", "registration": "text",
+                          "readCycle": 0})
+    report = wrap(80, 1, bytes.fromhex("03021234"))
+    with Simulator(slaves=[1]) as sim, running(cfg) as drv:
+        sim.dial("127.0.0.1", port, registration=b"MCU1" + report, wrapped=True)
+        wait_for(lambda: value_of(cfg, "r80") == 0x1234, what="the report applied")
+        assert drv.stats()["reports"] == 1 and drv.stats()["line"]["droppedFrames"] == 0
 
 
 def test_client_mode_integrity_poll_and_wrapped_writes() -> None:
@@ -115,3 +143,115 @@ def test_client_mode_integrity_poll_and_wrapped_writes() -> None:
             assert not ok and err is not None and "timeout" in err
             assert time.monotonic() - started >= 0.25
             assert drv.stats()["writeErrors"] == 1
+
+
+class EagerMcu:
+    """An edge MCU (TCP server, wrapped frames) that, on a read of holding registers from
+    ``REPORT_AT``, first pushes an unsolicited report from the same address for two more
+    registers (its own, newer values), then answers the read: the report has the
+    request's slave, function and address, and only its byte count tells it apart."""
+
+    REPORT_AT = 1
+
+    def __init__(self) -> None:
+        self._listener = socket.create_server(("127.0.0.1", 0))
+        self.port = int(self._listener.getsockname()[1])
+        self._stop = threading.Event()
+        self.reports = 0
+        self.replies = 0
+        self._thread = threading.Thread(target=self._run, name="eager-mcu")
+        self._thread.start()
+
+    @staticmethod
+    def polled(address: int) -> int:
+        return 500 + address
+
+    @staticmethod
+    def reported(seq: int, address: int) -> int:
+        return 9000 + 10 * seq + address
+
+    def _run(self) -> None:
+        with self._listener:
+            while not self._stop.is_set():
+                if select.select([self._listener], [], [], 0.05)[0]:
+                    conn, _ = self._listener.accept()
+                    with conn:
+                        self._serve(conn)
+
+    def _serve(self, conn: socket.socket) -> None:
+        buf = b""
+        while not self._stop.is_set():
+            if not select.select([conn], [], [], 0.05)[0]:
+                continue
+            data = conn.recv(4096)
+            if not data:
+                return
+            buf += data
+            while len(buf) >= 13:  # FF AA | address | slave fc start count CRC | 0D
+                request, buf = buf[:13], buf[13:]
+                slave, fc, start, count = struct.unpack_from(">BBHH", request, 4)
+                assert request[:2] == b"\xff\xaa" and fc == 3, request.hex()
+                if start == self.REPORT_AT:
+                    n = count + 2
+                    regs = [self.reported(self.reports, start + i) for i in range(n)]
+                    conn.sendall(wrap(start, slave, struct.pack(f">BB{n}H", 3, 2 * n, *regs)))
+                    self.reports += 1
+                    if self.reports % 2:
+                        time.sleep(0.005)  # every other report in a segment of its own
+                regs = [self.polled(start + i) for i in range(count)]
+                conn.sendall(wrap(start, slave, struct.pack(f">BB{count}H", 3, 2 * count,
+                                                            *regs)))
+                self.replies += 1
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(5)
+
+
+def test_a_report_that_looks_like_the_reply_but_has_another_count_is_a_report() -> None:
+    """Poll blocks [1, 2] and [3]; before the reply to [1, 2] the MCU reports 1..4.  The
+    report is applied as a report, the poll still gets its own reply, and nothing goes
+    Invalid (it used to be taken as the reply: "byte count does not match")."""
+    mcu = EagerMcu()
+    seen: list[tuple[str, Any, ItemStatus]] = []
+    try:
+        cfg = em.load_device_config({
+            "organization": {"deviceCode": "eager"},
+            "communication": {"framing": "wrapped-report", "transport": "rtu-over-tcp",
+                              "tcpHost": "127.0.0.1", "tcpPort": mcu.port, "slaveId": 1,
+                              "readTimeout": 500, "readCycle": 50, "byteTimeout": 50,
+                              # cycle: every read and report sets the items, so the
+                              # callbacks show which frame each value came from
+                              "maxBlockReadRegisterCount": 2, "reportMode": "cycle"},
+            "addressList": [{"name": f"r{a}", "address": f"3:{a}", "deviceDataType": "UInt16"}
+                            for a in (1, 2, 3)],
+        })
+        with running(cfg, address_updated_callback=lambda it: seen.append(
+                (it.name, it.value, it.status))) as drv:
+            assert [(b["start"], b["count"]) for b in drv.read_plan()] == [(1, 2), (3, 1)]
+
+            def reports_seen(name: str) -> int:
+                return sum(1 for n, v, _ in list(seen) if n == name and v >= 9000)
+
+            def invalid() -> bool:
+                return any(status is not ItemStatus.OK for _, _, status in list(seen))
+
+            wait_for(lambda: invalid() or all(reports_seen(n) >= 6 for n in ("r1", "r2", "r3")),
+                     what="six polls answered behind a report")
+        stats = drv.stats()
+    finally:
+        mcu.close()
+    assert all(status is ItemStatus.OK for _, _, status in seen), \
+        [s for s in seen if s[2] is not ItemStatus.OK]
+    assert stats["protocolErrors"] == 0 and stats["timeouts"] == 0
+    assert stats["reports"] >= 6
+    for name, address in (("r1", 1), ("r2", 2), ("r3", 3)):
+        values = [v for n, v, _ in seen if n == name]
+        reported = [v for v in values if v >= 9000]
+        assert len(reported) >= 6, (name, values)  # every report reached the item
+        assert all(v == EagerMcu.polled(address) or (v - 9000) % 10 == address
+                   for v in values), (name, values)
+        # each report is followed by the polled value: the poll's reply was its own
+        for before, after in itertools.pairwise(values):
+            if before >= 9000:
+                assert after == EagerMcu.polled(address), (name, values)

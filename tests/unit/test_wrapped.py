@@ -5,6 +5,8 @@ from __future__ import annotations
 import struct
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from edgemodbus.wrapped import ReportParser, wrap
 
@@ -66,8 +68,50 @@ def test_bad_frames_are_dropped_and_parsing_resumes(bad: bytes, caplog) -> None:
     parser = ReportParser()
     reports = parser.feed(bad + SINGLE)
     assert [r.registers for r in reports] == [[773]]
-    assert parser.dropped >= 1
+    assert parser.dropped == 1  # one bad frame, one drop (its rest is not noise)
     assert any("FF" in rec.getMessage() for rec in caplog.records)
+
+
+NOISE = [bytes.fromhex("FFAB0001010302030578B70D"), bytes.fromhex("0013")]  # no FF AA
+BAD_CRC = bytes.fromhex("FFAA0001010302030578B80D")  # its end is known: length and tail agree
+END_UNKNOWN = [
+    bytes.fromhex("FFAA0001010302030578B70E"),  # bad tail
+    bytes.fromhex("FFAA000101030303050078B70D"),  # odd byte count
+    bytes.fromhex("FFAA0001014102030578B70D"),  # unknown function code
+]
+
+
+def expected_drops(pieces: list[bytes]) -> int:
+    """One drop per bad frame, and per run of noise that is not the rest of a bad frame
+    whose end was unknown (those bytes up to the next header belong to it)."""
+    drops, absorbing = 0, False
+    for piece in pieces:
+        if piece == SINGLE:
+            absorbing = False
+        elif piece == BAD_CRC:
+            drops, absorbing = drops + 1, False
+        elif piece in END_UNKNOWN or not absorbing:  # a bad frame, or noise starting a run
+            drops, absorbing = drops + 1, True
+    return drops
+
+
+@settings(max_examples=300, deadline=None)
+@given(pieces=st.lists(st.sampled_from([SINGLE, BAD_CRC, *END_UNKNOWN, *NOISE]),
+                       min_size=1, max_size=6),
+       cuts=st.lists(st.integers(min_value=0, max_value=80), max_size=8))
+def test_each_bad_frame_or_noise_run_is_one_drop_however_split(
+        pieces: list[bytes], cuts: list[int]) -> None:
+    """Good frames, bad frames and noise in any order and TCP segmentation: every good
+    frame comes through, and each bad frame or run of noise is counted exactly once."""
+    stream = b"".join(pieces)
+    parser = ReportParser()
+    got = []
+    start = 0
+    for cut in [*sorted({min(c, len(stream)) for c in cuts}), len(stream)]:
+        got += parser.feed(stream[start:cut])
+        start = cut
+    assert [r.raw for r in got] == [p for p in pieces if p == SINGLE]
+    assert parser.dropped == expected_drops(pieces)
 
 
 def test_heartbeats_are_discarded_and_counted() -> None:
