@@ -230,7 +230,10 @@ def _run(args: argparse.Namespace) -> int:
     try:
         for file in args.files:
             cfg = _load_file(file, "run")
-            drv = _start(cfg.organization, cfg.communication, cfg.address_list, args.json)
+            try:
+                drv = _start(cfg.organization, cfg.communication, cfg.address_list, args.json)
+            except (ValueError, OSError) as exc:  # e.g. a serial port opened with other settings
+                raise CliError(*(_in_file(file, line) for line in _problem_lines(exc))) from None
             if not drv.is_enable:
                 print(f"{file}: device is disabled (isEnable false), not polled",
                       file=sys.stderr)

@@ -14,7 +14,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from edgemodbus.cli import _json, _text
-from tests.peers import PymodbusSlave, default_bit, default_register
+from tests.peers import PtyPair, PymodbusSlave, default_bit, default_register
 
 DATA = Path(__file__).resolve().parents[1] / "data"
 
@@ -320,3 +320,21 @@ def test_device_file_warning_names_the_file(tmp_path: Path) -> None:
     assert out.returncode == 0, out.stderr
     assert out.stderr.splitlines() == [
         f"edgemodbus run: warning: {device}: communication: unknown key 'colour' ignored"]
+
+
+def test_a_device_that_cannot_start_is_named_by_its_file(tmp_path: Path,
+                                                          pty_pair: PtyPair) -> None:
+    """Two device files that open one serial port with different settings: one line naming
+    the second file and both settings."""
+    files = []
+    for baud in (9600, 19200):
+        files.append(tmp_path / f"at{baud}.json")
+        files[-1].write_text(json.dumps({
+            "communication": {"transport": "rtu", "comPort": pty_pair.a, "baudRate": baud},
+            "addressList": [{"name": "r", "address": "hr:1", "deviceDataType": "UInt16"}],
+        }))
+    out = cli("run", "--seconds", "0.5", *map(str, files))
+    assert out.returncode == 2
+    lines = out.stderr.splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"edgemodbus run: {files[1]}: line "), lines
+    assert "9600" in lines[0] and "19200" in lines[0]
