@@ -59,8 +59,8 @@ _OPTION_OF_FIELD = {
 
 _JSON_HELP = (
     "JSON lines on stdout instead of text: one object per item update "
-    '{"device","name","value","status","updateTs","errorReason"}, then, when polling stops, '
-    'one {"device","summary":{counters}} per device; nothing else goes to stdout. Floats '
+    '{"device", "name", "value", "status", "updateTs", "errorReason"}, then, when polling '
+    'stops, one {"device", "summary": {counters}} per device; nothing else goes to stdout. Floats '
     "are exact (shortest round-trip form); NaN and infinities are null"
 )
 
