@@ -1,6 +1,8 @@
 """The ``edgemodbus`` command: demo, run, read, write, plan, simulate, descriptor.
 
-Errors are one clear line on stderr and a non-zero exit code.
+Errors are one line per problem on stderr and a non-zero exit code.  Values print so that
+they read back exactly: a float as its shortest round-trip form (``repr``; ``nan``,
+``inf`` and ``-inf`` in text, ``null`` in JSON, which has no such numbers).
 """
 
 from __future__ import annotations
@@ -9,14 +11,18 @@ import argparse
 import contextlib
 import json
 import logging
+import math
+import shlex
 import signal
 import sys
 import threading
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
-from typing import Any, cast
+from typing import Any, NoReturn, cast
 
+from .address import parse_address
 from .config import (
+    ConfigError,
     DeviceAddressItem,
     DeviceConfig,
     DeviceOrganizationParameter,
@@ -30,10 +36,50 @@ from .device import build_plan
 from .driver import DriverModbusRtu
 
 DEMO_FILE = Path(__file__).resolve().with_name("demo-device.json")  # examples/ links here
+MAX_SLAVE_ID = 247  # the demo's simulator serves unicast addresses only
+
+#: read/write: the option (argparse dest) behind each field of the generated configuration,
+#: so that a message names what the user typed (``--type Float: ...``).
+_OPTION_OF_FIELD = {
+    "communication.slaveId": "slave",
+    "communication.readTimeout": "timeout",
+    "communication.dataFormat": "format",
+    "communication.tcpHost": "host",
+    "communication.tcpPort": "port",
+    "communication.comPort": "serial",
+    "communication.baudRate": "baud",
+    "communication.parity": "parity",
+    "communication.dataBits": "data_bits",
+    "communication.stopBits": "stop_bits",
+    "addressList[0].address": "address",
+    "addressList[0].deviceDataType": "type",
+    "addressList[0].quantity": "quantity",
+    "addressList[0].dataMultiplier": "multiplier",
+}
+
+_JSON_HELP = (
+    "JSON lines on stdout instead of text: one object per item update "
+    '{"device", "name", "value", "status", "updateTs", "errorReason"}, then, when polling '
+    'stops, one {"device", "summary": {counters}} per device; nothing else goes to stdout. Floats '
+    "are exact (shortest round-trip form); NaN and infinities are null"
+)
+
+_stdout_lock = threading.Lock()  # lines from several bus workers must not interleave
 
 
 class CliError(Exception):
-    """A user error: printed as one line, exit code 2."""
+    """A user error: printed one line per problem, exit code 2."""
+
+    def __init__(self, *lines: str) -> None:
+        super().__init__("\n".join(lines))
+        self.lines = list(lines)
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with a one-line error (the usage is one ``-h`` away)."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: {_one_line(message)} (see {self.prog} -h)\n")
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -44,38 +90,44 @@ def main(argv: Sequence[str] | None = None) -> int:
         # the simulator parses its own options (argparse.REMAINDER would not take options
         # such as --port that follow a sub-command)
         args = parser.parse_args([*argv[:command_at], "simulate"])
-        _configure_logging(args.verbose)
+        _configure_logging(args.verbose, "simulate")
         from .simulator import main as simulate
 
         return simulate(argv[command_at + 1:])
     args = parser.parse_args(argv)
-    _configure_logging(args.verbose)
+    _configure_logging(args.verbose, args.command)
     try:
         result: int = args.func(args)
         return result
     except (CliError, ValueError, OSError) as exc:
-        print(f"edgemodbus {args.command}: {_one_line(exc)}", file=sys.stderr)
+        for line in _problem_lines(exc):
+            print(f"edgemodbus {args.command}: {line}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         return 130
 
 
-def _configure_logging(verbose: int) -> None:
-    logging.basicConfig(
-        level=logging.DEBUG if verbose > 1 else logging.INFO if verbose else logging.WARNING,
-        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
-    )
+def _configure_logging(verbose: int, command: str) -> None:
+    """Log to stderr: warnings (-v: info, -vv: debug with the frame trace).  read and write
+    report their outcome in their own line, so without -v they show the library's errors
+    only: a refused connection is one line, not a warning and then the same error."""
+    level = logging.DEBUG if verbose > 1 else logging.INFO if verbose else logging.WARNING
+    logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    if not verbose and command in ("read", "write"):
+        logging.getLogger("edgemodbus").setLevel(logging.ERROR)
 
 
 def _parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="edgemodbus", description=__doc__)
+    parser = _Parser(prog="edgemodbus", description=__doc__,
+                     formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("-v", "--verbose", action="count", default=0,
                         help="log more (-vv: frame trace)")
     sub = parser.add_subparsers(dest="command", required=True)
 
     demo = sub.add_parser("demo", help="poll a simulated line of slaves, print live values")
     demo.add_argument("--seconds", type=float, default=10.0, help="how long (10; 0 = until ^C)")
-    demo.add_argument("--slaves", default="1,2,3", help="slave ids on the line (1,2,3)")
+    demo.add_argument("--slaves", type=_slave_ids, default=[1, 2, 3],
+                      help="slave ids on the line (1,2,3)")
     demo.set_defaults(func=_demo)
 
     run = sub.add_parser("run", help="poll devices from device files, print updates; or run "
@@ -85,7 +137,7 @@ def _parser() -> argparse.ArgumentParser:
                      help="gateway service: every device file in DIR; MQTT/metrics from "
                      "DIR/gateway.json or --gateway; SIGHUP reloads, SIGTERM stops")
     run.add_argument("--gateway", type=Path, default=None, help="gateway file (with --config-dir)")
-    run.add_argument("--json", action="store_true", help="JSON lines instead of text")
+    run.add_argument("--json", action="store_true", help=_JSON_HELP)
     run.add_argument("--seconds", type=float, default=0.0, help="stop after N s (0 = ^C)")
     run.set_defaults(func=_run)
 
@@ -117,14 +169,16 @@ def _line_options(p: argparse.ArgumentParser) -> None:
     where.add_argument("--host", help="TCP host (with --port)")
     where.add_argument("--serial", metavar="DEVICE", help="serial port, e.g. /dev/ttyUSB0")
     p.add_argument("--port", type=int, default=502, help="TCP port (502)")
-    p.add_argument("--transport", choices=["rtu-over-tcp", "tcp"], default="rtu-over-tcp",
-                   help="with --host: raw RTU frames (default) or Modbus TCP")
+    p.add_argument("--transport", choices=["rtu-over-tcp", "tcp"], default=None,
+                   help="with --host: raw RTU frames (rtu-over-tcp, the default) or Modbus TCP")
     p.add_argument("--baud", type=int, default=9600)
     p.add_argument("--parity", default="N", help="N, E or O")
     p.add_argument("--data-bits", type=int, default=8)
     p.add_argument("--stop-bits", type=int, default=1)
     p.add_argument("--slave", type=int, default=1, help="slave / unit id (1)")
-    p.add_argument("--type", default="UInt16", help="data type (UInt16)")
+    p.add_argument("--type", default=None,
+                   help="data type (Boolean for coils, discrete inputs and register bits such "
+                   "as hr:7.3, else UInt16)")
     p.add_argument("--format", default="ABCD", help="ABCD, BADC, CDAB or DCBA")
     p.add_argument("--quantity", type=int, default=None, help="registers (String/Binary)")
     p.add_argument("--multiplier", type=float, default=1.0)
@@ -135,7 +189,7 @@ def _line_options(p: argparse.ArgumentParser) -> None:
 def _demo(args: argparse.Namespace) -> int:
     from .simulator import Simulator, add_demo_movers
 
-    slaves = [int(s) for s in args.slaves.split(",") if s.strip()]
+    slaves: list[int] = args.slaves
     cfg = load_device_config(DEMO_FILE)
     with Simulator(slaves) as sim:
         hr = Area.HOLDING_REGISTER
@@ -146,8 +200,9 @@ def _demo(args: argparse.Namespace) -> int:
             slave.set_registers(hr, 12, [sid * 1000, 0])  # Energy, UInt32 CDAB (low word first)
             slave.set_registers(hr, 20, _text_registers(f"PUMP-{sid:02d}", 4))  # Model
         port = sim.serve_tcp("127.0.0.1", 0)
-        print(f"simulator: slaves {args.slaves} on rtu-over-tcp://127.0.0.1:{port}; "
-              f"polling {DEMO_FILE.name} every {cfg.effective_parameters().read_cycle} ms")
+        print(f"simulator: slaves {','.join(map(str, slaves))} on rtu-over-tcp://127.0.0.1:"
+              f"{port}; polling {DEMO_FILE.name} every "
+              f"{cfg.effective_parameters().read_cycle} ms")
         drivers = []
         for slave_id in slaves:
             comm = cfg.communication.model_copy(update={"tcp_port": port, "slave_id": slave_id})
@@ -156,7 +211,7 @@ def _demo(args: argparse.Namespace) -> int:
             )
             items = [it.model_copy(deep=True) for it in cfg.address_list]
             drivers.append(_start(org, comm, items, json_lines=False))
-        _poll_until_done(drivers, args.seconds)
+        _poll_until_done(drivers, args.seconds, json_lines=False)
     return 0
 
 
@@ -174,8 +229,11 @@ def _run(args: argparse.Namespace) -> int:
     drivers = []
     try:
         for file in args.files:
-            cfg = load_device_config(file)
-            drv = _start(cfg.organization, cfg.communication, cfg.address_list, args.json)
+            cfg = _load_file(file, "run")
+            try:
+                drv = _start(cfg.organization, cfg.communication, cfg.address_list, args.json)
+            except (ValueError, OSError) as exc:  # e.g. a serial port opened with other settings
+                raise CliError(*(_in_file(file, line) for line in _problem_lines(exc))) from None
             if not drv.is_enable:
                 print(f"{file}: device is disabled (isEnable false), not polled",
                       file=sys.stderr)
@@ -184,7 +242,7 @@ def _run(args: argparse.Namespace) -> int:
         for drv in drivers:
             drv.stop_device()
         raise
-    _poll_until_done(drivers, args.seconds)
+    _poll_until_done(drivers, args.seconds, args.json)
     return 0
 
 
@@ -199,7 +257,7 @@ def _read(args: argparse.Namespace) -> int:
         drv.stop_device()
     if item.status is not ItemStatus.OK:
         raise CliError(f"{item.address}: {item.error_reason}")
-    print(_show(item.value))
+    print(_text(item.value))
     return 0
 
 
@@ -216,7 +274,7 @@ def _write(args: argparse.Namespace) -> int:
 
 
 def _plan(args: argparse.Namespace) -> int:
-    cfg = load_device_config(args.file)
+    cfg = _load_file(args.file, "plan")
     params = cfg.effective_parameters()
     parsed = cfg.parsed_items()
     blocks = build_plan(parsed, params)
@@ -230,17 +288,61 @@ def _plan(args: argparse.Namespace) -> int:
 
 
 # -- helpers -----------------------------------------------------------------------------
+def _load_file(file: Path, command: str) -> DeviceConfig:
+    """Load a device file; every problem (and every warning, e.g. an unknown key) is one
+    line that names the file."""
+    with _config_warnings(file, command):
+        try:
+            return load_device_config(file)
+        except ConfigError as exc:
+            raise CliError(*(_in_file(file, str(p)) for p in exc.problems)) from None
+        except OSError as exc:
+            raise CliError(f"{file}: {exc.strerror or exc}") from None
+
+
+def _in_file(file: Path, message: str) -> str:
+    message = _one_line(message)
+    return message if message.startswith(f"{file}:") else f"{file}: {message}"
+
+
+@contextlib.contextmanager
+def _config_warnings(file: Path, command: str) -> Iterator[None]:
+    """Print what edgemodbus.config logs while ``file`` loads as ``edgemodbus CMD:
+    warning: FILE: ...`` lines (the log line would not say which file)."""
+    collector = _Collector(logging.WARNING)
+    config_log = logging.getLogger("edgemodbus.config")
+    propagate = config_log.propagate
+    config_log.addHandler(collector)
+    config_log.propagate = False
+    try:
+        yield
+    finally:
+        config_log.removeHandler(collector)
+        config_log.propagate = propagate
+        for record in collector.records:
+            print(f"edgemodbus {command}: warning: {_in_file(file, record.getMessage())}",
+                  file=sys.stderr)
+
+
+class _Collector(logging.Handler):
+    def __init__(self, level: int) -> None:
+        super().__init__(level)
+        self.records: list[logging.LogRecord] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.records.append(record)
+
+
 def _start(org: DeviceOrganizationParameter, comm: DriverModbusRtuParameter,
            items: Sequence[DeviceAddressItem], json_lines: bool) -> DriverModbusRtu:
     drv = DriverModbusRtu()
     code = org.device_code or f"slave{comm.slave_id}"
     if json_lines:
-        drv.address_updated_callback = lambda it: print(json.dumps(
-            {"device": code, "name": it.name, "value": _show(it.value), "status":
-             it.status.value, "updateTs": it.update_ts.isoformat() if it.update_ts else None,
-             "errorReason": it.error_reason}, ensure_ascii=False), flush=True)
+        drv.address_updated_callback = lambda it: _emit(_json({
+            "device": code, "name": it.name, "value": it.value, "status": it.status.value,
+            "updateTs": it.update_ts, "errorReason": it.error_reason}))
     else:
-        drv.address_updated_callback = lambda it: print(_line(code, it), flush=True)
+        drv.address_updated_callback = lambda it: _emit(_line(code, it))
     drv.start_device(org, comm, items)
     return drv
 
@@ -251,21 +353,63 @@ def _one_item(args: argparse.Namespace) -> tuple[DriverModbusRtu, DeviceAddressI
         "dataFormat": args.format, "retries": 0, "offlineAfterFailedCycles": 1000,
     }
     if args.host:
-        comm.update(transport=args.transport, tcpHost=args.host, tcpPort=args.port)
+        comm.update(transport=args.transport or "rtu-over-tcp", tcpHost=args.host,
+                    tcpPort=args.port)
+    elif args.transport is not None:
+        raise CliError(f"--transport {args.transport}: applies to --host (a --serial line "
+                       "speaks RTU)")
     else:
         comm.update(transport="rtu", comPort=args.serial, baudRate=args.baud,
                     parity=args.parity, dataBits=args.data_bits, stopBits=args.stop_bits)
+    if args.type is None:
+        args.type = _default_type(args.address)
     item: dict[str, Any] = {"name": "value", "address": args.address,
                             "deviceDataType": args.type, "dataMultiplier": args.multiplier}
     if args.quantity is not None:
         item["quantity"] = args.quantity
-    cfg: DeviceConfig = load_device_config({"communication": comm, "addressList": [item]})
+    try:
+        cfg: DeviceConfig = load_device_config({"communication": comm, "addressList": [item]})
+    except ConfigError as exc:
+        raise CliError(*(_option_problem(args, p.path, p.message) for p in exc.problems)) \
+            from None
     drv = DriverModbusRtu()
     drv.start_device(cfg.organization, cfg.communication, cfg.address_list)
     return drv, cfg.address_list[0]
 
 
-def _poll_until_done(drivers: list[DriverModbusRtu], seconds: float) -> None:
+def _default_type(address: str) -> str:
+    """Boolean for a coil, a discrete input or a register bit (hr:7.3), else UInt16."""
+    try:
+        addr = parse_address(address)
+    except ValueError:
+        return "UInt16"  # the address itself is reported by the configuration check
+    return "Boolean" if addr.area.is_bit or addr.bit is not None else "UInt16"
+
+
+def _option_problem(args: argparse.Namespace, path: str, message: str) -> str:
+    """A problem of the generated configuration, told as the option the user typed."""
+    dest = _OPTION_OF_FIELD.get(path)
+    if dest is None:
+        return _one_line(f"{path}: {message}")
+    value = shlex.quote(str(getattr(args, dest)))
+    if dest == "address":
+        return _one_line(f"{value}: {message}")
+    return _one_line(f"--{dest.replace('_', '-')} {value}: {message}")
+
+
+def _slave_ids(text: str) -> list[int]:
+    """``--slaves 1,2,3``."""
+    try:
+        ids = [int(part) for part in text.split(",") if part.strip()]
+    except ValueError:
+        ids = []
+    if not ids or not all(1 <= i <= MAX_SLAVE_ID for i in ids):
+        raise argparse.ArgumentTypeError(
+            f"{text!r}: use slave ids 1..{MAX_SLAVE_ID} separated by commas, e.g. 1,2,3")
+    return ids
+
+
+def _poll_until_done(drivers: list[DriverModbusRtu], seconds: float, json_lines: bool) -> None:
     """Let the drivers poll for ``seconds`` (0: until Ctrl-C or SIGTERM), stop them,
     then print one summary line each."""
     try:
@@ -274,7 +418,7 @@ def _poll_until_done(drivers: list[DriverModbusRtu], seconds: float) -> None:
         for drv in drivers:
             drv.stop_device()
     for drv in drivers:
-        _summary(drv)
+        _summary(drv, json_lines)
 
 
 def _wait(seconds: float) -> None:
@@ -288,30 +432,63 @@ def _wait(seconds: float) -> None:
 def _line(code: str, item: DeviceAddressItem) -> str:
     stamp = item.update_ts.strftime("%H:%M:%S.%f")[:-3] if item.update_ts else "--"
     if item.status is ItemStatus.OK:
-        text = f"{_show(item.value)} {item.unit}".rstrip()
+        text = f"{_text(item.value)} {item.unit}".rstrip()
     else:
         text = f"{item.status.value}: {item.error_reason}"
     return f"{stamp} {code:<12} {item.name:<12} {text}"
 
 
-def _summary(drv: DriverModbusRtu) -> None:
+def _summary(drv: DriverModbusRtu, json_lines: bool) -> None:
     s = drv.stats()
-    snap = drv.snapshot()
-    print(f"{snap['deviceCode']}: {snap['deviceDriverStatus']}, {s.get('cycles', 0)} cycles, "
+    code = drv.snapshot()["deviceCode"]
+    if json_lines:
+        _emit(_json({"device": code, "summary": s}))
+        return
+    _emit(f"{code}: {s['deviceDriverStatus']}, {s.get('cycles', 0)} cycles, "
           f"{s.get('requests', 0)} requests, {s.get('timeouts', 0)} timeouts, "
           f"{s.get('crcErrors', 0)} CRC errors, avg cycle "
           f"{s.get('avgCycleTime', 0.0) * 1000:.1f} ms, avg round trip "
           f"{s.get('avgRoundTrip', 0.0) * 1000:.2f} ms, {s.get('valuesChanged', 0)} updates")
 
 
-def _show(value: Any) -> Any:
+def _text(value: Any) -> str:
+    """A value as text that reads back exactly: a float is its shortest round-trip form
+    (``repr``: ``1.5e-07``, ``nan``, ``inf``), bytes are hex, times ISO 8601."""
     if isinstance(value, float):
-        return round(value, 6)
-    if isinstance(value, bytes):
-        return value.hex()
+        return repr(value)
+    if isinstance(value, (bytes, bytearray)):
+        return bytes(value).hex()
+    if hasattr(value, "isoformat"):
+        return str(value.isoformat())
+    return str(value)
+
+
+def _jsonable(value: Any) -> Any:
+    """A value as strict JSON carries it: finite floats as they are (json writes their
+    shortest round-trip form), NaN and infinities as null, bytes as hex, times ISO 8601."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: _jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, (bytes, bytearray)):
+        return bytes(value).hex()
     if hasattr(value, "isoformat"):
         return value.isoformat()
     return value
+
+
+def _json(obj: Any) -> str:
+    return json.dumps(_jsonable(obj), ensure_ascii=False, allow_nan=False, default=str)
+
+
+def _emit(line: str) -> None:
+    """One whole line on stdout (print() writes the newline separately, so lines from two
+    bus workers could interleave)."""
+    with _stdout_lock:
+        sys.stdout.write(line + "\n")
+        sys.stdout.flush()
 
 
 def _text_registers(text: str, registers: int) -> list[int]:
@@ -324,8 +501,19 @@ def _print_json(data: Any) -> int:
     return 0
 
 
-def _one_line(exc: BaseException) -> str:
-    return " ".join(str(exc).split()) or type(exc).__name__
+def _problem_lines(exc: BaseException) -> list[str]:
+    """One line per problem: a ConfigError may hold several."""
+    if isinstance(exc, CliError):
+        return [_one_line(line) for line in exc.lines]
+    if isinstance(exc, ConfigError):
+        return [_one_line(str(p)) for p in exc.problems]
+    if isinstance(exc, OSError) and exc.filename is not None and exc.strerror:
+        return [f"{exc.filename}: {exc.strerror}"]
+    return [_one_line(str(exc)) or type(exc).__name__]
+
+
+def _one_line(text: str) -> str:
+    return " ".join(text.split())
 
 
 if __name__ == "__main__":

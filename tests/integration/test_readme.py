@@ -1,0 +1,423 @@
+"""Every command shown in README.md runs as written, against peers this test starts.
+
+The commands are the lines of the README's fenced ``sh`` blocks (every line) and of its
+unlabelled fenced blocks (lines that start with a command word such as ``edgemodbus``);
+a trailing ``\\`` continues a line and ``#`` starts a comment.  Each command is either run,
+or on the small SKIP list with a reason; a command that is neither fails
+``test_readme_command``, so a new README command fails until it is covered.
+
+A command is rewritten only where it names the outside world: ``--host``/``--port``,
+``--serial``, ``--dial``, ``--config-dir``, device file paths (``*.json``) point at a
+simulator (or a listening driver) on 127.0.0.1 with an ephemeral port or at a pty, and
+``--seconds`` is short.  Every other word runs as the README shows it.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import select
+import shlex
+import signal
+import struct
+import subprocess
+import sys
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+import edgemodbus as em
+from edgemodbus.datatypes import Area
+from edgemodbus.simulator import Simulator, default_register
+from tests.peers import free_port
+from tests.waiting import wait_for
+
+ROOT = Path(__file__).resolve().parents[2]
+README = ROOT / "README.md"
+SHELL_BLOCKS = frozenset({"sh", "shell", "bash", "console"})
+#: In an unlabelled block, a line starting with one of these is a command, not output.
+COMMAND_WORDS = frozenset({"edgemodbus", "make", "python", "python3", "pip", "pip3"})
+
+#: Commands not run here (exact words), with the reason.
+SKIP: dict[tuple[str, ...], str] = {
+    ("make", "demo"): "sets the machine up (apt-get, pip) and then runs `edgemodbus demo`, "
+                      "whose README line is run here",
+    ("make", "test"): "runs the whole test suite, this test included",
+    ("pip", "install", "edgemodbus[mqtt,metrics]"): "installs from a package index; the test "
+                                                     "environment has the package and extras",
+}
+
+SHORT_SECONDS = "1.5"
+SLAVE_READY = 15.0  # s for a started process to poll, dial or listen
+
+
+@dataclass(frozen=True)
+class Command:
+    """One README command: where it is, its text and its words (comment removed)."""
+
+    line: int
+    text: str
+    argv: tuple[str, ...]
+
+    def __str__(self) -> str:
+        return f"README.md:{self.line}: {self.text}"
+
+
+def readme_commands(text: str) -> list[Command]:
+    """The commands of the fenced blocks of a README text (see the module doc)."""
+    commands: list[Command] = []
+    fence: str | None = None
+    pending: tuple[int, str] | None = None  # a line continued with a backslash
+    for number, raw in enumerate(text.splitlines(), start=1):
+        stripped = raw.strip()
+        if stripped.startswith("```"):
+            fence = None if fence is not None else stripped[3:].strip().lower()
+            pending = None
+            continue
+        if fence is None or (fence and fence not in SHELL_BLOCKS):
+            continue
+        start, line = (pending[0], f"{pending[1]} {stripped}") if pending else (number, stripped)
+        if line.endswith("\\"):
+            pending = (start, line[:-1].rstrip())
+            continue
+        pending = None
+        words = line.split()
+        if not words or words[0].startswith("#"):
+            continue
+        if not fence and words[0] not in COMMAND_WORDS:
+            continue  # output or a diagram in an unlabelled block
+        argv = tuple(shlex.split(line, comments=True))
+        commands.append(Command(start, " ".join(shlex.quote(w) for w in argv), argv))
+    return commands
+
+
+COMMANDS = readme_commands(README.read_text(encoding="utf-8"))
+
+
+# -- running processes ---------------------------------------------------------------------
+def executable(argv: tuple[str, ...]) -> list[str]:
+    """The installed ``edgemodbus`` script, or this interpreter for ``python``."""
+    if argv[0] == "edgemodbus":
+        script = Path(sys.executable).with_name("edgemodbus")
+        assert script.exists(), f"{script}: the package's console script is not installed"
+        return [str(script), *argv[1:]]
+    if argv[0] in ("python", "python3"):
+        return [sys.executable, *argv[1:]]
+    raise AssertionError(f"no executable for {argv[0]!r}")
+
+
+def run(argv: list[str], timeout: float = 60) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(executable(tuple(argv)), capture_output=True, text=True,
+                          timeout=timeout, check=False, cwd=ROOT)
+
+
+@contextmanager
+def started(argv: list[str]) -> Iterator[subprocess.Popen[str]]:
+    """A long-running command; on exit it gets SIGTERM and must have exited with 0."""
+    proc = subprocess.Popen(executable(tuple(argv)), stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, cwd=ROOT)
+    failure: Exception | None = None
+    try:
+        yield proc
+    except Exception as exc:  # reported below with the process' output
+        failure = exc
+    finally:
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGTERM)
+        try:
+            out, err = proc.communicate(timeout=20)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            out, err = proc.communicate()
+    detail = f"{shlex.join(argv)}: exit {proc.returncode}\nstdout:\n{out}\nstderr:\n{err}"
+    if failure is not None:
+        raise AssertionError(f"{failure}\n{detail}") from failure
+    assert proc.returncode == 0, detail
+
+
+def read_line(proc: subprocess.Popen[str], timeout: float = SLAVE_READY) -> str:
+    """One line of the process' stdout, without blocking past ``timeout``."""
+    assert proc.stdout is not None
+    ready, _, _ = select.select([proc.stdout], [], [], timeout)
+    assert ready, f"no output in {timeout} s"
+    return proc.stdout.readline()
+
+
+# -- rewriting -----------------------------------------------------------------------------
+def rewrite(argv: tuple[str, ...], **where: str) -> list[str]:
+    """``argv`` with the values of the outside-world options replaced by ``where``
+    (keys: host, port, serial, dial, config_dir, file, seconds); ``seconds`` is added
+    when missing; every other word stays."""
+    options = {"--host": "host", "--port": "port", "--serial": "serial", "--dial": "dial",
+               "--config-dir": "config_dir", "--seconds": "seconds"}
+    out: list[str] = []
+    words = iter(argv)
+    for word in words:
+        out.append(word)
+        if word in options:
+            value = next(words)
+            out.append(where.get(options[word], value))
+        elif word.endswith(".json") and "file" in where:
+            out[-1] = where["file"]
+    if "seconds" in where and "--seconds" not in out:
+        out += ["--seconds", where["seconds"]]
+    for key in where:
+        assert key in (*options.values(), "file"), key
+    return out
+
+
+def device_file(path: Path, port: int, slave: int, code: str, **comm: Any) -> Path:
+    path.write_text(json.dumps({
+        "organization": {"deviceCode": code},
+        "communication": {"transport": "rtu-over-tcp", "tcpHost": "127.0.0.1",
+                          "tcpPort": port, "slaveId": slave, "readCycle": 200, **comm},
+        "addressList": [
+            {"name": "Counter", "address": "hr:0", "deviceDataType": "UInt16"},
+            {"name": "Level", "address": "hr:1", "deviceDataType": "UInt16", "unit": "cm"},
+            {"name": "Running", "address": "hr:10.0", "deviceDataType": "Boolean"},
+            {"name": "Pump", "address": "coil:3", "deviceDataType": "Boolean"},
+        ],
+    }))
+    return path
+
+
+# -- one runner per kind of command -------------------------------------------------------
+def run_demo(argv: tuple[str, ...], tmp: Path) -> None:
+    out = run(rewrite(argv, seconds="2"))
+    assert out.returncode == 0, out.stderr
+    slaves = argv[argv.index("--slaves") + 1].split(",") if "--slaves" in argv else ["1"]
+    assert f"simulator: slaves {','.join(slaves)} on rtu-over-tcp://127.0.0.1:" in out.stdout
+    summaries = [ln for ln in out.stdout.splitlines() if ln.startswith("Demo001-")]
+    assert len(summaries) == len(slaves) and all("0 timeouts" in ln for ln in summaries)
+
+
+def run_run(argv: tuple[str, ...], tmp: Path) -> None:
+    if "--config-dir" in argv:
+        run_service(argv, tmp)
+        return
+    with Simulator([4]) as sim:
+        port = sim.serve_tcp("127.0.0.1", 0)
+        sim.slave(4).set_registers(Area.HOLDING_REGISTER, 10, [1])
+        path = device_file(tmp / "device.json", port, 4, "Pump4")
+        out = run(rewrite(argv, file=str(path), seconds=SHORT_SECONDS))
+    assert out.returncode == 0, out.stderr
+    expected = {"Counter": default_register(4, 0), "Level": default_register(4, 1),
+                "Running": True, "Pump": False}
+    if "--json" in argv:
+        records = [json.loads(ln, parse_constant=lambda c: pytest.fail(f"not JSON: {c}"))
+                   for ln in out.stdout.splitlines()]
+        assert records[-1]["device"] == "Pump4" and records[-1]["summary"]["cycles"] > 0
+        assert {r["name"]: r["value"] for r in records[:-1]} == expected
+    else:
+        for name, value in expected.items():
+            assert re.search(rf" Pump4 +{name} +{value}\b", out.stdout), (name, out.stdout)
+        assert out.stdout.splitlines()[-1].startswith("Pump4: Stopped, ")
+
+
+def run_read(argv: tuple[str, ...], tmp: Path) -> None:
+    assert "--host" in argv, "a README read that is not over TCP needs its own runner"
+    slave = int(argv[argv.index("--slave") + 1]) if "--slave" in argv else 1
+    fmt = argv[argv.index("--format") + 1] if "--format" in argv else "ABCD"
+    assert "--type" in argv and argv[argv.index("--type") + 1] == "Float" \
+        and argv[-1].startswith("hr:") and fmt in ("ABCD", "CDAB"), \
+        "a README read of another type, area or format needs its check here"
+    value = struct.unpack(">f", struct.pack(">f", -2.89e-37))[0]  # rounded, it was -0.0
+    hi, lo = struct.unpack(">HH", struct.pack(">f", value))
+    address = int(argv[-1].partition(":")[2])
+    with Simulator([slave]) as sim:
+        port = sim.serve_tcp("127.0.0.1", 0)
+        sim.slave(slave).set_registers(Area.HOLDING_REGISTER, address,
+                                       [lo, hi] if fmt == "CDAB" else [hi, lo])
+        out = run(rewrite(argv, host="127.0.0.1", port=str(port)))
+    assert out.returncode == 0, out.stderr
+    assert float(out.stdout) == value, out.stdout  # exactly
+
+
+def run_write(argv: tuple[str, ...], tmp: Path) -> None:
+    slave = int(argv[argv.index("--slave") + 1]) if "--slave" in argv else 1
+    baud = int(argv[argv.index("--baud") + 1]) if "--baud" in argv else 9600
+    target = argv[-2]
+    assert target.startswith("coil:") and argv[-1] in ("true", "false"), \
+        "a README write of something other than a coil needs its check here"
+    coil = int(target.partition(":")[2])
+    with Simulator([slave]) as sim:
+        sim.slave(slave).set_bits(Area.COIL, coil, [argv[-1] != "true"])
+        if "--serial" in argv:
+            where = {"serial": sim.serve_pty(baudrate=baud)}
+        else:
+            where = {"host": "127.0.0.1", "port": str(sim.serve_tcp("127.0.0.1", 0))}
+        out = run(rewrite(argv, **where))
+        assert (out.returncode, out.stdout.strip()) == (0, "ok"), out.stderr
+        assert sim.slave(slave).get_bits(Area.COIL, coil) == [argv[-1] == "true"]
+
+
+def run_plan(argv: tuple[str, ...], tmp: Path) -> None:
+    path = device_file(tmp / "device.json", 5020, 7, "Planned")
+    out = run(rewrite(argv, file=str(path)))
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.splitlines() == [
+        "4 items, 2 requests per cycle (slave 7)",
+        "  FC01 coil:3-3 (1): Pump",
+        "  FC03 hr:0-10 (11): Counter, Level, Running",
+    ]
+
+
+def run_simulate(argv: tuple[str, ...], tmp: Path) -> None:
+    if "--dial" in argv:
+        run_simulate_dial(argv)
+        return
+    slaves = argv[argv.index("--slaves") + 1] if "--slaves" in argv else "1"
+    last = int(slaves.split(",")[-1].split("-")[-1])
+    with started(rewrite(argv, port="0")) as proc:
+        endpoint = read_line(proc).split()
+        assert endpoint[0] == "tcp", endpoint
+        port = endpoint[1].rpartition(":")[2]
+        out = run(["edgemodbus", "read", "--host", "127.0.0.1", "--port", port,
+                   "--slave", str(last), "hr:7"])
+        assert (out.returncode, out.stdout.strip()) == (0, str(default_register(last, 7))), \
+            out.stderr
+
+
+def run_simulate_dial(argv: tuple[str, ...]) -> None:
+    registration = argv[argv.index("--registration") + 1] if "--registration" in argv else ""
+    match = re.fullmatch(r"IMEI:(\d{15})", registration)
+    assert match, "the README's DTU registers with IMEI:<15 digits>; adapt this runner"
+    heartbeat = argv[argv.index("--heartbeat") + 1] if "--heartbeat" in argv else ""
+    slave = int(argv[argv.index("--slaves") + 1]) if "--slaves" in argv else 1
+    port = free_port()
+    cfg = em.load_device_config({
+        "communication": {"transport": "rtu-over-tcp-server", "listenHost": "127.0.0.1",
+                          "listenPort": port, "dtuId": match.group(1), "registration": "regex",
+                          "registrationPattern": r"IMEI:(\d{15})", "heartbeat": heartbeat,
+                          "slaveId": slave, "readCycle": 200, "readTimeout": 500},
+        "addressList": [{"name": "r", "address": "hr:42", "deviceDataType": "UInt16"}],
+    })
+    drv = em.DriverModbusRtu()
+    assert drv.start_device(cfg.organization, cfg.communication, cfg.address_list)
+    try:
+        with started(rewrite(argv, dial=f"127.0.0.1:{port}")) as proc:
+            assert read_line(proc).strip() == f"dialled 127.0.0.1:{port}"
+            item = cfg.address_list[0]
+            wait_for(lambda: item.status is em.ItemStatus.OK, timeout=SLAVE_READY,
+                     what="a value through the dialled-in DTU")
+            assert item.value == default_register(slave, 42)
+    finally:
+        drv.stop_device()
+
+
+def run_descriptor(argv: tuple[str, ...], tmp: Path) -> None:
+    out = run(list(argv))
+    assert out.returncode == 0, out.stderr
+    desc = json.loads(out.stdout)
+    assert desc["driverType"] == "DriverModbusRtu"
+    modicon = "--prefix" in argv and argv[argv.index("--prefix") + 1] == "modicon"
+    assert ('"holdingRegister": "4:00001"' in out.stdout) is modicon
+
+
+def run_service(argv: tuple[str, ...], tmp: Path) -> None:
+    """``run --config-dir`` / ``python -m edgemodbus.service``: polls every device file
+    of the folder until SIGTERM, then exits 0."""
+    config_dir = tmp / "etc-edgemodbus"
+    config_dir.mkdir()
+    (config_dir / "gateway.json").write_text(json.dumps({"gatewayId": "readme"}))
+    with Simulator([5, 6]) as sim:
+        port = sim.serve_tcp("127.0.0.1", 0)
+        for slave in (5, 6):
+            device_file(config_dir / f"pump{slave}.json", port, slave, f"Pump{slave}")
+        with started(rewrite(argv, config_dir=str(config_dir))):
+            wait_for(lambda: all(s["requests"] >= 3 for s in sim.stats()["slaves"].values()),
+                     timeout=SLAVE_READY, what="the service polling both devices")
+
+
+Runner = Callable[[tuple[str, ...], Path], None]
+RUNNERS: dict[tuple[str, ...], Runner] = {
+    ("edgemodbus", "demo"): run_demo,
+    ("edgemodbus", "run"): run_run,
+    ("edgemodbus", "read"): run_read,
+    ("edgemodbus", "write"): run_write,
+    ("edgemodbus", "plan"): run_plan,
+    ("edgemodbus", "simulate"): run_simulate,
+    ("edgemodbus", "descriptor"): run_descriptor,
+    ("python", "-m", "edgemodbus.service"): run_service,
+}
+
+
+def how_to_run(argv: tuple[str, ...]) -> Runner | str | None:
+    """The runner of a command, its skip reason, or None: not covered."""
+    if argv in SKIP:
+        return SKIP[argv]
+    for prefix, runner in RUNNERS.items():
+        if argv[:len(prefix)] == prefix:
+            return runner
+    return None
+
+
+# -- the tests -----------------------------------------------------------------------------
+@pytest.mark.parametrize("command", COMMANDS, ids=lambda c: f"L{c.line}:{' '.join(c.argv[:2])}")
+def test_readme_command(command: Command, tmp_path: Path) -> None:
+    how = how_to_run(command.argv)
+    if how is None:
+        pytest.fail(f"{command}: not run by this test and not on its SKIP list; add a runner "
+                    "(or a skip with a reason) in tests/integration/test_readme.py")
+    if isinstance(how, str):
+        pytest.skip(f"{command.text}: {how}")
+    how(command.argv, tmp_path)
+
+
+def test_the_readme_commands_are_found() -> None:
+    """The extraction sees the README's command lines (joined continuation lines too)
+    and every skip is still in the README."""
+    argvs = [c.argv for c in COMMANDS]
+    assert ("make", "demo") in argvs and ("make", "test") in argvs
+    assert sum(a[0] == "edgemodbus" for a in argvs) >= 10
+    dial = next(a for a in argvs if "--dial" in a)
+    assert dial[-2:] == ("--heartbeat-interval", "30")  # the continued line
+    assert all(skip in argvs for skip in SKIP), "a skipped command left the README"
+    assert all(how_to_run(a) is not None for a in argvs)
+
+
+def test_extraction_rules_and_unknown_commands() -> None:
+    """Shell blocks give every line, unlabelled blocks only command lines, other blocks
+    nothing; a command without a runner or skip is reported, not passed over."""
+    text = "\n".join([
+        "edgemodbus demo  (prose, not a block)",
+        "```sh",
+        "# a comment",
+        "edgemodbus frobnicate --now   # new sub-command",
+        "./configure && make",
+        "edgemodbus read --host h \\",
+        "    hr:1",
+        "```",
+        "```",
+        "config -> items -> plan",
+        "reads  42011 requests",
+        "make test    # comment",
+        "```",
+        "```python",
+        "edgemodbus = 1",
+        "```",
+    ])
+    found = readme_commands(text)
+    assert [(c.line, c.argv) for c in found] == [
+        (4, ("edgemodbus", "frobnicate", "--now")),
+        (5, ("./configure", "&&", "make")),
+        (6, ("edgemodbus", "read", "--host", "h", "hr:1")),
+        (12, ("make", "test")),
+    ]
+    assert [how_to_run(c.argv) is None for c in found] == [True, True, False, False]
+
+
+def test_rewrite_touches_only_the_outside_world() -> None:
+    argv = ("edgemodbus", "read", "--host", "10.0.0.5", "--port", "502", "--slave", "2",
+            "--type", "Float", "hr:100")
+    assert rewrite(argv, host="127.0.0.1", port="4000") == [
+        "edgemodbus", "read", "--host", "127.0.0.1", "--port", "4000", "--slave", "2",
+        "--type", "Float", "hr:100"]
+    assert rewrite(("edgemodbus", "run", "device.json"), file="/tmp/d.json", seconds="1") == [
+        "edgemodbus", "run", "/tmp/d.json", "--seconds", "1"]
+    with pytest.raises(AssertionError):
+        rewrite(argv, slave="9")  # not an outside-world option
