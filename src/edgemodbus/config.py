@@ -2,9 +2,14 @@
 
 Keys are accepted in camelCase (device file), PascalCase (``modbusRtu.json``) and
 snake_case: matching ignores case and underscores.  Python attribute names are the
-snake_case of the JSON keys.  Unknown keys are logged as warnings on logger
-``edgemodbus.config`` (path and key) and ignored.  Invalid input raises
-:class:`ConfigError`, one line per problem: path, value and what is allowed.
+snake_case of the JSON keys.  Unknown keys are ignored and logged as warnings on logger
+``edgemodbus.config`` (path and key); when the load fails anyway they are lines of the
+error instead, so that each problem is told once.  Invalid input raises
+:class:`ConfigError`, one line per problem: path, value given and what is allowed.
+
+Limits are those of the layers that use the values (one source of truth): item
+quantities and block sizes come from the codec and the planner, offsets and bits from
+the address parser, and :func:`validate_items` runs the codec's own item check.
 
 Parity is stored as :class:`Parity` (a str enum of libmodbus's ``"N"``, ``"O"``,
 ``"E"``); ``"None"/"Odd"/"Even"``, ``0/1/2`` and ``N/O/E`` are accepted.
@@ -13,13 +18,17 @@ Parity is stored as :class:`Parity` (a str enum of libmodbus's ``"N"``, ``"O"``,
 from __future__ import annotations
 
 import codecs
+import difflib
 import enum
 import json
 import logging
 import math
 import os
 import re
-from collections.abc import Mapping, Sequence
+import types
+import typing
+from collections.abc import Callable, Mapping, Sequence
+from contextvars import ContextVar
 from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path
@@ -38,8 +47,10 @@ from pydantic import (
 from pydantic.alias_generators import to_camel
 from pydantic_core import CoreSchema, core_schema
 
-from .address import Address, check_span, parse_address
+from .address import MAX_OFFSET, Address, check_span, parse_address
+from .codec import MAX_QUANTITY, ValueSpec, check_spec
 from .datatypes import Area, DataFormat, DataType
+from .planner import BIT_CAP, REGISTER_CAP
 
 logger = logging.getLogger("edgemodbus.config")
 
@@ -77,7 +88,43 @@ class Problem:
         where = self.path or "<root>"
         if self.value is NO_VALUE:
             return f"{where}: {self.message}"
-        return f"{where} {self.value!r}: {self.message}"
+        return f"{where} {_show(self.value)}: {self.message}"
+
+
+def _show(value: Any) -> str:
+    """The value as given; a long list or object is cut (the path says where it is)."""
+    text = repr(value)
+    if _is_scalar(value) or len(text) <= _SHOW_MAX:
+        return text
+    return text[: _SHOW_MAX - 3] + "..."
+
+
+_SHOW_MAX = 60
+
+# pydantic's type errors -> what the field takes (the value given is shown before it)
+_TYPE_MESSAGES = {
+    "int_type": "must be a whole number",
+    "int_parsing": "must be a whole number",
+    "int_from_float": "must be a whole number",
+    "int_parsing_size": "must be a whole number",
+    "float_type": "must be a number",
+    "float_parsing": "must be a number",
+    "bool_type": "must be true or false",
+    "bool_parsing": "must be true or false",
+    "string_type": "must be a string",
+    "dict_type": "must be an object ({...})",
+    "model_type": "must be an object ({...})",
+    "model_attributes_type": "must be an object ({...})",
+    "list_type": "must be a list ([...])",
+    "datetime_type": "must be a date and time, e.g. 2026-01-18T12:06:26Z",
+    "datetime_parsing": "must be a date and time, e.g. 2026-01-18T12:06:26Z",
+    "datetime_from_date_parsing": "must be a date and time, e.g. 2026-01-18T12:06:26Z",
+    "missing": "required",
+}
+
+
+class WrongType(ValueError):
+    """A value of the wrong type (a field validator's refusal; the value is shown)."""
 
 
 class ConfigError(ValueError):
@@ -89,7 +136,8 @@ class ConfigError(ValueError):
 
     @classmethod
     def from_validation_error(cls, exc: ValidationError, prefix: str = "") -> ConfigError:
-        """Translate pydantic's errors into problems with JSON-key paths."""
+        """Translate pydantic's errors into problems with JSON-key paths, each showing
+        the value given and what is allowed."""
         problems: list[Problem] = []
         for err in exc.errors(include_url=False):
             path = join_path(prefix, _loc_path(err["loc"]))
@@ -99,12 +147,21 @@ class ConfigError(ValueError):
                     Problem(join_path(path, p.path), p.value, p.message) for p in inner.problems
                 )
                 continue
-            message = err["msg"]
-            for head in ("Value error, ", "Assertion failed, "):
-                message = message.removeprefix(head)
+            kind = err["type"]
+            if isinstance(inner, WrongType):
+                kind = "wrong_type"  # our own type check: show the value, list or not
+            message = _TYPE_MESSAGES.get(kind)
+            if message is None:
+                message = err["msg"]
+                for head in ("Value error, ", "Assertion failed, "):
+                    message = message.removeprefix(head)
+                if message.startswith("Input should be "):
+                    message = "must be " + message.removeprefix("Input should be ")
             value = err["input"]
-            if err["type"] == "missing" or not _is_scalar(value):
-                value = NO_VALUE
+            if kind == "missing" or (
+                kind in ("value_error", "assertion_error") and isinstance(value, Mapping)
+            ):
+                value = NO_VALUE  # a model check's input is the whole object: noise
             problems.append(Problem(path, value, message))
         return cls(problems)
 
@@ -129,12 +186,82 @@ def join_path(prefix: str, rest: str) -> str:
     return prefix + rest if rest.startswith("[") else f"{prefix}.{rest}"
 
 
+# Unknown keys met while a load is under way (None: log them at once, see _load).
+_unknown_keys: ContextVar[list[Problem] | None] = ContextVar("edgemodbus_unknown_keys",
+                                                             default=None)
+
+
+def _unknown_key(where: str, key: Any) -> None:
+    problem = Problem(where, NO_VALUE, f"unknown key {key!r} ignored")
+    sink = _unknown_keys.get()
+    if sink is None:
+        logger.warning("%s", problem)
+    else:
+        sink.append(problem)
+
+
+def _with_unknown_keys(error: ConfigError, unknown: Sequence[Problem]) -> ConfigError:
+    """The error's problems plus the unknown keys: a key that looks like a misspelling
+    of a field the error says is missing joins that line; the others get a line each."""
+    problems = list(error.problems)
+    for extra in unknown:
+        key = extra.message.removeprefix("unknown key ").removesuffix(" ignored")
+        for i, problem in enumerate(problems):
+            parent, _, field = problem.path.rpartition(".")
+            if (
+                problem.value is NO_VALUE
+                and parent == extra.path
+                and difflib.get_close_matches(_norm_key(key.strip("'\"")), [_norm_key(field)],
+                                              cutoff=0.5)
+            ):
+                problems[i] = Problem(problem.path, NO_VALUE,
+                                      f"{problem.message} (the unknown key {key} was ignored)")
+                break
+        else:
+            problems.append(extra)
+    return ConfigError(problems)
+
+
 # --------------------------------------------------------------------------- field helpers
+
+
+def _field_kinds(source: Any) -> tuple[bool, bool, bool]:
+    """(numeric, integer, optional) of a field's type (``int``, ``float | None`` ...)."""
+    origin = typing.get_origin(source)
+    args = typing.get_args(source) if origin in (typing.Union, types.UnionType) else (source,)
+    kinds = [a for a in args if a is not type(None)]
+    numeric = bool(kinds) and all(k in (int, float) for k in kinds)
+    return numeric, numeric and int in kinds and float not in kinds, len(kinds) < len(args)
+
+
+def _number(value: Any, integer: bool, optional: bool, allowed: str) -> Any:
+    """A JSON number (or numeric text) for a numeric field; anything else, true/false
+    included (pydantic would take true as 1), raises ``must be <allowed>``."""
+    if value is None and optional:
+        return None
+    number: Any = value
+    if isinstance(value, str):
+        text = value.strip()
+        try:
+            number = int(text)
+        except ValueError:
+            try:
+                number = float(text)
+            except ValueError:
+                number = None
+    if isinstance(number, bool) or not isinstance(number, (int, float)):
+        raise WrongType(f"must be {allowed}")
+    if integer and isinstance(number, float):
+        if not number.is_integer():
+            raise WrongType(f"must be {allowed}")
+        number = int(number)
+    return number
 
 
 @dataclass(frozen=True, slots=True)
 class Range:
-    """Inclusive numeric range of a field (``hi=None``: no upper bound); ``None`` passes."""
+    """Inclusive numeric range of a field (``hi=None``: no upper bound); ``None`` passes
+    on optional fields.  Values of the wrong type are refused with the range."""
 
     lo: float
     hi: float | None = None
@@ -155,7 +282,16 @@ class Range:
     def __get_pydantic_core_schema__(
         self, source: Any, handler: GetCoreSchemaHandler
     ) -> CoreSchema:
-        return core_schema.no_info_after_validator_function(self.check, handler(source))
+        schema = core_schema.no_info_after_validator_function(self.check, handler(source))
+        numeric, integer, optional = _field_kinds(source)
+        if not numeric:
+            return schema
+        allowed = f"{'a whole number' if integer else 'a number'} {self.describe()}"
+
+        def precheck(value: Any) -> Any:
+            return _number(value, integer, optional, allowed)
+
+        return core_schema.no_info_before_validator_function(precheck, schema)
 
 
 @dataclass(frozen=True, slots=True)
@@ -165,31 +301,52 @@ class Choice:
     values: tuple[Any, ...]
 
     def check(self, value: Any) -> Any:
-        if value not in self.values:
-            raise ValueError(f"must be {' or '.join(repr(v) for v in self.values)}")
+        # 1 == True: a bool is only one of the values if it is one of them as a bool
+        if value not in self.values or (
+            isinstance(value, bool) and not any(v is value for v in self.values)
+        ):
+            raise ValueError(f"must be {self.describe()}")
         return value
+
+    def describe(self) -> str:
+        return " or ".join(repr(v) for v in self.values)
 
     def __get_pydantic_core_schema__(
         self, source: Any, handler: GetCoreSchemaHandler
     ) -> CoreSchema:
-        return core_schema.no_info_after_validator_function(self.check, handler(source))
+        schema = core_schema.no_info_after_validator_function(self.check, handler(source))
+        numeric, integer, optional = _field_kinds(source)
+        if not numeric:
+            return schema
+        allowed = self.describe()
+
+        def precheck(value: Any) -> Any:
+            return _number(value, integer, optional, allowed)
+
+        return core_schema.no_info_before_validator_function(precheck, schema)
 
 
 def _num(x: float) -> str:
     return str(int(x)) if float(x).is_integer() else str(x)
 
 
-Ms = Annotated[int, Range(1, MAX_MS)]
-OptionalMs = Annotated[int | None, Range(1, MAX_MS)]
+MS_RANGE = Range(1, MAX_MS)
+READ_CYCLE_RANGE = Range(0, MAX_MS)
+"""readCycle: 0 = report-only (communication's and the organisation's alike)."""
+
+Ms = Annotated[int, MS_RANGE]
+OptionalMs = Annotated[int | None, MS_RANGE]
 
 
 def _check_encoding(value: str) -> str:
+    """A text codec Python knows (the codec's rule: bytes codecs such as base64 are not
+    text encodings)."""
     try:
-        codecs.lookup(value)
+        text = getattr(codecs.lookup(value), "_is_text_encoding", True)
     except LookupError:
-        raise ValueError(
-            "unknown text encoding (use a codec Python knows, e.g. utf-8, gbk)"
-        ) from None
+        text = False
+    if not text:
+        raise ValueError("unknown text encoding (use a codec Python knows, e.g. utf-8, gbk)")
     return value
 
 
@@ -250,7 +407,7 @@ class _Model(BaseModel):
         for key, value in data.items():
             canon = table.get(_norm_key(key)) if isinstance(key, str) else None
             if canon is None:
-                logger.warning("%s: unknown key %r ignored", where or "<root>", key)
+                _unknown_key(where, key)
                 continue
             if canon in out:
                 problems.append(
@@ -299,7 +456,7 @@ class Parity(str, enum.Enum):
         else:
             found = None
         if found is None:
-            raise ValueError("use None|Odd|Even, 0|1|2 or N|O|E")
+            raise WrongType("use None|Odd|Even, 0|1|2 or N|O|E")
         return found
 
     @property
@@ -560,7 +717,7 @@ class DriverModbusRtuParameter(_Model):
         description="Timeout between two bytes of one reply (ms)",
         json_schema_extra=_ui("字节间超时(ms)", "Connection", "number"),
     )
-    read_cycle: Annotated[int, Range(0, MAX_MS)] = Field(
+    read_cycle: Annotated[int, READ_CYCLE_RANGE] = Field(
         default=1000,
         description="Polling cycle (ms); 0 = no polling: report-only (framing "
         "wrapped-report; on other framings nothing would update, which is logged)",
@@ -586,7 +743,7 @@ class DriverModbusRtuParameter(_Model):
         description="Default data format for communication (byte order x word order)",
         json_schema_extra=_ui("数据格式", "Advanced", "select", type_="string"),
     )
-    max_block_read_register_count: Annotated[int, Range(1, 125)] = Field(
+    max_block_read_register_count: Annotated[int, Range(1, REGISTER_CAP)] = Field(
         default=120,
         description="Maximum number of registers to read in a single block",
         json_schema_extra=_ui("单块最大寄存器数", "Advanced", "number"),
@@ -596,13 +753,13 @@ class DriverModbusRtuParameter(_Model):
         description="Indicates if block read requires continuous addresses (gap 0)",
         json_schema_extra=_ui("块读取地址需连续", "Advanced", "switch"),
     )
-    max_merge_address_gap: Annotated[int, Range(0, 65535)] = Field(
+    max_merge_address_gap: Annotated[int, Range(0, MAX_OFFSET)] = Field(
         default=10,
         description="Maximum merge address gap when combining non-contiguous blocks",
         json_schema_extra=_ui("最大合并空洞", "Advanced", "number"),
     )
-    max_block_read_bit_count: Annotated[int, Range(1, 2000)] = Field(
-        default=2000,
+    max_block_read_bit_count: Annotated[int, Range(1, BIT_CAP)] = Field(
+        default=BIT_CAP,
         description="Maximum number of coils/discrete inputs to read in a single block",
         json_schema_extra=_ui("单块最大位数", "Advanced", "number"),
     )
@@ -796,9 +953,17 @@ class DriverModbusRtuParameter(_Model):
             problems.append(Problem("heartbeat", self.heartbeat or self.heartbeat_hex,
                                     "heartbeats apply to RTU over TCP (rtu-over-tcp, "
                                     "rtu-over-tcp-server)"))
+        if self.framing == "wrapped-report" and self.transport not in (
+            "rtu-over-tcp", "rtu-over-tcp-server"
+        ):
+            problems.append(Problem("framing", self.framing, "needs transport rtu-over-tcp or "
+                                    f"rtu-over-tcp-server, not {self.transport!r}"))
         if self.framing == "wrapped-report" and self.echo:
             problems.append(Problem("echo", self.echo, "no echo option with framing "
                                     "wrapped-report"))
+        if self.echo and self.transport == "tcp":
+            problems.append(Problem("echo", self.echo, "a Modbus TCP (MBAP) link has no "
+                                    "request echo; the option is for RTU lines"))
         return problems
 
     @property
@@ -843,9 +1008,10 @@ class DeviceOrganizationParameter(_Model):
     device_name: str | None = None
     description: str | None = None
     is_enable: bool | None = None
+    # the same ranges and meaning as communication's fields they override
     connect_timeout: OptionalMs = None
     reconnect_interval: OptionalMs = None
-    read_cycle: OptionalMs = None
+    read_cycle: Annotated[int | None, READ_CYCLE_RANGE] = None
     created_at: datetime | None = None
     last_modified: datetime | None = None
     metadata: dict[str, Any] = Field(default_factory=dict)
@@ -899,7 +1065,7 @@ class DeviceAddressItem(_Model):
     is_enable: bool = True
     address_changed: bool = False
     data_format: DataFormat | None = None
-    quantity: Annotated[int | None, Range(1, 65536)] = None
+    quantity: Annotated[int | None, Range(1, MAX_QUANTITY)] = None
     deadband: Annotated[float | None, Range(0)] = None
     encoding: str | None = None
     value: Any = None
@@ -911,6 +1077,21 @@ class DeviceAddressItem(_Model):
         if not value.strip():
             raise ValueError("an item needs a non-empty name")
         return value
+
+    @field_validator("address", mode="before")
+    @classmethod
+    def _address_text(cls, value: Any) -> Any:
+        """A JSON number is the offset it spells (100 means "100", i.e. hr:100)."""
+        if isinstance(value, int) and not isinstance(value, bool):
+            return str(value)
+        if not isinstance(value, str):
+            raise WrongType("must be a string like 'hr:100' (or a whole number: an offset)")
+        return value
+
+    @field_validator("data_multiplier", mode="before")
+    @classmethod
+    def _multiplier_number(cls, value: Any) -> Any:
+        return _number(value, False, False, "a finite number other than 0")
 
     @field_validator("address")
     @classmethod
@@ -1028,6 +1209,20 @@ class ParsedItem:
     def name(self) -> str:
         return self.item.name
 
+    def value_spec(self) -> ValueSpec:
+        """The codec's spec of this item (what the driver decodes and encodes with)."""
+        return ValueSpec(
+            name=self.item.name,
+            data_type=self.data_type,
+            data_format=self.data_format,
+            quantity=self.quantity,
+            bit=self.address.bit,
+            multiplier=self.multiplier,
+            converted_type=self.converted_type,
+            deadband=self.deadband or 0.0,
+            encoding=self.encoding,
+        )
+
 
 def _item_registers(
     item: DeviceAddressItem, addr: Address, path: str, problems: list[Problem]
@@ -1077,11 +1272,14 @@ def validate_items(
     items: Sequence[DeviceAddressItem], comm: DriverModbusRtuParameter
 ) -> list[ParsedItem]:
     """Check every item against ``comm`` (address prefix/base, type vs area, quantity,
-    span, unique names) and return them parsed, in order.  Raises one ConfigError
-    listing every problem with its path (``addressList[3].address`` ...)."""
+    span, unique names), against its own field limits again (an item may have been
+    changed after it was loaded) and against the codec's check of the spec the driver
+    will build; return them parsed, in order.  Raises one ConfigError listing every
+    problem with its path (``addressList[3].address`` ...)."""
     problems: list[Problem] = []
     parsed: list[ParsedItem] = []
     first_index: dict[str, int] = {}
+    checked: set[tuple[Any, ...]] = set()
     for i, item in enumerate(items):
         path = f"addressList[{i}]"
         before = len(problems)
@@ -1095,6 +1293,10 @@ def validate_items(
             )
         else:
             first_index[item.name] = i
+        limits = _recheck(item, _ITEM_CHECKS, path)
+        if limits:  # the checks below use these values
+            problems += limits
+            continue
         try:
             addr = parse_address(item.address, comm.address_prefix, comm.address_base)
         except ValueError as exc:
@@ -1110,23 +1312,100 @@ def validate_items(
             problems.append(Problem(f"{path}.address", item.address, message))
         if len(problems) > before:
             continue
-        parsed.append(
-            ParsedItem(
-                item=item,
-                address=addr,
-                data_type=item.device_data_type,
-                converted_type=item.converted_data_type,
-                data_format=item.data_format or comm.data_format,
-                registers=registers,
-                quantity=item.quantity,
-                multiplier=item.data_multiplier,
-                deadband=item.deadband,
-                encoding=item.encoding or comm.encoding,
-            )
+        one = ParsedItem(
+            item=item,
+            address=addr,
+            data_type=item.device_data_type,
+            converted_type=item.converted_data_type,
+            data_format=item.data_format or comm.data_format,
+            registers=registers,
+            quantity=item.quantity,
+            multiplier=item.data_multiplier,
+            deadband=item.deadband,
+            encoding=item.encoding or comm.encoding,
         )
+        # the codec's check depends on everything but the name: check each shape once
+        shape = (addr.area, addr.bit, one.data_type, one.data_format, one.quantity,
+                 one.multiplier, one.converted_type, one.deadband, one.encoding)
+        if shape not in checked:
+            spec = one.value_spec()
+            try:
+                check_spec(spec, addr.area)
+            except ValueError as exc:
+                problems.append(_codec_problem(exc, spec, item, path))
+                continue
+            checked.add(shape)
+        parsed.append(one)
     if problems:
         raise ConfigError(problems)
     return parsed
+
+
+_Checks = tuple[tuple[str, str, Callable[[Any], Any]], ...]
+
+
+def _field_checks(model: type[BaseModel]) -> _Checks:
+    """(attribute, JSON key, check) of every Range/Choice-limited field of ``model``."""
+    return tuple(
+        (name, field.alias or name, meta.check)
+        for name, field in model.model_fields.items()
+        for meta in field.metadata
+        if isinstance(meta, (Range, Choice))
+    )
+
+
+_ITEM_CHECKS = _field_checks(DeviceAddressItem)
+_COMM_CHECKS = _field_checks(DriverModbusRtuParameter)
+_ORG_CHECKS = _field_checks(DeviceOrganizationParameter)
+
+
+def _recheck(model: BaseModel, checks: _Checks, path: str) -> list[Problem]:
+    """The field limits again, on the values a model holds now (models do not validate
+    assignments: a value may have been changed after loading)."""
+    problems: list[Problem] = []
+    for name, key, check in checks:
+        value = getattr(model, name)
+        try:
+            check(value)
+        except (TypeError, ValueError) as exc:
+            problems.append(Problem(join_path(path, key), value, str(exc)))
+    return problems
+
+
+def validate_parameters(
+    org: DeviceOrganizationParameter | None, comm: DriverModbusRtuParameter
+) -> None:
+    """Check the organisation's and communication's field limits on the values they hold
+    now; raise one ConfigError (``communication.readCycle ...``) listing every problem."""
+    problems = [] if org is None else _recheck(org, _ORG_CHECKS, "organization")
+    problems += _recheck(comm, _COMM_CHECKS, "communication")
+    if problems:
+        raise ConfigError(problems)
+
+
+def _codec_problem(
+    exc: ValueError, spec: ValueSpec, item: DeviceAddressItem, path: str
+) -> Problem:
+    """codec.check_spec's "item 'x': <field> <value> is not allowed (<why>)" as a
+    Problem at the item's JSON key."""
+    text = str(exc).removeprefix(f"item {spec.name!r}: ")
+    fields: dict[str, tuple[str, Any]] = {
+        "quantity": ("quantity", spec.quantity),
+        "data type": ("deviceDataType", spec.data_type.value),
+        "bit": ("address", item.address),
+        "dataMultiplier": ("dataMultiplier", spec.multiplier),
+        "convertedDataType": (
+            "convertedDataType",
+            None if spec.converted_type is None else spec.converted_type.value,
+        ),
+        "deadband": ("deadband", spec.deadband),
+        "encoding": ("encoding", spec.encoding),
+    }
+    head, sep, why = text.partition(" is not allowed (")
+    for field, (key, value) in fields.items():
+        if sep and head.startswith(f"{field} "):
+            return Problem(f"{path}.{key}", value, f"not allowed: {why.removesuffix(')')}")
+    return Problem(path, NO_VALUE, text)
 
 
 # --------------------------------------------------------------------------- device file
@@ -1212,13 +1491,27 @@ def _read_json(source: str | os.PathLike[str] | Mapping[str, Any]) -> tuple[Any,
 
 
 def _load(model: type[_M], source: str | os.PathLike[str] | Mapping[str, Any]) -> _M:
+    """Validate; unknown keys are logged once the load succeeded, or else become lines
+    of the ConfigError (one line per problem, not a warning and then an error)."""
     data, name = _read_json(source)
     if not isinstance(data, Mapping):
         raise ConfigError([Problem(name, NO_VALUE, "the file must hold a JSON object")])
+    unknown: list[Problem] = []
+    error: ConfigError | None
+    token = _unknown_keys.set(unknown)
     try:
-        return model.model_validate(data)
+        loaded = model.model_validate(data)
     except ValidationError as exc:
-        raise ConfigError.from_validation_error(exc) from None
+        error = ConfigError.from_validation_error(exc)
+    else:
+        error = None
+    finally:
+        _unknown_keys.reset(token)
+    if error is not None:
+        raise _with_unknown_keys(error, unknown) from None
+    for problem in unknown:
+        logger.warning("%s", problem)
+    return loaded
 
 
 def load_device_config(source: str | os.PathLike[str] | Mapping[str, Any]) -> DeviceConfig:

@@ -26,6 +26,7 @@ from .config import (
     device_enabled,
     effective_parameters,
     validate_items,
+    validate_parameters,
 )
 from .datatypes import Area
 from .device import Device, ItemState, WriteOp, plan_writes
@@ -72,56 +73,70 @@ class DriverModbusRtu:
     ) -> bool:
         """Start polling.  Returns True when polling started; False when the device is
         disabled (status ``Disabled``) or the driver is already running (nothing done).
-        Raises ``ValueError`` for an invalid configuration (naming the item and field)
-        or a line already open with other serial settings."""
+        Raises ``ValueError`` (a :class:`ConfigError` for the configuration, naming the
+        item, field, value and what is allowed) or a line already open with other serial
+        settings.  Everything is checked (items, codec specs, read plan, endpoint) before
+        a line is acquired: a failed start leaves no thread, socket or line behind."""
         if self._device is not None:
             self.logger.warning("%s: start_device: already running", self._code(org_param))
             return False
+        validate_parameters(org_param, comm_param)
         params = effective_parameters(org_param, comm_param)
-        self._org, self._params = org_param, params
-        self._enabled = device_enabled(org_param, comm_param)
-        if not self._enabled:
+        enabled = device_enabled(org_param, comm_param)
+        code = _device_code(org_param, params)
+        if not enabled:
+            self._org, self._params, self._enabled = org_param, params, False
             self._status = DeviceDriverStatus.DISABLED
-            self.logger.info("%s: disabled, not polled", self._code(org_param))
+            self.logger.info("%s: disabled, not polled", code)
             return False
         parsed = validate_items(list(addresses), params)
         endpoint = _endpoint(params)
-        timing = LineTiming(
-            response_timeout=params.read_timeout / 1000,
-            byte_timeout=params.byte_timeout / 1000,
-            settle_timeout=None if params.settle_timeout is None else params.settle_timeout / 1000,
-            connect_timeout=params.connect_timeout / 1000,
-            reconnect_interval=params.reconnect_interval / 1000,
-            max_backoff=params.max_backoff / 1000,
-            request_interval=params.request_interval / 1000,
-        )
+        timing = _timing(params)
+        # builds the items' codec specs, the plan and its decoders: raises here, not
+        # after the line's worker is running
+        device = Device(self, code, params, parsed, self.logger)
         if params.read_cycle == 0 and params.framing != "wrapped-report":
             self.logger.warning("%s: readCycle 0 means report-only, but framing is %r: "
                                 "nothing will update this device's items",
-                                self._code(org_param), params.framing)
-        slot: _dtu.DtuSlot | None = None
-        if isinstance(endpoint, DtuEndpoint):
-            slot = self.dtu_registry.acquire(_port_settings(params), endpoint)
-            dtu_slot = slot
-            try:
-                bus = self.registry.acquire(endpoint, timing, connector=lambda: dtu_slot)
-            except BaseException:
-                self.dtu_registry.release(slot)
-                raise
-            slot.attach(bus)
-        else:
-            bus = self.registry.acquire(endpoint, timing)
+                                code, params.framing)
+        bus, slot = self._acquire(params, endpoint, timing, device)
+        self._org, self._params, self._enabled = org_param, params, True
         self._slot = slot
-        device = Device(self, self._code(org_param), params, parsed, self.logger)
         self._bus, self._device, self._last_device = bus, device, None
         self._status = DeviceDriverStatus.CONNECTING
-        device.start(bus)
         self.logger.info(
             "%s: polling slave %d on %s every %d ms (%d items, %d blocks)",
             device.code, params.slave_id, endpoint.describe(), params.read_cycle,
             len(parsed), len(device.plan),
         )
         return True
+
+    def _acquire(
+        self, params: DriverModbusRtuParameter, endpoint: SerialPort | TcpEndpoint | DtuEndpoint,
+        timing: LineTiming, device: Device,
+    ) -> tuple[_bus.Bus, _dtu.DtuSlot | None]:
+        """Acquire the line (and the DTU slot in listen mode) and attach ``device``;
+        on any failure release what was acquired and re-raise."""
+        slot: _dtu.DtuSlot | None = None
+        bus: _bus.Bus | None = None
+        try:
+            if isinstance(endpoint, DtuEndpoint):
+                slot = self.dtu_registry.acquire(_port_settings(params), endpoint)
+                dtu_slot = slot
+                bus = self.registry.acquire(endpoint, timing, connector=lambda: dtu_slot)
+                slot.attach(bus)
+            else:
+                bus = self.registry.acquire(endpoint, timing)
+            device.start(bus)
+        except BaseException:
+            device.stop()
+            if bus is not None:
+                bus.detach(device)
+                self.registry.release(bus)
+            if slot is not None:
+                self.dtu_registry.release(slot)
+            raise
+        return bus, slot
 
     def stop_device(self) -> bool:
         """Stop polling; pending writes of this device fail.  False if it was not running."""
@@ -150,6 +165,9 @@ class DriverModbusRtu:
         parsed = validate_items(list(addresses), self._params)
         if self._device is None:
             return
+        # a trial build of the specs, plan and decoders: a list the codec or the planner
+        # refuses raises here and the running device keeps its items and plan
+        Device(self, self._device.code, self._params, parsed, self.logger)
         self._device.replace_items(parsed).result()
 
     # -- status --------------------------------------------------------------------------
@@ -248,9 +266,7 @@ class DriverModbusRtu:
 
     # -- helpers -------------------------------------------------------------------------
     def _code(self, org: DeviceOrganizationParameter | None) -> str:
-        if org is not None and org.device_code:
-            return str(org.device_code)
-        return f"slave{self._params.slave_id}" if self._params is not None else "device"
+        return _device_code(org, self._params)
 
     def _publish(self, device: Device) -> None:
         publisher = self.snapshot_publisher
@@ -262,6 +278,26 @@ class DriverModbusRtu:
             self.logger.exception("%s: snapshot publisher failed", device.code)
 
 
+def _device_code(
+    org: DeviceOrganizationParameter | None, params: DriverModbusRtuParameter | None
+) -> str:
+    if org is not None and org.device_code:
+        return str(org.device_code)
+    return f"slave{params.slave_id}" if params is not None else "device"
+
+
+def _timing(params: DriverModbusRtuParameter) -> LineTiming:
+    return LineTiming(
+        response_timeout=params.read_timeout / 1000,
+        byte_timeout=params.byte_timeout / 1000,
+        settle_timeout=None if params.settle_timeout is None else params.settle_timeout / 1000,
+        connect_timeout=params.connect_timeout / 1000,
+        reconnect_interval=params.reconnect_interval / 1000,
+        max_backoff=params.max_backoff / 1000,
+        request_interval=params.request_interval / 1000,
+    )
+
+
 def _wait_write(future: Future[Any]) -> tuple[bool, str | None]:
     try:
         result: tuple[bool, str | None] = future.result()
@@ -271,6 +307,8 @@ def _wait_write(future: Future[Any]) -> tuple[bool, str | None]:
 
 
 def _endpoint(params: DriverModbusRtuParameter) -> SerialPort | TcpEndpoint | DtuEndpoint:
+    """The line of ``params`` (the config refuses these combinations too; parameters
+    may have been changed after they were loaded)."""
     if params.framing == "wrapped-report" and params.transport not in (
         "rtu-over-tcp", "rtu-over-tcp-server"
     ):

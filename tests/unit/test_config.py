@@ -321,8 +321,8 @@ def test_effective_parameters_and_enable() -> None:
     assert device_enabled(DeviceOrganizationParameter(is_enable=False), comm) is False
     off = DriverModbusRtuParameter(is_enable=False)
     assert device_enabled(DeviceOrganizationParameter(is_enable=True), off) is False
-    assert errors_of({"organization": {"readCycle": 0}}) == [
-        "organization.readCycle 0: must be 1..86400000"
+    assert errors_of({"organization": {"readCycle": -1}}) == [
+        "organization.readCycle -1: must be 0..86400000"
     ]
 
 
@@ -443,7 +443,7 @@ def test_validate_items_raises_one_error_listing_all() -> None:
 
 def test_item_field_ranges() -> None:
     assert errors_of({"addressList": [item("a", "hr:1", "String", quantity=0, deadband=-1)]}) == [
-        "addressList[0].quantity 0: must be 1..65536",
+        "addressList[0].quantity 0: must be 1..125",
         "addressList[0].deadband -1: must be 0 or more",
     ]
 
