@@ -702,11 +702,7 @@ class MqttPublisher:
                     try:
                         client.reconnect()
                     except (OSError, ValueError) as exc:  # refused, timeout, TLS handshake
-                        hint = ""
-                        if self._tls and isinstance(exc, (ssl.SSLError, ConnectionResetError,
-                                                          BrokenPipeError)):
-                            hint = " (mqtt.tls is on: does this port speak TLS?)"
-                        self._connect_failed(_error_text(exc) + hint)
+                        self._connect_failed(_error_text(exc, self._tls))
                     else:
                         self._attempt = time.monotonic()  # CONNECT sent, CONNACK due
             elif self._attempt is not None and now - self._attempt >= s.connect_timeout / 1000:
@@ -1135,12 +1131,18 @@ class _FailureLog:
         return total
 
 
-def _error_text(exc: BaseException) -> str:
-    """A connect error in words: ``connection refused``, ``timed out``, the TLS error."""
+def _error_text(exc: BaseException, tls: bool) -> str:
+    """A connect error in words: ``connection refused``, ``timed out``, the TLS error;
+    with ``tls``, a handshake cut short hints at a port that does not speak TLS."""
+    if tls and isinstance(exc, (ConnectionResetError, BrokenPipeError, ssl.SSLError)) and (
+            not isinstance(exc, ssl.CertificateError)):
+        return f"{_error_text(exc, False)} (mqtt.tls is on: does this port speak TLS?)"
+    if isinstance(exc, ssl.SSLCertVerificationError):
+        return f"TLS certificate check failed: {exc.verify_message or exc}"
+    if isinstance(exc, ssl.CertificateError):  # paho's own host name check
+        return f"TLS certificate check failed: {exc}"
     if isinstance(exc, ssl.SSLError):
         return f"TLS handshake failed: {exc.reason or exc}"
-    if isinstance(exc, ssl.CertificateError):
-        return f"TLS certificate check failed: {exc}"
     if isinstance(exc, socket.gaierror):
         return f"cannot resolve the host name: {exc.strerror or exc}"
     if isinstance(exc, TimeoutError) and not exc.strerror:

@@ -397,6 +397,11 @@ def test_plain_client_on_a_tls_port_and_tls_client_on_a_plain_port_are_reported(
                         "reconnectMax": 50}, gateway_id="gw1") as pub:
         assert_failures_reported(pub, caplog, r"(TLS handshake failed|connection reset).* "
                                                r"\(mqtt.tls is on: does this port speak TLS\?\)")
+    caplog.clear()
+    with MqttPublisher({"port": tls_port, "tls": {}, "reconnectMin": 20, "reconnectMax": 50},
+                       gateway_id="gw1") as pub:  # the system's CAs: ours is self-signed
+        assert_failures_reported(pub, caplog, r"TLS certificate check failed: self[- ]signed "
+                                               r"certificate; retrying")
     # and TLS where TLS is spoken connects
     with MqttPublisher({"port": tls_port, "tls": tls}, gateway_id="gw1") as pub:
         assert pub.wait_connected(10), broker.log_text
