@@ -223,7 +223,7 @@ def _run(args: argparse.Namespace) -> int:
 
         logging.getLogger("edgemodbus").setLevel(logging.DEBUG if args.verbose > 1 else
                                                  logging.INFO)
-        return run_service(args.config_dir, args.gateway)
+        return run_service(args.config_dir, args.gateway, seconds=args.seconds)
     if not args.files:
         raise CliError("give device files, or --config-dir DIR")
     drivers = []

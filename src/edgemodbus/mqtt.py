@@ -11,6 +11,11 @@ Threads and queues (why polling is never blocked):
 * one ``edgemodbus-mqtt`` thread owns the paho client (external-loop mode: our own
   ``select``), connects and reconnects with exponential backoff and jitter, serialises
   to JSON and publishes; nothing else touches the client;
+* a connection attempt fails when the TCP connect or TLS handshake fails, when the peer
+  closes before CONNACK (a plain client on a TLS-only port), when no CONNACK comes within
+  ``connectTimeout``, or when the broker refuses (CONNACK code); each failure is counted
+  (``connectFailures``) and logged with its reason: the first at once, then at most one
+  line per ``failureLogInterval`` with the number of attempts since (each one at debug);
 * writes received on the command topics run on one ``edgemodbus-mqtt-cmd`` thread with an
   asyncio loop through ``write_addresses_async`` (many devices' writes in flight at once;
   per device in arrival order); the result goes to the reply topic.
@@ -34,20 +39,23 @@ import contextlib
 import json
 import logging
 import math
+import os
 import random
 import select
 import socket
+import ssl
 import string
 import threading
 import time
 from collections import deque
 from collections.abc import Callable, Iterable, Mapping
 from datetime import datetime, timezone
+from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, ClassVar, cast
 
 from pydantic import ValidationError, field_validator, model_validator
 
-from .config import MAX_MS, Choice, ConfigError, Ms, Range, _Model
+from .config import MAX_MS, Choice, ConfigError, Ms, Problem, Range, _Model
 from .driver import DriverModbusRtu
 
 if TYPE_CHECKING:
@@ -65,14 +73,111 @@ _CONTROL_LIMIT = 10_000
 
 
 class TlsSettings(_Model):
-    """TLS to the broker: CA file (else the system's), optional client certificate."""
+    """TLS to the broker: CA file (else the system's), optional client certificate.
+
+    ``enabled: false`` keeps the section in the file without using it (the shipped
+    example does so).  :meth:`problems` checks the files before any connection."""
 
     _where: ClassVar[str] = "mqtt.tls"
 
+    enabled: bool = True
     ca_file: str | None = None
     cert_file: str | None = None
     key_file: str | None = None
     insecure: bool = False  # skip the host name check (self-signed lab brokers only)
+
+    def files(self) -> dict[str, str]:
+        """The file fields that are set, JSON key -> path."""
+        named = {"caFile": self.ca_file, "certFile": self.cert_file, "keyFile": self.key_file}
+        return {key: path for key, path in named.items() if path is not None}
+
+    def resolved(self, base: str | os.PathLike[str]) -> TlsSettings:
+        """A copy whose relative file paths are taken from folder ``base``."""
+        update = {_SNAKE[key]: str(Path(base, path)) for key, path in self.files().items()
+                  if not os.path.isabs(path)}
+        return self.model_copy(update=update) if update else self
+
+    def problems(self, where: str = "mqtt.tls") -> list[Problem]:
+        """What is wrong with the files (missing, unreadable, not PEM, key without its
+        certificate), each named by its field; [] when TLS can be set up from them."""
+        if not self.enabled:
+            return []
+        found: list[Problem] = []
+        for field, path in self.files().items():
+            message = _file_problem(path)
+            if message is None and field == "caFile":
+                message = _ssl_problem(ssl.create_default_context, cafile=path)
+            if message is not None:
+                found.append(Problem(f"{where}.{field}", path, message))
+        if self.key_file is not None and self.cert_file is None:
+            found.append(Problem(f"{where}.keyFile", self.key_file,
+                                 "needs certFile (the client certificate of this key)"))
+        cert, key = self.cert_file, self.key_file
+        if not found and cert is not None:
+            found += _pem_problems(f"{where}.certFile", cert, "CERTIFICATE", "certificate")
+            key_field, key_path = (("keyFile", key) if key is not None else
+                                   ("certFile", cert))  # no keyFile: the key is in certFile
+            found += _pem_problems(f"{where}.{key_field}", key_path, "PRIVATE KEY",
+                                   "private key", "" if key is not None else
+                                   " (keyFile is not set, so the key must be in certFile)")
+        if not found and cert is not None:
+            chain = ssl.create_default_context().load_cert_chain
+            problem = _ssl_problem(chain, cert, key, password=_no_password)
+            if problem is not None:
+                found.append(Problem(f"{where}.certFile/keyFile", f"{cert}, {key}", problem))
+        return found
+
+
+_SNAKE = {"caFile": "ca_file", "certFile": "cert_file", "keyFile": "key_file"}
+
+
+def _file_problem(path: str) -> str | None:
+    """Why ``path`` cannot be read as a file by this process, or None."""
+    try:
+        with open(path, "rb") as file:
+            file.read(1)
+    except FileNotFoundError:
+        return "no such file"
+    except IsADirectoryError:
+        return "is a directory, not a file"
+    except PermissionError:
+        return f"not readable by this process (uid {os.geteuid()}): permission denied"
+    except OSError as exc:
+        return f"cannot be read: {exc.strerror or exc}"
+    return None
+
+
+def _no_password() -> bytes:
+    raise ValueError("the key is encrypted; give an unencrypted key file")
+
+
+def _pem_problems(field: str, path: str, label: str, what: str,
+                  hint: str = "") -> list[Problem]:
+    """[] if the file holds a PEM block ``-----BEGIN ...{label}-----``."""
+    with open(path, "rb") as file:
+        text = file.read(1 << 20)
+    if f"{label}-----".encode() in text and b"-----BEGIN " in text:
+        return []
+    return [Problem(field, path, f"no PEM {what} in it{hint}")]
+
+
+_SSL_REASONS = {
+    "NO_CERTIFICATE_OR_CRL_FOUND": "no PEM certificate in it",
+    "KEY_VALUES_MISMATCH": "the key does not belong to the certificate",
+}
+
+
+def _ssl_problem(load: Callable[..., object], *args: Any, **kwargs: Any) -> str | None:
+    """Why OpenSSL refuses the files ``load(*args, **kwargs)`` reads (not PEM, key and
+    certificate do not match...), or None."""
+    try:
+        load(*args, **kwargs)
+    except ssl.SSLError as exc:
+        reason = str(exc.reason or exc)
+        return _SSL_REASONS.get(reason, f"not usable for TLS: {reason}")
+    except (ValueError, OSError) as exc:
+        return f"not usable for TLS: {exc}"
+    return None
 
 
 def _template_fields(template: str) -> list[str]:
@@ -136,6 +241,7 @@ class MqttSettings(_Model):
     max_inflight: Annotated[int, Range(1, 65_535)] = 100
     reconnect_min: Ms = 500
     reconnect_max: Ms = 30_000
+    failure_log_interval: Ms = 60_000  # failed connects: first logged, then one line per this
     status_check_interval: Ms = 500
 
     @field_validator("topic_prefix")
@@ -317,8 +423,14 @@ class MqttPublisher:
         self._thread: threading.Thread | None = None
         self._client: Client | None = None
         self._connected = threading.Event()
+        self._attempt: float | None = None  # when the pending CONNECT went out
+        self._tls = settings.tls is not None and settings.tls.enabled
+        self._failures = _FailureLog(f"{settings.host}:{settings.port}",
+                                     settings.failure_log_interval / 1000,
+                                     settings.reconnect_max / 1000)
         self._window: deque[MQTTMessageInfo] = deque()
         self._flush_timeout = 1.0
+        self._stop_reason = "shutdown"
         self.client_id = settings.client_id or f"edgemodbus-{self.gateway_id}"
         self._counts: dict[str, int] = dict.fromkeys(
             ("connects", "disconnects", "connectFailures", "published", "dropped",
@@ -375,6 +487,10 @@ class MqttPublisher:
             return self
         if self._closed:
             raise RuntimeError("MqttPublisher cannot be restarted after stop(); make a new one")
+        if self.settings.tls is not None:
+            problems = self.settings.tls.problems()
+            if problems:
+                raise ConfigError(problems)
         self._client = self._make_client()
         if self.settings.writes:
             loop = asyncio.new_event_loop()
@@ -387,13 +503,15 @@ class MqttPublisher:
         self._thread.start()
         return self
 
-    def stop(self, timeout: float = 1.0) -> None:
-        """Publish device statuses and the gateway offline (if connected), flush for at
-        most ``timeout`` seconds, disconnect and join the threads.  Idempotent."""
+    def stop(self, timeout: float = 1.0, reason: str = "shutdown") -> None:
+        """Publish device statuses and the gateway offline with ``reason`` (if connected),
+        flush for at most ``timeout`` seconds, disconnect and join the threads.
+        Idempotent."""
         self._stop_commands()
         thread = self._thread
         if thread is not None:
             self._flush_timeout = max(0.0, timeout)
+            self._stop_reason = reason
             self._stopping.set()
             self._wake()
             client = self._client
@@ -554,7 +672,7 @@ class MqttPublisher:
                         qos=1, retain=True)
         if s.username is not None:
             client.username_pw_set(s.username, s.password)
-        if s.tls is not None:
+        if s.tls is not None and s.tls.enabled:
             client.tls_set(ca_certs=s.tls.ca_file, certfile=s.tls.cert_file,
                            keyfile=s.tls.key_file)
             client.tls_insecure_set(s.tls.insecure)
@@ -570,31 +688,28 @@ class MqttPublisher:
         s = self.settings
         delay = s.reconnect_min / 1000
         next_attempt = 0.0
-        failures = 0
         client.connect_async(s.host, s.port, s.keepalive)  # only stores where to connect
         next_status_check = 0.0
         while not self._stopping.is_set():
             now = time.monotonic()
-            sock = client.socket()
-            if sock is None:
+            if client.socket() is None:
                 self._connected.clear()
+                if self._attempt is not None:  # closed without a callback saying why
+                    self._connect_failed("the connection was closed before CONNACK")
                 if now >= next_attempt:
+                    next_attempt = now + delay * (1 + 0.2 * random.random())
+                    delay = min(delay * 2, s.reconnect_max / 1000)
                     try:
                         client.reconnect()
-                    except (OSError, ValueError) as exc:
-                        failures += 1
-                        self._count("connectFailures")
-                        if failures == 1:
-                            log.warning("MQTT broker %s:%d unreachable (%s); retrying with "
-                                        "backoff up to %.1f s", s.host, s.port, exc,
-                                        s.reconnect_max / 1000)
-                        next_attempt = now + delay * (1 + 0.2 * random.random())
-                        delay = min(delay * 2, s.reconnect_max / 1000)
+                    except (OSError, ValueError) as exc:  # refused, timeout, TLS handshake
+                        self._connect_failed(_error_text(exc, self._tls))
                     else:
-                        next_attempt = now + delay * (1 + 0.2 * random.random())
-                        delay = min(delay * 2, s.reconnect_max / 1000)
+                        self._attempt = time.monotonic()  # CONNECT sent, CONNACK due
+            elif self._attempt is not None and now - self._attempt >= s.connect_timeout / 1000:
+                self._connect_failed(f"no CONNACK within {s.connect_timeout} ms "
+                                     "(connectTimeout); is this an MQTT broker?")
+                _close_socket(client)
             if self._connected.is_set():
-                failures = 0
                 delay = s.reconnect_min / 1000
                 self._run_actions()
                 if now >= next_status_check or self._status_dirty:
@@ -608,8 +723,17 @@ class MqttPublisher:
             timeout = s.status_check_interval / 1000
             if sock is None:
                 timeout = max(0.0, min(timeout, next_attempt - time.monotonic()))
+            elif self._attempt is not None:
+                timeout = max(0.0, min(timeout, self._attempt + s.connect_timeout / 1000
+                                       - time.monotonic()))
             self._wait(client, sock, timeout)
         self._shutdown(client)
+
+    def _connect_failed(self, reason: str) -> None:
+        """One failed connection attempt: counted always, logged rate-limited."""
+        self._attempt = None
+        self._count("connectFailures")
+        self._failures.failed(reason, time.monotonic())
 
     def _wait(self, client: Client, sock: Any, timeout: float) -> None:
         """Sleep in select() until the broker's socket or our wake-up socket is ready."""
@@ -640,12 +764,13 @@ class MqttPublisher:
     def _on_connect(self, client: Client, _userdata: Any, _flags: Any, reason: Any,
                     _props: Any) -> None:
         if getattr(reason, "is_failure", False):
-            log.error("MQTT broker %s:%d refused the connection: %s", self.settings.host,
-                      self.settings.port, reason)
-            return
+            self._connect_failed(f"the broker refused the connection: {reason}")
+            return  # paho closes the socket; the loop retries with backoff
+        self._attempt = None
         self._count("connects")
-        log.info("MQTT connected to %s:%d as %s", self.settings.host, self.settings.port,
-                 self.client_id)
+        failed = self._failures.succeeded()
+        log.info("MQTT connected to %s:%d as %s%s", self.settings.host, self.settings.port,
+                 self.client_id, f" after {failed} failed attempts" if failed else "")
         self._connected.set()
         self._window.clear()  # qos>0 messages still pending are resent by paho
         s = self.settings
@@ -664,6 +789,12 @@ class MqttPublisher:
             if not self._stopping.is_set():
                 log.warning("MQTT connection to %s:%d lost (%s); reconnecting",
                             self.settings.host, self.settings.port, reason)
+        elif self._attempt is not None and not self._stopping.is_set():
+            why = "" if str(reason) == "Unspecified error" else f" ({reason})"
+            hint = ("; is the port TLS-only (set mqtt.tls)?" if not self._tls else
+                    "; was our TLS client certificate refused?")
+            self._connect_failed(f"the connection was closed before the broker answered "
+                                 f"CONNECT{why}{hint}")
         self._connected.clear()
 
     def _subscribe(self, dev: _Device) -> None:
@@ -839,7 +970,8 @@ class MqttPublisher:
                 s = self.settings
                 with self._lock:
                     self._control.append((self.topic(s.gateway_topic),
-                                          self._gateway_payload(False, "shutdown"), 1, True))
+                                          self._gateway_payload(False, self._stop_reason),
+                                          1, True))
                 started = time.monotonic()
                 deadline = started + self._flush_timeout
                 left = 0
@@ -960,6 +1092,74 @@ class MqttPublisher:
         if reason != "lost":  # the last will is fixed at connect time: no timestamp
             body["ts"] = _now()
         return _dumps(body)
+
+
+class _FailureLog:
+    """Failed connection attempts, logged without flooding: the first at once, then at
+    most one line per ``interval`` seconds with the number of attempts it stands for;
+    every attempt at debug level."""
+
+    def __init__(self, where: str, interval: float, retry_max: float) -> None:
+        self.where = where
+        self.interval = interval
+        self.retry_max = retry_max
+        self.total = 0  # failures since the last success
+        self.unreported = 0  # failures since the last warning line
+        self.last_line = 0.0
+
+    def failed(self, reason: str, now: float) -> None:
+        self.total += 1
+        self.unreported += 1
+        log.debug("MQTT broker %s: connection attempt %d failed: %s", self.where, self.total,
+                  reason)
+        if self.total == 1:
+            log.warning("MQTT broker %s: connection failed: %s; retrying with backoff up to "
+                        "%g s (repeats logged at most every %g s)", self.where, reason,
+                        self.retry_max, self.interval)
+        elif now - self.last_line >= self.interval:
+            log.warning("MQTT broker %s: still failing: %s (%d failed attempts since the "
+                        "last report, %d in all)", self.where, reason, self.unreported,
+                        self.total)
+        else:
+            return
+        self.unreported = 0
+        self.last_line = now
+
+    def succeeded(self) -> int:
+        """Forget the failures; how many there were."""
+        total, self.total, self.unreported = self.total, 0, 0
+        return total
+
+
+def _error_text(exc: BaseException, tls: bool) -> str:
+    """A connect error in words: ``connection refused``, ``timed out``, the TLS error;
+    with ``tls``, a handshake cut short hints at a port that does not speak TLS."""
+    if tls and isinstance(exc, (ConnectionResetError, BrokenPipeError, ssl.SSLError)) and (
+            not isinstance(exc, ssl.CertificateError)):
+        return f"{_error_text(exc, False)} (mqtt.tls is on: does this port speak TLS?)"
+    if isinstance(exc, ssl.SSLCertVerificationError):
+        return f"TLS certificate check failed: {exc.verify_message or exc}"
+    if isinstance(exc, ssl.CertificateError):  # paho's own host name check
+        return f"TLS certificate check failed: {exc}"
+    if isinstance(exc, ssl.SSLError):
+        return f"TLS handshake failed: {exc.reason or exc}"
+    if isinstance(exc, socket.gaierror):
+        return f"cannot resolve the host name: {exc.strerror or exc}"
+    if isinstance(exc, TimeoutError) and not exc.strerror:
+        return "timed out (connectTimeout)"
+    if isinstance(exc, OSError) and exc.strerror:
+        return exc.strerror.lower() if exc.strerror[:1].isupper() else exc.strerror
+    return str(exc) or type(exc).__name__
+
+
+def _close_socket(client: Client) -> None:
+    """Drop a connection that never got its CONNACK (paho has no public call for a
+    connection that is not established; its reconnect() closes the old socket first)."""
+    close = getattr(client, "_sock_close", None)
+    if callable(close):
+        close()
+    else:  # pragma: no cover - a paho without it: DISCONNECT, closed once written
+        client.disconnect()
 
 
 def _raw_packet_queue(client: Client) -> Callable[..., Any] | None:

@@ -4,17 +4,29 @@ driver polling a pymodbus slave (own process)."""
 from __future__ import annotations
 
 import json
+import logging
+import os
+import re
 import time
 from collections.abc import Iterator
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import pytest
 
 import edgemodbus as em
 from edgemodbus.config import ConfigError, DeviceDriverStatus, ItemStatus
-from edgemodbus.mqtt import MqttPublisher, MqttSettings, encode_item, jsonable, parse_command
+from edgemodbus.metrics import MetricsExporter
+from edgemodbus.mqtt import (
+    MqttPublisher,
+    MqttSettings,
+    TlsSettings,
+    encode_item,
+    jsonable,
+    parse_command,
+)
+from tests.fake_brokers import FakeBroker, self_signed_cert
 from tests.mosquitto import Mosquitto, MqttProbe
 from tests.peers import PymodbusSlave, default_register, free_port
 from tests.waiting import wait_for
@@ -294,3 +306,182 @@ def test_parse_command_forms() -> None:
         parse_command(None, b'[["a", 1], 7]')
     with pytest.raises(ValueError, match="too large"):
         parse_command("sp", b"1" * 70_000)
+
+
+# -- failed connections: reason in the log, counted, rate-limited ----------------------
+@pytest.fixture
+def tls_broker(tmp_path: Path) -> Iterator[tuple[Mosquitto, int, Path]]:
+    """mosquitto with its plain listener and a TLS-only one: (broker, tls port, CA)."""
+    cert, key = self_signed_cert(tmp_path / "tls")
+    tls_port = free_port()
+    extra = [f"listener {tls_port} 127.0.0.1", f"certfile {cert}", f"keyfile {key}"]
+    with Mosquitto(tmp_path / "broker", extra_config=extra) as peer:
+        yield peer, tls_port, cert
+
+
+def failures(caplog: pytest.LogCaptureFixture, level: int = logging.WARNING) -> list[str]:
+    return [r.getMessage() for r in caplog.records
+            if r.name == "edgemodbus.mqtt" and r.levelno == level
+            and ("connection failed" in r.getMessage() or "still failing" in r.getMessage()
+                 or "attempt" in r.getMessage())]
+
+
+def assert_failures_reported(pub: MqttPublisher, caplog: pytest.LogCaptureFixture,
+                             reason: str) -> None:
+    """Three failed attempts counted, exported, and the first logged with ``reason``."""
+    wait_for(lambda: pub.stats()["connectFailures"] >= 3, what="3 failed connects")
+    lines = failures(caplog)
+    assert lines, "no warning for a failed connect"
+    assert re.search(reason, lines[0]), lines[0]
+    assert lines[0].startswith(f"MQTT broker 127.0.0.1:{pub.settings.port}: connection "
+                               "failed: ")
+    exporter = MetricsExporter({"port": 0})
+    exporter.set_publisher(pub)
+    found = re.search(r"^edgemodbus_mqtt_connect_failures_total (\S+)$",
+                      exporter.render().decode(), re.M)
+    assert found and float(found.group(1)) >= 3
+    stats = pub.stats()
+    assert stats["connects"] == 0 and not stats["connected"]
+
+
+@pytest.mark.parametrize("mode, reason", [
+    ("close", r"closed before the broker answered CONNECT; is the port TLS-only"),
+    ("silent", r"no CONNACK within 200 ms \(connectTimeout\)"),
+])
+def test_a_peer_that_hangs_up_or_never_answers_is_a_failed_connect(
+    caplog: pytest.LogCaptureFixture, mode: Literal["close", "silent"], reason: str
+) -> None:
+    caplog.set_level(logging.DEBUG, logger="edgemodbus.mqtt")
+    with FakeBroker(mode) as peer:
+        pub = MqttPublisher({"port": peer.port, "reconnectMin": 20, "reconnectMax": 50,
+                             "connectTimeout": 200}, gateway_id="gw1")
+        with pub:
+            assert_failures_reported(pub, caplog, reason)
+        assert peer.accepted >= 3  # the TCP connections did succeed
+    # every attempt is in the debug log, numbered
+    assert len(failures(caplog, logging.DEBUG)) == pub.stats()["connectFailures"]
+
+
+def test_refused_port_is_a_failed_connect(
+    caplog: pytest.LogCaptureFixture, free_tcp_port: int
+) -> None:
+    with MqttPublisher({"port": free_tcp_port, "reconnectMin": 20, "reconnectMax": 50},
+                       gateway_id="gw1") as pub:
+        assert_failures_reported(pub, caplog, r"connection refused")
+
+
+def test_a_broker_that_refuses_us_is_a_failed_connect_logged_once(
+    caplog: pytest.LogCaptureFixture, tmp_path: Path
+) -> None:
+    with Mosquitto(tmp_path / "broker", extra_config=["allow_anonymous false"]) as broker, \
+            MqttPublisher({"port": broker.port, "reconnectMin": 20, "reconnectMax": 50},
+                          gateway_id="gw1") as pub:
+        assert_failures_reported(pub, caplog, r"the broker refused the connection: "
+                                               r"Not authorized")
+        wait_for(lambda: pub.stats()["connectFailures"] >= 10, what="10 refusals")
+        assert len(failures(caplog)) == 1  # not one error per attempt
+        assert not [r for r in caplog.records if r.levelno >= logging.ERROR]
+
+
+def test_plain_client_on_a_tls_port_and_tls_client_on_a_plain_port_are_reported(
+    caplog: pytest.LogCaptureFixture, tls_broker: tuple[Mosquitto, int, Path]
+) -> None:
+    broker, tls_port, ca = tls_broker
+    with MqttPublisher({"port": tls_port, "reconnectMin": 20, "reconnectMax": 50},
+                       gateway_id="gw1") as pub:
+        assert_failures_reported(pub, caplog, r"closed before the broker answered CONNECT; "
+                                               r"is the port TLS-only \(set mqtt.tls\)\?")
+    caplog.clear()
+    tls = {"caFile": str(ca)}
+    with MqttPublisher({"port": broker.port, "tls": tls, "reconnectMin": 20,
+                        "reconnectMax": 50}, gateway_id="gw1") as pub:
+        assert_failures_reported(pub, caplog, r"(TLS handshake failed|connection reset).* "
+                                               r"\(mqtt.tls is on: does this port speak TLS\?\)")
+    caplog.clear()
+    with MqttPublisher({"port": tls_port, "tls": {}, "reconnectMin": 20, "reconnectMax": 50},
+                       gateway_id="gw1") as pub:  # the system's CAs: ours is self-signed
+        assert_failures_reported(pub, caplog, r"TLS certificate check failed: self[- ]signed "
+                                               r"certificate; retrying")
+    # and TLS where TLS is spoken connects
+    with MqttPublisher({"port": tls_port, "tls": tls}, gateway_id="gw1") as pub:
+        assert pub.wait_connected(10), broker.log_text
+        assert pub.stats()["connectFailures"] == 0
+
+
+def test_connect_failures_are_logged_at_most_once_per_interval_with_counts(
+    caplog: pytest.LogCaptureFixture, broker: Mosquitto
+) -> None:
+    caplog.set_level(logging.INFO, logger="edgemodbus.mqtt")
+    broker.stop()  # its port now refuses
+    settings = {"port": broker.port, "reconnectMin": 20, "reconnectMax": 20,
+                "failureLogInterval": 1000}
+    with MqttPublisher(settings, gateway_id="gw1") as pub:
+        started = time.monotonic()
+        wait_for(lambda: len(failures(caplog)) >= 3, timeout=10, what="3 warnings")
+        elapsed = time.monotonic() - started
+        lines = failures(caplog)
+        total = pub.stats()["connectFailures"]
+        assert total >= 20, total  # ~50 attempts a second, far fewer lines
+        assert len(lines) <= 2 + elapsed / 1.0, lines
+        assert "connection failed: connection refused" in lines[0]
+        reported = 1
+        for line in lines[1:]:
+            found = re.search(r"still failing: connection refused \((\d+) failed attempts "
+                              r"since the last report, (\d+) in all\)", line)
+            assert found, line
+            reported += int(found.group(1))
+            assert int(found.group(2)) == reported
+        assert reported <= total
+        broker.restart()
+        assert pub.wait_connected(10)
+        done = pub.stats()["connectFailures"]
+        wait_for(lambda: any(f"after {done} failed attempts" in r.getMessage()
+                             for r in caplog.records), what="the connected line")
+
+
+@pytest.mark.parametrize("field", ["caFile", "certFile", "keyFile"])
+def test_tls_file_problems_name_the_field_the_path_and_what_is_wrong(
+    tmp_path: Path, field: str
+) -> None:
+    cert, key = self_signed_cert(tmp_path / "tls")
+    good = {"caFile": str(cert), "certFile": str(cert), "keyFile": str(key)}
+    (tmp_path / "dir.pem").mkdir()
+    (tmp_path / "text.pem").write_text("not PEM at all\n")
+    cases = {
+        str(tmp_path / "missing.pem"): "no such file",
+        str(tmp_path / "dir.pem"): "is a directory, not a file",
+        str(tmp_path / "text.pem"): "no PEM (certificate|private key) in it",
+    }
+    for path, problem in cases.items():
+        tls = TlsSettings.model_validate({**good, field: path})
+        found = [str(p) for p in tls.problems()]
+        assert len(found) == 1 and re.fullmatch(
+            rf"mqtt\.tls\.{field} '{re.escape(path)}': {problem}", found[0]), found
+        # the publisher refuses to start with them, naming the field
+        pub = MqttPublisher({"tls": {**good, field: path}}, gateway_id="gw1")
+        with pytest.raises(ConfigError, match=rf"mqtt\.tls\.{field} "):
+            pub.start()
+        pub.stop()
+    assert TlsSettings.model_validate(good).problems() == []
+    assert TlsSettings.model_validate({field: str(tmp_path / "missing.pem"),
+                                       "enabled": False}).problems() == []
+
+
+def test_tls_key_problems_are_named(tmp_path: Path) -> None:
+    cert, key = self_signed_cert(tmp_path / "a")
+    _, other_key = self_signed_cert(tmp_path / "b")
+    found = [str(p) for p in TlsSettings.model_validate({"keyFile": str(key)}).problems()]
+    assert found == [f"mqtt.tls.keyFile '{key}': needs certFile (the client certificate "
+                     "of this key)"]
+    found = [str(p) for p in TlsSettings.model_validate(
+        {"certFile": str(cert), "keyFile": str(other_key)}).problems()]
+    assert found == [f"mqtt.tls.certFile/keyFile '{cert}, {other_key}': the key does not "
+                     "belong to the certificate"]
+    found = [str(p) for p in TlsSettings.model_validate({"certFile": str(cert)}).problems()]
+    assert found == [f"mqtt.tls.certFile '{cert}': no PEM private key in it (keyFile is not "
+                     "set, so the key must be in certFile)"]
+    if os.geteuid() != 0:  # root reads any file: no permission error to see
+        key.chmod(0)
+        found = [str(p) for p in TlsSettings.model_validate(
+            {"certFile": str(cert), "keyFile": str(key)}).problems()]
+        assert found and "not readable by this process" in found[0], found

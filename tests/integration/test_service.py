@@ -7,6 +7,7 @@ import json
 import os
 import re
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -19,7 +20,7 @@ import pytest
 
 from edgemodbus.service import load_gateway_config
 from tests.mosquitto import Mosquitto, MqttProbe
-from tests.peers import PymodbusSlave, default_register
+from tests.peers import PymodbusSlave, default_register, free_port
 
 P = "edgemodbus"
 REPO = Path(__file__).resolve().parents[2]
@@ -231,9 +232,185 @@ def test_killed_gateway_is_marked_offline_by_its_last_will(
 
 
 def test_example_gateway_file_loads() -> None:
-    cfg = load_gateway_config(REPO / "examples" / "gateway.json")
+    cfg = load_gateway_config(REPO / "examples" / "gateway.json")  # TLS files checked too
     assert cfg.gateway_id == "gw-line3" and cfg.mqtt is not None and cfg.metrics is not None
-    assert cfg.mqtt.tls is not None and cfg.mqtt.qos == 0 and cfg.metrics.port == 9108
+    assert cfg.mqtt.qos == 0 and cfg.metrics.port == 9108
+    # TLS is shown but off: the example runs against a local plain broker as shipped
+    assert cfg.mqtt.tls is not None and not cfg.mqtt.tls.enabled
+    assert (cfg.mqtt.host, cfg.mqtt.port) == ("127.0.0.1", 1883)
+
+
+def test_shipped_example_gateway_file_works_against_a_plain_broker(
+    tmp_path: Path, broker: Mosquitto, slave: PymodbusSlave
+) -> None:
+    """examples/gateway.json with only the ports changed (tests use free ports)."""
+    conf = tmp_path / "conf"
+    conf.mkdir()
+    example = json.loads((REPO / "examples" / "gateway.json").read_text())
+    example["mqtt"]["port"] = broker.port
+    example["metrics"].update(host="127.0.0.1", port=0)
+    write_json(conf / "gateway.json", example)
+    write_json(conf / "dev1.json", device_file(slave.port, 1, code="dev1"))
+    with MqttProbe(broker.port) as probe, Service(conf, tmp_path / "service.log") as svc:
+        msg = probe.wait_for("plant1/$gateway/gw-line3", timeout=20)
+        assert msg.json()["status"] == "online"
+        probe.wait_for("plant1/dev1/t0")
+        svc.signal(signal.SIGTERM)
+        assert svc.wait() == 0
+    assert "ERROR" not in svc.log and "connection failed" not in svc.log, svc.log
+
+
+@pytest.mark.parametrize("field, value, problem", [
+    ("caFile", "/nonexistent/ca.pem", "'/nonexistent/ca.pem': no such file"),
+    ("caFile", "ca.pem", "'{conf}/ca.pem': no such file"),  # relative: from the file's folder
+    ("caFile", ".", "'{conf}': is a directory, not a file"),
+    ("certFile", "client.pem", "'{conf}/client.pem': no such file"),
+    ("keyFile", "key.pem", "'{conf}/key.pem': no such file"),
+])
+def test_tls_file_problems_stop_the_service_before_it_connects(
+    tmp_path: Path, field: str, value: str, problem: str
+) -> None:
+    conf = tmp_path / "conf"
+    conf.mkdir()
+    write_json(conf / "gateway.json", {"gatewayId": "gw", "mqtt": {
+        "port": free_port(), "tls": {field: value}}})
+    result = subprocess.run(
+        [sys.executable, "-m", "edgemodbus.service", "--config-dir", str(conf)],
+        capture_output=True, text=True, timeout=60, cwd=REPO,
+    )
+    assert result.returncode == 2
+    expected = problem.format(conf=str(conf).rstrip("/"))
+    assert f"{conf / 'gateway.json'}: mqtt.tls.{field} {expected}" in result.stderr, (
+        result.stderr)
+    assert "Errno" not in result.stderr and "connect" not in result.stderr
+
+
+@pytest.mark.parametrize("command", [
+    ["edgemodbus.cli", "-v", "run"],  # edgemodbus run --config-dir DIR --seconds N
+    ["edgemodbus.service"],
+])
+def test_config_dir_service_stops_by_itself_after_seconds(
+    tmp_path: Path, slave: PymodbusSlave, command: list[str]
+) -> None:
+    conf = tmp_path / "conf"
+    conf.mkdir()
+    write_json(conf / "dev1.json", device_file(slave.port, 1, code="dev1"))
+    started = time.monotonic()
+    result = subprocess.run(
+        [sys.executable, "-m", *command, "--config-dir", str(conf), "--seconds", "1"],
+        capture_output=True, text=True, timeout=20, cwd=REPO,
+    )
+    took = time.monotonic() - started
+    assert result.returncode == 0, result.stderr
+    assert "dev1: started from dev1.json" in result.stderr
+    assert "1 s elapsed (--seconds)" in result.stderr and "stopped in" in result.stderr
+    assert 1.0 <= took < 15.0
+    assert slave.request_count(1) > 0  # it did poll meanwhile
+    result = subprocess.run(
+        [sys.executable, "-m", *command, "--config-dir", str(conf), "--seconds", "-1"],
+        capture_output=True, text=True, timeout=20, cwd=REPO,
+    )
+    assert result.returncode == 2
+    assert "--seconds -1.0: must be >= 0 (0: run until a signal)" in result.stderr
+
+
+def test_sighup_reports_a_broken_gateway_file_and_applies_a_valid_change(
+    tmp_path: Path, broker: Mosquitto, slave: PymodbusSlave
+) -> None:
+    conf = tmp_path / "conf"
+    conf.mkdir()
+    gateway_file(conf, broker)
+    write_json(conf / "dev1.json", device_file(slave.port, 1, code="dev1"))
+    with MqttProbe(broker.port) as probe, Service(conf, tmp_path / "service.log") as svc:
+        probe.wait_for(f"{P}/dev1/t0", timeout=20)
+        port = metrics_port(svc.wait_log(r"metrics on http://"))
+        gw = str(conf / "gateway.json")
+
+        # broken: reported with file and field, the running settings kept
+        write_json(conf / "gateway.json", {"gatewayId": "gw-test", "mqtt": {"qos": 7}})
+        svc.signal(signal.SIGHUP)
+        svc.wait_log(rf"{re.escape(gw)}: invalid, keeping the running gateway settings")
+        svc.wait_log(r"^mqtt\.qos 7: must be 0 or 1 or 2")
+        # a TLS file that is not there: the same
+        gateway_file(conf, broker, tls={"caFile": "missing.pem"})
+        svc.signal(signal.SIGHUP)
+        svc.wait_log(rf"mqtt\.tls\.caFile '{re.escape(str(conf))}/missing\.pem': no such file")
+        # ...and the device kept polling and publishing where it did, metrics where they were
+        slave.set_registers(1, "hr", 0, [111])
+        probe.wait_for(f"{P}/dev1/t0", lambda m: m.json()["value"] == 111)
+        assert "edgemodbus_mqtt_connected 1.0" in scrape(port)
+
+        # valid change: MQTT (prefix, gateway id) and metrics port applied live
+        new_port = free_port()
+        mark = probe.mark()
+        mqtt = {"port": broker.port, "topicPrefix": "plant2", "reconnectMin": 100,
+                "statusCheckInterval": 100}
+        write_json(conf / "gateway.json", {
+            "gatewayId": "gw-two", "mqtt": mqtt, "metrics": {"port": new_port},
+        })
+        svc.signal(signal.SIGHUP)
+        applied = svc.wait_log(r"gateway settings applied: ")
+        assert f"metrics on http://127.0.0.1:{new_port}/metrics" in applied
+        assert "MQTT publisher restarted" in applied and "gateway gw-two" in applied
+        old = probe.wait_for(f"{P}/$gateway/gw-test", after=mark,
+                             match=lambda m: m.json()["status"] == "offline")
+        assert old.json()["reason"] == "reconfigure"
+        probe.wait_for("plant2/$gateway/gw-two", lambda m: m.json()["status"] == "online")
+        probe.wait_for("plant2/dev1/$status", lambda m: m.json()["status"] == "Running")
+        slave.set_registers(1, "hr", 0, [222])
+        probe.wait_for("plant2/dev1/t0", lambda m: m.json()["value"] == 222)
+        text = scrape(new_port)
+        assert re.search(r'edgemodbus_cycles_total\{device="dev1"', text)
+        assert "edgemodbus_mqtt_connected 1.0" in text
+        with pytest.raises(OSError):
+            scrape(port)
+
+        # mqtt.snapshotInterval: the devices that take theirs from it restart
+        write_json(conf / "gateway.json", {
+            "gatewayId": "gw-two", "mqtt": {**mqtt, "snapshotInterval": 200},
+            "metrics": {"port": new_port},
+        })
+        svc.signal(signal.SIGHUP)
+        svc.wait_log(r"gateway settings applied: snapshotInterval 200 ms: 1 devices restarted")
+        probe.wait_for("/real/dev1", lambda m: m.json()["gatewayId"] == "gw-two")
+        assert len(svc.lines(r"dev1: restarted")) == 1  # only now, not before
+        assert not svc.lines(r"ERROR (?!edgemodbus\.service: \S+/gateway\.json: invalid, "
+                             r"keeping the running gateway settings:$)")
+        svc.signal(signal.SIGTERM)
+        assert svc.wait() == 0
+
+
+def test_sighup_applies_a_gateway_file_that_appeared_and_reports_a_busy_metrics_port(
+    tmp_path: Path, slave: PymodbusSlave
+) -> None:
+    conf = tmp_path / "conf"
+    conf.mkdir()
+    write_json(conf / "dev1.json", device_file(slave.port, 1, code="dev1"))
+    with Service(conf, tmp_path / "service.log") as svc:
+        svc.wait_log(r"dev1: started from dev1\.json")
+        # no gateway file at start; one appears: the gateway's, not a device file
+        write_json(conf / "gateway.json", {"gatewayId": "gw", "metrics": {"port": 0}})
+        svc.signal(signal.SIGHUP)
+        port = metrics_port(svc.wait_log(r"gateway settings applied: metrics on http://"))
+        assert 'device="dev1"' in scrape(port)
+        # a port that is taken: reported, the running exporter kept
+        with socket.create_server(("127.0.0.1", 0)) as taken:
+            busy = taken.getsockname()[1]
+            write_json(conf / "gateway.json", {"gatewayId": "gw", "metrics": {"port": busy}})
+            svc.signal(signal.SIGHUP)
+            svc.wait_log(rf"gateway\.json: not applied, keeping the running gateway settings: "
+                         rf"metrics: cannot listen on 127\.0\.0\.1:{busy}: ")
+        port = metrics_port(svc.lines(r"metrics on http://")[-1])
+        assert 'device="dev1"' in scrape(port)
+        assert not svc.lines(r"gateway\.json: invalid|dev1: (stopped|restarted)")
+        svc.signal(signal.SIGTERM)
+        assert svc.wait() == 0
+
+
+def metrics_port(line: str) -> int:
+    found = re.search(r"metrics on http://[\d.]+:(\d+)/metrics", line)
+    assert found, line
+    return int(found.group(1))
 
 
 def test_bad_gateway_file_is_refused_with_the_field_named(tmp_path: Path) -> None:
