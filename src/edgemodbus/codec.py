@@ -16,6 +16,8 @@ Choices this module makes (DESIGN.md leaves them open):
   UInt16 reading of the same register in the same format (bit 0 = least significant).
 * ``convertedDataType`` Float keeps double precision but must fit a float32's range.
 * Deadband applies to numeric results (int, float); bool, str and bytes report any change.
+* An item that stays Invalid is reported again when its reason changes (the slave now
+  holds another bad value); the reason always names the value just read.
 """
 
 from __future__ import annotations
@@ -321,6 +323,8 @@ def _compile(spec: ValueSpec, area: Area, offset: int) -> _Compiled:
 
 
 def _fmt_number(v: float) -> str:
+    if isinstance(v, int):
+        return str(v)
     if math.isfinite(v) and v == int(v) and abs(v) < 2**53:
         return str(int(v))
     return repr(v)
@@ -361,15 +365,17 @@ class BlockDecoder:
         self._reported: list[Report] = []
 
     def _reason(self, index: int, code: int) -> str:
-        c = _compile(self.specs[index], self.area, self._offsets[index])
         if code == _E["MISSING"]:
             return "not in response"
-        v = self._plan.errval(index)
-        if code == _E["BCD"]:
-            digits = 4 if c.wire == "BCD16" else 8
-            return f"invalid BCD value 0x{int(v):0{digits}X} (a digit above 9)"
+        c = _compile(self.specs[index], self.area, self._offsets[index])
         if code == _E["NAN"]:
             return f"NaN cannot be converted to {c.target_label}"
+        v = self._plan.errval(index)
+        if v is None:  # the C codec gives every status but MISSING a value
+            raise AssertionError(f"codec: item {index} failed (status {code}) without a value")
+        if code == _E["BCD"]:
+            digits = 4 if c.wire == "BCD16" else 8
+            return f"invalid BCD value 0x{v:0{digits}X} (a digit above 9)"
         if c.target_label == "DateTime":
             return f"{_fmt_number(v)} ms is outside the dates Python can hold (years 1..9999)"
         if c.target_range is not None:
@@ -378,8 +384,9 @@ class BlockDecoder:
         return f"value {_fmt_number(v)} is out of range for {c.target_label}"
 
     def decode(self, block: Block, report_all: bool = False) -> list[Report]:
-        """(index, value or None, error reason or None) of every item whose value or
-        status changed since it was last reported (all of them when ``report_all``)."""
+        """(index, value or None, error reason or None) of every item whose value, status
+        or error reason changed since it was last reported (all of them when
+        ``report_all``)."""
         plan, mode = self.begin(report_all)
         return self.finish(plan.decode(block, mode), report_all)
 
