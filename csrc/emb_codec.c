@@ -349,32 +349,37 @@ static uint64_t store(const emb_plan *p, const emb_item *it, const emb_num *n)
     }
 }
 
-/* Whether a new value differs from the last reported one by more than the deadband. */
+/* Whether a new value differs from the last reported one by more than the deadband.
+ * Doubles: any NaN equals any NaN (its payload is no value), a NaN against a number is
+ * a change, and so is -0.0 against 0.0 without a deadband.  Integers: the distance is
+ * exact (a double would round 64-bit values and hide a move past the deadband). */
 static bool value_changed(const emb_item *it, uint64_t now, uint64_t was)
 {
     if (now == was)
         return false;
     double db = it->deadband;
-    if (!(db > 0.0))
-        return true;
-    double a, b;
     switch (it->out) {
-    case EMB_O_I64:
-        a = (double)sext(now, 64);
-        b = (double)sext(was, 64);
-        break;
-    case EMB_O_U64:
-        a = (double)now;
-        b = (double)was;
-        break;
-    case EMB_O_F64:
+    case EMB_O_F64: {
+        double a, b;
         memcpy(&a, &now, sizeof a);
         memcpy(&b, &was, sizeof b);
-        break;
+        if (isnan(a) || isnan(b))
+            return !(isnan(a) && isnan(b));
+        return !(db > 0.0) || !(fabs(a - b) <= db); /* an infinity: a change */
+    }
+    case EMB_O_I64:
+    case EMB_O_U64: {
+        if (!(db > 0.0))
+            return true;
+        /* |now - was| < 2^64 in either group, so the unsigned difference is exact */
+        bool up = it->out == EMB_O_I64 ? sext(now, 64) > sext(was, 64) : now > was;
+        uint64_t d = up ? now - was : was - now;
+        /* an integer d exceeds db exactly when it exceeds floor(db) */
+        return db < 18446744073709551616.0 && d > (uint64_t)db;
+    }
     default:
         return true;
     }
-    return !(fabs(a - b) <= db); /* NaN or infinities on one side: a change */
 }
 
 /* What a failed item's reason says besides its status: the offending value for BCD and

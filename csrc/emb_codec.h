@@ -146,8 +146,9 @@ long emb_plan_check(const emb_plan *plan);
 
 /* Decode `count` registers (or bits) at `data` for every item of a checked plan.
  * Returns the number of items listed in plan->changed (TRACK: the reported ones, whose
- * status changed, whose value moved past the deadband, or which still fail but for
- * another offending value, so with another reason; ALL: those whose result is not exactly the last reported one,
+ * status changed, whose value moved past the deadband (any NaN equals any NaN; 64-bit
+ * integers compare exactly), or which still fail but for another offending value, so
+ * with another reason; ALL: those whose result is not exactly the last reported one,
  * plus every failed item) or, for VALUES, the number of failed items.  plan->n_errors
  * and plan->errs always list the failed items. */
 long emb_decode(emb_plan *plan, const void *data, uint32_t count, int mode);

@@ -1,4 +1,5 @@
-"""Change detection of the codec for items that stay Invalid.
+"""Change detection of the codec for items that stay Invalid, and for values that only
+look different (NaN payloads, undecodable text) or that a double would round.
 
 In reportMode "change" (BlockDecoder.decode without report_all) an item is reported when
 its value, status or error reason changes; the reason names the value just read, as a
@@ -7,6 +8,7 @@ decode in reportMode "cycle" does.
 
 from __future__ import annotations
 
+import datetime as dt
 import math
 import struct
 
@@ -133,3 +135,52 @@ def test_64_bit_reasons_name_the_exact_integer() -> None:
     huge = (1 << 64) - 1
     why = cycle_reason(ValueSpec("x", T.UINT64, converted_type=T.INT64), *words(">Q", huge))
     assert why == f"value {huge} is out of range for Int64 ({-(1 << 63)}..{(1 << 63) - 1})"
+
+
+# -- values: what counts as a change -----------------------------------------------------------
+
+
+def test_64_bit_deadband_distance_is_exact() -> None:
+    base = 1 << 60  # neighbours are one double apart only every 256
+    spec = ValueSpec("x", T.UINT64, deadband=0.5)
+    _, moved, back = track(spec, words(">Q", base), words(">Q", base + 1), words(">Q", base + 1))
+    assert moved == [(0, base + 1, None)] and back == []
+    spec = ValueSpec("x", T.INT64, deadband=1000)
+    steps = [words(">q", v) for v in (-(1 << 62), -(1 << 62) + 1000, -(1 << 62) + 1001)]
+    assert track(spec, *steps)[1:] == [[], [(0, -(1 << 62) + 1001, None)]]
+
+
+def test_deadband_applies_to_numbers_only() -> None:
+    _, moved = track(ValueSpec("c", T.CHAR, deadband=5), (0x41,), (0x42,))
+    assert moved == [(0, "B", None)]
+    _, moved = track(ValueSpec("s", T.INT16, converted_type=T.STRING, deadband=5), (1,), (2,))
+    assert moved == [(0, "2", None)]
+    _, moved = track(ValueSpec("t", T.DATETIME, deadband=5000), (0, 1), (0, 2))
+    assert moved == [(0, dt.datetime(1970, 1, 1, 0, 0, 2, tzinfo=dt.timezone.utc), None)]
+    _, within = track(ValueSpec("ts", T.TIMESTAMP, deadband=5000), (0, 1), (0, 2))
+    assert within == []  # Timestamp is a number (ms): 1000 ms is inside the deadband
+
+
+def test_nan_payloads_are_no_change() -> None:
+    _, payload = track(ValueSpec("f", T.FLOAT), (0x7FC0, 0), (0x7FC0, 1))
+    assert payload == []
+    _, payload = track(ValueSpec("f", T.FLOAT, converted_type=T.STRING), (0x7FC0, 0), (0xFFC0, 5))
+    assert payload == []
+    _, number, nan = track(ValueSpec("f", T.FLOAT, deadband=1), (0x7FC0, 0), (0, 0), (0x7FC1, 0))
+    assert number == [(0, 0.0, None)]
+    [(_, value, _)] = nan
+    assert isinstance(value, float) and math.isnan(value)
+
+
+def test_undecodable_bytes_with_the_same_text_are_no_change() -> None:
+    spec = ValueSpec("s", T.STRING, quantity=1)
+    decoder = BlockDecoder(HR, 1, [(0, spec)])
+    assert decoder.decode(regs(0xFF41)) == [(0, "\ufffdA", None)]
+    assert decoder.decode(regs(0xFE41)) == []  # other bytes, the same text
+    assert decoder.decode(regs(0xFE42)) == [(0, "\ufffdB", None)]
+    assert decoder.decode(regs(0xFF42), report_all=True) == [(0, "\ufffdB", None)]
+    assert decoder.decode(regs(0xFE42)) == []
+    decoder.reset()  # a reset reports everything again, the same text included
+    assert decoder.decode(regs(0xFE42)) == [(0, "\ufffdB", None)]
+    assert decoder.decode(Block.from_values([], bits=False)) == [(0, None, "not in response")]
+    assert decoder.decode(regs(0xFE42)) == [(0, "\ufffdB", None)]  # recovery with old text
