@@ -95,6 +95,25 @@ static bool num_nonzero(const emb_num *n)
     }
 }
 
+/* Record the offending value of a failed item exactly as `n` holds it. */
+static void set_err(emb_errval *e, const emb_num *n)
+{
+    switch (n->cls) {
+    case NUM_INT:
+        memcpy(&e->bits, &n->i, sizeof e->bits);
+        e->kind = EMB_K_INT;
+        break;
+    case NUM_UINT:
+        e->bits = n->u;
+        e->kind = EMB_K_UINT;
+        break;
+    default:
+        memcpy(&e->bits, &n->f, sizeof e->bits);
+        e->kind = EMB_K_FLOAT;
+        break;
+    }
+}
+
 /* Inclusive signed range of an integer target (U64 handled apart). */
 static void target_range(unsigned target, int64_t *lo, int64_t *hi)
 {
@@ -113,18 +132,18 @@ static void target_range(unsigned target, int64_t *lo, int64_t *hi)
 }
 
 /* Convert to an integer target, rounding half to even; never wraps. */
-static int to_integer(emb_num *n, unsigned target, double *errval)
+static int to_integer(emb_num *n, unsigned target, emb_errval *ev)
 {
     if (n->cls == NUM_FLOAT) {
         double f = n->f;
         if (isnan(f)) {
-            *errval = f;
+            set_err(ev, n);
             return EMB_E_NAN;
         }
         double d = nearbyint(f); /* default rounding mode: to nearest, ties to even */
         if (target == EMB_C_U64) {
             if (!(d >= 0.0 && d < 18446744073709551616.0)) {
-                *errval = f;
+                set_err(ev, n);
                 return EMB_E_RANGE;
             }
             n->cls = NUM_UINT;
@@ -137,7 +156,7 @@ static int to_integer(emb_num *n, unsigned target, double *errval)
         bool ok = (target == EMB_C_I64) ? (d >= -9223372036854775808.0 && d < 9223372036854775808.0)
                                         : (d >= (double)lo && d <= (double)hi);
         if (!ok) {
-            *errval = f;
+            set_err(ev, n);
             return EMB_E_RANGE;
         }
         n->cls = NUM_INT;
@@ -147,7 +166,7 @@ static int to_integer(emb_num *n, unsigned target, double *errval)
     if (target == EMB_C_U64) {
         if (n->cls == NUM_INT) {
             if (n->i < 0) {
-                *errval = (double)n->i;
+                set_err(ev, n);
                 return EMB_E_RANGE;
             }
             n->u = (uint64_t)n->i;
@@ -159,20 +178,20 @@ static int to_integer(emb_num *n, unsigned target, double *errval)
     target_range(target, &lo, &hi);
     if (n->cls == NUM_UINT) {
         if (n->u > (uint64_t)hi) {
-            *errval = (double)n->u;
+            set_err(ev, n);
             return EMB_E_RANGE;
         }
         n->i = (int64_t)n->u;
         n->cls = NUM_INT;
     }
     if (n->i < lo || n->i > hi) {
-        *errval = (double)n->i;
+        set_err(ev, n);
         return EMB_E_RANGE;
     }
     return EMB_E_OK;
 }
 
-static int convert(emb_num *n, unsigned target, double *errval)
+static int convert(emb_num *n, unsigned target, emb_errval *ev)
 {
     switch (target) {
     case EMB_C_NONE:
@@ -184,7 +203,9 @@ static int convert(emb_num *n, unsigned target, double *errval)
     case EMB_C_F32: {
         double f = num_to_double(n);
         if (isfinite(f) && fabs(f) > FLT_MAX) {
-            *errval = f;
+            n->f = f;
+            n->cls = NUM_FLOAT;
+            set_err(ev, n);
             return EMB_E_RANGE;
         }
         n->f = f;
@@ -196,12 +217,12 @@ static int convert(emb_num *n, unsigned target, double *errval)
         n->cls = NUM_FLOAT;
         return EMB_E_OK;
     default:
-        return to_integer(n, target, errval);
+        return to_integer(n, target, ev);
     }
 }
 
 /* The raw value of a fixed-size item at `offset` of data (registers, or bits for COIL). */
-static int read_raw(const emb_item *it, const void *data, emb_num *n, double *errval)
+static int read_raw(const emb_item *it, const void *data, emb_num *n, emb_errval *ev)
 {
     unsigned fl = it->flags;
     uint64_t v;
@@ -270,7 +291,8 @@ static int read_raw(const emb_item *it, const void *data, emb_num *n, double *er
         v = gather(r, w, fl);
         int64_t d = bcd_value(v, 4 * w);
         if (d < 0) {
-            *errval = (double)v;
+            ev->bits = v;
+            ev->kind = EMB_K_UINT;
             return EMB_E_BCD;
         }
         n->u = (uint64_t)d;
@@ -327,32 +349,44 @@ static uint64_t store(const emb_plan *p, const emb_item *it, const emb_num *n)
     }
 }
 
-/* Whether a new value differs from the last reported one by more than the deadband. */
+/* Whether a new value differs from the last reported one by more than the deadband.
+ * Doubles: any NaN equals any NaN (its payload is no value), a NaN against a number is
+ * a change, and so is -0.0 against 0.0 without a deadband.  Integers: the distance is
+ * exact (a double would round 64-bit values and hide a move past the deadband). */
 static bool value_changed(const emb_item *it, uint64_t now, uint64_t was)
 {
     if (now == was)
         return false;
     double db = it->deadband;
-    if (!(db > 0.0))
-        return true;
-    double a, b;
     switch (it->out) {
-    case EMB_O_I64:
-        a = (double)sext(now, 64);
-        b = (double)sext(was, 64);
-        break;
-    case EMB_O_U64:
-        a = (double)now;
-        b = (double)was;
-        break;
-    case EMB_O_F64:
+    case EMB_O_F64: {
+        double a, b;
         memcpy(&a, &now, sizeof a);
         memcpy(&b, &was, sizeof b);
-        break;
+        if (isnan(a) || isnan(b))
+            return !(isnan(a) && isnan(b));
+        return !(db > 0.0) || !(fabs(a - b) <= db); /* an infinity: a change */
+    }
+    case EMB_O_I64:
+    case EMB_O_U64: {
+        if (!(db > 0.0))
+            return true;
+        /* |now - was| < 2^64 in either group, so the unsigned difference is exact */
+        bool up = it->out == EMB_O_I64 ? sext(now, 64) > sext(was, 64) : now > was;
+        uint64_t d = up ? now - was : was - now;
+        /* an integer d exceeds db exactly when it exceeds floor(db) */
+        return db < 18446744073709551616.0 && d > (uint64_t)db;
+    }
     default:
         return true;
     }
-    return !(fabs(a - b) <= db); /* NaN or infinities on one side: a change */
+}
+
+/* What a failed item's reason says besides its status: the offending value for BCD and
+ * range errors; a missing register and a NaN have one reason each. */
+static inline uint64_t err_key(int st, const emb_errval *ev)
+{
+    return (st == EMB_E_BCD || st == EMB_E_RANGE) ? ev->bits : 0;
 }
 
 long emb_decode(emb_plan *p, const void *data, uint32_t count, int mode)
@@ -367,6 +401,8 @@ long emb_decode(emb_plan *p, const void *data, uint32_t count, int mode)
         /* nregs is the wire width for fixed-size items (emb_plan_check enforces it) */
         if ((uint64_t)it->offset + it->nregs > count) {
             st = EMB_E_MISSING;
+            p->errval[i].bits = 0;
+            p->errval[i].kind = EMB_K_NONE;
         } else if (it->wire == EMB_W_BYTES) {
             uint32_t len = read_bytes(it, regs + it->offset, p->out_bytes + it->aux);
             p->out_u64[it->slot] = len;
@@ -392,12 +428,16 @@ long emb_decode(emb_plan *p, const void *data, uint32_t count, int mode)
             continue;
 
         /* ALL reports every item but lists only those whose result is not exactly the
-         * last reported one (failed items always), so the caller reuses the rest. */
+         * last reported one (failed items always), so the caller reuses the rest.  A
+         * failed item keeps the key of its reason in `last` (emb_codec.h): a new
+         * offending value is a new reason, reported like a new value. */
         bool report;
+        if (st != EMB_E_OK)
+            now = err_key(st, &p->errval[i]);
         if (st != p->last_status[i])
             report = true;
         else if (st != EMB_E_OK)
-            report = mode == EMB_MODE_ALL;
+            report = mode == EMB_MODE_ALL || now != p->last[i];
         else if (it->wire == EMB_W_BYTES)
             report = memcmp(p->out_bytes + it->aux, p->last_bytes + it->aux, 2u * it->nregs) != 0;
         else if (mode == EMB_MODE_ALL)
@@ -407,11 +447,9 @@ long emb_decode(emb_plan *p, const void *data, uint32_t count, int mode)
         if (report) {
             p->changed[n_chg++] = i;
             p->last_status[i] = (uint8_t)st;
-            if (st == EMB_E_OK) {
-                p->last[i] = now;
-                if (it->wire == EMB_W_BYTES)
-                    memcpy(p->last_bytes + it->aux, p->out_bytes + it->aux, 2u * it->nregs);
-            }
+            p->last[i] = now;
+            if (st == EMB_E_OK && it->wire == EMB_W_BYTES)
+                memcpy(p->last_bytes + it->aux, p->out_bytes + it->aux, 2u * it->nregs);
         }
     }
     p->n_errors = n_err;

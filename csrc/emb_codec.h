@@ -4,8 +4,8 @@
  * emb_plan that also points at the typed output arrays and at the per-item state of the
  * last REPORTED result.  emb_decode() then decodes every item of a block in one call,
  * writes each value into the output array of its group (int64, uint64, double, bool) and
- * lists the items whose value or status changed.  Python materializes objects only for
- * those (or pulls whole arrays with ffi.unpack).
+ * lists the items whose value, status or error reason changed.  Python materializes
+ * objects only for those (or pulls whole arrays with ffi.unpack).
  *
  * Reentrant: no globals, nothing allocated; a plan is used by one thread at a time.
  *
@@ -82,6 +82,12 @@
 #define EMB_E_RANGE 4   /* value outside the target type */
 #define EMB_E_UNREPORTED 255 /* state only: nothing reported yet */
 
+/* Kinds of a failed item's offending value (emb_errval.kind). */
+#define EMB_K_NONE 0  /* no value: EMB_E_MISSING */
+#define EMB_K_INT 1   /* bits hold an int64 (two's complement) */
+#define EMB_K_UINT 2  /* bits hold a uint64 */
+#define EMB_K_FLOAT 3 /* bits hold a double */
+
 /* Decode modes. */
 #define EMB_MODE_VALUES 0 /* decode only; state untouched; errs lists the failed items */
 #define EMB_MODE_TRACK 1  /* decode, list changed items, remember what is reported */
@@ -103,6 +109,14 @@ typedef struct emb_item {
     double deadband;   /* absolute, on the final value; 0 = any change */
 } emb_item;
 
+/* The value a failed item was rejected for, exact (a 64-bit integer is not rounded to a
+ * double), so that its error reason names what the slave holds.  Which kind a status
+ * carries is fixed by the item (its wire, multiplier and target), never by the data. */
+typedef struct emb_errval {
+    uint64_t bits;
+    uint8_t kind;      /* EMB_K_* */
+} emb_errval;
+
 typedef struct emb_plan {
     const emb_item *items;
     uint32_t n_items;
@@ -115,12 +129,13 @@ typedef struct emb_plan {
     uint8_t *out_bytes;
     uint32_t n_i64, n_u64, n_f64, n_bool, n_bytes; /* array lengths, checked by emb_plan_check */
     uint8_t *status;     /* [n_items] EMB_E_* */
-    double *errval;      /* [n_items] the offending value of a failed item */
+    emb_errval *errval;  /* [n_items] the offending value of a failed item */
     uint32_t *errs;      /* [n_items] indices of failed items */
     uint32_t *changed;   /* [n_items] indices of reported items */
     uint32_t n_errors;   /* written by each decode */
     /* state: the last reported result of each item */
-    uint64_t *last;      /* [n_items] value bits */
+    uint64_t *last;      /* [n_items] value bits; for a failed item the key of its reason:
+                          * the errval bits for EMB_E_BCD and EMB_E_RANGE, else 0 */
     uint8_t *last_status; /* [n_items] EMB_E_*, EMB_E_UNREPORTED before the first report */
     uint8_t *last_bytes; /* [n_bytes] raw bytes of BYTES items */
 } emb_plan;
@@ -131,9 +146,11 @@ long emb_plan_check(const emb_plan *plan);
 
 /* Decode `count` registers (or bits) at `data` for every item of a checked plan.
  * Returns the number of items listed in plan->changed (TRACK: the reported ones, whose
- * value moved past the deadband or whose status changed; ALL: those whose result is not
- * exactly the last reported one, plus every failed item) or, for VALUES, the number of
- * failed items.  plan->n_errors and plan->errs always list the failed items. */
+ * status changed, whose value moved past the deadband (any NaN equals any NaN; 64-bit
+ * integers compare exactly), or which still fail but for another offending value, so
+ * with another reason; ALL: those whose result is not exactly the last reported one,
+ * plus every failed item) or, for VALUES, the number of failed items.  plan->n_errors
+ * and plan->errs always list the failed items. */
 long emb_decode(emb_plan *plan, const void *data, uint32_t count, int mode);
 
 /* Forget the reported state: the next TRACK decode reports every item. */

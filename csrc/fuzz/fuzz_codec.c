@@ -121,6 +121,68 @@ static int int_range(unsigned target, int64_t *lo, int64_t *hi)
 
 static int is_float_wire(unsigned wire) { return wire == EMB_W_F32 || wire == EMB_W_F64; }
 
+static double as_double(uint64_t bits)
+{
+    double d;
+    memcpy(&d, &bits, sizeof d);
+    return d;
+}
+
+/* Whether the offending value of a failed item is one its target refuses (emb_codec.h:
+ * errval is the exact value the item failed for). */
+static int refused_value(const emb_item *it, int st, const emb_errval *ev)
+{
+    int64_t lo, hi;
+    switch (st) {
+    case EMB_E_MISSING:
+        return ev->kind == EMB_K_NONE;
+    case EMB_E_NAN:
+        return ev->kind == EMB_K_FLOAT && isnan(as_double(ev->bits));
+    case EMB_E_BCD: {
+        unsigned digits = it->wire == EMB_W_BCD16 ? 4 : 8;
+        if (ev->kind != EMB_K_UINT || (digits == 4 && ev->bits > 0xFFFF)
+            || ev->bits > 0xFFFFFFFFu)
+            return 0;
+        for (unsigned k = 0; k < digits; k++)
+            if (((ev->bits >> (4 * k)) & 0xF) > 9)
+                return 1;
+        return 0;
+    }
+    case EMB_E_RANGE:
+        break;
+    default:
+        return 0;
+    }
+    if (it->target == EMB_C_F32) {
+        double f = as_double(ev->bits);
+        return ev->kind == EMB_K_FLOAT && isfinite(f) && fabs(f) > FLT_MAX;
+    }
+    if (ev->kind == EMB_K_FLOAT) {
+        double d = nearbyint(as_double(ev->bits));
+        if (isnan(d))
+            return 0;
+        if (it->target == EMB_C_U64)
+            return !(d >= 0.0 && d < 18446744073709551616.0);
+        if (!int_range(it->target, &lo, &hi))
+            return 0;
+        return !(d >= (double)lo && d <= (double)hi) || d >= 9223372036854775808.0;
+    }
+    if (it->target == EMB_C_U64)
+        return ev->kind == EMB_K_INT && sext(ev->bits, 64) < 0;
+    if (!int_range(it->target, &lo, &hi))
+        return 0;
+    if (ev->kind == EMB_K_UINT)
+        return ev->bits > (uint64_t)hi;
+    return ev->kind == EMB_K_INT && (sext(ev->bits, 64) < lo || sext(ev->bits, 64) > hi);
+}
+
+/* The part of a failed item's result its reason depends on besides the status (the
+ * codec keeps it in `last` to report a new reason; emb_codec.h). */
+static uint64_t reason_key(int st, const emb_errval *ev)
+{
+    return (st == EMB_E_BCD || st == EMB_E_RANGE) ? ev->bits : 0;
+}
+
 /* An independent model of the item rules of emb_plan_check (emb_codec.h: "every item
  * fits the plan's arrays and is coherent"); keep the two in step. */
 static int item_ok(const emb_plan *p, const emb_item *it)
@@ -231,7 +293,7 @@ static void alloc_plan(emb_plan *p)
     p->out_bytes = alloc_exact(p->n_bytes, 1);
     p->last_bytes = alloc_exact(p->n_bytes, 1);
     p->status = alloc_exact(n, 1);
-    p->errval = alloc_exact(n, sizeof(double));
+    p->errval = alloc_exact(n, sizeof(emb_errval));
     p->errs = alloc_exact(n, sizeof(uint32_t));
     p->changed = alloc_exact(n, sizeof(uint32_t));
     p->last = alloc_exact(n, sizeof(uint64_t));
@@ -384,9 +446,11 @@ static void check_decode(const world *w, long rc, int mode)
         if (st == EMB_E_BCD)
             CHECK(it->wire == EMB_W_BCD16 || it->wire == EMB_W_BCD32);
         if (st == EMB_E_NAN)
-            CHECK(integer && (scaled || is_float_wire(it->wire)) && isnan(p->errval[i]));
+            CHECK(integer && (scaled || is_float_wire(it->wire)));
         if (st == EMB_E_RANGE)
             CHECK(integer || it->target == EMB_C_F32);
+        if (st != EMB_E_OK)
+            CHECK(refused_value(it, st, &p->errval[i]));
         if (st != EMB_E_OK || !w->production)
             continue; /* shared slots (absurd layout) may be overwritten by later items */
         /* The value an OK item left in its output group honours its target. */
@@ -433,10 +497,40 @@ static int state_unchanged(const world *w)
            && memcmp(w->last_status, w->plan.last_status, w->plan.n_items) == 0;
 }
 
+static int listed(const uint32_t *v, long n, uint32_t i)
+{
+    for (long k = 0; k < n; k++)
+        if (v[k] == i)
+            return 1;
+    return 0;
+}
+
+/* A failed item is reported when its status or its reason's value moved (TRACK), or
+ * always (ALL); whatever is reported becomes the state. */
+static void check_failed_tracking(const world *w, long rc, int mode)
+{
+    const emb_plan *p = &w->plan;
+    for (uint32_t i = 0; i < p->n_items; i++) {
+        uint8_t st = p->status[i];
+        if (st == EMB_E_OK)
+            continue;
+        uint64_t key = reason_key(st, &p->errval[i]);
+        int moved = st != w->last_status[i] || key != w->last[i];
+        int reported = listed(p->changed, rc, i);
+        CHECK(reported == (mode == EMB_MODE_ALL || moved));
+        CHECK(p->last_status[i] == st);
+        CHECK(!reported || p->last[i] == key);
+    }
+}
+
 static long decode(world *w, int mode)
 {
+    if (mode != EMB_MODE_VALUES)
+        snapshot_state(w);
     long rc = emb_decode(&w->plan, w->data, w->count, mode);
     check_decode(w, rc, mode);
+    if (mode != EMB_MODE_VALUES)
+        check_failed_tracking(w, rc, mode);
     return rc;
 }
 
@@ -528,7 +622,8 @@ static void round_trip(const emb_item *src, const uint16_t *regs, int n, uint64_
 
     int64_t i64 = 0;
     uint64_t u64 = 0, last = 0;
-    double f64 = 0.0, errval = 0.0;
+    double f64 = 0.0;
+    emb_errval errval = {0, EMB_K_NONE};
     bool b = false;
     uint8_t out_bytes[2 * 130], last_bytes[2 * 130];
     uint8_t status = 0, last_status = 0;

@@ -407,6 +407,7 @@ def discard_input(fd: int, total_s: float, quiet_s: float, limit_s: float | None
 # state (allocated once per plan, never per decode) and turns C results into Python objects.
 
 import operator  # noqa: E402
+import struct  # noqa: E402
 from collections.abc import Callable, Sequence  # noqa: E402
 from typing import NamedTuple  # noqa: E402
 
@@ -496,7 +497,7 @@ class CodecPlan:
         self._bytes = ffi.new("uint8_t[]", max(n_bytes, 1))
         self._last_bytes = ffi.new("uint8_t[]", max(n_bytes, 1))
         self._status = ffi.new("uint8_t[]", max(n, 1))
-        self._errval = ffi.new("double[]", max(n, 1))
+        self._errval = ffi.new("emb_errval[]", max(n, 1))
         self._errs = ffi.new("uint32_t[]", max(n, 1))
         self._changed = ffi.new("uint32_t[]", max(n, 1))
         self._last = ffi.new("uint64_t[]", max(n, 1))
@@ -587,8 +588,18 @@ class CodecPlan:
     def status(self, index: int) -> int:
         return int(self._status[index])
 
-    def errval(self, index: int) -> float:
-        return float(self._errval[index])
+    def errval(self, index: int) -> int | float | None:
+        """The value item ``index`` failed for in the last decode, exact: an int (64-bit
+        values are not rounded), a float, or None (a register missing from the reply)."""
+        ev = self._errval[index]
+        bits, kind = int(ev.bits), int(ev.kind)
+        if kind == lib.EMB_K_INT:
+            return bits - (1 << 64) if bits >> 63 else bits
+        if kind == lib.EMB_K_UINT:
+            return bits
+        if kind == lib.EMB_K_FLOAT:
+            return float(struct.unpack("=d", struct.pack("=Q", bits))[0])
+        return None
 
     def values(self) -> list[object]:
         """Every item's value from the last decode (None where it failed)."""

@@ -15,7 +15,10 @@ Choices this module makes (DESIGN.md leaves them open):
 * A bit of a register (``hr:100.3``) is taken after the byte swap, so it agrees with the
   UInt16 reading of the same register in the same format (bit 0 = least significant).
 * ``convertedDataType`` Float keeps double precision but must fit a float32's range.
-* Deadband applies to numeric results (int, float); bool, str and bytes report any change.
+* Deadband applies to numeric results (int, float); bool, str, bytes and datetime values
+  report any change.
+* An item that stays Invalid is reported again when its reason changes (the slave now
+  holds another bad value); the reason always names the value just read.
 """
 
 from __future__ import annotations
@@ -303,6 +306,9 @@ def _compile(spec: ValueSpec, area: Area, offset: int) -> _Compiled:
         else:
             out = "U64" if conv is DataType.UINT64 else "I64"
             rng = conv.integer_range
+    # a deadband is a distance between numbers: values made by `post` (chr, datetime,
+    # str) are compared for any change, as bool and bytes are
+    deadband = float(spec.deadband) if post is None else 0.0
     item = CodecItem(
         offset=offset,
         nregs=nregs,
@@ -312,7 +318,7 @@ def _compile(spec: ValueSpec, area: Area, offset: int) -> _Compiled:
         target=_C[target],
         out=_O[out],
         scale=scale,
-        deadband=float(spec.deadband),
+        deadband=deadband,
     )
     return _Compiled(item, post, wire, label, rng)
 
@@ -321,9 +327,14 @@ def _compile(spec: ValueSpec, area: Area, offset: int) -> _Compiled:
 
 
 def _fmt_number(v: float) -> str:
+    if isinstance(v, int):
+        return str(v)
     if math.isfinite(v) and v == int(v) and abs(v) < 2**53:
         return str(int(v))
     return repr(v)
+
+
+_NO_TEXT = object()  # a String item whose last report was not a text
 
 
 class BlockDecoder:
@@ -333,7 +344,16 @@ class BlockDecoder:
     time (the bus worker that owns the block).
     """
 
-    __slots__ = ("_indices", "_offsets", "_plan", "_reported", "area", "count", "specs")
+    __slots__ = (
+        "_indices",
+        "_offsets",
+        "_plan",
+        "_reported",
+        "_texts",
+        "area",
+        "count",
+        "specs",
+    )
 
     def __init__(self, area: Area, count: int, items: Sequence[tuple[int, ValueSpec]]) -> None:
         if not (isinstance(count, int) and count >= 0):
@@ -359,17 +379,25 @@ class BlockDecoder:
         # The tuple last reported for each item: mirrors the C state, so that a report of
         # every item rebuilds only the tuples whose value or status moved.
         self._reported: list[Report] = []
+        # String items decode bytes that are not valid text to U+FFFD, so different
+        # bytes (which C compares) can give the text already reported: the last text
+        # reported for each String item (_NO_TEXT after an error or a reset).
+        self._texts: dict[int, object] = {
+            k: _NO_TEXT for k, spec in enumerate(self.specs) if spec.data_type is DataType.STRING
+        }
 
     def _reason(self, index: int, code: int) -> str:
-        c = _compile(self.specs[index], self.area, self._offsets[index])
         if code == _E["MISSING"]:
             return "not in response"
-        v = self._plan.errval(index)
-        if code == _E["BCD"]:
-            digits = 4 if c.wire == "BCD16" else 8
-            return f"invalid BCD value 0x{int(v):0{digits}X} (a digit above 9)"
+        c = _compile(self.specs[index], self.area, self._offsets[index])
         if code == _E["NAN"]:
             return f"NaN cannot be converted to {c.target_label}"
+        v = self._plan.errval(index)
+        if v is None:  # the C codec gives every status but MISSING a value
+            raise AssertionError(f"codec: item {index} failed (status {code}) without a value")
+        if code == _E["BCD"]:
+            digits = 4 if c.wire == "BCD16" else 8
+            return f"invalid BCD value 0x{v:0{digits}X} (a digit above 9)"
         if c.target_label == "DateTime":
             return f"{_fmt_number(v)} ms is outside the dates Python can hold (years 1..9999)"
         if c.target_range is not None:
@@ -378,8 +406,9 @@ class BlockDecoder:
         return f"value {_fmt_number(v)} is out of range for {c.target_label}"
 
     def decode(self, block: Block, report_all: bool = False) -> list[Report]:
-        """(index, value or None, error reason or None) of every item whose value or
-        status changed since it was last reported (all of them when ``report_all``)."""
+        """(index, value or None, error reason or None) of every item whose value, status
+        or error reason changed since it was last reported (all of them when
+        ``report_all``)."""
         plan, mode = self.begin(report_all)
         return self.finish(plan.decode(block, mode), report_all)
 
@@ -405,12 +434,28 @@ class BlockDecoder:
         if n * 8 >= plan.n_items:  # many changed: convert the arrays in one go
             values = plan.values()
             errors = {k: self._reason(k, plan.status(k)) for k in plan.errors()}
-            return [(k, values[k], errors.get(k)) for k in changed]
-        status = plan.status_view
-        return [
-            (k, None, self._reason(k, status[k])) if status[k] else (k, plan.value(k), None)
-            for k in changed
-        ]
+            reports = [(k, values[k], errors.get(k)) for k in changed]
+        else:
+            status = plan.status_view
+            reports = [
+                (k, None, self._reason(k, status[k])) if status[k] else (k, plan.value(k), None)
+                for k in changed
+            ]
+        return self._new_texts_only(reports) if self._texts else reports
+
+    def _new_texts_only(self, reports: list[Report]) -> list[Report]:
+        """``reports`` without the String items whose text is the one last reported."""
+        texts = self._texts
+        kept: list[Report] = []
+        for report in reports:
+            k, value, error = report
+            if k in texts:
+                last = texts[k]
+                texts[k] = _NO_TEXT if error is not None else value
+                if error is None and last == value:
+                    continue
+            kept.append(report)
+        return kept
 
     def _finish_all(self, n: int) -> list[Report]:
         """Report every item; keeps the last tuples so that only the items whose value
@@ -427,12 +472,16 @@ class BlockDecoder:
                 for k in plan.errors():
                     reported[k] = (k, None, self._reason(k, plan.status(k)))
             self._reported = reported
-            return reported[:]
-        if n:
+        elif n:
             status = plan.status_view
             for k in plan.changed(n):
                 code = status[k]
                 reported[k] = (k, None, self._reason(k, code)) if code else (k, plan.value(k), None)
+        texts = self._texts
+        if texts:
+            for k in texts:
+                _, value, error = reported[k]
+                texts[k] = _NO_TEXT if error is not None else value
         return reported[:]
 
     def decode_values(self, block: Block) -> list[object]:
@@ -450,6 +499,8 @@ class BlockDecoder:
         """Forget the last reported values: the next decode reports every item."""
         self._plan.reset()
         self._reported = []
+        for k in self._texts:
+            self._texts[k] = _NO_TEXT
 
 
 # -- encoding ---------------------------------------------------------------------------
