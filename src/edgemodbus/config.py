@@ -49,7 +49,7 @@ from pydantic_core import CoreSchema, core_schema
 
 from .address import MAX_OFFSET, Address, check_span, parse_address
 from .codec import MAX_QUANTITY, ValueSpec, check_spec
-from .datatypes import Area, DataFormat, DataType
+from .datatypes import Area, DataFormat, DataType, ItemStatus
 from .planner import BIT_CAP, REGISTER_CAP
 
 logger = logging.getLogger("edgemodbus.config")
@@ -477,25 +477,6 @@ _PARITY_NAMES = {
     "e": Parity.EVEN,
     "2": Parity.EVEN,
 }
-
-
-class ItemStatus(str, enum.Enum):
-    """Quality of an item's value."""
-
-    UNKNOWN = "Unknown"
-    OK = "Ok"
-    INVALID = "Invalid"
-
-
-class DeviceDriverStatus(str, enum.Enum):
-    """Lifecycle state of a driver (DESIGN.md "Public API")."""
-
-    STOPPED = "Stopped"
-    DISABLED = "Disabled"
-    CONNECTING = "Connecting"
-    RUNNING = "Running"
-    OFFLINE = "Offline"
-    RECONNECTING = "Reconnecting"
 
 
 _E = TypeVar("_E", bound=enum.Enum)

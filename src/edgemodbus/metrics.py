@@ -28,7 +28,8 @@ from wsgiref.simple_server import WSGIRequestHandler, WSGIServer, make_server
 
 from pydantic import ValidationError
 
-from .config import ConfigError, DeviceDriverStatus, Range, _Model
+from .config import ConfigError, Range, _Model
+from .datatypes import DeviceDriverStatus
 
 if TYPE_CHECKING:
     from prometheus_client.metrics_core import Metric
