@@ -186,7 +186,7 @@ def join_path(prefix: str, rest: str) -> str:
     return prefix + rest if rest.startswith("[") else f"{prefix}.{rest}"
 
 
-# Unknown keys met while a load is under way (None: log them at once, see _load).
+# Unknown keys met while a load is under way (None: log them at once, see load_model).
 _unknown_keys: ContextVar[list[Problem] | None] = ContextVar("edgemodbus_unknown_keys",
                                                              default=None)
 
@@ -371,8 +371,10 @@ def _norm_key(key: str) -> str:
     return key.replace("_", "").replace("-", "").lower()
 
 
-class _Model(BaseModel):
-    """Shared behaviour: forgiving key spelling, warnings for unknown keys, to_dict()."""
+class Model(BaseModel):
+    """Base of every config model: forgiving key spelling, warnings for unknown keys,
+    to_dict().  A subclass may set ``_where`` (the place unknown-key warnings name) and
+    ``_extra_keys`` (keys accepted besides the fields, for its own validators)."""
 
     model_config = ConfigDict(
         alias_generator=to_camel,
@@ -387,11 +389,11 @@ class _Model(BaseModel):
     @classmethod
     def key_table(cls) -> dict[str, str]:
         """Normalised key -> canonical camelCase key (fields and accepted aliases)."""
-        table = _Model._key_tables.get(cls)
+        table = Model._key_tables.get(cls)
         if table is None:
             table = {_norm_key(f.alias or n): f.alias or n for n, f in cls.model_fields.items()}
             table.update({_norm_key(k): k for k in cls._extra_keys})
-            _Model._key_tables[cls] = table
+            Model._key_tables[cls] = table
         return table
 
     @classmethod
@@ -528,7 +530,7 @@ def _ui(
     return ui
 
 
-class DriverModbusRtuParameter(_Model):
+class DriverModbusRtuParameter(Model):
     """Communication parameters (the seed's ``modbusRtu.json`` plus ours).
 
     Times are int milliseconds.  ``transport`` defaults from ``useTcp`` (true ->
@@ -979,7 +981,7 @@ def _parse_format_or_none(value: Any) -> DataFormat | None:
 # --------------------------------------------------------------------------- organization
 
 
-class DeviceOrganizationParameter(_Model):
+class DeviceOrganizationParameter(Model):
     """The device's organisation record; its timing fields override communication's."""
 
     _where: ClassVar[str] = "organization"
@@ -1028,7 +1030,7 @@ def device_enabled(org: DeviceOrganizationParameter | None, comm: DriverModbusRt
 # --------------------------------------------------------------------------- items
 
 
-class DeviceAddressItem(_Model):
+class DeviceAddressItem(Model):
     """One tag.  ``value``, ``status``, ``update_ts`` and ``error_reason`` are runtime
     state set by the driver's worker thread: assignment is not validated (cheap)."""
 
@@ -1392,7 +1394,7 @@ def _codec_problem(
 # --------------------------------------------------------------------------- device file
 
 
-class DeviceConfig(_Model):
+class DeviceConfig(Model):
     """A whole device file: driver type, organisation, communication, address list."""
 
     driver_type: str = "DriverModbusRtu"
@@ -1443,7 +1445,7 @@ class DeviceConfig(_Model):
 
 # --------------------------------------------------------------------------- loading
 
-_M = TypeVar("_M", bound=_Model)
+_M = TypeVar("_M", bound=Model)
 
 
 def _read_json(source: str | os.PathLike[str] | Mapping[str, Any]) -> tuple[Any, str]:
@@ -1471,9 +1473,10 @@ def _read_json(source: str | os.PathLike[str] | Mapping[str, Any]) -> tuple[Any,
         ) from None
 
 
-def _load(model: type[_M], source: str | os.PathLike[str] | Mapping[str, Any]) -> _M:
-    """Validate; unknown keys are logged once the load succeeded, or else become lines
-    of the ConfigError (one line per problem, not a warning and then an error)."""
+def load_model(model: type[_M], source: str | os.PathLike[str] | Mapping[str, Any]) -> _M:
+    """Load ``model`` from a path, a str of JSON text, or a dict; raises ConfigError.
+    Unknown keys are logged once the load succeeded, or else become lines of the
+    ConfigError (one line per problem, not a warning and then an error)."""
     data, name = _read_json(source)
     if not isinstance(data, Mapping):
         raise ConfigError([Problem(name, NO_VALUE, "the file must hold a JSON object")])
@@ -1497,11 +1500,11 @@ def _load(model: type[_M], source: str | os.PathLike[str] | Mapping[str, Any]) -
 
 def load_device_config(source: str | os.PathLike[str] | Mapping[str, Any]) -> DeviceConfig:
     """Load a device file: a path, a str of JSON text, or a dict.  Raises ConfigError."""
-    return _load(DeviceConfig, source)
+    return load_model(DeviceConfig, source)
 
 
 def load_communication(
     source: str | os.PathLike[str] | Mapping[str, Any],
 ) -> DriverModbusRtuParameter:
     """Load communication parameters alone (the seed's ``modbusRtu.json``)."""
-    return _load(DriverModbusRtuParameter, source)
+    return load_model(DriverModbusRtuParameter, source)

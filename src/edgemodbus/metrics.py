@@ -28,7 +28,7 @@ from wsgiref.simple_server import WSGIRequestHandler, WSGIServer, make_server
 
 from pydantic import ValidationError
 
-from .config import ConfigError, Range, _Model
+from .config import ConfigError, Model, Range
 from .datatypes import DeviceDriverStatus
 
 if TYPE_CHECKING:
@@ -84,7 +84,7 @@ MQTT_DEVICE_COUNTERS: tuple[tuple[str, str, str], ...] = (
 )
 
 
-class MetricsSettings(_Model):
+class MetricsSettings(Model):
     """The ``metrics`` section of the gateway file."""
 
     _where: ClassVar[str] = "metrics"
