@@ -9,7 +9,8 @@ what is allowed.  The modules, each one concern:
   :class:`Choice`, :func:`load_model`;
 * communication.py: :class:`DriverModbusRtuParameter`, :class:`Parity`;
 * items.py: :class:`DeviceAddressItem`, :class:`ParsedItem`, :func:`validate_items`;
-* device.py: :class:`DeviceOrganizationParameter`, :class:`DeviceConfig`, the loaders.
+* device.py: :class:`DeviceOrganizationParameter`, :class:`DeviceConfig`, the loaders;
+* labels.py: the UI labels of the communication parameters (for descriptor.py).
 """
 
 from __future__ import annotations
@@ -26,7 +27,6 @@ from .base import (
     load_model,
 )
 from .communication import (
-    BAUD_RATES,
     AddressPrefixOption,
     DriverModbusRtuParameter,
     Framing,
@@ -46,6 +46,7 @@ from .device import (
     validate_parameters,
 )
 from .items import ALLOWED_QUANTITIES, DeviceAddressItem, ParsedItem, validate_items
+from .labels import BAUD_RATES
 from .problems import NO_VALUE, ConfigError, Problem, WrongType, join_path
 
 __all__ = [

@@ -63,34 +63,6 @@ class Parity(str, enum.Enum):
         return {Parity.NONE: 0, Parity.ODD: 1, Parity.EVEN: 2}[self]
 
 
-BAUD_RATES = (1200, 2400, 4800, 9600, 19200, 38400, 57600, 115200, 230400, 460800, 921600)
-"""Baud rates offered by the descriptor (any 1200..921600 is accepted)."""
-
-
-def _ui(
-    label: str,
-    category: str,
-    control: str,
-    *,
-    type_: str | None = None,
-    options: list[Any] | None = None,
-    data_source: str | None = None,
-    serial: bool = False,
-    tcp: bool = False,
-) -> dict[str, Any]:
-    """Descriptor metadata of one parameter (see descriptor.py)."""
-    ui: dict[str, Any] = {"label": label, "category": category, "controlType": control}
-    if type_ is not None:
-        ui["type"] = type_
-    if options is not None:
-        ui["options"] = options
-    if data_source is not None:
-        ui["dataSource"] = data_source
-    if serial or tcp:
-        ui["visibleWhen"] = {"useTcp": tcp}
-    return ui
-
-
 class DriverModbusRtuParameter(Model):
     """Communication parameters (the seed's ``modbusRtu.json`` plus ours).
 
@@ -102,100 +74,65 @@ class DriverModbusRtuParameter(Model):
     _extra_keys: ClassVar[tuple[str, ...]] = NG_KEYS
     _where: ClassVar[str] = "communication"
 
-    # Field order is the descriptor's order; json_schema_extra holds the descriptor's
-    # UI metadata (label, category, controlType, options, visibleWhen, dataSource).
+    # Field order is the descriptor's order; its UI labels are in labels.py.
     com_port: str = Field(
         default="COM1",
         description="Serial COM port (e.g. COM1, /dev/ttyUSB0)",
-        json_schema_extra=_ui(
-            "串口号", "Connection", "dynamic-select", data_source="system:serial-ports", serial=True
-        ),
     )
     baud_rate: Annotated[int, Range(1200, 921600)] = Field(
         default=9600,
         description="Baud rate of the serial line",
-        json_schema_extra=_ui(
-            "波特率", "Connection", "select", options=list(BAUD_RATES), serial=True
-        ),
     )
     parity: Parity = Field(
         default=Parity.NONE,
         description="Parity setting (0=None, 1=Odd, 2=Even; also None/Odd/Even or N/O/E)",
-        json_schema_extra=_ui(
-            "校验位",
-            "Connection",
-            "select",
-            type_="int",
-            options=[
-                {"label": "None", "value": 0},
-                {"label": "Odd", "value": 1},
-                {"label": "Even", "value": 2},
-            ],
-            serial=True,
-        ),
     )
     data_bits: Annotated[int, Range(5, 8)] = Field(
         default=8,
         description="Number of data bits",
-        json_schema_extra=_ui("数据位", "Connection", "select", options=[5, 6, 7, 8], serial=True),
     )
     stop_bits: Annotated[int, Choice((1, 2))] = Field(
         default=1,
         description="Number of stop bits",
-        json_schema_extra=_ui(
-            "停止位",
-            "Connection",
-            "select",
-            options=[{"label": "1", "value": 1}, {"label": "2", "value": 2}],
-            serial=True,
-        ),
     )
     slave_id: Annotated[int, Range(0, 255)] = Field(
         default=1,
         description="Modbus slave id of the device: 1..247 on RTU lines (rtu, rtu-over-tcp), "
         "0..255 as a Modbus TCP unit id",
-        json_schema_extra=_ui("站号", "Connection", "number"),
     )
     use_tcp: bool = Field(
         default=False,
         description="If true, use a TCP link (RTU frames over TCP unless transport says tcp) "
         "instead of a serial port",
-        json_schema_extra=_ui("使用TCP透传", "Connection", "switch"),
     )
     tcp_host: str = Field(
         default="127.0.0.1",
         description="TCP host for RTU-over-TCP or Modbus TCP",
-        json_schema_extra=_ui("TCP主机", "Connection", "text", tcp=True),
     )
     tcp_port: Annotated[int, Range(1, 65535)] = Field(
         default=502,
         description="TCP port for RTU-over-TCP or Modbus TCP",
-        json_schema_extra=_ui("TCP端口", "Connection", "number", tcp=True),
     )
     transport: Transport = Field(
         default="rtu",
         description="rtu: serial RTU; rtu-over-tcp: raw RTU frames over TCP (DTU, serial "
         "server); tcp: Modbus TCP (MBAP); rtu-over-tcp-server: listen for DTUs that dial "
         "in (RTU frames over TCP). When absent: rtu-over-tcp if useTcp, else rtu",
-        json_schema_extra=_ui("传输方式", "Connection", "select"),
     )
     listen_host: str = Field(
         default="0.0.0.0",
         description="rtu-over-tcp-server: address to listen on for DTUs",
-        json_schema_extra=_ui("监听地址", "Connection", "text", tcp=True),
     )
     listen_port: Annotated[int | None, Range(1, 65535)] = Field(
         default=None,
         description="rtu-over-tcp-server: port to listen on (empty = tcpPort); devices "
         "naming one port share its listener",
-        json_schema_extra=_ui("监听端口", "Connection", "number", tcp=True),
     )
     dtu_id: str = Field(
         default="",
         description="rtu-over-tcp-server: the registration id of the DTU this device is "
         "behind (text, hex bytes, or what registrationPattern extracts); empty only "
         "with registration none",
-        json_schema_extra=_ui("DTU注册包ID", "Connection", "text", tcp=True),
     )
     registration: Registration = Field(
         default="none",
@@ -203,166 +140,135 @@ class DriverModbusRtuParameter(Model):
         "only DTU takes the connection), text (the first packet is dtuId), hex (the first "
         "packet is the bytes dtuId spells in hex), regex (registrationPattern's first "
         "group, else its whole match, is the id)",
-        json_schema_extra=_ui("注册包方式", "Connection", "select", tcp=True),
     )
     registration_pattern: str = Field(
         default="",
         description="rtu-over-tcp-server with registration regex: a regular expression "
         "searched in the registration packet (Latin-1 text)",
-        json_schema_extra=_ui("注册包正则", "Connection", "text", tcp=True),
     )
     registration_length: Annotated[int | None, Range(1, 1024)] = Field(
         default=None,
         description="rtu-over-tcp-server: fixed length of the registration packet in bytes "
         "(empty = as sent)",
-        json_schema_extra=_ui("注册包长度", "Connection", "number", tcp=True),
     )
     registration_timeout: Annotated[int, Range(1, MAX_MS)] = Field(
         default=5000,
         description="rtu-over-tcp-server: a DTU that has not registered within this time "
         "is logged and closed (ms)",
-        json_schema_extra=_ui("注册超时(ms)", "Connection", "number", tcp=True),
     )
     heartbeat: str = Field(
         default="",
         description="Heartbeat packet DTUs send on idle links, as text (e.g. HB); "
         "discarded wherever it arrives and counted",
-        json_schema_extra=_ui("心跳包", "Connection", "text", tcp=True),
     )
     heartbeat_hex: str = Field(
         default="",
         description="Heartbeat packet as hex bytes (e.g. FE); instead of heartbeat",
-        json_schema_extra=_ui("心跳包(HEX)", "Connection", "text", tcp=True),
     )
     framing: Framing = Field(
         default="rtu",
         description="rtu: plain RTU frames; wrapped-report: edge-MCU frames "
         "FF AA + register address + RTU frame + 0D, with unsolicited reports "
         "(RTU over TCP, client or listen mode)",
-        json_schema_extra=_ui("报文封装", "Connection", "select", tcp=True),
     )
     connect_timeout: Ms = Field(
         default=3000,
         description="Timeout of a TCP connect (ms)",
-        json_schema_extra=_ui("连接超时(ms)", "Connection", "number", tcp=True),
     )
     reconnect_interval: Ms = Field(
         default=5000,
         description="Wait before reopening a lost link (ms)",
-        json_schema_extra=_ui("重连间隔(ms)", "Connection", "number"),
     )
     read_timeout: Ms = Field(
         default=1000,
         description="Response timeout of one request (ms)",
-        json_schema_extra=_ui("读超时(ms)", "Connection", "number"),
     )
     byte_timeout: Ms = Field(
         default=200,
         description="Timeout between two bytes of one reply (ms)",
-        json_schema_extra=_ui("字节间超时(ms)", "Connection", "number"),
     )
     read_cycle: Annotated[int, READ_CYCLE_RANGE] = Field(
         default=1000,
         description="Polling cycle (ms); 0 = no polling: report-only (framing "
         "wrapped-report; on other framings nothing would update, which is logged)",
-        json_schema_extra=_ui("读取周期(ms)", "Connection", "number"),
     )
     rs485: Rs485Mode = Field(
         default="none",
         description="RS-485 direction control: none, kernel (TIOCSRS485), rts-up, rts-down",
-        json_schema_extra=_ui("RS-485 方向控制", "Connection", "select", serial=True),
     )
     echo: bool = Field(
         default=False,
         description="The line echoes our own requests (some 2-wire adapters): skip the echo",
-        json_schema_extra=_ui("线路回显", "Connection", "switch"),
     )
     is_enable: bool = Field(
         default=True,
         description="Poll this device",
-        json_schema_extra=_ui("启用", "Connection", "switch"),
     )
     data_format: DataFormat = Field(
         default=DataFormat.ABCD,
         description="Default data format for communication (byte order x word order)",
-        json_schema_extra=_ui("数据格式", "Advanced", "select", type_="string"),
     )
     max_block_read_register_count: Annotated[int, Range(1, REGISTER_CAP)] = Field(
         default=120,
         description="Maximum number of registers to read in a single block",
-        json_schema_extra=_ui("单块最大寄存器数", "Advanced", "number"),
     )
     is_block_read_require_address_continuous: bool = Field(
         default=False,
         description="Indicates if block read requires continuous addresses (gap 0)",
-        json_schema_extra=_ui("块读取地址需连续", "Advanced", "switch"),
     )
     max_merge_address_gap: Annotated[int, Range(0, MAX_OFFSET)] = Field(
         default=10,
         description="Maximum merge address gap when combining non-contiguous blocks",
-        json_schema_extra=_ui("最大合并空洞", "Advanced", "number"),
     )
     max_block_read_bit_count: Annotated[int, Range(1, BIT_CAP)] = Field(
         default=BIT_CAP,
         description="Maximum number of coils/discrete inputs to read in a single block",
-        json_schema_extra=_ui("单块最大位数", "Advanced", "number"),
     )
     address_prefix: AddressPrefixOption = Field(
         default="function-code",
         description="Numeric address types: function-code (3=holding, 4=input) or modicon "
         "(3=input, 4=holding)",
-        json_schema_extra=_ui("地址类型编号", "Advanced", "select"),
     )
     address_base: Annotated[int, Choice((0, 1))] = Field(
         default=0,
         description="0: address offsets are protocol (0-based) addresses; 1: they are 1-based",
-        json_schema_extra=_ui("地址起始", "Advanced", "select"),
     )
     retries: Annotated[int, Range(0, 10)] = Field(
         default=1,
         description="Retries of a failed read before its items go Invalid",
-        json_schema_extra=_ui("重试次数", "Advanced", "number"),
     )
     request_interval: Annotated[int, Range(0, MAX_MS)] = Field(
         default=0,
         description="Silence kept between two requests on the line (ms)",
-        json_schema_extra=_ui("请求间隔(ms)", "Advanced", "number"),
     )
     settle_timeout: Annotated[int | None, Range(0, MAX_MS)] = Field(
         default=None,
         description="After a timeout, discard late replies for this long before the next "
         "request (ms); empty = readTimeout, 0 = off",
-        json_schema_extra=_ui("超时后静默(ms)", "Advanced", "number"),
     )
     offline_after_failed_cycles: Annotated[int, Range(1, 1000)] = Field(
         default=3,
         description="Failed cycles in a row before the device is reported Offline",
-        json_schema_extra=_ui("离线判定周期数", "Advanced", "number"),
     )
     max_backoff: Ms = Field(
         default=60000,
         description="Longest wait between attempts on an offline device or lost link (ms)",
-        json_schema_extra=_ui("最大退避(ms)", "Advanced", "number"),
     )
     report_mode: ReportMode = Field(
         default="change",
         description="change: report items whose value or status changed; cycle: every read",
-        json_schema_extra=_ui("上报方式", "Advanced", "select"),
     )
     encoding: str = Field(
         default="utf-8",
         description="Text encoding of String items (a Python codec, e.g. utf-8, gbk)",
-        json_schema_extra=_ui("字符串编码", "Advanced", "text"),
     )
     write_single_register_function: Annotated[int, Choice((6, 16))] = Field(
         default=6,
         description="Function code for writing a one-register value: 6 or 16",
-        json_schema_extra=_ui("单寄存器写功能码", "Advanced", "select"),
     )
     snapshot_interval: Annotated[int, Range(0, MAX_MS)] = Field(
         default=0,
         description="Publish a device snapshot this often (ms); 0 = off",
-        json_schema_extra=_ui("快照间隔(ms)", "Advanced", "number"),
     )
 
     @field_validator("parity", mode="before")
