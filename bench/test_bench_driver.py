@@ -50,8 +50,7 @@ from bench.conftest import QUICK, cpu_seconds, report, scale
 from bench.slave_process import Range, SimulatorProcess
 from edgemodbus._binding import Context
 from edgemodbus.bus import Bus
-from edgemodbus.config import ItemStatus
-from edgemodbus.datatypes import Area
+from edgemodbus.datatypes import Area, ItemStatus
 from edgemodbus.line import TcpEndpoint
 
 SLAVES = list(range(1, 11))

@@ -18,7 +18,7 @@ from typing import Any
 
 import edgemodbus as em
 from bench.conftest import QUICK, cpu_seconds, report, scale
-from edgemodbus.config import DeviceDriverStatus, ItemStatus
+from edgemodbus.datatypes import DeviceDriverStatus, ItemStatus
 from edgemodbus.simulator import Simulator
 
 TAGS = 100

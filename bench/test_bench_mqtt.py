@@ -31,8 +31,7 @@ from tests.mosquitto import Mosquitto
 import edgemodbus as em
 from bench.conftest import QUICK, cpu_seconds, report, scale
 from bench.slave_process import SimulatorProcess
-from edgemodbus.config import ItemStatus
-from edgemodbus.datatypes import Area
+from edgemodbus.datatypes import Area, ItemStatus
 from edgemodbus.mqtt import MqttPublisher
 
 SLAVES = list(range(1, 11))

@@ -271,7 +271,7 @@ class Checker:
         self.lock = threading.Lock()
 
     def __call__(self, item: Any) -> None:
-        from edgemodbus.config import ItemStatus
+        from edgemodbus.datatypes import ItemStatus
 
         with self.lock:
             self.reports += 1

@@ -12,15 +12,13 @@ from .config import (
     ConfigError,
     DeviceAddressItem,
     DeviceConfig,
-    DeviceDriverStatus,
     DeviceOrganizationParameter,
     DriverModbusRtuParameter,
-    ItemStatus,
     Parity,
     load_communication,
     load_device_config,
 )
-from .datatypes import Area, DataFormat, DataType
+from .datatypes import Area, DataFormat, DataType, DeviceDriverStatus, ItemStatus
 from .descriptor import driver_descriptor
 from .driver import DriverModbusRtu
 from .errors import (

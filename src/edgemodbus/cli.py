@@ -27,10 +27,9 @@ from .config import (
     DeviceConfig,
     DeviceOrganizationParameter,
     DriverModbusRtuParameter,
-    ItemStatus,
     load_device_config,
 )
-from .datatypes import Area
+from .datatypes import Area, ItemStatus
 from .descriptor import driver_descriptor
 from .device import build_plan
 from .driver import DriverModbusRtu

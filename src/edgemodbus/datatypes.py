@@ -1,4 +1,5 @@
-"""Data types, data formats and Modbus areas: the vocabulary shared by every layer."""
+"""Data types, data formats, Modbus areas and item/driver statuses: the vocabulary shared
+by every layer."""
 
 from __future__ import annotations
 
@@ -208,3 +209,22 @@ def _endian_is_little(field: str, value: str) -> bool:
     if key in ("littleendian", "little", "le"):
         return True
     raise ValueError(f"{field} {value!r}: use BigEndian or LittleEndian")
+
+
+class ItemStatus(str, enum.Enum):
+    """Quality of an item's value."""
+
+    UNKNOWN = "Unknown"
+    OK = "Ok"
+    INVALID = "Invalid"
+
+
+class DeviceDriverStatus(str, enum.Enum):
+    """Lifecycle state of a driver (README.md, "device_driver_status")."""
+
+    STOPPED = "Stopped"
+    DISABLED = "Disabled"
+    CONNECTING = "Connecting"
+    RUNNING = "Running"
+    OFFLINE = "Offline"
+    RECONNECTING = "Reconnecting"

@@ -1,7 +1,9 @@
 """The driver descriptor (the seed's descriptor JSON), generated so that it cannot drift.
 
-Parameters come from :class:`~edgemodbus.config.DriverModbusRtuParameter`'s fields:
-their defaults, ranges, choices, descriptions and UI metadata (``json_schema_extra``).
+Parameters come from :class:`~edgemodbus.config.DriverModbusRtuParameter`'s fields
+(their defaults, ranges, choices and descriptions) and their UI labels in
+:mod:`edgemodbus.config.labels` (label, category, controlType, options, visibleWhen,
+dataSource).
 The address regex and examples come from :mod:`edgemodbus.address`.
 """
 
@@ -16,6 +18,7 @@ from pydantic.fields import FieldInfo
 
 from .address import address_regex, check_base, check_prefix, parse_address, type_number
 from .config import Choice, DriverModbusRtuParameter, Parity, Range
+from .config.labels import LABELS
 from .datatypes import Area, DataType
 
 DRIVER_TYPE = "DriverModbusRtu"
@@ -80,9 +83,9 @@ def parameters(prefix: str = "function-code", base: int = 0) -> list[dict[str, A
     order: dict[str, int] = {}
     entries = []
     for name, field in DriverModbusRtuParameter.model_fields.items():
-        ui = field.json_schema_extra
-        if not isinstance(ui, dict):
-            raise TypeError(f"DriverModbusRtuParameter.{name}: descriptor metadata missing")
+        ui = LABELS.get(name)
+        if ui is None:
+            raise TypeError(f"DriverModbusRtuParameter.{name}: no UI labels in config/labels.py")
         key = field.alias or name
         category = str(ui["category"])
         order[category] = order.get(category, 0) + 1

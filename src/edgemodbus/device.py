@@ -30,8 +30,8 @@ from ._binding import Block
 from .bus import Bus
 from .codec import BlockDecoder, ValueSpec, encode, register_bit
 from .codec import Report as Change
-from .config import DeviceDriverStatus, DriverModbusRtuParameter, ItemStatus, ParsedItem
-from .datatypes import Area
+from .config import DriverModbusRtuParameter, ParsedItem
+from .datatypes import Area, DeviceDriverStatus, ItemStatus
 from .errors import (
     CrcError,
     IllegalDataAddress,

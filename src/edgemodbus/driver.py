@@ -20,7 +20,6 @@ from . import dtu as _dtu
 from .bus import BusRegistry
 from .config import (
     DeviceAddressItem,
-    DeviceDriverStatus,
     DeviceOrganizationParameter,
     DriverModbusRtuParameter,
     device_enabled,
@@ -28,7 +27,7 @@ from .config import (
     validate_items,
     validate_parameters,
 )
-from .datatypes import Area
+from .datatypes import Area, DeviceDriverStatus
 from .device import Device, ItemState, WriteOp, plan_writes
 from .line import DtuEndpoint, LineTiming, SerialPort, TcpEndpoint
 from .link import Link

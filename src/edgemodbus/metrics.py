@@ -28,7 +28,8 @@ from wsgiref.simple_server import WSGIRequestHandler, WSGIServer, make_server
 
 from pydantic import ValidationError
 
-from .config import ConfigError, DeviceDriverStatus, Range, _Model
+from .config import ConfigError, Model, Range
+from .datatypes import DeviceDriverStatus
 
 if TYPE_CHECKING:
     from prometheus_client.metrics_core import Metric
@@ -83,7 +84,7 @@ MQTT_DEVICE_COUNTERS: tuple[tuple[str, str, str], ...] = (
 )
 
 
-class MetricsSettings(_Model):
+class MetricsSettings(Model):
     """The ``metrics`` section of the gateway file."""
 
     _where: ClassVar[str] = "metrics"

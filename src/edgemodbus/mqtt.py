@@ -55,7 +55,7 @@ from typing import TYPE_CHECKING, Annotated, Any, ClassVar, cast
 
 from pydantic import ValidationError, field_validator, model_validator
 
-from .config import MAX_MS, Choice, ConfigError, Ms, Problem, Range, _Model
+from .config import MAX_MS, Choice, ConfigError, Model, Ms, Problem, Range
 from .driver import DriverModbusRtu
 
 if TYPE_CHECKING:
@@ -72,7 +72,7 @@ _MAX_PENDING_COMMANDS = 256
 _CONTROL_LIMIT = 10_000
 
 
-class TlsSettings(_Model):
+class TlsSettings(Model):
     """TLS to the broker: CA file (else the system's), optional client certificate.
 
     ``enabled: false`` keeps the section in the file without using it (the shipped
@@ -209,7 +209,7 @@ def _check_template(template: str, allowed: tuple[str, ...], *, last: str | None
     return template
 
 
-class MqttSettings(_Model):
+class MqttSettings(Model):
     """The ``mqtt`` section of the gateway file.  Times in ms unless named otherwise."""
 
     _where: ClassVar[str] = "mqtt"

@@ -50,11 +50,11 @@ from .config import (
     ConfigError,
     DeviceConfig,
     DriverModbusRtuParameter,
+    Model,
     Ms,
     Problem,
-    _load,
-    _Model,
     load_device_config,
+    load_model,
 )
 from .driver import DriverModbusRtu
 from .metrics import MetricsSettings
@@ -69,7 +69,7 @@ log = logging.getLogger("edgemodbus.service")
 GATEWAY_FILE = "gateway.json"
 
 
-class GatewayConfig(_Model):
+class GatewayConfig(Model):
     """The gateway file: who this gateway is and where its data goes."""
 
     _where: ClassVar[str] = "gateway"
@@ -91,7 +91,7 @@ def load_gateway_config(path: str | os.PathLike[str] | dict[str, Any]) -> Gatewa
     The TLS files of an enabled ``mqtt.tls`` must exist and hold PEM data (checked here,
     so a bad path is reported before anything connects); relative paths are taken from
     the gateway file's folder."""
-    cfg = _load(GatewayConfig, path)
+    cfg = load_model(GatewayConfig, path)
     mqtt = cfg.mqtt
     if mqtt is None or not mqtt.enabled:
         return cfg

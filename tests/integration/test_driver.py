@@ -18,7 +18,7 @@ from typing import Any
 import pytest
 
 import edgemodbus as em
-from edgemodbus.config import DeviceDriverStatus, ItemStatus
+from edgemodbus.datatypes import DeviceDriverStatus, ItemStatus
 from edgemodbus.simulator import Simulator
 from tests.peers import PymodbusSlave, default_bit, default_register
 from tests.waiting import wait_for

@@ -13,7 +13,8 @@ from typing import Any
 import pytest
 
 import edgemodbus as em
-from edgemodbus.config import ConfigError, DeviceAddressItem, ItemStatus
+from edgemodbus.config import ConfigError, DeviceAddressItem
+from edgemodbus.datatypes import ItemStatus
 from edgemodbus.simulator import Simulator
 from tests.peers import free_port
 from tests.waiting import wait_for

@@ -18,8 +18,7 @@ import pytest
 
 import edgemodbus as em
 from edgemodbus import dtu
-from edgemodbus.config import DeviceDriverStatus, ItemStatus
-from edgemodbus.datatypes import Area
+from edgemodbus.datatypes import Area, DeviceDriverStatus, ItemStatus
 from edgemodbus.simulator import Simulator, default_register
 from tests.waiting import wait_for
 

@@ -23,8 +23,7 @@ import pytest
 
 import edgemodbus as em
 from edgemodbus.bus import Bus
-from edgemodbus.config import DeviceDriverStatus, ItemStatus
-from edgemodbus.datatypes import Area
+from edgemodbus.datatypes import Area, DeviceDriverStatus, ItemStatus
 from edgemodbus.errors import (
     Acknowledge,
     GatewayPathUnavailable,

@@ -21,7 +21,7 @@ from typing import Any
 import pytest
 
 import edgemodbus as em
-from edgemodbus.config import DeviceDriverStatus, ItemStatus
+from edgemodbus.datatypes import DeviceDriverStatus, ItemStatus
 from edgemodbus.simulator import Simulator, default_register
 from tests.integration.test_faults import HR, OK, RUNNING, Polled, Rig, hr_items, wait_for
 

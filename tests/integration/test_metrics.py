@@ -13,7 +13,8 @@ import pytest
 from prometheus_client.parser import text_string_to_metric_families
 
 import edgemodbus as em
-from edgemodbus.config import ConfigError, DeviceDriverStatus
+from edgemodbus.config import ConfigError
+from edgemodbus.datatypes import DeviceDriverStatus
 from edgemodbus.metrics import MetricsExporter, MetricsSettings
 from edgemodbus.mqtt import MqttPublisher
 from tests.peers import ExceptionRange, PymodbusSlave, free_port

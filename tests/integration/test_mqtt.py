@@ -16,7 +16,8 @@ from typing import Any, Literal
 import pytest
 
 import edgemodbus as em
-from edgemodbus.config import ConfigError, DeviceDriverStatus, ItemStatus
+from edgemodbus.config import ConfigError
+from edgemodbus.datatypes import DeviceDriverStatus, ItemStatus
 from edgemodbus.metrics import MetricsExporter
 from edgemodbus.mqtt import (
     MqttPublisher,

@@ -15,8 +15,7 @@ from contextlib import contextmanager
 from typing import Any
 
 import edgemodbus as em
-from edgemodbus.config import DeviceDriverStatus, ItemStatus
-from edgemodbus.datatypes import Area
+from edgemodbus.datatypes import Area, DeviceDriverStatus, ItemStatus
 from edgemodbus.simulator import DtuClient, Simulator
 from edgemodbus.wrapped import wrap
 from tests.integration.test_dtu import free_port, wait_for

@@ -17,10 +17,8 @@ from edgemodbus.config import (
     ConfigError,
     DeviceAddressItem,
     DeviceConfig,
-    DeviceDriverStatus,
     DeviceOrganizationParameter,
     DriverModbusRtuParameter,
-    ItemStatus,
     Parity,
     Range,
     device_enabled,
@@ -29,7 +27,7 @@ from edgemodbus.config import (
     load_device_config,
     validate_items,
 )
-from edgemodbus.datatypes import Area, DataFormat, DataType
+from edgemodbus.datatypes import Area, DataFormat, DataType, DeviceDriverStatus, ItemStatus
 
 DATA = Path(__file__).resolve().parents[1] / "data"
 SEED_DEVICE = DATA / "seed-device.json"

@@ -15,6 +15,7 @@ from hypothesis import strategies as st
 
 from edgemodbus.address import parse_address
 from edgemodbus.config import DriverModbusRtuParameter
+from edgemodbus.config.labels import LABELS
 from edgemodbus.datatypes import Area, DataType
 from edgemodbus.descriptor import EXAMPLE_KEYS, driver_descriptor
 
@@ -56,6 +57,17 @@ def test_parameters_come_from_every_model_field() -> None:
     for category in ("Connection", "Advanced"):
         orders = [p["orderNo"] for p in params if p["category"] == category]
         assert orders == list(range(1, len(orders) + 1))
+
+
+def test_labels_name_exactly_the_model_fields() -> None:
+    # labels.py is keyed by field name: a renamed or removed field leaves no stale label
+    assert set(LABELS) == set(DriverModbusRtuParameter.model_fields)
+
+
+def test_a_field_without_labels_is_refused_by_name(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.delitem(LABELS, "echo")
+    with pytest.raises(TypeError, match=r"DriverModbusRtuParameter\.echo: no UI labels"):
+        driver_descriptor()
 
 
 def test_default_values_load_back_to_the_model_defaults() -> None:

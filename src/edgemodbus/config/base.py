@@ -1,0 +1,390 @@
+"""The base of every config model (:class:`Model`), field limits and loading.
+
+Keys are accepted in every spelling compat.py matches (camelCase is canonical); Python
+attribute names are the snake_case of the JSON keys.  Unknown keys are ignored and
+logged as warnings on logger ``edgemodbus.config`` (path and key); when the load fails
+anyway they are lines of the error instead, so that each problem is told once
+(:func:`load_model`).  :class:`Range` and :class:`Choice` limit a field; a value outside
+raises :class:`ConfigError` saying what is allowed.
+"""
+
+from __future__ import annotations
+
+import codecs
+import difflib
+import enum
+import json
+import logging
+import math
+import os
+import types
+import typing
+from collections.abc import Callable, Mapping, Sequence
+from contextvars import ContextVar
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Annotated, Any, ClassVar, TypeVar
+
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    GetCoreSchemaHandler,
+    ValidationError,
+    model_validator,
+)
+from pydantic.alias_generators import to_camel
+from pydantic_core import CoreSchema, core_schema
+
+from ..datatypes import DataFormat
+from .compat import norm_key
+from .problems import NO_VALUE, ConfigError, Problem, WrongType, join_path
+
+# One logger for the whole package (the name the CLI and the tests listen to).
+logger = logging.getLogger("edgemodbus.config")
+
+MAX_MS = 86_400_000
+"""Upper bound of every time setting (one day, in milliseconds)."""
+
+
+# --------------------------------------------------------------------------- field helpers
+
+
+def _field_kinds(source: Any) -> tuple[bool, bool, bool]:
+    """(numeric, integer, optional) of a field's type (``int``, ``float | None`` ...)."""
+    origin = typing.get_origin(source)
+    args = typing.get_args(source) if origin in (typing.Union, types.UnionType) else (source,)
+    kinds = [a for a in args if a is not type(None)]
+    numeric = bool(kinds) and all(k in (int, float) for k in kinds)
+    return numeric, numeric and int in kinds and float not in kinds, len(kinds) < len(args)
+
+
+def as_number(value: Any, integer: bool, optional: bool, allowed: str) -> Any:
+    """A JSON number (or numeric text) for a numeric field; anything else, true/false
+    included (pydantic would take true as 1), raises ``must be <allowed>``."""
+    if value is None and optional:
+        return None
+    number: Any = value
+    if isinstance(value, str):
+        text = value.strip()
+        try:
+            number = int(text)
+        except ValueError:
+            try:
+                number = float(text)
+            except ValueError:
+                number = None
+    if isinstance(number, bool) or not isinstance(number, (int, float)):
+        raise WrongType(f"must be {allowed}")
+    if integer and isinstance(number, float):
+        if not number.is_integer():
+            raise WrongType(f"must be {allowed}")
+        number = int(number)
+    return number
+
+
+@dataclass(frozen=True, slots=True)
+class Range:
+    """Inclusive numeric range of a field (``hi=None``: no upper bound); ``None`` passes
+    on optional fields.  Values of the wrong type are refused with the range."""
+
+    lo: float
+    hi: float | None = None
+
+    def check(self, value: Any) -> Any:
+        if value is None:
+            return value
+        if isinstance(value, float) and not math.isfinite(value):
+            raise ValueError("must be a finite number")
+        if value < self.lo or (self.hi is not None and value > self.hi):
+            raise ValueError(f"must be {self.describe()}")
+        return value
+
+    def describe(self) -> str:
+        lo = _num(self.lo)
+        return f"{lo} or more" if self.hi is None else f"{lo}..{_num(self.hi)}"
+
+    def __get_pydantic_core_schema__(
+        self, source: Any, handler: GetCoreSchemaHandler
+    ) -> CoreSchema:
+        schema = core_schema.no_info_after_validator_function(self.check, handler(source))
+        numeric, integer, optional = _field_kinds(source)
+        if not numeric:
+            return schema
+        allowed = f"{'a whole number' if integer else 'a number'} {self.describe()}"
+
+        def precheck(value: Any) -> Any:
+            return as_number(value, integer, optional, allowed)
+
+        return core_schema.no_info_before_validator_function(precheck, schema)
+
+
+@dataclass(frozen=True, slots=True)
+class Choice:
+    """The only values a field accepts."""
+
+    values: tuple[Any, ...]
+
+    def check(self, value: Any) -> Any:
+        # 1 == True: a bool is only one of the values if it is one of them as a bool
+        if value not in self.values or (
+            isinstance(value, bool) and not any(v is value for v in self.values)
+        ):
+            raise ValueError(f"must be {self.describe()}")
+        return value
+
+    def describe(self) -> str:
+        return " or ".join(repr(v) for v in self.values)
+
+    def __get_pydantic_core_schema__(
+        self, source: Any, handler: GetCoreSchemaHandler
+    ) -> CoreSchema:
+        schema = core_schema.no_info_after_validator_function(self.check, handler(source))
+        numeric, integer, optional = _field_kinds(source)
+        if not numeric:
+            return schema
+        allowed = self.describe()
+
+        def precheck(value: Any) -> Any:
+            return as_number(value, integer, optional, allowed)
+
+        return core_schema.no_info_before_validator_function(precheck, schema)
+
+
+def _num(x: float) -> str:
+    return str(int(x)) if float(x).is_integer() else str(x)
+
+
+MS_RANGE = Range(1, MAX_MS)
+READ_CYCLE_RANGE = Range(0, MAX_MS)
+"""readCycle: 0 = report-only (communication's and the organisation's alike)."""
+
+Ms = Annotated[int, MS_RANGE]
+OptionalMs = Annotated[int | None, MS_RANGE]
+
+
+def check_encoding(value: str) -> str:
+    """A text codec Python knows (the codec's rule: bytes codecs such as base64 are not
+    text encodings)."""
+    try:
+        text = getattr(codecs.lookup(value), "_is_text_encoding", True)
+    except LookupError:
+        text = False
+    if not text:
+        raise ValueError("unknown text encoding (use a codec Python knows, e.g. utf-8, gbk)")
+    return value
+
+
+def lower_literal(value: Any) -> Any:
+    """Text of a Literal field, stripped and lower-cased (``"RTU "`` -> ``"rtu"``)."""
+    return value.strip().lower() if isinstance(value, str) else value
+
+
+_E = TypeVar("_E", bound=enum.Enum)
+
+
+def parse_enum_ci(enum_cls: type[_E], value: Any) -> Any:
+    """Case-insensitive lookup of a str enum by value; other input passes through."""
+    if isinstance(value, str) and not isinstance(value, enum_cls):
+        for member in enum_cls:
+            if member.value.lower() == value.strip().lower():
+                return member
+    return value
+
+
+def parse_format(value: Any) -> Any:
+    """A DataFormat from its text (``"ABCD"`` ...); other input passes through."""
+    if isinstance(value, str):
+        return DataFormat.parse(value)
+    return value
+
+
+# --------------------------------------------------------------------------- the model
+
+
+class Model(BaseModel):
+    """Base of every config model: forgiving key spelling, warnings for unknown keys,
+    to_dict().  A subclass may set ``_where`` (the place unknown-key warnings name) and
+    ``_extra_keys`` (keys accepted besides the fields, for its own validators)."""
+
+    model_config = ConfigDict(
+        alias_generator=to_camel,
+        extra="ignore",
+        ser_json_bytes="base64",
+    )
+
+    _extra_keys: ClassVar[tuple[str, ...]] = ()
+    _where: ClassVar[str] = ""
+    _key_tables: ClassVar[dict[type, dict[str, str]]] = {}
+
+    @classmethod
+    def key_table(cls) -> dict[str, str]:
+        """Normalised key -> canonical camelCase key (fields and accepted aliases)."""
+        table = Model._key_tables.get(cls)
+        if table is None:
+            table = {norm_key(f.alias or n): f.alias or n for n, f in cls.model_fields.items()}
+            table.update({norm_key(k): k for k in cls._extra_keys})
+            Model._key_tables[cls] = table
+        return table
+
+    @classmethod
+    def normalize_keys(
+        cls, data: Mapping[Any, Any], where: str, prefix: str = ""
+    ) -> dict[str, Any]:
+        """Canonical keys; unknown keys are logged (``where`` names the place) and dropped.
+        A key given twice in different spellings is a ConfigError (paths from ``prefix``)."""
+        table = cls.key_table()
+        out: dict[str, Any] = {}
+        spelled: dict[str, str] = {}
+        problems: list[Problem] = []
+        for key, value in data.items():
+            canon = table.get(norm_key(key)) if isinstance(key, str) else None
+            if canon is None:
+                _unknown_key(where, key)
+                continue
+            if canon in out:
+                problems.append(
+                    Problem(
+                        join_path(prefix, canon), value, f"given twice (also as {spelled[canon]!r})"
+                    )
+                )
+                continue
+            out[canon] = value
+            spelled[canon] = key
+        if problems:
+            raise ConfigError(problems)
+        return out
+
+    @model_validator(mode="before")
+    @classmethod
+    def _accept_keys(cls, data: Any) -> Any:
+        if isinstance(data, Mapping):
+            return cls.normalize_keys(data, cls._where or cls.__name__)
+        return data
+
+    def to_dict(self) -> dict[str, Any]:
+        """camelCase, JSON-able dict (loads back to an equal model)."""
+        result: dict[str, Any] = self.model_dump(mode="json", by_alias=True)
+        return result
+
+
+# --------------------------------------------------------------------------- unknown keys
+
+
+# Unknown keys met while a load is under way (None: log them at once, see load_model).
+_unknown_keys: ContextVar[list[Problem] | None] = ContextVar("edgemodbus_unknown_keys",
+                                                             default=None)
+
+
+def _unknown_key(where: str, key: Any) -> None:
+    problem = Problem(where, NO_VALUE, f"unknown key {key!r} ignored")
+    sink = _unknown_keys.get()
+    if sink is None:
+        logger.warning("%s", problem)
+    else:
+        sink.append(problem)
+
+
+def _with_unknown_keys(error: ConfigError, unknown: Sequence[Problem]) -> ConfigError:
+    """The error's problems plus the unknown keys: a key that looks like a misspelling
+    of a field the error says is missing joins that line; the others get a line each."""
+    problems = list(error.problems)
+    for extra in unknown:
+        key = extra.message.removeprefix("unknown key ").removesuffix(" ignored")
+        for i, problem in enumerate(problems):
+            parent, _, field = problem.path.rpartition(".")
+            if (
+                problem.value is NO_VALUE
+                and parent == extra.path
+                and difflib.get_close_matches(norm_key(key.strip("'\"")), [norm_key(field)],
+                                              cutoff=0.5)
+            ):
+                problems[i] = Problem(problem.path, NO_VALUE,
+                                      f"{problem.message} (the unknown key {key} was ignored)")
+                break
+        else:
+            problems.append(extra)
+    return ConfigError(problems)
+
+
+# --------------------------------------------------------------------------- checks again
+
+
+Checks = tuple[tuple[str, str, Callable[[Any], Any]], ...]
+
+
+def field_checks(model: type[BaseModel]) -> Checks:
+    """(attribute, JSON key, check) of every Range/Choice-limited field of ``model``."""
+    return tuple(
+        (name, field.alias or name, meta.check)
+        for name, field in model.model_fields.items()
+        for meta in field.metadata
+        if isinstance(meta, (Range, Choice))
+    )
+
+
+def recheck(model: BaseModel, checks: Checks, path: str) -> list[Problem]:
+    """The field limits again, on the values a model holds now (models do not validate
+    assignments: a value may have been changed after loading)."""
+    problems: list[Problem] = []
+    for name, key, check in checks:
+        value = getattr(model, name)
+        try:
+            check(value)
+        except (TypeError, ValueError) as exc:
+            problems.append(Problem(join_path(path, key), value, str(exc)))
+    return problems
+
+
+# --------------------------------------------------------------------------- loading
+
+_M = TypeVar("_M", bound=Model)
+
+
+def _read_json(source: str | os.PathLike[str] | Mapping[str, Any]) -> tuple[Any, str]:
+    """(decoded JSON, name of the source for messages)."""
+    if isinstance(source, Mapping):
+        return dict(source), "<dict>"
+    if isinstance(source, str) and source.lstrip("\ufeff \t\r\n").startswith(("{", "[")):
+        text, name = source, "<json text>"
+    elif isinstance(source, (str, os.PathLike)):
+        name = os.fspath(source)
+        text = Path(name).read_text(encoding="utf-8-sig")
+    else:
+        raise TypeError(f"config source {source!r}: use a path, a str of JSON or a dict")
+    try:
+        return json.loads(text.lstrip("\ufeff")), name
+    except json.JSONDecodeError as exc:
+        raise ConfigError(
+            [
+                Problem(
+                    name,
+                    NO_VALUE,
+                    f"invalid JSON: {exc.msg} at line {exc.lineno} column {exc.colno}",
+                )
+            ]
+        ) from None
+
+
+def load_model(model: type[_M], source: str | os.PathLike[str] | Mapping[str, Any]) -> _M:
+    """Load ``model`` from a path, a str of JSON text, or a dict; raises ConfigError.
+    Unknown keys are logged once the load succeeded, or else become lines of the
+    ConfigError (one line per problem, not a warning and then an error)."""
+    data, name = _read_json(source)
+    if not isinstance(data, Mapping):
+        raise ConfigError([Problem(name, NO_VALUE, "the file must hold a JSON object")])
+    unknown: list[Problem] = []
+    error: ConfigError | None
+    token = _unknown_keys.set(unknown)
+    try:
+        loaded = model.model_validate(data)
+    except ValidationError as exc:
+        error = ConfigError.from_validation_error(exc)
+    else:
+        error = None
+    finally:
+        _unknown_keys.reset(token)
+    if error is not None:
+        raise _with_unknown_keys(error, unknown) from None
+    for problem in unknown:
+        logger.warning("%s", problem)
+    return loaded

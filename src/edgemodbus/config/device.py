@@ -1,0 +1,139 @@
+"""The device file: the organisation record (its timing fields override
+communication's), :class:`DeviceConfig`, and the loaders of the seed's files."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping
+from datetime import datetime
+from typing import Annotated, Any, ClassVar
+
+from pydantic import Field, field_validator, model_validator
+
+from .base import READ_CYCLE_RANGE, Model, OptionalMs, field_checks, load_model, recheck
+from .communication import DriverModbusRtuParameter
+from .compat import iso_timestamp
+from .items import DeviceAddressItem, ParsedItem, validate_items
+from .problems import ConfigError
+
+
+class DeviceOrganizationParameter(Model):
+    """The device's organisation record; its timing fields override communication's."""
+
+    _where: ClassVar[str] = "organization"
+
+    device_id: str | None = None
+    device_code: str | None = None
+    device_name: str | None = None
+    description: str | None = None
+    is_enable: bool | None = None
+    # the same ranges and meaning as communication's fields they override
+    connect_timeout: OptionalMs = None
+    reconnect_interval: OptionalMs = None
+    read_cycle: Annotated[int | None, READ_CYCLE_RANGE] = None
+    created_at: datetime | None = None
+    last_modified: datetime | None = None
+    metadata: dict[str, Any] = Field(default_factory=dict)
+
+    @field_validator("created_at", "last_modified", mode="before")
+    @classmethod
+    def _ts(cls, value: Any) -> Any:
+        return iso_timestamp(value)
+
+
+_OVERRIDES = ("read_cycle", "connect_timeout", "reconnect_interval")
+
+
+def effective_parameters(
+    org: DeviceOrganizationParameter | None, comm: DriverModbusRtuParameter
+) -> DriverModbusRtuParameter:
+    """A copy of ``comm`` with the organisation's readCycle/connectTimeout/
+    reconnectInterval applied where set."""
+    update = (
+        {}
+        if org is None
+        else {name: getattr(org, name) for name in _OVERRIDES if getattr(org, name) is not None}
+    )
+    return comm.model_copy(update=update)
+
+
+def device_enabled(org: DeviceOrganizationParameter | None, comm: DriverModbusRtuParameter) -> bool:
+    """A device is polled when the organisation (if it says) and communication enable it."""
+    org_ok = org is None or org.is_enable is None or org.is_enable
+    return bool(org_ok and comm.is_enable)
+
+
+_COMM_CHECKS = field_checks(DriverModbusRtuParameter)
+_ORG_CHECKS = field_checks(DeviceOrganizationParameter)
+
+
+def validate_parameters(
+    org: DeviceOrganizationParameter | None, comm: DriverModbusRtuParameter
+) -> None:
+    """Check the organisation's and communication's field limits on the values they hold
+    now; raise one ConfigError (``communication.readCycle ...``) listing every problem."""
+    problems = [] if org is None else recheck(org, _ORG_CHECKS, "organization")
+    problems += recheck(comm, _COMM_CHECKS, "communication")
+    if problems:
+        raise ConfigError(problems)
+
+
+class DeviceConfig(Model):
+    """A whole device file: driver type, organisation, communication, address list."""
+
+    driver_type: str = "DriverModbusRtu"
+    organization: DeviceOrganizationParameter = Field(default_factory=DeviceOrganizationParameter)
+    communication: DriverModbusRtuParameter = Field(default_factory=DriverModbusRtuParameter)
+    address_list: list[DeviceAddressItem] = Field(default_factory=list)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _nested_keys(cls, data: Any) -> Any:
+        """Warn about unknown nested keys with their full paths before pydantic sees them."""
+        if not isinstance(data, Mapping):
+            return data
+        data = cls.normalize_keys(data, "")
+        for key, model in (
+            ("organization", DeviceOrganizationParameter),
+            ("communication", DriverModbusRtuParameter),
+        ):
+            if isinstance(data.get(key), Mapping):
+                data[key] = model.normalize_keys(data[key], key, key)
+        items = data.get("addressList")
+        if isinstance(items, list):
+            data["addressList"] = [
+                DeviceAddressItem.normalize_keys(it, f"addressList[{i}]", f"addressList[{i}]")
+                if isinstance(it, Mapping)
+                else it
+                for i, it in enumerate(items)
+            ]
+        return data
+
+    @model_validator(mode="after")
+    def _items(self) -> DeviceConfig:
+        validate_items(self.address_list, self.communication)
+        return self
+
+    def parsed_items(self) -> list[ParsedItem]:
+        """The address list checked and parsed against the communication options."""
+        return validate_items(self.address_list, self.communication)
+
+    def effective_parameters(self) -> DriverModbusRtuParameter:
+        """Communication with the organisation's overrides applied."""
+        return effective_parameters(self.organization, self.communication)
+
+    @property
+    def enabled(self) -> bool:
+        return device_enabled(self.organization, self.communication)
+
+
+def load_device_config(source: str | os.PathLike[str] | Mapping[str, Any]) -> DeviceConfig:
+    """Load a device file: a path, a str of JSON text, or a dict.  Raises ConfigError."""
+    return load_model(DeviceConfig, source)
+
+
+def load_communication(
+    source: str | os.PathLike[str] | Mapping[str, Any],
+) -> DriverModbusRtuParameter:
+    """Load communication parameters alone (the seed's ``modbusRtu.json``)."""
+    return load_model(DriverModbusRtuParameter, source)

@@ -1,0 +1,356 @@
+"""Address list items: :class:`DeviceAddressItem` (one tag as loaded), :class:`ParsedItem`
+(an item checked against the communication options) and :func:`validate_items`.
+
+Limits are those of the layers that use the values (one source of truth): item
+quantities come from the codec, offsets and bits from the address parser, and
+:func:`validate_items` runs the codec's own item check.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from datetime import datetime
+from typing import Annotated, Any, ClassVar
+
+from pydantic import field_serializer, field_validator
+
+from ..address import Address, check_span, parse_address
+from ..codec import MAX_QUANTITY, ValueSpec, check_spec
+from ..datatypes import Area, DataFormat, DataType, ItemStatus
+from .base import (
+    Model,
+    Range,
+    as_number,
+    check_encoding,
+    field_checks,
+    parse_enum_ci,
+    parse_format,
+    recheck,
+)
+from .communication import DriverModbusRtuParameter
+from .compat import iso_timestamp
+from .problems import NO_VALUE, ConfigError, Problem, WrongType
+
+
+class DeviceAddressItem(Model):
+    """One tag.  ``value``, ``status``, ``update_ts`` and ``error_reason`` are runtime
+    state set by the driver's worker thread: assignment is not validated (cheap)."""
+
+    _where: ClassVar[str] = "addressList[]"
+
+    name: str
+    address: str
+    device_data_type: DataType
+    converted_data_type: DataType | None = None
+    data_multiplier: float = 1.0
+    description: str = ""
+    unit: str = ""
+    update_ts: datetime | None = None
+    status: ItemStatus = ItemStatus.UNKNOWN
+    is_enable: bool = True
+    address_changed: bool = False
+    data_format: DataFormat | None = None
+    quantity: Annotated[int | None, Range(1, MAX_QUANTITY)] = None
+    deadband: Annotated[float | None, Range(0)] = None
+    encoding: str | None = None
+    value: Any = None
+    error_reason: str | None = None
+
+    @field_validator("name")
+    @classmethod
+    def _name(cls, value: str) -> str:
+        if not value.strip():
+            raise ValueError("an item needs a non-empty name")
+        return value
+
+    @field_validator("address", mode="before")
+    @classmethod
+    def _address_text(cls, value: Any) -> Any:
+        """A JSON number is the offset it spells (100 means "100", i.e. hr:100)."""
+        if isinstance(value, int) and not isinstance(value, bool):
+            return str(value)
+        if not isinstance(value, str):
+            raise WrongType("must be a string like 'hr:100' (or a whole number: an offset)")
+        return value
+
+    @field_validator("data_multiplier", mode="before")
+    @classmethod
+    def _multiplier_number(cls, value: Any) -> Any:
+        return as_number(value, False, False, "a finite number other than 0")
+
+    @field_validator("address")
+    @classmethod
+    def _address(cls, value: str) -> str:
+        # Syntax only: prefix/base live in communication (checked by validate_items).
+        try:
+            parse_address(value)
+        except ValueError as exc:
+            try:
+                parse_address(value, base=1)
+            except ValueError:
+                raise ValueError(_strip_echo(value, exc)) from None
+        return value
+
+    @field_validator("device_data_type", mode="before")
+    @classmethod
+    def _device_type(cls, value: Any) -> Any:
+        return DataType.parse(value) if isinstance(value, str) else value
+
+    @field_validator("converted_data_type", mode="before")
+    @classmethod
+    def _converted_type(cls, value: Any) -> Any:
+        if value is None or (isinstance(value, str) and not value.strip()):
+            return None
+        return DataType.parse(value) if isinstance(value, str) else value
+
+    @field_validator("data_format", mode="before")
+    @classmethod
+    def _format(cls, value: Any) -> Any:
+        if isinstance(value, str) and not value.strip():
+            return None
+        return parse_format(value)
+
+    @field_validator("status", mode="before")
+    @classmethod
+    def _status(cls, value: Any) -> Any:
+        return parse_enum_ci(ItemStatus, value)
+
+    @field_validator("data_multiplier")
+    @classmethod
+    def _multiplier(cls, value: float) -> float:
+        if not math.isfinite(value) or value == 0:
+            raise ValueError("must be a finite number other than 0")
+        return value
+
+    @field_validator("encoding")
+    @classmethod
+    def _encoding(cls, value: str | None) -> str | None:
+        return None if value is None or not value.strip() else check_encoding(value)
+
+    @field_validator("update_ts", mode="before")
+    @classmethod
+    def _ts(cls, value: Any) -> Any:
+        return iso_timestamp(value)
+
+    @field_serializer("converted_data_type")
+    def _ser_converted(self, value: DataType | None) -> str:
+        return "" if value is None else value.value
+
+
+def _strip_echo(text: str, exc: ValueError) -> str:
+    """parse_address's message without its leading ``'text': `` (the path shows it)."""
+    message = str(exc)
+    return message.removeprefix(f"{text!r}: ")
+
+
+ALLOWED_QUANTITIES: dict[DataType, tuple[int, ...]] = {
+    DataType.BOOLEAN: (1,),
+    DataType.BYTE: (1,),
+    DataType.SBYTE: (1,),
+    DataType.CHAR: (1,),
+    DataType.INT16: (1,),
+    DataType.UINT16: (1,),
+    DataType.BCD16: (1,),
+    DataType.INT32: (1, 2),
+    DataType.UINT32: (1, 2),
+    DataType.FLOAT: (1, 2),
+    DataType.BCD32: (1, 2),
+    DataType.INT64: (1, 2, 4),
+    DataType.UINT64: (1, 2, 4),
+    DataType.DOUBLE: (1, 2, 4),
+    DataType.DATETIME: (2, 4),
+    DataType.TIMESTAMP: (2, 4),
+}
+"""Register counts an item of each type may read (Smart Cast: fewer registers hold a
+smaller integer that is widened).  String and Binary take any quantity >= 1."""
+
+_AREA_NAMES = {
+    Area.COIL: "coil",
+    Area.DISCRETE_INPUT: "discrete input",
+    Area.HOLDING_REGISTER: "holding register",
+    Area.INPUT_REGISTER: "input register",
+}
+
+
+@dataclass(frozen=True, slots=True)
+class ParsedItem:
+    """An item checked against the communication options, ready for the planner/codec.
+
+    ``registers``: registers (register areas) or bits (1) the item occupies;
+    ``data_format`` and ``encoding`` are the effective ones (item's, else comm's)."""
+
+    item: DeviceAddressItem
+    address: Address
+    data_type: DataType
+    converted_type: DataType | None
+    data_format: DataFormat
+    registers: int
+    quantity: int | None
+    multiplier: float
+    deadband: float | None
+    encoding: str
+
+    @property
+    def name(self) -> str:
+        return self.item.name
+
+    def value_spec(self) -> ValueSpec:
+        """The codec's spec of this item (what the driver decodes and encodes with)."""
+        return ValueSpec(
+            name=self.item.name,
+            data_type=self.data_type,
+            data_format=self.data_format,
+            quantity=self.quantity,
+            bit=self.address.bit,
+            multiplier=self.multiplier,
+            converted_type=self.converted_type,
+            deadband=self.deadband or 0.0,
+            encoding=self.encoding,
+        )
+
+
+def _item_registers(
+    item: DeviceAddressItem, addr: Address, path: str, problems: list[Problem]
+) -> int:
+    """Registers/bits the item occupies; appends problems for type/area mismatches."""
+    dtype, quantity = item.device_data_type, item.quantity
+    if addr.area.is_bit or addr.bit is not None:
+        where = (
+            f"a {_AREA_NAMES[addr.area]} holds one bit"
+            if addr.area.is_bit
+            else "a bit address (.N) reads one bit"
+        )
+        if dtype is not DataType.BOOLEAN:
+            problems.append(Problem(f"{path}.deviceDataType", dtype.value, f"{where}: use Boolean"))
+        if quantity not in (None, 1):
+            problems.append(
+                Problem(f"{path}.quantity", quantity, f"{where}: use 1 or leave it out")
+            )
+        return 1
+    if dtype.needs_quantity:
+        if quantity is None:
+            problems.append(
+                Problem(
+                    f"{path}.quantity",
+                    NO_VALUE,
+                    f"{dtype.value} needs quantity (its length in registers)",
+                )
+            )
+            return 1
+        return quantity
+    if quantity is None:
+        return dtype.registers
+    allowed = ALLOWED_QUANTITIES[dtype]
+    if quantity not in allowed:
+        problems.append(
+            Problem(
+                f"{path}.quantity",
+                quantity,
+                f"{dtype.value} allows quantity {' or '.join(map(str, allowed))} (or leave it out)",
+            )
+        )
+        return dtype.registers
+    return quantity
+
+
+def validate_items(
+    items: Sequence[DeviceAddressItem], comm: DriverModbusRtuParameter
+) -> list[ParsedItem]:
+    """Check every item against ``comm`` (address prefix/base, type vs area, quantity,
+    span, unique names), against its own field limits again (an item may have been
+    changed after it was loaded) and against the codec's check of the spec the driver
+    will build; return them parsed, in order.  Raises one ConfigError listing every
+    problem with its path (``addressList[3].address`` ...)."""
+    problems: list[Problem] = []
+    parsed: list[ParsedItem] = []
+    first_index: dict[str, int] = {}
+    checked: set[tuple[Any, ...]] = set()
+    for i, item in enumerate(items):
+        path = f"addressList[{i}]"
+        before = len(problems)
+        if item.name in first_index:
+            problems.append(
+                Problem(
+                    f"{path}.name",
+                    item.name,
+                    f"duplicate item name (also addressList[{first_index[item.name]}])",
+                )
+            )
+        else:
+            first_index[item.name] = i
+        limits = recheck(item, _ITEM_CHECKS, path)
+        if limits:  # the checks below use these values
+            problems += limits
+            continue
+        try:
+            addr = parse_address(item.address, comm.address_prefix, comm.address_base)
+        except ValueError as exc:
+            problems.append(
+                Problem(f"{path}.address", item.address, _strip_echo(item.address, exc))
+            )
+            continue
+        registers = _item_registers(item, addr, path, problems)
+        try:
+            check_span(addr, registers)
+        except ValueError as exc:
+            message = str(exc).removeprefix(f"{addr}: ")
+            problems.append(Problem(f"{path}.address", item.address, message))
+        if len(problems) > before:
+            continue
+        one = ParsedItem(
+            item=item,
+            address=addr,
+            data_type=item.device_data_type,
+            converted_type=item.converted_data_type,
+            data_format=item.data_format or comm.data_format,
+            registers=registers,
+            quantity=item.quantity,
+            multiplier=item.data_multiplier,
+            deadband=item.deadband,
+            encoding=item.encoding or comm.encoding,
+        )
+        # the codec's check depends on everything but the name: check each shape once
+        shape = (addr.area, addr.bit, one.data_type, one.data_format, one.quantity,
+                 one.multiplier, one.converted_type, one.deadband, one.encoding)
+        if shape not in checked:
+            spec = one.value_spec()
+            try:
+                check_spec(spec, addr.area)
+            except ValueError as exc:
+                problems.append(_codec_problem(exc, spec, item, path))
+                continue
+            checked.add(shape)
+        parsed.append(one)
+    if problems:
+        raise ConfigError(problems)
+    return parsed
+
+
+_ITEM_CHECKS = field_checks(DeviceAddressItem)
+
+
+def _codec_problem(
+    exc: ValueError, spec: ValueSpec, item: DeviceAddressItem, path: str
+) -> Problem:
+    """codec.check_spec's "item 'x': <field> <value> is not allowed (<why>)" as a
+    Problem at the item's JSON key."""
+    text = str(exc).removeprefix(f"item {spec.name!r}: ")
+    fields: dict[str, tuple[str, Any]] = {
+        "quantity": ("quantity", spec.quantity),
+        "data type": ("deviceDataType", spec.data_type.value),
+        "bit": ("address", item.address),
+        "dataMultiplier": ("dataMultiplier", spec.multiplier),
+        "convertedDataType": (
+            "convertedDataType",
+            None if spec.converted_type is None else spec.converted_type.value,
+        ),
+        "deadband": ("deadband", spec.deadband),
+        "encoding": ("encoding", spec.encoding),
+    }
+    head, sep, why = text.partition(" is not allowed (")
+    for field, (key, value) in fields.items():
+        if sep and head.startswith(f"{field} "):
+            return Problem(f"{path}.{key}", value, f"not allowed: {why.removesuffix(')')}")
+    return Problem(path, NO_VALUE, text)

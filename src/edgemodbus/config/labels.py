@@ -1,0 +1,108 @@
+"""UI labels of the communication parameters, as the driver descriptor shows them
+(descriptor.py): label, category and control type, and where needed the value type,
+options, data source and visibility (``visibleWhen``: serial or TCP parameters).
+
+Kept apart from the model (communication.py): :data:`LABELS` is keyed by
+DriverModbusRtuParameter's field names; the descriptor lists the fields in the model's
+order, with the model's defaults, limits and descriptions.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+BAUD_RATES = (1200, 2400, 4800, 9600, 19200, 38400, 57600, 115200, 230400, 460800, 921600)
+"""Baud rates offered by the descriptor (any 1200..921600 is accepted)."""
+
+
+def _ui(
+    label: str,
+    category: str,
+    control: str,
+    *,
+    type_: str | None = None,
+    options: list[Any] | None = None,
+    data_source: str | None = None,
+    serial: bool = False,
+    tcp: bool = False,
+) -> dict[str, Any]:
+    """The UI labels of one parameter."""
+    ui: dict[str, Any] = {"label": label, "category": category, "controlType": control}
+    if type_ is not None:
+        ui["type"] = type_
+    if options is not None:
+        ui["options"] = options
+    if data_source is not None:
+        ui["dataSource"] = data_source
+    if serial or tcp:
+        ui["visibleWhen"] = {"useTcp": tcp}
+    return ui
+
+
+LABELS: dict[str, dict[str, Any]] = {
+    "com_port": _ui(
+        "串口号", "Connection", "dynamic-select", data_source="system:serial-ports", serial=True
+    ),
+    "baud_rate": _ui(
+        "波特率", "Connection", "select", options=list(BAUD_RATES), serial=True
+    ),
+    "parity": _ui(
+        "校验位",
+        "Connection",
+        "select",
+        type_="int",
+        options=[
+            {"label": "None", "value": 0},
+            {"label": "Odd", "value": 1},
+            {"label": "Even", "value": 2},
+        ],
+        serial=True,
+    ),
+    "data_bits": _ui("数据位", "Connection", "select", options=[5, 6, 7, 8], serial=True),
+    "stop_bits": _ui(
+        "停止位",
+        "Connection",
+        "select",
+        options=[{"label": "1", "value": 1}, {"label": "2", "value": 2}],
+        serial=True,
+    ),
+    "slave_id": _ui("站号", "Connection", "number"),
+    "use_tcp": _ui("使用TCP透传", "Connection", "switch"),
+    "tcp_host": _ui("TCP主机", "Connection", "text", tcp=True),
+    "tcp_port": _ui("TCP端口", "Connection", "number", tcp=True),
+    "transport": _ui("传输方式", "Connection", "select"),
+    "listen_host": _ui("监听地址", "Connection", "text", tcp=True),
+    "listen_port": _ui("监听端口", "Connection", "number", tcp=True),
+    "dtu_id": _ui("DTU注册包ID", "Connection", "text", tcp=True),
+    "registration": _ui("注册包方式", "Connection", "select", tcp=True),
+    "registration_pattern": _ui("注册包正则", "Connection", "text", tcp=True),
+    "registration_length": _ui("注册包长度", "Connection", "number", tcp=True),
+    "registration_timeout": _ui("注册超时(ms)", "Connection", "number", tcp=True),
+    "heartbeat": _ui("心跳包", "Connection", "text", tcp=True),
+    "heartbeat_hex": _ui("心跳包(HEX)", "Connection", "text", tcp=True),
+    "framing": _ui("报文封装", "Connection", "select", tcp=True),
+    "connect_timeout": _ui("连接超时(ms)", "Connection", "number", tcp=True),
+    "reconnect_interval": _ui("重连间隔(ms)", "Connection", "number"),
+    "read_timeout": _ui("读超时(ms)", "Connection", "number"),
+    "byte_timeout": _ui("字节间超时(ms)", "Connection", "number"),
+    "read_cycle": _ui("读取周期(ms)", "Connection", "number"),
+    "rs485": _ui("RS-485 方向控制", "Connection", "select", serial=True),
+    "echo": _ui("线路回显", "Connection", "switch"),
+    "is_enable": _ui("启用", "Connection", "switch"),
+    "data_format": _ui("数据格式", "Advanced", "select", type_="string"),
+    "max_block_read_register_count": _ui("单块最大寄存器数", "Advanced", "number"),
+    "is_block_read_require_address_continuous": _ui("块读取地址需连续", "Advanced", "switch"),
+    "max_merge_address_gap": _ui("最大合并空洞", "Advanced", "number"),
+    "max_block_read_bit_count": _ui("单块最大位数", "Advanced", "number"),
+    "address_prefix": _ui("地址类型编号", "Advanced", "select"),
+    "address_base": _ui("地址起始", "Advanced", "select"),
+    "retries": _ui("重试次数", "Advanced", "number"),
+    "request_interval": _ui("请求间隔(ms)", "Advanced", "number"),
+    "settle_timeout": _ui("超时后静默(ms)", "Advanced", "number"),
+    "offline_after_failed_cycles": _ui("离线判定周期数", "Advanced", "number"),
+    "max_backoff": _ui("最大退避(ms)", "Advanced", "number"),
+    "report_mode": _ui("上报方式", "Advanced", "select"),
+    "encoding": _ui("字符串编码", "Advanced", "text"),
+    "write_single_register_function": _ui("单寄存器写功能码", "Advanced", "select"),
+    "snapshot_interval": _ui("快照间隔(ms)", "Advanced", "number"),
+}
