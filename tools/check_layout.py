@@ -120,9 +120,8 @@ def main() -> int:
         for path in sorted((TOP / folder).rglob("*.py")):
             for target, name, line in imports(folder, path, modules):
                 if name.startswith("_"):
-                    problems.append(
-                        f"{path.relative_to(TOP)}:{line}: imports private name {name!r} from {target}"
-                    )
+                    where = f"{path.relative_to(TOP)}:{line}"
+                    problems.append(f"{where}: imports private name {name!r} from {target}")
     graph = {m: {t for t in ts if t != m} for m, ts in graph.items()}
     cycle = find_cycle(graph)
     if cycle:

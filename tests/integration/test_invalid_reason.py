@@ -10,7 +10,7 @@ from collections.abc import Iterator
 import pytest
 
 import edgemodbus as em
-from edgemodbus.config import ItemStatus
+from edgemodbus.datatypes import ItemStatus
 from tests.peers import PymodbusSlave
 from tests.waiting import wait_for
 
