@@ -46,6 +46,7 @@ from collections.abc import Callable, Iterable, Sequence
 from typing import Any
 
 from .datatypes import Area
+from .protocol import rtu
 
 __all__ = [
     "CounterMover",
@@ -65,19 +66,13 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-#: Highest unicast slave address (Modbus over Serial Line v1.02, 2.2: 1..247; 0 = broadcast).
-MAX_SLAVE_ID = 247
 DEFAULT_SIZE = 10_000
 
-# Function codes (Application Protocol v1.1b3, 6.1-6.16).
-_READ_COILS, _READ_DI, _READ_HR, _READ_IR = 0x01, 0x02, 0x03, 0x04
-_WRITE_COIL, _WRITE_REG, _WRITE_COILS, _WRITE_REGS, _MASK_WRITE = 0x05, 0x06, 0x0F, 0x10, 0x16
-_WRITE_FCS = frozenset({_WRITE_COIL, _WRITE_REG, _WRITE_COILS, _WRITE_REGS, _MASK_WRITE})
 _READ_AREA = {
-    _READ_COILS: Area.COIL,
-    _READ_DI: Area.DISCRETE_INPUT,
-    _READ_HR: Area.HOLDING_REGISTER,
-    _READ_IR: Area.INPUT_REGISTER,
+    rtu.READ_COILS: Area.COIL,
+    rtu.READ_DISCRETE_INPUTS: Area.DISCRETE_INPUT,
+    rtu.READ_HOLDING_REGISTERS: Area.HOLDING_REGISTER,
+    rtu.READ_INPUT_REGISTERS: Area.INPUT_REGISTER,
 }
 
 # Exception codes (Application Protocol v1.1b3, 7).
@@ -94,127 +89,6 @@ def default_register(slave: int, address: int) -> int:
 def default_bit(slave: int, address: int) -> bool:
     """Initial value of coil and discrete input ``address`` of ``slave``."""
     return (address + slave) % 2 == 0
-
-
-# --- CRC-16/MODBUS (Serial Line v1.02, 2.5.1.2 and appendix B): poly 0xA001 reflected,
-# init 0xFFFF, sent low byte first.
-
-
-def _make_crc_table() -> list[int]:
-    table = []
-    for byte in range(256):
-        crc = byte
-        for _ in range(8):
-            crc = (crc >> 1) ^ 0xA001 if crc & 1 else crc >> 1
-        table.append(crc)
-    return table
-
-
-_CRC_TABLE = _make_crc_table()
-
-
-def _crc16(data: bytes | bytearray | memoryview) -> int:
-    crc = 0xFFFF
-    for b in data:
-        crc = (crc >> 8) ^ _CRC_TABLE[(crc ^ b) & 0xFF]
-    return crc
-
-
-def _frame(slave: int, pdu: bytes) -> bytes:
-    """ADU = address + PDU + CRC (low byte first)."""
-    body = bytes([slave & 0xFF]) + pdu
-    return body + struct.pack("<H", _crc16(body))
-
-
-def _crc_ok(frame: bytes | bytearray) -> bool:
-    return len(frame) >= 4 and _crc16(frame[:-2]) == frame[-2] | (frame[-1] << 8)
-
-
-# --- request framing ------------------------------------------------------------------
-
-_NEED_MORE = -1
-_UNKNOWN = -2
-
-
-def _request_length(buf: bytearray, i: int) -> int:
-    """Length of the request frame starting at ``buf[i]``, computed from its PDU, or
-    _NEED_MORE (header incomplete) or _UNKNOWN (function code of unknown length)."""
-    avail = len(buf) - i
-    if avail < 2:
-        return _NEED_MORE
-    fc = buf[i + 1]
-    if fc in (1, 2, 3, 4, 5, 6):
-        return 8  # addr fc a_hi a_lo q_hi q_lo crc crc
-    if fc in (_WRITE_COILS, _WRITE_REGS):
-        if avail < 7:
-            return _NEED_MORE
-        return 9 + buf[i + 6]  # addr fc addr(2) qty(2) byte_count data crc(2)
-    if fc == _MASK_WRITE:
-        return 10  # addr fc addr(2) and(2) or(2) crc(2)
-    return _UNKNOWN
-
-
-def _split_frames(buf: bytearray, idle: bool) -> tuple[list[bytes], int, int]:
-    """Cut request frames with a valid CRC out of ``buf``.
-
-    Returns (frames, bytes consumed, bytes discarded as garbage). Without ``idle`` only
-    frames whose length the PDU fixes are cut and an incomplete tail is kept; with
-    ``idle`` (the line has been silent for t3.5, Serial Line 2.5.1.1) everything left is
-    resolved: a frame of unknown function code is the whole remainder if its CRC holds,
-    anything else is discarded one byte at a time until a valid frame lines up.
-    """
-    frames: list[bytes] = []
-    i = 0
-    discarded = 0
-    n = len(buf)
-    while i < n:
-        if buf[i] > MAX_SLAVE_ID:  # 248..255 are reserved addresses: garbage
-            i += 1
-            discarded += 1
-            continue
-        need = _request_length(buf, i)
-        if need in (_NEED_MORE, _UNKNOWN):
-            if idle:
-                rest = bytes(buf[i:])
-                if need == _UNKNOWN and _crc_ok(rest):
-                    frames.append(rest)
-                    i = n
-                else:
-                    i += 1
-                    discarded += 1
-                continue
-            if need == _UNKNOWN:
-                # Perhaps garbage before a frame of known length: look ahead for one.
-                j = _find_known_frame(buf, i + 1)
-                if j >= 0:
-                    discarded += j - i
-                    i = j
-                    continue
-            break
-        if n - i < need:
-            if idle:
-                i += 1
-                discarded += 1
-                continue
-            break
-        candidate = bytes(buf[i : i + need])
-        if _crc_ok(candidate):
-            frames.append(candidate)
-            i += need
-        else:
-            i += 1
-            discarded += 1
-    return frames, i, discarded
-
-
-def _find_known_frame(buf: bytearray, start: int) -> int:
-    for j in range(start, len(buf)):
-        if buf[j] > MAX_SLAVE_ID:
-            continue
-        need = _request_length(buf, j)
-        if need > 0 and len(buf) - j >= need and _crc_ok(buf[j : j + need]):
-            return j
-    return -1
 
 
 # --- movers ---------------------------------------------------------------------------
@@ -484,8 +358,8 @@ class Slave:
     """One slave: four data areas, movers, fault knobs and counters. Thread-safe."""
 
     def __init__(self, slave_id: int, size: int = DEFAULT_SIZE) -> None:
-        if not 1 <= slave_id <= MAX_SLAVE_ID:
-            raise ValueError(f"slave id {slave_id} out of 1..{MAX_SLAVE_ID}")
+        if not 1 <= slave_id <= rtu.MAX_SLAVE_ID:
+            raise ValueError(f"slave id {slave_id} out of 1..{rtu.MAX_SLAVE_ID}")
         if not 1 <= size <= 0x10000:
             raise ValueError(f"size {size} out of 1..65536")
         self.slave_id = slave_id
@@ -675,7 +549,7 @@ class Slave:
                     for index, value in dict(f.patch).items():
                         if 0 <= index < len(body):
                             body[index] = value & 0xFF
-                buf = bytearray(_frame(body[0], bytes(body[1:])))
+                buf = bytearray(rtu.frame(body[0], bytes(body[1:])))
                 # Evaluate every knob so each one's count advances on every reply.
                 drop = self._every("drop_every", f.drop_every)
                 bad_data = self._every("corrupt_data_every", f.corrupt_data_every)
@@ -737,7 +611,7 @@ class Slave:
                 return []
             self._fault("answer_broadcast")
             self._replies += 1
-            return [(max(0.0, f.delay), _frame(self.slave_id, rpdu))]
+            return [(max(0.0, f.delay), rtu.frame(self.slave_id, rpdu))]
 
     def _execute(self, pdu: bytes) -> bytes:
         """Execute a request PDU; the response PDU (or exception PDU). Lock held."""
@@ -748,15 +622,15 @@ class Slave:
                 raise _Exc(_ILLEGAL_FUNCTION)
             if fc in _READ_AREA:
                 return self._read(fc, pdu)
-            if fc == _WRITE_COIL:
+            if fc == rtu.WRITE_SINGLE_COIL:
                 return self._write_coil(pdu)
-            if fc == _WRITE_REG:
+            if fc == rtu.WRITE_SINGLE_REGISTER:
                 return self._write_register(pdu)
-            if fc == _WRITE_COILS:
+            if fc == rtu.WRITE_MULTIPLE_COILS:
                 return self._write_coils(pdu)
-            if fc == _WRITE_REGS:
+            if fc == rtu.WRITE_MULTIPLE_REGISTERS:
                 return self._write_registers(pdu)
-            if fc == _MASK_WRITE:
+            if fc == rtu.MASK_WRITE_REGISTER:
                 return self._mask_write(pdu)
             raise _Exc(_ILLEGAL_FUNCTION)
         except _Exc as e:
@@ -840,7 +714,7 @@ def _pack_bits(bits: bytes | bytearray) -> bytes:
 
 
 def _wrong_byte_count(rpdu: bytes) -> bytes:
-    unit = 2 if rpdu[0] in (_READ_HR, _READ_IR) else 1
+    unit = 2 if rpdu[0] in (rtu.READ_HOLDING_REGISTERS, rtu.READ_INPUT_REGISTERS) else 1
     data = rpdu[2:]
     data = data[:-unit] if len(data) > unit else data + bytes(unit)
     return bytes([rpdu[0], len(data)]) + data
@@ -1384,7 +1258,7 @@ class Simulator:
         if line.wrapped:
             self._parse_wrapped(line)
             return
-        frames, consumed, discarded = _split_frames(line.rx, idle)
+        frames, consumed, discarded = rtu.split_frames(line.rx, idle)
         del line.rx[:consumed]
         if discarded:
             with self._lock:
@@ -1408,11 +1282,11 @@ class Simulator:
                 break
             discarded += start
             del buf[:start]
-            need = _request_length(buf, 4)
-            if need == _NEED_MORE:
+            need = rtu.request_length(buf, 4)
+            if need == rtu.NEED_MORE:
                 break
-            if need == _UNKNOWN or (len(buf) >= 4 + need + 1 and (
-                buf[4 + need] != 0x0D or not _crc_ok(buf[4 : 4 + need])
+            if need == rtu.UNKNOWN or (len(buf) >= 4 + need + 1 and (
+                buf[4 + need] != 0x0D or not rtu.crc_ok(buf[4 : 4 + need])
             )):
                 discarded += 2
                 del buf[:2]
@@ -1437,7 +1311,7 @@ class Simulator:
         if address == 0:
             with self._lock:
                 self._line_stats["broadcasts"] += 1
-            if pdu[0] in _WRITE_FCS:  # Serial Line 2.1: broadcast is for writes only
+            if pdu[0] in rtu.WRITE_FUNCTIONS:  # Serial Line 2.1: broadcast is for writes only
                 for slave in self.slaves:  # those with answer_broadcast all answer: collision
                     actions += slave._handle_broadcast(pdu)
         else:
@@ -1551,7 +1425,7 @@ class DtuClient:
 
         def push() -> None:
             rpdu = target._execute(pdu)
-            frame = _wrap(address, _frame(slave, rpdu))
+            frame = _wrap(address, rtu.frame(slave, rpdu))
             out.append(frame)
             self._sim._act(self._line, frame)
 
