@@ -83,7 +83,7 @@ LAYOUT = [
 def serve(args: argparse.Namespace) -> int:
     """Run the simulator with faulty slaves; print {"port": N}, then answer "stats"
     lines on stdin with the simulator's stats as JSON; stop at EOF."""
-    from edgemodbus import simulator
+    from edgemodbus.sim import server as simulator
 
     base = simulator.Slave
     rng = random.Random(args.seed)
@@ -223,7 +223,7 @@ class Simulator:
 
 def expected_values(slave: int) -> dict[str, object]:
     """Item name -> the value the formula gives (what the slave really holds)."""
-    from edgemodbus.simulator import default_bit, default_register
+    from edgemodbus.sim import default_bit, default_register
 
     values: dict[str, object] = {}
     for area, first, count, dtype in LAYOUT:

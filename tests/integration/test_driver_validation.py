@@ -14,7 +14,7 @@ import pytest
 
 import edgemodbus as em
 from edgemodbus.config import ConfigError, DeviceAddressItem, ItemStatus
-from edgemodbus.simulator import Simulator
+from edgemodbus.sim import Simulator
 from tests.peers import free_port
 from tests.waiting import wait_for
 

@@ -20,7 +20,7 @@ import edgemodbus as em
 from edgemodbus import dtu
 from edgemodbus.config import DeviceDriverStatus, ItemStatus
 from edgemodbus.datatypes import Area
-from edgemodbus.simulator import Simulator, default_register
+from edgemodbus.sim import Simulator, default_register
 from tests.waiting import wait_for
 
 

@@ -17,7 +17,7 @@ from typing import Any
 import edgemodbus as em
 from edgemodbus.config import DeviceDriverStatus, ItemStatus
 from edgemodbus.datatypes import Area
-from edgemodbus.simulator import DtuClient, Simulator
+from edgemodbus.sim import DtuClient, Simulator
 from edgemodbus.wrapped import wrap
 from tests.integration.test_dtu import free_port, wait_for
 

@@ -25,7 +25,7 @@ from hypothesis import strategies as st
 from edgemodbus.errors import ModbusError, ModbusExceptionResponse, ProtocolError
 from edgemodbus.link import Link
 from edgemodbus.protocol import rtu
-from edgemodbus.simulator import Slave
+from edgemodbus.sim import Slave
 
 EXAMPLES = int(os.environ.get("EDGEMODBUS_FUZZ_EXAMPLES", "200"))
 FUZZ = settings(

@@ -45,8 +45,8 @@ from array import array
 from collections.abc import Callable, Iterable, Sequence
 from typing import Any
 
-from .datatypes import Area
-from .protocol import rtu
+from ..datatypes import Area
+from ..protocol import rtu
 
 __all__ = [
     "CounterMover",
@@ -64,7 +64,7 @@ __all__ = [
     "main",
 ]
 
-log = logging.getLogger(__name__)
+log = logging.getLogger("edgemodbus.simulator")  # one logger name for the whole package
 
 DEFAULT_SIZE = 10_000
 
