@@ -2,18 +2,21 @@
 
 from __future__ import annotations
 
-from .server import (
-    DEFAULT_SIZE,
+from .faults import ExceptionRange, Faults
+from .movers import (
     CounterMover,
-    DtuClient,
-    Faults,
     FloatSineMover,
     Mover,
+    MoverHost,
     RandomWalkMover,
-    Simulator,
     SineMover,
-    Slave,
     add_demo_movers,
+)
+from .server import (
+    DEFAULT_SIZE,
+    DtuClient,
+    Simulator,
+    Slave,
     default_bit,
     default_register,
     main,
@@ -23,9 +26,11 @@ __all__ = [
     "DEFAULT_SIZE",
     "CounterMover",
     "DtuClient",
+    "ExceptionRange",
     "Faults",
     "FloatSineMover",
     "Mover",
+    "MoverHost",
     "RandomWalkMover",
     "Simulator",
     "SineMover",

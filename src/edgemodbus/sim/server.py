@@ -30,7 +30,6 @@ import functools
 import heapq
 import itertools
 import logging
-import math
 import os
 import random
 import selectors
@@ -47,18 +46,13 @@ from typing import Any
 
 from ..datatypes import Area
 from ..protocol import rtu
+from .faults import Faults
+from .movers import Mover, add_demo_movers
 
 __all__ = [
-    "CounterMover",
     "DtuClient",
-    "Faults",
-    "FloatSineMover",
-    "Mover",
-    "RandomWalkMover",
     "Simulator",
-    "SineMover",
     "Slave",
-    "add_demo_movers",
     "default_bit",
     "default_register",
     "main",
@@ -89,251 +83,6 @@ def default_register(slave: int, address: int) -> int:
 def default_bit(slave: int, address: int) -> bool:
     """Initial value of coil and discrete input ``address`` of ``slave``."""
     return (address + slave) % 2 == 0
-
-
-# --- movers ---------------------------------------------------------------------------
-
-
-class Mover:
-    """A register range whose values follow the clock (computed when read, no thread).
-
-    ``values(elapsed)`` gives the raw 16-bit registers ``elapsed`` seconds after the
-    mover was added to a slave.
-    """
-
-    area: Area
-    address: int
-
-    @property
-    def count(self) -> int:
-        raise NotImplementedError
-
-    def values(self, elapsed: float) -> list[int]:
-        raise NotImplementedError
-
-    def _check(self) -> None:
-        if self.area.is_bit:
-            raise ValueError(f"{type(self).__name__}: movers drive registers, not {self.area}")
-        if self.address < 0 or self.count < 1 or self.address + self.count > 0x10000:
-            raise ValueError(f"{type(self).__name__}: bad address range")
-
-
-@dataclasses.dataclass
-class CounterMover(Mover):
-    """``count`` registers counting up by ``step`` every ``interval_ms`` (wrapping at
-    16 bits); register i holds ``start + i + step * ticks``."""
-
-    area: Area = Area.HOLDING_REGISTER
-    address: int = 0
-    registers: int = 1
-    interval_ms: float = 1000.0
-    step: int = 1
-    start: int = 0
-
-    def __post_init__(self) -> None:
-        if self.interval_ms <= 0:
-            raise ValueError("CounterMover: interval_ms must be > 0")
-        self._check()
-
-    @property
-    def count(self) -> int:
-        return self.registers
-
-    def values(self, elapsed: float) -> list[int]:
-        ticks = int(elapsed * 1000.0 // self.interval_ms)
-        return [(self.start + i + self.step * ticks) & 0xFFFF for i in range(self.registers)]
-
-
-def _int16(value: float) -> int:
-    """Round and clip to int16, as the raw (two's complement) register."""
-    return max(-0x8000, min(0x7FFF, round(value))) & 0xFFFF
-
-
-@dataclasses.dataclass
-class SineMover(Mover):
-    """``count`` int16 registers following ``offset + amplitude * sin(2 pi t / period_s)``;
-    register i lags by i / registers of a period."""
-
-    area: Area = Area.HOLDING_REGISTER
-    address: int = 0
-    registers: int = 1
-    period_s: float = 10.0
-    amplitude: float = 1000.0
-    offset: float = 0.0
-
-    def __post_init__(self) -> None:
-        if self.period_s <= 0:
-            raise ValueError("SineMover: period_s must be > 0")
-        self._check()
-
-    @property
-    def count(self) -> int:
-        return self.registers
-
-    def values(self, elapsed: float) -> list[int]:
-        out = []
-        for i in range(self.registers):
-            phase = 2.0 * math.pi * (elapsed / self.period_s - i / self.registers)
-            out.append(_int16(self.offset + self.amplitude * math.sin(phase)))
-        return out
-
-
-@dataclasses.dataclass
-class RandomWalkMover(Mover):
-    """``count`` int16 registers each taking a +-``step`` random step every
-    ``interval_ms``, kept within [low, high]; deterministic for a given ``seed``."""
-
-    area: Area = Area.HOLDING_REGISTER
-    address: int = 0
-    registers: int = 1
-    interval_ms: float = 500.0
-    step: int = 10
-    start: int = 0
-    low: int = -1000
-    high: int = 1000
-    seed: int = 0
-
-    def __post_init__(self) -> None:
-        if self.interval_ms <= 0 or self.low > self.high:
-            raise ValueError("RandomWalkMover: need interval_ms > 0 and low <= high")
-        self._check()
-        self._rng = random.Random(self.seed)
-        self._current = [min(self.high, max(self.low, self.start))] * self.registers
-        self._done = 0
-
-    @property
-    def count(self) -> int:
-        return self.registers
-
-    def values(self, elapsed: float) -> list[int]:
-        due = int(elapsed * 1000.0 // self.interval_ms)
-        # After a long quiet spell only the last steps matter to a reader.
-        steps = min(max(0, due - self._done), 1000)
-        self._done = max(self._done, due)
-        for _ in range(steps):
-            for i in range(self.registers):
-                v = self._current[i] + self._rng.choice((-self.step, self.step))
-                self._current[i] = min(self.high, max(self.low, v))
-        return [_int16(v) for v in self._current]
-
-
-@dataclasses.dataclass
-class FloatSineMover(Mover):
-    """A float32 at a register pair, big-endian word and byte order (ABCD, Application
-    Protocol 4.2), following ``offset + amplitude * sin(2 pi t / period_s)``."""
-
-    area: Area = Area.HOLDING_REGISTER
-    address: int = 0
-    period_s: float = 10.0
-    amplitude: float = 100.0
-    offset: float = 0.0
-
-    def __post_init__(self) -> None:
-        if self.period_s <= 0:
-            raise ValueError("FloatSineMover: period_s must be > 0")
-        self._check()
-
-    @property
-    def count(self) -> int:
-        return 2
-
-    def values(self, elapsed: float) -> list[int]:
-        v = self.offset + self.amplitude * math.sin(2.0 * math.pi * elapsed / self.period_s)
-        hi, lo = struct.unpack(">HH", struct.pack(">f", v))
-        return [hi, lo]
-
-
-# --- faults ---------------------------------------------------------------------------
-
-ExceptionRange = tuple[Area, int, int, int]
-"""(area, start, end exclusive, exception code) for :attr:`Faults.exception_ranges`."""
-
-
-@dataclasses.dataclass(slots=True)
-class Faults:
-    """Fault knobs of one slave. Assign fields at any time from any thread (each
-    assignment is atomic; use :meth:`Slave.set_faults` to change several together).
-
-    "every N" knobs count the replies they could apply to since that knob was last
-    changed and act on the Nth, 2Nth, ...; 0 disables. Each time a knob acts it is
-    counted in ``Slave.stats()["faults"][knob name]``.
-    """
-
-    silent: bool = False
-    """Never answer (the request is not executed either)."""
-    drop_every: int = 0
-    """Execute the request but do not send every Nth reply."""
-    delay: float = 0.0
-    """Seconds before a reply goes out (may exceed the master's timeout: a late reply)."""
-    delay_every: int = 0
-    """Apply ``delay`` to every Nth reply only (0: to every reply)."""
-    corrupt_crc_every: int = 0
-    """Flip a bit of the CRC of every Nth reply."""
-    corrupt_data_every: int = 0
-    """Flip a bit of the last data byte of every Nth reply, keeping the original CRC."""
-    wrong_byte_count_every: int = 0
-    """Every Nth read reply carries one data unit (register or bit byte) too few (or,
-    for a single one, too many), with a consistent byte count and a valid CRC."""
-    answer_as: int | None = None
-    """Reply with this slave address instead of our own (valid CRC)."""
-    patch: dict[int, int] = dataclasses.field(default_factory=dict)
-    """{index: byte} written into every ``patch_every``-th reply frame before its CRC is
-    computed (valid CRC): 0 is the slave address, 1 the function code, 2 a read reply's
-    byte count.  Indices past the frame are ignored.  Assign a new dict."""
-    patch_every: int = 0
-    """See ``patch`` (0: off)."""
-    raw_reply: bytes = b""
-    """Bytes sent verbatim, instead of the reply, to every ``raw_reply_every``-th
-    request (a crafted or oversized frame)."""
-    raw_reply_every: int = 0
-    """See ``raw_reply`` (0: off)."""
-    exception_ranges: list[ExceptionRange] = dataclasses.field(default_factory=list)
-    """Requests touching [start, end) of an area get that exception code. Assign a new
-    list rather than mutating this one from another thread."""
-    close_every: int = 0
-    """Close the TCP connection instead of answering every Nth request (on a pty the
-    request is just not answered)."""
-    cut_every: int = 0
-    """Send the first half of every Nth reply, then close the TCP connection: with a
-    reset (RST) if ``cut_with_reset``, else an orderly close (FIN).  On a pty only the
-    half frame goes out."""
-    cut_with_reset: bool = True
-    """See ``cut_every``."""
-    hold_reply_every: int = 0
-    """Hold back every Nth reply and send it in one write with the next one (a DTU that
-    buffers a late reply: two frames in one TCP segment)."""
-    trailing_garbage: bytes = b""
-    """Bytes sent right after each good frame."""
-    noise_before: bytes = b""
-    """Bytes sent right before each frame."""
-    split_reply: int = 0
-    """Send each reply in this many chunks, ``split_pause`` seconds apart (<= 1: off)."""
-    split_pause: float = 0.005
-    """Seconds between the chunks of a split reply."""
-    byte_delay: float = 0.0
-    """Send replies one byte at a time, this many seconds apart."""
-    truncate_every: int = 0
-    """Send only the first half of every Nth reply, then nothing."""
-    echo_request: bool = False
-    """Send the request bytes back before the reply (an RS-485 adapter echo)."""
-    random_reply_count: int = 0
-    """Answer the next N requests with random bytes (counts down to 0)."""
-    exception_for_other_function: bool = False
-    """Answer every request with an exception whose function code is not the request's
-    plus 0x80."""
-    answer_broadcast: bool = False
-    """Answer broadcast writes (a real slave must not, Serial Line 2.1)."""
-    refused_functions: frozenset[int] = frozenset()
-    """Function codes this slave does not implement: exception 01 (a device without
-    FC16 or FC22, say)."""
-
-    def clear(self) -> None:
-        """Back to a well-behaved slave."""
-        for f in dataclasses.fields(self):
-            if f.default_factory is not dataclasses.MISSING:
-                setattr(self, f.name, f.default_factory())
-            else:
-                setattr(self, f.name, f.default)
 
 
 # --- slaves ---------------------------------------------------------------------------
@@ -1455,22 +1204,6 @@ def _parse_ids(text: str) -> list[int]:
     if not ids:
         raise argparse.ArgumentTypeError("no slave ids")
     return ids
-
-
-def add_demo_movers(slave: Slave) -> None:
-    """The demo's moving values: HR 0 counts every second, HR 1 is an int16 sine
-    (period 10 s, amplitude 1000), HR 2-3 a float32 ABCD sine (period 20 s,
-    amplitude 50, offset 20), IR 0-3 random walks."""
-    slave.add_mover(CounterMover(area=Area.HOLDING_REGISTER, address=0, interval_ms=1000))
-    slave.add_mover(SineMover(area=Area.HOLDING_REGISTER, address=1, period_s=10.0))
-    slave.add_mover(
-        FloatSineMover(
-            area=Area.HOLDING_REGISTER, address=2, period_s=20.0, amplitude=50.0, offset=20.0
-        )
-    )
-    slave.add_mover(
-        RandomWalkMover(area=Area.INPUT_REGISTER, address=0, registers=4, seed=slave.slave_id)
-    )
 
 
 def main(argv: Sequence[str] | None = None) -> int:
