@@ -12,15 +12,8 @@ from .movers import (
     SineMover,
     add_demo_movers,
 )
-from .server import (
-    DEFAULT_SIZE,
-    DtuClient,
-    Simulator,
-    Slave,
-    default_bit,
-    default_register,
-    main,
-)
+from .server import DtuClient, Simulator, main
+from .slave import DEFAULT_SIZE, Slave, default_bit, default_register
 
 __all__ = [
     "DEFAULT_SIZE",
