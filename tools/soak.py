@@ -83,7 +83,8 @@ LAYOUT = [
 def serve(args: argparse.Namespace) -> int:
     """Run the simulator with faulty slaves; print {"port": N}, then answer "stats"
     lines on stdin with the simulator's stats as JSON; stop at EOF."""
-    from edgemodbus.sim import server as simulator
+    from edgemodbus import sim as simulator
+    from edgemodbus.sim import server
 
     base = simulator.Slave
     rng = random.Random(args.seed)
@@ -137,9 +138,9 @@ def serve(args: argparse.Namespace) -> int:
             finally:
                 setattr(f, knob, getattr(defaults, knob))
 
-    simulator.Slave = FaultySlave  # type: ignore[misc]  # Simulator.add_slave makes ours
+    server.Slave = FaultySlave  # type: ignore[misc]  # Simulator.add_slave makes ours
     sim = simulator.Simulator(slaves=range(1, args.slaves + 1), size=1000, seed=args.seed)
-    simulator.Slave = base  # type: ignore[misc]
+    server.Slave = base  # type: ignore[misc]
     port = sim.serve_tcp("127.0.0.1", 0)
     print(json.dumps({"port": port, "rates": {s.slave_id: s.rate for s in made}}),
           flush=True)

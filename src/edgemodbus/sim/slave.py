@@ -17,6 +17,7 @@ from typing import Any
 
 from ..datatypes import Area
 from ..protocol import rtu
+from .actions import _RESET, _Action, _spread
 from .faults import Faults
 from .movers import Mover
 
@@ -41,16 +42,6 @@ def default_register(slave: int, address: int) -> int:
 def default_bit(slave: int, address: int) -> bool:
     """Initial value of coil and discrete input ``address`` of ``slave``."""
     return (address + slave) % 2 == 0
-
-
-class _Reset:
-    """Action: reset the TCP connection (RST instead of FIN)."""
-
-
-_RESET = _Reset()
-
-# (seconds from now, bytes to send, None: close the connection, or _RESET)
-_Action = tuple[float, "bytes | _Reset | None"]
 
 
 class _Exc(Exception):
@@ -423,19 +414,3 @@ def _wrong_byte_count(rpdu: bytes) -> bytes:
     data = rpdu[2:]
     data = data[:-unit] if len(data) > unit else data + bytes(unit)
     return bytes([rpdu[0], len(data)]) + data
-
-
-def _spread(
-    frame: bytes, start: float, split: int, pause: float, byte_delay: float
-) -> list[_Action]:
-    if not frame:
-        return []
-    if byte_delay > 0:
-        return [(start + i * byte_delay, frame[i : i + 1]) for i in range(len(frame))]
-    if split > 1:
-        size = -(-len(frame) // min(split, len(frame)))
-        return [
-            (start + k * max(0.0, pause), frame[off : off + size])
-            for k, off in enumerate(range(0, len(frame), size))
-        ]
-    return [(start, frame)]
