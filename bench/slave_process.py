@@ -1,6 +1,6 @@
 """Our simulator as a benchmark peer in its own process (so its CPU is not ours).
 
-:class:`SimulatorProcess` starts :class:`edgemodbus.simulator.Simulator` in a spawned
+:class:`SimulatorProcess` starts :class:`edgemodbus.sim.Simulator` in a spawned
 process serving raw RTU frames over TCP on 127.0.0.1 (an ephemeral port) and drives it
 over a pipe: set registers, and choose which register ranges change between two reads.
 
@@ -20,7 +20,7 @@ from multiprocessing.connection import Connection
 from typing import Any
 
 from edgemodbus.datatypes import Area
-from edgemodbus.simulator import Mover, Simulator
+from edgemodbus.sim import Mover, Simulator
 
 #: (slave id, area, first register, register count)
 Range = tuple[int, Area, int, int]

@@ -19,7 +19,7 @@ from typing import Any
 import edgemodbus as em
 from bench.conftest import QUICK, cpu_seconds, report, scale
 from edgemodbus.datatypes import DeviceDriverStatus, ItemStatus
-from edgemodbus.simulator import Simulator
+from edgemodbus.sim import Simulator
 
 TAGS = 100
 SLAVES = (1, 2)

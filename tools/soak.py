@@ -83,7 +83,8 @@ LAYOUT = [
 def serve(args: argparse.Namespace) -> int:
     """Run the simulator with faulty slaves; print {"port": N}, then answer "stats"
     lines on stdin with the simulator's stats as JSON; stop at EOF."""
-    from edgemodbus import simulator
+    from edgemodbus import sim as simulator
+    from edgemodbus.sim import server
 
     base = simulator.Slave
     rng = random.Random(args.seed)
@@ -137,9 +138,9 @@ def serve(args: argparse.Namespace) -> int:
             finally:
                 setattr(f, knob, getattr(defaults, knob))
 
-    simulator.Slave = FaultySlave  # type: ignore[misc]  # Simulator.add_slave makes ours
+    server.Slave = FaultySlave  # type: ignore[misc]  # Simulator.add_slave makes ours
     sim = simulator.Simulator(slaves=range(1, args.slaves + 1), size=1000, seed=args.seed)
-    simulator.Slave = base  # type: ignore[misc]
+    server.Slave = base  # type: ignore[misc]
     port = sim.serve_tcp("127.0.0.1", 0)
     print(json.dumps({"port": port, "rates": {s.slave_id: s.rate for s in made}}),
           flush=True)
@@ -223,7 +224,7 @@ class Simulator:
 
 def expected_values(slave: int) -> dict[str, object]:
     """Item name -> the value the formula gives (what the slave really holds)."""
-    from edgemodbus.simulator import default_bit, default_register
+    from edgemodbus.sim import default_bit, default_register
 
     values: dict[str, object] = {}
     for area, first, count, dtype in LAYOUT:

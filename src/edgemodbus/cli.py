@@ -90,7 +90,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         # such as --port that follow a sub-command)
         args = parser.parse_args([*argv[:command_at], "simulate"])
         _configure_logging(args.verbose, "simulate")
-        from .simulator import main as simulate
+        from .sim import main as simulate
 
         return simulate(argv[command_at + 1:])
     args = parser.parse_args(argv)
@@ -186,7 +186,7 @@ def _line_options(p: argparse.ArgumentParser) -> None:
 
 # -- commands ----------------------------------------------------------------------------
 def _demo(args: argparse.Namespace) -> int:
-    from .simulator import Simulator, add_demo_movers
+    from .sim import Simulator, add_demo_movers
 
     slaves: list[int] = args.slaves
     cfg = load_device_config(DEMO_FILE)

@@ -19,7 +19,7 @@ import pytest
 
 import edgemodbus as em
 from edgemodbus.datatypes import DeviceDriverStatus, ItemStatus
-from edgemodbus.simulator import Simulator
+from edgemodbus.sim import Simulator
 from tests.peers import PymodbusSlave, default_bit, default_register
 from tests.waiting import wait_for
 

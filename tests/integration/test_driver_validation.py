@@ -15,7 +15,7 @@ import pytest
 import edgemodbus as em
 from edgemodbus.config import ConfigError, DeviceAddressItem
 from edgemodbus.datatypes import ItemStatus
-from edgemodbus.simulator import Simulator
+from edgemodbus.sim import Simulator
 from tests.peers import free_port
 from tests.waiting import wait_for
 

@@ -19,7 +19,7 @@ import pytest
 import edgemodbus as em
 from edgemodbus import dtu
 from edgemodbus.datatypes import Area, DeviceDriverStatus, ItemStatus
-from edgemodbus.simulator import Simulator, default_register
+from edgemodbus.sim import Simulator, default_register
 from tests.waiting import wait_for
 
 

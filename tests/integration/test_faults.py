@@ -36,7 +36,7 @@ from edgemodbus.errors import (
 )
 from edgemodbus.line import LineTiming, TcpEndpoint
 from edgemodbus.link import Link, crc16
-from edgemodbus.simulator import Simulator, default_bit, default_register
+from edgemodbus.sim import Simulator, default_bit, default_register
 from tests.waiting import wait_for
 
 HR = Area.HOLDING_REGISTER

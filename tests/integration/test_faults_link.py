@@ -22,7 +22,7 @@ import pytest
 
 import edgemodbus as em
 from edgemodbus.datatypes import DeviceDriverStatus, ItemStatus
-from edgemodbus.simulator import Simulator, default_register
+from edgemodbus.sim import Simulator, default_register
 from tests.integration.test_faults import HR, OK, RUNNING, Polled, Rig, hr_items, wait_for
 
 RECONNECTING = DeviceDriverStatus.RECONNECTING

@@ -32,7 +32,7 @@ import pytest
 
 import edgemodbus as em
 from edgemodbus.datatypes import Area
-from edgemodbus.simulator import Simulator, default_register
+from edgemodbus.sim import Simulator, default_register
 from tests.peers import free_port
 from tests.waiting import wait_for
 

@@ -16,7 +16,7 @@ from typing import Any
 
 import edgemodbus as em
 from edgemodbus.datatypes import Area, DeviceDriverStatus, ItemStatus
-from edgemodbus.simulator import DtuClient, Simulator
+from edgemodbus.sim import DtuClient, Simulator
 from edgemodbus.wrapped import wrap
 from tests.integration.test_dtu import free_port, wait_for
 

@@ -5,7 +5,7 @@ the C codec has its libFuzzer harness in csrc/fuzz/).
   reply ADU of a real write request (RTU and Modbus TCP) mutated or replaced by random
   bytes.  It must raise only :class:`ModbusError` subclasses, accept exactly the correct
   echo, and turn exactly the well-formed exception replies into their typed exception.
-* The simulator's request framing (``_split_frames``) and request handling
+* The simulator's request framing (``protocol.rtu.split_frames``) and request handling
   (``Slave._handle``): random byte streams with real requests in them never raise, every
   frame cut out has a valid CRC and lies where the consumed bytes say.
 
@@ -24,7 +24,8 @@ from hypothesis import strategies as st
 
 from edgemodbus.errors import ModbusError, ModbusExceptionResponse, ProtocolError
 from edgemodbus.link import Link
-from edgemodbus.simulator import Slave, _crc_ok, _frame, _split_frames
+from edgemodbus.protocol import rtu
+from edgemodbus.sim import Slave
 
 EXAMPLES = int(os.environ.get("EDGEMODBUS_FUZZ_EXAMPLES", "200"))
 FUZZ = settings(
@@ -178,7 +179,7 @@ def requests(draw: st.DrawFn) -> bytes:
             pdu = pdu[:5] + draw(st.binary(max_size=8))
     else:
         pdu = bytes([draw(st.integers(0, 255))]) + draw(st.binary(max_size=20))
-    return _frame(unit, pdu)
+    return rtu.frame(unit, pdu)
 
 
 streams = st.lists(
@@ -190,14 +191,14 @@ streams = st.lists(
 @given(streams, st.booleans())
 def test_simulator_framing(stream: bytes, idle: bool) -> None:
     buf = bytearray(stream)
-    frames, consumed, discarded = _split_frames(buf, idle)
+    frames, consumed, discarded = rtu.split_frames(buf, idle)
     assert 0 <= discarded <= consumed <= len(buf)
     if idle:
         assert consumed == len(buf)  # after t3.5 of silence nothing stays pending
     assert sum(map(len, frames)) + discarded == consumed
     at = 0
     for frame in frames:
-        assert _crc_ok(frame)
+        assert rtu.crc_ok(frame)
         at = stream.index(frame, at) + len(frame)
     assert at <= consumed
 
@@ -215,7 +216,7 @@ def test_simulator_handles_what_it_frames(stream: bytes, seed: int) -> None:
         wrong_byte_count_every=1 if seed & 4 else 0,
         truncate_every=1 if seed & 8 else 0,
     )
-    frames, _, _ = _split_frames(bytearray(stream), idle=True)
+    frames, _, _ = rtu.split_frames(bytearray(stream), idle=True)
     event(f"{min(len(frames), 3)} frames")
     for raw in frames:
         pdu = raw[1:-2]

@@ -26,7 +26,7 @@ from collections.abc import Iterator
 import pytest
 
 from edgemodbus.datatypes import Area
-from edgemodbus.simulator import (
+from edgemodbus.sim import (
     CounterMover,
     FloatSineMover,
     RandomWalkMover,
@@ -779,7 +779,7 @@ def test_idle_simulator_uses_no_cpu(sim: Simulator, conn: Client) -> None:
 
 
 def test_main_serves_until_sigterm() -> None:
-    code = "import sys; from edgemodbus.simulator import main; sys.exit(main(sys.argv[1:]))"
+    code = "import sys; from edgemodbus.sim import main; sys.exit(main(sys.argv[1:]))"
     proc = subprocess.Popen(
         [sys.executable, "-c", code, "--port", "0", "--slaves", "1,4-5", "--movers"],
         stdout=subprocess.PIPE,

@@ -1,0 +1,5 @@
+"""Modbus on the wire as pure bytes: framing facts shared by the master's links, the
+DTU listener and the simulator (rtu.py: CRC-16, RTU frames, function codes, frame
+lengths and splitting).  Nothing here does I/O, logs or keeps state, so every layer may
+import it; the package itself imports nothing, import its modules directly.
+"""
