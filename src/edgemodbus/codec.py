@@ -33,17 +33,17 @@ from dataclasses import dataclass
 from decimal import ROUND_HALF_EVEN, Decimal, InvalidOperation
 from typing import Any
 
-from . import _binding
-from ._binding import Block, CodecItem, CodecPlan
+from . import _ffi
+from ._ffi import Block, CodecItem, CodecPlan
 from .datatypes import Area, DataFormat, DataType
 
 __all__ = ["BlockDecoder", "Report", "ValueSpec", "check_spec", "encode", "register_bit"]
 
-_W = _binding.codec_constants("W")
-_F = _binding.codec_constants("F")
-_C = _binding.codec_constants("C")
-_O = _binding.codec_constants("O")
-_E = _binding.codec_constants("E")
+_W = _ffi.codec_constants("W")
+_F = _ffi.codec_constants("F")
+_C = _ffi.codec_constants("C")
+_O = _ffi.codec_constants("O")
+_E = _ffi.codec_constants("E")
 
 MAX_QUANTITY = 125  # registers one read may return (Application Protocol 6.3)
 _EPOCH = _dt.datetime(1970, 1, 1, tzinfo=_dt.timezone.utc)
@@ -418,10 +418,10 @@ class BlockDecoder:
         if report_all:
             if not self._reported:
                 self._plan.reset()  # no tuples cached: have C report every item
-            return self._plan, _binding.CODEC_MODE_ALL
+            return self._plan, _ffi.CODEC_MODE_ALL
         if self._reported:
             self._reported = []  # the report-all cache no longer mirrors the C state
-        return self._plan, _binding.CODEC_MODE_TRACK
+        return self._plan, _ffi.CODEC_MODE_TRACK
 
     def finish(self, n: int, report_all: bool) -> list[Report]:
         """The reports of a decode that returned ``n`` (see :meth:`decode`)."""
@@ -487,7 +487,7 @@ class BlockDecoder:
     def decode_values(self, block: Block) -> list[object]:
         """Every item's value (None where it failed); change tracking is not touched."""
         plan = self._plan
-        plan.decode(block, _binding.CODEC_MODE_VALUES)
+        plan.decode(block, _ffi.CODEC_MODE_VALUES)
         return plan.values()
 
     def errors(self) -> dict[int, str]:
@@ -661,4 +661,4 @@ def encode(spec: ValueSpec, value: object) -> list[int]:
         fval = _encode_float(spec, value, wire)
     else:
         raw = _encode_int(spec, value, wire)
-    return _binding.codec_encode(item, raw, fval, data)
+    return _ffi.codec_encode(item, raw, fval, data)

@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from typing import TYPE_CHECKING, Any, cast
 
-from ._binding import Block
+from ._ffi import Block
 from .bus import Bus
 from .codec import BlockDecoder, ValueSpec, encode, register_bit
 from .codec import Report as Change

@@ -25,7 +25,7 @@ import struct
 import time
 from collections.abc import Callable
 
-from ._binding import Block
+from ._ffi import Block
 from .codec import BlockDecoder
 from .codec import Report as CodecReport
 from .datatypes import Area
