@@ -28,8 +28,9 @@ from typing import TYPE_CHECKING, Any, cast
 
 from ._ffi import Block
 from .bus import Bus
-from .codec import BlockDecoder, ValueSpec, encode, register_bit
+from .codec import BlockDecoder, ValueSpec, encode, normalize_value, register_bit
 from .codec import Report as Change
+from .codec import jsonable as _jsonable
 from .config import DriverModbusRtuParameter, ParsedItem
 from .datatypes import Area, DeviceDriverStatus, ItemStatus
 from .errors import (
@@ -43,7 +44,6 @@ from .errors import (
     ProtocolError,
 )
 from .link import Link
-from .normalize import normalize_value
 from .planner import Piece, PlanItem, ReadBlock, bisect_block, plan_reads
 
 if TYPE_CHECKING:
@@ -798,11 +798,3 @@ def _copy_runtime(src: DeviceAddressItem, dst: DeviceAddressItem) -> None:
 
 def _status_text(status: Any) -> str:
     return str(getattr(status, "value", status))
-
-
-def _jsonable(value: Any) -> Any:
-    if isinstance(value, datetime):
-        return value.isoformat()
-    if isinstance(value, (bytes, bytearray)):
-        return bytes(value).hex()
-    return value
