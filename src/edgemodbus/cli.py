@@ -19,7 +19,6 @@ from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any, NoReturn, cast
 
-from .address import parse_address
 from .codec import jsonable
 from .config import (
     ConfigError,
@@ -33,6 +32,7 @@ from .datatypes import Area, ItemStatus
 from .descriptor import driver_descriptor
 from .device import build_plan
 from .driver import DriverModbusRtu
+from .protocol.address import parse_address
 
 DEMO_FILE = Path(__file__).resolve().with_name("demo-device.json")  # examples/ links here
 MAX_SLAVE_ID = 247  # the demo's simulator serves unicast addresses only

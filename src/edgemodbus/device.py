@@ -49,7 +49,7 @@ from .planner import Piece, PlanItem, ReadBlock, bisect_block, plan_reads
 if TYPE_CHECKING:
     from .config import DeviceAddressItem
     from .driver import DriverModbusRtu
-    from .wrapped import Report
+    from .protocol.wrapped import Report
 
 _MAX_WRITE_REGISTERS = 123  # FC16 (Modbus Application Protocol v1.1b3, 6.12)
 _MAX_WRITE_COILS = 1968  # FC15 (6.11)
