@@ -129,7 +129,7 @@ def random_c_item(rng: random.Random, bits: bool) -> CodecItem:
 
 @pytest.mark.parametrize("seed", SEEDS)
 def test_random_c_item_descriptions_are_refused_or_safe(seed: int) -> None:
-    """Items straight into the C plan, past what codec.py would ever build."""
+    """Items straight into the C plan, past what the codec package would ever build."""
     rng = random.Random(1000 + seed)
     accepted = 0
     for _ in range(150):

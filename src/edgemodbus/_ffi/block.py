@@ -11,8 +11,8 @@ from .native import ffi
 class Block:
     """The data of the last read on a :class:`Context`: registers or bits (one per byte).
 
-    It is a view of the context's own buffer, valid until the next read on it; the bus
-    decodes it before issuing another request, so no read allocates.
+    It is a view of the context's own buffer, valid until the next read on it; the line's
+    worker decodes it before issuing another request, so no read allocates.
     """
 
     __slots__ = ("_ptr", "bits", "count")

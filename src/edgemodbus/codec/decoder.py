@@ -33,7 +33,7 @@ class BlockDecoder:
     """Decodes every item of one read block in one C call, reporting only what changed.
 
     Compiled once per plan; each decode reuses the same arrays.  Use from one thread at a
-    time (the bus worker that owns the block).
+    time (the worker of the line that reads the block).
     """
 
     __slots__ = (
@@ -106,7 +106,7 @@ class BlockDecoder:
 
     def begin(self, report_all: bool) -> tuple[CodecPlan, int]:
         """The C plan and mode of the next decode, for a caller that runs it itself (the
-        bus reads and decodes a block in one C call); then call :meth:`finish`."""
+        line's worker reads and decodes a block in one C call); then call :meth:`finish`."""
         if report_all:
             if not self._reported:
                 self._plan.reset()  # no tuples cached: have C report every item
