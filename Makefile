@@ -27,7 +27,7 @@ $(BIN)/python:
 	$(PY) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip 'setuptools>=77' 'cffi>=2' wheel
 
-.stamp-install: pyproject.toml setup.py build_ffi.py src/edgemodbus/_sourcehash.py $(CSRC) | deps $(BIN)/python
+.stamp-install: pyproject.toml setup.py build_ffi.py src/edgemodbus/_ffi/sourcehash.py $(CSRC) | deps $(BIN)/python
 	$(BIN)/python -m pip install -q --no-build-isolation -e '.[test,bench]'
 	@touch $@
 

@@ -3,7 +3,7 @@
 The module links Debian's libmodbus (found with pkg-config) and compiles our C in csrc/.
 cdefs live in csrc/cdefs/NN_*.h, one file per C library or module we bind, so the binding layer
 declares only what it uses. A fingerprint of the sources is compiled in so that an
-extension built from older sources fails loudly at import (see _binding.py).
+extension built from older sources fails loudly at import (see src/edgemodbus/_ffi/native.py).
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ INSTALL_HINT = "apt-get install libmodbus-dev pkg-config"
 
 def _source_hash() -> str:
     spec = importlib.util.spec_from_file_location(
-        "_emb_sourcehash", ROOT / "src" / "edgemodbus" / "_sourcehash.py"
+        "_emb_sourcehash", ROOT / "src" / "edgemodbus" / "_ffi" / "sourcehash.py"
     )
     assert spec is not None and spec.loader is not None
     module = importlib.util.module_from_spec(spec)

@@ -17,7 +17,7 @@ import pytest
 from pymodbus.client.mixin import ModbusClientMixin
 from pytest_benchmark.fixture import BenchmarkFixture
 
-from edgemodbus._binding import Block
+from edgemodbus._ffi import Block
 from edgemodbus.codec import BlockDecoder, ValueSpec, encode
 from edgemodbus.datatypes import Area, DataFormat, DataType
 

@@ -5,7 +5,7 @@ played by our simulator in its own process, against two references measured in t
 same run on the same slave and the same block list:
 
 * the floor: a bare loop issuing the driver's block reads straight through libmodbus
-  (``_binding.Context``), no decoding: the I/O cost nothing can avoid;
+  (``_ffi.Context``), no decoding: the I/O cost nothing can avoid;
 * pymodbus 3.16.1's sync client doing the same block reads plus
   ``convert_from_registers`` for every item.
 
@@ -48,7 +48,7 @@ from pymodbus.client import ModbusTcpClient
 import edgemodbus as em
 from bench.conftest import QUICK, cpu_seconds, report, scale
 from bench.slave_process import Range, SimulatorProcess
-from edgemodbus._binding import Context
+from edgemodbus._ffi import Context
 from edgemodbus.bus import Bus
 from edgemodbus.datatypes import Area, ItemStatus
 from edgemodbus.line import TcpEndpoint

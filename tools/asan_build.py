@@ -2,7 +2,7 @@
 
 The same sources and cdefs as the normal build (setup.py -> build_ffi.py), compiled with
 -fsanitize=address,undefined -fno-omit-frame-pointer -fno-sanitize-recover=undefined, so
-any out-of-bounds access or undefined behaviour aborts the test run.  ``_binding`` loads
+any out-of-bounds access or undefined behaviour aborts the test run.  ``edgemodbus._ffi`` loads
 this build instead of the installed one when EDGEMODBUS_NATIVE=asan; the Python process
 itself is not instrumented, so libasan must be preloaded (``make test-asan`` does it):
 

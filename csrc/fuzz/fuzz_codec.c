@@ -3,7 +3,7 @@
  *
  * Each input is split into a plan (item descriptions, absurd ones included), a program of
  * decode steps and a register (or bit) block, and drives the entry points the Python
- * layer uses (_binding.CodecPlan / codec_encode): emb_plan_check, emb_reset, emb_decode
+ * layer uses (_ffi.CodecPlan / codec_encode): emb_plan_check, emb_reset, emb_decode
  * in every mode, emb_encode.  Every buffer is malloc'ed at exactly the size the plan
  * declares, so a read or write one element past it is an ASan report.  Only plans that
  * emb_plan_check accepts are decoded, as in production: the property under test is that
@@ -245,7 +245,7 @@ static int encode_ok(const emb_item *it, uint64_t raw, double fval, uint32_t nby
 typedef struct world {
     emb_item items[MAX_ITEMS];
     emb_plan plan;
-    int production;       /* slots unique per group, as _binding.CodecPlan lays them out */
+    int production;       /* slots unique per group, as _ffi.CodecPlan lays them out */
     uint32_t count;       /* elements in data */
     void *data;           /* exactly count registers (or count bytes for bits) */
     /* snapshots for the state checks */
@@ -334,7 +334,7 @@ static void read_item(reader *r, emb_item *it, int absurd)
         it->nregs = (uint16_t)((nsel & 0x80) ? nsel % 6 : width_of(it->wire));
 }
 
-/* Slots and byte offsets as _binding.CodecPlan assigns them (BYTES share u64 slots). */
+/* Slots and byte offsets as _ffi.CodecPlan assigns them (BYTES share u64 slots). */
 static void production_layout(emb_plan *p, emb_item *items)
 {
     uint32_t sizes[4] = {0, 0, 0, 0};

@@ -7,7 +7,6 @@ writes and reports with per-slave fault isolation.
 
 from __future__ import annotations
 
-from .address import Address, parse_address
 from .config import (
     ConfigError,
     DeviceAddressItem,
@@ -28,6 +27,7 @@ from .errors import (
     ModbusTimeoutError,
     ProtocolError,
 )
+from .protocol.address import Address, parse_address
 
 __version__ = "0.1.0"
 

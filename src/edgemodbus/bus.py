@@ -24,7 +24,7 @@ from concurrent.futures import Future
 from dataclasses import dataclass
 from typing import Any, Protocol, TypeVar
 
-from ._binding import Context
+from ._ffi import Context
 from .datatypes import Area
 from .errors import (
     ModbusConnectionError,

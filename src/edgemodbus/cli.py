@@ -11,7 +11,6 @@ import argparse
 import contextlib
 import json
 import logging
-import math
 import shlex
 import signal
 import sys
@@ -20,7 +19,7 @@ from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any, NoReturn, cast
 
-from .address import parse_address
+from .codec import jsonable
 from .config import (
     ConfigError,
     DeviceAddressItem,
@@ -33,6 +32,7 @@ from .datatypes import Area, ItemStatus
 from .descriptor import driver_descriptor
 from .device import build_plan
 from .driver import DriverModbusRtu
+from .protocol.address import parse_address
 
 DEMO_FILE = Path(__file__).resolve().with_name("demo-device.json")  # examples/ links here
 MAX_SLAVE_ID = 247  # the demo's simulator serves unicast addresses only
@@ -462,24 +462,8 @@ def _text(value: Any) -> str:
     return str(value)
 
 
-def _jsonable(value: Any) -> Any:
-    """A value as strict JSON carries it: finite floats as they are (json writes their
-    shortest round-trip form), NaN and infinities as null, bytes as hex, times ISO 8601."""
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
-    if isinstance(value, dict):
-        return {k: _jsonable(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_jsonable(v) for v in value]
-    if isinstance(value, (bytes, bytearray)):
-        return bytes(value).hex()
-    if hasattr(value, "isoformat"):
-        return value.isoformat()
-    return value
-
-
 def _json(obj: Any) -> str:
-    return json.dumps(_jsonable(obj), ensure_ascii=False, allow_nan=False, default=str)
+    return json.dumps(jsonable(obj), ensure_ascii=False, allow_nan=False, default=str)
 
 
 def _emit(line: str) -> None:

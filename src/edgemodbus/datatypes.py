@@ -4,6 +4,7 @@ by every layer."""
 from __future__ import annotations
 
 import enum
+from typing import Any
 
 
 class Area(enum.Enum):
@@ -228,3 +229,9 @@ class DeviceDriverStatus(str, enum.Enum):
     RUNNING = "Running"
     OFFLINE = "Offline"
     RECONNECTING = "Reconnecting"
+
+
+def enum_value(value: object) -> Any:
+    """The ``value`` of an enum member (``ItemStatus.OK`` -> ``"Ok"``), anything else
+    unchanged: for fields and arguments that hold either a member or its raw value."""
+    return getattr(value, "value", value)

@@ -4,7 +4,7 @@ Parameters come from :class:`~edgemodbus.config.DriverModbusRtuParameter`'s fiel
 (their defaults, ranges, choices and descriptions) and their UI labels in
 :mod:`edgemodbus.config.labels` (label, category, controlType, options, visibleWhen,
 dataSource).
-The address regex and examples come from :mod:`edgemodbus.address`.
+The address regex and examples come from :mod:`edgemodbus.protocol.address`.
 """
 
 from __future__ import annotations
@@ -16,10 +16,10 @@ from typing import Any, Literal
 
 from pydantic.fields import FieldInfo
 
-from .address import address_regex, check_base, check_prefix, parse_address, type_number
 from .config import Choice, DriverModbusRtuParameter, Parity, Range
 from .config.labels import LABELS
 from .datatypes import Area, DataType
+from .protocol.address import address_regex, check_base, check_prefix, parse_address, type_number
 
 DRIVER_TYPE = "DriverModbusRtu"
 

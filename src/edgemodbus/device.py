@@ -26,10 +26,11 @@ from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from typing import TYPE_CHECKING, Any, cast
 
-from ._binding import Block
+from ._ffi import Block
 from .bus import Bus
-from .codec import BlockDecoder, ValueSpec, encode, register_bit
+from .codec import BlockDecoder, ValueSpec, encode, normalize_value, register_bit
 from .codec import Report as Change
+from .codec import jsonable as _jsonable
 from .config import DriverModbusRtuParameter, ParsedItem
 from .datatypes import Area, DeviceDriverStatus, ItemStatus
 from .errors import (
@@ -43,13 +44,12 @@ from .errors import (
     ProtocolError,
 )
 from .link import Link
-from .normalize import normalize_value
 from .planner import Piece, PlanItem, ReadBlock, bisect_block, plan_reads
 
 if TYPE_CHECKING:
     from .config import DeviceAddressItem
     from .driver import DriverModbusRtu
-    from .wrapped import Report
+    from .protocol.wrapped import Report
 
 _MAX_WRITE_REGISTERS = 123  # FC16 (Modbus Application Protocol v1.1b3, 6.12)
 _MAX_WRITE_COILS = 1968  # FC15 (6.11)
@@ -798,11 +798,3 @@ def _copy_runtime(src: DeviceAddressItem, dst: DeviceAddressItem) -> None:
 
 def _status_text(status: Any) -> str:
     return str(getattr(status, "value", status))
-
-
-def _jsonable(value: Any) -> Any:
-    if isinstance(value, datetime):
-        return value.isoformat()
-    if isinstance(value, (bytes, bytearray)):
-        return bytes(value).hex()
-    return value

@@ -27,7 +27,7 @@ from .config import (
     validate_items,
     validate_parameters,
 )
-from .datatypes import Area, DeviceDriverStatus
+from .datatypes import Area, DeviceDriverStatus, enum_value
 from .device import Device, ItemState, WriteOp, plan_writes
 from .line import DtuEndpoint, LineTiming, SerialPort, TcpEndpoint
 from .link import Link
@@ -344,7 +344,7 @@ def _port_settings(params: DriverModbusRtuParameter) -> _dtu.PortSettings:
 
 
 def _parity_letter(parity: Any) -> str:
-    text = str(getattr(parity, "value", parity))
+    text = str(enum_value(parity))
     return text[0].upper() if text else "N"
 
 

@@ -64,7 +64,7 @@ from collections.abc import Collection
 from dataclasses import dataclass, field
 from typing import Any
 
-from ._binding import FD_SETSIZE
+from ._ffi import FD_SETSIZE
 from .bus import Bus
 from .errors import ModbusConnectionError, ModbusError
 from .line import DtuEndpoint, LineTiming

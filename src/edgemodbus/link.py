@@ -15,8 +15,8 @@ import struct
 import time
 from collections.abc import Callable, Sequence
 
-from . import _binding
-from ._binding import Block, CodecPlan, Context
+from . import _ffi
+from ._ffi import Block, CodecPlan, Context
 from .codec import BlockDecoder, Report
 from .datatypes import Area
 from .errors import (
@@ -120,7 +120,7 @@ class Link:
                 # for the answer to the next request, so wait it out (settle) first
                 stats.timeouts += 1
                 if self.timing.settle > 0:
-                    stats.discarded_bytes += _binding.discard_input(
+                    stats.discarded_bytes += _ffi.discard_input(
                         self._fd, self.timing.settle, self._quiet, self._settle_limit
                     )
             else:
@@ -131,7 +131,7 @@ class Link:
                     else:
                         stats.protocol_errors += 1
                     # the rest of a bad frame may still be on its way
-                    stats.discarded_bytes += _binding.discard_input(
+                    stats.discarded_bytes += _ffi.discard_input(
                         self._fd, self._quiet, self._quiet, self._drain_limit
                     )
                 else:  # an exception response is a complete, valid frame
@@ -200,16 +200,16 @@ class Link:
 
     def write_coils(self, slave: int, address: int, values: Sequence[bool]) -> None:
         n = len(values)
-        if not 1 <= n <= _binding.MAX_WRITE_BITS:
-            raise ValueError(f"write of {n} coils: must be 1..{_binding.MAX_WRITE_BITS}")
+        if not 1 <= n <= _ffi.MAX_WRITE_BITS:
+            raise ValueError(f"write of {n} coils: must be 1..{_ffi.MAX_WRITE_BITS}")
         packed = _pack_bits(values)
         self._write(slave, struct.pack(">BHHB", 15, address, n, len(packed)) + packed)
 
     def write_registers(self, slave: int, address: int, values: Sequence[int]) -> None:
         n = len(values)
-        if not 1 <= n <= _binding.MAX_WRITE_REGISTERS:
+        if not 1 <= n <= _ffi.MAX_WRITE_REGISTERS:
             raise ValueError(
-                f"write of {n} registers: must be 1..{_binding.MAX_WRITE_REGISTERS}"
+                f"write of {n} registers: must be 1..{_ffi.MAX_WRITE_REGISTERS}"
             )
         pdu = struct.pack(f">BHHB{n}H", 16, address, n, 2 * n, *values)
         self._write(slave, pdu)

@@ -29,7 +29,7 @@ from wsgiref.simple_server import WSGIRequestHandler, WSGIServer, make_server
 from pydantic import ValidationError
 
 from .config import ConfigError, Model, Range
-from .datatypes import DeviceDriverStatus
+from .datatypes import DeviceDriverStatus, enum_value
 
 if TYPE_CHECKING:
     from prometheus_client.metrics_core import Metric
@@ -277,7 +277,7 @@ class MetricsExporter:
                 log.exception("%s: stats() failed", code)
                 continue
             labels = [code, line]
-            current_text = str(getattr(current, "value", current))
+            current_text = str(enum_value(current))
             for state in statuses:
                 status.add_metric([*labels, state], 1.0 if state == current_text else 0.0)
             items.add_metric(labels, float(count))

@@ -5,7 +5,7 @@ Two cases need it, both on RTU-over-TCP sockets (client or listen mode):
 * DTU heartbeats ("HB", 0xFE, ...) that a DTU sends on an idle link can arrive between
   a request and its reply; libmodbus' RTU receive would take them for the start of the
   reply and fail.  Here they are skipped wherever they arrive and counted.
-* Wrapped report frames of an edge MCU (:mod:`edgemodbus.wrapped`): requests go out
+* Wrapped report frames of an edge MCU (:mod:`edgemodbus.protocol.wrapped`): requests go out
   wrapped (``FF AA`` + register address + RTU frame + ``0D``), the reply is the frame
   with the same slave, function and address and, for a read, the byte count the request
   asks for; all other frames, also while a request waits (and while idle: the bus
@@ -25,7 +25,7 @@ import struct
 import time
 from collections.abc import Callable
 
-from ._binding import Block
+from ._ffi import Block
 from .codec import BlockDecoder
 from .codec import Report as CodecReport
 from .datatypes import Area
@@ -39,7 +39,7 @@ from .errors import (
 )
 from .line import Endpoint, LineStats, LineTiming
 from .link import QUIET_FLOOR, READ_FC, Link, crc16, log
-from .wrapped import Report, ReportParser, wrap
+from .protocol.wrapped import Report, ReportParser, wrap
 
 _POLL_IN = select.POLLIN | select.POLLERR | select.POLLHUP
 _WRITE_REPLY_LEN = {5: 8, 6: 8, 15: 8, 16: 8, 22: 10}  # Application Protocol 6.5-6.16

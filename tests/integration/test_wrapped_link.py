@@ -16,8 +16,8 @@ from typing import Any
 
 import edgemodbus as em
 from edgemodbus.datatypes import Area, DeviceDriverStatus, ItemStatus
+from edgemodbus.protocol.wrapped import wrap
 from edgemodbus.sim import DtuClient, Simulator
-from edgemodbus.wrapped import wrap
 from tests.integration.test_dtu import free_port, wait_for
 
 ADDRESSES = (1, 2, 30, 80)

@@ -8,8 +8,14 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from edgemodbus.address import Address, address_regex, check_span, parse_address, type_number
 from edgemodbus.datatypes import Area
+from edgemodbus.protocol.address import (
+    Address,
+    address_regex,
+    check_span,
+    parse_address,
+    type_number,
+)
 
 HR, IR, CO, DI = Area.HOLDING_REGISTER, Area.INPUT_REGISTER, Area.COIL, Area.DISCRETE_INPUT
 

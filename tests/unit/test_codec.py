@@ -7,7 +7,7 @@ import math
 
 import pytest
 
-from edgemodbus._binding import Block
+from edgemodbus._ffi import Block
 from edgemodbus.codec import BlockDecoder, ValueSpec, check_spec, encode, register_bit
 from edgemodbus.datatypes import Area, DataFormat, DataType
 

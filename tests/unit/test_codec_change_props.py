@@ -13,7 +13,7 @@ import struct
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from edgemodbus._binding import Block
+from edgemodbus._ffi import Block
 from edgemodbus.codec import BlockDecoder, Report, ValueSpec, check_spec
 from edgemodbus.datatypes import Area, DataFormat, DataType
 

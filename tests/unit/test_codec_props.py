@@ -10,7 +10,7 @@ import struct
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from edgemodbus._binding import Block
+from edgemodbus._ffi import Block
 from edgemodbus.codec import BlockDecoder, ValueSpec, encode
 from edgemodbus.datatypes import Area, DataFormat, DataType
 

@@ -14,8 +14,8 @@ import sys
 
 import pytest
 
-from edgemodbus import _binding
-from edgemodbus._binding import Block, CodecItem, CodecPlan, codec_encode
+from edgemodbus import _ffi
+from edgemodbus._ffi import Block, CodecItem, CodecPlan, codec_encode
 from edgemodbus.codec import BlockDecoder, ValueSpec, encode
 from edgemodbus.datatypes import Area, DataFormat, DataType
 
@@ -79,8 +79,8 @@ def test_random_specs_and_blocks_never_crash(seed: int) -> None:
                 encode(spec, value)
 
 
-W = _binding.codec_constants("W")
-O = _binding.codec_constants("O")  # noqa: E741
+W = _ffi.codec_constants("W")
+O = _ffi.codec_constants("O")  # noqa: E741
 WIDTH = {
     W["COIL"]: 1,
     W["REGBOOL"]: 1,
@@ -129,7 +129,7 @@ def random_c_item(rng: random.Random, bits: bool) -> CodecItem:
 
 @pytest.mark.parametrize("seed", SEEDS)
 def test_random_c_item_descriptions_are_refused_or_safe(seed: int) -> None:
-    """Items straight into the C plan, past what codec.py would ever build."""
+    """Items straight into the C plan, past what the codec package would ever build."""
     rng = random.Random(1000 + seed)
     accepted = 0
     for _ in range(150):
@@ -144,9 +144,9 @@ def test_random_c_item_descriptions_are_refused_or_safe(seed: int) -> None:
         top = 1 if bits else 0xFFFF
         block = Block.from_values([rng.randint(0, top) for _ in range(size)], bits)
         for mode in (
-            _binding.CODEC_MODE_VALUES,
-            _binding.CODEC_MODE_TRACK,
-            _binding.CODEC_MODE_ALL,
+            _ffi.CODEC_MODE_VALUES,
+            _ffi.CODEC_MODE_TRACK,
+            _ffi.CODEC_MODE_ALL,
         ):
             n = plan.decode(block, mode)
             assert 0 <= n <= len(items)

@@ -12,7 +12,7 @@ import datetime as dt
 import math
 import struct
 
-from edgemodbus._binding import Block
+from edgemodbus._ffi import Block
 from edgemodbus.codec import BlockDecoder, Report, ValueSpec
 from edgemodbus.datatypes import Area, DataType
 

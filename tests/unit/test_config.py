@@ -12,7 +12,6 @@ from typing import Any
 
 import pytest
 
-from edgemodbus.address import Address
 from edgemodbus.config import (
     ConfigError,
     DeviceAddressItem,
@@ -28,6 +27,7 @@ from edgemodbus.config import (
     validate_items,
 )
 from edgemodbus.datatypes import Area, DataFormat, DataType, DeviceDriverStatus, ItemStatus
+from edgemodbus.protocol.address import Address
 
 DATA = Path(__file__).resolve().parents[1] / "data"
 SEED_DEVICE = DATA / "seed-device.json"

@@ -13,11 +13,11 @@ import pytest
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
-from edgemodbus.address import parse_address
 from edgemodbus.config import DriverModbusRtuParameter
 from edgemodbus.config.labels import LABELS
 from edgemodbus.datatypes import Area, DataType
 from edgemodbus.descriptor import EXAMPLE_KEYS, driver_descriptor
+from edgemodbus.protocol.address import parse_address
 
 SEED = json.loads(
     (Path(__file__).resolve().parents[1] / "data" / "seed-descriptor.json").read_text("utf-8")

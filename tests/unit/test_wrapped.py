@@ -8,7 +8,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from edgemodbus.wrapped import ReportParser, wrap
+from edgemodbus.protocol.wrapped import ReportParser, wrap
 
 SINGLE = bytes.fromhex("FFAA0001010302030578B70D")
 # the seed's batch report: 80 holding registers of slave 1 from address 1, as it prints them

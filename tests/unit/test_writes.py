@@ -9,9 +9,9 @@ from typing import Any
 import pytest
 
 import edgemodbus as em
+from edgemodbus.codec import normalize_value
 from edgemodbus.datatypes import Area, DataType
 from edgemodbus.device import Device, plan_writes
-from edgemodbus.normalize import normalize_value
 
 
 def make_device(items: list[dict[str, Any]], **comm: Any) -> Device:

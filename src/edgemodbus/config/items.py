@@ -16,9 +16,9 @@ from typing import Annotated, Any, ClassVar
 
 from pydantic import field_serializer, field_validator
 
-from ..address import Address, check_span, parse_address
 from ..codec import MAX_QUANTITY, ValueSpec, check_spec
 from ..datatypes import Area, DataFormat, DataType, ItemStatus
+from ..protocol.address import Address, check_span, parse_address
 from .base import (
     Model,
     Range,

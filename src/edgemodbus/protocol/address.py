@@ -14,7 +14,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
-from .datatypes import Area
+from ..datatypes import Area
 
 AddressPrefix = Literal["function-code", "modicon"]
 

@@ -1,4 +1,4 @@
-"""Wrapped report frames of edge MCUs (../shared/seeds/cloud-polling-and-edge-gateway.zh.md).
+"""Wrapped report frames of edge MCUs (the edge gateway requirement's report protocol).
 
 An MCU between the device and a transparent DTU polls locally and pushes changes to
 the platform, wrapping each raw RTU frame so that the register address travels with it:
@@ -23,7 +23,7 @@ import logging
 import struct
 from dataclasses import dataclass
 
-from .link import crc16
+from ..link import crc16
 
 log = logging.getLogger("edgemodbus.wrapped")
 

@@ -14,7 +14,7 @@ import math
 from datetime import datetime, timezone
 from typing import Any
 
-from .datatypes import DataType
+from ..datatypes import DataType
 
 _TRUE = frozenset({"true", "1", "on", "yes"})
 _FALSE = frozenset({"false", "0", "off", "no"})

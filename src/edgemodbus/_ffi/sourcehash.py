@@ -1,7 +1,7 @@
 """Fingerprint of the C sources the native module is built from.
 
-build_ffi.py compiles this fingerprint into ``edgemodbus._native``; ``_binding`` recomputes
-it in a source checkout and refuses to run an extension built from other sources.
+build_ffi.py compiles this fingerprint into ``edgemodbus._native``; ``edgemodbus._ffi``
+recomputes it in a source checkout and refuses to run an extension built from other sources.
 """
 
 from __future__ import annotations

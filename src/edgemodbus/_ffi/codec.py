@@ -1,0 +1,266 @@
+"""Thin wrappers of the value codec (csrc/emb_codec.c).  The codec package describes
+items as plain CodecItem tuples; CodecPlan lays them out over typed output arrays, owns
+the C plan and state (allocated once per plan, never per decode) and turns C results
+into Python objects."""
+
+from __future__ import annotations
+
+import operator
+import struct
+from collections.abc import Callable, Sequence
+from typing import Any, NamedTuple
+
+from .block import Block
+from .native import ffi, lib
+
+CODEC_MODE_VALUES: int = lib.EMB_MODE_VALUES
+CODEC_MODE_TRACK: int = lib.EMB_MODE_TRACK
+CODEC_MODE_ALL: int = lib.EMB_MODE_ALL
+
+
+def codec_constants(prefix: str) -> dict[str, int]:
+    """The codec's C constants starting with ``EMB_<prefix>_``, keyed by the rest."""
+    head = f"EMB_{prefix}_"
+    return {name[len(head) :]: getattr(lib, name) for name in dir(lib) if name.startswith(head)}
+
+
+class CodecItem(NamedTuple):
+    """One item of a read block, as the C codec sees it (see csrc/emb_codec.h)."""
+
+    offset: int
+    nregs: int
+    wire: int
+    flags: int
+    bit: int
+    target: int
+    out: int
+    scale: float
+    deadband: float
+
+
+def _fill_item(dst: Any, item: CodecItem, slot: int, aux: int) -> None:
+    try:
+        dst.offset = item.offset
+        dst.nregs = item.nregs
+        dst.wire = item.wire
+        dst.flags = item.flags
+        dst.bit = item.bit
+        dst.target = item.target
+        dst.out = item.out
+        dst.scale = item.scale
+        dst.deadband = item.deadband
+        dst.slot = slot
+        dst.aux = aux
+    except (OverflowError, TypeError) as exc:
+        raise ValueError(f"codec: {item} does not fit the C item ({exc})") from None
+
+
+class CodecPlan:
+    """A compiled read block: C item array, typed output arrays and change-tracking state.
+
+    ``posts[i]`` (or None) turns item i's raw result into its Python value (bytes for
+    BYTES items).  Used by one thread at a time, like the block it decodes.
+    """
+
+    def __init__(
+        self,
+        bits: bool,
+        items: Sequence[CodecItem],
+        posts: Sequence[Callable[[Any], object] | None],
+    ) -> None:
+        n = len(items)
+        o_bytes = lib.EMB_O_BYTES
+        group_of = [it.out for it in items]
+        sizes = [0, 0, 0, 0]  # i64, u64 (also BYTES lengths), f64, bool
+        slots: list[int] = []
+        auxes: list[int] = []
+        n_bytes = 0
+        for it, group in zip(items, group_of, strict=True):
+            g = lib.EMB_O_U64 if group == o_bytes else group
+            if not 0 <= g < 4:
+                raise ValueError(f"codec item at offset {it.offset}: bad output group {it.out}")
+            slots.append(sizes[g])
+            sizes[g] += 1
+            if group == o_bytes:
+                auxes.append(n_bytes)
+                n_bytes += 2 * it.nregs
+            else:
+                auxes.append(0)
+        self.bits = bits
+        self.n_items = n
+        self._citems = ffi.new("emb_item[]", max(n, 1))
+        for k, it in enumerate(items):
+            _fill_item(self._citems[k], it, slots[k], auxes[k])
+        ni, nu, nf, nb = sizes
+        self._i64 = ffi.new("int64_t[]", max(ni, 1))
+        self._u64 = ffi.new("uint64_t[]", max(nu, 1))
+        self._f64 = ffi.new("double[]", max(nf, 1))
+        self._bool = ffi.new("_Bool[]", max(nb, 1))
+        self._bytes = ffi.new("uint8_t[]", max(n_bytes, 1))
+        self._last_bytes = ffi.new("uint8_t[]", max(n_bytes, 1))
+        self._status = ffi.new("uint8_t[]", max(n, 1))
+        self._errval = ffi.new("emb_errval[]", max(n, 1))
+        self._errs = ffi.new("uint32_t[]", max(n, 1))
+        self._changed = ffi.new("uint32_t[]", max(n, 1))
+        self._last = ffi.new("uint64_t[]", max(n, 1))
+        self._last_status = ffi.new("uint8_t[]", max(n, 1))
+        plan = ffi.new("emb_plan *")
+        plan.items = self._citems
+        plan.n_items = n
+        plan.bits = 1 if bits else 0
+        plan.out_i64, plan.n_i64 = self._i64, ni
+        plan.out_u64, plan.n_u64 = self._u64, nu
+        plan.out_f64, plan.n_f64 = self._f64, nf
+        plan.out_bool, plan.n_bool = self._bool, nb
+        plan.out_bytes, plan.n_bytes = self._bytes, n_bytes
+        plan.status, plan.errval = self._status, self._errval
+        plan.errs, plan.changed = self._errs, self._changed
+        plan.last, plan.last_status, plan.last_bytes = (
+            self._last,
+            self._last_status,
+            self._last_bytes,
+        )
+        bad = lib.emb_plan_check(plan)
+        if bad:
+            where = f"item {bad - 1}" if bad > 0 else "the plan"
+            raise ValueError(f"codec: {where} is inconsistent (a bug in the item compiler)")
+        lib.emb_reset(plan)
+        self._plan = plan
+        self._sizes = (ni, nu, nf, nb)
+        self.status_view = memoryview(ffi.buffer(self._status, n))  # EMB_E_* of each item
+        # Typed views that turn the integer and bool arrays into lists at C speed (for
+        # doubles ffi.unpack is the faster one).
+        self._view_i64 = memoryview(ffi.buffer(self._i64, 8 * ni)).cast("q")
+        self._view_u64 = memoryview(ffi.buffer(self._u64, 8 * nu)).cast("Q")
+        self._view_bool = memoryview(ffi.buffer(self._bool, ffi.sizeof("_Bool") * nb)).cast("?")
+        self._bytes_buf = ffi.buffer(self._bytes)
+        # Item k's value is lists[src][idx]: src 0..3 the groups, 4 the post-processed items.
+        arrays = (self._i64, self._u64, self._f64, self._bool)
+        special: list[tuple[int, int, int, Callable[[Any], object] | None, int]] = []
+        where: list[tuple[Any, int, Callable[[Any], object] | None, int]] = []
+        place: list[tuple[int, int]] = []
+        for k, group in enumerate(group_of):
+            g = lib.EMB_O_U64 if group == o_bytes else group
+            aux = auxes[k] if group == o_bytes else -1
+            post = posts[k]
+            where.append((arrays[g], slots[k], post, aux))
+            if post is None and aux < 0:
+                place.append((g, slots[k]))
+            else:
+                place.append((4, len(special)))
+                special.append((k, g, slots[k], post, aux))
+        self._where = where
+        self._special = special
+        # Assemble the values list from runs of consecutive slots (a few list slices for
+        # the usual blocks of same-typed items), or with one itemgetter when interleaved.
+        runs: list[list[int]] = []
+        for src, idx in place:
+            if runs and runs[-1][0] == src and runs[-1][2] == idx:
+                runs[-1][2] += 1
+            else:
+                runs.append([src, idx, idx + 1])
+        lengths = (ni, nu, nf, nb, len(special))
+        self._runs = [
+            (src, a, b, a == 0 and b == lengths[src]) for src, a, b in runs
+        ]
+        self._getter: Callable[[list[object]], Any] | None = None
+        if len(runs) > max(4, n // 8):
+            base = (0, ni, ni + nu, ni + nu + nf, ni + nu + nf + nb)
+            self._getter = operator.itemgetter(*[base[src] + idx for src, idx in place])
+
+    def decode(self, block: Block, mode: int) -> int:
+        """Run the C decode over ``block``; returns the reported (or failed) item count."""
+        if block.bits != self.bits:
+            kind = "bits" if self.bits else "registers"
+            raise ValueError(f"codec: this block decoder expects {kind}")
+        return int(lib.emb_decode(self._plan, block._ptr, block.count, mode))
+
+    @property
+    def n_errors(self) -> int:
+        return int(self._plan.n_errors)
+
+    def errors(self) -> list[int]:
+        """Indices of the items that failed in the last decode."""
+        return ffi.unpack(self._errs, self._plan.n_errors)
+
+    def changed(self, n: int) -> list[int]:
+        """Indices of the ``n`` items reported by the last TRACK/ALL decode."""
+        return ffi.unpack(self._changed, n)
+
+    def status(self, index: int) -> int:
+        return int(self._status[index])
+
+    def errval(self, index: int) -> int | float | None:
+        """The value item ``index`` failed for in the last decode, exact: an int (64-bit
+        values are not rounded), a float, or None (a register missing from the reply)."""
+        ev = self._errval[index]
+        bits, kind = int(ev.bits), int(ev.kind)
+        if kind == lib.EMB_K_INT:
+            return bits - (1 << 64) if bits >> 63 else bits
+        if kind == lib.EMB_K_UINT:
+            return bits
+        if kind == lib.EMB_K_FLOAT:
+            return float(struct.unpack("=d", struct.pack("=Q", bits))[0])
+        return None
+
+    def values(self) -> list[object]:
+        """Every item's value from the last decode (None where it failed)."""
+        lists: list[list[Any]] = [
+            self._view_i64.tolist(),
+            self._view_u64.tolist(),
+            ffi.unpack(self._f64, self._sizes[2]),
+            self._view_bool.tolist(),
+        ]
+        extra: list[object] = []
+        if self._special:
+            status = self.status_view
+            buf = self._bytes_buf
+            for k, g, slot, post, aux in self._special:
+                if status[k]:
+                    extra.append(None)
+                    continue
+                raw = lists[g][slot]
+                if aux >= 0:
+                    raw = buf[aux : aux + raw]
+                extra.append(raw if post is None else post(raw))
+        lists.append(extra)
+        out: list[object]
+        if self._getter is not None:
+            out = list(self._getter(lists[0] + lists[1] + lists[2] + lists[3] + extra))
+        else:
+            runs = self._runs
+            if len(runs) == 1 and runs[0][3]:
+                out = lists[runs[0][0]]
+            else:
+                out = []
+                for src, a, b, whole in runs:
+                    out += lists[src] if whole else lists[src][a:b]
+        if self._plan.n_errors:
+            for k in ffi.unpack(self._errs, self._plan.n_errors):
+                out[k] = None
+        return out
+
+    def value(self, index: int) -> object:
+        """One item's value from the last decode (call only when its status is OK)."""
+        array, slot, post, aux = self._where[index]
+        raw = array[slot]
+        if aux >= 0:
+            raw = self._bytes_buf[aux : aux + raw]
+        return raw if post is None else post(raw)
+
+    def reset(self) -> None:
+        """Forget the reported state: the next TRACK decode reports every item."""
+        lib.emb_reset(self._plan)
+
+
+def codec_encode(item: CodecItem, raw: int, fval: float, data: bytes) -> list[int]:
+    """Pack a raw value into the item's registers (integers as two's complement ``raw``,
+    floats as ``fval``, strings/binary as ``data``); ValueError if C refuses it."""
+    citem = ffi.new("emb_item *")
+    _fill_item(citem, item, 0, 0)
+    size = max(item.nregs, 4)
+    regs = ffi.new("uint16_t[]", size)
+    n = lib.emb_encode(citem, raw & 0xFFFF_FFFF_FFFF_FFFF, fval, data, len(data), regs, size)
+    if n < 0:
+        raise ValueError(f"codec: cannot pack raw value {raw!r}/{fval!r}/{data!r}")
+    return ffi.unpack(regs, n)

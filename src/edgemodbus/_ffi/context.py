@@ -1,0 +1,231 @@
+"""One libmodbus context and the transactions of csrc/emb_io.c on it; discarding input."""
+
+from __future__ import annotations
+
+import errno as _errno
+import os
+from typing import TYPE_CHECKING, Any
+
+from ..errors import ModbusConnectionError, ModbusError
+from .block import Block
+from .errors import error_from_errno
+from .native import FD_SETSIZE, MAX_ADU_LENGTH, MAX_READ_BITS, MAX_READ_REGISTERS, ffi, lib
+
+if TYPE_CHECKING:
+    from .codec import CodecPlan
+
+
+class Context:
+    """One libmodbus context (``modbus_t``), used by exactly one thread.
+
+    ``Context.rtu`` opens a serial port itself; ``Context.on_socket`` drives a socket
+    that the caller connected and keeps owning (RTU framing without MBAP, or Modbus
+    TCP): libmodbus never closes it, so the socket's lifetime stays explicit.
+    """
+
+    def __init__(self, ptr: Any, label: str, owns_fd: bool) -> None:
+        if ptr == ffi.NULL:
+            raise ModbusConnectionError(
+                f"{label}: libmodbus could not create a context ({os.strerror(ffi.errno)})"
+            )
+        self._ptr = ptr
+        self.label = label
+        self._owns_fd = owns_fd
+        self.registers = Block(ffi.new("uint16_t[]", MAX_READ_REGISTERS), bits=False)
+        self.bits = Block(ffi.new("uint8_t[]", MAX_READ_BITS), bits=True)
+        self._rsp = ffi.new("uint8_t[]", MAX_ADU_LENGTH)
+        self._req = ffi.new("uint8_t[]", MAX_ADU_LENGTH)
+        self._link = ffi.new("emb_link *")  # per-line state of csrc/emb_io.c
+        self._header = 1  # bytes before the PDU in a reply: slave id, or the MBAP header
+
+    # -- construction ----------------------------------------------------------------
+    @classmethod
+    def rtu(cls, port: str, baud: int, parity: str, data_bits: int, stop_bits: int) -> Context:
+        ptr = lib.modbus_new_rtu(port.encode(), baud, parity.encode(), data_bits, stop_bits)
+        return cls(ptr, port, owns_fd=True)
+
+    @classmethod
+    def on_socket(cls, fd: int, label: str, mbap: bool) -> Context:
+        """A context on a connected socket: MBAP framing if ``mbap``, else raw RTU frames."""
+        if fd >= FD_SETSIZE:
+            raise ModbusConnectionError(
+                f"{label}: socket fd {fd} >= {FD_SETSIZE}: libmodbus 3.1.6 cannot select() "
+                "on it (it would abort the process); too many files are open in this process"
+            )
+        if mbap:
+            ptr = lib.modbus_new_tcp(b"127.0.0.1", 502)  # address unused: we own the socket
+        else:
+            ptr = lib.modbus_new_rtu(b"/dev/null", 9600, b"N", 8, 1)  # settings unused
+        ctx = cls(ptr, label, owns_fd=False)
+        lib.modbus_set_socket(ctx._ptr, fd)
+        if mbap:
+            ctx._link.mbap = 1
+            ctx._header = 7
+        return ctx
+
+    def set_echo(self, on: bool) -> None:
+        """The line echoes every request (a 2-wire RS-485 adapter without echo
+        suppression): read the request's own bytes back before each reply.  RTU only."""
+        if on and self._link.mbap:
+            raise ValueError(f"{self.label}: the echo option applies to RTU framing only")
+        self._link.echo = 1 if on else 0
+
+    def take_discarded(self) -> int:
+        """Bytes thrown away since the last call (stale input, echoes, superseded
+        frames), counted by the C transaction helpers."""
+        n = int(self._link.discarded)
+        if n:
+            self._link.discarded = 0
+        return n
+
+    def last_reply(self) -> bytes:
+        """The reply ADU of the last transaction (for frame traces and error details);
+        empty when none was received whole."""
+        return bytes(ffi.buffer(self._rsp, self._link.rsp_len))
+
+    def connect(self, rs485: str = "none", rts_delay_us: int | None = None) -> None:
+        """Open the serial port of an ``rtu`` context and set its RS-485 mode."""
+        if lib.modbus_connect(self._ptr) == -1:
+            err = ffi.errno
+            if err == _errno.ENOENT:
+                msg = "does not exist (check the device path; is the adapter plugged in?)"
+            elif err == _errno.EACCES:
+                msg = (
+                    "permission denied: add the user to the 'dialout' group "
+                    "(usermod -aG dialout USER, then log in again) or run with access to it"
+                )
+            else:
+                msg = os.strerror(err)
+            raise ModbusConnectionError(f"serial port {self.label}: {msg}")
+        fd = self.fd
+        if fd >= FD_SETSIZE:
+            lib.modbus_close(self._ptr)
+            raise ModbusConnectionError(
+                f"serial port {self.label}: fd {fd} >= {FD_SETSIZE}; libmodbus 3.1.6 would "
+                "abort the process in select(); too many files are open"
+            )
+        if rs485 == "kernel" and lib.modbus_rtu_set_serial_mode(self._ptr, 1) == -1:
+            err = ffi.errno
+            lib.modbus_close(self._ptr)
+            raise ModbusConnectionError(
+                f"serial port {self.label}: the driver refused RS-485 mode "
+                f"(TIOCSRS485: {os.strerror(err)}); use rs485 'none' or 'rts-up'/'rts-down'"
+            )
+        if rs485 in ("rts-up", "rts-down"):
+            mode = lib.MODBUS_RTU_RTS_UP if rs485 == "rts-up" else lib.MODBUS_RTU_RTS_DOWN
+            lib.modbus_rtu_set_rts(self._ptr, mode)
+            if rts_delay_us is not None:
+                lib.modbus_rtu_set_rts_delay(self._ptr, rts_delay_us)
+
+    @property
+    def fd(self) -> int:
+        return int(lib.modbus_get_socket(self._ptr))
+
+    def set_timeouts(self, response_s: float, byte_s: float) -> None:
+        """Response timeout (first byte) and byte timeout (between bytes of one frame)."""
+        for setter, seconds in (
+            (lib.modbus_set_response_timeout, response_s),
+            (lib.modbus_set_byte_timeout, byte_s),
+        ):
+            usec = max(0, round(seconds * 1_000_000))
+            if setter(self._ptr, usec // 1_000_000, usec % 1_000_000) == -1:
+                raise ValueError(f"{self.label}: invalid timeout {seconds!r} s")
+
+    def close(self) -> None:
+        """Free the context; closes the fd only if libmodbus opened it (serial)."""
+        if self._ptr is None:
+            return
+        if self._owns_fd:
+            lib.modbus_close(self._ptr)
+        else:
+            lib.modbus_set_socket(self._ptr, -1)
+        lib.modbus_free(self._ptr)
+        self._ptr = None
+
+    # -- transactions ----------------------------------------------------------------
+    def read(self, slave: int, function: int, address: int, count: int) -> Block:
+        """FC01-04 into this context's buffer; returns the (reused) :class:`Block`."""
+        block = self.bits if function in (1, 2) else self.registers
+        rc = lib.emb_read(self._ptr, self._link, slave, function, address, count, block._ptr,
+                          self._rsp)
+        if rc == -1:
+            raise self._error(ffi.errno, f"slave {slave} FC{function:02d} @{address}+{count}",
+                              function, 2 * count if function > 2 else (count + 7) // 8)
+        block.count = rc
+        return block
+
+    def read_decode(self, slave: int, function: int, address: int, count: int,
+                    plan: CodecPlan, mode: int) -> int:
+        """:meth:`read`, then decode the block through ``plan`` in the same C call;
+        returns the count the decode reports.  The block stays readable as with read."""
+        bits = function in (1, 2)
+        if bits != plan.bits:
+            raise ValueError(f"codec: a plan for {'registers' if bits else 'bits'} used "
+                             f"for FC{function:02d}")
+        block = self.bits if bits else self.registers
+        rc = lib.emb_read_decode(self._ptr, self._link, slave, function, address, count,
+                                 block._ptr, self._rsp, plan._plan, mode)
+        if rc == -1:
+            raise self._error(ffi.errno, f"slave {slave} FC{function:02d} @{address}+{count}",
+                              function, 2 * count if function > 2 else (count + 7) // 8)
+        block.count = count
+        return int(rc)
+
+    def transact(self, slave: int, pdu: bytes) -> bytes:
+        """Send ``pdu`` (function code first) to ``slave`` and return the reply ADU.
+
+        The C side checks the header (slave id, or MBAP transaction id, protocol id,
+        length and unit id) and the function code, and raises exception responses; the
+        caller checks the rest (a write's echo).
+        """
+        n = len(pdu)
+        ffi.memmove(self._req, pdu, n)
+        rc = lib.emb_transact(self._ptr, self._link, slave, self._req, n, self._rsp)
+        if rc == -1:
+            raise self._error(ffi.errno, f"slave {slave} FC{pdu[0]:02d}", pdu[0], -1)
+        return bytes(ffi.buffer(self._rsp, rc))
+
+    def send(self, slave: int, pdu: bytes) -> None:
+        """Send without waiting for a reply (broadcast)."""
+        n = len(pdu)
+        ffi.memmove(self._req, pdu, n)
+        if lib.emb_send(self._ptr, self._link, slave, self._req, n) == -1:
+            raise error_from_errno(ffi.errno, f"broadcast FC{pdu[0]:02d}")
+
+    def _error(self, err: int, what: str, function: int, count: int) -> ModbusError:
+        """The typed error for ``err``, with what the rejected reply held when it says
+        more than the errno (which byte count, which unit, which function code)."""
+        exc = error_from_errno(err, what)
+        rsp = self.last_reply()
+        h = self._header
+        if len(rsp) < h + 2:
+            return exc
+        detail = ""
+        if err == lib.EMB_ECOUNT:
+            detail = f"{rsp[h + 1]}, expected {count}"
+        elif err == lib.EMB_ESLAVE:
+            detail = f"{rsp[h - 1]}"
+        elif err == lib.EMB_EFUNCTION:
+            detail = f"{rsp[h]:#04x}, expected {function:#04x}"
+        elif err == lib.EMB_EOTHEREXC:
+            detail = f"{rsp[h]:#04x} code {rsp[h + 1]:#04x}"
+        elif err == lib.EMB_EPROTOID:
+            detail = f"{rsp[2] << 8 | rsp[3]:#06x}"
+        elif err == lib.EMB_EMBAPLEN:
+            detail = f"{rsp[4] << 8 | rsp[5]}, frame has {len(rsp) - 6}"
+        if detail:
+            return type(exc)(f"{exc} ({detail})")
+        return exc
+
+
+def discard_input(fd: int, total_s: float, quiet_s: float, limit_s: float | None = None) -> int:
+    """Throw away input on ``fd``: wait up to ``total_s`` for stray bytes; once bytes
+    come, go on until ``quiet_s`` of silence, but never past ``limit_s`` (default
+    ``total_s`` + 1 s).  0 for both takes only what is pending.  Returns the byte count;
+    raises :class:`ModbusConnectionError` if the link failed or was closed."""
+    limit = total_s + 1.0 if limit_s is None else limit_s
+    n = lib.emb_discard_input(fd, round(total_s * 1000), max(1, round(quiet_s * 1000)),
+                              round(limit * 1000))
+    if n == -1:
+        raise error_from_errno(ffi.errno, f"fd {fd}: discarding input")
+    return int(n)

@@ -1,0 +1,195 @@
+"""Block decoding: every item of a read block in one C call, with change detection."""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections.abc import Sequence
+
+from .. import _ffi
+from .._ffi import Block, CodecPlan
+from ..datatypes import Area, DataType
+from .spec import ValueSpec, _compile, _Compiled, check_spec
+
+__all__ = ["BlockDecoder", "Report"]
+
+_E = _ffi.codec_constants("E")
+
+Report = tuple[int, object, "str | None"]  # (item index, value or None, error reason or None)
+
+
+def _fmt_number(v: float) -> str:
+    if isinstance(v, int):
+        return str(v)
+    if math.isfinite(v) and v == int(v) and abs(v) < 2**53:
+        return str(int(v))
+    return repr(v)
+
+
+_NO_TEXT = object()  # a String item whose last report was not a text
+
+
+class BlockDecoder:
+    """Decodes every item of one read block in one C call, reporting only what changed.
+
+    Compiled once per plan; each decode reuses the same arrays.  Use from one thread at a
+    time (the worker of the line that reads the block).
+    """
+
+    __slots__ = (
+        "_indices",
+        "_offsets",
+        "_plan",
+        "_reported",
+        "_texts",
+        "area",
+        "count",
+        "specs",
+    )
+
+    def __init__(self, area: Area, count: int, items: Sequence[tuple[int, ValueSpec]]) -> None:
+        if not (isinstance(count, int) and count >= 0):
+            raise ValueError(f"block count {count!r} is not allowed (an int >= 0)")
+        compiled: list[_Compiled] = []
+        for offset, spec in items:
+            check_spec(spec, area)
+            size = 1 if area.is_bit else spec.registers
+            if not (isinstance(offset, int) and offset >= 0 and offset + size <= count):
+                raise ValueError(
+                    f"item {spec.name!r}: offset {offset!r} (+{size}) is outside the block "
+                    f"of {count} {'bits' if area.is_bit else 'registers'}"
+                )
+            compiled.append(_compile(spec, area, offset))
+        self.area = area
+        self.count = count
+        self.specs = [spec for _, spec in items]
+        self._offsets = [offset for offset, _ in items]
+        # the compiled items live on in the C plan only: error reasons, which are rare,
+        # compile their item again (see _reason), which keeps a decoder small per tag
+        self._plan = CodecPlan(area.is_bit, [c.item for c in compiled], [c.post for c in compiled])
+        self._indices = list(range(len(compiled)))
+        # The tuple last reported for each item: mirrors the C state, so that a report of
+        # every item rebuilds only the tuples whose value or status moved.
+        self._reported: list[Report] = []
+        # String items decode bytes that are not valid text to U+FFFD, so different
+        # bytes (which C compares) can give the text already reported: the last text
+        # reported for each String item (_NO_TEXT after an error or a reset).
+        self._texts: dict[int, object] = {
+            k: _NO_TEXT for k, spec in enumerate(self.specs) if spec.data_type is DataType.STRING
+        }
+
+    def _reason(self, index: int, code: int) -> str:
+        if code == _E["MISSING"]:
+            return "not in response"
+        c = _compile(self.specs[index], self.area, self._offsets[index])
+        if code == _E["NAN"]:
+            return f"NaN cannot be converted to {c.target_label}"
+        v = self._plan.errval(index)
+        if v is None:  # the C codec gives every status but MISSING a value
+            raise AssertionError(f"codec: item {index} failed (status {code}) without a value")
+        if code == _E["BCD"]:
+            digits = 4 if c.wire == "BCD16" else 8
+            return f"invalid BCD value 0x{v:0{digits}X} (a digit above 9)"
+        if c.target_label == "DateTime":
+            return f"{_fmt_number(v)} ms is outside the dates Python can hold (years 1..9999)"
+        if c.target_range is not None:
+            lo, hi = c.target_range
+            return f"value {_fmt_number(v)} is out of range for {c.target_label} ({lo}..{hi})"
+        return f"value {_fmt_number(v)} is out of range for {c.target_label}"
+
+    def decode(self, block: Block, report_all: bool = False) -> list[Report]:
+        """(index, value or None, error reason or None) of every item whose value, status
+        or error reason changed since it was last reported (all of them when
+        ``report_all``)."""
+        plan, mode = self.begin(report_all)
+        return self.finish(plan.decode(block, mode), report_all)
+
+    def begin(self, report_all: bool) -> tuple[CodecPlan, int]:
+        """The C plan and mode of the next decode, for a caller that runs it itself (the
+        line's worker reads and decodes a block in one C call); then call :meth:`finish`."""
+        if report_all:
+            if not self._reported:
+                self._plan.reset()  # no tuples cached: have C report every item
+            return self._plan, _ffi.CODEC_MODE_ALL
+        if self._reported:
+            self._reported = []  # the report-all cache no longer mirrors the C state
+        return self._plan, _ffi.CODEC_MODE_TRACK
+
+    def finish(self, n: int, report_all: bool) -> list[Report]:
+        """The reports of a decode that returned ``n`` (see :meth:`decode`)."""
+        if report_all:
+            return self._finish_all(n)
+        if not n:
+            return []
+        plan = self._plan
+        changed = plan.changed(n)
+        if n * 8 >= plan.n_items:  # many changed: convert the arrays in one go
+            values = plan.values()
+            errors = {k: self._reason(k, plan.status(k)) for k in plan.errors()}
+            reports = [(k, values[k], errors.get(k)) for k in changed]
+        else:
+            status = plan.status_view
+            reports = [
+                (k, None, self._reason(k, status[k])) if status[k] else (k, plan.value(k), None)
+                for k in changed
+            ]
+        return self._new_texts_only(reports) if self._texts else reports
+
+    def _new_texts_only(self, reports: list[Report]) -> list[Report]:
+        """``reports`` without the String items whose text is the one last reported."""
+        texts = self._texts
+        kept: list[Report] = []
+        for report in reports:
+            k, value, error = report
+            if k in texts:
+                last = texts[k]
+                texts[k] = _NO_TEXT if error is not None else value
+                if error is None and last == value:
+                    continue
+            kept.append(report)
+        return kept
+
+    def _finish_all(self, n: int) -> list[Report]:
+        """Report every item; keeps the last tuples so that only the items whose value
+        or status moved are rebuilt (reportMode "cycle" reports everything each read)."""
+        plan = self._plan
+        total = plan.n_items
+        reported = self._reported
+        if n == total or 2 * n >= total or not reported:
+            # Most items are new: build every tuple in one go (a report of all items
+            # holds the current value of each, so the rebuilt cache still mirrors C).
+            values = plan.values()
+            reported = list(zip(self._indices, values, itertools.repeat(None), strict=False))
+            if plan.n_errors:
+                for k in plan.errors():
+                    reported[k] = (k, None, self._reason(k, plan.status(k)))
+            self._reported = reported
+        elif n:
+            status = plan.status_view
+            for k in plan.changed(n):
+                code = status[k]
+                reported[k] = (k, None, self._reason(k, code)) if code else (k, plan.value(k), None)
+        texts = self._texts
+        if texts:
+            for k in texts:
+                _, value, error = reported[k]
+                texts[k] = _NO_TEXT if error is not None else value
+        return reported[:]
+
+    def decode_values(self, block: Block) -> list[object]:
+        """Every item's value (None where it failed); change tracking is not touched."""
+        plan = self._plan
+        plan.decode(block, _ffi.CODEC_MODE_VALUES)
+        return plan.values()
+
+    def errors(self) -> dict[int, str]:
+        """Reasons of the items that failed in the last decode, by index."""
+        plan = self._plan
+        return {k: self._reason(k, plan.status(k)) for k in plan.errors()}
+
+    def reset(self) -> None:
+        """Forget the last reported values: the next decode reports every item."""
+        self._plan.reset()
+        self._reported = []
+        for k in self._texts:
+            self._texts[k] = _NO_TEXT

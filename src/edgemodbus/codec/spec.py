@@ -1,0 +1,297 @@
+"""An item's value spec: what it is (ValueSpec), whether it can work in an area
+(check_spec), and how it compiles into the C codec's item (wire kind, width, scale,
+output group and post-processing)."""
+
+from __future__ import annotations
+
+import codecs
+import datetime as _dt
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+from .. import _ffi
+from .._ffi import CodecItem
+from ..datatypes import Area, DataFormat, DataType
+
+__all__ = ["MAX_QUANTITY", "ValueSpec", "check_spec"]
+
+_W = _ffi.codec_constants("W")
+_F = _ffi.codec_constants("F")
+_C = _ffi.codec_constants("C")
+_O = _ffi.codec_constants("O")
+
+MAX_QUANTITY = 125  # registers one read may return (Application Protocol 6.3)
+_EPOCH = _dt.datetime(1970, 1, 1, tzinfo=_dt.timezone.utc)
+
+
+@dataclass(frozen=True, slots=True)
+class ValueSpec:
+    """How one item's registers (or bit) become a value and back.
+
+    ``data_format`` is the effective one (the item's override or the device's);
+    ``quantity`` is in registers (None = the type's default); ``deadband`` is absolute
+    on the final value (0 = report any change).
+    """
+
+    name: str
+    data_type: DataType
+    data_format: DataFormat = DataFormat.ABCD
+    quantity: int | None = None
+    bit: int | None = None
+    multiplier: float = 1.0
+    converted_type: DataType | None = None
+    deadband: float = 0.0
+    encoding: str = "utf-8"
+
+    @property
+    def registers(self) -> int:
+        """Registers the item occupies in a register area (1 for a bit item)."""
+        if self.bit is not None:
+            return 1
+        if self.quantity is not None:
+            return self.quantity
+        return self.data_type.registers
+
+
+# -- validation ------------------------------------------------------------------------
+
+_NO_CONVERSION = (
+    DataType.CHAR,
+    DataType.STRING,
+    DataType.BINARY,
+    DataType.DATETIME,
+    DataType.TIMESTAMP,
+)
+_BAD_TARGETS = (DataType.CHAR, DataType.BINARY, DataType.DATETIME, DataType.TIMESTAMP)
+
+
+def _bad(spec: ValueSpec, field: str, value: object, allowed: str) -> ValueError:
+    return ValueError(f"item {spec.name!r}: {field} {value!r} is not allowed ({allowed})")
+
+
+def check_spec(spec: ValueSpec, area: Area) -> None:
+    """Raise ValueError naming the item if its spec cannot work in ``area``."""
+    t = spec.data_type
+    q = spec.quantity
+    if q is not None and not (isinstance(q, int) and 1 <= q <= MAX_QUANTITY):
+        raise _bad(spec, "quantity", q, f"1..{MAX_QUANTITY} registers")
+    if area.is_bit:
+        if t is not DataType.BOOLEAN:
+            raise _bad(spec, "data type", t.value, f"{area.short_name} items are Boolean")
+        if spec.bit is not None:
+            raise _bad(spec, "bit", spec.bit, "only register items have a bit")
+        if q not in (None, 1):
+            raise _bad(spec, "quantity", q, f"a {area.short_name} item is 1 bit")
+    elif spec.bit is not None:
+        if t is not DataType.BOOLEAN:
+            raise _bad(spec, "data type", t.value, "a bit of a register is Boolean")
+        if not (isinstance(spec.bit, int) and 0 <= spec.bit <= 15):
+            raise _bad(spec, "bit", spec.bit, "0..15")
+        if q not in (None, 1):
+            raise _bad(spec, "quantity", q, "a bit item is in 1 register")
+    if t.needs_quantity and q is None:
+        raise _bad(spec, "quantity", q, f"{t.value} needs a quantity of registers, 1..125")
+    if t in (DataType.DATETIME, DataType.TIMESTAMP) and q is not None and q < 2:
+        raise _bad(spec, "quantity", q, f"{t.value} takes 2 (seconds) or 4 (ms) registers")
+    m = spec.multiplier
+    if not (isinstance(m, (int, float)) and math.isfinite(m) and m != 0):
+        raise _bad(spec, "dataMultiplier", m, "a finite number other than 0")
+    if m != 1 and not t.is_numeric:
+        raise _bad(spec, "dataMultiplier", m, f"{t.value} values take no multiplier, use 1")
+    c = spec.converted_type
+    if c is not None and c is not t:
+        if t in _NO_CONVERSION:
+            raise _bad(spec, "convertedDataType", c.value, f"{t.value} values are not converted")
+        if c in _BAD_TARGETS:
+            raise _bad(spec, "convertedDataType", c.value, "a numeric type, Boolean or String")
+    db = spec.deadband
+    if not (isinstance(db, (int, float)) and math.isfinite(db) and db >= 0):
+        raise _bad(spec, "deadband", db, "a finite number >= 0")
+    try:
+        text_codec = getattr(codecs.lookup(spec.encoding), "_is_text_encoding", True)
+    except LookupError:
+        text_codec = False
+    if not text_codec:
+        raise _bad(spec, "encoding", spec.encoding, "a text encoding: utf-8, gbk, ascii...")
+
+
+# -- compiling a spec into a C item ------------------------------------------------------
+
+# (wire, registers) for each width a fixed-size type may be read with, widest first.
+_WIDTHS: dict[DataType, tuple[tuple[str, int], ...]] = {
+    DataType.INT16: (("I16", 1),),
+    DataType.UINT16: (("U16", 1),),
+    DataType.BCD16: (("BCD16", 1),),
+    DataType.BYTE: (("U8", 1),),
+    DataType.SBYTE: (("I8", 1),),
+    DataType.CHAR: (("U8", 1),),
+    DataType.BOOLEAN: (("REGBOOL", 1),),
+    DataType.INT32: (("I32", 2), ("I16", 1)),
+    DataType.UINT32: (("U32", 2), ("U16", 1)),
+    DataType.FLOAT: (("F32", 2), ("I16", 1)),
+    DataType.BCD32: (("BCD32", 2), ("BCD16", 1)),
+    DataType.INT64: (("I64", 4), ("I32", 2), ("I16", 1)),
+    DataType.UINT64: (("U64", 4), ("U32", 2), ("U16", 1)),
+    DataType.DOUBLE: (("F64", 4), ("F32", 2), ("I16", 1)),
+    DataType.DATETIME: (("MS64", 4), ("SEC32", 2)),
+    DataType.TIMESTAMP: (("MS64", 4), ("SEC32", 2)),
+}
+
+# Integer range of each integer wire (what the registers can hold).
+_WIRE_RANGE: dict[str, tuple[int, int]] = {
+    "U8": (0, 0xFF),
+    "I8": (-0x80, 0x7F),
+    "U16": (0, 0xFFFF),
+    "I16": (-0x8000, 0x7FFF),
+    "U32": (0, 0xFFFF_FFFF),
+    "I32": (-0x8000_0000, 0x7FFF_FFFF),
+    "U64": (0, 0xFFFF_FFFF_FFFF_FFFF),
+    "I64": (-(1 << 63), (1 << 63) - 1),
+    "BCD16": (0, 9999),
+    "BCD32": (0, 99_999_999),
+}
+_WIRE_TYPE = {
+    "U8": "Byte",
+    "I8": "Sbyte",
+    "U16": "UInt16",
+    "I16": "Int16",
+    "U32": "UInt32",
+    "I32": "Int32",
+    "U64": "UInt64",
+    "I64": "Int64",
+    "BCD16": "BCD16",
+    "BCD32": "BCD32",
+    "F32": "Float",
+    "F64": "Double",
+}
+
+_TARGET = {
+    DataType.BOOLEAN: "BOOL",
+    DataType.SBYTE: "I8",
+    DataType.BYTE: "U8",
+    DataType.INT16: "I16",
+    DataType.UINT16: "U16",
+    DataType.INT32: "I32",
+    DataType.UINT32: "U32",
+    DataType.INT64: "I64",
+    DataType.UINT64: "U64",
+    DataType.BCD16: "BCD16",
+    DataType.BCD32: "BCD32",
+    DataType.FLOAT: "F32",
+    DataType.DOUBLE: "F64",
+}
+
+
+def _wire(spec: ValueSpec, area: Area) -> tuple[str, int]:
+    """The wire kind and register count the item is read with (after Smart Cast)."""
+    if area.is_bit:
+        return "COIL", 1
+    if spec.bit is not None:
+        return "REGBIT", 1
+    t = spec.data_type
+    if t.needs_quantity:
+        return "BYTES", spec.quantity or 0
+    widths = _WIDTHS[t]
+    have = spec.quantity if spec.quantity is not None else t.registers
+    for wire, n in widths:
+        if n <= have:
+            return wire, n
+    return widths[-1]
+
+
+def _scale(m: float) -> tuple[int, float]:
+    """Flag and factor for a multiplier: divide by 1/m when that is an exact integer
+    (so 0.1 gives raw/10, the correctly rounded decimal), else multiply."""
+    if m == 1:
+        return 0, 1.0
+    inverse = 1 / m
+    if abs(m) < 1 and math.isfinite(inverse):
+        k = round(inverse)
+        if k != 0 and 1 / k == m:
+            return _F["DIVIDE"], float(k)
+    return _F["MULTIPLY"], float(m)
+
+
+def _to_datetime(ms: int) -> _dt.datetime:
+    return _EPOCH + _dt.timedelta(milliseconds=ms)
+
+
+def _string_post(encoding: str) -> Callable[[bytes], str]:
+    def post(raw: bytes) -> str:
+        return raw.decode(encoding, "replace")
+
+    return post
+
+
+@dataclass(frozen=True, slots=True)
+class _Compiled:
+    item: CodecItem
+    post: Callable[[Any], object] | None
+    wire: str
+    target_label: str  # type name in error reasons
+    target_range: tuple[int, int] | None
+
+
+def _compile(spec: ValueSpec, area: Area, offset: int) -> _Compiled:
+    t = spec.data_type
+    wire, nregs = _wire(spec, area)
+    fmt = spec.data_format
+    flags = (_F["BYTE_SWAP"] if fmt.byte_swap else 0) | (_F["WORD_SWAP"] if fmt.word_swap else 0)
+    scale_flag, scale = _scale(spec.multiplier)
+    flags |= scale_flag
+    conv = spec.converted_type
+    if conv is t and (t in _NO_CONVERSION or spec.multiplier == 1):
+        conv = None
+    post: Callable[[Any], object] | None = None
+    target = "NONE"
+    label = t.value
+    rng: tuple[int, int] | None = None
+    if wire == "BYTES":
+        out = "BYTES"
+        if t is DataType.STRING:
+            flags |= _F["STRIP"]
+            post = _string_post(spec.encoding)
+    elif t is DataType.CHAR:
+        out, post = "I64", chr
+    elif t is DataType.DATETIME:
+        out, target, post = "I64", "DATETIME", _to_datetime
+    elif conv is None or conv is DataType.STRING:
+        if scale_flag:
+            out = "F64"
+        elif t is DataType.BOOLEAN:
+            out = "BOOL"
+        elif t in (DataType.FLOAT, DataType.DOUBLE):
+            out = "F64"
+        elif wire == "U64":
+            out = "U64"
+        else:
+            out = "I64"
+        if conv is DataType.STRING:
+            post = str
+    else:
+        target = _TARGET[conv]
+        label = conv.value
+        if conv is DataType.BOOLEAN:
+            out = "BOOL"
+        elif conv in (DataType.FLOAT, DataType.DOUBLE):
+            out = "F64"
+        else:
+            out = "U64" if conv is DataType.UINT64 else "I64"
+            rng = conv.integer_range
+    # a deadband is a distance between numbers: values made by `post` (chr, datetime,
+    # str) are compared for any change, as bool and bytes are
+    deadband = float(spec.deadband) if post is None else 0.0
+    item = CodecItem(
+        offset=offset,
+        nregs=nregs,
+        wire=_W[wire],
+        flags=flags,
+        bit=spec.bit or 0,
+        target=_C[target],
+        out=_O[out],
+        scale=scale,
+        deadband=deadband,
+    )
+    return _Compiled(item, post, wire, label, rng)
