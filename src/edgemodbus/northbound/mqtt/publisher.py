@@ -55,13 +55,13 @@ from typing import TYPE_CHECKING, Annotated, Any, ClassVar, cast
 
 from pydantic import ValidationError, field_validator, model_validator
 
-from .config import MAX_MS, Choice, ConfigError, Model, Ms, Problem, Range
-from .driver import DriverModbusRtu
+from ...config import MAX_MS, Choice, ConfigError, Model, Ms, Problem, Range
+from ...driver import DriverModbusRtu
 
 if TYPE_CHECKING:
     from paho.mqtt.client import Client, MQTTMessage, MQTTMessageInfo
 
-    from .config import DeviceAddressItem
+    from ...config import DeviceAddressItem
 
 log = logging.getLogger("edgemodbus.mqtt")
 

@@ -1,6 +1,6 @@
 """The gateway service: poll every device file in a folder, publish to MQTT, serve metrics.
 
-``python -m edgemodbus.service --config-dir DIR [--gateway FILE]`` (and
+``python -m edgemodbus.gateway --config-dir DIR [--gateway FILE]`` (and
 ``edgemodbus run --config-dir DIR``) runs until SIGTERM or SIGINT:
 
 * every ``*.json`` in DIR is a device file (the seed's format), except the gateway file;
@@ -46,7 +46,7 @@ from pathlib import Path
 from types import FrameType
 from typing import TYPE_CHECKING, Any, ClassVar
 
-from .config import (
+from ..config import (
     ConfigError,
     DeviceConfig,
     DriverModbusRtuParameter,
@@ -56,13 +56,13 @@ from .config import (
     load_device_config,
     load_model,
 )
-from .driver import DriverModbusRtu
-from .metrics import MetricsSettings
-from .mqtt import MqttSettings, check_name
+from ..driver import DriverModbusRtu
+from ..northbound.metrics import MetricsSettings
+from ..northbound.mqtt import MqttSettings, check_name
 
 if TYPE_CHECKING:
-    from .metrics import MetricsExporter
-    from .mqtt import MqttPublisher
+    from ..northbound.metrics import MetricsExporter
+    from ..northbound.mqtt import MqttPublisher
 
 log = logging.getLogger("edgemodbus.service")
 
@@ -149,7 +149,7 @@ class Gateway:
     def start(self) -> None:
         mqtt = self.config.mqtt
         if mqtt is not None and mqtt.enabled:
-            from .mqtt import MqttPublisher
+            from ..northbound.mqtt import MqttPublisher
 
             self.publisher = MqttPublisher(mqtt, gateway_id=self.gateway_id).start()
             log.info("MQTT: gateway %s publishing to %s:%d", self.gateway_id, mqtt.host,
@@ -219,7 +219,7 @@ class Gateway:
         publisher: MqttPublisher | None = None
         mqtt_changed = _mqtt_key(old) != _mqtt_key(new)
         if mqtt_changed and new.mqtt is not None and new.mqtt.enabled:
-            from .mqtt import MqttPublisher
+            from ..northbound.mqtt import MqttPublisher
 
             publisher = MqttPublisher(new.mqtt, gateway_id=new.effective_id)
             try:
@@ -484,7 +484,7 @@ def _start_exporter(config: GatewayConfig) -> MetricsExporter | None:
     metrics = config.metrics
     if metrics is None or not metrics.enabled:
         return None
-    from .metrics import MetricsExporter
+    from ..northbound.metrics import MetricsExporter
 
     exporter = MetricsExporter(metrics, gateway_id=config.effective_id)
     try:
@@ -567,7 +567,7 @@ def run_service(config_dir: Path, gateway_config: Path | None = None, *,
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
-        prog="python -m edgemodbus.service",
+        prog="python -m edgemodbus.gateway",
         description="Poll every device file in a folder; MQTT and metrics from a gateway "
                     "file; SIGHUP reloads, SIGTERM stops.")
     parser.add_argument("--config-dir", type=Path, required=True,
@@ -592,6 +592,3 @@ def configure_logging(verbose: int = 0, quiet: bool = False) -> None:
         fmt = "%(asctime)s " + fmt
     logging.basicConfig(level=level, format=fmt)
 
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -28,8 +28,8 @@ from wsgiref.simple_server import WSGIRequestHandler, WSGIServer, make_server
 
 from pydantic import ValidationError
 
-from .config import ConfigError, Model, Range
-from .datatypes import DeviceDriverStatus, enum_value
+from ..config import ConfigError, Model, Range
+from ..datatypes import DeviceDriverStatus, enum_value
 
 if TYPE_CHECKING:
     from prometheus_client.metrics_core import Metric
