@@ -4,7 +4,7 @@ Needs the extra ``edgemodbus[metrics]`` (prometheus_client); ``import edgemodbus
 imports this module, and prometheus_client is imported only when a
 :class:`MetricsExporter` is made.
 
-Nothing is counted twice and nothing runs on the bus workers: at each scrape a custom
+Nothing is counted twice and nothing runs on the line workers: at each scrape a custom
 collector reads ``stats()`` of every attached driver (and of the publisher) and turns
 the counters into metric families.  Per device (labels ``device``, ``line``):
 requests, responses, timeouts, CRC and protocol errors, exceptions by code, retries,
