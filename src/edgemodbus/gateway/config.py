@@ -97,6 +97,7 @@ def mqtt_key(config: GatewayConfig) -> tuple[str, dict[str, Any], str] | None:
 
 
 def metrics_key(config: GatewayConfig) -> dict[str, Any] | None:
+    """What the exporter is made from: a change of it moves the exporter."""
     metrics = config.metrics
     return None if metrics is None or not metrics.enabled else metrics.to_dict()
 
