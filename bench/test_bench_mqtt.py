@@ -32,7 +32,7 @@ import edgemodbus as em
 from bench.conftest import QUICK, cpu_seconds, report, scale
 from bench.slave_process import SimulatorProcess
 from edgemodbus.datatypes import Area, ItemStatus
-from edgemodbus.mqtt import MqttPublisher
+from edgemodbus.northbound.mqtt import MqttPublisher
 
 SLAVES = list(range(1, 11))
 TAGS = 1000  # per slave

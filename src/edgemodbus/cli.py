@@ -218,7 +218,7 @@ def _run(args: argparse.Namespace) -> int:
     if args.config_dir is not None:
         if args.files:
             raise CliError("give device files or --config-dir, not both")
-        from .service import run_service
+        from .gateway import run_service
 
         logging.getLogger("edgemodbus").setLevel(logging.DEBUG if args.verbose > 1 else
                                                  logging.INFO)

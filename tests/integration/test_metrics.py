@@ -15,8 +15,8 @@ from prometheus_client.parser import text_string_to_metric_families
 import edgemodbus as em
 from edgemodbus.config import ConfigError
 from edgemodbus.datatypes import DeviceDriverStatus
-from edgemodbus.metrics import MetricsExporter, MetricsSettings
-from edgemodbus.mqtt import MqttPublisher
+from edgemodbus.northbound.metrics import MetricsExporter, MetricsSettings
+from edgemodbus.northbound.mqtt import MqttPublisher
 from tests.peers import ExceptionRange, PymodbusSlave, free_port
 
 Samples = dict[tuple[str, tuple[tuple[str, str], ...]], float]
@@ -160,7 +160,8 @@ def test_bad_metrics_settings_name_the_field() -> None:
 
 def test_importing_edgemodbus_loads_neither_paho_nor_prometheus() -> None:
     code = (
-        "import sys, edgemodbus, edgemodbus.mqtt, edgemodbus.metrics, edgemodbus.service\n"
+        "import sys, edgemodbus, edgemodbus.northbound.mqtt, edgemodbus.northbound.metrics, "
+        "edgemodbus.gateway\n"
         "bad = [m for m in sys.modules if m.startswith(('paho', 'prometheus_client'))]\n"
         "assert not bad, bad\n"
     )

@@ -18,8 +18,8 @@ import pytest
 import edgemodbus as em
 from edgemodbus.config import ConfigError
 from edgemodbus.datatypes import DeviceDriverStatus, ItemStatus
-from edgemodbus.metrics import MetricsExporter
-from edgemodbus.mqtt import (
+from edgemodbus.northbound.metrics import MetricsExporter
+from edgemodbus.northbound.mqtt import (
     MqttPublisher,
     MqttSettings,
     TlsSettings,

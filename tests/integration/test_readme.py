@@ -319,7 +319,7 @@ def run_descriptor(argv: tuple[str, ...], tmp: Path) -> None:
 
 
 def run_service(argv: tuple[str, ...], tmp: Path) -> None:
-    """``run --config-dir`` / ``python -m edgemodbus.service``: polls every device file
+    """``run --config-dir`` / ``python -m edgemodbus.gateway``: polls every device file
     of the folder until SIGTERM, then exits 0."""
     config_dir = tmp / "etc-edgemodbus"
     config_dir.mkdir()
@@ -342,7 +342,7 @@ RUNNERS: dict[tuple[str, ...], Runner] = {
     ("edgemodbus", "plan"): run_plan,
     ("edgemodbus", "simulate"): run_simulate,
     ("edgemodbus", "descriptor"): run_descriptor,
-    ("python", "-m", "edgemodbus.service"): run_service,
+    ("python", "-m", "edgemodbus.gateway"): run_service,
 }
 
 

@@ -1,4 +1,4 @@
-"""The gateway service as users run it: ``python -m edgemodbus.service`` in its own process,
+"""The gateway service as users run it: ``python -m edgemodbus.gateway`` in its own process,
 a config folder, a real mosquitto, a pymodbus slave, signals."""
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from typing import Any
 
 import pytest
 
-from edgemodbus.service import load_gateway_config
+from edgemodbus.gateway import load_gateway_config
 from tests.mosquitto import Mosquitto, MqttProbe
 from tests.peers import PymodbusSlave, default_register, free_port
 
@@ -62,7 +62,7 @@ def write_json(path: Path, data: Any) -> None:
 
 
 class Service:
-    """``python -m edgemodbus.service`` in a child process; always reaped."""
+    """``python -m edgemodbus.gateway`` in a child process; always reaped."""
 
     def __init__(self, config_dir: Path, log_path: Path) -> None:
         self.config_dir = config_dir
@@ -74,7 +74,7 @@ class Service:
         env.pop("JOURNAL_STREAM", None)
         with open(self.log_path, "ab") as log:
             self.proc = subprocess.Popen(
-                [sys.executable, "-m", "edgemodbus.service", "--config-dir",
+                [sys.executable, "-m", "edgemodbus.gateway", "--config-dir",
                  str(self.config_dir)],
                 stdin=subprocess.DEVNULL, stdout=log, stderr=log, cwd=REPO, env=env,
             )
@@ -275,7 +275,7 @@ def test_tls_file_problems_stop_the_service_before_it_connects(
     write_json(conf / "gateway.json", {"gatewayId": "gw", "mqtt": {
         "port": free_port(), "tls": {field: value}}})
     result = subprocess.run(
-        [sys.executable, "-m", "edgemodbus.service", "--config-dir", str(conf)],
+        [sys.executable, "-m", "edgemodbus.gateway", "--config-dir", str(conf)],
         capture_output=True, text=True, timeout=60, cwd=REPO,
     )
     assert result.returncode == 2
@@ -287,7 +287,7 @@ def test_tls_file_problems_stop_the_service_before_it_connects(
 
 @pytest.mark.parametrize("command", [
     ["edgemodbus.cli", "-v", "run"],  # edgemodbus run --config-dir DIR --seconds N
-    ["edgemodbus.service"],
+    ["edgemodbus.gateway"],
 ])
 def test_config_dir_service_stops_by_itself_after_seconds(
     tmp_path: Path, slave: PymodbusSlave, command: list[str]
@@ -418,13 +418,13 @@ def test_bad_gateway_file_is_refused_with_the_field_named(tmp_path: Path) -> Non
     conf.mkdir()
     write_json(conf / "gateway.json", {"gatewayId": "gw", "mqtt": {"qos": 5}})
     result = subprocess.run(
-        [sys.executable, "-m", "edgemodbus.service", "--config-dir", str(conf)],
+        [sys.executable, "-m", "edgemodbus.gateway", "--config-dir", str(conf)],
         capture_output=True, text=True, timeout=60, cwd=REPO,
     )
     assert result.returncode == 2
     assert "mqtt.qos 5: must be 0 or 1 or 2" in result.stderr
     result = subprocess.run(
-        [sys.executable, "-m", "edgemodbus.service", "--config-dir", str(tmp_path / "nope")],
+        [sys.executable, "-m", "edgemodbus.gateway", "--config-dir", str(tmp_path / "nope")],
         capture_output=True, text=True, timeout=60, cwd=REPO,
     )
     assert result.returncode == 2 and "not a directory" in result.stderr

@@ -4,7 +4,7 @@ Needs the extra ``edgemodbus[metrics]`` (prometheus_client); ``import edgemodbus
 imports this module, and prometheus_client is imported only when a
 :class:`MetricsExporter` is made.
 
-Nothing is counted twice and nothing runs on the bus workers: at each scrape a custom
+Nothing is counted twice and nothing runs on the line workers: at each scrape a custom
 collector reads ``stats()`` of every attached driver (and of the publisher) and turns
 the counters into metric families.  Per device (labels ``device``, ``line``):
 requests, responses, timeouts, CRC and protocol errors, exceptions by code, retries,
@@ -28,8 +28,8 @@ from wsgiref.simple_server import WSGIRequestHandler, WSGIServer, make_server
 
 from pydantic import ValidationError
 
-from .config import ConfigError, Model, Range
-from .datatypes import DeviceDriverStatus, enum_value
+from ..config import ConfigError, Model, Range
+from ..datatypes import DeviceDriverStatus, enum_value
 
 if TYPE_CHECKING:
     from prometheus_client.metrics_core import Metric

@@ -1,116 +1,32 @@
-"""The gateway service: poll every device file in a folder, publish to MQTT, serve metrics.
-
-``python -m edgemodbus.service --config-dir DIR [--gateway FILE]`` (and
-``edgemodbus run --config-dir DIR``) runs until SIGTERM or SIGINT:
-
-* every ``*.json`` in DIR is a device file (the seed's format), except the gateway file;
-  a device without ``organization.deviceCode`` is named after its file;
-* the gateway file (``--gateway``, else ``DIR/gateway.json``) holds ``gatewayId`` and
-  the optional ``mqtt`` and ``metrics`` sections; without it the service only polls (and
-  logs); TLS files (``mqtt.tls.caFile`` ...) are checked before anything connects, a
-  relative path is taken from the gateway file's folder;
-* SIGHUP re-reads the gateway file first: one that no longer loads (or names a missing
-  TLS file) is reported and the running settings kept; a changed one is applied live:
-  a changed ``mqtt`` section or ``gatewayId`` (or changed TLS file contents) restarts the
-  MQTT publisher (the old one says offline with reason ``reconfigure``), a changed
-  ``metrics`` section moves the exporter, a changed ``mqtt.snapshotInterval`` restarts
-  the devices that take theirs from it, ``devicePattern`` and ``statusCheckInterval``
-  apply at once;
-* then SIGHUP re-reads DIR: a new file starts its device, a removed file stops it, a file
-  whose address list alone changed is applied with ``update_addresses`` (the device keeps
-  running), any other change restarts just that device; a file that no longer loads is
-  reported and the running version kept;
-* ``--seconds N`` stops the service after N seconds as SIGTERM would (0: run until a
-  signal);
-* SIGTERM stops every device at once (each waits at most for the request in flight, so
-  the whole stop takes about one response timeout), publishes the devices' last status
-  and the gateway offline, and exits 0;
-* the log has one line per device status change and per lifecycle event, never per value.
-"""
+"""The devices of one config folder with their MQTT publisher and metrics exporter:
+started, reloaded (the gateway file, then the device files) and stopped."""
 
 from __future__ import annotations
 
-import argparse
 import hashlib
 import logging
-import math
-import os
-import signal
-import socket
-import sys
 import threading
-import time
-from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from types import FrameType
-from typing import TYPE_CHECKING, Any, ClassVar
+from typing import TYPE_CHECKING
 
+from ..config import ConfigError, DeviceConfig, DriverModbusRtuParameter, load_device_config
+from ..driver import DriverModbusRtu
 from .config import (
-    ConfigError,
-    DeviceConfig,
-    DriverModbusRtuParameter,
-    Model,
-    Ms,
-    Problem,
-    load_device_config,
-    load_model,
+    GATEWAY_FILE,
+    GatewayConfig,
+    gateway_digest,
+    inherited_snapshot,
+    load_gateway_config,
+    metrics_key,
+    mqtt_key,
 )
-from .driver import DriverModbusRtu
-from .metrics import MetricsSettings
-from .mqtt import MqttSettings, check_name
 
 if TYPE_CHECKING:
-    from .metrics import MetricsExporter
-    from .mqtt import MqttPublisher
+    from ..northbound.metrics import MetricsExporter
+    from ..northbound.mqtt import MqttPublisher
 
 log = logging.getLogger("edgemodbus.service")
-
-GATEWAY_FILE = "gateway.json"
-
-
-class GatewayConfig(Model):
-    """The gateway file: who this gateway is and where its data goes."""
-
-    _where: ClassVar[str] = "gateway"
-
-    gateway_id: str | None = None  # default: the host name
-    mqtt: MqttSettings | None = None
-    metrics: MetricsSettings | None = None
-    device_pattern: str = "*.json"
-    status_check_interval: Ms = 500
-
-    @property
-    def effective_id(self) -> str:
-        return self.gateway_id or socket.gethostname().split(".")[0] or "edgemodbus"
-
-
-def load_gateway_config(path: str | os.PathLike[str] | dict[str, Any]) -> GatewayConfig:
-    """Load and check a gateway file; ConfigError names the field, value and rule.
-
-    The TLS files of an enabled ``mqtt.tls`` must exist and hold PEM data (checked here,
-    so a bad path is reported before anything connects); relative paths are taken from
-    the gateway file's folder."""
-    cfg = load_model(GatewayConfig, path)
-    mqtt = cfg.mqtt
-    if mqtt is None or not mqtt.enabled:
-        return cfg
-    problems: list[Problem] = []
-    try:
-        check_name("gatewayId", cfg.effective_id)
-    except ValueError as exc:
-        problems.append(Problem("gatewayId", cfg.effective_id, str(exc)))
-    if mqtt.tls is not None and mqtt.tls.enabled:
-        tls = mqtt.tls
-        if isinstance(path, os.PathLike) or (
-                isinstance(path, str)
-                and not path.lstrip("\ufeff \t\r\n").startswith(("{", "["))):
-            tls = tls.resolved(Path(path).absolute().parent)
-            cfg = cfg.model_copy(update={"mqtt": mqtt.model_copy(update={"tls": tls})})
-        problems += tls.problems()
-    if problems:
-        raise ConfigError(problems)
-    return cfg
 
 
 def line_label(params: DriverModbusRtuParameter) -> str:
@@ -121,7 +37,9 @@ def line_label(params: DriverModbusRtuParameter) -> str:
 
 
 @dataclass
-class _Device:
+class ServiceDevice:
+    """A device file of the folder and the driver running it."""
+
     path: Path
     digest: str
     cfg: DeviceConfig  # as loaded from the file (reload compares these)
@@ -140,16 +58,16 @@ class Gateway:
         # watched even when absent: one that appears later is applied on SIGHUP
         self.gateway_file = (gateway_file or config_dir / GATEWAY_FILE).resolve()
         self.gateway_id = config.effective_id
-        self.devices: dict[Path, _Device] = {}
+        self.devices: dict[Path, ServiceDevice] = {}
         self.publisher: MqttPublisher | None = None
         self.exporter: MetricsExporter | None = None
-        self._gateway_digest = _gateway_digest(self.gateway_file, config)
+        self._gateway_digest = gateway_digest(self.gateway_file, config)
 
     # -- lifecycle -------------------------------------------------------------------
     def start(self) -> None:
         mqtt = self.config.mqtt
         if mqtt is not None and mqtt.enabled:
-            from .mqtt import MqttPublisher
+            from ..northbound.mqtt import MqttPublisher
 
             self.publisher = MqttPublisher(mqtt, gateway_id=self.gateway_id).start()
             log.info("MQTT: gateway %s publishing to %s:%d", self.gateway_id, mqtt.host,
@@ -177,7 +95,7 @@ class Gateway:
             self.exporter = None
 
     def reload(self) -> None:
-        """SIGHUP: the gateway file, then the device files (see the module doc)."""
+        """SIGHUP: the gateway file, then the device files (see gateway/__init__.py)."""
         self.reload_gateway()
         self.reload_devices()
 
@@ -187,7 +105,7 @@ class Gateway:
         path = self.gateway_file
         keep = "keeping the running gateway settings"
         try:
-            digest = _gateway_digest(path, self.config)
+            digest = gateway_digest(path, self.config)
         except OSError as exc:
             log.error("%s: cannot read: %s; %s", path, exc.strerror or exc, keep)
             return
@@ -207,7 +125,7 @@ class Gateway:
         except (ValueError, OSError, ImportError) as exc:
             log.error("%s: not applied, %s: %s", path, keep, exc)
             return
-        self._gateway_digest = _gateway_digest(path, new)
+        self._gateway_digest = gateway_digest(path, new)
         log.info("%s: gateway settings applied: %s", path,
                  "; ".join(applied) if applied else "no effective change")
 
@@ -217,9 +135,9 @@ class Gateway:
         old = self.config
         done: list[str] = []
         publisher: MqttPublisher | None = None
-        mqtt_changed = _mqtt_key(old) != _mqtt_key(new)
+        mqtt_changed = mqtt_key(old) != mqtt_key(new)
         if mqtt_changed and new.mqtt is not None and new.mqtt.enabled:
-            from .mqtt import MqttPublisher
+            from ..northbound.mqtt import MqttPublisher
 
             publisher = MqttPublisher(new.mqtt, gateway_id=new.effective_id)
             try:
@@ -229,7 +147,7 @@ class Gateway:
             except ValueError:
                 publisher.stop()
                 raise
-        if _metrics_key(old) != _metrics_key(new):
+        if metrics_key(old) != metrics_key(new):
             try:
                 self._swap_exporter(new)
             except OSError:
@@ -245,14 +163,14 @@ class Gateway:
             done.append(f"MQTT publisher restarted ({new.mqtt.host}:{new.mqtt.port}, "
                         f"gateway {self.gateway_id})"
                         if publisher is not None and new.mqtt is not None else "MQTT off")
-        if _inherited_snapshot(old) != _inherited_snapshot(new):
+        if inherited_snapshot(old) != inherited_snapshot(new):
             restarted = [dev for dev in list(self.devices.values())
                          if "snapshot_interval" not in dev.cfg.communication.model_fields_set]
             for dev in restarted:
                 del self.devices[dev.path]
                 self._stop_device(dev)
                 self._start_device(dev.path, dev.digest, dev.cfg, action="restarted")
-            done.append(f"snapshotInterval {_inherited_snapshot(new)} ms: "
+            done.append(f"snapshotInterval {inherited_snapshot(new)} ms: "
                         f"{len(restarted)} devices restarted")
         for key in ("devicePattern", "statusCheckInterval"):
             if old.to_dict()[key] != new.to_dict()[key]:
@@ -321,7 +239,7 @@ class Gateway:
         return files
 
     def reload_devices(self) -> None:
-        """Bring the running devices in line with the folder (see the module doc)."""
+        """Bring the running devices in line with the folder (see gateway/__init__.py)."""
         files = self.device_files()
         for path in [p for p in self.devices if p not in files]:
             dev = self.devices.pop(path)
@@ -360,7 +278,7 @@ class Gateway:
             return
         org = cfg.organization.model_copy(update={"device_code": code})
         comm = cfg.communication
-        snapshot_interval = _inherited_snapshot(self.config)
+        snapshot_interval = inherited_snapshot(self.config)
         if snapshot_interval and "snapshot_interval" not in comm.model_fields_set:
             comm = comm.model_copy(update={"snapshot_interval": snapshot_interval})
         items = [it.model_copy(deep=True) for it in cfg.address_list]
@@ -377,13 +295,13 @@ class Gateway:
             log.error("%s: not started: %s", path, exc)
             return
         status = driver.device_driver_status.value
-        self.devices[path] = _Device(path, digest, cfg, code, driver, status)
+        self.devices[path] = ServiceDevice(path, digest, cfg, code, driver, status)
         if running:
             log.info("%s: %s from %s (%d items)", code, action, path.name, len(items))
         else:
             log.info("%s: %s (%s)", code, status, path.name)
 
-    def _change_device(self, dev: _Device, digest: str, cfg: DeviceConfig) -> None:
+    def _change_device(self, dev: ServiceDevice, digest: str, cfg: DeviceConfig) -> None:
         same_line = (cfg.organization.to_dict() == dev.cfg.organization.to_dict()
                      and cfg.communication.to_dict() == dev.cfg.communication.to_dict()
                      and cfg.driver_type == dev.cfg.driver_type)
@@ -405,7 +323,7 @@ class Gateway:
         self._stop_device(dev)
         self._start_device(dev.path, digest, cfg, action="restarted")
 
-    def _stop_device(self, dev: _Device) -> None:
+    def _stop_device(self, dev: ServiceDevice) -> None:
         try:
             dev.driver.stop_device()
         except Exception:
@@ -430,61 +348,12 @@ class Gateway:
 
 def _digest(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
-
-
-def _gateway_digest(path: Path, config: GatewayConfig) -> str | None:
-    """A digest of the gateway file and of the TLS files ``config`` uses (so SIGHUP after
-    a certificate renewal reconnects); None when the gateway file does not exist."""
-    try:
-        data = path.read_bytes()
-    except FileNotFoundError:
-        return None
-    return hashlib.sha256(data + _tls_digest(config).encode()).hexdigest()
-
-
-def _tls_digest(config: GatewayConfig) -> str:
-    """A digest of the contents of the TLS files ``config`` uses ("" for none)."""
-    tls = config.mqtt.tls if config.mqtt is not None else None
-    if tls is None or not tls.enabled:
-        return ""
-    digest = hashlib.sha256()
-    for name in sorted(tls.files().values()):
-        try:
-            digest.update(Path(name).read_bytes())
-        except OSError as exc:  # reported when the gateway file is loaded
-            digest.update(str(exc).encode())
-    return digest.hexdigest()
-
-
-def _mqtt_key(config: GatewayConfig) -> tuple[str, dict[str, Any], str] | None:
-    """What the publisher is made from (settings, gateway id, TLS file contents): a
-    change of it restarts the publisher.  ``snapshotInterval`` is the devices' business
-    (see :func:`_inherited_snapshot`), not the publisher's."""
-    mqtt = config.mqtt
-    if mqtt is None or not mqtt.enabled:
-        return None
-    settings = mqtt.to_dict()
-    del settings["snapshotInterval"]
-    return config.effective_id, settings, _tls_digest(config)
-
-
-def _metrics_key(config: GatewayConfig) -> dict[str, Any] | None:
-    metrics = config.metrics
-    return None if metrics is None or not metrics.enabled else metrics.to_dict()
-
-
-def _inherited_snapshot(config: GatewayConfig) -> int:
-    """The snapshot interval devices without their own take from ``mqtt``."""
-    mqtt = config.mqtt
-    return mqtt.snapshot_interval if mqtt is not None and mqtt.enabled else 0
-
-
 def _start_exporter(config: GatewayConfig) -> MetricsExporter | None:
     """The exporter ``config`` asks for, listening; OSError names the address."""
     metrics = config.metrics
     if metrics is None or not metrics.enabled:
         return None
-    from .metrics import MetricsExporter
+    from ..northbound.metrics import MetricsExporter
 
     exporter = MetricsExporter(metrics, gateway_id=config.effective_id)
     try:
@@ -494,104 +363,3 @@ def _start_exporter(config: GatewayConfig) -> MetricsExporter | None:
                       f"{exc.strerror or exc}") from None
     return exporter
 
-
-def run_service(config_dir: Path, gateway_config: Path | None = None, *,
-                seconds: float = 0.0) -> int:
-    """Run the gateway until SIGTERM/SIGINT, or for ``seconds`` (0: until a signal);
-    SIGHUP reloads.  Returns the exit code: 0 after a clean stop, 2 for a configuration
-    error (printed on stderr)."""
-    config_dir = Path(config_dir)
-    if not seconds >= 0:  # also refuses NaN
-        print(f"edgemodbus service: --seconds {seconds}: must be >= 0 (0: run until a "
-              "signal)", file=sys.stderr)
-        return 2
-    if not config_dir.is_dir():
-        print(f"edgemodbus service: --config-dir {str(config_dir)!r}: not a directory",
-              file=sys.stderr)
-        return 2
-    if gateway_config is None and (config_dir / GATEWAY_FILE).is_file():
-        gateway_config = config_dir / GATEWAY_FILE
-    try:
-        config = (load_gateway_config(gateway_config) if gateway_config is not None
-                  else GatewayConfig())
-    except (ConfigError, OSError) as exc:
-        print(f"edgemodbus service: {gateway_config}: {exc}", file=sys.stderr)
-        return 2
-    wake = threading.Event()
-    flags = {"stop": False, "reload": False}
-
-    def on_stop(signum: int, _frame: FrameType | None) -> None:
-        flags["stop"] = True
-        wake.set()
-
-    def on_reload(signum: int, _frame: FrameType | None) -> None:
-        flags["reload"] = True
-        wake.set()
-
-    previous: dict[signal.Signals, Any] = {}
-    if threading.current_thread() is threading.main_thread():
-        for sig, handler in ((signal.SIGTERM, on_stop), (signal.SIGINT, on_stop),
-                             (signal.SIGHUP, on_reload)):
-            previous[sig] = signal.signal(sig, handler)
-    gateway = Gateway(config_dir, config, gateway_config)
-    try:
-        try:
-            gateway.start()
-        except (OSError, ValueError) as exc:
-            print(f"edgemodbus service: {exc}", file=sys.stderr)
-            return 2
-        log.info("gateway %s running: %d device files in %s", gateway.gateway_id,
-                 len(gateway.devices), config_dir)
-        deadline = time.monotonic() + seconds if seconds > 0 else math.inf
-        while not flags["stop"]:
-            left = deadline - time.monotonic()
-            if left <= 0:
-                log.info("%g s elapsed (--seconds)", seconds)
-                break
-            wake.wait(min(gateway.config.status_check_interval / 1000, left))
-            wake.clear()
-            if flags["reload"] and not flags["stop"]:
-                flags["reload"] = False
-                log.info("SIGHUP: reloading %s", config_dir)
-                gateway.reload()
-            gateway.check_statuses()
-        log.info("stopping")
-    finally:
-        started = time.monotonic()
-        gateway.stop()
-        for sig, old in previous.items():
-            signal.signal(sig, old)
-    log.info("stopped in %.0f ms", (time.monotonic() - started) * 1000)
-    return 0
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
-        prog="python -m edgemodbus.service",
-        description="Poll every device file in a folder; MQTT and metrics from a gateway "
-                    "file; SIGHUP reloads, SIGTERM stops.")
-    parser.add_argument("--config-dir", type=Path, required=True,
-                        help="folder of device files (*.json)")
-    parser.add_argument("--gateway", type=Path, default=None,
-                        help=f"gateway file (default: DIR/{GATEWAY_FILE} if present)")
-    parser.add_argument("-v", "--verbose", action="count", default=0,
-                        help="-v: debug logs of edgemodbus")
-    parser.add_argument("--seconds", type=float, default=0.0,
-                        help="stop after N s (0: run until SIGTERM or SIGINT)")
-    parser.add_argument("-q", "--quiet", action="store_true", help="warnings and errors only")
-    args = parser.parse_args(argv)
-    configure_logging(args.verbose, args.quiet)
-    return run_service(args.config_dir, args.gateway, seconds=args.seconds)
-
-
-def configure_logging(verbose: int = 0, quiet: bool = False) -> None:
-    """INFO by default; no timestamps under systemd (the journal has them)."""
-    level = logging.WARNING if quiet else logging.DEBUG if verbose else logging.INFO
-    fmt = "%(levelname)s %(name)s: %(message)s"
-    if not os.environ.get("JOURNAL_STREAM"):
-        fmt = "%(asctime)s " + fmt
-    logging.basicConfig(level=level, format=fmt)
-
-
-if __name__ == "__main__":
-    sys.exit(main())

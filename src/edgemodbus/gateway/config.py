@@ -1,0 +1,108 @@
+"""The gateway file: who this gateway is and where its data goes (``gatewayId``, ``mqtt``,
+``metrics``), loaded and checked; and what of it a reload compares."""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import socket
+from pathlib import Path
+from typing import Any, ClassVar
+
+from ..config import ConfigError, Model, Ms, Problem, load_model
+from ..northbound.metrics import MetricsSettings
+from ..northbound.mqtt import MqttSettings, check_name
+
+GATEWAY_FILE = "gateway.json"
+
+
+class GatewayConfig(Model):
+    """The gateway file: who this gateway is and where its data goes."""
+
+    _where: ClassVar[str] = "gateway"
+
+    gateway_id: str | None = None  # default: the host name
+    mqtt: MqttSettings | None = None
+    metrics: MetricsSettings | None = None
+    device_pattern: str = "*.json"
+    status_check_interval: Ms = 500
+
+    @property
+    def effective_id(self) -> str:
+        return self.gateway_id or socket.gethostname().split(".")[0] or "edgemodbus"
+
+
+def load_gateway_config(path: str | os.PathLike[str] | dict[str, Any]) -> GatewayConfig:
+    """Load and check a gateway file; ConfigError names the field, value and rule.
+
+    The TLS files of an enabled ``mqtt.tls`` must exist and hold PEM data (checked here,
+    so a bad path is reported before anything connects); relative paths are taken from
+    the gateway file's folder."""
+    cfg = load_model(GatewayConfig, path)
+    mqtt = cfg.mqtt
+    if mqtt is None or not mqtt.enabled:
+        return cfg
+    problems: list[Problem] = []
+    try:
+        check_name("gatewayId", cfg.effective_id)
+    except ValueError as exc:
+        problems.append(Problem("gatewayId", cfg.effective_id, str(exc)))
+    if mqtt.tls is not None and mqtt.tls.enabled:
+        tls = mqtt.tls
+        if isinstance(path, os.PathLike) or (
+                isinstance(path, str)
+                and not path.lstrip("\ufeff \t\r\n").startswith(("{", "["))):
+            tls = tls.resolved(Path(path).absolute().parent)
+            cfg = cfg.model_copy(update={"mqtt": mqtt.model_copy(update={"tls": tls})})
+        problems += tls.problems()
+    if problems:
+        raise ConfigError(problems)
+    return cfg
+
+
+def gateway_digest(path: Path, config: GatewayConfig) -> str | None:
+    """A digest of the gateway file and of the TLS files ``config`` uses (so SIGHUP after
+    a certificate renewal reconnects); None when the gateway file does not exist."""
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        return None
+    return hashlib.sha256(data + _tls_digest(config).encode()).hexdigest()
+
+
+def _tls_digest(config: GatewayConfig) -> str:
+    """A digest of the contents of the TLS files ``config`` uses ("" for none)."""
+    tls = config.mqtt.tls if config.mqtt is not None else None
+    if tls is None or not tls.enabled:
+        return ""
+    digest = hashlib.sha256()
+    for name in sorted(tls.files().values()):
+        try:
+            digest.update(Path(name).read_bytes())
+        except OSError as exc:  # reported when the gateway file is loaded
+            digest.update(str(exc).encode())
+    return digest.hexdigest()
+
+
+def mqtt_key(config: GatewayConfig) -> tuple[str, dict[str, Any], str] | None:
+    """What the publisher is made from (settings, gateway id, TLS file contents): a
+    change of it restarts the publisher.  ``snapshotInterval`` is the devices' business
+    (see :func:`inherited_snapshot`), not the publisher's."""
+    mqtt = config.mqtt
+    if mqtt is None or not mqtt.enabled:
+        return None
+    settings = mqtt.to_dict()
+    del settings["snapshotInterval"]
+    return config.effective_id, settings, _tls_digest(config)
+
+
+def metrics_key(config: GatewayConfig) -> dict[str, Any] | None:
+    """What the exporter is made from: a change of it moves the exporter."""
+    metrics = config.metrics
+    return None if metrics is None or not metrics.enabled else metrics.to_dict()
+
+
+def inherited_snapshot(config: GatewayConfig) -> int:
+    """The snapshot interval devices without their own take from ``mqtt``."""
+    mqtt = config.mqtt
+    return mqtt.snapshot_interval if mqtt is not None and mqtt.enabled else 0

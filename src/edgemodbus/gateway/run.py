@@ -1,0 +1,122 @@
+"""The service process: run the gateway until a signal (SIGHUP reloads), and its command
+line ``python -m edgemodbus.gateway``."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import math
+import os
+import signal
+import sys
+import threading
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from types import FrameType
+from typing import Any
+
+from ..config import ConfigError
+from .config import GATEWAY_FILE, GatewayConfig, load_gateway_config
+from .service import Gateway
+
+log = logging.getLogger("edgemodbus.service")
+
+
+def run_service(config_dir: Path, gateway_config: Path | None = None, *,
+                seconds: float = 0.0) -> int:
+    """Run the gateway until SIGTERM/SIGINT, or for ``seconds`` (0: until a signal);
+    SIGHUP reloads.  Returns the exit code: 0 after a clean stop, 2 for a configuration
+    error (printed on stderr)."""
+    config_dir = Path(config_dir)
+    if not seconds >= 0:  # also refuses NaN
+        print(f"edgemodbus service: --seconds {seconds}: must be >= 0 (0: run until a "
+              "signal)", file=sys.stderr)
+        return 2
+    if not config_dir.is_dir():
+        print(f"edgemodbus service: --config-dir {str(config_dir)!r}: not a directory",
+              file=sys.stderr)
+        return 2
+    if gateway_config is None and (config_dir / GATEWAY_FILE).is_file():
+        gateway_config = config_dir / GATEWAY_FILE
+    try:
+        config = (load_gateway_config(gateway_config) if gateway_config is not None
+                  else GatewayConfig())
+    except (ConfigError, OSError) as exc:
+        print(f"edgemodbus service: {gateway_config}: {exc}", file=sys.stderr)
+        return 2
+    wake = threading.Event()
+    flags = {"stop": False, "reload": False}
+
+    def on_stop(signum: int, _frame: FrameType | None) -> None:
+        flags["stop"] = True
+        wake.set()
+
+    def on_reload(signum: int, _frame: FrameType | None) -> None:
+        flags["reload"] = True
+        wake.set()
+
+    previous: dict[signal.Signals, Any] = {}
+    if threading.current_thread() is threading.main_thread():
+        for sig, handler in ((signal.SIGTERM, on_stop), (signal.SIGINT, on_stop),
+                             (signal.SIGHUP, on_reload)):
+            previous[sig] = signal.signal(sig, handler)
+    gateway = Gateway(config_dir, config, gateway_config)
+    try:
+        try:
+            gateway.start()
+        except (OSError, ValueError) as exc:
+            print(f"edgemodbus service: {exc}", file=sys.stderr)
+            return 2
+        log.info("gateway %s running: %d device files in %s", gateway.gateway_id,
+                 len(gateway.devices), config_dir)
+        deadline = time.monotonic() + seconds if seconds > 0 else math.inf
+        while not flags["stop"]:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                log.info("%g s elapsed (--seconds)", seconds)
+                break
+            wake.wait(min(gateway.config.status_check_interval / 1000, left))
+            wake.clear()
+            if flags["reload"] and not flags["stop"]:
+                flags["reload"] = False
+                log.info("SIGHUP: reloading %s", config_dir)
+                gateway.reload()
+            gateway.check_statuses()
+        log.info("stopping")
+    finally:
+        started = time.monotonic()
+        gateway.stop()
+        for sig, old in previous.items():
+            signal.signal(sig, old)
+    log.info("stopped in %.0f ms", (time.monotonic() - started) * 1000)
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        prog="python -m edgemodbus.gateway",
+        description="Poll every device file in a folder; MQTT and metrics from a gateway "
+                    "file; SIGHUP reloads, SIGTERM stops.")
+    parser.add_argument("--config-dir", type=Path, required=True,
+                        help="folder of device files (*.json)")
+    parser.add_argument("--gateway", type=Path, default=None,
+                        help=f"gateway file (default: DIR/{GATEWAY_FILE} if present)")
+    parser.add_argument("-v", "--verbose", action="count", default=0,
+                        help="-v: debug logs of edgemodbus")
+    parser.add_argument("--seconds", type=float, default=0.0,
+                        help="stop after N s (0: run until SIGTERM or SIGINT)")
+    parser.add_argument("-q", "--quiet", action="store_true", help="warnings and errors only")
+    args = parser.parse_args(argv)
+    configure_logging(args.verbose, args.quiet)
+    return run_service(args.config_dir, args.gateway, seconds=args.seconds)
+
+
+def configure_logging(verbose: int = 0, quiet: bool = False) -> None:
+    """INFO by default; no timestamps under systemd (the journal has them)."""
+    level = logging.WARNING if quiet else logging.DEBUG if verbose else logging.INFO
+    fmt = "%(levelname)s %(name)s: %(message)s"
+    if not os.environ.get("JOURNAL_STREAM"):
+        fmt = "%(asctime)s " + fmt
+    logging.basicConfig(level=level, format=fmt)
+

@@ -1,0 +1,175 @@
+"""Writes from MQTT: the command payloads, and the thread that runs them.
+
+Commands run on one ``edgemodbus-mqtt-cmd`` thread with an asyncio loop through
+``write_addresses_async`` (many devices' writes in flight at once; per device in arrival
+order); the result goes to the device's reply topic."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+import threading
+from typing import Any
+
+from .devices import AttachedDevice
+from .outbox import Outbox
+from .payload import dumps, now
+
+log = logging.getLogger("edgemodbus.mqtt")
+
+_MAX_COMMAND_BYTES = 65536
+_MAX_PENDING_COMMANDS = 256
+
+
+def request_id_of(payload: bytes) -> Any:
+    """The ``id`` of a JSON object payload, if there is one (for error replies)."""
+    try:
+        obj = json.loads(payload)
+    except (ValueError, UnicodeDecodeError):
+        return None
+    return obj.get("id") if isinstance(obj, dict) else None
+
+
+def parse_command(name: str | None, payload: bytes) -> tuple[Any, list[tuple[str, Any]]]:
+    """(request id, [(item, value), ...]) from a command payload; ValueError says what
+    is wrong.  ``name`` is the item of a single-item topic, None for the batch topic.
+
+    Single item: a JSON value (``12.5``, ``true``, ``"text"``), or ``{"value": v, "id": x}``;
+    text that is not JSON is taken as a string.  Batch: ``{"name": value, ...}``, or
+    ``{"items": {...} | [{"name": n, "value": v}, ...] | [[n, v], ...], "id": x}``.
+    """
+    if len(payload) > _MAX_COMMAND_BYTES:
+        raise ValueError(f"payload of {len(payload)} bytes is too large "
+                         f"(at most {_MAX_COMMAND_BYTES})")
+    try:
+        text = payload.decode("utf-8")
+    except UnicodeDecodeError:
+        raise ValueError("payload is not UTF-8 text") from None
+    if name is not None:
+        if not name:
+            raise ValueError("no item name in the command topic")
+        try:
+            value = json.loads(text)
+        except ValueError:
+            return None, [(name, text)]
+        if isinstance(value, dict):
+            if "value" not in value:
+                raise ValueError('an object payload needs a "value" key, e.g. {"value": 1}')
+            return value.get("id"), [(name, value["value"])]
+        return None, [(name, value)]
+    try:
+        body = json.loads(text)
+    except ValueError as exc:
+        raise ValueError(f"batch payload is not JSON: {exc}") from None
+    request_id: Any = None
+    if isinstance(body, dict) and "items" in body:
+        request_id = body.get("id")
+        body = body["items"]
+    items: list[tuple[str, Any]] = []
+    if isinstance(body, dict):
+        items = [(str(k), v) for k, v in body.items()]
+    elif isinstance(body, list):
+        for i, entry in enumerate(body):
+            if isinstance(entry, dict) and isinstance(entry.get("name"), str) and (
+                "value" in entry
+            ):
+                items.append((entry["name"], entry["value"]))
+            elif isinstance(entry, list) and len(entry) == 2 and isinstance(entry[0], str):
+                items.append((entry[0], entry[1]))
+            else:
+                raise ValueError(f'items[{i}] {entry!r}: use {{"name": ..., "value": ...}} '
+                                 "or [name, value]")
+    else:
+        raise ValueError(f"batch payload {body!r}: use an object of item names to values, "
+                         'or {"items": ..., "id": ...}')
+    if not items:
+        raise ValueError("batch payload names no items")
+    return request_id, items
+
+
+class CommandRunner:
+    """The command thread: a write per command, replies through the outbox."""
+
+    def __init__(self, outbox: Outbox) -> None:
+        self._outbox = outbox
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._thread: threading.Thread | None = None
+        self.pending = 0  # commands taken and not yet answered (under the outbox's lock)
+
+    def start(self) -> None:
+        loop = asyncio.new_event_loop()
+        self._loop = loop
+        self._thread = threading.Thread(target=self._run, args=(loop,),
+                                        name="edgemodbus-mqtt-cmd", daemon=True)
+        self._thread.start()
+
+    def dispatch(self, dev: AttachedDevice, name: str | None, payload: bytes) -> None:
+        loop = self._loop
+        if loop is None or loop.is_closed():
+            return
+        with self._outbox.lock:
+            self._outbox.counts["commands"] += 1
+            busy = self.pending >= _MAX_PENDING_COMMANDS
+            if not busy:
+                self.pending += 1
+        if busy:
+            self._reply(dev, request_id_of(payload), False,
+                        "too many writes pending; try again later", [])
+            return
+        try:
+            loop.call_soon_threadsafe(self._spawn, dev, name, payload)
+        except RuntimeError:  # the loop is closing: stop() is under way
+            with self._outbox.lock:
+                self.pending -= 1
+
+    def _spawn(self, dev: AttachedDevice, name: str | None, payload: bytes) -> None:
+        asyncio.get_running_loop().create_task(self._command(dev, name, payload))
+
+    async def _command(self, dev: AttachedDevice, name: str | None, payload: bytes) -> None:
+        request_id: Any = None
+        names: list[str] = []
+        try:
+            try:
+                request_id, items = parse_command(name, payload)
+            except ValueError as exc:
+                self._reply(dev, request_id_of(payload), False, str(exc), [])
+                return
+            names = [n for n, _ in items]
+            ok, error = await dev.driver.write_addresses_async(items)
+            self._reply(dev, request_id, ok, error, names)
+        except Exception as exc:  # never let a command kill the loop
+            log.exception("%s: MQTT write failed", dev.code)
+            self._reply(dev, request_id, False, f"internal error: {exc}", names)
+        finally:
+            with self._outbox.lock:
+                self.pending -= 1
+
+    def _reply(self, dev: AttachedDevice, request_id: Any, ok: bool, error: str | None,
+               names: list[str]) -> None:
+        if not ok:
+            self._outbox.count("commandErrors")
+        body = {"id": request_id, "ok": ok, "error": error, "items": names, "ts": now()}
+        self._outbox.push_control(dev.reply_topic, dumps(body), 1, False)
+
+    def _run(self, loop: asyncio.AbstractEventLoop) -> None:
+        asyncio.set_event_loop(loop)
+        try:
+            loop.run_forever()
+        finally:
+            tasks = asyncio.all_tasks(loop)
+            for task in tasks:
+                task.cancel()
+            if tasks:
+                loop.run_until_complete(asyncio.gather(*tasks, return_exceptions=True))
+            loop.close()
+
+    def stop(self) -> None:
+        loop, thread = self._loop, self._thread
+        if loop is None or thread is None:
+            return
+        with contextlib.suppress(RuntimeError):
+            loop.call_soon_threadsafe(loop.stop)
+        thread.join(5.0)
+        self._thread = None

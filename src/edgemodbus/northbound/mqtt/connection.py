@@ -1,0 +1,82 @@
+"""The connection to the broker, in words and in the log: why an attempt failed, failures
+logged without flooding, and dropping a connection that never got its CONNACK."""
+
+from __future__ import annotations
+
+import logging
+import socket
+import ssl
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from paho.mqtt.client import Client
+
+log = logging.getLogger("edgemodbus.mqtt")
+
+
+class FailureLog:
+    """Failed connection attempts, logged without flooding: the first at once, then at
+    most one line per ``interval`` seconds with the number of attempts it stands for;
+    every attempt at debug level."""
+
+    def __init__(self, where: str, interval: float, retry_max: float) -> None:
+        self.where = where
+        self.interval = interval
+        self.retry_max = retry_max
+        self.total = 0  # failures since the last success
+        self.unreported = 0  # failures since the last warning line
+        self.last_line = 0.0
+
+    def failed(self, reason: str, now: float) -> None:
+        self.total += 1
+        self.unreported += 1
+        log.debug("MQTT broker %s: connection attempt %d failed: %s", self.where, self.total,
+                  reason)
+        if self.total == 1:
+            log.warning("MQTT broker %s: connection failed: %s; retrying with backoff up to "
+                        "%g s (repeats logged at most every %g s)", self.where, reason,
+                        self.retry_max, self.interval)
+        elif now - self.last_line >= self.interval:
+            log.warning("MQTT broker %s: still failing: %s (%d failed attempts since the "
+                        "last report, %d in all)", self.where, reason, self.unreported,
+                        self.total)
+        else:
+            return
+        self.unreported = 0
+        self.last_line = now
+
+    def succeeded(self) -> int:
+        """Forget the failures; how many there were."""
+        total, self.total, self.unreported = self.total, 0, 0
+        return total
+
+
+def error_text(exc: BaseException, tls: bool) -> str:
+    """A connect error in words: ``connection refused``, ``timed out``, the TLS error;
+    with ``tls``, a handshake cut short hints at a port that does not speak TLS."""
+    if tls and isinstance(exc, (ConnectionResetError, BrokenPipeError, ssl.SSLError)) and (
+            not isinstance(exc, ssl.CertificateError)):
+        return f"{error_text(exc, False)} (mqtt.tls is on: does this port speak TLS?)"
+    if isinstance(exc, ssl.SSLCertVerificationError):
+        return f"TLS certificate check failed: {exc.verify_message or exc}"
+    if isinstance(exc, ssl.CertificateError):  # paho's own host name check
+        return f"TLS certificate check failed: {exc}"
+    if isinstance(exc, ssl.SSLError):
+        return f"TLS handshake failed: {exc.reason or exc}"
+    if isinstance(exc, socket.gaierror):
+        return f"cannot resolve the host name: {exc.strerror or exc}"
+    if isinstance(exc, TimeoutError) and not exc.strerror:
+        return "timed out (connectTimeout)"
+    if isinstance(exc, OSError) and exc.strerror:
+        return exc.strerror.lower() if exc.strerror[:1].isupper() else exc.strerror
+    return str(exc) or type(exc).__name__
+
+
+def close_socket(client: Client) -> None:
+    """Drop a connection that never got its CONNACK (paho has no public call for a
+    connection that is not established; its reconnect() closes the old socket first)."""
+    close = getattr(client, "_sock_close", None)
+    if callable(close):
+        close()
+    else:  # pragma: no cover - a paho without it: DISCONNECT, closed once written
+        client.disconnect()

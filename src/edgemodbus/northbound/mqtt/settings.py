@@ -1,0 +1,251 @@
+"""The ``mqtt`` section of the gateway file: broker, TLS files, topic templates, queues.
+
+The templates are checked when loaded (placeholders, no wildcards); the TLS files are
+checked by :meth:`TlsSettings.problems` before anything connects."""
+
+from __future__ import annotations
+
+import os
+import ssl
+import string
+from collections.abc import Callable, Mapping
+from pathlib import Path
+from typing import Annotated, Any, ClassVar
+
+from pydantic import ValidationError, field_validator, model_validator
+
+from ...config import MAX_MS, Choice, ConfigError, Model, Ms, Problem, Range
+
+PLACEHOLDERS = ("prefix", "deviceCode", "itemName", "gatewayId")
+FORBIDDEN = ("+", "#", "\0")  # never in a topic level: the wildcards and NUL
+
+
+class TlsSettings(Model):
+    """TLS to the broker: CA file (else the system's), optional client certificate.
+
+    ``enabled: false`` keeps the section in the file without using it (the shipped
+    example does so).  :meth:`problems` checks the files before any connection."""
+
+    _where: ClassVar[str] = "mqtt.tls"
+
+    enabled: bool = True
+    ca_file: str | None = None
+    cert_file: str | None = None
+    key_file: str | None = None
+    insecure: bool = False  # skip the host name check (self-signed lab brokers only)
+
+    def files(self) -> dict[str, str]:
+        """The file fields that are set, JSON key -> path."""
+        named = {"caFile": self.ca_file, "certFile": self.cert_file, "keyFile": self.key_file}
+        return {key: path for key, path in named.items() if path is not None}
+
+    def resolved(self, base: str | os.PathLike[str]) -> TlsSettings:
+        """A copy whose relative file paths are taken from folder ``base``."""
+        update = {_SNAKE[key]: str(Path(base, path)) for key, path in self.files().items()
+                  if not os.path.isabs(path)}
+        return self.model_copy(update=update) if update else self
+
+    def problems(self, where: str = "mqtt.tls") -> list[Problem]:
+        """What is wrong with the files (missing, unreadable, not PEM, key without its
+        certificate), each named by its field; [] when TLS can be set up from them."""
+        if not self.enabled:
+            return []
+        found: list[Problem] = []
+        for field, path in self.files().items():
+            message = _file_problem(path)
+            if message is None and field == "caFile":
+                message = _ssl_problem(ssl.create_default_context, cafile=path)
+            if message is not None:
+                found.append(Problem(f"{where}.{field}", path, message))
+        if self.key_file is not None and self.cert_file is None:
+            found.append(Problem(f"{where}.keyFile", self.key_file,
+                                 "needs certFile (the client certificate of this key)"))
+        cert, key = self.cert_file, self.key_file
+        if not found and cert is not None:
+            found += _pem_problems(f"{where}.certFile", cert, "CERTIFICATE", "certificate")
+            key_field, key_path = (("keyFile", key) if key is not None else
+                                   ("certFile", cert))  # no keyFile: the key is in certFile
+            found += _pem_problems(f"{where}.{key_field}", key_path, "PRIVATE KEY",
+                                   "private key", "" if key is not None else
+                                   " (keyFile is not set, so the key must be in certFile)")
+        if not found and cert is not None:
+            chain = ssl.create_default_context().load_cert_chain
+            problem = _ssl_problem(chain, cert, key, password=_no_password)
+            if problem is not None:
+                found.append(Problem(f"{where}.certFile/keyFile", f"{cert}, {key}", problem))
+        return found
+
+
+_SNAKE = {"caFile": "ca_file", "certFile": "cert_file", "keyFile": "key_file"}
+
+
+def _file_problem(path: str) -> str | None:
+    """Why ``path`` cannot be read as a file by this process, or None."""
+    try:
+        with open(path, "rb") as file:
+            file.read(1)
+    except FileNotFoundError:
+        return "no such file"
+    except IsADirectoryError:
+        return "is a directory, not a file"
+    except PermissionError:
+        return f"not readable by this process (uid {os.geteuid()}): permission denied"
+    except OSError as exc:
+        return f"cannot be read: {exc.strerror or exc}"
+    return None
+
+
+def _no_password() -> bytes:
+    raise ValueError("the key is encrypted; give an unencrypted key file")
+
+
+def _pem_problems(field: str, path: str, label: str, what: str,
+                  hint: str = "") -> list[Problem]:
+    """[] if the file holds a PEM block ``-----BEGIN ...{label}-----``."""
+    with open(path, "rb") as file:
+        text = file.read(1 << 20)
+    if f"{label}-----".encode() in text and b"-----BEGIN " in text:
+        return []
+    return [Problem(field, path, f"no PEM {what} in it{hint}")]
+
+
+_SSL_REASONS = {
+    "NO_CERTIFICATE_OR_CRL_FOUND": "no PEM certificate in it",
+    "KEY_VALUES_MISMATCH": "the key does not belong to the certificate",
+}
+
+
+def _ssl_problem(load: Callable[..., object], *args: Any, **kwargs: Any) -> str | None:
+    """Why OpenSSL refuses the files ``load(*args, **kwargs)`` reads (not PEM, key and
+    certificate do not match...), or None."""
+    try:
+        load(*args, **kwargs)
+    except ssl.SSLError as exc:
+        reason = str(exc.reason or exc)
+        return _SSL_REASONS.get(reason, f"not usable for TLS: {reason}")
+    except (ValueError, OSError) as exc:
+        return f"not usable for TLS: {exc}"
+    return None
+
+
+def _template_fields(template: str) -> list[str]:
+    return [f for _, f, _, _ in string.Formatter().parse(template) if f is not None]
+
+
+def _check_template(template: str, allowed: tuple[str, ...], *, last: str | None = None) -> str:
+    """A topic template uses only ``allowed`` placeholders, no wildcards; ``last`` (if
+    given) must be its final placeholder (command topics are subscribed with ``#``)."""
+    if not template:
+        raise ValueError("must not be empty")
+    try:
+        fields = _template_fields(template)
+    except ValueError as exc:
+        raise ValueError(f"is not a valid template ({exc})") from None
+    for name in fields:
+        if name not in allowed:
+            raise ValueError(
+                f"unknown placeholder {{{name}}}; allowed: "
+                + ", ".join(f"{{{a}}}" for a in allowed)
+            )
+    literal = "".join(text for text, _, _, _ in string.Formatter().parse(template))
+    if any(ch in literal for ch in FORBIDDEN):
+        raise ValueError("must not contain MQTT wildcards (+, #) or NUL")
+    if last is not None and (
+        not template.endswith("/{" + last + "}") or fields.count(last) != 1
+    ):
+        raise ValueError(f"must end with /{{{last}}} (a topic level of its own, used once)")
+    return template
+
+
+class MqttSettings(Model):
+    """The ``mqtt`` section of the gateway file.  Times in ms unless named otherwise."""
+
+    _where: ClassVar[str] = "mqtt"
+
+    enabled: bool = True
+    host: str = "127.0.0.1"
+    port: Annotated[int, Range(1, 65535)] = 1883
+    client_id: str | None = None  # default: edgemodbus-{gatewayId}
+    username: str | None = None
+    password: str | None = None
+    keepalive: Annotated[int, Range(5, 3600)] = 30  # seconds (MQTT's unit)
+    connect_timeout: Annotated[int, Range(100, 60_000)] = 5000
+    tls: TlsSettings | None = None
+    topic_prefix: str = "edgemodbus"
+    item_topic: str = "{prefix}/{deviceCode}/{itemName}"
+    snapshot_topic: str = "/real/{deviceCode}"
+    status_topic: str = "{prefix}/{deviceCode}/$status"
+    gateway_topic: str = "{prefix}/$gateway/{gatewayId}"
+    command_topic: str = "{prefix}/{deviceCode}/set/{itemName}"
+    batch_command_topic: str = "{prefix}/{deviceCode}/set"
+    reply_topic: str = "{prefix}/{deviceCode}/$reply"
+    qos: Annotated[int, Choice((0, 1, 2))] = 0  # item updates: a stream, state is retained
+    retain: bool = False
+    snapshot_qos: Annotated[int, Choice((0, 1, 2))] = 1
+    snapshot_retain: bool = True
+    snapshot_interval: Annotated[int, Range(0, MAX_MS)] = 0
+    writes: bool = True
+    queue_size: Annotated[int, Range(1, 10_000_000)] = 10_000
+    max_inflight: Annotated[int, Range(1, 65_535)] = 100
+    reconnect_min: Ms = 500
+    reconnect_max: Ms = 30_000
+    failure_log_interval: Ms = 60_000  # failed connects: first logged, then one line per this
+    status_check_interval: Ms = 500
+
+    @field_validator("topic_prefix")
+    @classmethod
+    def _prefix(cls, value: str) -> str:
+        if any(ch in value for ch in FORBIDDEN):
+            raise ValueError("must not contain MQTT wildcards (+, #) or NUL")
+        return value
+
+    @field_validator("item_topic")
+    @classmethod
+    def _item_topic(cls, value: str) -> str:
+        return _check_template(value, PLACEHOLDERS)
+
+    @field_validator("command_topic")
+    @classmethod
+    def _command_topic(cls, value: str) -> str:
+        return _check_template(value, PLACEHOLDERS, last="itemName")
+
+    @field_validator(
+        "snapshot_topic", "status_topic", "batch_command_topic", "reply_topic"
+    )
+    @classmethod
+    def _device_topics(cls, value: str) -> str:
+        return _check_template(value, ("prefix", "deviceCode", "gatewayId"))
+
+    @field_validator("gateway_topic")
+    @classmethod
+    def _gateway_topic(cls, value: str) -> str:
+        return _check_template(value, ("prefix", "gatewayId"))
+
+    @classmethod
+    def load(cls, data: Mapping[str, Any], where: str = "mqtt") -> MqttSettings:
+        """Validate a mapping; ConfigError with paths under ``where`` (``mqtt.qos``)."""
+        try:
+            return cls.model_validate(dict(data))
+        except ValidationError as exc:
+            raise ConfigError.from_validation_error(exc, where) from None
+
+    @model_validator(mode="after")
+    def _backoff(self) -> MqttSettings:
+        if self.reconnect_max < self.reconnect_min:
+            raise ValueError(f"reconnectMax {self.reconnect_max} must be >= reconnectMin "
+                             f"({self.reconnect_min})")
+        return self
+
+
+def check_name(kind: str, name: str) -> str:
+    """A device code or gateway id must be usable as one topic level."""
+    if not name:
+        raise ValueError(f"{kind} must not be empty for MQTT topics")
+    bad = [ch for ch in FORBIDDEN if ch in name]
+    if bad or "/" in name:
+        raise ValueError(
+            f"{kind} {name!r} cannot be used in MQTT topics: it contains "
+            f"{' '.join(repr(c) for c in bad + (['/'] if '/' in name else []))}; "
+            "use letters, digits, '-', '_' or '.'"
+        )
+    return name
