@@ -428,3 +428,14 @@ def test_bad_gateway_file_is_refused_with_the_field_named(tmp_path: Path) -> Non
         capture_output=True, text=True, timeout=60, cwd=REPO,
     )
     assert result.returncode == 2 and "not a directory" in result.stderr
+
+
+def test_the_old_module_name_still_runs_the_service_and_says_it_is_deprecated() -> None:
+    """Installed systemd units name ``python -m edgemodbus.service``: it must keep working."""
+    out = subprocess.run(
+        [sys.executable, "-m", "edgemodbus.service", "--help"],
+        capture_output=True, text=True, timeout=60, check=False,
+    )
+    assert out.returncode == 0, out.stderr
+    assert "--config-dir" in out.stdout
+    assert "deprecated: use python -m edgemodbus.gateway" in out.stderr

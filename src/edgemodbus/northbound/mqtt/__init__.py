@@ -37,9 +37,9 @@ Topic layout (every template configurable; placeholders ``{prefix}``, ``{deviceC
     {prefix}/{deviceCode}/$reply          result of a write: {"id","ok","error","items","ts"}
 """
 
+from ...codec import jsonable
 from .commands import parse_command
 from .packets import encode_item
-from .payload import jsonable
 from .publisher import MqttPublisher
 from .settings import MqttSettings, TlsSettings, check_name
 

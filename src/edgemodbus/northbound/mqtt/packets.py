@@ -8,7 +8,8 @@ import math
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any, cast
 
-from .payload import jsonable
+from ...codec import jsonable
+from ...datatypes import enum_value
 
 if TYPE_CHECKING:
     from paho.mqtt.client import Client
@@ -71,7 +72,7 @@ class ItemEncoder:
             self.ts = ts
             self.iso = "null" if ts is None else f'"{ts.isoformat()}"'
         err = "null" if error is None else json.dumps(str(error), ensure_ascii=False)
-        state = getattr(status, "value", status)
+        state = enum_value(status)
         return (f'{{"value":{text},"status":"{state}","updateTs":{self.iso},'
                 f'"errorReason":{err}}}').encode()
 

@@ -4,29 +4,11 @@ JSON, compact, UTF-8; item updates have their own fast encoder in packets.py."""
 from __future__ import annotations
 
 import json
-import math
 from datetime import datetime, timezone
 from typing import Any
 
-
-def jsonable(value: Any) -> Any:
-    """A value as JSON can carry it: datetimes as ISO 8601, bytes as hex, and non-finite
-    floats (NaN, infinities) as null, since strict JSON has no such numbers."""
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
-    if isinstance(value, datetime):
-        return value.isoformat()
-    if isinstance(value, (bytes, bytearray)):
-        return bytes(value).hex()
-    return value
-
-
-def _deep_jsonable(obj: Any) -> Any:
-    if isinstance(obj, dict):
-        return {k: _deep_jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_deep_jsonable(v) for v in obj]
-    return jsonable(obj)
+from ...codec import jsonable
+from ...datatypes import enum_value
 
 
 def dumps(obj: Any) -> bytes:
@@ -34,7 +16,7 @@ def dumps(obj: Any) -> bytes:
         text = json.dumps(obj, ensure_ascii=False, separators=(",", ":"), allow_nan=False,
                           default=str)
     except ValueError:  # a NaN somewhere: the slow, careful path
-        text = json.dumps(_deep_jsonable(obj), ensure_ascii=False, separators=(",", ":"),
+        text = json.dumps(jsonable(obj), ensure_ascii=False, separators=(",", ":"),
                           default=str)
     return text.encode()
 
@@ -44,7 +26,7 @@ def now() -> str:
 
 
 def status_text(status: Any) -> str:
-    return str(getattr(status, "value", status))
+    return str(enum_value(status))
 
 
 def status_payload(gateway_id: str, code: str, status: str) -> bytes:
