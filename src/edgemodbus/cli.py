@@ -32,7 +32,11 @@ from .datatypes import Area, ItemStatus
 from .descriptor import driver_descriptor
 from .device import build_plan
 from .driver import DriverModbusRtu
+from .gateway.run import add_arguments as add_service_arguments
+from .logs import configure_logging
 from .protocol.address import parse_address
+from .sim.cli import DESCRIPTION as SIMULATOR
+from .sim.cli import add_arguments as add_simulator_arguments
 
 DEMO_FILE = Path(__file__).resolve().with_name("demo-device.json")  # examples/ links here
 MAX_SLAVE_ID = 247  # the demo's simulator serves unicast addresses only
@@ -82,19 +86,13 @@ class _Parser(argparse.ArgumentParser):
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = _parser()
-    argv = list(sys.argv[1:] if argv is None else argv)
-    command_at = next((i for i, a in enumerate(argv) if not a.startswith("-")), len(argv))
-    if argv[command_at:command_at + 1] == ["simulate"]:
-        # the simulator parses its own options (argparse.REMAINDER would not take options
-        # such as --port that follow a sub-command)
-        args = parser.parse_args([*argv[:command_at], "simulate"])
-        _configure_logging(args.verbose, "simulate")
-        from .sim import main as simulate
-
-        return simulate(argv[command_at + 1:])
+    parser = build_parser()
     args = parser.parse_args(argv)
-    _configure_logging(args.verbose, args.command)
+    _logging(args)
+    if args.command == "simulate":
+        from .sim.cli import run as simulate
+
+        return simulate(args, parser)
     try:
         result: int = args.func(args)
         return result
@@ -106,17 +104,19 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 130
 
 
-def _configure_logging(verbose: int, command: str) -> None:
-    """Log to stderr: warnings (-v: info, -vv: debug with the frame trace).  read and write
-    report their outcome in their own line, so without -v they show the library's errors
-    only: a refused connection is one line, not a warning and then the same error."""
-    level = logging.DEBUG if verbose > 1 else logging.INFO if verbose else logging.WARNING
-    logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    if not verbose and command in ("read", "write"):
+def _logging(args: argparse.Namespace) -> None:
+    """Warnings by default, the service (``run --config-dir``) info; each -v one step more
+    (logs.py).  read and write report their outcome in their own line, so without -v
+    they show the library's errors only: a refused connection is one line, not a warning
+    and then the same error."""
+    service = args.command == "run" and args.config_dir is not None
+    configure_logging(args.verbose, default=logging.INFO if service else logging.WARNING,
+                      quiet=getattr(args, "quiet", False))
+    if not args.verbose and args.command in ("read", "write"):
         logging.getLogger("edgemodbus").setLevel(logging.ERROR)
 
 
-def _parser() -> argparse.ArgumentParser:
+def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="edgemodbus", description=__doc__,
                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("-v", "--verbose", action="count", default=0,
@@ -132,12 +132,8 @@ def _parser() -> argparse.ArgumentParser:
     run = sub.add_parser("run", help="poll devices from device files, print updates; or run "
                          "the gateway service with --config-dir")
     run.add_argument("files", nargs="*", type=Path)
-    run.add_argument("--config-dir", type=Path, default=None,
-                     help="gateway service: every device file in DIR; MQTT/metrics from "
-                     "DIR/gateway.json or --gateway; SIGHUP reloads, SIGTERM stops")
-    run.add_argument("--gateway", type=Path, default=None, help="gateway file (with --config-dir)")
+    add_service_arguments(run, config_dir_required=False)
     run.add_argument("--json", action="store_true", help=_JSON_HELP)
-    run.add_argument("--seconds", type=float, default=0.0, help="stop after N s (0 = ^C)")
     run.set_defaults(func=_run)
 
     for name, helptext in (("read", "read one value"), ("write", "write one value")):
@@ -154,8 +150,9 @@ def _parser() -> argparse.ArgumentParser:
     plan.add_argument("file", type=Path)
     plan.set_defaults(func=_plan)
 
-    sub.add_parser("simulate", help="serve simulated RTU slaves (see simulate -h)",
-                   add_help=False)
+    simulate = sub.add_parser("simulate", help="serve simulated RTU slaves",
+                              description=SIMULATOR)
+    add_simulator_arguments(simulate)
 
     desc = sub.add_parser("descriptor", help="print the driver descriptor JSON")
     desc.add_argument("--prefix", choices=["function-code", "modicon"], default="function-code")
@@ -220,8 +217,6 @@ def _run(args: argparse.Namespace) -> int:
             raise CliError("give device files or --config-dir, not both")
         from .gateway import run_service
 
-        logging.getLogger("edgemodbus").setLevel(logging.DEBUG if args.verbose > 1 else
-                                                 logging.INFO)
         return run_service(args.config_dir, args.gateway, seconds=args.seconds)
     if not args.files:
         raise CliError("give device files, or --config-dir DIR")
@@ -256,7 +251,7 @@ def _read(args: argparse.Namespace) -> int:
         drv.stop_device()
     if item.status is not ItemStatus.OK:
         raise CliError(f"{item.address}: {item.error_reason}")
-    print(_text(item.value))
+    print(value_text(item.value))
     return 0
 
 
@@ -337,7 +332,7 @@ def _start(org: DeviceOrganizationParameter, comm: DriverModbusRtuParameter,
     drv = DriverModbusRtu()
     code = org.device_code or f"slave{comm.slave_id}"
     if json_lines:
-        drv.address_updated_callback = lambda it: _emit(_json({
+        drv.address_updated_callback = lambda it: _emit(json_line({
             "device": code, "name": it.name, "value": it.value, "status": it.status.value,
             "updateTs": it.update_ts, "errorReason": it.error_reason}))
     else:
@@ -431,7 +426,7 @@ def _wait(seconds: float) -> None:
 def _line(code: str, item: DeviceAddressItem) -> str:
     stamp = item.update_ts.strftime("%H:%M:%S.%f")[:-3] if item.update_ts else "--"
     if item.status is ItemStatus.OK:
-        text = f"{_text(item.value)} {item.unit}".rstrip()
+        text = f"{value_text(item.value)} {item.unit}".rstrip()
     else:
         text = f"{item.status.value}: {item.error_reason}"
     return f"{stamp} {code:<12} {item.name:<12} {text}"
@@ -441,7 +436,7 @@ def _summary(drv: DriverModbusRtu, json_lines: bool) -> None:
     s = drv.stats()
     code = drv.snapshot()["deviceCode"]
     if json_lines:
-        _emit(_json({"device": code, "summary": s}))
+        _emit(json_line({"device": code, "summary": s}))
         return
     _emit(f"{code}: {s['deviceDriverStatus']}, {s.get('cycles', 0)} cycles, "
           f"{s.get('requests', 0)} requests, {s.get('timeouts', 0)} timeouts, "
@@ -450,7 +445,7 @@ def _summary(drv: DriverModbusRtu, json_lines: bool) -> None:
           f"{s.get('avgRoundTrip', 0.0) * 1000:.2f} ms, {s.get('valuesChanged', 0)} updates")
 
 
-def _text(value: Any) -> str:
+def value_text(value: Any) -> str:
     """A value as text that reads back exactly: a float is its shortest round-trip form
     (``repr``: ``1.5e-07``, ``nan``, ``inf``), bytes are hex, times ISO 8601."""
     if isinstance(value, float):
@@ -462,7 +457,8 @@ def _text(value: Any) -> str:
     return str(value)
 
 
-def _json(obj: Any) -> str:
+def json_line(obj: Any) -> str:
+    """One strict JSON line (the `run --json` output): NaN and infinities are null."""
     return json.dumps(jsonable(obj), ensure_ascii=False, allow_nan=False, default=str)
 
 

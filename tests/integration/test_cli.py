@@ -13,7 +13,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from edgemodbus.cli import _json, _text
+from edgemodbus.cli import json_line, value_text
 from tests.peers import PtyPair, PymodbusSlave, default_bit, default_register
 
 DATA = Path(__file__).resolve().parents[1] / "data"
@@ -233,17 +233,17 @@ def test_float_formatting_round_trips(bits32: int, bits64: int) -> None:
     same float32 too), JSON to the same number or null for NaN and infinities."""
     for value in (struct.unpack(">f", bits32.to_bytes(4, "big"))[0],
                   struct.unpack(">d", bits64.to_bytes(8, "big"))[0]):
-        text = _text(value)
+        text = value_text(value)
         assert _same(float(text), value), (value, text)
         assert text == text.strip() and " " not in text
-        decoded = json.loads(_json({"value": value}), parse_constant=lambda c: "invalid")
+        decoded = json.loads(json_line({"value": value}), parse_constant=lambda c: "invalid")
         if math.isfinite(value):
             assert decoded["value"] == value and type(decoded["value"]) is float
         else:
             assert decoded["value"] is None
     f32 = struct.unpack(">f", bits32.to_bytes(4, "big"))[0]
     if math.isfinite(f32):
-        assert struct.pack(">f", float(_text(f32))) == bits32.to_bytes(4, "big")
+        assert struct.pack(">f", float(value_text(f32))) == bits32.to_bytes(4, "big")
 
 
 def test_run_json_writes_only_json_lines(tmp_path: Path) -> None:

@@ -6,7 +6,6 @@ from __future__ import annotations
 import argparse
 import logging
 import math
-import os
 import signal
 import sys
 import threading
@@ -17,6 +16,7 @@ from types import FrameType
 from typing import Any
 
 from ..config import ConfigError
+from ..logs import configure_logging
 from .config import GATEWAY_FILE, GatewayConfig, load_gateway_config
 from .service import Gateway
 
@@ -93,30 +93,28 @@ def run_service(config_dir: Path, gateway_config: Path | None = None, *,
     return 0
 
 
+def add_arguments(parser: argparse.ArgumentParser, *, config_dir_required: bool) -> None:
+    """The service's options (``python -m edgemodbus.gateway``; ``edgemodbus run
+    --config-dir`` takes the same ones)."""
+    parser.add_argument("--config-dir", type=Path, required=config_dir_required,
+                        default=None, help="gateway service: every device file (*.json) in "
+                        "DIR; MQTT/metrics from DIR/gateway.json or --gateway; SIGHUP "
+                        "reloads, SIGTERM stops")
+    parser.add_argument("--gateway", type=Path, default=None,
+                        help=f"gateway file (default: DIR/{GATEWAY_FILE} if present)")
+    parser.add_argument("--seconds", type=float, default=0.0,
+                        help="stop after N s (0: run until SIGTERM or SIGINT)")
+    parser.add_argument("-q", "--quiet", action="store_true", help="warnings and errors only")
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="python -m edgemodbus.gateway",
         description="Poll every device file in a folder; MQTT and metrics from a gateway "
                     "file; SIGHUP reloads, SIGTERM stops.")
-    parser.add_argument("--config-dir", type=Path, required=True,
-                        help="folder of device files (*.json)")
-    parser.add_argument("--gateway", type=Path, default=None,
-                        help=f"gateway file (default: DIR/{GATEWAY_FILE} if present)")
+    add_arguments(parser, config_dir_required=True)
     parser.add_argument("-v", "--verbose", action="count", default=0,
-                        help="-v: debug logs of edgemodbus")
-    parser.add_argument("--seconds", type=float, default=0.0,
-                        help="stop after N s (0: run until SIGTERM or SIGINT)")
-    parser.add_argument("-q", "--quiet", action="store_true", help="warnings and errors only")
+                        help="-v: debug logs of edgemodbus (with the frame trace)")
     args = parser.parse_args(argv)
-    configure_logging(args.verbose, args.quiet)
+    configure_logging(args.verbose, default=logging.INFO, quiet=args.quiet)
     return run_service(args.config_dir, args.gateway, seconds=args.seconds)
-
-
-def configure_logging(verbose: int = 0, quiet: bool = False) -> None:
-    """INFO by default; no timestamps under systemd (the journal has them)."""
-    level = logging.WARNING if quiet else logging.DEBUG if verbose else logging.INFO
-    fmt = "%(levelname)s %(name)s: %(message)s"
-    if not os.environ.get("JOURNAL_STREAM"):
-        fmt = "%(asctime)s " + fmt
-    logging.basicConfig(level=level, format=fmt)
-

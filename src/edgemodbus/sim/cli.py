@@ -9,6 +9,7 @@ import threading
 from collections.abc import Sequence
 from typing import Any
 
+from ..logs import configure_logging
 from .movers import add_demo_movers
 from .server import Simulator
 from .slave import DEFAULT_SIZE
@@ -31,16 +32,8 @@ def _parse_ids(text: str) -> list[int]:
     return ids
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """``edgemodbus simulate``: serve slaves until SIGINT/SIGTERM.
-
-    Prints one line per endpoint (``tcp HOST:PORT``, ``pty PATH``) on stdout, flushed,
-    so that a script can read where to connect.
-    """
-    parser = argparse.ArgumentParser(
-        prog="edgemodbus simulate",
-        description="Multi-slave Modbus RTU simulator (raw RTU frames over TCP, or a pty).",
-    )
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The options of ``edgemodbus simulate`` (also ``python -m edgemodbus.sim``)."""
     parser.add_argument("--host", default="127.0.0.1", help="listen address (127.0.0.1)")
     parser.add_argument("--port", type=int, default=5020, help="TCP port, 0 = any (5020)")
     parser.add_argument("--slaves", type=_parse_ids, default=[1], help="ids, e.g. 1,2,5-8")
@@ -59,7 +52,27 @@ def main(argv: Sequence[str] | None = None) -> int:
                         help="with --dial: seconds between heartbeats (0: none)")
     parser.add_argument("--wrapped", action="store_true",
                         help="speak the edge MCU's wrapped report frames")
+
+
+DESCRIPTION = "Multi-slave Modbus RTU simulator (raw RTU frames over TCP, or a pty)."
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python -m edgemodbus.sim``: the same as ``edgemodbus simulate``."""
+    parser = argparse.ArgumentParser(prog="python -m edgemodbus.sim", description=DESCRIPTION)
+    add_arguments(parser)
+    parser.add_argument("-v", "--verbose", action="count", default=0, help="log more")
     args = parser.parse_args(argv)
+    configure_logging(args.verbose)
+    return run(args, parser)
+
+
+def run(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
+    """Serve slaves until SIGINT/SIGTERM.
+
+    Prints one line per endpoint (``tcp HOST:PORT``, ``pty PATH``) on stdout, flushed,
+    so that a script can read where to connect.
+    """
     dial: tuple[str, int] | None = None
     if args.dial is not None:
         host, _, port_text = args.dial.rpartition(":")
