@@ -163,15 +163,35 @@ class ItemState:
 
 
 class _Assembly:
-    """Registers of an item larger than one block, gathered over several blocks."""
+    """Registers of an item larger than one block, gathered over several blocks.  One
+    per item, shared by the slots of all its pieces; the item is decoded only when every
+    piece arrived in the same cycle (``pieces``: item offset -> size, of ``cycle``)."""
 
-    __slots__ = ("decoder", "filled", "registers", "state")
+    __slots__ = ("cycle", "decoder", "pieces", "registers", "state")
 
     def __init__(self, state: ItemState) -> None:
         self.state = state
         self.registers = [0] * state.size
-        self.filled = 0  # registers received in this cycle
+        self.cycle = -1
+        self.pieces: dict[int, int] = {}
         self.decoder = BlockDecoder(state.area, state.size, [(0, state.spec)])
+
+    def add(self, piece: Piece, values: list[int], cycle: int) -> bool:
+        """Store a piece read in ``cycle``; True once all pieces of that cycle are in."""
+        if cycle != self.cycle:
+            self.cycle = cycle
+            self.pieces.clear()
+        start = piece.block_offset
+        self.registers[piece.item_offset:piece.item_offset + piece.size] = values[
+            start:start + piece.size
+        ]
+        self.pieces[piece.item_offset] = piece.size
+        return sum(self.pieces.values()) == len(self.registers)  # pieces never overlap
+
+    def forget(self) -> None:
+        """A piece failed: what arrived in this cycle cannot complete the item."""
+        self.pieces.clear()
+        self.decoder.reset()  # the next complete read reports the item again
 
 
 @dataclass
@@ -240,6 +260,8 @@ class Device:
         self.items: list[ItemState] = []
         self.by_name: dict[str, ItemState] = {}
         self.slots: list[_Slot] = []
+        self._assemblies: dict[ItemState, _Assembly] = {}
+        self.cycle_no = 0  # counts the cycles begun, for the pieces of large items
         self._install(parsed)
         self.index = 0
         self.due = 0.0
@@ -282,6 +304,7 @@ class Device:
         self.by_name = {s.item.name: s for s in items}
         self._report_decoders = {}
         blocks = build_plan(enabled, self.params)
+        self._assemblies = {}  # filled by _make_slot: one per large item, for all its pieces
         self.slots = [self._make_slot(b) for b in blocks]
 
     def _make_slot(self, block: ReadBlock) -> _Slot:
@@ -299,11 +322,10 @@ class Device:
         return _Slot(block, whole, decoder, partial)
 
     def _assembly(self, state: ItemState) -> _Assembly:
-        for slot in self.slots:
-            for _, asm in slot.partial:
-                if asm.state is state:
-                    return asm
-        return _Assembly(state)
+        asm = self._assemblies.get(state)
+        if asm is None:
+            asm = self._assemblies[state] = _Assembly(state)
+        return asm
 
     def replace_items(self, parsed: Sequence[ParsedItem]) -> Future[None]:
         """Swap in a new address list on the worker, between two reads."""
@@ -366,11 +388,14 @@ class Device:
         changes = decoder.decode(Block.from_values(values, bits=area.is_bit), self.report_all)
         if changes:
             now = datetime.now(timezone.utc)
+            report_all = self.report_all
             reported = [_set_item(states[i].item, value, error, now)
-                        for i, value, error in changes]
-            self.counters.values_changed += len(reported)
-            self._report(reported)
-            self._flush_batch()
+                        for i, value, error in changes
+                        if report_all or not _holds(states[i].item, value, error)]
+            if reported:
+                self.counters.values_changed += len(reported)
+                self._report(reported)
+                self._flush_batch()
 
     def poll_step(self, link: Link) -> None:
         """Read the next block of this cycle.  The straight path (a good answer) is kept
@@ -380,6 +405,7 @@ class Device:
         index = self.index
         if index == 0:
             self.cycle_start = time.monotonic()
+            self.cycle_no += 1
         slots = self.slots
         if not slots:
             self._end_cycle(failed=False)
@@ -473,10 +499,15 @@ class Device:
         if changes:
             now = datetime.now(timezone.utc)
             items = slot.items
+            report_all = self.report_all
             for index, value, error in changes:  # _set_item, inlined: the hot loop
                 item = items[index]
                 fields = item.__dict__
                 if error is None:
+                    if fields["status"] is _OK and not report_all and _same(
+                        fields["value"], value
+                    ):
+                        continue  # already published (a confirmed write): not twice
                     fields["value"] = value
                     if fields["status"] is not _OK:
                         fields["status"] = _OK
@@ -490,17 +521,13 @@ class Device:
         if slot.partial:
             values = data.to_list()
             for piece, asm in slot.partial:
-                start = piece.block_offset
-                asm.registers[piece.item_offset:piece.item_offset + piece.size] = values[
-                    start:start + piece.size
-                ]
-                asm.filled += piece.size
-                if asm.filled >= asm.state.size:  # pieces never overlap: all arrived
-                    asm.filled = 0
+                if asm.add(piece, values, self.cycle_no):
                     block = Block.from_values(asm.registers, bits=False)
+                    item = asm.state.item
                     for _, value, error in asm.decoder.decode(block, self.report_all):
-                        now = now or datetime.now(timezone.utc)
-                        reported.append(_set_item(asm.state.item, value, error, now))
+                        if self.report_all or not _holds(item, value, error):
+                            now = now or datetime.now(timezone.utc)
+                            reported.append(_set_item(item, value, error, now))
         if reported:
             self.counters.values_changed += len(reported)
             self._report(reported)
@@ -520,12 +547,15 @@ class Device:
         if slot.decoder is not None:
             slot.decoder.reset()  # the next good read reports every item again
         for _, asm in slot.partial:
-            asm.decoder.reset()
-            asm.filled = 0
+            asm.forget()
 
     def _report(self, items: list[DeviceAddressItem]) -> None:
         """Add items to this cycle's batch and call the per-item callback for each."""
         self.batch += items
+        self._notify(items)
+
+    def _notify(self, items: list[DeviceAddressItem]) -> None:
+        """Call the per-item callback for each item."""
         callback = self.driver.address_updated_callback
         if callback is None:
             return
@@ -619,6 +649,7 @@ class Device:
         link.set_response_timeout(self.timeout)
         errors: list[str] = []
         now = datetime.now(timezone.utc)
+        written: list[DeviceAddressItem] = []
         for i, op in enumerate(ops):
             self.counters.writes += 1
             try:
@@ -633,12 +664,19 @@ class Device:
             confirmed = [
                 _set_item(state.item, value, None, now)
                 for state, value in op.updates
-                if self.report_all or state.item.value != value
-                or state.item.status is not ItemStatus.OK
+                if self.report_all or not _holds(state.item, value, None)
             ]
             if confirmed:
                 self.counters.values_changed += len(confirmed)
-                self._report(confirmed)
+                self._notify(confirmed)
+                written += confirmed
+        if written:
+            # One write, one update: the item callbacks above, and one batch now (the
+            # reads that follow find the written value, see _holds); an item already in
+            # this cycle's batch goes out once, with its written value.
+            queued = {id(item) for item in self.batch}
+            self.batch += [item for item in written if id(item) not in queued]
+            self._flush_batch()
         return (False, "; ".join(errors)) if errors else (True, None)
 
     def _execute(self, link: Link, op: WriteOp) -> None:
@@ -789,6 +827,17 @@ def _set_item(
         fields["error_reason"] = error
     fields["update_ts"] = now
     return item
+
+
+def _same(held: Any, value: Any) -> bool:
+    """Whether an item's value is exactly ``value`` (same type; NaN matches NaN)."""
+    return type(held) is type(value) and (held == value or (held != held and value != value))
+
+
+def _holds(item: DeviceAddressItem, value: Any, error: str | None) -> bool:
+    """Whether ``item`` is already Ok with ``value``: a change the decoder sees against
+    its own last report (e.g. after a confirmed write) that is no news to the host."""
+    return error is None and item.status is _OK and _same(item.value, value)
 
 
 def _copy_runtime(src: DeviceAddressItem, dst: DeviceAddressItem) -> None:
