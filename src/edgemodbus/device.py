@@ -167,12 +167,13 @@ class _Assembly:
     per item, shared by the slots of all its pieces; the item is decoded only when every
     piece arrived in the same cycle (``pieces``: item offset -> size, of ``cycle``)."""
 
-    __slots__ = ("cycle", "decoder", "pieces", "registers", "state")
+    __slots__ = ("cycle", "decoder", "failed", "pieces", "registers", "state")
 
     def __init__(self, state: ItemState) -> None:
         self.state = state
         self.registers = [0] * state.size
         self.cycle = -1
+        self.failed = -1  # the last cycle in which a piece failed
         self.pieces: dict[int, int] = {}
         self.decoder = BlockDecoder(state.area, state.size, [(0, state.spec)])
 
@@ -188,10 +189,14 @@ class _Assembly:
         self.pieces[piece.item_offset] = piece.size
         return sum(self.pieces.values()) == len(self.registers)  # pieces never overlap
 
-    def forget(self) -> None:
-        """A piece failed: what arrived in this cycle cannot complete the item."""
+    def fail(self, cycle: int) -> bool:
+        """A piece failed in ``cycle``: what arrived in it cannot complete the item.
+        False if another piece already failed in that cycle (the item is Invalid)."""
+        first = self.failed != cycle
+        self.failed = self.cycle = cycle
         self.pieces.clear()
         self.decoder.reset()  # the next complete read reports the item again
+        return first
 
 
 @dataclass
@@ -206,9 +211,6 @@ class _Slot:
 
     def __post_init__(self) -> None:
         self.items = [state.item for state in self.whole]
-
-    def states(self) -> list[ItemState]:
-        return self.whole + [asm.state for _, asm in self.partial]
 
 
 @dataclass
@@ -504,10 +506,11 @@ class Device:
                 item = items[index]
                 fields = item.__dict__
                 if error is None:
-                    if fields["status"] is _OK and not report_all and _same(
-                        fields["value"], value
-                    ):
-                        continue  # already published (a confirmed write): not twice
+                    if not report_all and fields["status"] is _OK:
+                        held = fields["value"]  # _holds, inlined
+                        same = held == value or (held != held and value != value)  # NaN
+                        if same and type(held) is type(value):
+                            continue  # already published (a confirmed write): not twice
                     fields["value"] = value
                     if fields["status"] is not _OK:
                         fields["status"] = _OK
@@ -534,9 +537,13 @@ class Device:
 
     # -- item state ----------------------------------------------------------------------
     def _invalidate(self, slot: _Slot, reason: str) -> None:
+        """Set the slot's items Invalid with ``reason``.  An item read in pieces fails
+        once per cycle: the first of its pieces that fails reports it."""
         now = datetime.now(timezone.utc)
         reported = []
-        for state in slot.states():
+        states = slot.whole + [asm.state for _, asm in slot.partial
+                               if asm.fail(self.cycle_no)]
+        for state in states:
             item = state.item
             changed = item.status is not ItemStatus.INVALID
             _set_item(item, None, reason, now)
@@ -546,8 +553,6 @@ class Device:
             self._report(reported)
         if slot.decoder is not None:
             slot.decoder.reset()  # the next good read reports every item again
-        for _, asm in slot.partial:
-            asm.forget()
 
     def _report(self, items: list[DeviceAddressItem]) -> None:
         """Add items to this cycle's batch and call the per-item callback for each."""

@@ -574,3 +574,22 @@ def test_one_write_publishes_one_update(slave: PymodbusSlave) -> None:
     flag = cfg.address_list[2].value
     assert sorted(items) == sorted([("w", 4242), ("f", 2.5), ("k", flag)]), items
     assert sorted(x for batch in batches for x in batch) == sorted(items), batches
+
+
+def test_item_read_in_pieces_is_reported_once_per_cycle_when_they_fail(
+    slave: PymodbusSlave,
+) -> None:
+    """reportMode cycle, every piece of a 60-register String fails: the item is reported
+    Invalid once per cycle (once per failed piece, it used to be: twice in a batch)."""
+    slave.set_exception_ranges([ExceptionRange(500, 560, code=4, unit=1)])
+    cfg = device(slave.port, [
+        {"name": "s", "address": "hr:500", "deviceDataType": "String", "quantity": 60},
+        {"name": "n", "address": "hr:400", "deviceDataType": "UInt16"},
+    ], readCycle=30, maxBlockReadRegisterCount=40, reportMode="cycle")
+    batches: list[list[str]] = []
+    with Running(cfg, addresses_updated_callback=lambda b: batches.append(
+            [it.name for it in b])) as drv:
+        wait_for(lambda: len(batches) >= 2, what="two cycles")
+        _cycles_later(drv, 4)
+    assert cfg.address_list[0].status is ItemStatus.INVALID
+    assert all(sorted(batch) == ["n", "s"] for batch in batches), batches
