@@ -208,6 +208,9 @@ class _Slot:
     decoder: BlockDecoder | None
     partial: list[tuple[Piece, _Assembly]]
     items: list[DeviceAddressItem] = field(init=False)  # whole[i].item, for the hot loop
+    # the decoder was reset because an item was set from outside it (a write, a report):
+    # its next reports are filtered by what the items hold (Device._news)
+    recheck: bool = field(default=False, init=False)
 
     def __post_init__(self) -> None:
         self.items = [state.item for state in self.whole]
@@ -263,6 +266,7 @@ class Device:
         self.by_name: dict[str, ItemState] = {}
         self.slots: list[_Slot] = []
         self._assemblies: dict[ItemState, _Assembly] = {}
+        self._owner: dict[ItemState, _Slot | _Assembly] = {}  # what decodes each item
         self.cycle_no = 0  # counts the cycles begun, for the pieces of large items
         self._install(parsed)
         self.index = 0
@@ -307,6 +311,7 @@ class Device:
         self._report_decoders = {}
         blocks = build_plan(enabled, self.params)
         self._assemblies = {}  # filled by _make_slot: one per large item, for all its pieces
+        self._owner = {}
         self.slots = [self._make_slot(b) for b in blocks]
 
     def _make_slot(self, block: ReadBlock) -> _Slot:
@@ -321,7 +326,12 @@ class Device:
             else:
                 partial.append((piece, self._assembly(state)))
         decoder = BlockDecoder(block.area, block.count, specs) if specs else None
-        return _Slot(block, whole, decoder, partial)
+        slot = _Slot(block, whole, decoder, partial)
+        for state in whole:
+            self._owner[state] = slot
+        for _, asm in partial:
+            self._owner[asm.state] = asm
+        return slot
 
     def _assembly(self, state: ItemState) -> _Assembly:
         asm = self._assemblies.get(state)
@@ -387,17 +397,20 @@ class Device:
         if decoder is None:
             return
         self.counters.reports += 1
-        changes = decoder.decode(Block.from_values(values, bits=area.is_bit), self.report_all)
-        if changes:
+        # Every item of the report, kept when it is news against what the item holds (it
+        # may have been set by a poll since the last report): the decoder's own change
+        # tracking only knows the reports.
+        decoded = decoder.decode(Block.from_values(values, bits=area.is_bit), True)
+        report_all = self.report_all
+        news = [(states[i], value, error) for i, value, error in decoded
+                if report_all or _news(states[i], value, error)]
+        if news:
             now = datetime.now(timezone.utc)
-            report_all = self.report_all
-            reported = [_set_item(states[i].item, value, error, now)
-                        for i, value, error in changes
-                        if report_all or not _holds(states[i].item, value, error)]
-            if reported:
-                self.counters.values_changed += len(reported)
-                self._report(reported)
-                self._flush_batch()
+            reported = [_set_item(state.item, value, error, now) for state, value, error in news]
+            self._recheck([state for state, _, _ in news])
+            self.counters.values_changed += len(reported)
+            self._report(reported)
+            self._flush_batch()
 
     def poll_step(self, link: Link) -> None:
         """Read the next block of this cycle.  The straight path (a good answer) is kept
@@ -498,19 +511,18 @@ class Device:
         the decoder) and the items assembled from pieces."""
         reported: list[DeviceAddressItem] = []
         now: datetime | None = None
+        if slot.recheck:  # rare: after a write or a report, see _recheck
+            slot.recheck = False
+            if not self.report_all:
+                whole = slot.whole
+                changes = [c for c in changes if _news(whole[c[0]], c[1], c[2])]
         if changes:
             now = datetime.now(timezone.utc)
             items = slot.items
-            report_all = self.report_all
             for index, value, error in changes:  # _set_item, inlined: the hot loop
                 item = items[index]
                 fields = item.__dict__
                 if error is None:
-                    if not report_all and fields["status"] is _OK:
-                        held = fields["value"]  # _holds, inlined
-                        same = held == value or (held != held and value != value)  # NaN
-                        if same and type(held) is type(value):
-                            continue  # already published (a confirmed write): not twice
                     fields["value"] = value
                     if fields["status"] is not _OK:
                         fields["status"] = _OK
@@ -526,11 +538,11 @@ class Device:
             for piece, asm in slot.partial:
                 if asm.add(piece, values, self.cycle_no):
                     block = Block.from_values(asm.registers, bits=False)
-                    item = asm.state.item
+                    state = asm.state
                     for _, value, error in asm.decoder.decode(block, self.report_all):
-                        if self.report_all or not _holds(item, value, error):
+                        if self.report_all or _news(state, value, error):
                             now = now or datetime.now(timezone.utc)
-                            reported.append(_set_item(item, value, error, now))
+                            reported.append(_set_item(state.item, value, error, now))
         if reported:
             self.counters.values_changed += len(reported)
             self._report(reported)
@@ -553,6 +565,20 @@ class Device:
             self._report(reported)
         if slot.decoder is not None:
             slot.decoder.reset()  # the next good read reports every item again
+
+    def _recheck(self, states: list[ItemState]) -> None:
+        """These items were just set from outside their poll decoder (a confirmed write,
+        a wrapped report), whose change tracking still holds the value it last read.
+        Make it report them on the next read, where only news is kept: the written value
+        read back is not published a second time, and a value the slave went back to
+        (a write it clamped or another master undid) is not missed."""
+        for state in states:
+            owner = self._owner.get(state)
+            if owner is None or owner.decoder is None:
+                continue
+            owner.decoder.reset()
+            if isinstance(owner, _Slot):
+                owner.recheck = True
 
     def _report(self, items: list[DeviceAddressItem]) -> None:
         """Add items to this cycle's batch and call the per-item callback for each."""
@@ -666,6 +692,7 @@ class Device:
                     errors.extend(f"{o.names}: not sent (link down)" for o in ops[i + 1:])
                     break
                 continue
+            self._recheck([state for state, _ in op.updates])
             confirmed = [
                 _set_item(state.item, value, None, now)
                 for state, value in op.updates
@@ -677,8 +704,8 @@ class Device:
                 written += confirmed
         if written:
             # One write, one update: the item callbacks above, and one batch now (the
-            # reads that follow find the written value, see _holds); an item already in
-            # this cycle's batch goes out once, with its written value.
+            # next read of the written value is no news, see _recheck); an item already
+            # in this cycle's batch goes out once, with its written value.
             queued = {id(item) for item in self.batch}
             self.batch += [item for item in written if id(item) not in queued]
             self._flush_batch()
@@ -843,6 +870,28 @@ def _holds(item: DeviceAddressItem, value: Any, error: str | None) -> bool:
     """Whether ``item`` is already Ok with ``value``: a change the decoder sees against
     its own last report (e.g. after a confirmed write) that is no news to the host."""
     return error is None and item.status is _OK and _same(item.value, value)
+
+
+def _news(state: ItemState, value: Any, error: str | None) -> bool:
+    """Whether a decoded result differs from what the item holds, as the change mode
+    reports it: another error reason, or a value not exactly the held one and, for
+    numbers with a deadband, more than the deadband away from it."""
+    item = state.item
+    if error is not None:
+        return item.status is not _INVALID or item.error_reason != error
+    if item.status is not _OK:
+        return True
+    held = item.value
+    if _same(held, value):
+        return False
+    deadband = state.spec.deadband
+    if deadband and _is_number(held) and _is_number(value):
+        return not abs(value - held) <= deadband
+    return True
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
 
 
 def _copy_runtime(src: DeviceAddressItem, dst: DeviceAddressItem) -> None:

@@ -593,3 +593,76 @@ def test_item_read_in_pieces_is_reported_once_per_cycle_when_they_fail(
         _cycles_later(drv, 4)
     assert cfg.address_list[0].status is ItemStatus.INVALID
     assert all(sorted(batch) == ["n", "s"] for batch in batches), batches
+
+
+def test_a_value_the_slave_goes_back_to_after_a_write_is_read() -> None:
+    """A confirmed write sets the item; when the slave then holds its old value again (it
+    clamped the write, another master undid it), the next read reports that value.  (The
+    poll decoder kept the old value as its last report, saw no change, and the item
+    stayed Ok with the written value.)"""
+    with Simulator([1]) as sim:
+        port = sim.serve_tcp("127.0.0.1", 0)
+        slave1 = sim.slave(1)
+        slave1.set_registers(em.Area.HOLDING_REGISTER, 40, [5])
+
+        def undo(item: em.DeviceAddressItem) -> None:
+            # on the worker, as the write is confirmed: no read comes in between
+            if item.value == 77:
+                slave1.set_registers(em.Area.HOLDING_REGISTER, 40, [5])
+
+        cfg = device(port, [{"name": "sp", "address": "hr:40", "deviceDataType": "UInt16"},
+                            {"name": "nb", "address": "hr:41", "deviceDataType": "UInt16"}],
+                     readCycle=30)
+        with Running(cfg, address_updated_callback=undo) as drv:
+            wait_for(all_ok(cfg))
+            assert drv.write_address("sp", 77) == (True, None)
+            _cycles_later(drv, 3)
+            assert cfg.address_list[0].value == 5
+            assert cfg.address_list[0].status is ItemStatus.OK
+
+
+def test_a_value_the_slave_goes_back_to_after_a_report_is_read() -> None:
+    """The same for a wrapped report: a report sets the item, the slave goes back to the
+    value the integrity poll read before; the next poll reports it."""
+    with Simulator([1]) as sim:
+        port = sim.serve_tcp("127.0.0.1", 0, wrapped=True)
+        slave1 = sim.slave(1)
+        slave1.set_registers(em.Area.HOLDING_REGISTER, 2, [502])
+        cfg = device(port, [{"name": "r2", "address": "hr:2", "deviceDataType": "UInt16"}],
+                     readCycle=200, framing="wrapped-report")
+        with Running(cfg) as drv:
+            wait_for(all_ok(cfg))
+            item = cfg.address_list[0]
+            assert item.value == 502
+            slave1.set_registers(em.Area.HOLDING_REGISTER, 2, [7])
+            (client,) = sim.clients()
+            client.push_report(1, em.Area.HOLDING_REGISTER, 2, 1)  # carries 7
+            slave1.set_registers(em.Area.HOLDING_REGISTER, 2, [502])
+            wait_for(lambda: drv.stats()["reports"] == 1, what="the report")
+            _cycles_later(drv, 2)
+            assert (item.status, item.value) == (ItemStatus.OK, 502)
+
+
+def test_a_report_is_applied_after_a_poll_changed_the_item() -> None:
+    """A report repeats a value the last report brought, while a poll in between set the
+    item to another one: the report is news and applied.  (The report decoder compared
+    with its own last report only, saw no change, and dropped it.)"""
+    with Simulator([1]) as sim:
+        port = sim.serve_tcp("127.0.0.1", 0, wrapped=True)
+        hr = em.Area.HOLDING_REGISTER
+        slave1 = sim.slave(1)
+        slave1.set_registers(hr, 2, [502])
+        cfg = device(port, [{"name": "r2", "address": "hr:2", "deviceDataType": "UInt16"}],
+                     readCycle=100, framing="wrapped-report")
+        seen: list[int] = []
+        with Running(cfg, address_updated_callback=lambda it: seen.append(it.value)) as drv:
+            wait_for(all_ok(cfg))
+            (client,) = sim.clients()
+            for _ in range(2):
+                slave1.set_registers(hr, 2, [7])
+                client.push_report(1, hr, 2, 1)  # carries 7
+                slave1.set_registers(hr, 2, [502])
+                wait_for(lambda: seen[-1] == 7, what="the report applied")
+                wait_for(lambda: seen[-1] == 502, what="the poll after it")
+            assert drv.stats()["reports"] == 2
+        assert seen == [502, 7, 502, 7, 502]
