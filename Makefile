@@ -90,10 +90,15 @@ fuzz-quick: build
 
 # Soak (not in CI): 10 slaves with 1-5 % mixed faults; fails on any value from the wrong
 # request or an fd/thread leak.  SOAK_ARGS passes more options (tools/soak.py --help).
-SOAK_SECONDS ?= 600
-SOAK_ARGS    ?=
+# Then the differential test of decoded values (tests/integration/test_differential.py)
+# with SOAK_DIFF_EXAMPLES random address lists instead of the 20 of `make test`.
+SOAK_SECONDS       ?= 600
+SOAK_ARGS          ?=
+SOAK_DIFF_EXAMPLES ?= 1000
 soak: build
 	$(BIN)/python tools/soak.py --seconds $(SOAK_SECONDS) $(SOAK_ARGS)
+	EDGEMODBUS_DIFF_EXAMPLES=$(SOAK_DIFF_EXAMPLES) $(PYTEST) -q -p no:cacheprovider \
+	  --hypothesis-show-statistics tests/integration/test_differential.py
 
 clean:
 	rm -rf build build-asan dist *.egg-info src/*.egg-info .stamp-* src/edgemodbus/_native*

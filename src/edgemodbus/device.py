@@ -163,15 +163,40 @@ class ItemState:
 
 
 class _Assembly:
-    """Registers of an item larger than one block, gathered over several blocks."""
+    """Registers of an item larger than one block, gathered over several blocks.  One
+    per item, shared by the slots of all its pieces; the item is decoded only when every
+    piece arrived in the same cycle (``pieces``: item offset -> size, of ``cycle``)."""
 
-    __slots__ = ("decoder", "filled", "registers", "state")
+    __slots__ = ("cycle", "decoder", "failed", "pieces", "registers", "state")
 
     def __init__(self, state: ItemState) -> None:
         self.state = state
         self.registers = [0] * state.size
-        self.filled = 0  # registers received in this cycle
+        self.cycle = -1
+        self.failed = -1  # the last cycle in which a piece failed
+        self.pieces: dict[int, int] = {}
         self.decoder = BlockDecoder(state.area, state.size, [(0, state.spec)])
+
+    def add(self, piece: Piece, values: list[int], cycle: int) -> bool:
+        """Store a piece read in ``cycle``; True once all pieces of that cycle are in."""
+        if cycle != self.cycle:
+            self.cycle = cycle
+            self.pieces.clear()
+        start = piece.block_offset
+        self.registers[piece.item_offset:piece.item_offset + piece.size] = values[
+            start:start + piece.size
+        ]
+        self.pieces[piece.item_offset] = piece.size
+        return sum(self.pieces.values()) == len(self.registers)  # pieces never overlap
+
+    def fail(self, cycle: int) -> bool:
+        """A piece failed in ``cycle``: what arrived in it cannot complete the item.
+        False if another piece already failed in that cycle (the item is Invalid)."""
+        first = self.failed != cycle
+        self.failed = self.cycle = cycle
+        self.pieces.clear()
+        self.decoder.reset()  # the next complete read reports the item again
+        return first
 
 
 @dataclass
@@ -183,12 +208,12 @@ class _Slot:
     decoder: BlockDecoder | None
     partial: list[tuple[Piece, _Assembly]]
     items: list[DeviceAddressItem] = field(init=False)  # whole[i].item, for the hot loop
+    # the decoder was reset because an item was set from outside it (a write, a report):
+    # its next reports are filtered by what the items hold (Device._news)
+    recheck: bool = field(default=False, init=False)
 
     def __post_init__(self) -> None:
         self.items = [state.item for state in self.whole]
-
-    def states(self) -> list[ItemState]:
-        return self.whole + [asm.state for _, asm in self.partial]
 
 
 @dataclass
@@ -240,6 +265,9 @@ class Device:
         self.items: list[ItemState] = []
         self.by_name: dict[str, ItemState] = {}
         self.slots: list[_Slot] = []
+        self._assemblies: dict[ItemState, _Assembly] = {}
+        self._owner: dict[ItemState, _Slot | _Assembly] = {}  # what decodes each item
+        self.cycle_no = 0  # counts the cycles begun, for the pieces of large items
         self._install(parsed)
         self.index = 0
         self.due = 0.0
@@ -282,6 +310,8 @@ class Device:
         self.by_name = {s.item.name: s for s in items}
         self._report_decoders = {}
         blocks = build_plan(enabled, self.params)
+        self._assemblies = {}  # filled by _make_slot: one per large item, for all its pieces
+        self._owner = {}
         self.slots = [self._make_slot(b) for b in blocks]
 
     def _make_slot(self, block: ReadBlock) -> _Slot:
@@ -296,14 +326,18 @@ class Device:
             else:
                 partial.append((piece, self._assembly(state)))
         decoder = BlockDecoder(block.area, block.count, specs) if specs else None
-        return _Slot(block, whole, decoder, partial)
+        slot = _Slot(block, whole, decoder, partial)
+        for state in whole:
+            self._owner[state] = slot
+        for _, asm in partial:
+            self._owner[asm.state] = asm
+        return slot
 
     def _assembly(self, state: ItemState) -> _Assembly:
-        for slot in self.slots:
-            for _, asm in slot.partial:
-                if asm.state is state:
-                    return asm
-        return _Assembly(state)
+        asm = self._assemblies.get(state)
+        if asm is None:
+            asm = self._assemblies[state] = _Assembly(state)
+        return asm
 
     def replace_items(self, parsed: Sequence[ParsedItem]) -> Future[None]:
         """Swap in a new address list on the worker, between two reads."""
@@ -363,11 +397,17 @@ class Device:
         if decoder is None:
             return
         self.counters.reports += 1
-        changes = decoder.decode(Block.from_values(values, bits=area.is_bit), self.report_all)
-        if changes:
+        # Every item of the report, kept when it is news against what the item holds (it
+        # may have been set by a poll since the last report): the decoder's own change
+        # tracking only knows the reports.
+        decoded = decoder.decode(Block.from_values(values, bits=area.is_bit), True)
+        report_all = self.report_all
+        news = [(states[i], value, error) for i, value, error in decoded
+                if report_all or _news(states[i], value, error)]
+        if news:
             now = datetime.now(timezone.utc)
-            reported = [_set_item(states[i].item, value, error, now)
-                        for i, value, error in changes]
+            reported = [_set_item(state.item, value, error, now) for state, value, error in news]
+            self._recheck([state for state, _, _ in news])
             self.counters.values_changed += len(reported)
             self._report(reported)
             self._flush_batch()
@@ -380,6 +420,7 @@ class Device:
         index = self.index
         if index == 0:
             self.cycle_start = time.monotonic()
+            self.cycle_no += 1
         slots = self.slots
         if not slots:
             self._end_cycle(failed=False)
@@ -470,6 +511,11 @@ class Device:
         the decoder) and the items assembled from pieces."""
         reported: list[DeviceAddressItem] = []
         now: datetime | None = None
+        if slot.recheck:  # rare: after a write or a report, see _recheck
+            slot.recheck = False
+            if not self.report_all:
+                whole = slot.whole
+                changes = [c for c in changes if _news(whole[c[0]], c[1], c[2])]
         if changes:
             now = datetime.now(timezone.utc)
             items = slot.items
@@ -490,26 +536,26 @@ class Device:
         if slot.partial:
             values = data.to_list()
             for piece, asm in slot.partial:
-                start = piece.block_offset
-                asm.registers[piece.item_offset:piece.item_offset + piece.size] = values[
-                    start:start + piece.size
-                ]
-                asm.filled += piece.size
-                if asm.filled >= asm.state.size:  # pieces never overlap: all arrived
-                    asm.filled = 0
+                if asm.add(piece, values, self.cycle_no):
                     block = Block.from_values(asm.registers, bits=False)
+                    state = asm.state
                     for _, value, error in asm.decoder.decode(block, self.report_all):
-                        now = now or datetime.now(timezone.utc)
-                        reported.append(_set_item(asm.state.item, value, error, now))
+                        if self.report_all or _news(state, value, error):
+                            now = now or datetime.now(timezone.utc)
+                            reported.append(_set_item(state.item, value, error, now))
         if reported:
             self.counters.values_changed += len(reported)
             self._report(reported)
 
     # -- item state ----------------------------------------------------------------------
     def _invalidate(self, slot: _Slot, reason: str) -> None:
+        """Set the slot's items Invalid with ``reason``.  An item read in pieces fails
+        once per cycle: the first of its pieces that fails reports it."""
         now = datetime.now(timezone.utc)
         reported = []
-        for state in slot.states():
+        states = slot.whole + [asm.state for _, asm in slot.partial
+                               if asm.fail(self.cycle_no)]
+        for state in states:
             item = state.item
             changed = item.status is not ItemStatus.INVALID
             _set_item(item, None, reason, now)
@@ -519,13 +565,28 @@ class Device:
             self._report(reported)
         if slot.decoder is not None:
             slot.decoder.reset()  # the next good read reports every item again
-        for _, asm in slot.partial:
-            asm.decoder.reset()
-            asm.filled = 0
+
+    def _recheck(self, states: list[ItemState]) -> None:
+        """These items were just set from outside their poll decoder (a confirmed write,
+        a wrapped report), whose change tracking still holds the value it last read.
+        Make it report them on the next read, where only news is kept: the written value
+        read back is not published a second time, and a value the slave went back to
+        (a write it clamped or another master undid) is not missed."""
+        for state in states:
+            owner = self._owner.get(state)
+            if owner is None or owner.decoder is None:
+                continue
+            owner.decoder.reset()
+            if isinstance(owner, _Slot):
+                owner.recheck = True
 
     def _report(self, items: list[DeviceAddressItem]) -> None:
         """Add items to this cycle's batch and call the per-item callback for each."""
         self.batch += items
+        self._notify(items)
+
+    def _notify(self, items: list[DeviceAddressItem]) -> None:
+        """Call the per-item callback for each item."""
         callback = self.driver.address_updated_callback
         if callback is None:
             return
@@ -619,6 +680,7 @@ class Device:
         link.set_response_timeout(self.timeout)
         errors: list[str] = []
         now = datetime.now(timezone.utc)
+        written: list[DeviceAddressItem] = []
         for i, op in enumerate(ops):
             self.counters.writes += 1
             try:
@@ -630,15 +692,23 @@ class Device:
                     errors.extend(f"{o.names}: not sent (link down)" for o in ops[i + 1:])
                     break
                 continue
+            self._recheck([state for state, _ in op.updates])
             confirmed = [
                 _set_item(state.item, value, None, now)
                 for state, value in op.updates
-                if self.report_all or state.item.value != value
-                or state.item.status is not ItemStatus.OK
+                if self.report_all or not _holds(state.item, value, None)
             ]
             if confirmed:
                 self.counters.values_changed += len(confirmed)
-                self._report(confirmed)
+                self._notify(confirmed)
+                written += confirmed
+        if written:
+            # One write, one update: the item callbacks above, and one batch now (the
+            # next read of the written value is no news, see _recheck); an item already
+            # in this cycle's batch goes out once, with its written value.
+            queued = {id(item) for item in self.batch}
+            self.batch += [item for item in written if id(item) not in queued]
+            self._flush_batch()
         return (False, "; ".join(errors)) if errors else (True, None)
 
     def _execute(self, link: Link, op: WriteOp) -> None:
@@ -789,6 +859,39 @@ def _set_item(
         fields["error_reason"] = error
     fields["update_ts"] = now
     return item
+
+
+def _same(held: Any, value: Any) -> bool:
+    """Whether an item's value is exactly ``value`` (same type; NaN matches NaN)."""
+    return type(held) is type(value) and (held == value or (held != held and value != value))
+
+
+def _holds(item: DeviceAddressItem, value: Any, error: str | None) -> bool:
+    """Whether ``item`` is already Ok with ``value``: a change the decoder sees against
+    its own last report (e.g. after a confirmed write) that is no news to the host."""
+    return error is None and item.status is _OK and _same(item.value, value)
+
+
+def _news(state: ItemState, value: Any, error: str | None) -> bool:
+    """Whether a decoded result differs from what the item holds, as the change mode
+    reports it: another error reason, or a value not exactly the held one and, for
+    numbers with a deadband, more than the deadband away from it."""
+    item = state.item
+    if error is not None:
+        return item.status is not _INVALID or item.error_reason != error
+    if item.status is not _OK:
+        return True
+    held = item.value
+    if _same(held, value):
+        return False
+    deadband = state.spec.deadband
+    if deadband and _is_number(held) and _is_number(value):
+        return not abs(value - held) <= deadband
+    return True
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
 
 
 def _copy_runtime(src: DeviceAddressItem, dst: DeviceAddressItem) -> None:

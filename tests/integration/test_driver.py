@@ -20,7 +20,7 @@ import pytest
 import edgemodbus as em
 from edgemodbus.datatypes import DeviceDriverStatus, ItemStatus
 from edgemodbus.sim import Simulator
-from tests.peers import PymodbusSlave, default_bit, default_register
+from tests.peers import ExceptionRange, PymodbusSlave, default_bit, default_register
 from tests.waiting import wait_for
 
 DATA = Path(__file__).resolve().parents[1] / "data"
@@ -443,3 +443,226 @@ def test_callbacks_may_update_addresses_but_not_wait_for_a_write(slave: Pymodbus
         wait_for(lambda: new_items[0].status is ItemStatus.OK, what="re-planned from a callback")
     assert results[0][0] is False and "bus worker" in (results[0][1] or "")
     assert slave.registers(1, "hr", 1, 1) == [default_register(1, "hr", 1)]  # not written
+
+
+# -- items larger than a block, and what a write publishes ------------------------------
+
+def _cycles_later(drv: em.DriverModbusRtu, n: int) -> None:
+    """Wait until ``n`` more poll cycles of ``drv`` have ended."""
+    target = drv.stats()["cycles"] + n
+    wait_for(lambda: drv.stats()["cycles"] >= target, what=f"{n} more cycles")
+
+
+def _text_registers(text: str, quantity: int) -> list[int]:
+    raw = text.encode().ljust(2 * quantity, b"\0")
+    return [raw[i] << 8 | raw[i + 1] for i in range(0, len(raw), 2)]
+
+
+def _binary_registers(seed: int, quantity: int) -> list[int]:
+    return [(seed * 7919 + 257 * i) & 0xFFFF for i in range(quantity)]
+
+
+def _binary(registers: list[int]) -> bytes:
+    return b"".join(r.to_bytes(2, "big") for r in registers)
+
+
+def test_items_larger_than_a_block_are_read_whole(slave: PymodbusSlave) -> None:
+    """A String of 60 registers and a Binary of 100, read in blocks of at most 40: every
+    Ok report, on every cycle and after a change, holds the whole item.  (The pieces of
+    one item used to get a buffer each: from the second cycle on the item was decoded
+    from one piece and zeros, and reported Ok.)"""
+    texts = ["".join(chr(97 + (i * k) % 26) for i in range(120)) for k in (1, 3)]
+    blobs = [_binary_registers(seed, 100) for seed in (1, 2)]
+    slave.set_registers(1, "hr", 500, _text_registers(texts[0], 60))
+    slave.set_registers(1, "hr", 600, blobs[0])
+    cfg = device(slave.port, [
+        {"name": "s", "address": "hr:500", "deviceDataType": "String", "quantity": 60},
+        {"name": "b", "address": "hr:600", "deviceDataType": "Binary", "quantity": 100},
+    ], readCycle=30, maxBlockReadRegisterCount=40)
+    reports: list[tuple[str, ItemStatus, Any]] = []
+    record = lambda it: reports.append((it.name, it.status, it.value))  # noqa: E731
+    good = {"s": {texts[0]}, "b": {_binary(blobs[0])}}
+    with Running(cfg, address_updated_callback=record) as drv:
+        assert [(b["start"], b["count"]) for b in drv.read_plan()] == [
+            (500, 40), (540, 20), (600, 40), (640, 40), (680, 20)]
+        wait_for(all_ok(cfg), what="first read")
+        _cycles_later(drv, 4)
+        slave.set_registers(1, "hr", 500, _text_registers(texts[1], 60))
+        slave.set_registers(1, "hr", 600, blobs[1])
+        good = {"s": {texts[0], texts[1]}, "b": {_binary(blobs[0]), _binary(blobs[1])}}
+        wait_for(lambda: [it.value for it in cfg.address_list] == [texts[1], _binary(blobs[1])],
+                 what="the changed values")
+        _cycles_later(drv, 4)
+    ok_reports = [(name, value) for name, status, value in reports if status is ItemStatus.OK]
+    assert {name for name, _ in ok_reports} == {"s", "b"}
+    wrong = [(name, value) for name, value in ok_reports if value not in good[name]]
+    assert not wrong, wrong[:2]
+
+
+def test_item_larger_than_a_block_is_not_ok_while_a_piece_fails(slave: PymodbusSlave) -> None:
+    """The second piece of a 60-register String always fails (exception 04): the item is
+    never reported Ok, whatever its first piece brings (it used to be reported Ok from
+    the first piece and zeros after two cycles)."""
+    slave.set_registers(1, "hr", 500, _text_registers("x" * 120, 60))
+    slave.set_exception_ranges([ExceptionRange(545, 546, code=4, unit=1)])
+    cfg = device(slave.port, [
+        {"name": "s", "address": "hr:500", "deviceDataType": "String", "quantity": 60},
+        {"name": "n", "address": "hr:400", "deviceDataType": "UInt16"},
+    ], readCycle=30, maxBlockReadRegisterCount=40)
+    statuses: list[ItemStatus] = []
+    record = lambda it: it.name == "s" and statuses.append(it.status)  # noqa: E731
+    with Running(cfg, address_updated_callback=record) as drv:
+        wait_for(lambda: cfg.address_list[1].status is ItemStatus.OK, what="the small item")
+        _cycles_later(drv, 6)
+        item = cfg.address_list[0]
+        assert item.status is ItemStatus.INVALID and "exception" in (item.error_reason or "")
+        assert item.value is None
+        # the slave is mended: the next complete cycle brings the whole item
+        slave.set_exception_ranges([])
+        wait_for(lambda: item.status is ItemStatus.OK, what="the whole item")
+        assert item.value == "x" * 120
+    assert statuses and ItemStatus.OK not in statuses[:-1], statuses
+
+
+def test_update_addresses_reads_a_large_item_whole(slave: PymodbusSlave) -> None:
+    """The same for an item that arrives by update_addresses (re-planned while running)."""
+    text = "".join(chr(65 + i % 26) for i in range(100))
+    slave.set_registers(1, "hr", 800, _text_registers(text, 50))
+    cfg = device(slave.port, [{"name": "a", "address": "hr:1", "deviceDataType": "UInt16"}],
+                 readCycle=30, maxBlockReadRegisterCount=20)
+    new = em.load_device_config({
+        "communication": comm(slave.port, readCycle=30, maxBlockReadRegisterCount=20),
+        "addressList": [{"name": "a", "address": "hr:1", "deviceDataType": "UInt16"},
+                        {"name": "s", "address": "hr:800", "deviceDataType": "String",
+                         "quantity": 50}],
+    }).address_list
+    values: list[Any] = []
+    record = lambda it: it.name == "s" and values.append((it.status, it.value))  # noqa: E731
+    with Running(cfg, address_updated_callback=record) as drv:
+        wait_for(all_ok(cfg))
+        drv.update_addresses(new)
+        wait_for(lambda: new[1].status is ItemStatus.OK, what="the large item")
+        _cycles_later(drv, 4)
+    assert values and all(v == (ItemStatus.OK, text) for v in values), values[:2]
+
+
+def test_one_write_publishes_one_update(slave: PymodbusSlave) -> None:
+    """A confirmed write reports the item once: one item callback and, at once, one
+    batch holding it once; the reads that follow find the written value and report
+    nothing more.  (The next read used to report the written value a second time, in
+    the same batch, which waited for the end of the next cycle.)"""
+    cfg = device(slave.port, [
+        {"name": "w", "address": "hr:700", "deviceDataType": "UInt16"},
+        {"name": "f", "address": "hr:702", "deviceDataType": "Float", "dataFormat": "CDAB"},
+        {"name": "k", "address": "coil:9", "deviceDataType": "Boolean"},
+    ], readCycle=30)
+    items: list[tuple[str, Any]] = []
+    batches: list[list[tuple[str, Any]]] = []
+    with Running(cfg,
+                 address_updated_callback=lambda it: items.append((it.name, it.value)),
+                 addresses_updated_callback=lambda b: batches.append(
+                     [(it.name, it.value) for it in b])) as drv:
+        wait_for(all_ok(cfg))
+        _cycles_later(drv, 2)
+        items.clear()
+        batches.clear()
+        assert drv.write_address("w", 4242) == (True, None)
+        assert (items, batches) == ([("w", 4242)], [[("w", 4242)]])
+        assert drv.write_addresses([("f", 2.5), ("k", not cfg.address_list[2].value)]) == (
+            True, None)
+        _cycles_later(drv, 4)
+    flag = cfg.address_list[2].value
+    assert sorted(items) == sorted([("w", 4242), ("f", 2.5), ("k", flag)]), items
+    assert sorted(x for batch in batches for x in batch) == sorted(items), batches
+
+
+def test_item_read_in_pieces_is_reported_once_per_cycle_when_they_fail(
+    slave: PymodbusSlave,
+) -> None:
+    """reportMode cycle, every piece of a 60-register String fails: the item is reported
+    Invalid once per cycle (once per failed piece, it used to be: twice in a batch)."""
+    slave.set_exception_ranges([ExceptionRange(500, 560, code=4, unit=1)])
+    cfg = device(slave.port, [
+        {"name": "s", "address": "hr:500", "deviceDataType": "String", "quantity": 60},
+        {"name": "n", "address": "hr:400", "deviceDataType": "UInt16"},
+    ], readCycle=30, maxBlockReadRegisterCount=40, reportMode="cycle")
+    batches: list[list[str]] = []
+    with Running(cfg, addresses_updated_callback=lambda b: batches.append(
+            [it.name for it in b])) as drv:
+        wait_for(lambda: len(batches) >= 2, what="two cycles")
+        _cycles_later(drv, 4)
+    assert cfg.address_list[0].status is ItemStatus.INVALID
+    assert all(sorted(batch) == ["n", "s"] for batch in batches), batches
+
+
+def test_a_value_the_slave_goes_back_to_after_a_write_is_read() -> None:
+    """A confirmed write sets the item; when the slave then holds its old value again (it
+    clamped the write, another master undid it), the next read reports that value.  (The
+    poll decoder kept the old value as its last report, saw no change, and the item
+    stayed Ok with the written value.)"""
+    with Simulator([1]) as sim:
+        port = sim.serve_tcp("127.0.0.1", 0)
+        slave1 = sim.slave(1)
+        slave1.set_registers(em.Area.HOLDING_REGISTER, 40, [5])
+
+        def undo(item: em.DeviceAddressItem) -> None:
+            # on the worker, as the write is confirmed: no read comes in between
+            if item.value == 77:
+                slave1.set_registers(em.Area.HOLDING_REGISTER, 40, [5])
+
+        cfg = device(port, [{"name": "sp", "address": "hr:40", "deviceDataType": "UInt16"},
+                            {"name": "nb", "address": "hr:41", "deviceDataType": "UInt16"}],
+                     readCycle=30)
+        with Running(cfg, address_updated_callback=undo) as drv:
+            wait_for(all_ok(cfg))
+            assert drv.write_address("sp", 77) == (True, None)
+            _cycles_later(drv, 3)
+            assert cfg.address_list[0].value == 5
+            assert cfg.address_list[0].status is ItemStatus.OK
+
+
+def test_a_value_the_slave_goes_back_to_after_a_report_is_read() -> None:
+    """The same for a wrapped report: a report sets the item, the slave goes back to the
+    value the integrity poll read before; the next poll reports it."""
+    with Simulator([1]) as sim:
+        port = sim.serve_tcp("127.0.0.1", 0, wrapped=True)
+        slave1 = sim.slave(1)
+        slave1.set_registers(em.Area.HOLDING_REGISTER, 2, [502])
+        cfg = device(port, [{"name": "r2", "address": "hr:2", "deviceDataType": "UInt16"}],
+                     readCycle=200, framing="wrapped-report")
+        with Running(cfg) as drv:
+            wait_for(all_ok(cfg))
+            item = cfg.address_list[0]
+            assert item.value == 502
+            slave1.set_registers(em.Area.HOLDING_REGISTER, 2, [7])
+            (client,) = sim.clients()
+            client.push_report(1, em.Area.HOLDING_REGISTER, 2, 1)  # carries 7
+            slave1.set_registers(em.Area.HOLDING_REGISTER, 2, [502])
+            wait_for(lambda: drv.stats()["reports"] == 1, what="the report")
+            _cycles_later(drv, 2)
+            assert (item.status, item.value) == (ItemStatus.OK, 502)
+
+
+def test_a_report_is_applied_after_a_poll_changed_the_item() -> None:
+    """A report repeats a value the last report brought, while a poll in between set the
+    item to another one: the report is news and applied.  (The report decoder compared
+    with its own last report only, saw no change, and dropped it.)"""
+    with Simulator([1]) as sim:
+        port = sim.serve_tcp("127.0.0.1", 0, wrapped=True)
+        hr = em.Area.HOLDING_REGISTER
+        slave1 = sim.slave(1)
+        slave1.set_registers(hr, 2, [502])
+        cfg = device(port, [{"name": "r2", "address": "hr:2", "deviceDataType": "UInt16"}],
+                     readCycle=100, framing="wrapped-report")
+        seen: list[int] = []
+        with Running(cfg, address_updated_callback=lambda it: seen.append(it.value)) as drv:
+            wait_for(all_ok(cfg))
+            (client,) = sim.clients()
+            for _ in range(2):
+                slave1.set_registers(hr, 2, [7])
+                client.push_report(1, hr, 2, 1)  # carries 7
+                slave1.set_registers(hr, 2, [502])
+                wait_for(lambda: seen[-1] == 7, what="the report applied")
+                wait_for(lambda: seen[-1] == 502, what="the poll after it")
+            assert drv.stats()["reports"] == 2
+        assert seen == [502, 7, 502, 7, 502]

@@ -1,0 +1,581 @@
+"""Differential test of the whole read path: a value reported Ok is never wrong.
+
+Hypothesis draws an address list (every data type and data format, Smart Cast
+quantities, multipliers and converted types, register bits, coils and discrete inputs,
+Strings and Binaries longer than a block, gaps, overlapping items, disabled items) and
+planner settings (block sizes, merge gap, continuous blocks, report mode), puts random
+registers and bits into a slave of our simulator (``edgemodbus.sim``: in process,
+so its registers are set directly and at once), and runs a DriverModbusRtu against it
+for several cycles.  At the end of every cycle the registers change (and the address
+list may be replaced by ``update_addresses``), so change detection and re-planning are
+exercised; some examples add illegal-address ranges (exception 02, which bisects
+blocks), other exception codes, or wire faults.
+
+Every item that is Ok - at the end of every cycle (snapshot publisher with a 1 ms
+interval, called by the worker when a cycle ends), in every ``address_updated_callback``
+and every ``addresses_updated_callback`` - must hold exactly the value that
+:func:`reference` gives for the slave's registers.  ``reference`` is written here from
+the documented semantics (README.md "Data types", the codec module's notes) with
+``struct``; it does not use our codec.  Items it calls invalid (bad BCD, a conversion
+out of range, an address the slave refuses) must not be Ok.  Without faults, every
+valid item must be Ok at the end of each cycle, and a batch holds an item at most once.
+
+The example count is bounded for ``make test``: EDGEMODBUS_DIFF_EXAMPLES (default 20);
+``make soak`` raises it.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import random
+import struct
+from collections.abc import Iterator
+from dataclasses import dataclass, field, replace
+from datetime import datetime, timedelta, timezone
+from typing import Any
+
+import pytest
+from hypothesis import HealthCheck, assume, event, given, settings
+from hypothesis import strategies as st
+
+import edgemodbus as em
+from edgemodbus.datatypes import ItemStatus
+from edgemodbus.sim import Simulator
+from tests.waiting import wait_for
+
+EXAMPLES = int(os.environ.get("EDGEMODBUS_DIFF_EXAMPLES", "20"))
+DIFF = settings(
+    max_examples=EXAMPLES,
+    deadline=None,
+    suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large,
+                           HealthCheck.filter_too_much, HealthCheck.function_scoped_fixture],
+)
+CYCLES = 5  # cycles checked per example
+REG_SPAN = 320  # items live in registers 0..REG_SPAN-1 of hr and ir
+BIT_SPAN = 160  # and bits 0..BIT_SPAN-1 of coils and discrete inputs
+FLT_MAX = 3.4028234663852886e38
+EPOCH = datetime(1970, 1, 1, tzinfo=timezone.utc)
+
+# -- the reference decoder ----------------------------------------------------------------
+
+# (kind, registers) a fixed-size type is read with, by quantity: a quantity smaller than
+# the type needs reads the widest smaller value (Smart Cast), None is the type's default
+WIDTHS: dict[str, dict[int | None, tuple[str, int]]] = {
+    "Boolean": {None: ("bool", 1), 1: ("bool", 1)},
+    "Byte": {None: ("u8", 1), 1: ("u8", 1)},
+    "Sbyte": {None: ("i8", 1), 1: ("i8", 1)},
+    "Char": {None: ("char", 1), 1: ("char", 1)},
+    "Int16": {None: ("i16", 1), 1: ("i16", 1)},
+    "UInt16": {None: ("u16", 1), 1: ("u16", 1)},
+    "BCD16": {None: ("bcd", 1), 1: ("bcd", 1)},
+    "Int32": {None: ("i32", 2), 2: ("i32", 2), 1: ("i16", 1)},
+    "UInt32": {None: ("u32", 2), 2: ("u32", 2), 1: ("u16", 1)},
+    "Float": {None: ("f32", 2), 2: ("f32", 2), 1: ("i16", 1)},
+    "BCD32": {None: ("bcd", 2), 2: ("bcd", 2), 1: ("bcd", 1)},
+    "Int64": {None: ("i64", 4), 4: ("i64", 4), 2: ("i32", 2), 1: ("i16", 1)},
+    "UInt64": {None: ("u64", 4), 4: ("u64", 4), 2: ("u32", 2), 1: ("u16", 1)},
+    "Double": {None: ("f64", 4), 4: ("f64", 4), 2: ("f32", 2), 1: ("i16", 1)},
+    "DateTime": {None: ("sec", 2), 2: ("sec", 2), 4: ("ms", 4)},
+    "Timestamp": {None: ("sec", 2), 2: ("sec", 2), 4: ("ms", 4)},
+}
+STRUCT = {"i16": ">h", "u16": ">H", "i32": ">i", "u32": ">I", "i64": ">q", "u64": ">Q",
+          "f32": ">f", "f64": ">d", "sec": ">I", "ms": ">q"}
+NUMERIC = {"Byte", "Sbyte", "Int16", "UInt16", "Int32", "UInt32", "Int64", "UInt64",
+           "BCD16", "BCD32", "Float", "Double"}
+INT_RANGE = {
+    "Byte": (0, 0xFF), "Sbyte": (-0x80, 0x7F), "Int16": (-0x8000, 0x7FFF),
+    "UInt16": (0, 0xFFFF), "Int32": (-(1 << 31), (1 << 31) - 1), "UInt32": (0, (1 << 32) - 1),
+    "Int64": (-(1 << 63), (1 << 63) - 1), "UInt64": (0, (1 << 64) - 1),
+    "BCD16": (0, 9999), "BCD32": (0, 99_999_999),
+}
+UNCONVERTED = {"Char", "String", "Binary", "DateTime", "Timestamp"}
+TARGETS = ["Boolean", *INT_RANGE, "Float", "Double", "String"]
+MULTIPLIERS = [0.1, 0.01, 0.001, 0.5, 0.25, 2.0, 10.0, -1.0, 1.5]
+DECIMAL_STEPS = {0.1: 10, 0.01: 100, 0.001: 1000}  # a multiplier 1/10^k divides by 10^k
+FORMATS = ["ABCD", "BADC", "CDAB", "DCBA"]
+BAD = object()  # the reference's verdict "invalid": the item must not be Ok
+
+
+@dataclass(frozen=True)
+class Spec:
+    """One configured item as the test sees it."""
+
+    name: str
+    area: str  # hr, ir, coil, di
+    offset: int
+    dtype: str
+    bit: int | None = None
+    quantity: int | None = None
+    fmt: str | None = None  # the item's override of the device's dataFormat
+    multiplier: float = 1.0
+    converted: str | None = None
+    encoding: str | None = None
+    enabled: bool = True
+
+    @property
+    def size(self) -> int:
+        if self.area in ("coil", "di") or self.bit is not None:
+            return 1
+        if self.quantity is not None:
+            return self.quantity
+        return WIDTHS[self.dtype][None][1]
+
+    @property
+    def address(self) -> str:
+        text = f"{self.area}:{self.offset}"
+        return text if self.bit is None else f"{text}.{self.bit}"
+
+    def as_json(self) -> dict[str, Any]:
+        out: dict[str, Any] = {"name": self.name, "address": self.address,
+                               "deviceDataType": self.dtype, "isEnable": self.enabled}
+        if self.quantity is not None:
+            out["quantity"] = self.quantity
+        if self.fmt is not None:
+            out["dataFormat"] = self.fmt
+        if self.multiplier != 1:
+            out["dataMultiplier"] = self.multiplier
+        if self.converted is not None:
+            out["convertedDataType"] = self.converted
+        if self.encoding is not None:
+            out["encoding"] = self.encoding
+        return out
+
+
+@dataclass
+class Truth:
+    """What the slave holds: registers of hr/ir, bits of coils/di, refused ranges."""
+
+    regs: dict[str, list[int]]
+    bits: dict[str, list[bool]]
+    refused: list[tuple[str, int, int]] = field(default_factory=list)  # area, start, end
+
+
+def _swap(r: int) -> int:
+    return ((r & 0xFF) << 8) | (r >> 8)
+
+
+def _ordered_bytes(regs: list[int], fmt: str) -> bytes:
+    """Registers to bytes in the format's order: CDAB/DCBA reverse the registers, BADC/
+    DCBA swap the bytes inside each register."""
+    if fmt in ("CDAB", "DCBA"):
+        regs = regs[::-1]
+    if fmt in ("BADC", "DCBA"):
+        regs = [_swap(r) for r in regs]
+    return b"".join(r.to_bytes(2, "big") for r in regs)
+
+
+def _raw(spec: Spec, regs: list[int], fmt: str, encoding: str) -> Any:
+    """The value of the registers before multiplier and conversion (BAD if invalid)."""
+    if spec.dtype in ("String", "Binary"):
+        data = _ordered_bytes(regs, fmt)
+        if spec.dtype == "Binary":
+            return data
+        return data.rstrip(b"\0").decode(encoding, "replace")
+    kind, n = WIDTHS[spec.dtype][spec.quantity]
+    data = _ordered_bytes(regs[:n], fmt)
+    if kind == "bool":
+        return regs[0] != 0  # a whole register: not zero, in any byte order
+    if kind in ("u8", "i8", "char"):
+        low = data[1]  # the low byte after the byte swap
+        return low if kind == "u8" else chr(low) if kind == "char" else low - 256 * (low > 127)
+    if kind == "bcd":
+        digits = data.hex()
+        return int(digits) if all(c in "0123456789" for c in digits) else BAD
+    number = struct.unpack(STRUCT[kind], data)[0]
+    if kind in ("sec", "ms"):
+        ms = number * 1000 if kind == "sec" else number
+        if spec.dtype == "Timestamp":
+            return ms
+        try:
+            return EPOCH + timedelta(milliseconds=ms)
+        except OverflowError:
+            return BAD
+    if spec.dtype in ("Float", "Double"):
+        return float(number)
+    return number
+
+
+def _scaled(value: Any, multiplier: float) -> Any:
+    if multiplier == 1:
+        return value
+    steps = DECIMAL_STEPS.get(multiplier)
+    return float(value) / steps if steps else float(value) * multiplier
+
+
+def _converted(value: Any, target: str) -> Any:
+    if target == "String":
+        return str(value)
+    if target == "Boolean":
+        return value != 0
+    if target in ("Float", "Double"):
+        number = float(value)
+        if target == "Float" and math.isfinite(number) and abs(number) > FLT_MAX:
+            return BAD
+        return number
+    if isinstance(value, float):
+        if not math.isfinite(value):
+            return BAD
+        value = round(value)  # half to even
+    lo, hi = INT_RANGE[target]
+    return int(value) if lo <= value <= hi else BAD
+
+
+def reference(spec: Spec, truth: Truth, device_fmt: str, device_encoding: str) -> Any:
+    """The value the item must hold when Ok, or BAD when it must not be Ok."""
+    end = spec.offset + spec.size
+    for area, start, stop in truth.refused:
+        if area == spec.area and spec.offset < stop and start < end:
+            return BAD
+    if spec.area in ("coil", "di"):
+        value: Any = truth.bits[spec.area][spec.offset]
+    else:
+        regs = truth.regs[spec.area][spec.offset:end]
+        fmt = spec.fmt or device_fmt
+        if spec.bit is not None:
+            reg = _swap(regs[0]) if fmt in ("BADC", "DCBA") else regs[0]
+            value = (reg >> spec.bit) & 1 == 1  # counted after the byte swap
+        else:
+            value = _raw(spec, regs, fmt, spec.encoding or device_encoding)
+    if value is BAD:
+        return BAD
+    value = _scaled(value, spec.multiplier)
+    target = spec.converted
+    if target is None or (target == spec.dtype and spec.multiplier == 1):
+        return value
+    return _converted(value, target)
+
+
+def same(a: Any, b: Any) -> bool:
+    """Exactly equal: same type and value (NaN equals NaN)."""
+    if type(a) is not type(b):
+        return False
+    if isinstance(a, float):
+        return a == b or (math.isnan(a) and math.isnan(b))
+    return bool(a == b)
+
+
+# -- register contents ---------------------------------------------------------------------
+
+def register_value(rng: random.Random) -> int:
+    """A register that is often meaningful: valid BCD, text, small numbers, extremes."""
+    pick = rng.random()
+    if pick < 0.3:
+        return rng.randrange(0x10000)
+    if pick < 0.45:
+        return rng.randrange(21)
+    if pick < 0.55:
+        return rng.choice([0, 0xFFFF, 0x8000, 0x7FFF, 0x0001, 0x00FF, 0xFF00, 0x7F80, 0x7FC0])
+    if pick < 0.75:
+        return int(f"{rng.randrange(10000):04d}", 16)  # packed decimal
+    if pick < 0.9:
+        return rng.randrange(32, 127) << 8 | rng.randrange(32, 127)  # two ASCII letters
+    return rng.choice([0, rng.randrange(32, 127) << 8, 0xC3A9, 0xE4BD])  # NULs, UTF-8 bits
+
+
+def fresh_truth(rng: random.Random) -> Truth:
+    return Truth(
+        regs={a: [register_value(rng) for _ in range(REG_SPAN)] for a in ("hr", "ir")},
+        bits={a: [rng.random() < 0.5 for _ in range(BIT_SPAN)] for a in ("coil", "di")},
+    )
+
+
+def mutate(truth: Truth, specs: list[Spec], rng: random.Random) -> None:
+    """Change some registers and bits, mostly inside items (so that values move)."""
+    for _ in range(rng.randrange(1, 12)):
+        if specs and rng.random() < 0.8:
+            spec = rng.choice(specs)
+            where = spec.area, spec.offset + rng.randrange(spec.size)
+        elif rng.random() < 0.7:
+            where = rng.choice(["hr", "ir"]), rng.randrange(REG_SPAN)
+        else:
+            where = rng.choice(["coil", "di"]), rng.randrange(BIT_SPAN)
+        area, offset = where
+        if area in ("coil", "di"):
+            truth.bits[area][offset] = not truth.bits[area][offset]
+        else:
+            truth.regs[area][offset] = register_value(rng)
+
+
+def load(sim: Simulator, truth: Truth) -> None:
+    slave = sim.slave(1)
+    for area, values in truth.regs.items():
+        slave.set_registers(AREAS[area], 0, values)
+    for area, flags in truth.bits.items():
+        slave.set_bits(AREAS[area], 0, flags)
+
+
+AREAS = {"hr": em.Area.HOLDING_REGISTER, "ir": em.Area.INPUT_REGISTER,
+         "coil": em.Area.COIL, "di": em.Area.DISCRETE_INPUT}
+
+# -- strategies ----------------------------------------------------------------------------
+
+
+@st.composite
+def item_specs(draw: st.DrawFn, name: str) -> Spec:
+    area = draw(st.sampled_from(["hr", "hr", "hr", "ir", "coil", "di"]))
+    enabled = draw(st.integers(0, 9)) > 0
+    if area in ("coil", "di"):
+        offset = draw(st.integers(0, BIT_SPAN - 1))
+        converted = draw(st.one_of(st.none(), st.sampled_from(TARGETS)))
+        return Spec(name, area, offset, "Boolean", converted=converted, enabled=enabled)
+    fmt = draw(st.one_of(st.none(), st.sampled_from(FORMATS)))
+    kind = draw(st.sampled_from(["fixed", "fixed", "fixed", "bit", "text"]))
+    if kind == "bit":
+        offset = draw(st.integers(0, REG_SPAN - 1))
+        return Spec(name, area, offset, "Boolean", bit=draw(st.integers(0, 15)), fmt=fmt,
+                    converted=draw(st.one_of(st.none(), st.sampled_from(TARGETS))),
+                    enabled=enabled)
+    if kind == "text":
+        dtype = draw(st.sampled_from(["String", "Binary"]))
+        length = draw(st.one_of(st.integers(1, 8), st.integers(1, 125)))
+        encoding = None
+        if dtype == "String":
+            encoding = draw(st.sampled_from([None, "utf-8", "gbk", "latin-1"]))
+        offset = draw(st.integers(0, REG_SPAN - length))
+        return Spec(name, area, offset, dtype, quantity=length, fmt=fmt, encoding=encoding,
+                    enabled=enabled)
+    dtype = draw(st.sampled_from(sorted(WIDTHS)))
+    quantity = draw(st.sampled_from(sorted(WIDTHS[dtype], key=lambda q: q or 0)))
+    multiplier = 1.0
+    if dtype in NUMERIC and draw(st.integers(0, 3)) == 0:
+        multiplier = draw(st.sampled_from(MULTIPLIERS))
+    converted = None
+    if dtype not in UNCONVERTED and draw(st.integers(0, 2)) == 0:
+        converted = draw(st.sampled_from(TARGETS))
+    spec = Spec(name, area, 0, dtype, quantity=quantity, fmt=fmt, multiplier=multiplier,
+                converted=converted, enabled=enabled)
+    return replace(spec, offset=draw(st.integers(0, REG_SPAN - spec.size)))
+
+
+@st.composite
+def address_lists(draw: st.DrawFn, first: int = 0) -> list[Spec]:
+    count = draw(st.integers(1, 24))
+    return [draw(item_specs(f"i{first + k}")) for k in range(count)]
+
+
+@dataclass(frozen=True)
+class Setup:
+    specs: list[Spec]
+    later: list[Spec] | None  # an address list swapped in by update_addresses, or None
+    comm: dict[str, Any]
+    refused: list[tuple[str, int, int, int]]  # area, start, end, exception code
+    faults: dict[str, int]
+    seed: int
+
+
+@st.composite
+def setups(draw: st.DrawFn) -> Setup:
+    specs = draw(address_lists())
+    later = None
+    if draw(st.integers(0, 3)) == 0:
+        kept = [s for s in specs if draw(st.booleans())]
+        later = kept + draw(address_lists(first=len(specs)))
+    comm: dict[str, Any] = {
+        "dataFormat": draw(st.sampled_from(FORMATS)),
+        "maxBlockReadRegisterCount": draw(st.one_of(st.integers(1, 16), st.integers(1, 125))),
+        "maxBlockReadBitCount": draw(st.one_of(st.integers(1, 16), st.integers(1, 2000))),
+        "maxMergeAddressGap": draw(st.integers(0, 20)),
+        "isBlockReadRequireAddressContinuous": draw(st.booleans()),
+        "reportMode": draw(st.sampled_from(["change", "cycle"])),
+        "readCycle": draw(st.integers(10, 30)),
+        "retries": draw(st.integers(0, 2)),
+        "encoding": draw(st.sampled_from(["utf-8", "gbk"])),
+    }
+    refused: list[tuple[str, int, int, int]] = []
+    if draw(st.integers(0, 3)) == 0:
+        for _ in range(draw(st.integers(1, 3))):
+            area = draw(st.sampled_from(["hr", "hr", "ir", "coil"]))
+            span = BIT_SPAN if area == "coil" else REG_SPAN
+            start = draw(st.integers(0, span - 1))
+            end = draw(st.integers(start + 1, min(span, start + 8)))
+            refused.append((area, start, end, draw(st.sampled_from([2, 2, 2, 4]))))
+    # a wire fault costs 50-150 ms (drain or timeout): keep a cycle to about 80 requests
+    limit = comm["maxBlockReadRegisterCount"]
+    assume(sum(-(-s.size // limit) for s in specs + (later or []) if s.enabled) <= 80)
+    faults: dict[str, int] = {}
+    if draw(st.integers(0, 4)) == 0:
+        knob = draw(st.sampled_from(["drop_every", "corrupt_crc_every", "corrupt_data_every",
+                                     "wrong_byte_count_every"]))
+        faults[knob] = draw(st.integers(3, 15))
+    return Setup(specs, later, comm, refused, faults, draw(st.integers(0, 2**32 - 1)))
+
+
+# -- the run ---------------------------------------------------------------------------------
+
+
+@pytest.fixture
+def sim() -> Iterator[tuple[Simulator, int]]:
+    with Simulator([1], size=1000) as simulator:
+        yield simulator, simulator.serve_tcp("127.0.0.1", 0)
+
+
+class Checker:
+    """Checks items against the reference; called on the driver's worker thread."""
+
+    def __init__(self, setup: Setup, truth: Truth) -> None:
+        self.setup = setup
+        self.truth = truth
+        self.fmt: str = setup.comm["dataFormat"]
+        self.encoding: str = setup.comm["encoding"]
+        self.specs: dict[int, Spec] = {}  # id(item) -> its spec, for every list in use
+        self.wrong: list[str] = []
+        self.missing: list[str] = []
+        self.cycles = 0
+
+    def adopt(self, items: list[em.DeviceAddressItem], specs: list[Spec]) -> None:
+        for item, spec in zip(items, specs, strict=True):
+            self.specs[id(item)] = spec
+
+    def check(self, item: em.DeviceAddressItem, where: str) -> None:
+        spec = self.specs[id(item)]
+        if item.status is not ItemStatus.OK:
+            return
+        want = reference(spec, self.truth, self.fmt, self.encoding)
+        if want is BAD:
+            self.wrong.append(f"{where}: {spec} is Ok with {item.value!r}, must not be Ok")
+        elif not same(item.value, want):
+            self.wrong.append(f"{where}: {spec} holds {item.value!r}, the slave {want!r}")
+
+    def on_item(self, item: em.DeviceAddressItem) -> None:
+        self.check(item, f"cycle {self.cycles} item callback")
+
+    def on_batch(self, items: list[em.DeviceAddressItem]) -> None:
+        for item in items:
+            self.check(item, f"cycle {self.cycles} batch")
+        if len({id(item) for item in items}) != len(items):
+            self.wrong.append(f"cycle {self.cycles}: a batch holds an item twice: "
+                              f"{sorted(item.name for item in items)}")
+
+
+def _config(setup: Setup, port: int, specs: list[Spec]) -> em.DeviceConfig:
+    comm = {"transport": "rtu-over-tcp", "tcpHost": "127.0.0.1", "tcpPort": port,
+            "slaveId": 1, "readTimeout": 100, "settleTimeout": 50, "maxBackoff": 200,
+            "offlineAfterFailedCycles": 3, "snapshotInterval": 1, **setup.comm}
+    return em.load_device_config({"organization": {"deviceCode": "diff"},
+                                  "communication": comm,
+                                  "addressList": [s.as_json() for s in specs]})
+
+
+def run(setup: Setup, sim: Simulator, port: int) -> Checker:
+    """Poll the slave for CYCLES cycles, checking every item and callback on the way."""
+    rng = random.Random(setup.seed)
+    truth = fresh_truth(rng)
+    truth.refused = [(area, start, end) for area, start, end, _ in setup.refused]
+    slave = sim.slave(1)
+    slave.faults.clear()
+    load(sim, truth)
+    slave.faults.exception_ranges = [(AREAS[a], start, end, code)
+                                     for a, start, end, code in setup.refused]
+    for knob, every in setup.faults.items():
+        setattr(slave.faults, knob, every)
+    clean = not setup.refused and not setup.faults
+    cfg = _config(setup, port, setup.specs)
+    checker = Checker(setup, truth)
+    checker.adopt(cfg.address_list, setup.specs)
+    items, specs = cfg.address_list, setup.specs  # the list in force
+    drv = em.DriverModbusRtu()
+
+    def cycle_ended(_topic: str, _snapshot: dict[str, Any]) -> None:
+        nonlocal items, specs
+        checker.cycles += 1
+        stats = drv.stats()
+        errors = stats["timeouts"] + stats["crcErrors"] + stats["protocolErrors"]
+        for item, spec in zip(items, specs, strict=True):
+            checker.check(item, f"end of cycle {checker.cycles}")
+            if clean and not errors and spec.enabled and item.status is not ItemStatus.OK \
+                    and reference(spec, truth, checker.fmt, checker.encoding) is not BAD:
+                checker.missing.append(f"end of cycle {checker.cycles}: {spec} is "
+                                       f"{item.status.value} ({item.error_reason})")
+        if checker.cycles == 2 and setup.later is not None:
+            new = _config(setup, port, setup.later).address_list
+            checker.adopt(new, setup.later)
+            drv.update_addresses(new)  # on the worker: swapped at once, between two reads
+            items, specs = new, setup.later
+        if checker.cycles < CYCLES:
+            mutate(truth, specs, rng)
+            load(sim, truth)
+
+    drv.address_updated_callback = checker.on_item
+    drv.addresses_updated_callback = checker.on_batch
+    drv.snapshot_publisher = cycle_ended
+    assert drv.start_device(cfg.organization, cfg.communication, cfg.address_list)
+    try:
+        wait_for(lambda: checker.cycles >= CYCLES, timeout=60, what=f"{CYCLES} cycles")
+    finally:
+        drv.stop_device()
+    return checker
+
+
+def _describe(setup: Setup) -> None:
+    """Hypothesis statistics: which features the examples reached."""
+    limit = setup.comm["maxBlockReadRegisterCount"]
+    specs = setup.specs + (setup.later or [])
+    if any(s.dtype in ("String", "Binary") and s.size > limit for s in specs):
+        event("an item larger than a block")
+    if setup.refused:
+        event("refused address ranges")
+    if setup.faults:
+        event(f"fault {next(iter(setup.faults))}")
+    if setup.later is not None:
+        event("update_addresses")
+
+
+@pytest.mark.timeout(max(120, 6 * EXAMPLES))
+@DIFF
+@given(setup=setups())
+def test_ok_values_equal_an_independent_decode(
+    setup: Setup, sim: tuple[Simulator, int]
+) -> None:
+    _describe(setup)
+    checker = run(setup, *sim)
+    assert not checker.wrong, "\n".join(checker.wrong[:5])
+    assert not checker.missing, "\n".join(checker.missing[:5])
+
+
+def test_reference_decoder_knows_the_documented_cases() -> None:
+    """The reference itself, on values worked out by hand (a wrong reference would make
+    the differential test meaningless)."""
+    truth = Truth(regs={"hr": [0x1234, 0x5678, 0x9ABC, 0xDEF0, 0x4142, 0x4300, 0, 0,
+                               0x0000, 0x0123, 0x4567, 0x89AB, 5],
+                        "ir": [0] * 13}, bits={"coil": [True], "di": [False]})
+
+    def ref(fmt: str = "ABCD", **kw: Any) -> Any:
+        spec = Spec("x", kw.pop("area", "hr"), kw.pop("offset", 0), kw.pop("dtype"), **kw)
+        return reference(spec, truth, fmt, "utf-8")
+
+    assert ref(dtype="UInt32") == 0x12345678
+    assert ref("CDAB", dtype="UInt32") == 0x56781234
+    assert ref("BADC", dtype="UInt32") == 0x34127856
+    assert ref("DCBA", dtype="UInt32") == 0x78563412
+    assert ref("DCBA", dtype="UInt64") == 0xF0DEBC9A78563412
+    assert ref(dtype="Int16", offset=2) == 0x9ABC - 0x10000
+    assert ref(dtype="Int64", quantity=2, offset=2) == struct.unpack(">i", bytes.fromhex(
+        "9ABCDEF0"))[0]  # Smart Cast: two registers of an Int64 are an Int32
+    assert ref(dtype="Double", quantity=1) == float(0x1234)  # one register: an Int16
+    assert ref(dtype="Byte") == 0x34 and ref("BADC", dtype="Byte") == 0x12
+    assert ref(dtype="Char", offset=4) == "B" and ref(dtype="Sbyte", offset=2) == -0x44
+    assert ref(dtype="BCD16") == 1234 and ref(dtype="BCD32") == 12345678
+    assert ref(dtype="BCD16", offset=2) is BAD  # 0x9ABC: digits above 9
+    assert ref(dtype="String", quantity=4, offset=4) == "ABC"  # trailing NULs stripped
+    assert ref("CDAB", dtype="String", quantity=2, offset=4) == "C\0AB"
+    assert ref(dtype="Binary", quantity=2, offset=4) == b"ABC\0"
+    assert ref(dtype="Timestamp") == 0x12345678 * 1000
+    assert ref(dtype="DateTime", quantity=4, offset=8) == EPOCH + timedelta(
+        milliseconds=0x0123456789AB)
+    assert ref(dtype="DateTime", quantity=4) is BAD  # 0x123456789ABCDEF0 ms: past year 9999
+    assert ref(dtype="Boolean", bit=4) is True and ref("BADC", dtype="Boolean", bit=4) is True
+    assert ref(dtype="Boolean", bit=0) is False and ref("BADC", dtype="Boolean", bit=1) is True
+    assert ref(dtype="Int16", multiplier=0.1) == 0x1234 / 10
+    assert ref(dtype="Int16", multiplier=0.01, converted="Int16") == 47  # 46.6 rounded
+    assert ref(dtype="Int16", offset=12, multiplier=0.5, converted="Int16") == 2  # 2.5: even
+    assert ref(dtype="UInt16", converted="Sbyte") is BAD
+    assert ref(dtype="UInt16", multiplier=0.5, converted="String") == "2330.0"
+    assert ref(dtype="Boolean", area="coil") is True
+    truth.refused.append(("hr", 1, 2))
+    assert ref(dtype="UInt32") is BAD and ref(dtype="UInt16") == 0x1234
+
+
+def test_same_compares_exactly() -> None:
+    assert same(math.nan, math.nan) and same(b"a", b"a")
+    assert not same(1, 1.0) and not same(True, 1) and not same(0.1 + 0.2, 0.3)
