@@ -557,7 +557,7 @@ class Device:
                                if asm.fail(self.cycle_no)]
         for state in states:
             item = state.item
-            changed = item.status is not ItemStatus.INVALID
+            changed = item.status is not ItemStatus.INVALID or item.error_reason != reason
             _set_item(item, None, reason, now)
             if changed or self.report_all:
                 reported.append(item)
