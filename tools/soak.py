@@ -126,7 +126,8 @@ def serve(args: argparse.Namespace) -> int:
                 value = rng.choice([s for s in range(1, args.slaves + 2) if s != self.slave_id])
             elif knob == "delay":
                 # by default after the response timeout and before the settle window (one
-                # more timeout) ends: DESIGN.md's promise is that such a reply is never taken
+                # more timeout) ends: the settle rule (docs/architecture.md) says such a
+                # reply is never taken
                 value = rng.uniform(*args.late) * timeout
             elif knob == "random_reply_count":
                 value = 1
