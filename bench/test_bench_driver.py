@@ -51,7 +51,7 @@ from bench.slave_process import Range, SimulatorProcess
 from edgemodbus._ffi import Context
 from edgemodbus.bus import Bus
 from edgemodbus.datatypes import Area, ItemStatus
-from edgemodbus.line import TcpEndpoint
+from edgemodbus.line.endpoint import TcpEndpoint
 
 SLAVES = list(range(1, 11))
 TAGS_PER_SLAVE = 1000

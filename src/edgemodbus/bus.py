@@ -30,8 +30,9 @@ from .errors import (
     ModbusConnectionError,
     ModbusError,
 )
-from .line import DtuEndpoint, Endpoint, LineStats, LineTiming, SerialPort
+from .line.endpoint import DtuEndpoint, Endpoint, LineTiming, SerialPort
 from .link import Link, connect_tcp
+from .stats import LineStats
 
 log = logging.getLogger("edgemodbus.bus")
 T = TypeVar("T")

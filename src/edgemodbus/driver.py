@@ -29,7 +29,7 @@ from .config import (
 )
 from .datatypes import Area, DeviceDriverStatus, enum_value
 from .device import Device, ItemState, WriteOp, plan_writes
-from .line import DtuEndpoint, LineTiming, SerialPort, TcpEndpoint
+from .line.endpoint import DtuEndpoint, LineTiming, SerialPort, TcpEndpoint
 from .link import Link
 from .planner import ReadBlock
 

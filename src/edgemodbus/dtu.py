@@ -67,7 +67,7 @@ from typing import Any
 from ._ffi import FD_SETSIZE
 from .bus import Bus
 from .errors import ModbusConnectionError, ModbusError
-from .line import DtuEndpoint, LineTiming
+from .line.endpoint import DtuEndpoint, LineTiming
 from .link import Link, open_socket_link
 
 log = logging.getLogger("edgemodbus.dtu")

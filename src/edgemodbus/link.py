@@ -4,7 +4,7 @@ A :class:`Link` wraps the line's libmodbus context (and, on TCP, the socket we o
 only the bus worker thread that opened it uses it.  It keeps the inter-frame silence,
 settles the line after a timeout (RTU has no transaction id, so a late reply would pass
 for the next answer) and drains it after other errors, checks write echoes, and counts
-everything in the line's :class:`~edgemodbus.line.LineStats`.
+everything in the line's :class:`~edgemodbus.stats.LineStats`.
 """
 
 from __future__ import annotations
@@ -27,7 +27,8 @@ from .errors import (
     ProtocolError,
     exception_for_code,
 )
-from .line import Endpoint, LineStats, LineTiming, SerialPort, TcpEndpoint
+from .line.endpoint import Endpoint, LineTiming, SerialPort, TcpEndpoint
+from .stats import LineStats
 
 log = logging.getLogger("edgemodbus.bus")  # the frame trace keeps the line logger's name
 

@@ -37,9 +37,10 @@ from .errors import (
     ProtocolError,
     exception_for_code,
 )
-from .line import Endpoint, LineStats, LineTiming
+from .line.endpoint import Endpoint, LineTiming
 from .link import QUIET_FLOOR, READ_FC, Link, crc16, log
 from .protocol.wrapped import Report, ReportParser, wrap
+from .stats import LineStats
 
 _POLL_IN = select.POLLIN | select.POLLERR | select.POLLHUP
 _WRITE_REPLY_LEN = {5: 8, 6: 8, 15: 8, 16: 8, 22: 10}  # Application Protocol 6.5-6.16

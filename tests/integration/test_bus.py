@@ -18,7 +18,7 @@ from edgemodbus.errors import (
     ModbusTimeoutError,
     SlaveDeviceBusy,
 )
-from edgemodbus.line import LineTiming, SerialPort, TcpEndpoint
+from edgemodbus.line.endpoint import LineTiming, SerialPort, TcpEndpoint
 from tests.peers import ExceptionRange, PtyPair, PymodbusSlave, default_bit, default_register
 
 FAST = LineTiming(response_timeout=0.5, byte_timeout=0.05, reconnect_interval=0.3,

@@ -34,7 +34,7 @@ from edgemodbus.errors import (
     SlaveDeviceBusy,
     SlaveDeviceFailure,
 )
-from edgemodbus.line import LineTiming, TcpEndpoint
+from edgemodbus.line.endpoint import LineTiming, TcpEndpoint
 from edgemodbus.link import Link, crc16
 from edgemodbus.sim import Simulator, default_bit, default_register
 from tests.waiting import wait_for

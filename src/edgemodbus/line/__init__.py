@@ -1,0 +1,1 @@
+"""The line layer: endpoints and their timing (endpoint.py)."""
