@@ -28,6 +28,7 @@ from .errors import (
     exception_for_code,
 )
 from .line.endpoint import Endpoint, LineTiming, SerialPort, TcpEndpoint
+from .protocol import rtu
 from .stats import LineStats
 
 log = logging.getLogger("edgemodbus.bus")  # the frame trace keeps the line logger's name
@@ -203,7 +204,7 @@ class Link:
         n = len(values)
         if not 1 <= n <= _ffi.MAX_WRITE_BITS:
             raise ValueError(f"write of {n} coils: must be 1..{_ffi.MAX_WRITE_BITS}")
-        packed = _pack_bits(values)
+        packed = rtu.pack_bits(values)
         self._write(slave, struct.pack(">BHHB", 15, address, n, len(packed)) + packed)
 
     def write_registers(self, slave: int, address: int, values: Sequence[int]) -> None:
@@ -252,11 +253,11 @@ class Link:
         """Frame trace at DEBUG: the bytes on the wire, e.g. "TX 01 03 00 00 00 0A C5 CD".
         MBAP headers of requests, whose transaction id the C side picks, are shown as
         the unit id only."""
-        frame = bytes([slave]) + pdu
+        frame = rtu.frame(slave, pdu)
         if self._mbap:
             text = f"[MBAP unit {slave}] {pdu.hex(' ').upper()}"
         else:
-            text = (frame + crc16(frame)).hex(" ").upper()
+            text = frame.hex(" ").upper()
         log.debug("%s %s %s", self.endpoint.describe(), direction, text)
 
     def _log_reply(self) -> None:
@@ -298,26 +299,6 @@ class Link:
                 f"{what}: echo {reply[1:].hex(' ')} does not match the request "
                 f"{pdu[1:1 + echo_len].hex(' ')}"
             )
-
-
-def crc16(frame: bytes) -> bytes:
-    """CRC-16/MODBUS of an RTU frame, low byte first (Modbus over Serial Line v1.02,
-    6.2.2).  Used for the frame trace only: libmodbus checks real frames."""
-    crc = 0xFFFF
-    for byte in frame:
-        crc ^= byte
-        for _ in range(8):
-            crc = (crc >> 1) ^ 0xA001 if crc & 1 else crc >> 1
-    return struct.pack("<H", crc)
-
-
-def _pack_bits(values: Sequence[int | bool]) -> bytes:
-    """Bits, first in the low bit of the first byte (Application Protocol 6.1, 6.11)."""
-    packed = bytearray((len(values) + 7) // 8)
-    for i, bit in enumerate(values):
-        if bit:
-            packed[i // 8] |= 1 << (i % 8)
-    return bytes(packed)
 
 
 def connect_tcp(ep: TcpEndpoint, timeout: float) -> socket.socket:

@@ -38,12 +38,12 @@ from .errors import (
     exception_for_code,
 )
 from .line.endpoint import Endpoint, LineTiming
-from .link import QUIET_FLOOR, READ_FC, Link, crc16, log
+from .link import QUIET_FLOOR, READ_FC, Link, log
+from .protocol import rtu
 from .protocol.wrapped import Report, ReportParser, wrap
 from .stats import LineStats
 
 _POLL_IN = select.POLLIN | select.POLLERR | select.POLLHUP
-_WRITE_REPLY_LEN = {5: 8, 6: 8, 15: 8, 16: 8, 22: 10}  # Application Protocol 6.5-6.16
 
 
 class StreamLink(Link):
@@ -248,8 +248,7 @@ class StreamLink(Link):
     def _frame(self, slave: int, pdu: bytes) -> bytes:
         if self._wrapped:
             return wrap(struct.unpack_from(">H", pdu, 1)[0], slave, pdu)
-        frame = bytes([slave]) + pdu
-        return frame + crc16(frame)
+        return rtu.frame(slave, pdu)
 
     def _exchange(self, slave: int, pdu: bytes, nbytes: int | None) -> bytes:
         """Send ``pdu`` and return the checked reply without its CRC (slave id first).
@@ -299,7 +298,7 @@ class StreamLink(Link):
         deadline = time.monotonic() + self._response_timeout
         while True:
             if buf:
-                need = _reply_length(buf, fc)
+                need = _reply_length(buf)
                 if need is not None and len(buf) >= need:
                     break
                 wait = self.timing.byte_timeout
@@ -320,7 +319,7 @@ class StreamLink(Link):
         rest = self._strip(rest)
         if rest:  # more than one frame: whatever follows ours is stale
             self.stats.discarded_bytes += len(rest)
-        if crc16(frame[:-2]) != frame[-2:]:
+        if rtu.crc16(frame[:-2]) != int.from_bytes(frame[-2:], "little"):
             raise CrcError(f"{what}: CRC error")
         if frame[0] != slave:
             raise ProtocolError(f"{what}: response from the wrong slave id ({frame[0]})")
@@ -373,19 +372,15 @@ class StreamLink(Link):
             last = time.monotonic()
 
 
-def _reply_length(buf: bytes, fc: int) -> int | None:
-    """Length of the RTU reply at the start of ``buf`` (Application Protocol v1.1b3,
-    section 6), None while too few bytes came to tell.  A function code other than the
-    request's is framed by what it claims to be; a frame that cannot be one takes what
-    has come (the check then fails on it)."""
-    if len(buf) < 2:
+def _reply_length(buf: bytes) -> int | None:
+    """Length of the RTU reply at the start of ``buf`` (:func:`rtu.reply_length`), None
+    while too few bytes came to tell.  A function code other than the request's is framed
+    by what it claims to be; a frame that cannot be one takes what has come (the check
+    then fails on it)."""
+    need = rtu.reply_length(buf)
+    if need == rtu.NEED_MORE:
         return None
-    function = buf[1]
-    if function & 0x80:
-        return 5
-    if function in (1, 2, 3, 4):
-        return None if len(buf) < 3 else 3 + buf[2] + 2
-    if function in _WRITE_REPLY_LEN:
-        return _WRITE_REPLY_LEN[function]
-    log.debug("reply with function code %#04x: taking %d bytes", function, len(buf))
-    return len(buf)
+    if need == rtu.UNKNOWN:
+        log.debug("reply with function code %#04x: taking %d bytes", buf[1], len(buf))
+        return len(buf)
+    return need

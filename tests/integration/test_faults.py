@@ -35,7 +35,8 @@ from edgemodbus.errors import (
     SlaveDeviceFailure,
 )
 from edgemodbus.line.endpoint import LineTiming, TcpEndpoint
-from edgemodbus.link import Link, crc16
+from edgemodbus.link import Link
+from edgemodbus.protocol import rtu
 from edgemodbus.sim import Simulator, default_bit, default_register
 from tests.waiting import wait_for
 
@@ -542,7 +543,7 @@ OVERSIZED = {
     # byte count 0xFF: libmodbus stops at the 256-byte RTU limit, nothing overflows
     "count-0xff": b"\x01\x03\xff" + bytes(range(256)) + bytes(41),
     # a well-formed 250-data-byte frame (valid CRC) then 45 more bytes: 300 in all
-    "valid-crc": (lambda f: f + crc16(f))(b"\x01\x03\xfa" + bytes(250)) + b"\x55" * 45,
+    "valid-crc": rtu.frame(1, b"\x03\xfa" + bytes(250)) + b"\x55" * 45,
 }
 
 
