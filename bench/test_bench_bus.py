@@ -15,7 +15,7 @@ from bench.conftest import cpu_per_call, report, scale
 from edgemodbus.bus import Bus
 from edgemodbus.datatypes import Area
 from edgemodbus.line.endpoint import LineTiming, TcpEndpoint
-from edgemodbus.link import Link
+from edgemodbus.line.link import Link
 
 EXPECTED = [default_register(1, "hr", a) for a in range(125)]
 

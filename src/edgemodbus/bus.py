@@ -31,7 +31,7 @@ from .errors import (
     ModbusError,
 )
 from .line.endpoint import DtuEndpoint, Endpoint, LineTiming, SerialPort
-from .link import Link, connect_tcp
+from .line.link import Link, connect_tcp
 from .stats import LineStats
 
 log = logging.getLogger("edgemodbus.bus")
@@ -361,7 +361,7 @@ class Bus:
         else:
             sock = connect_tcp(ep, timing.connect_timeout)
             if ep.transport == "rtu-over-tcp" and (ep.framing != "rtu" or ep.heartbeat):
-                from .streamlink import StreamLink  # RTU framed in Python
+                from .line.stream import StreamLink  # RTU framed in Python
 
                 return StreamLink(sock, ep, timing, self.stats, heartbeat=ep.heartbeat,
                                   wrapped=ep.framing == "wrapped-report",

@@ -43,7 +43,7 @@ from .errors import (
     ModbusTimeoutError,
     ProtocolError,
 )
-from .link import Link
+from .line.link import Link
 from .planner import Piece, PlanItem, ReadBlock, bisect_block, plan_reads
 
 if TYPE_CHECKING:

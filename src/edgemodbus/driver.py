@@ -30,7 +30,7 @@ from .config import (
 from .datatypes import Area, DeviceDriverStatus, enum_value
 from .device import Device, ItemState, WriteOp, plan_writes
 from .line.endpoint import DtuEndpoint, LineTiming, SerialPort, TcpEndpoint
-from .link import Link
+from .line.link import Link
 from .planner import ReadBlock
 
 Callback = Callable[[DeviceAddressItem], None]

@@ -68,7 +68,7 @@ from ._ffi import FD_SETSIZE
 from .bus import Bus
 from .errors import ModbusConnectionError, ModbusError
 from .line.endpoint import DtuEndpoint, LineTiming
-from .link import Link, open_socket_link
+from .line.link import Link, open_socket_link
 
 log = logging.getLogger("edgemodbus.dtu")
 
@@ -311,7 +311,7 @@ class DtuSlot:
 
         try:
             if ep.framing == "wrapped-report" or ep.heartbeat:
-                from .streamlink import StreamLink
+                from .line.stream import StreamLink
 
                 return StreamLink(sock, ep, bus.timing, bus.stats, heartbeat=ep.heartbeat,
                                   wrapped=ep.framing == "wrapped-report",

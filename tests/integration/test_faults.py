@@ -35,7 +35,7 @@ from edgemodbus.errors import (
     SlaveDeviceFailure,
 )
 from edgemodbus.line.endpoint import LineTiming, TcpEndpoint
-from edgemodbus.link import Link
+from edgemodbus.line.link import Link
 from edgemodbus.protocol import rtu
 from edgemodbus.sim import Simulator, default_bit, default_register
 from tests.waiting import wait_for

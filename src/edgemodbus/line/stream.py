@@ -25,11 +25,11 @@ import struct
 import time
 from collections.abc import Callable
 
-from ._ffi import Block
-from .codec import BlockDecoder
-from .codec import Report as CodecReport
-from .datatypes import Area
-from .errors import (
+from .._ffi import Block
+from ..codec import BlockDecoder
+from ..codec import Report as CodecReport
+from ..datatypes import Area
+from ..errors import (
     CrcError,
     ModbusConnectionError,
     ModbusError,
@@ -37,11 +37,11 @@ from .errors import (
     ProtocolError,
     exception_for_code,
 )
-from .line.endpoint import Endpoint, LineTiming
+from ..protocol import rtu
+from ..protocol.wrapped import Report, ReportParser, wrap
+from ..stats import LineStats
+from .endpoint import Endpoint, LineTiming
 from .link import QUIET_FLOOR, READ_FC, Link, log
-from .protocol import rtu
-from .protocol.wrapped import Report, ReportParser, wrap
-from .stats import LineStats
 
 _POLL_IN = select.POLLIN | select.POLLERR | select.POLLHUP
 

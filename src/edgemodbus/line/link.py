@@ -15,11 +15,11 @@ import struct
 import time
 from collections.abc import Callable, Sequence
 
-from . import _ffi
-from ._ffi import Block, CodecPlan, Context
-from .codec import BlockDecoder, Report
-from .datatypes import Area
-from .errors import (
+from .. import _ffi
+from .._ffi import Block, CodecPlan, Context
+from ..codec import BlockDecoder, Report
+from ..datatypes import Area
+from ..errors import (
     CrcError,
     ModbusConnectionError,
     ModbusError,
@@ -27,9 +27,9 @@ from .errors import (
     ProtocolError,
     exception_for_code,
 )
-from .line.endpoint import Endpoint, LineTiming, SerialPort, TcpEndpoint
-from .protocol import rtu
-from .stats import LineStats
+from ..protocol import rtu
+from ..stats import LineStats
+from .endpoint import Endpoint, LineTiming, SerialPort, TcpEndpoint
 
 log = logging.getLogger("edgemodbus.bus")  # the frame trace keeps the line logger's name
 
