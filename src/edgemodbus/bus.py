@@ -31,7 +31,7 @@ from .errors import (
     ModbusError,
 )
 from .line.endpoint import DtuEndpoint, Endpoint, LineTiming, SerialPort
-from .line.link import Link, connect_tcp
+from .line.link import Link, connect_tcp, context_link
 from .stats import LineStats
 
 log = logging.getLogger("edgemodbus.bus")
@@ -372,16 +372,11 @@ class Bus:
                 sock.close()
                 raise
         try:
-            ctx.set_timeouts(timing.response_timeout, timing.byte_timeout)
-            ctx.set_echo(ep.echo)
+            return context_link(ctx, ep, timing, self.stats, sock)
         except ValueError:
-            ctx.close()
             if sock is not None:
                 sock.close()
             raise
-        link = Link(ctx, ep, timing, self.stats, sock)
-        link._timeouts = (timing.response_timeout, timing.byte_timeout)
-        return link
 
     def _link_lost(self, link: Link) -> None:
         self._link = None

@@ -40,19 +40,20 @@ from ..errors import (
 from ..protocol import rtu
 from ..protocol.wrapped import Report, ReportParser, wrap
 from ..stats import LineStats
-from .endpoint import Endpoint, LineTiming
-from .link import QUIET_FLOOR, READ_FC, Link, log
+from .endpoint import DtuEndpoint, LineTiming, TcpEndpoint
+from .link import READ_FC, Link, log
 
 _POLL_IN = select.POLLIN | select.POLLERR | select.POLLHUP
 
 
 class StreamLink(Link):
-    """RTU over a socket, framed in Python (heartbeat skipping, or wrapped frames)."""
+    """The Python-framed backend: RTU over a socket (heartbeat skipping, or wrapped
+    frames).  Never on a serial line, so there is no inter-frame gap to keep."""
 
     def __init__(
         self,
         sock: socket.socket,
-        endpoint: Endpoint,
+        endpoint: TcpEndpoint | DtuEndpoint,
         timing: LineTiming,
         stats: LineStats,
         *,
@@ -65,25 +66,9 @@ class StreamLink(Link):
         """``initial``: bytes that came on the socket before the link (after a DTU's
         registration): taken as if received now (reports dispatched, heartbeats
         counted), nothing having been asked yet."""
-        # no libmodbus context: Link's attributes that its shared helpers use are set here
-        self._sock = sock
+        super().__init__(endpoint, timing, stats, sock.fileno(), on_close=on_close)
         self._conn = sock
-        self._on_close = on_close
-        self.endpoint = endpoint
-        self.timing = timing
-        self.stats = stats
-        self._fd = sock.fileno()
-        self._mbap = False
-        self._gap = 0.0
-        self._quiet = max(timing.byte_timeout, QUIET_FLOOR)
-        self._settle_limit = timing.settle + max(timing.settle, 0.5)
-        self._drain_limit = self._quiet + 0.5
-        self._pace = timing.request_interval
-        self._ready_at = 0.0
         self._response_timeout = timing.response_timeout
-        self.is_open = True
-        self.close_reason: str | None = None
-        self._trace = False
         self._heartbeat = heartbeat
         self._wrapped = wrapped
         self._parser = ReportParser(heartbeat) if wrapped else None
