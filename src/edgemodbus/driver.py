@@ -2,8 +2,8 @@
 
 The contract is the seed's ``DriverModbusRtu`` in the Python form of DESIGN.md: start,
 stop, hot update of the address list, writes (blocking and asyncio), callbacks,
-status, snapshot and stats.  Polling runs on the line's bus worker thread
-(:mod:`edgemodbus.bus`); this module plans, decodes through the C codec, keeps item
+status, snapshot and stats.  Polling runs on the line's worker thread
+(:mod:`edgemodbus.line.worker`); this module plans, decodes through the C codec, keeps item
 state and isolates faults per slave.
 """
 
@@ -15,9 +15,7 @@ from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import Future
 from typing import Any, ClassVar
 
-from . import bus as _bus
 from . import dtu as _dtu
-from .bus import BusRegistry
 from .config import (
     DeviceAddressItem,
     DeviceOrganizationParameter,
@@ -31,6 +29,8 @@ from .datatypes import Area, DeviceDriverStatus, enum_value
 from .device import Device, ItemState, WriteOp, plan_writes
 from .line.endpoint import DtuEndpoint, LineTiming, SerialPort, TcpEndpoint
 from .line.link import Link
+from .line.worker import LineRegistry, LineWorker
+from .line.worker import registry as line_registry
 from .planner import ReadBlock
 
 Callback = Callable[[DeviceAddressItem], None]
@@ -46,7 +46,7 @@ class DriverModbusRtu:
     """
 
     logger: ClassVar[logging.Logger] = logging.getLogger("edgemodbus.driver")
-    registry: ClassVar[BusRegistry] = _bus.registry
+    registry: ClassVar[LineRegistry] = line_registry
     dtu_registry: ClassVar[_dtu.DtuRegistry] = _dtu.registry
 
     def __init__(self) -> None:
@@ -55,7 +55,7 @@ class DriverModbusRtu:
         self.snapshot_publisher: SnapshotPublisher | None = None
         self._device: Device | None = None
         self._last_device: Device | None = None  # keeps stats and snapshot after a stop
-        self._bus: _bus.Bus | None = None
+        self._bus: LineWorker | None = None
         self._slot: _dtu.DtuSlot | None = None  # listen mode: this device's DTU
         self._line_stats: dict[str, Any] = {}
         self._status = DeviceDriverStatus.STOPPED
@@ -113,11 +113,11 @@ class DriverModbusRtu:
     def _acquire(
         self, params: DriverModbusRtuParameter, endpoint: SerialPort | TcpEndpoint | DtuEndpoint,
         timing: LineTiming, device: Device,
-    ) -> tuple[_bus.Bus, _dtu.DtuSlot | None]:
+    ) -> tuple[LineWorker, _dtu.DtuSlot | None]:
         """Acquire the line (and the DTU slot in listen mode) and attach ``device``;
         on any failure release what was acquired and re-raise."""
         slot: _dtu.DtuSlot | None = None
-        bus: _bus.Bus | None = None
+        bus: LineWorker | None = None
         try:
             if isinstance(endpoint, DtuEndpoint):
                 slot = self.dtu_registry.acquire(_port_settings(params), endpoint)

@@ -5,7 +5,7 @@ registration packet (IMEI, ICCID, a serial number) and then pass RTU frames thro
 unchanged.  One :class:`DtuListener` thread serves each listen port (a ``selectors``
 loop: accept, read registrations with a deadline, no busy loop); every identified
 connection is handed to the :class:`DtuSlot` of its DTU id, the connector of that DTU's
-bus (one bus, one worker thread per DTU, shared by the devices that name the id).
+line (one line, one worker thread per DTU, shared by the devices that name the id).
 
 * Identification per port: ``registration`` text / hex / regex (with an optional fixed
   length), or none: then the port's one configured DTU takes the connection.  The
@@ -14,7 +14,7 @@ bus (one bus, one worker thread per DTU, shared by the devices that name the id)
   registration timeout runs out (held until then, so a misconfigured DTU cannot
   reconnect in a tight loop); it never takes another DTU's place.
 * A DTU that reconnects replaces its old connection: the listener shuts the old socket
-  down (its fd stays valid until the worker closes it) and asks the bus to switch.
+  down (its fd stays valid until the worker closes it) and asks the line to switch.
 
 When a registration is complete
 -------------------------------
@@ -65,10 +65,10 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from ._ffi import FD_SETSIZE
-from .bus import Bus
 from .errors import ModbusConnectionError, ModbusError
 from .line.endpoint import DtuEndpoint, LineTiming
 from .line.link import Link, open_socket_link
+from .line.worker import LineWorker
 
 log = logging.getLogger("edgemodbus.dtu")
 
@@ -245,13 +245,13 @@ def _search(packet: bytes, ids: Collection[str], pattern: str, end: int,
 
 
 class DtuSlot:
-    """The connector of one DTU's bus: holds the socket the listener handed over until
-    the bus worker opens a link on it, and the socket in use (to replace it)."""
+    """The connector of one DTU's line: holds the socket the listener handed over until
+    the line worker opens a link on it, and the socket in use (to replace it)."""
 
     def __init__(self, endpoint: DtuEndpoint, port: PortSettings) -> None:
         self.endpoint = endpoint
         self.port = port
-        self.bus: Bus | None = None
+        self.line: LineWorker | None = None
         self._lock = threading.Lock()
         self._pending: tuple[socket.socket, str, bytes] | None = None
         self._current: socket.socket | None = None
@@ -263,10 +263,10 @@ class DtuSlot:
     def dtu_id(self) -> str:
         return self.endpoint.dtu_id
 
-    def attach(self, bus: Bus | None) -> None:
-        """The bus this slot feeds (None: detached)."""
+    def attach(self, line: LineWorker | None) -> None:
+        """The line worker this slot feeds (None: detached)."""
         with self._lock:
-            self.bus = bus
+            self.line = line
 
     def offer(self, sock: socket.socket, peer: str, rest: bytes = b"") -> None:
         """A new connection of this DTU (listener thread): it replaces the old one.
@@ -281,17 +281,17 @@ class DtuSlot:
             if current is not None:
                 with contextlib.suppress(OSError):  # the worker sees a link error
                     current.shutdown(socket.SHUT_RDWR)
-            bus = self.bus
+            line = self.line
         if stale is not None:
             stale[0].close()
         if current is not None or stale is not None:
             log.info("%s: reconnected from %s; replacing its previous connection",
                      self.endpoint.describe(), peer)
-        if bus is not None:
-            bus.connect_now()
+        if line is not None:
+            line.connect_now()
 
-    def open(self, bus: Bus) -> Link:
-        """The bus worker takes the handed-over socket (Connector protocol)."""
+    def open(self, line: LineWorker) -> Link:
+        """The line worker takes the handed-over socket (Connector protocol)."""
         with self._lock:
             pending, self._pending = self._pending, None
             if pending is None:
@@ -313,25 +313,25 @@ class DtuSlot:
             if ep.framing == "wrapped-report" or ep.heartbeat:
                 from .line.stream import StreamLink
 
-                return StreamLink(sock, ep, bus.timing, bus.stats, heartbeat=ep.heartbeat,
+                return StreamLink(sock, ep, line.timing, line.stats, heartbeat=ep.heartbeat,
                                   wrapped=ep.framing == "wrapped-report",
-                                  on_report=bus.dispatch_report, on_close=release,
+                                  on_report=line.dispatch_report, on_close=release,
                                   initial=rest)
             if rest:  # plain RTU: nothing was asked yet, so these bytes answer nothing
-                bus.stats.discarded_bytes += len(rest)
+                line.stats.discarded_bytes += len(rest)
                 log.debug("%s: %d bytes after the registration discarded: %s",
                           ep.describe(), len(rest), rest.hex(" ").upper())
-            return open_socket_link(sock, ep, bus.timing, bus.stats, release)
+            return open_socket_link(sock, ep, line.timing, line.stats, release)
         except (ModbusError, ValueError, OSError):
             release()
             sock.close()
             raise
 
     def close(self) -> None:
-        """Forget a connection not taken yet (the bus is gone)."""
+        """Forget a connection not taken yet (the line worker is gone)."""
         with self._lock:
             pending, self._pending = self._pending, None
-            self.bus = None
+            self.line = None
         if pending is not None:
             pending[0].close()
 

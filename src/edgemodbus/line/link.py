@@ -36,7 +36,7 @@ from ..protocol import rtu
 from ..stats import LineStats
 from .endpoint import Endpoint, LineTiming, SerialPort, TcpEndpoint
 
-log = logging.getLogger("edgemodbus.bus")  # the frame trace keeps the line logger's name
+log = logging.getLogger("edgemodbus.line")  # the frame trace goes to the line worker's logger
 
 # Silence that ends the discarding of a stray frame, at least: a slave or DTU that
 # trickles a late reply slower than the byte timeout must still be drained whole.

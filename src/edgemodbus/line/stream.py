@@ -8,8 +8,8 @@ Two cases need it, both on RTU-over-TCP sockets (client or listen mode):
 * Wrapped report frames of an edge MCU (:mod:`edgemodbus.protocol.wrapped`): requests go out
   wrapped (``FF AA`` + register address + RTU frame + ``0D``), the reply is the frame
   with the same slave, function and address and, for a read, the byte count the request
-  asks for; all other frames, also while a request waits (and while idle: the bus
-  watches :attr:`idle_fd`), are unsolicited reports and go to the bus's devices.
+  asks for; all other frames, also while a request waits (and while idle: the line
+  worker watches :attr:`idle_fd`), are unsolicited reports and go to the line's devices.
 
 The checks are those of the libmodbus path (csrc/emb_io.c): CRC, slave id, function
 code, exception responses, the byte count of a read, the echo of a write; after a
