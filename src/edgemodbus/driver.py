@@ -15,7 +15,6 @@ from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import Future
 from typing import Any, ClassVar
 
-from . import dtu as _dtu
 from .config import (
     DeviceAddressItem,
     DeviceOrganizationParameter,
@@ -27,8 +26,11 @@ from .config import (
 )
 from .datatypes import Area, DeviceDriverStatus, enum_value
 from .device import Device, ItemState, WriteOp, plan_writes
+from .line.dtu_listener import DtuRegistry, DtuSlot
+from .line.dtu_listener import registry as dtu_registry
 from .line.endpoint import DtuEndpoint, LineTiming, SerialPort, TcpEndpoint
 from .line.link import Link
+from .line.registration import PortSettings
 from .line.worker import LineRegistry, LineWorker
 from .line.worker import registry as line_registry
 from .planner import ReadBlock
@@ -47,7 +49,7 @@ class DriverModbusRtu:
 
     logger: ClassVar[logging.Logger] = logging.getLogger("edgemodbus.driver")
     registry: ClassVar[LineRegistry] = line_registry
-    dtu_registry: ClassVar[_dtu.DtuRegistry] = _dtu.registry
+    dtu_registry: ClassVar[DtuRegistry] = dtu_registry
 
     def __init__(self) -> None:
         self.address_updated_callback: Callback | None = None
@@ -56,7 +58,7 @@ class DriverModbusRtu:
         self._device: Device | None = None
         self._last_device: Device | None = None  # keeps stats and snapshot after a stop
         self._bus: LineWorker | None = None
-        self._slot: _dtu.DtuSlot | None = None  # listen mode: this device's DTU
+        self._slot: DtuSlot | None = None  # listen mode: this device's DTU
         self._line_stats: dict[str, Any] = {}
         self._status = DeviceDriverStatus.STOPPED
         self._params: DriverModbusRtuParameter | None = None
@@ -113,10 +115,10 @@ class DriverModbusRtu:
     def _acquire(
         self, params: DriverModbusRtuParameter, endpoint: SerialPort | TcpEndpoint | DtuEndpoint,
         timing: LineTiming, device: Device,
-    ) -> tuple[LineWorker, _dtu.DtuSlot | None]:
+    ) -> tuple[LineWorker, DtuSlot | None]:
         """Acquire the line (and the DTU slot in listen mode) and attach ``device``;
         on any failure release what was acquired and re-raise."""
-        slot: _dtu.DtuSlot | None = None
+        slot: DtuSlot | None = None
         bus: LineWorker | None = None
         try:
             if isinstance(endpoint, DtuEndpoint):
@@ -331,8 +333,8 @@ def _endpoint(params: DriverModbusRtuParameter) -> SerialPort | TcpEndpoint | Dt
                        framing=params.framing, heartbeat=params.heartbeat_bytes)
 
 
-def _port_settings(params: DriverModbusRtuParameter) -> _dtu.PortSettings:
-    return _dtu.PortSettings(
+def _port_settings(params: DriverModbusRtuParameter) -> PortSettings:
+    return PortSettings(
         host=params.listen_host,
         port=params.effective_listen_port,
         registration=params.registration,
