@@ -42,8 +42,8 @@ from .errors import (
     ModbusTimeoutError,
     ProtocolError,
 )
-from .line.link import Link
-from .line.worker import LineWorker as Bus  # the poller's line; renamed when device.py moves
+from .line import LineWorker as Bus  # the poller's line; renamed when device.py moves
+from .line import Link
 from .planner import Piece, PlanItem, ReadBlock, bisect_block, plan_reads
 
 if TYPE_CHECKING:

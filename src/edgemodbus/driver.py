@@ -24,15 +24,23 @@ from .config import (
     validate_items,
     validate_parameters,
 )
-from .datatypes import Area, DeviceDriverStatus, enum_value
+from .datatypes import Area, DeviceDriverStatus
 from .device import Device, ItemState, WriteOp, plan_writes
-from .line.dtu_listener import DtuRegistry, DtuSlot
-from .line.dtu_listener import registry as dtu_registry
-from .line.endpoint import DtuEndpoint, LineTiming, SerialPort, TcpEndpoint
-from .line.link import Link
-from .line.registration import PortSettings
-from .line.worker import LineRegistry, LineWorker
-from .line.worker import registry as line_registry
+from .line import (
+    DtuEndpoint,
+    DtuRegistry,
+    DtuSlot,
+    LineRegistry,
+    LineTiming,
+    LineWorker,
+    Link,
+    PortSettings,
+    SerialPort,
+    TcpEndpoint,
+    dtu_registry,
+    endpoint_for,
+    line_registry,
+)
 from .planner import ReadBlock
 
 Callback = Callable[[DeviceAddressItem], None]
@@ -91,7 +99,7 @@ class DriverModbusRtu:
             self.logger.info("%s: disabled, not polled", code)
             return False
         parsed = validate_items(list(addresses), params)
-        endpoint = _endpoint(params)
+        endpoint = endpoint_for(params)
         timing = _timing(params)
         # builds the items' codec specs, the plan and its decoders: raises here, not
         # after the line's worker is running
@@ -307,32 +315,6 @@ def _wait_write(future: Future[Any]) -> tuple[bool, str | None]:
     return result
 
 
-def _endpoint(params: DriverModbusRtuParameter) -> SerialPort | TcpEndpoint | DtuEndpoint:
-    """The line of ``params`` (the config refuses these combinations too; parameters
-    may have been changed after they were loaded)."""
-    if params.framing == "wrapped-report" and params.transport not in (
-        "rtu-over-tcp", "rtu-over-tcp-server"
-    ):
-        raise ValueError(f"framing 'wrapped-report': needs transport rtu-over-tcp or "
-                         f"rtu-over-tcp-server, not {params.transport!r}")
-    if params.transport == "rtu-over-tcp-server":
-        return DtuEndpoint(params.listen_host, params.effective_listen_port, params.dtu_id,
-                           echo=params.echo, framing=params.framing,
-                           heartbeat=params.heartbeat_bytes)
-    if params.transport == "rtu":
-        return SerialPort(
-            port=params.com_port,
-            baudrate=params.baud_rate,
-            parity=_parity_letter(params.parity),
-            data_bits=params.data_bits,
-            stop_bits=params.stop_bits,
-            rs485=params.rs485,
-            echo=params.echo,
-        )
-    return TcpEndpoint(params.tcp_host, params.tcp_port, params.transport, echo=params.echo,
-                       framing=params.framing, heartbeat=params.heartbeat_bytes)
-
-
 def _port_settings(params: DriverModbusRtuParameter) -> PortSettings:
     return PortSettings(
         host=params.listen_host,
@@ -343,11 +325,6 @@ def _port_settings(params: DriverModbusRtuParameter) -> PortSettings:
         timeout=params.registration_timeout / 1000,
         heartbeat=params.heartbeat_bytes,
     )
-
-
-def _parity_letter(parity: Any) -> str:
-    text = str(enum_value(parity))
-    return text[0].upper() if text else "N"
 
 
 def _block_dict(block: ReadBlock, items: Sequence[ItemState]) -> dict[str, Any]:

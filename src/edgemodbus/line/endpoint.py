@@ -1,10 +1,17 @@
 """What a line is: its endpoint (serial port, TCP peer, DTU behind a listener) and its
 timing.  Plain data, shared by the line worker and the link (the counters the worker
-keeps are :class:`edgemodbus.stats.LineStats`)."""
+keeps are :class:`edgemodbus.stats.LineStats`); :func:`endpoint_for` makes the endpoint
+of a device's communication parameters."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+from ..datatypes import enum_value
+
+if TYPE_CHECKING:
+    from ..config import DriverModbusRtuParameter
 
 
 @dataclass(frozen=True)
@@ -132,3 +139,34 @@ class LineTiming:
     @property
     def settle(self) -> float:
         return self.response_timeout if self.settle_timeout is None else self.settle_timeout
+
+
+def endpoint_for(params: DriverModbusRtuParameter) -> Endpoint:
+    """The endpoint of a device's communication parameters (the config refuses these
+    combinations too; parameters may have been changed after they were loaded)."""
+    if params.framing == "wrapped-report" and params.transport not in (
+        "rtu-over-tcp", "rtu-over-tcp-server"
+    ):
+        raise ValueError(f"framing 'wrapped-report': needs transport rtu-over-tcp or "
+                         f"rtu-over-tcp-server, not {params.transport!r}")
+    if params.transport == "rtu-over-tcp-server":
+        return DtuEndpoint(params.listen_host, params.effective_listen_port, params.dtu_id,
+                           echo=params.echo, framing=params.framing,
+                           heartbeat=params.heartbeat_bytes)
+    if params.transport == "rtu":
+        return SerialPort(
+            port=params.com_port,
+            baudrate=params.baud_rate,
+            parity=_parity_letter(params.parity),
+            data_bits=params.data_bits,
+            stop_bits=params.stop_bits,
+            rs485=params.rs485,
+            echo=params.echo,
+        )
+    return TcpEndpoint(params.tcp_host, params.tcp_port, params.transport, echo=params.echo,
+                       framing=params.framing, heartbeat=params.heartbeat_bytes)
+
+
+def _parity_letter(parity: Any) -> str:
+    text = str(enum_value(parity))
+    return text[0].upper() if text else "N"
