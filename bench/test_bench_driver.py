@@ -9,7 +9,7 @@ same run on the same slave and the same block list:
 * pymodbus 3.16.1's sync client doing the same block reads plus
   ``convert_from_registers`` for every item.
 
-The references run ON THE BUS WORKER (a job submitted while the drivers are attached,
+The references run ON THE LINE WORKER (a job submitted while the drivers are attached,
 so polling pauses meanwhile), alternating with windows of driver polling: same thread,
 same moment, same slave.  Each figure is the best of its windows (the least disturbed
 on a shared machine); the median of the ratios of adjacent windows is shown as well.
