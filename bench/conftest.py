@@ -19,7 +19,7 @@ def scale(full: int, quick: int) -> int:
 
 
 def cpu_seconds() -> float:
-    """CPU time (user + system) of this process, all threads: the bus worker's
+    """CPU time (user + system) of this process, all threads: the line worker's
     syscalls count, the peer process's do not."""
     return time.process_time()
 

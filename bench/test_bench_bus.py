@@ -1,5 +1,5 @@
 """Client CPU per transaction: 125 holding registers over loopback RTU-over-TCP from a
-pymodbus slave in its own process; our bus against pymodbus' own sync client, measured
+pymodbus slave in its own process; our LineWorker against pymodbus' own sync client, measured
 in the same run.  Target (issue 2): ours at most one third of pymodbus'."""
 
 from __future__ import annotations
@@ -12,10 +12,10 @@ from pymodbus.client import ModbusTcpClient
 from tests.peers import PymodbusSlave, default_register
 
 from bench.conftest import cpu_per_call, report, scale
-from edgemodbus.bus import Bus
 from edgemodbus.datatypes import Area
-from edgemodbus.line import LineTiming, TcpEndpoint
-from edgemodbus.link import Link
+from edgemodbus.line.endpoint import LineTiming, TcpEndpoint
+from edgemodbus.line.link import Link
+from edgemodbus.line.worker import LineWorker
 
 EXPECTED = [default_register(1, "hr", a) for a in range(125)]
 
@@ -28,12 +28,12 @@ def slave() -> Iterator[PymodbusSlave]:
 
 def test_cpu_per_transaction_vs_pymodbus(slave: PymodbusSlave, benchmark) -> None:
     calls = scale(2000, 200)
-    bus = Bus(TcpEndpoint("127.0.0.1", slave.port), LineTiming(response_timeout=2.0))
-    bus.start()
+    line = LineWorker(TcpEndpoint("127.0.0.1", slave.port), LineTiming(response_timeout=2.0))
+    line.start()
     client = ModbusTcpClient("127.0.0.1", port=slave.port, framer=FramerType.RTU, timeout=2)
     assert client.connect()
     try:
-        assert bus.read(1, Area.HOLDING_REGISTER, 0, 125).result(5) == EXPECTED
+        assert line.read(1, Area.HOLDING_REGISTER, 0, 125).result(5) == EXPECTED
         assert client.read_holding_registers(0, count=125, device_id=1).registers == EXPECTED
 
         def worker_loop(link: Link) -> None:  # what the driver does: reads on the worker
@@ -41,10 +41,10 @@ def test_cpu_per_transaction_vs_pymodbus(slave: PymodbusSlave, benchmark) -> Non
                 link.read(1, Area.HOLDING_REGISTER, 0, 125)
 
         def ours_worker() -> None:
-            bus.submit(worker_loop).result(60)
+            line.submit(worker_loop).result(60)
 
         def ours_future() -> None:
-            bus.read(1, Area.HOLDING_REGISTER, 0, 125).result(5)
+            line.read(1, Area.HOLDING_REGISTER, 0, 125).result(5)
 
         def theirs() -> None:
             client.read_holding_registers(0, count=125, device_id=1)
@@ -59,7 +59,7 @@ def test_cpu_per_transaction_vs_pymodbus(slave: PymodbusSlave, benchmark) -> Non
         report(
             "client CPU per 125-register read, RTU over TCP (us)",
             [
-                ("edgemodbus, on the bus worker (driver path)", worker * 1e6, "us"),
+                ("edgemodbus, on the line worker (driver path)", worker * 1e6, "us"),
                 ("edgemodbus, Future from another thread", future * 1e6, "us"),
                 ("pymodbus 3.16.1 sync client", pym * 1e6, "us"),
                 ("ratio worker / pymodbus", worker / pym, "x"),
@@ -69,4 +69,4 @@ def test_cpu_per_transaction_vs_pymodbus(slave: PymodbusSlave, benchmark) -> Non
         benchmark.pedantic(ours_future, rounds=scale(200, 20), iterations=1)
     finally:
         client.close()
-        bus.stop()
+        line.stop()

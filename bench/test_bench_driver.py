@@ -9,7 +9,7 @@ same run on the same slave and the same block list:
 * pymodbus 3.16.1's sync client doing the same block reads plus
   ``convert_from_registers`` for every item.
 
-The references run ON THE BUS WORKER (a job submitted while the drivers are attached,
+The references run ON THE LINE WORKER (a job submitted while the drivers are attached,
 so polling pauses meanwhile), alternating with windows of driver polling: same thread,
 same moment, same slave.  Each figure is the best of its windows (the least disturbed
 on a shared machine); the median of the ratios of adjacent windows is shown as well.
@@ -23,7 +23,7 @@ floor, pymodbus / (a) >= 5.  The memory test reports RSS growth per configured t
 hide allocations.  Nothing here asserts a speed: the figures go to the table and to
 ``benchmark.extra_info``.
 
-EDGEMODBUS_BENCH_PROFILE=1 adds a cProfile of the bus worker during (a) and (b).
+EDGEMODBUS_BENCH_PROFILE=1 adds a cProfile of the line worker during (a) and (b).
 """
 
 from __future__ import annotations
@@ -49,9 +49,9 @@ import edgemodbus as em
 from bench.conftest import QUICK, cpu_seconds, report, scale
 from bench.slave_process import Range, SimulatorProcess
 from edgemodbus._ffi import Context
-from edgemodbus.bus import Bus
 from edgemodbus.datatypes import Area, ItemStatus
-from edgemodbus.line import TcpEndpoint
+from edgemodbus.line.endpoint import TcpEndpoint
+from edgemodbus.line.worker import LineWorker
 
 SLAVES = list(range(1, 11))
 TAGS_PER_SLAVE = 1000
@@ -192,7 +192,7 @@ def line() -> Iterator[Line]:
 
 
 class Drivers:
-    """One DriverModbusRtu per config, all on the same endpoint (one bus worker);
+    """One DriverModbusRtu per config, all on the same endpoint (one line worker);
     started on enter once every item has been read, stopped on exit."""
 
     def __init__(self, configs: dict[int, em.DeviceConfig]) -> None:
@@ -241,18 +241,18 @@ class Drivers:
             time.sleep(0.05)
 
     @property
-    def bus(self) -> Bus:
-        """The one bus worker the drivers share."""
+    def line(self) -> LineWorker:
+        """The one line worker the drivers share."""
         port = next(iter(self.configs.values())).communication.tcp_port
-        buses = [b for b in em.DriverModbusRtu.registry.buses()
+        lines = [b for b in em.DriverModbusRtu.registry.lines()
                  if isinstance(b.endpoint, TcpEndpoint) and b.endpoint.port == port]
-        assert len(buses) == 1, buses
-        return buses[0]
+        assert len(lines) == 1, lines
+        return lines[0]
 
     def on_worker(self, fn: Callable[[], T]) -> T:
-        """Run ``fn`` on the bus worker: polling pauses meanwhile, and the references
+        """Run ``fn`` on the line worker: polling pauses meanwhile, and the references
         run on the same thread as the driver, between two of its windows."""
-        return self.bus.submit(lambda _link: fn()).result(120)
+        return self.line.submit(lambda _link: fn()).result(120)
 
 
 # -- measurements -----------------------------------------------------------------------------
@@ -294,7 +294,7 @@ def _connect(port: int) -> socket.socket:
 
 def measure_floor(line: Line, passes: int) -> Window:
     """The driver's block list read straight through libmodbus (a Context on a socket
-    of its own, as the bus opens it), nothing decoded.  ``passes`` is made odd: with
+    of its own, as the line worker opens it), nothing decoded.  ``passes`` is made odd: with
     the warm-up pass every block is read an even number of times, so the values the
     driver reads next have flipped as usual."""
     passes |= 1
@@ -376,7 +376,7 @@ def flip_ranges(line: Line, fraction: float) -> list[Range]:
 
 
 def profile_worker(drivers: Drivers, seconds: float) -> str:
-    """cProfile (thread CPU time) of the bus worker, enabled on it through a submitted
+    """cProfile (thread CPU time) of the line worker, enabled on it through a submitted
     job.  Profiling inflates Python's share; read it for where, not for how much."""
     prof = cProfile.Profile(time.thread_time)
     drivers.on_worker(prof.enable)
@@ -407,7 +407,7 @@ def test_driver_cpu_per_tag(line: Line, benchmark: Any) -> None:
             line.sim.flip(flip_ranges(line, fraction))
             with Drivers(line.configs) as drivers:
                 for _ in range(repeats):
-                    # the references run on the bus worker, between two driver windows
+                    # the references run on the line worker, between two driver windows
                     floor = drivers.on_worker(lambda: measure_floor(line, passes))
                     ours = measure_driver(drivers, window)
                     pym = drivers.on_worker(lambda: measure_pymodbus(line, pym_passes))
@@ -477,7 +477,7 @@ def test_driver_cpu_per_tag(line: Line, benchmark: Any) -> None:
         ],
     )
     for key, text in profiles.items():
-        print(f"\n--- cProfile of the bus worker, scenario ({key}) ---\n{text}")
+        print(f"\n--- cProfile of the line worker, scenario ({key}) ---\n{text}")
 
 
 # -- memory ---------------------------------------------------------------------------------

@@ -4,7 +4,7 @@
 is not ours) each with 2 slaves of 100 UInt16 tags dial in to one listen port and
 register; 400 drivers poll them (one read of 100 registers per slave and cycle).
 Reported: the time from start to every value Ok, and our CPU per tag read while
-polling (all threads of this process: 200 bus workers and the listener).
+polling (all threads of this process: 200 line workers and the listener).
 """
 
 from __future__ import annotations

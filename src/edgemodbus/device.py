@@ -27,7 +27,6 @@ from datetime import datetime, timezone
 from typing import TYPE_CHECKING, Any, cast
 
 from ._ffi import Block
-from .bus import Bus
 from .codec import BlockDecoder, ValueSpec, encode, normalize_value, register_bit
 from .codec import Report as Change
 from .codec import jsonable as _jsonable
@@ -43,7 +42,8 @@ from .errors import (
     ModbusTimeoutError,
     ProtocolError,
 )
-from .link import Link
+from .line import LineWorker as Bus  # the poller's line; renamed when device.py moves
+from .line import Link
 from .planner import Piece, PlanItem, ReadBlock, bisect_block, plan_reads
 
 if TYPE_CHECKING:

@@ -2,8 +2,8 @@
 
 The contract is the seed's ``DriverModbusRtu`` in the Python form of DESIGN.md: start,
 stop, hot update of the address list, writes (blocking and asyncio), callbacks,
-status, snapshot and stats.  Polling runs on the line's bus worker thread
-(:mod:`edgemodbus.bus`); this module plans, decodes through the C codec, keeps item
+status, snapshot and stats.  Polling runs on the line's worker thread
+(:mod:`edgemodbus.line.worker`); this module plans, decodes through the C codec, keeps item
 state and isolates faults per slave.
 """
 
@@ -15,9 +15,6 @@ from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import Future
 from typing import Any, ClassVar
 
-from . import bus as _bus
-from . import dtu as _dtu
-from .bus import BusRegistry
 from .config import (
     DeviceAddressItem,
     DeviceOrganizationParameter,
@@ -27,10 +24,23 @@ from .config import (
     validate_items,
     validate_parameters,
 )
-from .datatypes import Area, DeviceDriverStatus, enum_value
+from .datatypes import Area, DeviceDriverStatus
 from .device import Device, ItemState, WriteOp, plan_writes
-from .line import DtuEndpoint, LineTiming, SerialPort, TcpEndpoint
-from .link import Link
+from .line import (
+    DtuEndpoint,
+    DtuRegistry,
+    DtuSlot,
+    LineRegistry,
+    LineTiming,
+    LineWorker,
+    Link,
+    PortSettings,
+    SerialPort,
+    TcpEndpoint,
+    dtu_registry,
+    endpoint_for,
+    line_registry,
+)
 from .planner import ReadBlock
 
 Callback = Callable[[DeviceAddressItem], None]
@@ -46,8 +56,8 @@ class DriverModbusRtu:
     """
 
     logger: ClassVar[logging.Logger] = logging.getLogger("edgemodbus.driver")
-    registry: ClassVar[BusRegistry] = _bus.registry
-    dtu_registry: ClassVar[_dtu.DtuRegistry] = _dtu.registry
+    registry: ClassVar[LineRegistry] = line_registry
+    dtu_registry: ClassVar[DtuRegistry] = dtu_registry
 
     def __init__(self) -> None:
         self.address_updated_callback: Callback | None = None
@@ -55,8 +65,8 @@ class DriverModbusRtu:
         self.snapshot_publisher: SnapshotPublisher | None = None
         self._device: Device | None = None
         self._last_device: Device | None = None  # keeps stats and snapshot after a stop
-        self._bus: _bus.Bus | None = None
-        self._slot: _dtu.DtuSlot | None = None  # listen mode: this device's DTU
+        self._bus: LineWorker | None = None
+        self._slot: DtuSlot | None = None  # listen mode: this device's DTU
         self._line_stats: dict[str, Any] = {}
         self._status = DeviceDriverStatus.STOPPED
         self._params: DriverModbusRtuParameter | None = None
@@ -89,7 +99,7 @@ class DriverModbusRtu:
             self.logger.info("%s: disabled, not polled", code)
             return False
         parsed = validate_items(list(addresses), params)
-        endpoint = _endpoint(params)
+        endpoint = endpoint_for(params)
         timing = _timing(params)
         # builds the items' codec specs, the plan and its decoders: raises here, not
         # after the line's worker is running
@@ -113,11 +123,11 @@ class DriverModbusRtu:
     def _acquire(
         self, params: DriverModbusRtuParameter, endpoint: SerialPort | TcpEndpoint | DtuEndpoint,
         timing: LineTiming, device: Device,
-    ) -> tuple[_bus.Bus, _dtu.DtuSlot | None]:
+    ) -> tuple[LineWorker, DtuSlot | None]:
         """Acquire the line (and the DTU slot in listen mode) and attach ``device``;
         on any failure release what was acquired and re-raise."""
-        slot: _dtu.DtuSlot | None = None
-        bus: _bus.Bus | None = None
+        slot: DtuSlot | None = None
+        bus: LineWorker | None = None
         try:
             if isinstance(endpoint, DtuEndpoint):
                 slot = self.dtu_registry.acquire(_port_settings(params), endpoint)
@@ -305,34 +315,8 @@ def _wait_write(future: Future[Any]) -> tuple[bool, str | None]:
     return result
 
 
-def _endpoint(params: DriverModbusRtuParameter) -> SerialPort | TcpEndpoint | DtuEndpoint:
-    """The line of ``params`` (the config refuses these combinations too; parameters
-    may have been changed after they were loaded)."""
-    if params.framing == "wrapped-report" and params.transport not in (
-        "rtu-over-tcp", "rtu-over-tcp-server"
-    ):
-        raise ValueError(f"framing 'wrapped-report': needs transport rtu-over-tcp or "
-                         f"rtu-over-tcp-server, not {params.transport!r}")
-    if params.transport == "rtu-over-tcp-server":
-        return DtuEndpoint(params.listen_host, params.effective_listen_port, params.dtu_id,
-                           echo=params.echo, framing=params.framing,
-                           heartbeat=params.heartbeat_bytes)
-    if params.transport == "rtu":
-        return SerialPort(
-            port=params.com_port,
-            baudrate=params.baud_rate,
-            parity=_parity_letter(params.parity),
-            data_bits=params.data_bits,
-            stop_bits=params.stop_bits,
-            rs485=params.rs485,
-            echo=params.echo,
-        )
-    return TcpEndpoint(params.tcp_host, params.tcp_port, params.transport, echo=params.echo,
-                       framing=params.framing, heartbeat=params.heartbeat_bytes)
-
-
-def _port_settings(params: DriverModbusRtuParameter) -> _dtu.PortSettings:
-    return _dtu.PortSettings(
+def _port_settings(params: DriverModbusRtuParameter) -> PortSettings:
+    return PortSettings(
         host=params.listen_host,
         port=params.effective_listen_port,
         registration=params.registration,
@@ -341,11 +325,6 @@ def _port_settings(params: DriverModbusRtuParameter) -> _dtu.PortSettings:
         timeout=params.registration_timeout / 1000,
         heartbeat=params.heartbeat_bytes,
     )
-
-
-def _parity_letter(parity: Any) -> str:
-    text = str(enum_value(parity))
-    return text[0].upper() if text else "N"
 
 
 def _block_dict(block: ReadBlock, items: Sequence[ItemState]) -> dict[str, Any]:

@@ -109,14 +109,14 @@ def test_failed_start_names_the_problem_and_leaves_nothing_behind(
         setattr(org, key, value)
     items = make_items()
     threads, fds = set(threading.enumerate()), _fds()
-    buses = em.DriverModbusRtu.registry.buses()
+    lines = em.DriverModbusRtu.registry.lines()
     drv = em.DriverModbusRtu()
     with pytest.raises(ConfigError) as info:
         drv.start_device(org, comm, items)
     assert [str(p) for p in info.value.problems] == [expected]
     assert set(threading.enumerate()) == threads
     assert _fds() == fds
-    assert em.DriverModbusRtu.registry.buses() == buses
+    assert em.DriverModbusRtu.registry.lines() == lines
     assert drv.device_driver_status is em.DeviceDriverStatus.STOPPED
     assert drv.stop_device() is False
 

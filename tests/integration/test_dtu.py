@@ -17,8 +17,8 @@ from typing import Any
 import pytest
 
 import edgemodbus as em
-from edgemodbus import dtu
 from edgemodbus.datatypes import Area, DeviceDriverStatus, ItemStatus
+from edgemodbus.line.dtu_listener import registry as dtu_registry
 from edgemodbus.sim import Simulator, default_register
 from tests.waiting import wait_for
 
@@ -77,7 +77,7 @@ def test_two_dtus_on_one_port_each_feed_their_own_devices() -> None:
         sim_b = stack.enter_context(Simulator(slaves=[1]))
         sim_b.slave(1).set_registers(Area.HOLDING_REGISTER, 0, [11, 12, 13, 14, 15, 16, 17, 18])
         stack.enter_context(running(a1, a2, b1))
-        listener = dtu.registry.listener("127.0.0.1", port)
+        listener = dtu_registry.listener("127.0.0.1", port)
         assert listener is not None  # one listener serves both DTUs
         sim_b.dial("127.0.0.1", port, registration=b"DTU-B")
         sim_a.dial("127.0.0.1", port, registration=b"DTU-A\r\n")
@@ -124,7 +124,7 @@ def test_unknown_and_silent_dtus_are_closed_after_the_timeout_and_take_no_place(
         silent = sim.dial("127.0.0.1", port)
         wait_for(lambda: unknown.closed and silent.closed, what="both closed")
         assert time.monotonic() - started >= 0.25  # held until the registration timeout
-        listener = dtu.registry.listener("127.0.0.1", port)
+        listener = dtu_registry.listener("127.0.0.1", port)
         assert listener is not None
         assert listener.stats["unknown"] == 1 and listener.stats["silent"] == 1
         assert not good.closed
@@ -171,7 +171,7 @@ def test_devices_on_one_port_must_agree_on_its_registration() -> None:
         else:
             drv.stop_device()
             raise AssertionError("conflicting registration accepted")
-    assert dtu.registry.listener("127.0.0.1", port) is None  # stopped with its last device
+    assert dtu_registry.listener("127.0.0.1", port) is None  # stopped with its last device
 
 
 class SegmentedDtu:
@@ -253,6 +253,6 @@ def test_a_registration_in_segments_is_never_taken_for_an_id_it_begins_with(
         assert values(long_cfg) == long_values and values(short_cfg) == [
             default_register(1, a) for a in (0, 1, 7)]
         assert not long_value_on_short(), on_short
-        listener = dtu.registry.listener("127.0.0.1", port)
+        listener = dtu_registry.listener("127.0.0.1", port)
         assert listener is not None
         assert listener.stats["registered"] == 2 and listener.stats["unknown"] == 0

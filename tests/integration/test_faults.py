@@ -22,7 +22,6 @@ from typing import Any
 import pytest
 
 import edgemodbus as em
-from edgemodbus.bus import Bus
 from edgemodbus.datatypes import Area, DeviceDriverStatus, ItemStatus
 from edgemodbus.errors import (
     Acknowledge,
@@ -34,8 +33,10 @@ from edgemodbus.errors import (
     SlaveDeviceBusy,
     SlaveDeviceFailure,
 )
-from edgemodbus.line import LineTiming, TcpEndpoint
-from edgemodbus.link import Link, crc16
+from edgemodbus.line.endpoint import LineTiming, TcpEndpoint
+from edgemodbus.line.link import Link
+from edgemodbus.line.worker import LineWorker
+from edgemodbus.protocol import rtu
 from edgemodbus.sim import Simulator, default_bit, default_register
 from tests.waiting import wait_for
 
@@ -387,15 +388,15 @@ def test_09_exception_codes(
     bad = p.item("hr50")
     assert bad.status is INVALID and text in (bad.error_reason or ""), bad.error_reason
     assert all(p.item(f"hr{a}").status is OK for a in range(5))
-    # the typed error, as the bus hands it over (the driver shows its text)
-    bus = Bus(TcpEndpoint("127.0.0.1", rig.port), LineTiming(response_timeout=1.0))
-    bus.start()
+    # the typed error, as the line worker hands it over (the driver shows its text)
+    worker = LineWorker(TcpEndpoint("127.0.0.1", rig.port), LineTiming(response_timeout=1.0))
+    worker.start()
     try:
         with pytest.raises(cls) as info:
-            bus.read(1, HR, 50, 1).result(5)
+            worker.read(1, HR, 50, 1).result(5)
         assert type(info.value) is cls and info.value.code == code
     finally:
-        bus.stop()
+        worker.stop()
     rig.sim.slave(1).faults.exception_ranges = []  # 5 (acknowledge), 6 (busy): try later
     wait_for(lambda: bad.status is OK, what="hr50 Ok on a later cycle")
     assert bad.value == default_register(1, 50)
@@ -542,7 +543,7 @@ OVERSIZED = {
     # byte count 0xFF: libmodbus stops at the 256-byte RTU limit, nothing overflows
     "count-0xff": b"\x01\x03\xff" + bytes(range(256)) + bytes(41),
     # a well-formed 250-data-byte frame (valid CRC) then 45 more bytes: 300 in all
-    "valid-crc": (lambda f: f + crc16(f))(b"\x01\x03\xfa" + bytes(250)) + b"\x55" * 45,
+    "valid-crc": rtu.frame(1, b"\x03\xfa" + bytes(250)) + b"\x55" * 45,
 }
 
 
@@ -565,13 +566,13 @@ def test_17_a_slave_answering_a_broadcast_is_ignored_and_the_turnaround_kept(
     rig: Rig,
 ) -> None:
     """DriverModbusRtu never broadcasts (slaveId is 1..247 on RTU lines), so this goes
-    through the bus the driver uses."""
+    through the line worker the driver uses."""
     rig.sim.slave(1).set_faults(answer_broadcast=True, delay=0.05)
     rig.sim.slave(2).set_faults(answer_broadcast=True)
     turnaround = 0.2
-    bus = Bus(TcpEndpoint("127.0.0.1", rig.port),
+    worker = LineWorker(TcpEndpoint("127.0.0.1", rig.port),
               LineTiming(response_timeout=0.5, turnaround_delay=turnaround))
-    bus.start()
+    worker.start()
 
     def job(link: Link) -> tuple[float, list[int], list[int]]:
         link.write_register(0, 7, 4242)  # broadcast: every slave executes it
@@ -581,14 +582,14 @@ def test_17_a_slave_answering_a_broadcast_is_ignored_and_the_turnaround_kept(
         return waited, first, link.read(2, HR, 6, 2).to_list()
 
     try:
-        waited, one, two = bus.submit(job).result(10)
+        waited, one, two = worker.submit(job).result(10)
     finally:
-        bus.stop()
+        worker.stop()
     assert waited >= turnaround * 0.95  # the next request waited for the turnaround
     assert one == [4242]  # the read got its own answer, not a slave's broadcast answer
     assert two == [default_register(2, 6), 4242]
-    assert bus.stats.discarded_bytes >= 2 * 8  # both answers (8-byte echoes) dropped
-    assert bus.stats.protocol_errors == bus.stats.crc_errors == bus.stats.timeouts == 0
+    assert worker.stats.discarded_bytes >= 2 * 8  # both answers (8-byte echoes) dropped
+    assert worker.stats.protocol_errors == worker.stats.crc_errors == worker.stats.timeouts == 0
 
 
 # --------------------------------------------------------------------------- 20

@@ -63,7 +63,7 @@ def cpu_while(seconds: float) -> float:
 
 def connect_failure_times(caplog: pytest.LogCaptureFixture) -> list[float]:
     return [r.created for r in caplog.records
-            if r.name == "edgemodbus.bus" and "connect failed" in r.getMessage()]
+            if r.name == "edgemodbus.line" and "connect failed" in r.getMessage()]
 
 
 # --------------------------------------------------------------------------- 18
@@ -100,7 +100,7 @@ def test_18_tcp_reset_or_close_mid_frame(reset: bool) -> None:
 def test_19_connect_refused_backs_off_with_jitter_at_no_cpu(
     free_tcp_port: int, caplog: pytest.LogCaptureFixture
 ) -> None:
-    caplog.set_level(logging.WARNING, logger="edgemodbus.bus")
+    caplog.set_level(logging.WARNING, logger="edgemodbus.line")
     p = start_driver(tcp_comm(free_tcp_port), hr_items(0, 4))
     try:
         wait_for(lambda: p.drv.device_driver_status is RECONNECTING, 3, "Reconnecting")
@@ -152,7 +152,7 @@ def hanging_port() -> Iterator[int]:
 def test_19_connect_that_never_completes_is_bounded(
     hanging_port: int, caplog: pytest.LogCaptureFixture
 ) -> None:
-    caplog.set_level(logging.WARNING, logger="edgemodbus.bus")
+    caplog.set_level(logging.WARNING, logger="edgemodbus.line")
     started = time.monotonic()
     p = start_driver(tcp_comm(hanging_port, connectTimeout=400, maxBackoff=200), hr_items(0, 4))
     try:

@@ -23,7 +23,6 @@ from edgemodbus.errors import (
     SlaveDeviceBusy,
     exception_for_code,
 )
-from edgemodbus.link import crc16
 
 ENOBASE = 112345678  # MODBUS_ENOBASE in modbus.h
 
@@ -115,11 +114,6 @@ def test_discard_input_drains_and_reports_eof() -> None:
             _ffi.discard_input(a.fileno(), 0.05, 0.01)
     finally:
         a.close()
-
-
-def test_crc16_known_frame() -> None:
-    # Modbus over Serial Line v1.02, 6.2.2 example family: 01 03 00 00 00 0A -> C5 CD
-    assert crc16(bytes.fromhex("01030000000A")) == bytes.fromhex("C5CD")
 
 
 def test_stale_build_is_refused(tmp_path) -> None:

@@ -9,7 +9,7 @@ import pytest
 
 import edgemodbus as em
 from edgemodbus.config import ConfigError, DriverModbusRtuParameter
-from edgemodbus.driver import _endpoint
+from edgemodbus.line import endpoint_for
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
 
@@ -31,7 +31,7 @@ def test_listen_port_falls_back_to_tcp_port_and_heartbeat_is_bytes() -> None:
     assert p.effective_listen_port == 7000 and p.use_tcp
     assert p.heartbeat_bytes == b"\xfe" and p.registration == "none"
     assert DriverModbusRtuParameter.model_validate(server(heartbeat="HB")).heartbeat_bytes == b"HB"
-    ep = _endpoint(DriverModbusRtuParameter.model_validate(server(listenHost="127.0.0.1")))
+    ep = endpoint_for(DriverModbusRtuParameter.model_validate(server(listenHost="127.0.0.1")))
     assert ep.key == ("dtu", "127.0.0.1", "9502", "A1")
 
 
@@ -56,7 +56,7 @@ def test_heartbeat_and_wrapped_framing_need_rtu_over_tcp() -> None:
     params = DriverModbusRtuParameter.model_validate({"transport": "tcp"})
     params.framing = "wrapped-report"  # changed after loading: the driver still refuses
     with pytest.raises(ValueError, match="framing 'wrapped-report': needs transport"):
-        _endpoint(params)
+        endpoint_for(params)
 
 
 def test_report_only_read_cycle_zero_is_accepted() -> None:

@@ -1,6 +1,6 @@
-"""When a DTU's registration is complete (edgemodbus.dtu.identify, a pure function): ids
-that are prefixes of others, registrations split over TCP segments, terminators, quiet
-gaps, and the bytes that follow a registration."""
+"""When a DTU's registration is complete (edgemodbus.line.registration.identify, a pure
+function): ids that are prefixes of others, registrations split over TCP segments,
+terminators, quiet gaps, and the bytes that follow a registration."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from edgemodbus.dtu import MAX_REGISTRATION, Identified, PortSettings, identify
+from edgemodbus.line.registration import MAX_REGISTRATION, Identified, PortSettings, identify
 
 HEARTBEAT = b"HB"
 WRAPPED = bytes.fromhex("FFAA0001010302030578B70D")  # a report right after registering

@@ -23,7 +23,7 @@ from hypothesis import HealthCheck, event, given, settings
 from hypothesis import strategies as st
 
 from edgemodbus.errors import ModbusError, ModbusExceptionResponse, ProtocolError
-from edgemodbus.link import Link
+from edgemodbus.line.link import Link
 from edgemodbus.protocol import rtu
 from edgemodbus.sim import Slave
 

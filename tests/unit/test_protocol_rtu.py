@@ -153,6 +153,24 @@ def test_other_function_codes_have_no_known_length(fc: int) -> None:
     assert rtu.reply_length(bytes([1, fc | 0x80, 2, 0, 0])) == 5
 
 
+def test_pack_bits_packs_the_example_of_application_protocol_6_1() -> None:
+    # coils 20..38: CD 6B 05, coil 20 in the low bit of the first byte, the rest zero-padded
+    bits = [(byte >> i) & 1 for byte in bytes.fromhex("CD 6B 05") for i in range(8)][:19]
+    assert rtu.pack_bits(bits) == bytes.fromhex("CD 6B 05")
+
+
+@given(st.lists(st.booleans(), max_size=2000))
+def test_pack_bits_round_trips_bools_ints_and_bytes(bits: list[bool]) -> None:
+    packed = rtu.pack_bits(bits)
+    assert len(packed) == (len(bits) + 7) // 8
+    assert [(packed[i // 8] >> (i % 8)) & 1 for i in range(len(bits))] == [int(b) for b in bits]
+    if len(bits) % 8:  # the padding of the last byte is zero
+        assert packed[-1] >> (len(bits) % 8) == 0
+    as_ints = [int(b) for b in bits]
+    assert rtu.pack_bits(as_ints) == rtu.pack_bits(bytes(as_ints)) == packed
+    assert rtu.pack_bits(bytearray(as_ints)) == packed
+
+
 def test_function_code_sets() -> None:
     assert {1, 2, 3, 4} == rtu.READ_FUNCTIONS
     assert {5, 6, 15, 16, 22} == rtu.WRITE_FUNCTIONS

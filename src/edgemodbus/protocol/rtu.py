@@ -27,6 +27,7 @@ do not survive, the length follows from the function code and, for some, a byte 
 from __future__ import annotations
 
 import struct
+from collections.abc import Sequence
 
 __all__ = [
     "MASK_WRITE_REGISTER",
@@ -48,6 +49,7 @@ __all__ = [
     "crc_ok",
     "find_known_frame",
     "frame",
+    "pack_bits",
     "reply_length",
     "request_length",
     "split_frames",
@@ -120,6 +122,16 @@ def frame(slave: int, pdu: bytes | bytearray) -> bytes:
 def crc_ok(frame: bytes | bytearray | memoryview) -> bool:
     """Whether ``frame`` (address, PDU, CRC) is at least 4 bytes with a matching CRC."""
     return len(frame) >= 4 and crc16(frame[:-2]) == frame[-2] | (frame[-1] << 8)
+
+
+def pack_bits(bits: Sequence[int | bool]) -> bytes:
+    """Bits as the data of FC01/02 replies and FC15 requests: the first in the low bit of
+    the first byte, the last byte zero-padded (Application Protocol v1.1b3, 6.1, 6.11)."""
+    packed = bytearray((len(bits) + 7) // 8)
+    for i, bit in enumerate(bits):
+        if bit:
+            packed[i // 8] |= 1 << (i % 8)
+    return bytes(packed)
 
 
 # --- frame lengths (Application Protocol v1.1b3, section 6) ------------------------------

@@ -23,7 +23,8 @@ import logging
 import struct
 from dataclasses import dataclass
 
-from ..link import crc16
+from .rtu import crc16
+from .rtu import frame as rtu_frame
 
 log = logging.getLogger("edgemodbus.wrapped")
 
@@ -64,8 +65,7 @@ def wrap(address: int, slave: int, pdu: bytes) -> bytes:
     """A wrapped request: header, register address, RTU frame (CRC added), tail."""
     if not 0 <= address <= 0xFFFF:
         raise ValueError(f"register address {address}: must be 0..65535")
-    frame = bytes([slave]) + pdu
-    return HEADER + struct.pack(">H", address) + frame + crc16(frame) + bytes([TAIL])
+    return HEADER + struct.pack(">H", address) + rtu_frame(slave, pdu) + bytes([TAIL])
 
 
 def _rtu_length(buf: bytearray, start: int) -> int | None:
@@ -142,7 +142,7 @@ class ReportParser:
             if frame[-1] != TAIL:
                 self._bad(frame, "no 0D tail (length does not add up)", None)
                 continue
-            if crc16(rtu[:-2]) != rtu[-2:]:
+            if crc16(rtu[:-2]) != int.from_bytes(rtu[-2:], "little"):
                 self._bad(frame, "CRC error", end)
                 continue
             del buf[:end]

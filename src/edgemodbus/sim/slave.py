@@ -348,7 +348,7 @@ class Slave:
             raise _Exc(_ILLEGAL_VALUE)
         self._validate(area, address, count)
         if area.is_bit:
-            data = _pack_bits(self._bits[area][address : address + count])
+            data = rtu.pack_bits(self._bits[area][address : address + count])
         else:
             self._apply_movers(area, address, count)
             data = struct.pack(f">{count}H", *self._regs[area][address : address + count])
@@ -398,15 +398,6 @@ class Slave:
         regs = self._regs[Area.HOLDING_REGISTER]
         regs[address] = (regs[address] & and_mask) | (or_mask & ~and_mask & 0xFFFF)
         return pdu[:7]
-
-
-def _pack_bits(bits: bytes | bytearray) -> bytes:
-    """Bits LSB first in each byte, the last byte zero-padded (Application Protocol 6.1)."""
-    out = bytearray((len(bits) + 7) // 8)
-    for i, b in enumerate(bits):
-        if b:
-            out[i // 8] |= 1 << (i % 8)
-    return bytes(out)
 
 
 def _wrong_byte_count(rpdu: bytes) -> bytes:

@@ -5,49 +5,16 @@ registration packet (IMEI, ICCID, a serial number) and then pass RTU frames thro
 unchanged.  One :class:`DtuListener` thread serves each listen port (a ``selectors``
 loop: accept, read registrations with a deadline, no busy loop); every identified
 connection is handed to the :class:`DtuSlot` of its DTU id, the connector of that DTU's
-bus (one bus, one worker thread per DTU, shared by the devices that name the id).
+line (one line, one worker thread per DTU, shared by the devices that name the id).
 
 * Identification per port: ``registration`` text / hex / regex (with an optional fixed
   length), or none: then the port's one configured DTU takes the connection.  The
-  registration rule is below (:func:`identify`).
+  registration rule is in :mod:`edgemodbus.line.registration` (:func:`identify`).
 * An unknown or silent peer is logged with its address and closed when the
   registration timeout runs out (held until then, so a misconfigured DTU cannot
   reconnect in a tight loop); it never takes another DTU's place.
 * A DTU that reconnects replaces its old connection: the listener shuts the old socket
-  down (its fd stays valid until the worker closes it) and asks the bus to switch.
-
-When a registration is complete
--------------------------------
-A registration may arrive split over TCP segments ("DTU1", then "0"), so it is complete
-only when it cannot grow into another id.  Heartbeats before it are skipped (and, in text
-and regex mode, CR/LF/NUL).  Then, per mode:
-
-* ``registrationLength`` N (any mode): the next N bytes are the packet, complete as soon
-  as they are in (text: trailing CR/LF/NUL stripped; regex: the pattern is searched in
-  them).
-* text: the id ends at a byte no text id contains: CR, LF, NUL or another control byte,
-  a byte that never occurs in UTF-8 (0xC0, 0xC1, 0xF5-0xFF, e.g. a wrapped frame's FF AA),
-  or the configured heartbeat.  Such an end completes it at once.  Without one, bytes that
-  equal a configured id are taken only after a quiet gap (:data:`QUIET_GAP`, no further
-  byte) or at the registration timeout: until then they may be the beginning of a longer
-  id, configured or not ("DTU1" of "DTU10", "DTU12").
-* hex: ids are binary, so no byte ends one; only the heartbeat (or the fixed length) does.
-  Otherwise as text: an exact match waits for the quiet gap or the timeout.
-* regex: the pattern is searched only in terminated content: the bytes up to an end (as
-  in text mode, line ends included so a pattern may name them), or everything after the
-  quiet gap or at the timeout; never in a prefix that could still grow ("ID:1" of
-  "ID:10").  Its first group, else its whole match, is the id.
-
-The peer is unknown at once when, in text or hex mode, its bytes are no beginning of a
-configured id or what comes before an end is not one, or when, in regex mode, a
-terminated match names no configured id; also after :data:`MAX_REGISTRATION` bytes
-without a registration.  So an id that is a prefix of another configured id is matched
-at an end, or after the quiet gap, never early.  Bytes after the registration (CR/LF/NUL
-right after it are consumed; a heartbeat or a wrapped frame is not) are handed to the
-link with the socket, never lost nor taken for part of the id.  The quiet gap trades a
-short delay of an unterminated registration for safety: a DTU that pauses longer than the
-gap inside its own registration may still be taken for the id it sent so far; give such
-DTUs a terminator or a ``registrationLength``.
+  down (its fd stays valid until the worker closes it) and asks the line to switch.
 """
 
 from __future__ import annotations
@@ -55,203 +22,33 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
-import re
 import selectors
 import socket
 import threading
 import time
-from collections.abc import Collection
 from dataclasses import dataclass, field
 from typing import Any
 
-from ._ffi import FD_SETSIZE
-from .bus import Bus
-from .errors import ModbusConnectionError, ModbusError
-from .line import DtuEndpoint, LineTiming
+from .._ffi import FD_SETSIZE
+from ..errors import ModbusConnectionError, ModbusError
+from .endpoint import DtuEndpoint
 from .link import Link, open_socket_link
+from .registration import Identified, PortSettings, identify
+from .worker import LineWorker
 
 log = logging.getLogger("edgemodbus.dtu")
 
 NOT_CONNECTED = "DTU not connected"
 
-QUIET_GAP = 0.5
-"""Seconds without a further byte after which a registration that equals a configured id,
-but has no end, is taken.  Longer than Linux's minimum TCP retransmission timeout (0.2 s),
-so that one retransmitted segment of the rest of a longer id is still awaited."""
-
-MAX_REGISTRATION = 2048
-"""Bytes a peer may send without registering before it counts as unknown."""
-
-_LINE_ENDS = b"\r\n\0"
-
-
-@dataclass(frozen=True)
-class PortSettings:
-    """What every device naming one listen port must agree on."""
-
-    host: str
-    port: int
-    registration: str = "none"  # none | text | hex | regex
-    pattern: str = ""  # regex: searched in the packet (Latin-1); group 1 or the match is the id
-    length: int | None = None  # fixed registration packet length in bytes
-    timeout: float = 5.0  # seconds for a new connection to register
-    heartbeat: bytes = b""  # skipped before the registration packet too
-    quiet_gap: float = QUIET_GAP  # see the module docstring: when a registration is complete
-
-    @property
-    def key(self) -> tuple[str, int]:
-        return (self.host, self.port)
-
-    def differences(self, other: PortSettings) -> list[str]:
-        names = {"registration": "registration", "pattern": "registrationPattern",
-                 "length": "registrationLength", "timeout": "registrationTimeout",
-                 "heartbeat": "heartbeat"}
-        return [f"{key} {getattr(other, attr)!r} (the port has {getattr(self, attr)!r})"
-                for attr, key in names.items() if getattr(self, attr) != getattr(other, attr)]
-
-
-@dataclass(frozen=True, slots=True)
-class Identified:
-    """A registration that names a configured DTU."""
-
-    dtu_id: str
-    end: int  # bytes of the buffer that were the registration; the rest is the DTU's data
-
-
-def identify(buf: bytes, ids: Collection[str], settings: PortSettings, *,
-             settled: bool) -> Identified | str | None:
-    """Decide what the bytes a new connection sent so far register as (the rule is in the
-    module docstring): :class:`Identified` for a configured id, a description (str) of a
-    registration that names no configured DTU, or None while it is not complete.
-    ``settled``: the quiet gap has passed since the last byte, or the registration timeout
-    has run out.  Pure: the listener calls it on every segment and when a gap passes."""
-    mode = settings.registration
-    hb = settings.heartbeat
-    start = 0
-    while start < len(buf):
-        if hb and buf.startswith(hb, start):
-            start += len(hb)
-        elif mode != "hex" and buf[start] in _LINE_ENDS:
-            start += 1
-        else:
-            break
-    packet = buf[start:]
-    if not settled and hb and packet and len(packet) < len(hb) and hb.startswith(packet):
-        return None  # the first part of a heartbeat
-    length = settings.length
-    if length is not None:
-        if len(packet) < length:
-            return None
-        packet = packet[:length]
-        if mode == "regex":
-            return _search(packet, ids, settings.pattern, start + length)
-        key = packet if mode == "hex" else packet.rstrip(_LINE_ENDS)
-        return _lookup(key, _keys(ids, mode), start + length, mode)
-    if mode == "regex":
-        found = _regex_terminated(packet, ids, settings, start, settled)
-    else:
-        found = _exact(packet, _keys(ids, mode), settings, start, settled)
-    if found is None and len(buf) > MAX_REGISTRATION:
-        return f"no registration in the first {MAX_REGISTRATION} bytes"
-    return found
-
-
-def _keys(ids: Collection[str], mode: str) -> dict[bytes, str]:
-    """The bytes each configured id is sent as."""
-    if mode == "hex":
-        return {bytes.fromhex(i): i for i in ids}
-    return {i.encode(): i for i in ids}
-
-
-def _lookup(key: bytes, wanted: dict[bytes, str], end: int, mode: str) -> Identified | str:
-    dtu_id = wanted.get(key)
-    if dtu_id is not None:
-        return Identified(dtu_id, end)
-    return key.hex(" ").upper() if mode == "hex" else key.decode("latin-1")
-
-
-def _text_end(byte: int) -> bool:
-    """A byte that no text id contains: a control byte, or one never found in UTF-8."""
-    return byte < 0x20 or byte == 0x7F or byte in (0xC0, 0xC1) or byte >= 0xF5
-
-
-def _ends(packet: bytes, settings: PortSettings) -> list[tuple[int, int]]:
-    """(where the content ends, where the registration ends) for every end in ``packet``
-    (text and regex mode: an end byte, CR/LF/NUL consumed; any mode: a heartbeat)."""
-    hb = settings.heartbeat
-    text = settings.registration != "hex"
-    found: list[tuple[int, int]] = []
-    i = 0
-    while i < len(packet):
-        if hb and packet.startswith(hb, i):
-            found.append((i, i))
-            i += len(hb)
-        elif text and _text_end(packet[i]):
-            j = i
-            while j < len(packet) and packet[j] in _LINE_ENDS:
-                j += 1
-            found.append((i, j))
-            i = max(j, i + 1)
-        else:
-            i += 1
-    return found
-
-
-def _exact(packet: bytes, wanted: dict[bytes, str], settings: PortSettings, start: int,
-           settled: bool) -> Identified | str | None:
-    """Text and hex mode without a fixed length."""
-    if any(len(key) > len(packet) and key.startswith(packet) for key in wanted):
-        # it may still grow into a configured id: an exact match is taken once settled
-        if settled and packet in wanted:
-            return Identified(wanted[packet], start + len(packet))
-        return None
-    ends = _ends(packet, settings)
-    if ends:
-        content, end = ends[0]
-        return _lookup(packet[:content], wanted, start + end, settings.registration)
-    hb = settings.heartbeat
-    for key in wanted:
-        rest = packet[len(key):]
-        if packet.startswith(key) and rest and hb.startswith(rest):
-            # maybe a heartbeat follows the id
-            return Identified(wanted[key], start + len(key)) if settled else None
-    if packet in wanted:
-        return Identified(wanted[packet], start + len(packet)) if settled else None
-    # no configured id begins with these bytes, whatever follows
-    return _lookup(packet, wanted, start + len(packet), settings.registration)
-
-
-def _regex_terminated(packet: bytes, ids: Collection[str], settings: PortSettings,
-                      start: int, settled: bool) -> Identified | str | None:
-    """Regex mode without a fixed length: search terminated content only."""
-    for _, end in _ends(packet, settings):
-        found = _search(packet[:end], ids, settings.pattern, start + end, quiet=True)
-        if found is not None:
-            return found
-    if settled:
-        return _search(packet, ids, settings.pattern, start + len(packet), quiet=True)
-    return None
-
-
-def _search(packet: bytes, ids: Collection[str], pattern: str, end: int,
-            quiet: bool = False) -> Identified | str | None:
-    """The id ``pattern`` finds in ``packet`` (its first group, else the whole match).
-    No match: None when ``quiet`` (more may come), else the reason."""
-    match = re.search(pattern, packet.decode("latin-1"))
-    if match is None:
-        return None if quiet else "no match of registrationPattern"
-    dtu_id = match.group(1) if match.re.groups else match.group(0)
-    return Identified(dtu_id, end) if dtu_id in ids else dtu_id
-
 
 class DtuSlot:
-    """The connector of one DTU's bus: holds the socket the listener handed over until
-    the bus worker opens a link on it, and the socket in use (to replace it)."""
+    """The connector of one DTU's line: holds the socket the listener handed over until
+    the line worker opens a link on it, and the socket in use (to replace it)."""
 
     def __init__(self, endpoint: DtuEndpoint, port: PortSettings) -> None:
         self.endpoint = endpoint
         self.port = port
-        self.bus: Bus | None = None
+        self.line: LineWorker | None = None
         self._lock = threading.Lock()
         self._pending: tuple[socket.socket, str, bytes] | None = None
         self._current: socket.socket | None = None
@@ -263,10 +60,10 @@ class DtuSlot:
     def dtu_id(self) -> str:
         return self.endpoint.dtu_id
 
-    def attach(self, bus: Bus | None) -> None:
-        """The bus this slot feeds (None: detached)."""
+    def attach(self, line: LineWorker | None) -> None:
+        """The line worker this slot feeds (None: detached)."""
         with self._lock:
-            self.bus = bus
+            self.line = line
 
     def offer(self, sock: socket.socket, peer: str, rest: bytes = b"") -> None:
         """A new connection of this DTU (listener thread): it replaces the old one.
@@ -281,17 +78,17 @@ class DtuSlot:
             if current is not None:
                 with contextlib.suppress(OSError):  # the worker sees a link error
                     current.shutdown(socket.SHUT_RDWR)
-            bus = self.bus
+            line = self.line
         if stale is not None:
             stale[0].close()
         if current is not None or stale is not None:
             log.info("%s: reconnected from %s; replacing its previous connection",
                      self.endpoint.describe(), peer)
-        if bus is not None:
-            bus.connect_now()
+        if line is not None:
+            line.connect_now()
 
-    def open(self, bus: Bus) -> Link:
-        """The bus worker takes the handed-over socket (Connector protocol)."""
+    def open(self, line: LineWorker) -> Link:
+        """The line worker takes the handed-over socket (Connector protocol)."""
         with self._lock:
             pending, self._pending = self._pending, None
             if pending is None:
@@ -311,27 +108,27 @@ class DtuSlot:
 
         try:
             if ep.framing == "wrapped-report" or ep.heartbeat:
-                from .streamlink import StreamLink
+                from .stream import StreamLink
 
-                return StreamLink(sock, ep, bus.timing, bus.stats, heartbeat=ep.heartbeat,
+                return StreamLink(sock, ep, line.timing, line.stats, heartbeat=ep.heartbeat,
                                   wrapped=ep.framing == "wrapped-report",
-                                  on_report=bus.dispatch_report, on_close=release,
+                                  on_report=line.dispatch_report, on_close=release,
                                   initial=rest)
             if rest:  # plain RTU: nothing was asked yet, so these bytes answer nothing
-                bus.stats.discarded_bytes += len(rest)
+                line.stats.discarded_bytes += len(rest)
                 log.debug("%s: %d bytes after the registration discarded: %s",
                           ep.describe(), len(rest), rest.hex(" ").upper())
-            return open_socket_link(sock, ep, bus.timing, bus.stats, release)
+            return open_socket_link(sock, ep, line.timing, line.stats, release)
         except (ModbusError, ValueError, OSError):
             release()
             sock.close()
             raise
 
     def close(self) -> None:
-        """Forget a connection not taken yet (the bus is gone)."""
+        """Forget a connection not taken yet (the line worker is gone)."""
         with self._lock:
             pending, self._pending = self._pending, None
-            self.bus = None
+            self.line = None
         if pending is not None:
             pending[0].close()
 
@@ -605,5 +402,5 @@ class DtuRegistry:
 
 registry = DtuRegistry()
 
-__all__ = ["NOT_CONNECTED", "DtuListener", "DtuRegistry", "DtuSlot", "LineTiming",
-           "PortSettings", "registry"]
+__all__ = ["NOT_CONNECTED", "DtuListener", "DtuRegistry", "DtuSlot", "PortSettings",
+           "registry"]

@@ -1,17 +1,17 @@
-"""One physical line (a serial port, or a TCP endpoint) served by one worker thread.
+"""One line (a serial port, a TCP endpoint, or a DTU behind a listener) served by one
+worker thread.
 
 The worker thread creates, uses and frees the line's libmodbus context: libmodbus
 contexts are not thread-safe.  Other threads reach the line through a queue
-(:meth:`Bus.submit` and the request helpers, which return ``concurrent.futures.Future``
-objects), and pollers (the driver's devices) are called on the worker when they are due.
-Queued requests (writes) run before the next poll step, so they jump ahead of reads.
-The link itself (:mod:`edgemodbus.link`) settles the line after timeouts and drains it
-after other errors.
+(:meth:`LineWorker.submit` and the request helpers, which return
+``concurrent.futures.Future`` objects), and pollers (the driver's devices) are called on
+the worker when they are due.  Queued requests (writes) run before the next poll step, so
+they jump ahead of reads.  The link itself (:mod:`edgemodbus.line.link`) settles the line
+after timeouts and drains it after other errors.
 """
 
 from __future__ import annotations
 
-import asyncio
 import logging
 import operator
 import queue
@@ -24,26 +24,26 @@ from concurrent.futures import Future
 from dataclasses import dataclass
 from typing import Any, Protocol, TypeVar
 
-from ._ffi import Context
-from .datatypes import Area
-from .errors import (
+from .._ffi import Context
+from ..datatypes import Area
+from ..errors import (
     ModbusConnectionError,
     ModbusError,
 )
-from .line import DtuEndpoint, Endpoint, LineStats, LineTiming, SerialPort
-from .link import Link, connect_tcp
+from ..stats import LineStats
+from .endpoint import DtuEndpoint, Endpoint, LineTiming, SerialPort
+from .link import Link, connect_tcp, context_link
 
-log = logging.getLogger("edgemodbus.bus")
+log = logging.getLogger("edgemodbus.line")
 T = TypeVar("T")
 
 _IDLE_SLICE = 0.05  # links with unsolicited frames: longest wait before checking the queue
 _MAX_IDLE = 3600.0  # a poller due "never" (report-only) still gets an idle step per hour
 _DUE = operator.attrgetter("due")
-READ_FC = {area: area.read_function for area in Area}  # a dict beats the enum property
 
 
 class Poller(Protocol):
-    """Something the bus worker calls when due: the driver's device polling."""
+    """Something the line worker calls when due: the driver's device polling."""
 
     due: float
     """``time.monotonic()`` of the next step (read by the worker on every step)."""
@@ -58,10 +58,10 @@ class Poller(Protocol):
 
 
 class Connector(Protocol):
-    """How a bus gets its link, for endpoints the bus cannot open itself (a DTU that
+    """How a line worker gets its link, for endpoints it cannot open itself (a DTU that
     dials in: the listener hands its socket over)."""
 
-    def open(self, bus: Bus) -> Link:
+    def open(self, line: LineWorker) -> Link:
         """Return an open link, or raise :class:`ModbusConnectionError` (worker thread)."""
         ...
 
@@ -75,8 +75,8 @@ class _Job:
 _STOP = object()
 
 
-class Bus:
-    """A line and its worker thread.  Created by :class:`BusRegistry` (shared by every
+class LineWorker:
+    """A line and its worker thread.  Created by :class:`LineRegistry` (shared by every
     user of the same endpoint) or directly; ``start()`` then ``stop()``."""
 
     def __init__(self, endpoint: Endpoint, timing: LineTiming | None = None,
@@ -100,7 +100,7 @@ class Bus:
         if self._thread is not None:
             return
         self._thread = threading.Thread(
-            target=self._run, name=f"edgemodbus-bus {self.endpoint.describe()}", daemon=True
+            target=self._run, name=f"edgemodbus-line {self.endpoint.describe()}", daemon=True
         )
         self._thread.start()
 
@@ -118,7 +118,7 @@ class Bus:
             )
             thread.join(wait)
             if thread.is_alive():
-                raise RuntimeError(f"bus {self.endpoint.describe()}: worker did not stop")
+                raise RuntimeError(f"line {self.endpoint.describe()}: worker did not stop")
         self._thread = None
 
     @property
@@ -126,7 +126,7 @@ class Bus:
         return self._thread is not None and not self._stopping.is_set()
 
     def on_worker(self) -> bool:
-        """True on this bus's worker thread (in a callback), where waiting for a queued
+        """True on this line's worker thread (in a callback), where waiting for a queued
         job would wait forever."""
         return threading.current_thread() is self._thread
 
@@ -170,14 +170,11 @@ class Bus:
         future: Future[T] = Future()
         if self._stopping.is_set() or self._thread is None:
             future.set_exception(
-                ModbusConnectionError(f"bus {self.endpoint.describe()} is not running")
+                ModbusConnectionError(f"line {self.endpoint.describe()} is not running")
             )
             return future
         self._queue.put(_Job(fn, future))
         return future
-
-    async def submit_async(self, fn: Callable[[Link], T]) -> T:
-        return await asyncio.wrap_future(self.submit(fn))
 
     def read(self, slave: int, area: Area, address: int, count: int) -> Future[list[int]]:
         """Read registers (ints) or bits (0/1 ints) from one slave."""
@@ -360,7 +357,7 @@ class Bus:
         else:
             sock = connect_tcp(ep, timing.connect_timeout)
             if ep.transport == "rtu-over-tcp" and (ep.framing != "rtu" or ep.heartbeat):
-                from .streamlink import StreamLink  # RTU framed in Python
+                from .stream import StreamLink  # RTU framed in Python
 
                 return StreamLink(sock, ep, timing, self.stats, heartbeat=ep.heartbeat,
                                   wrapped=ep.framing == "wrapped-report",
@@ -371,16 +368,11 @@ class Bus:
                 sock.close()
                 raise
         try:
-            ctx.set_timeouts(timing.response_timeout, timing.byte_timeout)
-            ctx.set_echo(ep.echo)
+            return context_link(ctx, ep, timing, self.stats, sock)
         except ValueError:
-            ctx.close()
             if sock is not None:
                 sock.close()
             raise
-        link = Link(ctx, ep, timing, self.stats, sock)
-        link._timeouts = (timing.response_timeout, timing.byte_timeout)
-        return link
 
     def _link_lost(self, link: Link) -> None:
         self._link = None
@@ -410,54 +402,54 @@ class Bus:
                 break
             if isinstance(item, _Job) and item.future.set_running_or_notify_cancel():
                 item.future.set_exception(
-                    ModbusConnectionError(f"bus {self.endpoint.describe()} stopped")
+                    ModbusConnectionError(f"line {self.endpoint.describe()} stopped")
                 )
 
 
-class BusRegistry:
-    """Shares one :class:`Bus` among every user of the same endpoint (many slaves on one
+class LineRegistry:
+    """Shares one :class:`LineWorker` among every user of the same endpoint (many slaves on one
     RS-485 line, many devices behind one serial server port)."""
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
-        self._buses: dict[tuple[str, ...], tuple[Bus, int]] = {}
+        self._lines: dict[tuple[str, ...], tuple[LineWorker, int]] = {}
 
     def acquire(self, endpoint: Endpoint, timing: LineTiming | None = None,
-                connector: Callable[[], Connector] | None = None) -> Bus:
-        """The bus of ``endpoint``, started on first use; ``connector`` makes the
-        connector of a new bus (DTU links)."""
+                connector: Callable[[], Connector] | None = None) -> LineWorker:
+        """The line worker of ``endpoint``, started on first use; ``connector`` makes the
+        connector of a new one (DTU links)."""
         with self._lock:
-            entry = self._buses.get(endpoint.key)
+            entry = self._lines.get(endpoint.key)
             if entry is not None:
-                bus, users = entry
-                if bus.endpoint != endpoint:
+                line, users = entry
+                if line.endpoint != endpoint:
                     raise ValueError(
                         f"line {endpoint.key[-1]} is already open as "
-                        f"'{bus.endpoint.describe()}'; this device asks for "
+                        f"'{line.endpoint.describe()}'; this device asks for "
                         f"'{endpoint.describe()}': devices on one line must agree"
                     )
-                self._buses[endpoint.key] = (bus, users + 1)
-                return bus
-            bus = Bus(endpoint, timing, connector() if connector is not None else None)
-            bus.start()
-            self._buses[endpoint.key] = (bus, 1)
-            return bus
+                self._lines[endpoint.key] = (line, users + 1)
+                return line
+            line = LineWorker(endpoint, timing, connector() if connector is not None else None)
+            line.start()
+            self._lines[endpoint.key] = (line, 1)
+            return line
 
-    def release(self, bus: Bus) -> None:
+    def release(self, line: LineWorker) -> None:
         with self._lock:
-            entry = self._buses.get(bus.endpoint.key)
-            if entry is None or entry[0] is not bus:
+            entry = self._lines.get(line.endpoint.key)
+            if entry is None or entry[0] is not line:
                 return
             _, users = entry
             if users > 1:
-                self._buses[bus.endpoint.key] = (bus, users - 1)
+                self._lines[line.endpoint.key] = (line, users - 1)
                 return
-            del self._buses[bus.endpoint.key]
-        bus.stop()
+            del self._lines[line.endpoint.key]
+        line.stop()
 
-    def buses(self) -> list[Bus]:
+    def lines(self) -> list[LineWorker]:
         with self._lock:
-            return [bus for bus, _ in self._buses.values()]
+            return [line for line, _ in self._lines.values()]
 
 
-registry = BusRegistry()
+registry = LineRegistry()

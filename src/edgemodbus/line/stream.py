@@ -8,8 +8,8 @@ Two cases need it, both on RTU-over-TCP sockets (client or listen mode):
 * Wrapped report frames of an edge MCU (:mod:`edgemodbus.protocol.wrapped`): requests go out
   wrapped (``FF AA`` + register address + RTU frame + ``0D``), the reply is the frame
   with the same slave, function and address and, for a read, the byte count the request
-  asks for; all other frames, also while a request waits (and while idle: the bus
-  watches :attr:`idle_fd`), are unsolicited reports and go to the bus's devices.
+  asks for; all other frames, also while a request waits (and while idle: the line
+  worker watches :attr:`idle_fd`), are unsolicited reports and go to the line's devices.
 
 The checks are those of the libmodbus path (csrc/emb_io.c): CRC, slave id, function
 code, exception responses, the byte count of a read, the echo of a write; after a
@@ -25,11 +25,11 @@ import struct
 import time
 from collections.abc import Callable
 
-from ._ffi import Block
-from .codec import BlockDecoder
-from .codec import Report as CodecReport
-from .datatypes import Area
-from .errors import (
+from .._ffi import Block
+from ..codec import BlockDecoder
+from ..codec import Report as CodecReport
+from ..datatypes import Area
+from ..errors import (
     CrcError,
     ModbusConnectionError,
     ModbusError,
@@ -37,21 +37,23 @@ from .errors import (
     ProtocolError,
     exception_for_code,
 )
-from .line import Endpoint, LineStats, LineTiming
-from .link import QUIET_FLOOR, READ_FC, Link, crc16, log
-from .protocol.wrapped import Report, ReportParser, wrap
+from ..protocol import rtu
+from ..protocol.wrapped import Report, ReportParser, wrap
+from ..stats import LineStats
+from .endpoint import DtuEndpoint, LineTiming, TcpEndpoint
+from .link import READ_FC, Link, log
 
 _POLL_IN = select.POLLIN | select.POLLERR | select.POLLHUP
-_WRITE_REPLY_LEN = {5: 8, 6: 8, 15: 8, 16: 8, 22: 10}  # Application Protocol 6.5-6.16
 
 
 class StreamLink(Link):
-    """RTU over a socket, framed in Python (heartbeat skipping, or wrapped frames)."""
+    """The Python-framed backend: RTU over a socket (heartbeat skipping, or wrapped
+    frames).  Never on a serial line, so there is no inter-frame gap to keep."""
 
     def __init__(
         self,
         sock: socket.socket,
-        endpoint: Endpoint,
+        endpoint: TcpEndpoint | DtuEndpoint,
         timing: LineTiming,
         stats: LineStats,
         *,
@@ -64,25 +66,9 @@ class StreamLink(Link):
         """``initial``: bytes that came on the socket before the link (after a DTU's
         registration): taken as if received now (reports dispatched, heartbeats
         counted), nothing having been asked yet."""
-        # no libmodbus context: Link's attributes that its shared helpers use are set here
-        self._sock = sock
+        super().__init__(endpoint, timing, stats, sock.fileno(), on_close=on_close)
         self._conn = sock
-        self._on_close = on_close
-        self.endpoint = endpoint
-        self.timing = timing
-        self.stats = stats
-        self._fd = sock.fileno()
-        self._mbap = False
-        self._gap = 0.0
-        self._quiet = max(timing.byte_timeout, QUIET_FLOOR)
-        self._settle_limit = timing.settle + max(timing.settle, 0.5)
-        self._drain_limit = self._quiet + 0.5
-        self._pace = timing.request_interval
-        self._ready_at = 0.0
         self._response_timeout = timing.response_timeout
-        self.is_open = True
-        self.close_reason: str | None = None
-        self._trace = False
         self._heartbeat = heartbeat
         self._wrapped = wrapped
         self._parser = ReportParser(heartbeat) if wrapped else None
@@ -247,8 +233,7 @@ class StreamLink(Link):
     def _frame(self, slave: int, pdu: bytes) -> bytes:
         if self._wrapped:
             return wrap(struct.unpack_from(">H", pdu, 1)[0], slave, pdu)
-        frame = bytes([slave]) + pdu
-        return frame + crc16(frame)
+        return rtu.frame(slave, pdu)
 
     def _exchange(self, slave: int, pdu: bytes, nbytes: int | None) -> bytes:
         """Send ``pdu`` and return the checked reply without its CRC (slave id first).
@@ -298,7 +283,7 @@ class StreamLink(Link):
         deadline = time.monotonic() + self._response_timeout
         while True:
             if buf:
-                need = _reply_length(buf, fc)
+                need = _reply_length(buf)
                 if need is not None and len(buf) >= need:
                     break
                 wait = self.timing.byte_timeout
@@ -319,7 +304,7 @@ class StreamLink(Link):
         rest = self._strip(rest)
         if rest:  # more than one frame: whatever follows ours is stale
             self.stats.discarded_bytes += len(rest)
-        if crc16(frame[:-2]) != frame[-2:]:
+        if rtu.crc16(frame[:-2]) != int.from_bytes(frame[-2:], "little"):
             raise CrcError(f"{what}: CRC error")
         if frame[0] != slave:
             raise ProtocolError(f"{what}: response from the wrong slave id ({frame[0]})")
@@ -372,19 +357,15 @@ class StreamLink(Link):
             last = time.monotonic()
 
 
-def _reply_length(buf: bytes, fc: int) -> int | None:
-    """Length of the RTU reply at the start of ``buf`` (Application Protocol v1.1b3,
-    section 6), None while too few bytes came to tell.  A function code other than the
-    request's is framed by what it claims to be; a frame that cannot be one takes what
-    has come (the check then fails on it)."""
-    if len(buf) < 2:
+def _reply_length(buf: bytes) -> int | None:
+    """Length of the RTU reply at the start of ``buf`` (:func:`rtu.reply_length`), None
+    while too few bytes came to tell.  A function code other than the request's is framed
+    by what it claims to be; a frame that cannot be one takes what has come (the check
+    then fails on it)."""
+    need = rtu.reply_length(buf)
+    if need == rtu.NEED_MORE:
         return None
-    function = buf[1]
-    if function & 0x80:
-        return 5
-    if function in (1, 2, 3, 4):
-        return None if len(buf) < 3 else 3 + buf[2] + 2
-    if function in _WRITE_REPLY_LEN:
-        return _WRITE_REPLY_LEN[function]
-    log.debug("reply with function code %#04x: taking %d bytes", function, len(buf))
-    return len(buf)
+    if need == rtu.UNKNOWN:
+        log.debug("reply with function code %#04x: taking %d bytes", buf[1], len(buf))
+        return len(buf)
+    return need

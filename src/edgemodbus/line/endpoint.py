@@ -1,10 +1,17 @@
-"""What a line is: its endpoint (serial port, TCP peer, DTU behind a listener), its
-timing, and the counters its worker keeps.  Plain data, shared by the bus and the link."""
+"""What a line is: its endpoint (serial port, TCP peer, DTU behind a listener) and its
+timing.  Plain data, shared by the line worker and the link (the counters the worker
+keeps are :class:`edgemodbus.stats.LineStats`); :func:`endpoint_for` makes the endpoint
+of a device's communication parameters."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from typing import Any
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+from ..datatypes import enum_value
+
+if TYPE_CHECKING:
+    from ..config import DriverModbusRtuParameter
 
 
 @dataclass(frozen=True)
@@ -134,41 +141,32 @@ class LineTiming:
         return self.response_timeout if self.settle_timeout is None else self.settle_timeout
 
 
-@dataclass
-class LineStats:
-    """Counters of one line, updated by its worker only."""
+def endpoint_for(params: DriverModbusRtuParameter) -> Endpoint:
+    """The endpoint of a device's communication parameters (the config refuses these
+    combinations too; parameters may have been changed after they were loaded)."""
+    if params.framing == "wrapped-report" and params.transport not in (
+        "rtu-over-tcp", "rtu-over-tcp-server"
+    ):
+        raise ValueError(f"framing 'wrapped-report': needs transport rtu-over-tcp or "
+                         f"rtu-over-tcp-server, not {params.transport!r}")
+    if params.transport == "rtu-over-tcp-server":
+        return DtuEndpoint(params.listen_host, params.effective_listen_port, params.dtu_id,
+                           echo=params.echo, framing=params.framing,
+                           heartbeat=params.heartbeat_bytes)
+    if params.transport == "rtu":
+        return SerialPort(
+            port=params.com_port,
+            baudrate=params.baud_rate,
+            parity=_parity_letter(params.parity),
+            data_bits=params.data_bits,
+            stop_bits=params.stop_bits,
+            rs485=params.rs485,
+            echo=params.echo,
+        )
+    return TcpEndpoint(params.tcp_host, params.tcp_port, params.transport, echo=params.echo,
+                       framing=params.framing, heartbeat=params.heartbeat_bytes)
 
-    requests: int = 0
-    responses: int = 0
-    timeouts: int = 0
-    crc_errors: int = 0
-    protocol_errors: int = 0
-    exceptions: dict[int, int] = field(default_factory=dict)
-    link_errors: int = 0
-    connects: int = 0
-    reconnects: int = 0
-    connect_failures: int = 0
-    discarded_bytes: int = 0
-    heartbeats: int = 0  # DTU heartbeat packets discarded
-    reports: int = 0  # wrapped report frames received unsolicited
-    dropped_frames: int = 0  # wrapped frames dropped (bad header, tail, CRC, length)
-    rtt_total: float = 0.0
 
-    def as_dict(self) -> dict[str, Any]:
-        return {
-            "requests": self.requests,
-            "responses": self.responses,
-            "timeouts": self.timeouts,
-            "crcErrors": self.crc_errors,
-            "protocolErrors": self.protocol_errors,
-            "exceptions": dict(self.exceptions),
-            "linkErrors": self.link_errors,
-            "connects": self.connects,
-            "reconnects": self.reconnects,
-            "connectFailures": self.connect_failures,
-            "discardedBytes": self.discarded_bytes,
-            "heartbeats": self.heartbeats,
-            "reports": self.reports,
-            "droppedFrames": self.dropped_frames,
-            "avgRoundTrip": self.rtt_total / self.responses if self.responses else 0.0,
-        }
+def _parity_letter(parity: Any) -> str:
+    text = str(enum_value(parity))
+    return text[0].upper() if text else "N"

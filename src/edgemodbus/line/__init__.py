@@ -1,0 +1,47 @@
+"""The line layer: talking Modbus to slaves over one medium, one request at a time.
+
+A *line* is the medium (a serial port, a TCP peer, a DTU that dials in to a listen port)
+and the worker thread that serves it; a *link* is one open connection on it; an
+*endpoint* is its address.  The layer above (the driver and its device pollers) acquires
+a line from a registry, attaches a poller, and submits requests; it never touches a
+socket or a libmodbus context.
+
+* endpoint.py: endpoints and line timing (plain data), built from a device's
+  communication parameters by :func:`endpoint_for`;
+* link.py: the worker's blocking view of an open line: one interface, a libmodbus
+  backend (``ContextLink``) and, in stream.py, a backend framed in Python (heartbeats,
+  wrapped reports);
+* worker.py: :class:`LineWorker` (one thread per line, a queue for other threads) and
+  :class:`LineRegistry` (one worker per endpoint, shared by its users);
+* dtu_listener.py and registration.py: listen mode, DTUs that dial in and register.
+
+The counters a worker keeps are :class:`edgemodbus.stats.LineStats`.
+"""
+
+from __future__ import annotations
+
+from .dtu_listener import DtuRegistry, DtuSlot
+from .dtu_listener import registry as dtu_registry
+from .endpoint import DtuEndpoint, Endpoint, LineTiming, SerialPort, TcpEndpoint, endpoint_for
+from .link import Link
+from .registration import PortSettings
+from .worker import LineRegistry, LineWorker, Poller
+from .worker import registry as line_registry
+
+__all__ = [
+    "DtuEndpoint",
+    "DtuRegistry",
+    "DtuSlot",
+    "Endpoint",
+    "LineRegistry",
+    "LineTiming",
+    "LineWorker",
+    "Link",
+    "Poller",
+    "PortSettings",
+    "SerialPort",
+    "TcpEndpoint",
+    "dtu_registry",
+    "endpoint_for",
+    "line_registry",
+]

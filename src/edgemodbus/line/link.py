@@ -1,0 +1,393 @@
+"""The worker's view of an open line: one request at a time, blocking.
+
+A :class:`Link` is used only by the line worker thread that opened it.  It keeps the
+inter-frame silence, settles the line after a timeout (RTU has no transaction id, so a
+late reply would pass for the next answer) and drains it after other errors, checks
+write echoes, and counts everything in the line's :class:`~edgemodbus.stats.LineStats`.
+
+One interface, two backends (as libmodbus has one backend table with an RTU and a TCP
+backend): :class:`Link` holds what both share (endpoint, timing and the pacing, settle
+and drain limits computed from them, the counters, the frame trace, the write requests
+and the check of their replies); :class:`ContextLink` does the I/O through the line's
+libmodbus context, :class:`~edgemodbus.line.stream.StreamLink` frames RTU in Python.
+"""
+
+from __future__ import annotations
+
+import logging
+import socket
+import struct
+import time
+from collections.abc import Callable, Sequence
+
+from .. import _ffi
+from .._ffi import Block, CodecPlan, Context
+from ..codec import BlockDecoder, Report
+from ..datatypes import Area
+from ..errors import (
+    CrcError,
+    ModbusConnectionError,
+    ModbusError,
+    ModbusTimeoutError,
+    ProtocolError,
+    exception_for_code,
+)
+from ..protocol import rtu
+from ..stats import LineStats
+from .endpoint import Endpoint, LineTiming, SerialPort, TcpEndpoint
+
+log = logging.getLogger("edgemodbus.line")  # the frame trace goes to the line worker's logger
+
+# Silence that ends the discarding of a stray frame, at least: a slave or DTU that
+# trickles a late reply slower than the byte timeout must still be drained whole.
+QUIET_FLOOR = 0.05
+_MBAP_LEN = 7  # transaction id, protocol id, length, unit id (Modbus Messaging on TCP/IP 3.1.3)
+READ_FC = {area: area.read_function for area in Area}  # a dict beats the enum property
+
+
+class Link:
+    """An open line as the worker thread sees it: one request at a time, blocking.
+
+    The base of the two backends, never used on its own: a backend implements
+    :meth:`read`, :meth:`read_decode`, :meth:`set_response_timeout`, :meth:`close`,
+    ``_write`` (send a request PDU, check the reply) and ``_fail`` (count an error, clean
+    the line).  Every method raises a :class:`ModbusError` subclass; a
+    :class:`ModbusConnectionError` means the link is closed and the worker will
+    reconnect.  Only the line worker calls it.
+    """
+
+    idle_fd: int | None = None
+    """A link that receives unsolicited frames (wrapped reports) sets this: the worker
+    then watches the fd while idle and calls :meth:`pump`."""
+
+    def __init__(self, endpoint: Endpoint, timing: LineTiming, stats: LineStats, fd: int, *,
+                 mbap: bool = False, on_close: Callable[[], None] | None = None) -> None:
+        """``fd``: what the line reads from; ``mbap``: Modbus TCP framing (the frame
+        trace and the write-reply check read it); ``on_close``: called when the link
+        closes, before its socket is."""
+        self.endpoint = endpoint
+        self.timing = timing
+        self.stats = stats
+        self._fd = fd
+        self._on_close = on_close
+        self._mbap = mbap
+        self._gap = endpoint.frame_gap if isinstance(endpoint, SerialPort) else 0.0
+        self._quiet = max(timing.byte_timeout, 2 * self._gap, QUIET_FLOOR)
+        # a stray frame still arriving when the settle time runs out is drained whole,
+        # but a line that never falls quiet does not hold the worker for ever
+        self._settle_limit = timing.settle + max(timing.settle, 0.5) + endpoint.max_frame_time
+        self._drain_limit = self._quiet + 0.5 + endpoint.max_frame_time
+        self._pace = self._gap + timing.request_interval
+        self._ready_at = 0.0
+        self.is_open = True
+        self.close_reason: str | None = None  # the link error that closed it
+        self._trace = log.isEnabledFor(logging.DEBUG)
+
+    # -- the backend's part ------------------------------------------------------------
+    def read(self, slave: int, area: Area, address: int, count: int) -> Block:
+        """Read ``count`` bits or registers (FC01-04).  The returned block may be the
+        backend's buffer: use it before the next request."""
+        raise NotImplementedError
+
+    def read_decode(self, slave: int, area: Area, address: int, count: int,
+                    decoder: BlockDecoder, report_all: bool) -> tuple[Block, list[Report]]:
+        """Read a block and decode it: the block, and the decoder's reports (see
+        :meth:`BlockDecoder.decode`)."""
+        raise NotImplementedError
+
+    def set_response_timeout(self, seconds: float) -> None:
+        """Use ``seconds`` as the response timeout from now on (a per-device setting)."""
+        raise NotImplementedError
+
+    def close(self) -> None:
+        raise NotImplementedError
+
+    def _write(self, slave: int, pdu: bytes) -> None:
+        raise NotImplementedError
+
+    def _fail(self, exc: ModbusError) -> ModbusError:
+        raise NotImplementedError
+
+    def pump(self) -> None:
+        """Read and dispatch what arrived unsolicited (links with ``idle_fd``)."""
+
+    # -- pacing -----------------------------------------------------------------------
+    def _wait_turn(self) -> None:
+        """Keep the inter-frame silence, the request interval and the turnaround delay."""
+        if self._ready_at:
+            delay = self._ready_at - time.monotonic()
+            if delay > 0:
+                time.sleep(delay)
+            self._ready_at = 0.0
+
+    def _done(self, extra_delay: float = 0.0) -> None:
+        if self._pace or extra_delay:
+            self._ready_at = time.monotonic() + self._pace + extra_delay
+
+    # -- writes (Modbus Application Protocol v1.1b3, 6.5, 6.6, 6.11, 6.12, 6.16) ------
+    def write_coil(self, slave: int, address: int, value: bool) -> None:
+        self._write(slave, struct.pack(">BHH", 5, address, 0xFF00 if value else 0x0000))
+
+    def write_register(self, slave: int, address: int, value: int) -> None:
+        self._write(slave, struct.pack(">BHH", 6, address, value))
+
+    def write_coils(self, slave: int, address: int, values: Sequence[bool]) -> None:
+        n = len(values)
+        if not 1 <= n <= _ffi.MAX_WRITE_BITS:
+            raise ValueError(f"write of {n} coils: must be 1..{_ffi.MAX_WRITE_BITS}")
+        packed = rtu.pack_bits(values)
+        self._write(slave, struct.pack(">BHHB", 15, address, n, len(packed)) + packed)
+
+    def write_registers(self, slave: int, address: int, values: Sequence[int]) -> None:
+        n = len(values)
+        if not 1 <= n <= _ffi.MAX_WRITE_REGISTERS:
+            raise ValueError(
+                f"write of {n} registers: must be 1..{_ffi.MAX_WRITE_REGISTERS}"
+            )
+        pdu = struct.pack(f">BHHB{n}H", 16, address, n, 2 * n, *values)
+        self._write(slave, pdu)
+
+    def mask_write_register(self, slave: int, address: int, and_mask: int, or_mask: int) -> None:
+        self._write(slave, struct.pack(">BHHH", 22, address, and_mask, or_mask))
+
+    # -- frame trace and reply check -----------------------------------------------------
+    def _log_frame(self, direction: str, slave: int, pdu: bytes) -> None:
+        """Frame trace at DEBUG: the bytes on the wire, e.g. "TX 01 03 00 00 00 0A C5 CD".
+        MBAP headers of requests, whose transaction id the C side picks, are shown as
+        the unit id only."""
+        frame = rtu.frame(slave, pdu)
+        if self._mbap:
+            text = f"[MBAP unit {slave}] {pdu.hex(' ').upper()}"
+        else:
+            text = frame.hex(" ").upper()
+        log.debug("%s %s %s", self.endpoint.describe(), direction, text)
+
+    def _check_write_reply(self, slave: int, pdu: bytes, adu: bytes) -> None:
+        """Check a write's reply: unit, function, and the echo that libmodbus 3.1.6 does
+        not check (address/value for FC05/06, address/quantity for FC15/16, the whole
+        request for FC22).  The C side has checked the header and function code already;
+        this check stands on its own (it is what the reply fuzzer exercises)."""
+        what = f"slave {slave} FC{pdu[0]:02d} @{struct.unpack_from('>H', pdu, 1)[0]}"
+        if self._mbap:
+            if len(adu) < _MBAP_LEN + 2:
+                raise ProtocolError(f"{what}: reply of {len(adu)} bytes is too short")
+            _tid, proto, length, unit = struct.unpack_from(">HHHB", adu)
+            if proto != 0:
+                raise ProtocolError(f"{what}: MBAP protocol id {proto}, expected 0")
+            if length != len(adu) - 6:
+                raise ProtocolError(f"{what}: MBAP length {length}, frame has {len(adu) - 6}")
+            body = adu[_MBAP_LEN - 1:]
+        else:
+            body = adu[:-2]  # strip the CRC, checked by libmodbus
+            unit = body[0] if body else -1
+        if unit != slave:
+            raise ProtocolError(f"{what}: reply from unit {unit}")
+        reply = body[1:]
+        if not reply:
+            raise ProtocolError(f"{what}: empty reply")
+        function = pdu[0]
+        if reply[0] == function | 0x80 and len(reply) == 2:
+            raise exception_for_code(reply[1], what)
+        if reply[0] != function:
+            raise ProtocolError(f"{what}: reply has function code {reply[0]:#04x}")
+        echo_len = 6 if function == 22 else 4
+        if reply[1:] != pdu[1:1 + echo_len]:
+            raise ProtocolError(
+                f"{what}: echo {reply[1:].hex(' ')} does not match the request "
+                f"{pdu[1:1 + echo_len].hex(' ')}"
+            )
+
+
+class ContextLink(Link):
+    """The libmodbus backend: the line's libmodbus context (and, on TCP, the socket we
+    own) does the I/O; a poll step reads and decodes a block in one C call."""
+
+    def __init__(self, ctx: Context, endpoint: Endpoint, timing: LineTiming,
+                 stats: LineStats, sock: socket.socket | None,
+                 on_close: Callable[[], None] | None = None, *,
+                 timeouts: tuple[float, float] = (-1.0, -1.0)) -> None:
+        """``timeouts``: the (response, byte) timeouts already set on ``ctx``."""
+        super().__init__(endpoint, timing, stats, ctx.fd, on_close=on_close,
+                         mbap=isinstance(endpoint, TcpEndpoint) and endpoint.transport == "tcp")
+        self._ctx = ctx
+        self._sock = sock
+        self._timeouts = timeouts
+
+    # -- bookkeeping -----------------------------------------------------------------
+    def set_response_timeout(self, seconds: float) -> None:
+        """Use ``seconds`` as the response timeout from now on (a per-device setting)."""
+        wanted = (seconds, self.timing.byte_timeout)
+        if wanted != self._timeouts:
+            self._ctx.set_timeouts(*wanted)
+            self._timeouts = wanted
+
+    def close(self) -> None:
+        if not self.is_open:
+            return
+        self.is_open = False
+        self._ctx.close()
+        if self._on_close is not None:
+            self._on_close()  # e.g. the DTU slot forgets the socket before it is closed
+        if self._sock is not None:
+            self._sock.close()
+
+    def _fail(self, exc: ModbusError) -> ModbusError:
+        """Count an error and clean the line so the next request starts clean."""
+        stats = self.stats
+        if isinstance(exc, ModbusConnectionError):
+            stats.link_errors += 1
+            self.close_reason = str(exc)
+            self.close()
+            return exc
+        try:
+            if isinstance(exc, ModbusTimeoutError):
+                # RTU has no transaction id: a reply that comes late must not be taken
+                # for the answer to the next request, so wait it out (settle) first
+                stats.timeouts += 1
+                if self.timing.settle > 0:
+                    stats.discarded_bytes += _ffi.discard_input(
+                        self._fd, self.timing.settle, self._quiet, self._settle_limit
+                    )
+            else:
+                if isinstance(exc, ProtocolError):
+                    stats.responses += 1
+                    if isinstance(exc, CrcError):
+                        stats.crc_errors += 1
+                    else:
+                        stats.protocol_errors += 1
+                    # the rest of a bad frame may still be on its way
+                    stats.discarded_bytes += _ffi.discard_input(
+                        self._fd, self._quiet, self._quiet, self._drain_limit
+                    )
+                else:  # an exception response is a complete, valid frame
+                    stats.responses += 1
+                    code = getattr(exc, "code", 0)
+                    stats.exceptions[code] = stats.exceptions.get(code, 0) + 1
+        except ModbusConnectionError as link_exc:
+            stats.link_errors += 1
+            self.close_reason = str(link_exc)
+            self.close()
+            return link_exc
+        return exc
+
+    # -- reads -----------------------------------------------------------------------
+    def read(self, slave: int, area: Area, address: int, count: int) -> Block:
+        """Read ``count`` bits or registers (FC01-04).  The returned block is the
+        context's buffer: use it before the next request."""
+        return self._read(slave, area, address, count, None, 0)[0]
+
+    def read_decode(self, slave: int, area: Area, address: int, count: int,
+                    decoder: BlockDecoder, report_all: bool) -> tuple[Block, list[Report]]:
+        """Read a block and decode it in one C call: the block, and the decoder's
+        reports (see :meth:`BlockDecoder.decode`)."""
+        plan, mode = decoder.begin(report_all)
+        block, n = self._read(slave, area, address, count, plan, mode)
+        return block, decoder.finish(n, report_all)
+
+    def _read(self, slave: int, area: Area, address: int, count: int,
+              plan: CodecPlan | None, mode: int) -> tuple[Block, int]:
+        if not self.is_open:
+            raise ModbusConnectionError(f"{self.endpoint.describe()}: link is down")
+        if self._ready_at:
+            self._wait_turn()
+        stats = self.stats
+        stats.requests += 1
+        function = READ_FC[area]
+        if self._trace:
+            self._log_frame("TX", slave, struct.pack(">BHH", function, address, count))
+        start = time.monotonic()
+        ctx = self._ctx
+        n = 0
+        try:
+            if plan is None:
+                block = ctx.read(slave, function, address, count)
+            else:
+                n = ctx.read_decode(slave, function, address, count, plan, mode)
+                block = ctx.bits if function < 3 else ctx.registers
+        except ModbusError as exc:
+            raise self._fail(exc) from None
+        finally:
+            stats.discarded_bytes += ctx.take_discarded()
+            if self._trace:
+                self._log_reply()
+            if self._pace:
+                self._done()
+        stats.responses += 1
+        stats.rtt_total += time.monotonic() - start
+        return block, n
+
+    # -- writes ----------------------------------------------------------------------
+    def _write(self, slave: int, pdu: bytes) -> None:
+        if not self.is_open:
+            raise ModbusConnectionError(f"{self.endpoint.describe()}: link is down")
+        self._wait_turn()
+        self.stats.requests += 1
+        if self._trace:
+            self._log_frame("TX", slave, pdu)
+        if slave == 0:  # broadcast: no reply (Modbus over Serial Line v1.02, 2.1)
+            try:
+                self._ctx.send(0, pdu)
+            except ModbusError as exc:
+                raise self._fail(exc) from None
+            finally:
+                self.stats.discarded_bytes += self._ctx.take_discarded()
+                self._done(self.timing.turnaround_delay)
+            return
+        start = time.monotonic()
+        try:
+            adu = self._ctx.transact(slave, pdu)
+            self._check_write_reply(slave, pdu, adu)
+        except ModbusError as exc:
+            raise self._fail(exc) from None
+        finally:
+            self.stats.discarded_bytes += self._ctx.take_discarded()
+            if self._trace:
+                self._log_reply()
+            self._done()
+        self.stats.responses += 1
+        self.stats.rtt_total += time.monotonic() - start
+
+    def _log_reply(self) -> None:
+        reply = self._ctx.last_reply()
+        if reply:
+            log.debug("%s RX %s", self.endpoint.describe(), reply.hex(" ").upper())
+
+
+def connect_tcp(ep: TcpEndpoint, timeout: float) -> socket.socket:
+    """Connect with a bounded time, then hand a blocking, no-delay socket to libmodbus."""
+    try:
+        sock = socket.create_connection((ep.host, ep.port), timeout=timeout)
+    except TimeoutError:
+        raise ModbusConnectionError(
+            f"{ep.describe()}: connect timed out after {timeout:g} s"
+        ) from None
+    except OSError as exc:
+        raise ModbusConnectionError(f"{ep.describe()}: connect failed: {exc.strerror or exc}") \
+            from None
+    sock.settimeout(None)
+    sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_KEEPALIVE, 1)
+    return sock
+
+
+def context_link(ctx: Context, endpoint: Endpoint, timing: LineTiming, stats: LineStats,
+                 sock: socket.socket | None,
+                 on_close: Callable[[], None] | None = None) -> ContextLink:
+    """A libmodbus link on ``ctx`` with the line's timeouts and echo set.  A setting the
+    context refuses (ValueError) closes ``ctx``; ``sock`` is left to the caller."""
+    try:
+        ctx.set_timeouts(timing.response_timeout, timing.byte_timeout)
+        ctx.set_echo(endpoint.echo)
+    except ValueError:
+        ctx.close()
+        raise
+    return ContextLink(ctx, endpoint, timing, stats, sock, on_close,
+                       timeouts=(timing.response_timeout, timing.byte_timeout))
+
+
+def open_socket_link(sock: socket.socket, endpoint: Endpoint, timing: LineTiming,
+                     stats: LineStats, on_close: Callable[[], None] | None = None) -> Link:
+    """A libmodbus RTU link on a connected socket we own (RTU over TCP, no MBAP).  On
+    failure the socket is left to the caller."""
+    ctx = Context.on_socket(sock.fileno(), endpoint.describe(), mbap=False)
+    return context_link(ctx, endpoint, timing, stats, sock, on_close)

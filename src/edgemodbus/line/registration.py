@@ -1,0 +1,216 @@
+"""How a DTU that dials in names itself: the registration settings of a listen port
+(:class:`PortSettings`) and :func:`identify`, the pure rule that tells from the bytes a
+new connection sent so far which configured DTU it is (the listener,
+:mod:`edgemodbus.line.dtu_listener`, calls it on every segment and when a gap passes).
+
+When a registration is complete
+-------------------------------
+A registration may arrive split over TCP segments ("DTU1", then "0"), so it is complete
+only when it cannot grow into another id.  Heartbeats before it are skipped (and, in text
+and regex mode, CR/LF/NUL).  Then, per mode:
+
+* ``registrationLength`` N (any mode): the next N bytes are the packet, complete as soon
+  as they are in (text: trailing CR/LF/NUL stripped; regex: the pattern is searched in
+  them).
+* text: the id ends at a byte no text id contains: CR, LF, NUL or another control byte,
+  a byte that never occurs in UTF-8 (0xC0, 0xC1, 0xF5-0xFF, e.g. a wrapped frame's FF AA),
+  or the configured heartbeat.  Such an end completes it at once.  Without one, bytes that
+  equal a configured id are taken only after a quiet gap (:data:`QUIET_GAP`, no further
+  byte) or at the registration timeout: until then they may be the beginning of a longer
+  id, configured or not ("DTU1" of "DTU10", "DTU12").
+* hex: ids are binary, so no byte ends one; only the heartbeat (or the fixed length) does.
+  Otherwise as text: an exact match waits for the quiet gap or the timeout.
+* regex: the pattern is searched only in terminated content: the bytes up to an end (as
+  in text mode, line ends included so a pattern may name them), or everything after the
+  quiet gap or at the timeout; never in a prefix that could still grow ("ID:1" of
+  "ID:10").  Its first group, else its whole match, is the id.
+
+The peer is unknown at once when, in text or hex mode, its bytes are no beginning of a
+configured id or what comes before an end is not one, or when, in regex mode, a
+terminated match names no configured id; also after :data:`MAX_REGISTRATION` bytes
+without a registration.  So an id that is a prefix of another configured id is matched
+at an end, or after the quiet gap, never early.  Bytes after the registration (CR/LF/NUL
+right after it are consumed; a heartbeat or a wrapped frame is not) are handed to the
+link with the socket, never lost nor taken for part of the id.  The quiet gap trades a
+short delay of an unterminated registration for safety: a DTU that pauses longer than the
+gap inside its own registration may still be taken for the id it sent so far; give such
+DTUs a terminator or a ``registrationLength``.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Collection
+from dataclasses import dataclass
+
+QUIET_GAP = 0.5
+"""Seconds without a further byte after which a registration that equals a configured id,
+but has no end, is taken.  Longer than Linux's minimum TCP retransmission timeout (0.2 s),
+so that one retransmitted segment of the rest of a longer id is still awaited."""
+
+MAX_REGISTRATION = 2048
+"""Bytes a peer may send without registering before it counts as unknown."""
+
+_LINE_ENDS = b"\r\n\0"
+
+
+@dataclass(frozen=True)
+class PortSettings:
+    """What every device naming one listen port must agree on."""
+
+    host: str
+    port: int
+    registration: str = "none"  # none | text | hex | regex
+    pattern: str = ""  # regex: searched in the packet (Latin-1); group 1 or the match is the id
+    length: int | None = None  # fixed registration packet length in bytes
+    timeout: float = 5.0  # seconds for a new connection to register
+    heartbeat: bytes = b""  # skipped before the registration packet too
+    quiet_gap: float = QUIET_GAP  # see the module docstring: when a registration is complete
+
+    @property
+    def key(self) -> tuple[str, int]:
+        return (self.host, self.port)
+
+    def differences(self, other: PortSettings) -> list[str]:
+        names = {"registration": "registration", "pattern": "registrationPattern",
+                 "length": "registrationLength", "timeout": "registrationTimeout",
+                 "heartbeat": "heartbeat"}
+        return [f"{key} {getattr(other, attr)!r} (the port has {getattr(self, attr)!r})"
+                for attr, key in names.items() if getattr(self, attr) != getattr(other, attr)]
+
+
+@dataclass(frozen=True, slots=True)
+class Identified:
+    """A registration that names a configured DTU."""
+
+    dtu_id: str
+    end: int  # bytes of the buffer that were the registration; the rest is the DTU's data
+
+
+def identify(buf: bytes, ids: Collection[str], settings: PortSettings, *,
+             settled: bool) -> Identified | str | None:
+    """Decide what the bytes a new connection sent so far register as (the rule is in the
+    module docstring): :class:`Identified` for a configured id, a description (str) of a
+    registration that names no configured DTU, or None while it is not complete.
+    ``settled``: the quiet gap has passed since the last byte, or the registration timeout
+    has run out.  Pure: the listener calls it on every segment and when a gap passes."""
+    mode = settings.registration
+    hb = settings.heartbeat
+    start = 0
+    while start < len(buf):
+        if hb and buf.startswith(hb, start):
+            start += len(hb)
+        elif mode != "hex" and buf[start] in _LINE_ENDS:
+            start += 1
+        else:
+            break
+    packet = buf[start:]
+    if not settled and hb and packet and len(packet) < len(hb) and hb.startswith(packet):
+        return None  # the first part of a heartbeat
+    length = settings.length
+    if length is not None:
+        if len(packet) < length:
+            return None
+        packet = packet[:length]
+        if mode == "regex":
+            return _search(packet, ids, settings.pattern, start + length)
+        key = packet if mode == "hex" else packet.rstrip(_LINE_ENDS)
+        return _lookup(key, _keys(ids, mode), start + length, mode)
+    if mode == "regex":
+        found = _regex_terminated(packet, ids, settings, start, settled)
+    else:
+        found = _exact(packet, _keys(ids, mode), settings, start, settled)
+    if found is None and len(buf) > MAX_REGISTRATION:
+        return f"no registration in the first {MAX_REGISTRATION} bytes"
+    return found
+
+
+def _keys(ids: Collection[str], mode: str) -> dict[bytes, str]:
+    """The bytes each configured id is sent as."""
+    if mode == "hex":
+        return {bytes.fromhex(i): i for i in ids}
+    return {i.encode(): i for i in ids}
+
+
+def _lookup(key: bytes, wanted: dict[bytes, str], end: int, mode: str) -> Identified | str:
+    dtu_id = wanted.get(key)
+    if dtu_id is not None:
+        return Identified(dtu_id, end)
+    return key.hex(" ").upper() if mode == "hex" else key.decode("latin-1")
+
+
+def _text_end(byte: int) -> bool:
+    """A byte that no text id contains: a control byte, or one never found in UTF-8."""
+    return byte < 0x20 or byte == 0x7F or byte in (0xC0, 0xC1) or byte >= 0xF5
+
+
+def _ends(packet: bytes, settings: PortSettings) -> list[tuple[int, int]]:
+    """(where the content ends, where the registration ends) for every end in ``packet``
+    (text and regex mode: an end byte, CR/LF/NUL consumed; any mode: a heartbeat)."""
+    hb = settings.heartbeat
+    text = settings.registration != "hex"
+    found: list[tuple[int, int]] = []
+    i = 0
+    while i < len(packet):
+        if hb and packet.startswith(hb, i):
+            found.append((i, i))
+            i += len(hb)
+        elif text and _text_end(packet[i]):
+            j = i
+            while j < len(packet) and packet[j] in _LINE_ENDS:
+                j += 1
+            found.append((i, j))
+            i = max(j, i + 1)
+        else:
+            i += 1
+    return found
+
+
+def _exact(packet: bytes, wanted: dict[bytes, str], settings: PortSettings, start: int,
+           settled: bool) -> Identified | str | None:
+    """Text and hex mode without a fixed length."""
+    if any(len(key) > len(packet) and key.startswith(packet) for key in wanted):
+        # it may still grow into a configured id: an exact match is taken once settled
+        if settled and packet in wanted:
+            return Identified(wanted[packet], start + len(packet))
+        return None
+    ends = _ends(packet, settings)
+    if ends:
+        content, end = ends[0]
+        return _lookup(packet[:content], wanted, start + end, settings.registration)
+    hb = settings.heartbeat
+    for key in wanted:
+        rest = packet[len(key):]
+        if packet.startswith(key) and rest and hb.startswith(rest):
+            # maybe a heartbeat follows the id
+            return Identified(wanted[key], start + len(key)) if settled else None
+    if packet in wanted:
+        return Identified(wanted[packet], start + len(packet)) if settled else None
+    # no configured id begins with these bytes, whatever follows
+    return _lookup(packet, wanted, start + len(packet), settings.registration)
+
+
+def _regex_terminated(packet: bytes, ids: Collection[str], settings: PortSettings,
+                      start: int, settled: bool) -> Identified | str | None:
+    """Regex mode without a fixed length: search terminated content only."""
+    for _, end in _ends(packet, settings):
+        found = _search(packet[:end], ids, settings.pattern, start + end, quiet=True)
+        if found is not None:
+            return found
+    if settled:
+        return _search(packet, ids, settings.pattern, start + len(packet), quiet=True)
+    return None
+
+
+def _search(packet: bytes, ids: Collection[str], pattern: str, end: int,
+            quiet: bool = False) -> Identified | str | None:
+    """The id ``pattern`` finds in ``packet`` (its first group, else the whole match).
+    No match: None when ``quiet`` (more may come), else the reason."""
+    match = re.search(pattern, packet.decode("latin-1"))
+    if match is None:
+        return None if quiet else "no match of registrationPattern"
+    dtu_id = match.group(1) if match.re.groups else match.group(0)
+    return Identified(dtu_id, end) if dtu_id in ids else dtu_id
+
+
+__all__ = ["MAX_REGISTRATION", "QUIET_GAP", "Identified", "PortSettings", "identify"]
