@@ -152,7 +152,8 @@ class EagerMcu:
 
     REPORT_AT = 1
 
-    def __init__(self) -> None:
+    def __init__(self, *, report_after: bool = False) -> None:
+        self.report_after = report_after  # the report right after the reply, one segment
         self._listener = socket.create_server(("127.0.0.1", 0))
         self.port = int(self._listener.getsockname()[1])
         self._stop = threading.Event()
@@ -190,16 +191,20 @@ class EagerMcu:
                 request, buf = buf[:13], buf[13:]
                 slave, fc, start, count = struct.unpack_from(">BBHH", request, 4)
                 assert request[:2] == b"\xff\xaa" and fc == 3, request.hex()
+                regs = [self.polled(start + i) for i in range(count)]
+                reply = wrap(start, slave, struct.pack(f">BB{count}H", 3, 2 * count, *regs))
                 if start == self.REPORT_AT:
                     n = count + 2
                     regs = [self.reported(self.reports, start + i) for i in range(n)]
-                    conn.sendall(wrap(start, slave, struct.pack(f">BB{n}H", 3, 2 * n, *regs)))
+                    report = wrap(start, slave, struct.pack(f">BB{n}H", 3, 2 * n, *regs))
                     self.reports += 1
-                    if self.reports % 2:
-                        time.sleep(0.005)  # every other report in a segment of its own
-                regs = [self.polled(start + i) for i in range(count)]
-                conn.sendall(wrap(start, slave, struct.pack(f">BB{count}H", 3, 2 * count,
-                                                            *regs)))
+                    if self.report_after:
+                        reply += report
+                    else:
+                        conn.sendall(report)
+                        if self.reports % 2:
+                            time.sleep(0.005)  # every other report in a segment of its own
+                conn.sendall(reply)
                 self.replies += 1
 
     def close(self) -> None:
@@ -254,3 +259,30 @@ def test_a_report_that_looks_like_the_reply_but_has_another_count_is_a_report() 
         for before, after in itertools.pairwise(values):
             if before >= 9000:
                 assert after == EagerMcu.polled(address), (name, values)
+
+
+def test_a_report_right_after_the_reply_is_applied_after_it() -> None:
+    """The MCU answers the read and, in the same TCP segment, reports newer values of the
+    same registers: the items must end with the report's values (it came later on the
+    wire), not be set back to the reply's by applying the reply last."""
+    mcu = EagerMcu(report_after=True)
+    seen: list[tuple[str, Any]] = []
+    try:
+        cfg = em.load_device_config({
+            "organization": {"deviceCode": "late"},
+            "communication": {"framing": "wrapped-report", "transport": "rtu-over-tcp",
+                              "tcpHost": "127.0.0.1", "tcpPort": mcu.port, "slaveId": 1,
+                              "readTimeout": 500, "readCycle": 60000, "byteTimeout": 50,
+                              "reportMode": "cycle"},
+            "addressList": [{"name": f"r{a}", "address": f"3:{a}", "deviceDataType": "UInt16"}
+                            for a in (1, 2)],
+        })
+        with running(cfg, address_updated_callback=lambda it: seen.append(
+                (it.name, it.value))) as drv:
+            wait_for(lambda: len(seen) >= 4, what="the reply and the report applied")
+            values = {it.name: it.value for it in cfg.address_list}
+            assert drv.stats()["cycles"] == 1
+    finally:
+        mcu.close()
+    assert seen == [("r1", 501), ("r2", 502), ("r1", 9001), ("r2", 9002)], seen
+    assert values == {"r1": 9001, "r2": 9002}

@@ -111,6 +111,11 @@ class Link:
     def pump(self) -> None:
         """Read and dispatch what arrived unsolicited (links with ``idle_fd``)."""
 
+    def flush_reports(self) -> None:
+        """Dispatch the unsolicited reports that arrived behind the reply of the last
+        transaction; the worker calls it once that reply was applied, so that the
+        newer values win (links that take reports only)."""
+
     # -- pacing -----------------------------------------------------------------------
     def _wait_turn(self) -> None:
         """Keep the inter-frame silence, the request interval and the turnaround delay."""

@@ -73,6 +73,7 @@ class StreamLink(Link):
         self._wrapped = wrapped
         self._parser = ReportParser(heartbeat) if wrapped else None
         self._on_report = on_report
+        self._behind_reply: list[Report] = []  # reports that came after a reply
         self._poll = select.poll()
         self._poll.register(self._fd, _POLL_IN)
         self.idle_fd = self._fd if wrapped else None
@@ -92,8 +93,15 @@ class StreamLink(Link):
             self._on_close()
         self._conn.close()
 
+    def flush_reports(self) -> None:
+        behind, self._behind_reply = self._behind_reply, []
+        if self._on_report is not None:
+            for report in behind:
+                self._on_report(report)
+
     def pump(self) -> None:
         """Read what arrived while idle: reports are dispatched, heartbeats counted."""
+        self.flush_reports()
         try:
             self._take(self._recv_now(), None)
         except ModbusConnectionError as exc:
@@ -152,7 +160,9 @@ class StreamLink(Link):
 
     def _take(self, data: bytes, want: Callable[[Report], bool] | None) -> Report | None:
         """Wrapped: parse ``data``; return the first report ``want`` accepts and
-        dispatch the others as unsolicited reports."""
+        dispatch the others as unsolicited reports: those before it at once (they are
+        older than the reply), those behind it once the reply was applied
+        (:meth:`flush_reports`)."""
         parser = self._parser
         if parser is None:
             if data:
@@ -171,7 +181,9 @@ class StreamLink(Link):
                 found = report
                 continue
             self.stats.reports += 1
-            if self._on_report is not None:
+            if found is not None:
+                self._behind_reply.append(report)
+            elif self._on_report is not None:
                 self._on_report(report)
         return found
 
@@ -240,6 +252,7 @@ class StreamLink(Link):
         ``nbytes``: the byte count a read reply must carry; None for a write."""
         what = f"slave {slave} FC{pdu[0]:02d} @{struct.unpack_from('>H', pdu, 1)[0]}"
         # stale input first: heartbeats and unsolicited reports are taken, the rest dropped
+        self.flush_reports()
         if self._wait(0):
             self._take(self._recv_now(), None)
         self._send(self._frame(slave, pdu))

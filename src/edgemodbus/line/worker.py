@@ -261,6 +261,7 @@ class LineWorker:
             poller.poll_step(link)
         except Exception:  # a poller bug must not kill the line
             log.exception("%s: poller failed", self.endpoint.describe())
+        link.flush_reports()
 
     def _idle_reads(self, link: Link, wait: float) -> None:
         """Idle on a link that receives unsolicited frames: watch its socket in slices
@@ -296,6 +297,7 @@ class LineWorker:
             job.future.set_exception(exc)
         else:
             job.future.set_result(result)
+        link.flush_reports()
 
     def _serve_queue_while_down(self, until: float) -> None:
         """While disconnected: fail queued requests at once, sleep until the next try."""
