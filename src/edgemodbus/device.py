@@ -27,8 +27,7 @@ from datetime import datetime, timezone
 from typing import TYPE_CHECKING, Any, cast
 
 from ._ffi import Block
-from .codec import BlockDecoder, ValueSpec, encode, normalize_value, register_bit
-from .codec import Report as Change
+from .codec import BlockDecoder, Change, ValueSpec, encode, normalize_value, register_bit
 from .codec import jsonable as _jsonable
 from .config import DriverModbusRtuParameter, ParsedItem
 from .datatypes import Area, DeviceDriverStatus, ItemStatus

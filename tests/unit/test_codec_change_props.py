@@ -14,7 +14,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from edgemodbus._ffi import Block
-from edgemodbus.codec import BlockDecoder, Report, ValueSpec, check_spec
+from edgemodbus.codec import BlockDecoder, Change, ValueSpec, check_spec
 from edgemodbus.datatypes import Area, DataFormat, DataType
 
 T = DataType
@@ -96,7 +96,7 @@ def is_number(v: object) -> bool:
     return isinstance(v, (int, float)) and not isinstance(v, bool)
 
 
-def differs(last: Report | None, now: Report, deadband: float) -> bool:
+def differs(last: Change | None, now: Change, deadband: float) -> bool:
     """Whether ``now`` must be reported after ``last`` was (the contract of reportMode
     "change": another status or reason, or another value, past the deadband for numbers)."""
     if last is None:
@@ -115,7 +115,7 @@ def differs(last: Report | None, now: Report, deadband: float) -> bool:
     return True
 
 
-def equal_reports(a: Report, b: Report) -> bool:
+def equal_reports(a: Change, b: Change) -> bool:
     return a[0] == b[0] and a[2] == b[2] and same(a[1], b[1])
 
 
@@ -168,7 +168,7 @@ def test_change_mode_reports_exactly_the_changed_results(
 ) -> None:
     items, count, steps = scenario
     decoder = BlockDecoder(HR, count, items)
-    last: list[Report | None] = [None] * len(items)
+    last: list[Change | None] = [None] * len(items)
     for mode, registers in steps:
         block = Block.from_values(registers, bits=False)
         fresh = BlockDecoder(HR, count, items).decode(block, report_all=True)

@@ -13,7 +13,7 @@ import math
 import struct
 
 from edgemodbus._ffi import Block
-from edgemodbus.codec import BlockDecoder, Report, ValueSpec
+from edgemodbus.codec import BlockDecoder, Change, ValueSpec
 from edgemodbus.datatypes import Area, DataType
 
 HR = Area.HOLDING_REGISTER
@@ -24,7 +24,7 @@ def regs(*values: int) -> Block:
     return Block.from_values(list(values), bits=False)
 
 
-def track(spec: ValueSpec, *steps: tuple[int, ...]) -> list[list[Report]]:
+def track(spec: ValueSpec, *steps: tuple[int, ...]) -> list[list[Change]]:
     """What a change-mode decoder of one item reports for each block of ``steps``."""
     decoder = BlockDecoder(HR, spec.registers, [(0, spec)])
     return [decoder.decode(regs(*step)) for step in steps]

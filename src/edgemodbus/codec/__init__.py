@@ -23,7 +23,7 @@ Choices this package makes (where the data type definitions leave them open):
 
 from __future__ import annotations
 
-from .decoder import BlockDecoder, Report
+from .decoder import BlockDecoder, Change
 from .encoder import encode, register_bit
 from .jsonable import jsonable
 from .normalize import normalize_value
@@ -32,7 +32,7 @@ from .spec import MAX_QUANTITY, ValueSpec, check_spec
 __all__ = [
     "MAX_QUANTITY",
     "BlockDecoder",
-    "Report",
+    "Change",
     "ValueSpec",
     "check_spec",
     "encode",

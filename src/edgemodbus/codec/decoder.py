@@ -11,11 +11,11 @@ from .._ffi import Block, CodecPlan
 from ..datatypes import Area, DataType
 from .spec import ValueSpec, _compile, _Compiled, check_spec
 
-__all__ = ["BlockDecoder", "Report"]
+__all__ = ["BlockDecoder", "Change"]
 
 _E = _ffi.codec_constants("E")
 
-Report = tuple[int, object, "str | None"]  # (item index, value or None, error reason or None)
+Change = tuple[int, object, "str | None"]  # (item index, value or None, error reason or None)
 
 
 def _fmt_number(v: float) -> str:
@@ -70,7 +70,7 @@ class BlockDecoder:
         self._indices = list(range(len(compiled)))
         # The tuple last reported for each item: mirrors the C state, so that a report of
         # every item rebuilds only the tuples whose value or status moved.
-        self._reported: list[Report] = []
+        self._reported: list[Change] = []
         # String items decode bytes that are not valid text to U+FFFD, so different
         # bytes (which C compares) can give the text already reported: the last text
         # reported for each String item (_NO_TEXT after an error or a reset).
@@ -97,7 +97,7 @@ class BlockDecoder:
             return f"value {_fmt_number(v)} is out of range for {c.target_label} ({lo}..{hi})"
         return f"value {_fmt_number(v)} is out of range for {c.target_label}"
 
-    def decode(self, block: Block, report_all: bool = False) -> list[Report]:
+    def decode(self, block: Block, report_all: bool = False) -> list[Change]:
         """(index, value or None, error reason or None) of every item whose value, status
         or error reason changed since it was last reported (all of them when
         ``report_all``)."""
@@ -115,7 +115,7 @@ class BlockDecoder:
             self._reported = []  # the report-all cache no longer mirrors the C state
         return self._plan, _ffi.CODEC_MODE_TRACK
 
-    def finish(self, n: int, report_all: bool) -> list[Report]:
+    def finish(self, n: int, report_all: bool) -> list[Change]:
         """The reports of a decode that returned ``n`` (see :meth:`decode`)."""
         if report_all:
             return self._finish_all(n)
@@ -135,10 +135,10 @@ class BlockDecoder:
             ]
         return self._new_texts_only(reports) if self._texts else reports
 
-    def _new_texts_only(self, reports: list[Report]) -> list[Report]:
+    def _new_texts_only(self, reports: list[Change]) -> list[Change]:
         """``reports`` without the String items whose text is the one last reported."""
         texts = self._texts
-        kept: list[Report] = []
+        kept: list[Change] = []
         for report in reports:
             k, value, error = report
             if k in texts:
@@ -149,7 +149,7 @@ class BlockDecoder:
             kept.append(report)
         return kept
 
-    def _finish_all(self, n: int) -> list[Report]:
+    def _finish_all(self, n: int) -> list[Change]:
         """Report every item; keeps the last tuples so that only the items whose value
         or status moved are rebuilt (reportMode "cycle" reports everything each read)."""
         plan = self._plan

@@ -22,7 +22,7 @@ from collections.abc import Callable, Sequence
 
 from .. import _ffi
 from .._ffi import Block, CodecPlan, Context
-from ..codec import BlockDecoder, Report
+from ..codec import BlockDecoder, Change
 from ..datatypes import Area
 from ..errors import (
     CrcError,
@@ -90,7 +90,7 @@ class Link:
         raise NotImplementedError
 
     def read_decode(self, slave: int, area: Area, address: int, count: int,
-                    decoder: BlockDecoder, report_all: bool) -> tuple[Block, list[Report]]:
+                    decoder: BlockDecoder, report_all: bool) -> tuple[Block, list[Change]]:
         """Read a block and decode it: the block, and the decoder's reports (see
         :meth:`BlockDecoder.decode`)."""
         raise NotImplementedError
@@ -282,7 +282,7 @@ class ContextLink(Link):
         return self._read(slave, area, address, count, None, 0)[0]
 
     def read_decode(self, slave: int, area: Area, address: int, count: int,
-                    decoder: BlockDecoder, report_all: bool) -> tuple[Block, list[Report]]:
+                    decoder: BlockDecoder, report_all: bool) -> tuple[Block, list[Change]]:
         """Read a block and decode it in one C call: the block, and the decoder's
         reports (see :meth:`BlockDecoder.decode`)."""
         plan, mode = decoder.begin(report_all)

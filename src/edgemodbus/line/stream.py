@@ -26,8 +26,7 @@ import time
 from collections.abc import Callable
 
 from .._ffi import Block
-from ..codec import BlockDecoder
-from ..codec import Report as CodecReport
+from ..codec import BlockDecoder, Change
 from ..datatypes import Area
 from ..errors import (
     CrcError,
@@ -189,7 +188,7 @@ class StreamLink(Link):
 
     # -- transactions --------------------------------------------------------------------
     def read_decode(self, slave: int, area: Area, address: int, count: int,
-                    decoder: BlockDecoder, report_all: bool) -> tuple[Block, list[CodecReport]]:
+                    decoder: BlockDecoder, report_all: bool) -> tuple[Block, list[Change]]:
         """Framed in Python: read, then decode (no combined C call on this path)."""
         block = self.read(slave, area, address, count)
         return block, decoder.decode(block, report_all)
