@@ -43,7 +43,7 @@ from .errors import (
 )
 from .line import LineWorker as Bus  # the poller's line; renamed when device.py moves
 from .line import Link
-from .planner import Piece, PlanItem, ReadBlock, bisect_block, plan_reads
+from .poll.planner import Piece, PlanItem, ReadBlock, bisect_block, plan_reads
 
 if TYPE_CHECKING:
     from .config import DeviceAddressItem

@@ -41,7 +41,7 @@ from .line import (
     endpoint_for,
     line_registry,
 )
-from .planner import ReadBlock
+from .poll.planner import ReadBlock
 
 Callback = Callable[[DeviceAddressItem], None]
 BatchCallback = Callable[[list[DeviceAddressItem]], None]

@@ -14,7 +14,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import edgemodbus as em
-from edgemodbus import codec, planner
+from edgemodbus import codec
 from edgemodbus.codec import BlockDecoder
 from edgemodbus.config import (
     ConfigError,
@@ -29,6 +29,7 @@ from edgemodbus.config import (
 )
 from edgemodbus.datatypes import Area, DataType
 from edgemodbus.device import Device, ItemState
+from edgemodbus.poll import planner
 from edgemodbus.protocol import address
 
 

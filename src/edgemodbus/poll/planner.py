@@ -18,7 +18,7 @@ from collections.abc import Collection, Hashable, Iterable
 from dataclasses import dataclass
 from operator import itemgetter
 
-from .datatypes import Area
+from ..datatypes import Area
 
 REGISTER_CAP = 125
 BIT_CAP = 2000
