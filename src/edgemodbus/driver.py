@@ -25,7 +25,6 @@ from .config import (
     validate_parameters,
 )
 from .datatypes import Area, DeviceDriverStatus
-from .device import Device, ItemState, WriteOp, plan_writes
 from .line import (
     DtuEndpoint,
     DtuRegistry,
@@ -42,6 +41,7 @@ from .line import (
     line_registry,
 )
 from .poll.planner import ReadBlock
+from .poll.poller import ItemState, Poller, WriteOp, plan_writes
 
 Callback = Callable[[DeviceAddressItem], None]
 BatchCallback = Callable[[list[DeviceAddressItem]], None]
@@ -63,8 +63,8 @@ class DriverModbusRtu:
         self.address_updated_callback: Callback | None = None
         self.addresses_updated_callback: BatchCallback | None = None
         self.snapshot_publisher: SnapshotPublisher | None = None
-        self._device: Device | None = None
-        self._last_device: Device | None = None  # keeps stats and snapshot after a stop
+        self._device: Poller | None = None
+        self._last_device: Poller | None = None  # keeps stats and snapshot after a stop
         self._bus: LineWorker | None = None
         self._slot: DtuSlot | None = None  # listen mode: this device's DTU
         self._line_stats: dict[str, Any] = {}
@@ -103,7 +103,7 @@ class DriverModbusRtu:
         timing = _timing(params)
         # builds the items' codec specs, the plan and its decoders: raises here, not
         # after the line's worker is running
-        device = Device(self, code, params, parsed, self.logger)
+        device = Poller(self, code, params, parsed, self.logger)
         if params.read_cycle == 0 and params.framing != "wrapped-report":
             self.logger.warning("%s: readCycle 0 means report-only, but framing is %r: "
                                 "nothing will update this device's items",
@@ -122,7 +122,7 @@ class DriverModbusRtu:
 
     def _acquire(
         self, params: DriverModbusRtuParameter, endpoint: SerialPort | TcpEndpoint | DtuEndpoint,
-        timing: LineTiming, device: Device,
+        timing: LineTiming, device: Poller,
     ) -> tuple[LineWorker, DtuSlot | None]:
         """Acquire the line (and the DTU slot in listen mode) and attach ``device``;
         on any failure release what was acquired and re-raise."""
@@ -176,7 +176,7 @@ class DriverModbusRtu:
             return
         # a trial build of the specs, plan and decoders: a list the codec or the planner
         # refuses raises here and the running device keeps its items and plan
-        Device(self, self._device.code, self._params, parsed, self.logger)
+        Poller(self, self._device.code, self._params, parsed, self.logger)
         self._device.replace_items(parsed).result()
 
     # -- status --------------------------------------------------------------------------
@@ -277,7 +277,7 @@ class DriverModbusRtu:
     def _code(self, org: DeviceOrganizationParameter | None) -> str:
         return _device_code(org, self._params)
 
-    def _publish(self, device: Device) -> None:
+    def _publish(self, device: Poller) -> None:
         publisher = self.snapshot_publisher
         if publisher is None:
             return

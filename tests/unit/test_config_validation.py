@@ -28,8 +28,8 @@ from edgemodbus.config import (
     validate_parameters,
 )
 from edgemodbus.datatypes import Area, DataType
-from edgemodbus.device import Device, ItemState
 from edgemodbus.poll import planner
+from edgemodbus.poll.poller import ItemState, Poller
 from edgemodbus.protocol import address
 
 
@@ -144,7 +144,7 @@ def test_what_the_config_accepts_the_driver_can_build(items: list[dict[str, Any]
         state = ItemState(p)
         BlockDecoder(state.area, state.size, [(0, state.spec)])
         assert state.spec == p.value_spec()  # the config checked the spec the driver uses
-    Device(em.DriverModbusRtu(), "d", cfg.communication, parsed, logging.getLogger("test"))
+    Poller(em.DriverModbusRtu(), "d", cfg.communication, parsed, logging.getLogger("test"))
 
 
 def test_items_changed_after_loading_are_checked_again() -> None:
@@ -334,7 +334,7 @@ def test_organization_read_cycle_zero_is_report_only() -> None:
     })
     params = cfg.effective_parameters()
     assert params.read_cycle == 0 and cfg.communication.read_cycle == 1000
-    device = Device(em.DriverModbusRtu(), "d", params, [], logging.getLogger("test"))
+    device = Poller(em.DriverModbusRtu(), "d", params, [], logging.getLogger("test"))
     assert device.report_only
 
 

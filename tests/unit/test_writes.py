@@ -11,12 +11,12 @@ import pytest
 import edgemodbus as em
 from edgemodbus.codec import normalize_value
 from edgemodbus.datatypes import Area, DataType
-from edgemodbus.device import Device, plan_writes
+from edgemodbus.poll.poller import Poller, plan_writes
 
 
-def make_device(items: list[dict[str, Any]], **comm: Any) -> Device:
+def make_device(items: list[dict[str, Any]], **comm: Any) -> Poller:
     cfg = em.load_device_config({"communication": comm, "addressList": items})
-    return Device(em.DriverModbusRtu(), "d", cfg.communication, cfg.parsed_items(),
+    return Poller(em.DriverModbusRtu(), "d", cfg.communication, cfg.parsed_items(),
                   logging.getLogger("test"))
 
 

@@ -1,6 +1,6 @@
 """One polled slave on a line: its read plan, item state, fault handling and writes.
 
-A :class:`Device` is a bus poller: the line's worker thread calls ``poll_step`` when it
+A :class:`Poller` is a bus poller: the line's worker thread calls ``poll_step`` when it
 is due, and each step reads one planned block, so writes queued by other threads run
 between two blocks.  Faults are handled per slave:
 
@@ -26,12 +26,12 @@ from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from typing import TYPE_CHECKING, Any, cast
 
-from ._ffi import Block
-from .codec import BlockDecoder, Change, ValueSpec, encode, normalize_value, register_bit
-from .codec import jsonable as _jsonable
-from .config import DriverModbusRtuParameter, ParsedItem
-from .datatypes import Area, DeviceDriverStatus, ItemStatus
-from .errors import (
+from .._ffi import Block
+from ..codec import BlockDecoder, Change, ValueSpec, encode, normalize_value, register_bit
+from ..codec import jsonable as _jsonable
+from ..config import DriverModbusRtuParameter, ParsedItem
+from ..datatypes import Area, DeviceDriverStatus, ItemStatus
+from ..errors import (
     CrcError,
     IllegalDataAddress,
     IllegalFunction,
@@ -41,14 +41,14 @@ from .errors import (
     ModbusTimeoutError,
     ProtocolError,
 )
-from .line import LineWorker as Bus  # the poller's line; renamed when device.py moves
-from .line import Link
-from .poll.planner import Piece, PlanItem, ReadBlock, bisect_block, plan_reads
+from ..line import LineWorker as Bus  # the poller's line; renamed when device.py moves
+from ..line import Link
+from .planner import Piece, PlanItem, ReadBlock, bisect_block, plan_reads
 
 if TYPE_CHECKING:
-    from .config import DeviceAddressItem
-    from .driver import DriverModbusRtu
-    from .protocol.wrapped import Report
+    from ..config import DeviceAddressItem
+    from ..driver import DriverModbusRtu
+    from ..protocol.wrapped import Report
 
 _MAX_WRITE_REGISTERS = 123  # FC16 (Modbus Application Protocol v1.1b3, 6.12)
 _MAX_WRITE_COILS = 1968  # FC15 (6.11)
@@ -208,7 +208,7 @@ class _Slot:
     partial: list[tuple[Piece, _Assembly]]
     items: list[DeviceAddressItem] = field(init=False)  # whole[i].item, for the hot loop
     # the decoder was reset because an item was set from outside it (a write, a report):
-    # its next reports are filtered by what the items hold (Device._news)
+    # its next reports are filtered by what the items hold (_news)
     recheck: bool = field(default=False, init=False)
 
     def __post_init__(self) -> None:
@@ -231,7 +231,7 @@ class WriteOp:
         return ", ".join(st.item.name for st, _ in self.updates)
 
 
-class Device:
+class Poller:
     """The poller of one slave.  All state below is touched by the bus worker only,
     except ``status``, ``items`` and ``counters`` which other threads read."""
 
@@ -769,7 +769,7 @@ def build_plan(items: Sequence[ParsedItem], params: DriverModbusRtuParameter) ->
     )
 
 
-def plan_writes(device: Device, items: list[tuple[str, Any]]) -> list[WriteOp]:
+def plan_writes(device: Poller, items: list[tuple[str, Any]]) -> list[WriteOp]:
     """Normalize, encode and group a batch of writes (raises ValueError naming the item).
 
     Contiguous registers (or coils) of one area are merged into one request, up to the
