@@ -40,11 +40,12 @@ from .line import (
     endpoint_for,
     line_registry,
 )
+from .poll.items import ItemState
 from .poll.planner import ReadBlock
-from .poll.poller import ItemState, Poller, WriteOp, plan_writes
+from .poll.poller import Poller
+from .poll.sink import BatchCallback, ItemCallback
+from .poll.writes import WriteOp, plan_writes
 
-Callback = Callable[[DeviceAddressItem], None]
-BatchCallback = Callable[[list[DeviceAddressItem]], None]
 SnapshotPublisher = Callable[[str, dict[str, Any]], None]
 
 
@@ -60,7 +61,7 @@ class DriverModbusRtu:
     dtu_registry: ClassVar[DtuRegistry] = dtu_registry
 
     def __init__(self) -> None:
-        self.address_updated_callback: Callback | None = None
+        self.address_updated_callback: ItemCallback | None = None
         self.addresses_updated_callback: BatchCallback | None = None
         self.snapshot_publisher: SnapshotPublisher | None = None
         self._device: Poller | None = None
@@ -103,7 +104,7 @@ class DriverModbusRtu:
         timing = _timing(params)
         # builds the items' codec specs, the plan and its decoders: raises here, not
         # after the line's worker is running
-        device = Poller(self, code, params, parsed, self.logger)
+        device = Poller(_Sink(self, code), code, params, parsed, self.logger)
         if params.read_cycle == 0 and params.framing != "wrapped-report":
             self.logger.warning("%s: readCycle 0 means report-only, but framing is %r: "
                                 "nothing will update this device's items",
@@ -176,7 +177,7 @@ class DriverModbusRtu:
             return
         # a trial build of the specs, plan and decoders: a list the codec or the planner
         # refuses raises here and the running device keeps its items and plan
-        Poller(self, self._device.code, self._params, parsed, self.logger)
+        Poller(self._device.sink, self._device.code, self._params, parsed, self.logger)
         self._device.replace_items(parsed).result()
 
     # -- status --------------------------------------------------------------------------
@@ -268,7 +269,7 @@ class DriverModbusRtu:
         if device is None:
             return "device is not running"
         try:
-            ops: list[WriteOp] = plan_writes(device, list(items))
+            ops: list[WriteOp] = plan_writes(device.by_name, list(items))
         except ValueError as exc:
             return str(exc)
         return device.submit_writes(ops)
@@ -277,14 +278,33 @@ class DriverModbusRtu:
     def _code(self, org: DeviceOrganizationParameter | None) -> str:
         return _device_code(org, self._params)
 
-    def _publish(self, device: Poller) -> None:
+    def _publish(self, code: str) -> None:
         publisher = self.snapshot_publisher
         if publisher is None:
             return
         try:
-            publisher(f"/real/{device.code}", self.snapshot())
+            publisher(f"/real/{code}", self.snapshot())
         except Exception:
-            self.logger.exception("%s: snapshot publisher failed", device.code)
+            self.logger.exception("%s: snapshot publisher failed", code)
+
+class _Sink:
+    """The driver as its poller sees it (a :class:`~edgemodbus.poll.sink.PollSink`): the
+    host's callbacks, read at each delivery, and the snapshot publisher."""
+
+    __slots__ = ("_code", "_driver")
+
+    def __init__(self, driver: DriverModbusRtu, code: str) -> None:
+        self._driver = driver
+        self._code = code
+
+    def item_callback(self) -> ItemCallback | None:
+        return self._driver.address_updated_callback
+
+    def batch_callback(self) -> BatchCallback | None:
+        return self._driver.addresses_updated_callback
+
+    def snapshot_due(self) -> None:
+        self._driver._publish(self._code)
 
 
 def _device_code(

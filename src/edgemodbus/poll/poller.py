@@ -1,8 +1,9 @@
-"""One polled slave on a line: its read plan, item state, fault handling and writes.
+"""One polled slave on a line: its read cycle and fault handling.
 
 A :class:`Poller` is a bus poller: the line's worker thread calls ``poll_step`` when it
 is due, and each step reads one planned block, so writes queued by other threads run
-between two blocks.  Faults are handled per slave:
+between two blocks.  What it reads goes to its owner through a :class:`PollSink`.
+Faults are handled per slave:
 
 * a timeout (after ``retries``) ends this slave's cycle: its remaining blocks are not
   read and their items go Invalid ("device not responding"); after
@@ -22,19 +23,16 @@ import math
 import time
 from collections.abc import Sequence
 from concurrent.futures import Future
-from dataclasses import dataclass, field
 from datetime import datetime, timezone
-from typing import TYPE_CHECKING, Any, cast
+from typing import TYPE_CHECKING, cast
 
 from .._ffi import Block
-from ..codec import BlockDecoder, Change, ValueSpec, encode, normalize_value, register_bit
-from ..codec import jsonable as _jsonable
+from ..codec import BlockDecoder, Change, ValueSpec
 from ..config import DriverModbusRtuParameter, ParsedItem
 from ..datatypes import Area, DeviceDriverStatus, ItemStatus
 from ..errors import (
     CrcError,
     IllegalDataAddress,
-    IllegalFunction,
     ModbusConnectionError,
     ModbusError,
     ModbusExceptionResponse,
@@ -43,192 +41,15 @@ from ..errors import (
 )
 from ..line import LineWorker as Bus  # the poller's line; renamed when device.py moves
 from ..line import Link
+from .counters import CYCLE_BUCKETS, Counters
+from .items import Assembly, ItemState, Slot, copy_runtime, is_news, set_item
 from .planner import Piece, PlanItem, ReadBlock, bisect_block, plan_reads
+from .sink import Delivery, PollSink
+from .writes import WriteOp, Writer
 
 if TYPE_CHECKING:
     from ..config import DeviceAddressItem
-    from ..driver import DriverModbusRtu
     from ..protocol.wrapped import Report
-
-_MAX_WRITE_REGISTERS = 123  # FC16 (Modbus Application Protocol v1.1b3, 6.12)
-_MAX_WRITE_COILS = 1968  # FC15 (6.11)
-
-
-# upper bounds (seconds) of the cycle-time histogram behind the Prometheus exporter
-CYCLE_BUCKETS = (0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0)
-
-
-def _histogram(bounds: tuple[float, ...], counts: list[int], total: float) -> dict[str, Any]:
-    """Cumulative buckets, Prometheus style: [[le, count <= le], ..., ["+Inf", all]]."""
-    buckets: list[list[Any]] = []
-    running = 0
-    for le, n in zip((*bounds, "+Inf"), counts, strict=True):
-        running += n
-        buckets.append([le, running])
-    return {"buckets": buckets, "sum": total, "count": running}
-
-
-@dataclass
-class Counters:
-    """Per-device counters behind ``DriverModbusRtu.stats()``."""
-
-    requests: int = 0
-    responses: int = 0
-    timeouts: int = 0
-    crc_errors: int = 0
-    protocol_errors: int = 0
-    exceptions: dict[int, int] = field(default_factory=dict)
-    retries: int = 0
-    cycles: int = 0
-    failed_cycles: int = 0
-    overruns: int = 0
-    skipped_blocks: int = 0
-    last_cycle_time: float = 0.0
-    total_cycle_time: float = 0.0
-    max_cycle_time: float = 0.0
-    cycle_hist: list[int] = field(default_factory=lambda: [0] * (len(CYCLE_BUCKETS) + 1))
-    callback_errors: int = 0
-    callback_time: float = 0.0
-    values_changed: int = 0
-    writes: int = 0
-    write_errors: int = 0
-    reports: int = 0  # wrapped reports applied to this device
-
-    def as_dict(self) -> dict[str, Any]:
-        return {
-            "requests": self.requests,
-            "responses": self.responses,
-            "timeouts": self.timeouts,
-            "crcErrors": self.crc_errors,
-            "protocolErrors": self.protocol_errors,
-            "exceptions": dict(self.exceptions),
-            "retries": self.retries,
-            "cycles": self.cycles,
-            "failedCycles": self.failed_cycles,
-            "overruns": self.overruns,
-            "skippedBlocks": self.skipped_blocks,
-            "lastCycleTime": self.last_cycle_time,
-            "avgCycleTime": self.total_cycle_time / self.cycles if self.cycles else 0.0,
-            "maxCycleTime": self.max_cycle_time,
-            "cycleTimeHistogram": _histogram(CYCLE_BUCKETS, self.cycle_hist,
-                                             self.total_cycle_time),
-            "callbackErrors": self.callback_errors,
-            "callbackTime": self.callback_time,
-            "valuesChanged": self.values_changed,
-            "writes": self.writes,
-            "writeErrors": self.write_errors,
-            "reports": self.reports,
-        }
-
-
-class ItemState:
-    """A configured item with what the driver needs to read, decode and write it."""
-
-    __slots__ = ("area", "bit", "item", "offset", "size", "spec")
-
-    def __init__(self, parsed: ParsedItem) -> None:
-        # the ParsedItem itself is not kept: a gateway holds tens of thousands of these
-        self.item: DeviceAddressItem = parsed.item
-        self.area: Area = parsed.address.area
-        self.offset: int = parsed.address.offset
-        self.bit: int | None = parsed.address.bit
-        self.size: int = 1 if self.area.is_bit else parsed.registers
-        self.spec = ValueSpec(
-            name=parsed.item.name,
-            data_type=parsed.data_type,
-            data_format=parsed.data_format,
-            quantity=parsed.quantity,
-            bit=parsed.address.bit,
-            multiplier=parsed.multiplier,
-            converted_type=parsed.converted_type,
-            deadband=parsed.deadband or 0.0,
-            encoding=parsed.encoding,
-        )
-
-    def same_definition(self, other: ItemState) -> bool:
-        return (self.item.name, self.area, self.offset, self.spec) == (
-            other.item.name, other.area, other.offset, other.spec
-        )
-
-    def snapshot(self) -> dict[str, Any]:
-        item = self.item
-        return {
-            "address": item.address,
-            "value": _jsonable(item.value),
-            "status": _status_text(item.status),
-            "updateTs": item.update_ts.isoformat() if item.update_ts else None,
-            "errorReason": item.error_reason,
-        }
-
-
-class _Assembly:
-    """Registers of an item larger than one block, gathered over several blocks.  One
-    per item, shared by the slots of all its pieces; the item is decoded only when every
-    piece arrived in the same cycle (``pieces``: item offset -> size, of ``cycle``)."""
-
-    __slots__ = ("cycle", "decoder", "failed", "pieces", "registers", "state")
-
-    def __init__(self, state: ItemState) -> None:
-        self.state = state
-        self.registers = [0] * state.size
-        self.cycle = -1
-        self.failed = -1  # the last cycle in which a piece failed
-        self.pieces: dict[int, int] = {}
-        self.decoder = BlockDecoder(state.area, state.size, [(0, state.spec)])
-
-    def add(self, piece: Piece, values: list[int], cycle: int) -> bool:
-        """Store a piece read in ``cycle``; True once all pieces of that cycle are in."""
-        if cycle != self.cycle:
-            self.cycle = cycle
-            self.pieces.clear()
-        start = piece.block_offset
-        self.registers[piece.item_offset:piece.item_offset + piece.size] = values[
-            start:start + piece.size
-        ]
-        self.pieces[piece.item_offset] = piece.size
-        return sum(self.pieces.values()) == len(self.registers)  # pieces never overlap
-
-    def fail(self, cycle: int) -> bool:
-        """A piece failed in ``cycle``: what arrived in it cannot complete the item.
-        False if another piece already failed in that cycle (the item is Invalid)."""
-        first = self.failed != cycle
-        self.failed = self.cycle = cycle
-        self.pieces.clear()
-        self.decoder.reset()  # the next complete read reports the item again
-        return first
-
-
-@dataclass
-class _Slot:
-    """One planned read and how to decode it."""
-
-    block: ReadBlock
-    whole: list[ItemState]
-    decoder: BlockDecoder | None
-    partial: list[tuple[Piece, _Assembly]]
-    items: list[DeviceAddressItem] = field(init=False)  # whole[i].item, for the hot loop
-    # the decoder was reset because an item was set from outside it (a write, a report):
-    # its next reports are filtered by what the items hold (_news)
-    recheck: bool = field(default=False, init=False)
-
-    def __post_init__(self) -> None:
-        self.items = [state.item for state in self.whole]
-
-
-@dataclass
-class WriteOp:
-    """One write request: consecutive coils or registers of one area, or one bit."""
-
-    area: Area
-    address: int
-    registers: list[int] = field(default_factory=list)
-    bits: list[bool] = field(default_factory=list)
-    bit: int | None = None
-    updates: list[tuple[ItemState, Any]] = field(default_factory=list)
-
-    @property
-    def names(self) -> str:
-        return ", ".join(st.item.name for st, _ in self.updates)
 
 
 class Poller:
@@ -237,13 +58,13 @@ class Poller:
 
     def __init__(
         self,
-        driver: DriverModbusRtu,
+        sink: PollSink,
         code: str,
         params: DriverModbusRtuParameter,
         parsed: Sequence[ParsedItem],
         logger: logging.Logger,
     ) -> None:
-        self.driver = driver
+        self.sink = sink
         self.code = code
         self.log = logger
         self.slave = params.slave_id
@@ -254,18 +75,19 @@ class Poller:
         self.offline_after = params.offline_after_failed_cycles
         self.max_backoff = params.max_backoff / 1000
         self.report_all = params.report_mode == "cycle"
-        self.write_single_fc = params.write_single_register_function
         self.snapshot_interval = params.snapshot_interval / 1000
         self.params = params
         self.counters = Counters()
+        self.delivery = Delivery(sink, self.counters, logger, code)
+        self.writer = Writer(code, params, logger, self.counters, self.delivery)
         self.status = DeviceDriverStatus.CONNECTING
         self.active = False
         self.bus: Bus | None = None
         self.items: list[ItemState] = []
         self.by_name: dict[str, ItemState] = {}
-        self.slots: list[_Slot] = []
-        self._assemblies: dict[ItemState, _Assembly] = {}
-        self._owner: dict[ItemState, _Slot | _Assembly] = {}  # what decodes each item
+        self.slots: list[Slot] = []
+        self._assemblies: dict[ItemState, Assembly] = {}
+        self._owner: dict[ItemState, Slot | Assembly] = {}  # what decodes each item
         self.cycle_no = 0  # counts the cycles begun, for the pieces of large items
         self._install(parsed)
         self.index = 0
@@ -274,9 +96,6 @@ class Poller:
         self.failed_cycles = 0
         self.offline = False
         self.backoff = self.cycle
-        self.no_fc16 = False
-        self.no_fc22 = False
-        self.batch: list[DeviceAddressItem] = []
         self.next_snapshot = 0.0
         # wrapped reports: (function, address, count) -> the items inside and a decoder
         self._report_decoders: dict[tuple[int, int, int],
@@ -304,7 +123,7 @@ class Poller:
         for state in items:
             prev = old.get(state.item.name)
             if prev is not None and prev.item is not state.item and prev.same_definition(state):
-                _copy_runtime(prev.item, state.item)
+                copy_runtime(prev.item, state.item)
         self.items = items
         self.by_name = {s.item.name: s for s in items}
         self._report_decoders = {}
@@ -313,10 +132,10 @@ class Poller:
         self._owner = {}
         self.slots = [self._make_slot(b) for b in blocks]
 
-    def _make_slot(self, block: ReadBlock) -> _Slot:
+    def _make_slot(self, block: ReadBlock) -> Slot:
         whole: list[ItemState] = []
         specs: list[tuple[int, ValueSpec]] = []
-        partial: list[tuple[Piece, _Assembly]] = []
+        partial: list[tuple[Piece, Assembly]] = []
         for piece in block.pieces:
             state = self.items[cast(int, piece.key)]
             if piece.item_offset == 0 and piece.size == state.size:
@@ -325,17 +144,17 @@ class Poller:
             else:
                 partial.append((piece, self._assembly(state)))
         decoder = BlockDecoder(block.area, block.count, specs) if specs else None
-        slot = _Slot(block, whole, decoder, partial)
+        slot = Slot(block, whole, decoder, partial)
         for state in whole:
             self._owner[state] = slot
         for _, asm in partial:
             self._owner[asm.state] = asm
         return slot
 
-    def _assembly(self, state: ItemState) -> _Assembly:
+    def _assembly(self, state: ItemState) -> Assembly:
         asm = self._assemblies.get(state)
         if asm is None:
-            asm = self._assemblies[state] = _Assembly(state)
+            asm = self._assemblies[state] = Assembly(state)
         return asm
 
     def replace_items(self, parsed: Sequence[ParsedItem]) -> Future[None]:
@@ -371,7 +190,7 @@ class Poller:
         self.status = DeviceDriverStatus.RECONNECTING
         for slot in self.slots:
             self._invalidate(slot, f"link down: {reason}")
-        self._flush_batch()
+        self.delivery.flush()
 
     def on_report(self, report: Report) -> None:
         """An unsolicited wrapped report (edge MCU): update the items of this slave whose
@@ -402,14 +221,14 @@ class Poller:
         decoded = decoder.decode(Block.from_values(values, bits=area.is_bit), True)
         report_all = self.report_all
         news = [(states[i], value, error) for i, value, error in decoded
-                if report_all or _news(states[i], value, error)]
+                if report_all or is_news(states[i], value, error)]
         if news:
             now = datetime.now(timezone.utc)
-            reported = [_set_item(state.item, value, error, now) for state, value, error in news]
+            reported = [set_item(state.item, value, error, now) for state, value, error in news]
             self._recheck([state for state, _, _ in news])
             self.counters.values_changed += len(reported)
-            self._report(reported)
-            self._flush_batch()
+            self.delivery.report(reported)
+            self.delivery.flush()
 
     def poll_step(self, link: Link) -> None:
         """Read the next block of this cycle.  The straight path (a good answer) is kept
@@ -434,7 +253,7 @@ class Poller:
             return
         self._good_read(slot, data, changes)
 
-    def _read_slot(self, link: Link, slot: _Slot) -> tuple[Block, list[Change]]:
+    def _read_slot(self, link: Link, slot: Slot) -> tuple[Block, list[Change]]:
         """Read a block and decode its whole items (one C call on the libmodbus path)."""
         block = slot.block
         if slot.decoder is None:
@@ -442,7 +261,7 @@ class Poller:
         return link.read_decode(self.slave, block.area, block.start, block.count,
                                 slot.decoder, self.report_all)
 
-    def _good_read(self, slot: _Slot, data: Block, changes: list[Change]) -> None:
+    def _good_read(self, slot: Slot, data: Block, changes: list[Change]) -> None:
         self.counters.responses += 1
         self._apply(slot, data, changes)
         if self.status is not DeviceDriverStatus.RUNNING:
@@ -451,7 +270,7 @@ class Poller:
         if self.index >= len(self.slots):
             self._end_cycle(failed=False)
 
-    def _read_failed(self, link: Link, slot: _Slot, error: ModbusError) -> None:
+    def _read_failed(self, link: Link, slot: Slot, error: ModbusError) -> None:
         """The slow path: retries (timeouts and CRC errors only), then fault handling."""
         block = slot.block
         counters = self.counters
@@ -505,7 +324,7 @@ class Poller:
             if self.index >= len(slots):
                 self._end_cycle(failed=False)
 
-    def _apply(self, slot: _Slot, data: Block, changes: list[Change]) -> None:
+    def _apply(self, slot: Slot, data: Block, changes: list[Change]) -> None:
         """Store what a good read of ``slot`` changed: its whole items' ``changes`` (from
         the decoder) and the items assembled from pieces."""
         reported: list[DeviceAddressItem] = []
@@ -514,11 +333,11 @@ class Poller:
             slot.recheck = False
             if not self.report_all:
                 whole = slot.whole
-                changes = [c for c in changes if _news(whole[c[0]], c[1], c[2])]
+                changes = [c for c in changes if is_news(whole[c[0]], c[1], c[2])]
         if changes:
             now = datetime.now(timezone.utc)
             items = slot.items
-            for index, value, error in changes:  # _set_item, inlined: the hot loop
+            for index, value, error in changes:  # set_item, inlined: the hot loop
                 item = items[index]
                 fields = item.__dict__
                 if error is None:
@@ -539,15 +358,15 @@ class Poller:
                     block = Block.from_values(asm.registers, bits=False)
                     state = asm.state
                     for _, value, error in asm.decoder.decode(block, self.report_all):
-                        if self.report_all or _news(state, value, error):
+                        if self.report_all or is_news(state, value, error):
                             now = now or datetime.now(timezone.utc)
-                            reported.append(_set_item(state.item, value, error, now))
+                            reported.append(set_item(state.item, value, error, now))
         if reported:
             self.counters.values_changed += len(reported)
-            self._report(reported)
+            self.delivery.report(reported)
 
     # -- item state ----------------------------------------------------------------------
-    def _invalidate(self, slot: _Slot, reason: str) -> None:
+    def _invalidate(self, slot: Slot, reason: str) -> None:
         """Set the slot's items Invalid with ``reason``.  An item read in pieces fails
         once per cycle: the first of its pieces that fails reports it."""
         now = datetime.now(timezone.utc)
@@ -557,11 +376,11 @@ class Poller:
         for state in states:
             item = state.item
             changed = item.status is not ItemStatus.INVALID or item.error_reason != reason
-            _set_item(item, None, reason, now)
+            set_item(item, None, reason, now)
             if changed or self.report_all:
                 reported.append(item)
         if reported:
-            self._report(reported)
+            self.delivery.report(reported)
         if slot.decoder is not None:
             slot.decoder.reset()  # the next good read reports every item again
 
@@ -576,42 +395,8 @@ class Poller:
             if owner is None or owner.decoder is None:
                 continue
             owner.decoder.reset()
-            if isinstance(owner, _Slot):
+            if isinstance(owner, Slot):
                 owner.recheck = True
-
-    def _report(self, items: list[DeviceAddressItem]) -> None:
-        """Add items to this cycle's batch and call the per-item callback for each."""
-        self.batch += items
-        self._notify(items)
-
-    def _notify(self, items: list[DeviceAddressItem]) -> None:
-        """Call the per-item callback for each item."""
-        callback = self.driver.address_updated_callback
-        if callback is None:
-            return
-        started = time.perf_counter()
-        for item in items:
-            try:
-                callback(item)
-            except Exception:
-                self.counters.callback_errors += 1
-                self.log.exception("%s: address_updated_callback failed for item %r",
-                                   self.code, item.name)
-        self.counters.callback_time += time.perf_counter() - started
-
-    def _flush_batch(self) -> None:
-        batch, self.batch = self.batch, []
-        callback = self.driver.addresses_updated_callback
-        if not batch or callback is None:
-            return
-        started = time.perf_counter()
-        try:
-            callback(batch)
-        except Exception:
-            self.counters.callback_errors += 1
-            self.log.exception("%s: addresses_updated_callback failed (%d items)",
-                               self.code, len(batch))
-        self.counters.callback_time += time.perf_counter() - started
 
     # -- cycles and fault isolation --------------------------------------------------------
     def _back_online(self) -> None:
@@ -653,10 +438,10 @@ class Poller:
             self.due = now  # no burst of catch-up cycles
         else:
             self.due = self.cycle_start + self.cycle
-        self._flush_batch()
+        self.delivery.flush()
         if self.snapshot_interval and now >= self.next_snapshot:
             self.next_snapshot = now + self.snapshot_interval
-            self.driver._publish(self)
+            self.sink.snapshot_due()
 
     # -- writes --------------------------------------------------------------------------
     def submit_writes(self, ops: list[WriteOp]) -> Future[tuple[bool, str | None]]:
@@ -677,80 +462,7 @@ class Poller:
         if not self.active:
             return False, "device stopped before the write was sent"
         link.set_response_timeout(self.timeout)
-        errors: list[str] = []
-        now = datetime.now(timezone.utc)
-        written: list[DeviceAddressItem] = []
-        for i, op in enumerate(ops):
-            self.counters.writes += 1
-            try:
-                self._execute(link, op)
-            except ModbusError as exc:
-                self.counters.write_errors += 1
-                errors.append(f"{op.names}: {exc}")
-                if isinstance(exc, ModbusConnectionError):
-                    errors.extend(f"{o.names}: not sent (link down)" for o in ops[i + 1:])
-                    break
-                continue
-            self._recheck([state for state, _ in op.updates])
-            confirmed = [
-                _set_item(state.item, value, None, now)
-                for state, value in op.updates
-                if self.report_all or not _holds(state.item, value, None)
-            ]
-            if confirmed:
-                self.counters.values_changed += len(confirmed)
-                self._notify(confirmed)
-                written += confirmed
-        if written:
-            # One write, one update: the item callbacks above, and one batch now (the
-            # next read of the written value is no news, see _recheck); an item already
-            # in this cycle's batch goes out once, with its written value.
-            queued = {id(item) for item in self.batch}
-            self.batch += [item for item in written if id(item) not in queued]
-            self._flush_batch()
-        return (False, "; ".join(errors)) if errors else (True, None)
-
-    def _execute(self, link: Link, op: WriteOp) -> None:
-        slave = self.slave
-        if op.area is Area.COIL:
-            if len(op.bits) == 1:
-                link.write_coil(slave, op.address, op.bits[0])
-            else:
-                link.write_coils(slave, op.address, op.bits)
-            return
-        if op.bit is not None:
-            self._write_bit(link, op.address, op.bit, op.bits[0])
-            return
-        regs = op.registers
-        if len(regs) == 1 and self.write_single_fc == 6:
-            link.write_register(slave, op.address, regs[0])
-            return
-        if not self.no_fc16:
-            try:
-                link.write_registers(slave, op.address, regs)
-                return
-            except IllegalFunction:
-                self.no_fc16 = True
-                self.log.warning("%s: slave %d refuses FC16; writing with FC06 from now on",
-                                 self.code, slave)
-        for offset, value in enumerate(regs):
-            link.write_register(slave, op.address + offset, value)
-
-    def _write_bit(self, link: Link, address: int, bit: int, on: bool) -> None:
-        """Set one bit of a holding register: FC22 mask write (6.16), else read-modify-
-        write with FC03 + FC06 (not atomic against other masters; logged once)."""
-        slave = self.slave
-        if not self.no_fc22:
-            try:
-                link.mask_write_register(slave, address, 0xFFFF ^ (1 << bit), int(on) << bit)
-                return
-            except IllegalFunction:
-                self.no_fc22 = True
-                self.log.warning("%s: slave %d refuses FC22; bit writes use read-modify-write",
-                                 self.code, slave)
-        current = link.read(slave, Area.HOLDING_REGISTER, address, 1).to_list()[0]
-        value = (current | (1 << bit)) if on else (current & ~(1 << bit) & 0xFFFF)
-        link.write_register(slave, address, value)
+        return self.writer.run(link, ops, self._recheck)
 
 
 def build_plan(items: Sequence[ParsedItem], params: DriverModbusRtuParameter) -> list[ReadBlock]:
@@ -769,134 +481,7 @@ def build_plan(items: Sequence[ParsedItem], params: DriverModbusRtuParameter) ->
     )
 
 
-def plan_writes(device: Poller, items: list[tuple[str, Any]]) -> list[WriteOp]:
-    """Normalize, encode and group a batch of writes (raises ValueError naming the item).
-
-    Contiguous registers (or coils) of one area are merged into one request, up to the
-    protocol's limits; bit-in-register items are written one by one.
-    """
-    if not items:
-        raise ValueError("nothing to write")
-    seen: set[str] = set()
-    single: list[WriteOp] = []
-    for name, raw in items:
-        state = device.by_name.get(name)
-        if state is None:
-            raise ValueError(f"unknown item {name!r}")
-        if name in seen:
-            raise ValueError(f"{name}: written twice in one batch")
-        seen.add(name)
-        if not state.area.writable:
-            raise ValueError(
-                f"{name}: {state.item.address} is a read-only "
-                f"{'discrete input' if state.area.is_bit else 'input register'}; "
-                "only coils and holding registers can be written"
-            )
-        spec = state.spec
-        value = normalize_value(name, spec.converted_type or spec.data_type, raw)
-        if state.area is Area.COIL or state.bit is not None:
-            on = bool(encode(spec, value)[0])
-            raw_bit = None if state.bit is None else register_bit(spec)
-            single.append(WriteOp(state.area, state.offset, bits=[on], bit=raw_bit,
-                                  updates=[(state, on)]))
-            continue
-        registers = encode(spec, value)
-        decoded = BlockDecoder(state.area, len(registers), [(0, spec)]).decode_values(
-            Block.from_values(registers, bits=False)
-        )[0]
-        single.append(WriteOp(state.area, state.offset, registers=registers,
-                              updates=[(state, decoded)]))
-    return _merge(single)
-
-
-def _merge(ops: list[WriteOp]) -> list[WriteOp]:
-    ops.sort(key=lambda o: (o.area.value, o.address))
-    merged: list[WriteOp] = []
-    for op in ops:
-        last = merged[-1] if merged else None
-        if last is not None and last.area is op.area and last.bit is None and op.bit is None:
-            if op.area is Area.COIL and last.address + len(last.bits) == op.address and len(
-                last.bits
-            ) < _MAX_WRITE_COILS:
-                last.bits.extend(op.bits)
-                last.updates.extend(op.updates)
-                continue
-            if op.area is Area.HOLDING_REGISTER and (
-                last.address + len(last.registers) == op.address
-                and len(last.registers) + len(op.registers) <= _MAX_WRITE_REGISTERS
-            ):
-                last.registers.extend(op.registers)
-                last.updates.extend(op.updates)
-                continue
-        merged.append(op)
-    return merged
-
-
 _REPORT_AREAS = {area.read_function: area for area in Area}  # FC01-04 of a report
 
 _OK = ItemStatus.OK
 _INVALID = ItemStatus.INVALID
-_RUNTIME_FIELDS = ("value", "status", "update_ts", "error_reason")
-
-
-def _set_item(
-    item: DeviceAddressItem, value: Any, error: str | None, now: datetime
-) -> DeviceAddressItem:
-    """Store a read result: the value and Ok, or Invalid with the reason (the last good
-    value stays).  Writes the item's ``__dict__`` directly: these runtime fields are not
-    validated on assignment, and pydantic's ``__setattr__`` (with its fields-set
-    bookkeeping) costs several times more on the hot path and memory per item."""
-    fields = item.__dict__
-    if error is None:
-        fields["value"] = value
-        if fields["status"] is not _OK:
-            fields["status"] = _OK
-        if fields["error_reason"] is not None:
-            fields["error_reason"] = None
-    else:
-        fields["status"] = _INVALID
-        fields["error_reason"] = error
-    fields["update_ts"] = now
-    return item
-
-
-def _same(held: Any, value: Any) -> bool:
-    """Whether an item's value is exactly ``value`` (same type; NaN matches NaN)."""
-    return type(held) is type(value) and (held == value or (held != held and value != value))
-
-
-def _holds(item: DeviceAddressItem, value: Any, error: str | None) -> bool:
-    """Whether ``item`` is already Ok with ``value``: a change the decoder sees against
-    its own last report (e.g. after a confirmed write) that is no news to the host."""
-    return error is None and item.status is _OK and _same(item.value, value)
-
-
-def _news(state: ItemState, value: Any, error: str | None) -> bool:
-    """Whether a decoded result differs from what the item holds, as the change mode
-    reports it: another error reason, or a value not exactly the held one and, for
-    numbers with a deadband, more than the deadband away from it."""
-    item = state.item
-    if error is not None:
-        return item.status is not _INVALID or item.error_reason != error
-    if item.status is not _OK:
-        return True
-    held = item.value
-    if _same(held, value):
-        return False
-    deadband = state.spec.deadband
-    if deadband and _is_number(held) and _is_number(value):
-        return not abs(value - held) <= deadband
-    return True
-
-
-def _is_number(value: Any) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool)
-
-
-def _copy_runtime(src: DeviceAddressItem, dst: DeviceAddressItem) -> None:
-    for name in _RUNTIME_FIELDS:
-        dst.__dict__[name] = src.__dict__[name]
-
-
-def _status_text(status: Any) -> str:
-    return str(getattr(status, "value", status))
