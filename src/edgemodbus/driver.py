@@ -1,10 +1,12 @@
 """DriverModbusRtu: one Modbus device (slave) polled on a shared line.
 
-The contract is the seed's ``DriverModbusRtu`` in the Python form of DESIGN.md: start,
-stop, hot update of the address list, writes (blocking and asyncio), callbacks,
-status, snapshot and stats.  Polling runs on the line's worker thread
-(:mod:`edgemodbus.line.worker`); this module plans, decodes through the C codec, keeps item
-state and isolates faults per slave.
+The contract (README.md): start, stop, hot update of the address list, writes
+(blocking and asyncio), callbacks, status, snapshot and stats.  This module is a
+facade: it checks the configuration, acquires the line (:mod:`edgemodbus.line`) and
+hands it a :class:`~edgemodbus.poll.poller.Poller`, which plans, decodes, keeps item
+state and isolates faults on the line's worker thread.  The poller reports through a
+sink (:class:`~edgemodbus.poll.sink.PollSink`) the driver gives it, never through the
+driver itself.
 """
 
 from __future__ import annotations
@@ -24,7 +26,7 @@ from .config import (
     validate_items,
     validate_parameters,
 )
-from .datatypes import Area, DeviceDriverStatus
+from .datatypes import DeviceDriverStatus
 from .line import (
     DtuEndpoint,
     DtuRegistry,
@@ -32,7 +34,6 @@ from .line import (
     LineRegistry,
     LineTiming,
     LineWorker,
-    Link,
     PortSettings,
     SerialPort,
     TcpEndpoint,
@@ -64,8 +65,8 @@ class DriverModbusRtu:
         self.address_updated_callback: ItemCallback | None = None
         self.addresses_updated_callback: BatchCallback | None = None
         self.snapshot_publisher: SnapshotPublisher | None = None
-        self._device: Poller | None = None
-        self._last_device: Poller | None = None  # keeps stats and snapshot after a stop
+        self._poller: Poller | None = None
+        self._last_poller: Poller | None = None  # keeps stats and snapshot after a stop
         self._bus: LineWorker | None = None
         self._slot: DtuSlot | None = None  # listen mode: this device's DTU
         self._line_stats: dict[str, Any] = {}
@@ -87,7 +88,7 @@ class DriverModbusRtu:
         item, field, value and what is allowed) or a line already open with other serial
         settings.  Everything is checked (items, codec specs, read plan, endpoint) before
         a line is acquired: a failed start leaves no thread, socket or line behind."""
-        if self._device is not None:
+        if self._poller is not None:
             self.logger.warning("%s: start_device: already running", self._code(org_param))
             return False
         validate_parameters(org_param, comm_param)
@@ -104,28 +105,28 @@ class DriverModbusRtu:
         timing = _timing(params)
         # builds the items' codec specs, the plan and its decoders: raises here, not
         # after the line's worker is running
-        device = Poller(_Sink(self, code), code, params, parsed, self.logger)
+        poller = Poller(_Sink(self, code), code, params, parsed, self.logger)
         if params.read_cycle == 0 and params.framing != "wrapped-report":
             self.logger.warning("%s: readCycle 0 means report-only, but framing is %r: "
                                 "nothing will update this device's items",
                                 code, params.framing)
-        bus, slot = self._acquire(params, endpoint, timing, device)
+        bus, slot = self._acquire(params, endpoint, timing, poller)
         self._org, self._params, self._enabled = org_param, params, True
         self._slot = slot
-        self._bus, self._device, self._last_device = bus, device, None
+        self._bus, self._poller, self._last_poller = bus, poller, None
         self._status = DeviceDriverStatus.CONNECTING
         self.logger.info(
             "%s: polling slave %d on %s every %d ms (%d items, %d blocks)",
-            device.code, params.slave_id, endpoint.describe(), params.read_cycle,
-            len(parsed), len(device.plan),
+            poller.code, params.slave_id, endpoint.describe(), params.read_cycle,
+            len(parsed), len(poller.plan),
         )
         return True
 
     def _acquire(
         self, params: DriverModbusRtuParameter, endpoint: SerialPort | TcpEndpoint | DtuEndpoint,
-        timing: LineTiming, device: Poller,
+        timing: LineTiming, poller: Poller,
     ) -> tuple[LineWorker, DtuSlot | None]:
-        """Acquire the line (and the DTU slot in listen mode) and attach ``device``;
+        """Acquire the line (and the DTU slot in listen mode) and attach ``poller``;
         on any failure release what was acquired and re-raise."""
         slot: DtuSlot | None = None
         bus: LineWorker | None = None
@@ -137,11 +138,11 @@ class DriverModbusRtu:
                 slot.attach(bus)
             else:
                 bus = self.registry.acquire(endpoint, timing)
-            device.start(bus)
+            poller.start(bus)
         except BaseException:
-            device.stop()
+            poller.stop()
             if bus is not None:
-                bus.detach(device)
+                bus.detach(poller)
                 self.registry.release(bus)
             if slot is not None:
                 self.dtu_registry.release(slot)
@@ -150,20 +151,20 @@ class DriverModbusRtu:
 
     def stop_device(self) -> bool:
         """Stop polling; pending writes of this device fail.  False if it was not running."""
-        device, bus = self._device, self._bus
-        if device is None or bus is None:
+        poller, bus = self._poller, self._bus
+        if poller is None or bus is None:
             return False
-        device.stop()
-        bus.detach(device)
+        poller.stop()
+        bus.detach(poller)
         self._line_stats = bus.stats.as_dict()
-        self._device = self._bus = None
-        self._last_device = device
+        self._poller = self._bus = None
+        self._last_poller = poller
         self.registry.release(bus)
         slot, self._slot = self._slot, None
         if slot is not None:
             self.dtu_registry.release(slot)
         self._status = DeviceDriverStatus.STOPPED
-        self.logger.info("%s: stopped", device.code)
+        self.logger.info("%s: stopped", poller.code)
         return True
 
     def update_addresses(self, addresses: Sequence[DeviceAddressItem]) -> None:
@@ -173,22 +174,19 @@ class DriverModbusRtu:
         if self._params is None:
             raise RuntimeError("update_addresses before start_device")
         parsed = validate_items(list(addresses), self._params)
-        if self._device is None:
+        if self._poller is None:
             return
         # a trial build of the specs, plan and decoders: a list the codec or the planner
         # refuses raises here and the running device keeps its items and plan
-        Poller(self._device.sink, self._device.code, self._params, parsed, self.logger)
-        self._device.replace_items(parsed).result()
+        Poller(self._poller.sink, self._poller.code, self._params, parsed, self.logger)
+        self._poller.replace_items(parsed).result()
 
     # -- status --------------------------------------------------------------------------
     @property
     def device_driver_status(self) -> DeviceDriverStatus:
-        if self._device is not None:
-            return self._device.status
+        if self._poller is not None:
+            return self._poller.status
         return self._status
-
-    def _set_status(self, status: DeviceDriverStatus) -> None:
-        self._status = status
 
     @property
     def is_enable(self) -> bool:
@@ -196,19 +194,19 @@ class DriverModbusRtu:
 
     @property
     def data_item_count(self) -> int:
-        device = self._device or self._last_device
-        return len(device.items) if device is not None else 0
+        poller = self._poller or self._last_poller
+        return len(poller.items) if poller is not None else 0
 
     def read_plan(self) -> list[dict[str, Any]]:
         """The read blocks in force: area, start, count and the names of their items."""
-        if self._device is None:
+        if self._poller is None:
             return []
-        return [_block_dict(b, self._device.items) for b in self._device.plan]
+        return [_block_dict(b, self._poller.items) for b in self._poller.plan]
 
     def snapshot(self) -> dict[str, Any]:
-        """The seed's runtime snapshot (JSON-able, camelCase keys)."""
-        device = self._device or self._last_device
-        items = device.items if device is not None else []
+        """The runtime snapshot (JSON-able, camelCase keys)."""
+        poller = self._poller or self._last_poller
+        items = poller.items if poller is not None else []
         params = self._params
         return {
             "deviceCode": self._code(self._org),
@@ -220,10 +218,10 @@ class DriverModbusRtu:
 
     def stats(self) -> dict[str, Any]:
         """Counters of this device and of its line (camelCase keys)."""
-        device = self._device or self._last_device
-        if device is None:
+        poller = self._poller or self._last_poller
+        if poller is None:
             return {"deviceDriverStatus": self.device_driver_status.value}
-        result = device.counters.as_dict()
+        result = poller.counters.as_dict()
         line = self._bus.stats.as_dict() if self._bus is not None else self._line_stats
         result["reconnects"] = line.get("reconnects", 0)
         result["avgRoundTrip"] = line.get("avgRoundTrip", 0.0)
@@ -265,14 +263,14 @@ class DriverModbusRtu:
             return False, str(exc)
 
     def _prepare_writes(self, items: Iterable[tuple[str, Any]]) -> Future[Any] | str:
-        device = self._device
-        if device is None:
+        poller = self._poller
+        if poller is None:
             return "device is not running"
         try:
-            ops: list[WriteOp] = plan_writes(device.by_name, list(items))
+            ops: list[WriteOp] = plan_writes(poller.by_name, list(items))
         except ValueError as exc:
             return str(exc)
-        return device.submit_writes(ops)
+        return poller.submit_writes(ops)
 
     # -- helpers -------------------------------------------------------------------------
     def _code(self, org: DeviceOrganizationParameter | None) -> str:
@@ -286,6 +284,7 @@ class DriverModbusRtu:
             publisher(f"/real/{code}", self.snapshot())
         except Exception:
             self.logger.exception("%s: snapshot publisher failed", code)
+
 
 class _Sink:
     """The driver as its poller sees it (a :class:`~edgemodbus.poll.sink.PollSink`): the
@@ -357,5 +356,3 @@ def _block_dict(block: ReadBlock, items: Sequence[ItemState]) -> dict[str, Any]:
         "items": names,
     }
 
-
-__all__ = ["Area", "DriverModbusRtu", "Link"]

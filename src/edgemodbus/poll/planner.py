@@ -1,15 +1,16 @@
 """Read planner: items -> as few read requests (blocks) as the merge rules allow.
 
-Pure and I/O-free.  The driver filters out disabled items and groups by slave before
-calling :func:`plan_reads`; the planner only knows areas, offsets and sizes.
+Pure and I/O-free.  Each slave has its own poller, whose ``build_plan`` filters out
+disabled items before calling :func:`plan_reads`; the planner only knows areas, offsets
+and sizes.
 
-Rules (DESIGN.md "Planner"): per area, items sorted by offset (ties keep input order);
-a block grows while ``next.offset - block.end <= max_gap`` (end exclusive, so contiguous
-items have gap 0 and overlapping items share registers) and its span stays within the
-limit (``max_registers`` capped at 125, ``max_bits`` capped at 2000).  ``continuous``
-forces gap 0.  Areas never merge (FC03 and FC04 are different areas).  An item larger
-than the limit gets blocks of its own and is read in pieces; its :class:`Piece` entries
-say how to reassemble it.  Output order: by area value, then start.
+Rules: per area, items sorted by offset (ties keep input order); a block grows while
+``next.offset - block.end <= max_gap`` (end exclusive, so contiguous items have gap 0
+and overlapping items share registers) and its span stays within the limit
+(``max_registers`` capped at 125, ``max_bits`` capped at 2000).  ``continuous`` forces
+gap 0.  Areas never merge (FC03 and FC04 are different areas).  An item larger than the
+limit gets blocks of its own and is read in pieces; its :class:`Piece` entries say how
+to reassemble it.  Output order: by area value, then start.
 """
 
 from __future__ import annotations
