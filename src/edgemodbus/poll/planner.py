@@ -137,7 +137,7 @@ def plan_reads(
 ) -> list[ReadBlock]:
     """Plan the read requests that cover every item exactly once (see module doc).
 
-    ``items`` must have distinct keys and lie within 0..65535; the driver passes only
+    ``items`` must have distinct keys and lie within 0..65535; the poller passes only
     enabled items.  Raises ValueError for a bad item or setting.
     """
     limits = make_limits(max_registers, max_bits, max_gap, continuous)
@@ -216,7 +216,7 @@ def _shrink(block: ReadBlock, indexes: list[int]) -> ReadBlock:
 
 def bisect_block(block: ReadBlock) -> list[ReadBlock]:
     """Split a block of several pieces into two blocks of about half the pieces each
-    (by position), each shrunk to its pieces' span.  The driver recurses on a block
+    (by position), each shrunk to its pieces' span.  The poller recurses on a block
     answered with exception 02 until the bad single items are found.  A block of one
     piece comes back alone, unchanged."""
     pieces = block.pieces

@@ -51,8 +51,9 @@ class WriteOp:
 def plan_writes(by_name: Mapping[str, ItemState], items: list[tuple[str, Any]]) -> list[WriteOp]:
     """Normalize, encode and group a batch of writes (raises ValueError naming the item).
 
-    Contiguous registers (or coils) of one area are merged into one request, up to the
-    protocol's limits; bit-in-register items are written one by one.
+    ``by_name`` holds the device's items (``Poller.by_name``).  Contiguous registers (or
+    coils) of one area are merged into one request, up to the protocol's limits;
+    bit-in-register items are written one by one.
     """
     if not items:
         raise ValueError("nothing to write")
