@@ -54,7 +54,7 @@ class DriverModbusRtu:
     """A Modbus RTU / RTU-over-TCP / Modbus TCP device driver (one slave).
 
     Drivers whose lines are the same (same serial port, or same host:port) share one
-    bus worker; that is how many slaves on one RS-485 line are polled.
+    line worker; that is how many slaves on one RS-485 line are polled.
     """
 
     logger: ClassVar[logging.Logger] = logging.getLogger("edgemodbus.driver")
@@ -67,7 +67,7 @@ class DriverModbusRtu:
         self.snapshot_publisher: SnapshotPublisher | None = None
         self._poller: Poller | None = None
         self._last_poller: Poller | None = None  # keeps stats and snapshot after a stop
-        self._bus: LineWorker | None = None
+        self._line: LineWorker | None = None
         self._slot: DtuSlot | None = None  # listen mode: this device's DTU
         self._line_stats: dict[str, Any] = {}
         self._status = DeviceDriverStatus.STOPPED
@@ -110,10 +110,10 @@ class DriverModbusRtu:
             self.logger.warning("%s: readCycle 0 means report-only, but framing is %r: "
                                 "nothing will update this device's items",
                                 code, params.framing)
-        bus, slot = self._acquire(params, endpoint, timing, poller)
+        line, slot = self._acquire(params, endpoint, timing, poller)
         self._org, self._params, self._enabled = org_param, params, True
         self._slot = slot
-        self._bus, self._poller, self._last_poller = bus, poller, None
+        self._line, self._poller, self._last_poller = line, poller, None
         self._status = DeviceDriverStatus.CONNECTING
         self.logger.info(
             "%s: polling slave %d on %s every %d ms (%d items, %d blocks)",
@@ -129,37 +129,37 @@ class DriverModbusRtu:
         """Acquire the line (and the DTU slot in listen mode) and attach ``poller``;
         on any failure release what was acquired and re-raise."""
         slot: DtuSlot | None = None
-        bus: LineWorker | None = None
+        line: LineWorker | None = None
         try:
             if isinstance(endpoint, DtuEndpoint):
                 slot = self.dtu_registry.acquire(_port_settings(params), endpoint)
                 dtu_slot = slot
-                bus = self.registry.acquire(endpoint, timing, connector=lambda: dtu_slot)
-                slot.attach(bus)
+                line = self.registry.acquire(endpoint, timing, connector=lambda: dtu_slot)
+                slot.attach(line)
             else:
-                bus = self.registry.acquire(endpoint, timing)
-            poller.start(bus)
+                line = self.registry.acquire(endpoint, timing)
+            poller.start(line)
         except BaseException:
             poller.stop()
-            if bus is not None:
-                bus.detach(poller)
-                self.registry.release(bus)
+            if line is not None:
+                line.detach(poller)
+                self.registry.release(line)
             if slot is not None:
                 self.dtu_registry.release(slot)
             raise
-        return bus, slot
+        return line, slot
 
     def stop_device(self) -> bool:
         """Stop polling; pending writes of this device fail.  False if it was not running."""
-        poller, bus = self._poller, self._bus
-        if poller is None or bus is None:
+        poller, line = self._poller, self._line
+        if poller is None or line is None:
             return False
         poller.stop()
-        bus.detach(poller)
-        self._line_stats = bus.stats.as_dict()
-        self._poller = self._bus = None
+        line.detach(poller)
+        self._line_stats = line.stats.as_dict()
+        self._poller = self._line = None
         self._last_poller = poller
-        self.registry.release(bus)
+        self.registry.release(line)
         slot, self._slot = self._slot, None
         if slot is not None:
             self.dtu_registry.release(slot)
@@ -222,7 +222,7 @@ class DriverModbusRtu:
         if poller is None:
             return {"deviceDriverStatus": self.device_driver_status.value}
         result = poller.counters.as_dict()
-        line = self._bus.stats.as_dict() if self._bus is not None else self._line_stats
+        line = self._line.stats.as_dict() if self._line is not None else self._line_stats
         result["reconnects"] = line.get("reconnects", 0)
         result["avgRoundTrip"] = line.get("avgRoundTrip", 0.0)
         result["line"] = line
@@ -237,8 +237,8 @@ class DriverModbusRtu:
     def write_addresses(self, items: Iterable[tuple[str, Any]]) -> tuple[bool, str | None]:
         """Write several items, merging contiguous registers (or coils) of one area into
         as few requests as possible.  (False, reasons) if any write failed."""
-        bus = self._bus
-        if bus is not None and bus.on_worker():
+        line = self._line
+        if line is not None and line.on_worker():
             return False, (
                 "write_address(es) called on the bus worker (from a callback) cannot wait "
                 "for its own line: use write_address(es)_async, or write from another thread"

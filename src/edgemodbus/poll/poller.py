@@ -1,6 +1,6 @@
 """One polled slave on a line: its read cycle and fault handling.
 
-A :class:`Poller` is a bus poller: the line's worker thread calls ``poll_step`` when it
+A :class:`Poller` is attached to its line: the line's worker calls ``poll_step`` when it
 is due, and each step reads one planned block, so writes queued by other threads run
 between two blocks.  What it reads goes to its owner through a :class:`PollSink`.
 Faults are handled per slave:
@@ -39,8 +39,7 @@ from ..errors import (
     ModbusTimeoutError,
     ProtocolError,
 )
-from ..line import LineWorker as Bus  # the poller's line; renamed when device.py moves
-from ..line import Link
+from ..line import LineWorker, Link
 from .counters import CYCLE_BUCKETS, Counters
 from .items import Assembly, ItemState, Slot, copy_runtime, is_news, set_item
 from .planner import Piece, PlanItem, ReadBlock, bisect_block, plan_reads
@@ -53,7 +52,7 @@ if TYPE_CHECKING:
 
 
 class Poller:
-    """The poller of one slave.  All state below is touched by the bus worker only,
+    """The poller of one slave.  All state below is touched by the line's worker only,
     except ``status``, ``items`` and ``counters`` which other threads read."""
 
     def __init__(
@@ -82,7 +81,7 @@ class Poller:
         self.writer = Writer(code, params, logger, self.counters, self.delivery)
         self.status = DeviceDriverStatus.CONNECTING
         self.active = False
-        self.bus: Bus | None = None
+        self.line: LineWorker | None = None
         self.items: list[ItemState] = []
         self.by_name: dict[str, ItemState] = {}
         self.slots: list[Slot] = []
@@ -106,11 +105,11 @@ class Poller:
         return [slot.block for slot in self.slots]
 
     # -- lifecycle ---------------------------------------------------------------------
-    def start(self, bus: Bus) -> None:
-        self.bus = bus
+    def start(self, line: LineWorker) -> None:
+        self.line = line
         self.active = True
         self.due = math.inf if self.report_only else time.monotonic()
-        bus.attach(self)
+        line.attach(self)
 
     def stop(self) -> None:
         self.active = False
@@ -159,19 +158,19 @@ class Poller:
 
     def replace_items(self, parsed: Sequence[ParsedItem]) -> Future[None]:
         """Swap in a new address list on the worker, between two reads."""
-        assert self.bus is not None
+        assert self.line is not None
 
         def swap(_link: Link | None = None) -> None:
             self._install(parsed)
             self.index = 0
             self.due = math.inf if self.report_only else time.monotonic()
 
-        if self.bus.on_worker():  # from a callback: the worker is between two reads
+        if self.line.on_worker():  # from a callback: the worker is between two reads
             swap()
             done: Future[None] = Future()
             done.set_result(None)
             return done
-        return self.bus.submit(swap)
+        return self.line.submit(swap)
 
     # -- the Poller protocol -----------------------------------------------------------
     def link_changed(self, up: bool, reason: str | None) -> None:
@@ -299,7 +298,7 @@ class Poller:
             return
         slots = self.slots
         if isinstance(error, ModbusConnectionError):
-            self.index = 0  # the bus reports the link as down and reconnects
+            self.index = 0  # the line reports the link as down and reconnects
         elif isinstance(error, ModbusTimeoutError):
             reason = f"device not responding: {error}"
             counters.skipped_blocks += len(slots) - self.index - 1
@@ -445,11 +444,11 @@ class Poller:
 
     # -- writes --------------------------------------------------------------------------
     def submit_writes(self, ops: list[WriteOp]) -> Future[tuple[bool, str | None]]:
-        assert self.bus is not None
-        future = self.bus.submit(lambda link: self._run_writes(link, ops))
+        assert self.line is not None
+        future = self.line.submit(lambda link: self._run_writes(link, ops))
 
         def count_unsent(done: Future[tuple[bool, str | None]]) -> None:
-            # the bus failed the job without running it (link down, bus stopped): the
+            # the line failed the job without running it (link down, line stopped): the
             # writes were not sent, and still count as failed writes
             if done.cancelled() or done.exception() is not None:
                 self.counters.writes += len(ops)
