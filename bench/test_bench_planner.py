@@ -11,7 +11,7 @@ import random
 from pytest_benchmark.fixture import BenchmarkFixture
 
 from edgemodbus.datatypes import Area
-from edgemodbus.planner import PlanItem, ReadBlock, plan_reads
+from edgemodbus.poll.planner import PlanItem, ReadBlock, plan_reads
 
 QUICK = os.environ.get("EDGEMODBUS_BENCH_QUICK") == "1"
 N_ITEMS = 100_000

@@ -30,10 +30,10 @@ from .config import (
 )
 from .datatypes import Area, ItemStatus
 from .descriptor import driver_descriptor
-from .device import build_plan
 from .driver import DriverModbusRtu
 from .gateway.run import add_arguments as add_service_arguments
 from .logs import configure_logging
+from .poll.poller import build_plan
 from .protocol.address import parse_address
 from .sim.cli import DESCRIPTION as SIMULATOR
 from .sim.cli import add_arguments as add_simulator_arguments

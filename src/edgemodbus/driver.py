@@ -1,10 +1,12 @@
 """DriverModbusRtu: one Modbus device (slave) polled on a shared line.
 
-The contract is the seed's ``DriverModbusRtu`` in the Python form of DESIGN.md: start,
-stop, hot update of the address list, writes (blocking and asyncio), callbacks,
-status, snapshot and stats.  Polling runs on the line's worker thread
-(:mod:`edgemodbus.line.worker`); this module plans, decodes through the C codec, keeps item
-state and isolates faults per slave.
+The contract (README.md): start, stop, hot update of the address list, writes
+(blocking and asyncio), callbacks, status, snapshot and stats.  This module is a
+facade: it checks the configuration, acquires the line (:mod:`edgemodbus.line`) and
+hands it a :class:`~edgemodbus.poll.poller.Poller`, which plans, decodes, keeps item
+state and isolates faults on the line's worker thread.  The poller reports through a
+sink (:class:`~edgemodbus.poll.sink.PollSink`) the driver gives it, never through the
+driver itself.
 """
 
 from __future__ import annotations
@@ -24,8 +26,7 @@ from .config import (
     validate_items,
     validate_parameters,
 )
-from .datatypes import Area, DeviceDriverStatus
-from .device import Device, ItemState, WriteOp, plan_writes
+from .datatypes import DeviceDriverStatus
 from .line import (
     DtuEndpoint,
     DtuRegistry,
@@ -33,7 +34,6 @@ from .line import (
     LineRegistry,
     LineTiming,
     LineWorker,
-    Link,
     PortSettings,
     SerialPort,
     TcpEndpoint,
@@ -41,10 +41,12 @@ from .line import (
     endpoint_for,
     line_registry,
 )
-from .planner import ReadBlock
+from .poll.items import ItemState
+from .poll.planner import ReadBlock
+from .poll.poller import Poller
+from .poll.sink import BatchCallback, ItemCallback
+from .poll.writes import WriteOp, plan_writes
 
-Callback = Callable[[DeviceAddressItem], None]
-BatchCallback = Callable[[list[DeviceAddressItem]], None]
 SnapshotPublisher = Callable[[str, dict[str, Any]], None]
 
 
@@ -52,7 +54,7 @@ class DriverModbusRtu:
     """A Modbus RTU / RTU-over-TCP / Modbus TCP device driver (one slave).
 
     Drivers whose lines are the same (same serial port, or same host:port) share one
-    bus worker; that is how many slaves on one RS-485 line are polled.
+    line worker; that is how many slaves on one RS-485 line are polled.
     """
 
     logger: ClassVar[logging.Logger] = logging.getLogger("edgemodbus.driver")
@@ -60,12 +62,12 @@ class DriverModbusRtu:
     dtu_registry: ClassVar[DtuRegistry] = dtu_registry
 
     def __init__(self) -> None:
-        self.address_updated_callback: Callback | None = None
+        self.address_updated_callback: ItemCallback | None = None
         self.addresses_updated_callback: BatchCallback | None = None
         self.snapshot_publisher: SnapshotPublisher | None = None
-        self._device: Device | None = None
-        self._last_device: Device | None = None  # keeps stats and snapshot after a stop
-        self._bus: LineWorker | None = None
+        self._poller: Poller | None = None
+        self._last_poller: Poller | None = None  # keeps stats and snapshot after a stop
+        self._line: LineWorker | None = None
         self._slot: DtuSlot | None = None  # listen mode: this device's DTU
         self._line_stats: dict[str, Any] = {}
         self._status = DeviceDriverStatus.STOPPED
@@ -86,7 +88,7 @@ class DriverModbusRtu:
         item, field, value and what is allowed) or a line already open with other serial
         settings.  Everything is checked (items, codec specs, read plan, endpoint) before
         a line is acquired: a failed start leaves no thread, socket or line behind."""
-        if self._device is not None:
+        if self._poller is not None:
             self.logger.warning("%s: start_device: already running", self._code(org_param))
             return False
         validate_parameters(org_param, comm_param)
@@ -103,66 +105,66 @@ class DriverModbusRtu:
         timing = _timing(params)
         # builds the items' codec specs, the plan and its decoders: raises here, not
         # after the line's worker is running
-        device = Device(self, code, params, parsed, self.logger)
+        poller = Poller(_Sink(self, code), code, params, parsed, self.logger)
         if params.read_cycle == 0 and params.framing != "wrapped-report":
             self.logger.warning("%s: readCycle 0 means report-only, but framing is %r: "
                                 "nothing will update this device's items",
                                 code, params.framing)
-        bus, slot = self._acquire(params, endpoint, timing, device)
+        line, slot = self._acquire(params, endpoint, timing, poller)
         self._org, self._params, self._enabled = org_param, params, True
         self._slot = slot
-        self._bus, self._device, self._last_device = bus, device, None
+        self._line, self._poller, self._last_poller = line, poller, None
         self._status = DeviceDriverStatus.CONNECTING
         self.logger.info(
             "%s: polling slave %d on %s every %d ms (%d items, %d blocks)",
-            device.code, params.slave_id, endpoint.describe(), params.read_cycle,
-            len(parsed), len(device.plan),
+            poller.code, params.slave_id, endpoint.describe(), params.read_cycle,
+            len(parsed), len(poller.plan),
         )
         return True
 
     def _acquire(
         self, params: DriverModbusRtuParameter, endpoint: SerialPort | TcpEndpoint | DtuEndpoint,
-        timing: LineTiming, device: Device,
+        timing: LineTiming, poller: Poller,
     ) -> tuple[LineWorker, DtuSlot | None]:
-        """Acquire the line (and the DTU slot in listen mode) and attach ``device``;
+        """Acquire the line (and the DTU slot in listen mode) and attach ``poller``;
         on any failure release what was acquired and re-raise."""
         slot: DtuSlot | None = None
-        bus: LineWorker | None = None
+        line: LineWorker | None = None
         try:
             if isinstance(endpoint, DtuEndpoint):
                 slot = self.dtu_registry.acquire(_port_settings(params), endpoint)
                 dtu_slot = slot
-                bus = self.registry.acquire(endpoint, timing, connector=lambda: dtu_slot)
-                slot.attach(bus)
+                line = self.registry.acquire(endpoint, timing, connector=lambda: dtu_slot)
+                slot.attach(line)
             else:
-                bus = self.registry.acquire(endpoint, timing)
-            device.start(bus)
+                line = self.registry.acquire(endpoint, timing)
+            poller.start(line)
         except BaseException:
-            device.stop()
-            if bus is not None:
-                bus.detach(device)
-                self.registry.release(bus)
+            poller.stop()
+            if line is not None:
+                line.detach(poller)
+                self.registry.release(line)
             if slot is not None:
                 self.dtu_registry.release(slot)
             raise
-        return bus, slot
+        return line, slot
 
     def stop_device(self) -> bool:
         """Stop polling; pending writes of this device fail.  False if it was not running."""
-        device, bus = self._device, self._bus
-        if device is None or bus is None:
+        poller, line = self._poller, self._line
+        if poller is None or line is None:
             return False
-        device.stop()
-        bus.detach(device)
-        self._line_stats = bus.stats.as_dict()
-        self._device = self._bus = None
-        self._last_device = device
-        self.registry.release(bus)
+        poller.stop()
+        line.detach(poller)
+        self._line_stats = line.stats.as_dict()
+        self._poller = self._line = None
+        self._last_poller = poller
+        self.registry.release(line)
         slot, self._slot = self._slot, None
         if slot is not None:
             self.dtu_registry.release(slot)
         self._status = DeviceDriverStatus.STOPPED
-        self.logger.info("%s: stopped", device.code)
+        self.logger.info("%s: stopped", poller.code)
         return True
 
     def update_addresses(self, addresses: Sequence[DeviceAddressItem]) -> None:
@@ -172,22 +174,19 @@ class DriverModbusRtu:
         if self._params is None:
             raise RuntimeError("update_addresses before start_device")
         parsed = validate_items(list(addresses), self._params)
-        if self._device is None:
+        if self._poller is None:
             return
         # a trial build of the specs, plan and decoders: a list the codec or the planner
         # refuses raises here and the running device keeps its items and plan
-        Device(self, self._device.code, self._params, parsed, self.logger)
-        self._device.replace_items(parsed).result()
+        Poller(self._poller.sink, self._poller.code, self._params, parsed, self.logger)
+        self._poller.replace_items(parsed).result()
 
     # -- status --------------------------------------------------------------------------
     @property
     def device_driver_status(self) -> DeviceDriverStatus:
-        if self._device is not None:
-            return self._device.status
+        if self._poller is not None:
+            return self._poller.status
         return self._status
-
-    def _set_status(self, status: DeviceDriverStatus) -> None:
-        self._status = status
 
     @property
     def is_enable(self) -> bool:
@@ -195,19 +194,19 @@ class DriverModbusRtu:
 
     @property
     def data_item_count(self) -> int:
-        device = self._device or self._last_device
-        return len(device.items) if device is not None else 0
+        poller = self._poller or self._last_poller
+        return len(poller.items) if poller is not None else 0
 
     def read_plan(self) -> list[dict[str, Any]]:
         """The read blocks in force: area, start, count and the names of their items."""
-        if self._device is None:
+        if self._poller is None:
             return []
-        return [_block_dict(b, self._device.items) for b in self._device.plan]
+        return [_block_dict(b, self._poller.items) for b in self._poller.plan]
 
     def snapshot(self) -> dict[str, Any]:
-        """The seed's runtime snapshot (JSON-able, camelCase keys)."""
-        device = self._device or self._last_device
-        items = device.items if device is not None else []
+        """The runtime snapshot (JSON-able, camelCase keys)."""
+        poller = self._poller or self._last_poller
+        items = poller.items if poller is not None else []
         params = self._params
         return {
             "deviceCode": self._code(self._org),
@@ -219,11 +218,11 @@ class DriverModbusRtu:
 
     def stats(self) -> dict[str, Any]:
         """Counters of this device and of its line (camelCase keys)."""
-        device = self._device or self._last_device
-        if device is None:
+        poller = self._poller or self._last_poller
+        if poller is None:
             return {"deviceDriverStatus": self.device_driver_status.value}
-        result = device.counters.as_dict()
-        line = self._bus.stats.as_dict() if self._bus is not None else self._line_stats
+        result = poller.counters.as_dict()
+        line = self._line.stats.as_dict() if self._line is not None else self._line_stats
         result["reconnects"] = line.get("reconnects", 0)
         result["avgRoundTrip"] = line.get("avgRoundTrip", 0.0)
         result["line"] = line
@@ -238,8 +237,8 @@ class DriverModbusRtu:
     def write_addresses(self, items: Iterable[tuple[str, Any]]) -> tuple[bool, str | None]:
         """Write several items, merging contiguous registers (or coils) of one area into
         as few requests as possible.  (False, reasons) if any write failed."""
-        bus = self._bus
-        if bus is not None and bus.on_worker():
+        line = self._line
+        if line is not None and line.on_worker():
             return False, (
                 "write_address(es) called on the bus worker (from a callback) cannot wait "
                 "for its own line: use write_address(es)_async, or write from another thread"
@@ -264,27 +263,47 @@ class DriverModbusRtu:
             return False, str(exc)
 
     def _prepare_writes(self, items: Iterable[tuple[str, Any]]) -> Future[Any] | str:
-        device = self._device
-        if device is None:
+        poller = self._poller
+        if poller is None:
             return "device is not running"
         try:
-            ops: list[WriteOp] = plan_writes(device, list(items))
+            ops: list[WriteOp] = plan_writes(poller.by_name, list(items))
         except ValueError as exc:
             return str(exc)
-        return device.submit_writes(ops)
+        return poller.submit_writes(ops)
 
     # -- helpers -------------------------------------------------------------------------
     def _code(self, org: DeviceOrganizationParameter | None) -> str:
         return _device_code(org, self._params)
 
-    def _publish(self, device: Device) -> None:
+    def _publish(self, code: str) -> None:
         publisher = self.snapshot_publisher
         if publisher is None:
             return
         try:
-            publisher(f"/real/{device.code}", self.snapshot())
+            publisher(f"/real/{code}", self.snapshot())
         except Exception:
-            self.logger.exception("%s: snapshot publisher failed", device.code)
+            self.logger.exception("%s: snapshot publisher failed", code)
+
+
+class _Sink:
+    """The driver as its poller sees it (a :class:`~edgemodbus.poll.sink.PollSink`): the
+    host's callbacks, read at each delivery, and the snapshot publisher."""
+
+    __slots__ = ("_code", "_driver")
+
+    def __init__(self, driver: DriverModbusRtu, code: str) -> None:
+        self._driver = driver
+        self._code = code
+
+    def item_callback(self) -> ItemCallback | None:
+        return self._driver.address_updated_callback
+
+    def batch_callback(self) -> BatchCallback | None:
+        return self._driver.addresses_updated_callback
+
+    def snapshot_due(self) -> None:
+        self._driver._publish(self._code)
 
 
 def _device_code(
@@ -337,5 +356,3 @@ def _block_dict(block: ReadBlock, items: Sequence[ItemState]) -> dict[str, Any]:
         "items": names,
     }
 
-
-__all__ = ["Area", "DriverModbusRtu", "Link"]

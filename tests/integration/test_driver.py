@@ -6,6 +6,7 @@ from __future__ import annotations
 import asyncio
 import itertools
 import json
+import logging
 import math
 import struct
 import threading
@@ -206,8 +207,8 @@ def test_two_slaves_share_a_line_and_a_dead_one_costs_one_timeout_per_backoff(
             assert drv.start_device(cfg.organization, cfg.communication, cfg.address_list)
         wait_for(lambda: drivers[2].device_driver_status is DeviceDriverStatus.OFFLINE,
                  timeout=6, what="slave 3 offline")
-        # one bus for the three devices
-        assert drivers[0]._bus is drivers[1]._bus is drivers[2]._bus
+        # one line for the three devices
+        assert len(em.DriverModbusRtu.registry.lines()) == 1
         window = 3.0
         before = {s: drv.stats() for s, drv in zip((1, 2, 3), drivers, strict=True)}
         time.sleep(window)
@@ -339,6 +340,54 @@ def test_raising_callback_is_counted_and_polling_goes_on(slave: PymodbusSlave) -
         stats = drv.stats()
         assert stats["callbackErrors"] >= 3
         assert drv.device_driver_status is DeviceDriverStatus.RUNNING
+
+
+def test_callbacks_set_while_polling_are_called_and_their_failures_logged_and_counted(
+    slave: PymodbusSlave, caplog: pytest.LogCaptureFixture
+) -> None:
+    """The poller asks for the host's callbacks at each delivery: the item, batch and
+    snapshot callbacks set after start_device are called; each failure is logged, and
+    the item and batch ones counted; no callback time is counted before one is set."""
+    cfg = device(slave.port, [{"name": "a", "address": "hr:1", "deviceDataType": "UInt16"}],
+                 reportMode="cycle", snapshotInterval=100)
+    items: list[str] = []
+    batches: list[int] = []
+    topics: list[str] = []
+
+    def item_bug(item: em.DeviceAddressItem) -> None:
+        items.append(item.name)
+        raise RuntimeError("item callback bug")
+
+    def batch_bug(batch: list[em.DeviceAddressItem]) -> None:
+        batches.append(len(batch))
+        raise RuntimeError("batch callback bug")
+
+    def publisher_bug(topic: str, snapshot: dict[str, Any]) -> None:
+        topics.append(topic)
+        raise RuntimeError("publisher bug")
+
+    drv = em.DriverModbusRtu()
+    with caplog.at_level(logging.ERROR, logger="edgemodbus.driver"):
+        assert drv.start_device(cfg.organization, cfg.communication, cfg.address_list)
+        try:
+            wait_for(lambda: drv.stats()["cycles"] >= 2)
+            quiet = drv.stats()
+            assert (quiet["callbackErrors"], quiet["callbackTime"]) == (0, 0.0)
+            drv.address_updated_callback = item_bug
+            drv.addresses_updated_callback = batch_bug
+            drv.snapshot_publisher = publisher_bug
+            wait_for(lambda: len(items) >= 2 and len(batches) >= 2 and len(topics) >= 2)
+            assert drv.device_driver_status is DeviceDriverStatus.RUNNING
+        finally:
+            drv.stop_device()  # joins the line's worker: no callback runs after this
+    stats = drv.stats()
+    assert stats["callbackErrors"] == len(items) + len(batches)
+    assert stats["callbackTime"] > 0
+    assert set(items) == {"a"} and set(batches) == {1} and set(topics) == {"/real/dev1"}
+    logged = [r.getMessage() for r in caplog.records if r.exc_info is not None]
+    assert logged.count("dev1: address_updated_callback failed for item 'a'") == len(items)
+    assert logged.count("dev1: addresses_updated_callback failed (1 items)") == len(batches)
+    assert logged.count("dev1: snapshot publisher failed") == len(topics)
 
 
 def test_write_to_input_register_or_unknown_item_fails_at_once(slave: PymodbusSlave) -> None:

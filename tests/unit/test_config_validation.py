@@ -13,8 +13,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-import edgemodbus as em
-from edgemodbus import codec, planner
+from edgemodbus import codec
 from edgemodbus.codec import BlockDecoder
 from edgemodbus.config import (
     ConfigError,
@@ -28,7 +27,10 @@ from edgemodbus.config import (
     validate_parameters,
 )
 from edgemodbus.datatypes import Area, DataType
-from edgemodbus.device import Device, ItemState
+from edgemodbus.poll import planner
+from edgemodbus.poll.items import ItemState
+from edgemodbus.poll.poller import Poller
+from edgemodbus.poll.sink import BatchCallback, ItemCallback
 from edgemodbus.protocol import address
 
 
@@ -41,6 +43,19 @@ def errors_of(source: Any) -> list[str]:
 def field_range(model: type[Any], name: str) -> Range:
     (rng,) = [m for m in model.model_fields[name].metadata if isinstance(m, Range)]
     return rng
+
+
+class NoHost:
+    """The sink of a poller that is built and never started: nothing is delivered."""
+
+    def item_callback(self) -> ItemCallback | None:
+        return None
+
+    def batch_callback(self) -> BatchCallback | None:
+        return None
+
+    def snapshot_due(self) -> None:
+        raise AssertionError("a poller that was never started ended a cycle")
 
 
 # ----------------------------------------------------------------------------- one source of truth
@@ -143,7 +158,7 @@ def test_what_the_config_accepts_the_driver_can_build(items: list[dict[str, Any]
         state = ItemState(p)
         BlockDecoder(state.area, state.size, [(0, state.spec)])
         assert state.spec == p.value_spec()  # the config checked the spec the driver uses
-    Device(em.DriverModbusRtu(), "d", cfg.communication, parsed, logging.getLogger("test"))
+    Poller(NoHost(), "d", cfg.communication, parsed, logging.getLogger("test"))
 
 
 def test_items_changed_after_loading_are_checked_again() -> None:
@@ -333,7 +348,7 @@ def test_organization_read_cycle_zero_is_report_only() -> None:
     })
     params = cfg.effective_parameters()
     assert params.read_cycle == 0 and cfg.communication.read_cycle == 1000
-    device = Device(em.DriverModbusRtu(), "d", params, [], logging.getLogger("test"))
+    device = Poller(NoHost(), "d", params, [], logging.getLogger("test"))
     assert device.report_only
 
 

@@ -11,7 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from edgemodbus.datatypes import Area
-from edgemodbus.planner import (
+from edgemodbus.poll.planner import (
     Piece,
     PlanItem,
     ReadBlock,

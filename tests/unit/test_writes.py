@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import logging
 from datetime import datetime, timezone
 from typing import Any
 
@@ -11,13 +10,14 @@ import pytest
 import edgemodbus as em
 from edgemodbus.codec import normalize_value
 from edgemodbus.datatypes import Area, DataType
-from edgemodbus.device import Device, plan_writes
+from edgemodbus.poll.items import ItemState
+from edgemodbus.poll.writes import plan_writes
 
 
-def make_device(items: list[dict[str, Any]], **comm: Any) -> Device:
+def make_device(items: list[dict[str, Any]], **comm: Any) -> dict[str, ItemState]:
+    """The item states of a device, by name: what plan_writes looks written items up in."""
     cfg = em.load_device_config({"communication": comm, "addressList": items})
-    return Device(em.DriverModbusRtu(), "d", cfg.communication, cfg.parsed_items(),
-                  logging.getLogger("test"))
+    return {p.item.name: ItemState(p) for p in cfg.parsed_items()}
 
 
 @pytest.mark.parametrize(

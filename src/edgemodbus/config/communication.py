@@ -17,7 +17,7 @@ from typing import Annotated, Any, ClassVar, Literal
 from pydantic import Field, field_serializer, field_validator, model_validator
 
 from ..datatypes import DataFormat
-from ..planner import BIT_CAP, REGISTER_CAP
+from ..poll.planner import BIT_CAP, REGISTER_CAP
 from ..protocol.address import MAX_OFFSET
 from .base import (
     MAX_MS,

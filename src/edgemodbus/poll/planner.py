@@ -1,15 +1,16 @@
 """Read planner: items -> as few read requests (blocks) as the merge rules allow.
 
-Pure and I/O-free.  The driver filters out disabled items and groups by slave before
-calling :func:`plan_reads`; the planner only knows areas, offsets and sizes.
+Pure and I/O-free.  Each slave has its own poller, whose ``build_plan`` filters out
+disabled items before calling :func:`plan_reads`; the planner only knows areas, offsets
+and sizes.
 
-Rules (DESIGN.md "Planner"): per area, items sorted by offset (ties keep input order);
-a block grows while ``next.offset - block.end <= max_gap`` (end exclusive, so contiguous
-items have gap 0 and overlapping items share registers) and its span stays within the
-limit (``max_registers`` capped at 125, ``max_bits`` capped at 2000).  ``continuous``
-forces gap 0.  Areas never merge (FC03 and FC04 are different areas).  An item larger
-than the limit gets blocks of its own and is read in pieces; its :class:`Piece` entries
-say how to reassemble it.  Output order: by area value, then start.
+Rules: per area, items sorted by offset (ties keep input order); a block grows while
+``next.offset - block.end <= max_gap`` (end exclusive, so contiguous items have gap 0
+and overlapping items share registers) and its span stays within the limit
+(``max_registers`` capped at 125, ``max_bits`` capped at 2000).  ``continuous`` forces
+gap 0.  Areas never merge (FC03 and FC04 are different areas).  An item larger than the
+limit gets blocks of its own and is read in pieces; its :class:`Piece` entries say how
+to reassemble it.  Output order: by area value, then start.
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ from collections.abc import Collection, Hashable, Iterable
 from dataclasses import dataclass
 from operator import itemgetter
 
-from .datatypes import Area
+from ..datatypes import Area
 
 REGISTER_CAP = 125
 BIT_CAP = 2000
@@ -136,7 +137,7 @@ def plan_reads(
 ) -> list[ReadBlock]:
     """Plan the read requests that cover every item exactly once (see module doc).
 
-    ``items`` must have distinct keys and lie within 0..65535; the driver passes only
+    ``items`` must have distinct keys and lie within 0..65535; the poller passes only
     enabled items.  Raises ValueError for a bad item or setting.
     """
     limits = make_limits(max_registers, max_bits, max_gap, continuous)
@@ -215,7 +216,7 @@ def _shrink(block: ReadBlock, indexes: list[int]) -> ReadBlock:
 
 def bisect_block(block: ReadBlock) -> list[ReadBlock]:
     """Split a block of several pieces into two blocks of about half the pieces each
-    (by position), each shrunk to its pieces' span.  The driver recurses on a block
+    (by position), each shrunk to its pieces' span.  The poller recurses on a block
     answered with exception 02 until the bad single items are found.  A block of one
     piece comes back alone, unchanged."""
     pieces = block.pieces

@@ -1,0 +1,207 @@
+"""Writes: a batch of (item, value) pairs planned into requests, and their execution.
+
+:func:`plan_writes` normalizes and encodes the values and merges contiguous registers
+(or coils) of one area into as few requests as the protocol allows.  :class:`Writer`
+sends them on the worker and stores what the slave confirmed, with the fallbacks a slave
+forces (remembered once seen): FC16 refused -> FC06 register by register; FC22 refused
+-> read-modify-write with FC03 + FC06.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from typing import TYPE_CHECKING, Any
+
+from .._ffi import Block
+from ..codec import BlockDecoder, encode, normalize_value, register_bit
+from ..config import DriverModbusRtuParameter
+from ..datatypes import Area
+from ..errors import IllegalFunction, ModbusConnectionError, ModbusError
+from ..line import Link
+from .counters import Counters
+from .items import ItemState, holds, set_item
+from .sink import Delivery
+
+if TYPE_CHECKING:
+    from ..config import DeviceAddressItem
+
+_MAX_WRITE_REGISTERS = 123  # FC16 (Modbus Application Protocol v1.1b3, 6.12)
+_MAX_WRITE_COILS = 1968  # FC15 (6.11)
+
+
+@dataclass
+class WriteOp:
+    """One write request: consecutive coils or registers of one area, or one bit."""
+
+    area: Area
+    address: int
+    registers: list[int] = field(default_factory=list)
+    bits: list[bool] = field(default_factory=list)
+    bit: int | None = None
+    updates: list[tuple[ItemState, Any]] = field(default_factory=list)
+
+    @property
+    def names(self) -> str:
+        return ", ".join(st.item.name for st, _ in self.updates)
+
+
+def plan_writes(by_name: Mapping[str, ItemState], items: list[tuple[str, Any]]) -> list[WriteOp]:
+    """Normalize, encode and group a batch of writes (raises ValueError naming the item).
+
+    ``by_name`` holds the device's items (``Poller.by_name``).  Contiguous registers (or
+    coils) of one area are merged into one request, up to the protocol's limits;
+    bit-in-register items are written one by one.
+    """
+    if not items:
+        raise ValueError("nothing to write")
+    seen: set[str] = set()
+    single: list[WriteOp] = []
+    for name, raw in items:
+        state = by_name.get(name)
+        if state is None:
+            raise ValueError(f"unknown item {name!r}")
+        if name in seen:
+            raise ValueError(f"{name}: written twice in one batch")
+        seen.add(name)
+        if not state.area.writable:
+            raise ValueError(
+                f"{name}: {state.item.address} is a read-only "
+                f"{'discrete input' if state.area.is_bit else 'input register'}; "
+                "only coils and holding registers can be written"
+            )
+        spec = state.spec
+        value = normalize_value(name, spec.converted_type or spec.data_type, raw)
+        if state.area is Area.COIL or state.bit is not None:
+            on = bool(encode(spec, value)[0])
+            raw_bit = None if state.bit is None else register_bit(spec)
+            single.append(WriteOp(state.area, state.offset, bits=[on], bit=raw_bit,
+                                  updates=[(state, on)]))
+            continue
+        registers = encode(spec, value)
+        decoded = BlockDecoder(state.area, len(registers), [(0, spec)]).decode_values(
+            Block.from_values(registers, bits=False)
+        )[0]
+        single.append(WriteOp(state.area, state.offset, registers=registers,
+                              updates=[(state, decoded)]))
+    return _merge(single)
+
+
+def _merge(ops: list[WriteOp]) -> list[WriteOp]:
+    ops.sort(key=lambda o: (o.area.value, o.address))
+    merged: list[WriteOp] = []
+    for op in ops:
+        last = merged[-1] if merged else None
+        if last is not None and last.area is op.area and last.bit is None and op.bit is None:
+            if op.area is Area.COIL and last.address + len(last.bits) == op.address and len(
+                last.bits
+            ) < _MAX_WRITE_COILS:
+                last.bits.extend(op.bits)
+                last.updates.extend(op.updates)
+                continue
+            if op.area is Area.HOLDING_REGISTER and (
+                last.address + len(last.registers) == op.address
+                and len(last.registers) + len(op.registers) <= _MAX_WRITE_REGISTERS
+            ):
+                last.registers.extend(op.registers)
+                last.updates.extend(op.updates)
+                continue
+        merged.append(op)
+    return merged
+
+
+class Writer:
+    """Sends the write requests of one slave and stores the values it confirmed.
+    Worker thread only."""
+
+    def __init__(self, code: str, params: DriverModbusRtuParameter, log: logging.Logger,
+                 counters: Counters, delivery: Delivery) -> None:
+        self.code = code
+        self.log = log
+        self.slave = params.slave_id
+        self.report_all = params.report_mode == "cycle"
+        self.write_single_fc = params.write_single_register_function
+        self.counters = counters
+        self.delivery = delivery
+        self.no_fc16 = False
+        self.no_fc22 = False
+
+    def run(self, link: Link, ops: list[WriteOp],
+            recheck: Callable[[list[ItemState]], None]) -> tuple[bool, str | None]:
+        """Send ``ops`` in order; ``recheck`` is told which items a confirmed write set."""
+        errors: list[str] = []
+        now = datetime.now(timezone.utc)
+        written: list[DeviceAddressItem] = []
+        for i, op in enumerate(ops):
+            self.counters.writes += 1
+            try:
+                self._execute(link, op)
+            except ModbusError as exc:
+                self.counters.write_errors += 1
+                errors.append(f"{op.names}: {exc}")
+                if isinstance(exc, ModbusConnectionError):
+                    errors.extend(f"{o.names}: not sent (link down)" for o in ops[i + 1:])
+                    break
+                continue
+            recheck([state for state, _ in op.updates])
+            confirmed = [
+                set_item(state.item, value, None, now)
+                for state, value in op.updates
+                if self.report_all or not holds(state.item, value, None)
+            ]
+            if confirmed:
+                self.counters.values_changed += len(confirmed)
+                self.delivery.notify(confirmed)
+                written += confirmed
+        if written:
+            # One write, one update: the item callbacks above, and one batch now (the
+            # next read of the written value is no news, see Poller._recheck); an item
+            # already in this cycle's batch goes out once, with its written value.
+            queued = {id(item) for item in self.delivery.batch}
+            self.delivery.batch += [item for item in written if id(item) not in queued]
+            self.delivery.flush()
+        return (False, "; ".join(errors)) if errors else (True, None)
+
+    def _execute(self, link: Link, op: WriteOp) -> None:
+        slave = self.slave
+        if op.area is Area.COIL:
+            if len(op.bits) == 1:
+                link.write_coil(slave, op.address, op.bits[0])
+            else:
+                link.write_coils(slave, op.address, op.bits)
+            return
+        if op.bit is not None:
+            self._write_bit(link, op.address, op.bit, op.bits[0])
+            return
+        regs = op.registers
+        if len(regs) == 1 and self.write_single_fc == 6:
+            link.write_register(slave, op.address, regs[0])
+            return
+        if not self.no_fc16:
+            try:
+                link.write_registers(slave, op.address, regs)
+                return
+            except IllegalFunction:
+                self.no_fc16 = True
+                self.log.warning("%s: slave %d refuses FC16; writing with FC06 from now on",
+                                 self.code, slave)
+        for offset, value in enumerate(regs):
+            link.write_register(slave, op.address + offset, value)
+
+    def _write_bit(self, link: Link, address: int, bit: int, on: bool) -> None:
+        """Set one bit of a holding register: FC22 mask write (6.16), else read-modify-
+        write with FC03 + FC06 (not atomic against other masters; logged once)."""
+        slave = self.slave
+        if not self.no_fc22:
+            try:
+                link.mask_write_register(slave, address, 0xFFFF ^ (1 << bit), int(on) << bit)
+                return
+            except IllegalFunction:
+                self.no_fc22 = True
+                self.log.warning("%s: slave %d refuses FC22; bit writes use read-modify-write",
+                                 self.code, slave)
+        current = link.read(slave, Area.HOLDING_REGISTER, address, 1).to_list()[0]
+        value = (current | (1 << bit)) if on else (current & ~(1 << bit) & 0xFFFF)
+        link.write_register(slave, address, value)
