@@ -1,31 +1,37 @@
-"""Counters: what a line's worker counts (:class:`LineStats`), reported by the driver's
-stats and the metrics exporter."""
+"""Counters: what a line's worker counts (:class:`LineStats`) and what a slave's poller
+counts (:class:`DeviceStats`), both read by ``DriverModbusRtu.stats()`` and the Prometheus
+exporter.  The request counters they share are defined once (:class:`RequestStats`)."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 from typing import Any
 
+# upper bounds (seconds) of the cycle-time histogram behind the Prometheus exporter
+CYCLE_BUCKETS = (0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0)
+
+
+def histogram(bounds: tuple[float, ...], counts: list[int], total: float) -> dict[str, Any]:
+    """Cumulative buckets, Prometheus style: [[le, count <= le], ..., ["+Inf", all]]."""
+    buckets: list[list[Any]] = []
+    running = 0
+    for le, n in zip((*bounds, "+Inf"), counts, strict=True):
+        running += n
+        buckets.append([le, running])
+    return {"buckets": buckets, "sum": total, "count": running}
+
 
 @dataclass
-class LineStats:
-    """Counters of one line, updated by its worker only."""
+class RequestStats:
+    """How requests ended: the counters a line and a device both keep."""
 
     requests: int = 0
     responses: int = 0
     timeouts: int = 0
     crc_errors: int = 0
     protocol_errors: int = 0
-    exceptions: dict[int, int] = field(default_factory=dict)
-    link_errors: int = 0
-    connects: int = 0
-    reconnects: int = 0
-    connect_failures: int = 0
-    discarded_bytes: int = 0
-    heartbeats: int = 0  # DTU heartbeat packets discarded
-    reports: int = 0  # wrapped report frames received unsolicited
-    dropped_frames: int = 0  # wrapped frames dropped (bad header, tail, CRC, length)
-    rtt_total: float = 0.0
+    exceptions: dict[int, int] = field(default_factory=dict)  # by exception code
+    reports: int = 0  # wrapped reports (line: received unsolicited; device: applied)
 
     def as_dict(self) -> dict[str, Any]:
         return {
@@ -35,13 +41,72 @@ class LineStats:
             "crcErrors": self.crc_errors,
             "protocolErrors": self.protocol_errors,
             "exceptions": dict(self.exceptions),
+            "reports": self.reports,
+        }
+
+
+@dataclass
+class LineStats(RequestStats):
+    """Counters of one line, updated by its worker only."""
+
+    link_errors: int = 0
+    connects: int = 0
+    reconnects: int = 0
+    connect_failures: int = 0
+    discarded_bytes: int = 0
+    heartbeats: int = 0  # DTU heartbeat packets discarded
+    dropped_frames: int = 0  # wrapped frames dropped (bad header, tail, CRC, length)
+    rtt_total: float = 0.0
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            **super().as_dict(),
             "linkErrors": self.link_errors,
             "connects": self.connects,
             "reconnects": self.reconnects,
             "connectFailures": self.connect_failures,
             "discardedBytes": self.discarded_bytes,
             "heartbeats": self.heartbeats,
-            "reports": self.reports,
             "droppedFrames": self.dropped_frames,
             "avgRoundTrip": self.rtt_total / self.responses if self.responses else 0.0,
+        }
+
+
+@dataclass
+class DeviceStats(RequestStats):
+    """Counters of one device (a slave's poller), updated on its line's worker."""
+
+    retries: int = 0
+    cycles: int = 0
+    failed_cycles: int = 0
+    overruns: int = 0
+    skipped_blocks: int = 0
+    last_cycle_time: float = 0.0
+    total_cycle_time: float = 0.0
+    max_cycle_time: float = 0.0
+    cycle_hist: list[int] = field(default_factory=lambda: [0] * (len(CYCLE_BUCKETS) + 1))
+    callback_errors: int = 0
+    callback_time: float = 0.0
+    values_changed: int = 0
+    writes: int = 0
+    write_errors: int = 0
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            **super().as_dict(),
+            "retries": self.retries,
+            "cycles": self.cycles,
+            "failedCycles": self.failed_cycles,
+            "overruns": self.overruns,
+            "skippedBlocks": self.skipped_blocks,
+            "lastCycleTime": self.last_cycle_time,
+            "avgCycleTime": self.total_cycle_time / self.cycles if self.cycles else 0.0,
+            "maxCycleTime": self.max_cycle_time,
+            "cycleTimeHistogram": histogram(CYCLE_BUCKETS, self.cycle_hist,
+                                            self.total_cycle_time),
+            "callbackErrors": self.callback_errors,
+            "callbackTime": self.callback_time,
+            "valuesChanged": self.values_changed,
+            "writes": self.writes,
+            "writeErrors": self.write_errors,
         }

@@ -40,7 +40,7 @@ from ..errors import (
     ProtocolError,
 )
 from ..line import LineWorker, Link
-from .counters import CYCLE_BUCKETS, Counters
+from ..stats import CYCLE_BUCKETS, DeviceStats
 from .items import Assembly, ItemState, Slot, copy_runtime, is_news, set_item
 from .planner import Piece, PlanItem, ReadBlock, bisect_block, plan_reads
 from .sink import Delivery, PollSink
@@ -76,7 +76,7 @@ class Poller:
         self.report_all = params.report_mode == "cycle"
         self.snapshot_interval = params.snapshot_interval / 1000
         self.params = params
-        self.counters = Counters()
+        self.counters = DeviceStats()
         self.delivery = Delivery(sink, self.counters, logger, code)
         self.writer = Writer(code, params, logger, self.counters, self.delivery)
         self.status = DeviceDriverStatus.CONNECTING

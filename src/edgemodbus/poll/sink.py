@@ -13,7 +13,7 @@ import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Protocol
 
-from .counters import Counters
+from ..stats import DeviceStats
 
 if TYPE_CHECKING:
     from ..config import DeviceAddressItem
@@ -43,7 +43,7 @@ class Delivery:
 
     __slots__ = ("batch", "code", "counters", "log", "sink")
 
-    def __init__(self, sink: PollSink, counters: Counters, log: logging.Logger,
+    def __init__(self, sink: PollSink, counters: DeviceStats, log: logging.Logger,
                  code: str) -> None:
         self.sink = sink
         self.counters = counters

@@ -21,7 +21,7 @@ from ..config import DriverModbusRtuParameter
 from ..datatypes import Area
 from ..errors import IllegalFunction, ModbusConnectionError, ModbusError
 from ..line import Link
-from .counters import Counters
+from ..stats import DeviceStats
 from .items import ItemState, holds, set_item
 from .sink import Delivery
 
@@ -117,7 +117,7 @@ class Writer:
     Worker thread only."""
 
     def __init__(self, code: str, params: DriverModbusRtuParameter, log: logging.Logger,
-                 counters: Counters, delivery: Delivery) -> None:
+                 counters: DeviceStats, delivery: Delivery) -> None:
         self.code = code
         self.log = log
         self.slave = params.slave_id
