@@ -39,6 +39,7 @@ demo: build
 lint: build
 	$(BIN)/ruff check src tests bench tools
 	$(BIN)/mypy
+	$(BIN)/python tools/check_layout.py
 
 test: build lint
 	$(PYTEST) tests

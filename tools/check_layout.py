@@ -19,14 +19,13 @@ import sys
 from pathlib import Path
 
 TOP = Path(__file__).resolve().parents[1]
-ROOT = TOP / "src"
 CLIENTS = ("tests", "bench", "tools")
 PACKAGE = "edgemodbus"
 MAX_LINES = 500
 
 
-def module_name(path: Path) -> str:
-    parts = list(path.relative_to(ROOT).with_suffix("").parts)
+def module_name(path: Path, root: Path) -> str:
+    parts = list(path.relative_to(root).with_suffix("").parts)
     if parts[-1] == "__init__":
         parts.pop()
     return ".".join(parts)
@@ -96,14 +95,16 @@ def find_cycle(graph: dict[str, set[str]]) -> list[str] | None:
     return None
 
 
-def main() -> int:
-    modules = {module_name(p): p for p in (ROOT / PACKAGE).rglob("*.py")}
+def check(top: Path) -> list[str]:
+    """Every violation in the tree at ``top`` (its src/edgemodbus and client folders)."""
+    root = top / "src"
+    modules = {module_name(p, root): p for p in (root / PACKAGE).rglob("*.py")}
     problems: list[str] = []
     graph: dict[str, set[str]] = {m: set() for m in modules}
     for module, path in sorted(modules.items()):
         lines = len(path.read_text().splitlines())
         if lines > MAX_LINES:
-            problems.append(f"{path.relative_to(ROOT.parent)}: {lines} lines (at most {MAX_LINES})")
+            problems.append(f"{path.relative_to(top)}: {lines} lines (at most {MAX_LINES})")
         for target, name, line in imports(module, path, modules):
             if target not in modules:
                 continue
@@ -113,19 +114,24 @@ def main() -> int:
                 graph[module].add(target)
             if name.startswith("_") and package_of(target, modules) != package_of(module, modules):
                 problems.append(
-                    f"{path.relative_to(ROOT.parent)}:{line}: imports private name {name!r} "
+                    f"{path.relative_to(top)}:{line}: imports private name {name!r} "
                     f"from {target} (another package)"
                 )
     for folder in CLIENTS:
-        for path in sorted((TOP / folder).rglob("*.py")):
+        for path in sorted((top / folder).rglob("*.py")):
             for target, name, line in imports(folder, path, modules):
                 if name.startswith("_"):
-                    where = f"{path.relative_to(TOP)}:{line}"
+                    where = f"{path.relative_to(top)}:{line}"
                     problems.append(f"{where}: imports private name {name!r} from {target}")
     graph = {m: {t for t in ts if t != m} for m, ts in graph.items()}
     cycle = find_cycle(graph)
     if cycle:
         problems.append("import cycle: " + " -> ".join(cycle))
+    return problems
+
+
+def main() -> int:
+    problems = check(TOP)
     for problem in problems:
         print(problem)
     return 1 if problems else 0
