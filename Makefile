@@ -55,7 +55,7 @@ integration: build
 test-asan: build
 	$(BIN)/python tools/asan_build.py && \
 	  ASAN_OPTIONS=detect_leaks=0 LD_PRELOAD="$$(gcc -print-file-name=libasan.so)" \
-	  EDGEMODBUS_NATIVE=asan $(PYTEST) -q -p no:cacheprovider --capture=sys tests/unit/test_codec*.py
+	  EDGEMODBUS_NATIVE=asan $(PYTEST) -q -p no:cacheprovider --capture=sys tests/unit/codec
 
 bench: build
 	$(PYTEST) bench --benchmark-only --benchmark-columns=min,mean,median,rounds

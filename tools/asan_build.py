@@ -7,7 +7,7 @@ this build instead of the installed one when EDGEMODBUS_NATIVE=asan; the Python 
 itself is not instrumented, so libasan must be preloaded (``make test-asan`` does it):
 
     ASAN_OPTIONS=detect_leaks=0 LD_PRELOAD=$(gcc -print-file-name=libasan.so) \\
-        EDGEMODBUS_NATIVE=asan python -m pytest tests/unit/test_codec*.py
+        EDGEMODBUS_NATIVE=asan python -m pytest tests/unit/codec
 """
 
 from __future__ import annotations

@@ -14,7 +14,7 @@ Two libFuzzer harnesses in csrc/fuzz/, each built with Debian's clang and
 3. Replays each corpus through a coverage build and reports the line and branch coverage
    of the C file under test (llvm-cov, from Debian's clang).
 4. Runs the hypothesis fuzz tests of the write-reply check and the simulator's framing
-   (tests/unit/test_fuzz_reply.py) with --examples examples each.
+   (tests/unit/ffi/test_fuzz_reply.py) with --examples examples each.
 
 Exit status 0 only if every step passed.  Full libFuzzer logs: build/fuzz/<name>.log.
 """
@@ -206,7 +206,7 @@ def python_fuzz(examples: int) -> None:
     env = dict(os.environ, EDGEMODBUS_FUZZ_EXAMPLES=str(examples))
     env.pop("LD_PRELOAD", None)
     cmd = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
-           "tests/unit/test_fuzz_reply.py"]
+           "tests/unit/ffi/test_fuzz_reply.py"]
     log(f"hypothesis: {examples} examples per test: {' '.join(cmd[2:])}")
     start = time.monotonic()
     proc = subprocess.run(cmd, cwd=ROOT, env=env, check=False)

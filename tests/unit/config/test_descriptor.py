@@ -20,7 +20,7 @@ from edgemodbus.descriptor import EXAMPLE_KEYS, driver_descriptor
 from edgemodbus.protocol.address import parse_address
 
 SEED = json.loads(
-    (Path(__file__).resolve().parents[1] / "data" / "seed-descriptor.json").read_text("utf-8")
+    (Path(__file__).resolve().parents[2] / "data" / "seed-descriptor.json").read_text("utf-8")
 )
 OPTIONS = [("function-code", 0), ("modicon", 0), ("function-code", 1), ("modicon", 1)]
 

@@ -11,7 +11,7 @@ import edgemodbus as em
 from edgemodbus.config import ConfigError, DriverModbusRtuParameter
 from edgemodbus.line import endpoint_for
 
-EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
+EXAMPLES = Path(__file__).resolve().parents[3] / "examples"
 
 
 def server(**extra: Any) -> dict[str, Any]:

@@ -29,7 +29,7 @@ from edgemodbus.config import (
 from edgemodbus.datatypes import Area, DataFormat, DataType, DeviceDriverStatus, ItemStatus
 from edgemodbus.protocol.address import Address
 
-DATA = Path(__file__).resolve().parents[1] / "data"
+DATA = Path(__file__).resolve().parents[2] / "data"
 SEED_DEVICE = DATA / "seed-device.json"
 SEED_RTU = DATA / "modbusRtu.json"
 
