@@ -7,10 +7,10 @@ process) receives the updates and a subscriber (own process) counts what arrives
 
 The same drivers run all along (polling as fast as the line allows); a publisher is
 attached (MQTT on) and detached (MQTT off) in alternating phases of the same run, and
-the client CPU of this process (time.process_time: every thread, the bus worker and the
+the client CPU of this process (time.process_time: every thread, the line worker and the
 MQTT thread included) per tag read is compared.  Target: on / off <= 1.5 with the
 default item QoS 0; QoS 1 (paho's publish and a PUBACK per update) is reported beside
-it.  The benchmark fixture times the bus worker's side of MQTT: the batch callback
+it.  The benchmark fixture times the line worker's side of MQTT: the batch callback
 handing 100 updates over.
 """
 

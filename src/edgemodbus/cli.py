@@ -67,7 +67,7 @@ _JSON_HELP = (
     "are exact (shortest round-trip form); NaN and infinities are null"
 )
 
-_stdout_lock = threading.Lock()  # lines from several bus workers must not interleave
+_stdout_lock = threading.Lock()  # lines from several line workers must not interleave
 
 
 class CliError(Exception):
@@ -464,7 +464,7 @@ def json_line(obj: Any) -> str:
 
 def _emit(line: str) -> None:
     """One whole line on stdout (print() writes the newline separately, so lines from two
-    bus workers could interleave)."""
+    line workers could interleave)."""
     with _stdout_lock:
         sys.stdout.write(line + "\n")
         sys.stdout.flush()

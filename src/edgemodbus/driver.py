@@ -240,7 +240,7 @@ class DriverModbusRtu:
         line = self._line
         if line is not None and line.on_worker():
             return False, (
-                "write_address(es) called on the bus worker (from a callback) cannot wait "
+                "write_address(es) called on the line worker (from a callback) cannot wait "
                 "for its own line: use write_address(es)_async, or write from another thread"
             )
         prepared = self._prepare_writes(items)

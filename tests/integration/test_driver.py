@@ -472,7 +472,7 @@ def test_snapshot_and_stats_keys(slave: PymodbusSlave) -> None:
 
 
 def test_callbacks_may_update_addresses_but_not_wait_for_a_write(slave: PymodbusSlave) -> None:
-    """A callback runs on the bus worker: a blocking write there would wait for itself."""
+    """A callback runs on the line worker: a blocking write there would wait for itself."""
     cfg = device(slave.port, [{"name": "a", "address": "hr:1", "deviceDataType": "UInt16"}])
     results: list[tuple[bool, str | None]] = []
     new_items = em.load_device_config({
@@ -490,7 +490,7 @@ def test_callbacks_may_update_addresses_but_not_wait_for_a_write(slave: Pymodbus
     runner.drv.address_updated_callback = on_item
     with runner:
         wait_for(lambda: new_items[0].status is ItemStatus.OK, what="re-planned from a callback")
-    assert results[0][0] is False and "bus worker" in (results[0][1] or "")
+    assert results[0][0] is False and "line worker" in (results[0][1] or "")
     assert slave.registers(1, "hr", 1, 1) == [default_register(1, "hr", 1)]  # not written
 
 

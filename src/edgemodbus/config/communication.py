@@ -401,8 +401,3 @@ class DriverModbusRtuParameter(Model):
     @field_serializer("parity")
     def _ser_parity(self, value: Parity) -> str:
         return value.value
-
-    @property
-    def effective_settle_timeout(self) -> int:
-        """Settle time in ms: ``settleTimeout``, or ``readTimeout`` when unset."""
-        return self.read_timeout if self.settle_timeout is None else self.settle_timeout

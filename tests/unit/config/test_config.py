@@ -27,6 +27,7 @@ from edgemodbus.config import (
     validate_items,
 )
 from edgemodbus.datatypes import Area, DataFormat, DataType, DeviceDriverStatus, ItemStatus
+from edgemodbus.line.endpoint import LineTiming
 from edgemodbus.protocol.address import Address
 
 DATA = Path(__file__).resolve().parents[2] / "data"
@@ -119,10 +120,11 @@ def test_defaults() -> None:
     assert comm.address_prefix == "function-code" and comm.address_base == 0
     assert comm.report_mode == "change" and comm.encoding == "utf-8"
     assert comm.write_single_register_function == 6 and comm.request_interval == 0
-    assert comm.settle_timeout is None and comm.effective_settle_timeout == 1000
+    assert comm.settle_timeout is None  # the line settles for one response timeout
     assert comm.offline_after_failed_cycles == 3 and comm.max_backoff == 60000
     assert comm.rs485 == "none" and comm.echo is False and comm.snapshot_interval == 0
-    assert DriverModbusRtuParameter(settle_timeout=0).effective_settle_timeout == 0
+    assert LineTiming(response_timeout=1.0).settle == 1.0
+    assert LineTiming(response_timeout=1.0, settle_timeout=0.0).settle == 0.0
 
 
 # ----------------------------------------------------------------------------- key spellings
