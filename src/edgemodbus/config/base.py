@@ -11,6 +11,7 @@ raises :class:`ConfigError` saying what is allowed.
 from __future__ import annotations
 
 import codecs
+import copy
 import difflib
 import enum
 import json
@@ -23,7 +24,7 @@ from collections.abc import Callable, Mapping, Sequence
 from contextvars import ContextVar
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Any, ClassVar, TypeVar
+from typing import Annotated, Any, ClassVar, TypeVar, cast
 
 from pydantic import (
     BaseModel,
@@ -33,7 +34,15 @@ from pydantic import (
     model_validator,
 )
 from pydantic.alias_generators import to_camel
-from pydantic_core import CoreSchema, core_schema
+from pydantic.dataclasses import dataclass as pydantic_dataclass
+from pydantic.fields import FieldInfo
+from pydantic_core import (
+    ArgsKwargs,
+    CoreSchema,
+    SchemaSerializer,
+    SchemaValidator,
+    core_schema,
+)
 
 from ..datatypes import DataFormat
 from .compat import norm_key
@@ -214,17 +223,11 @@ class Model(BaseModel):
 
     _extra_keys: ClassVar[tuple[str, ...]] = ()
     _where: ClassVar[str] = ""
-    _key_tables: ClassVar[dict[type, dict[str, str]]] = {}
 
     @classmethod
     def key_table(cls) -> dict[str, str]:
         """Normalised key -> canonical camelCase key (fields and accepted aliases)."""
-        table = Model._key_tables.get(cls)
-        if table is None:
-            table = {norm_key(f.alias or n): f.alias or n for n, f in cls.model_fields.items()}
-            table.update({norm_key(k): k for k in cls._extra_keys})
-            Model._key_tables[cls] = table
-        return table
+        return _key_table(cls)
 
     @classmethod
     def normalize_keys(
@@ -232,27 +235,7 @@ class Model(BaseModel):
     ) -> dict[str, Any]:
         """Canonical keys; unknown keys are logged (``where`` names the place) and dropped.
         A key given twice in different spellings is a ConfigError (paths from ``prefix``)."""
-        table = cls.key_table()
-        out: dict[str, Any] = {}
-        spelled: dict[str, str] = {}
-        problems: list[Problem] = []
-        for key, value in data.items():
-            canon = table.get(norm_key(key)) if isinstance(key, str) else None
-            if canon is None:
-                _unknown_key(where, key)
-                continue
-            if canon in out:
-                problems.append(
-                    Problem(
-                        join_path(prefix, canon), value, f"given twice (also as {spelled[canon]!r})"
-                    )
-                )
-                continue
-            out[canon] = value
-            spelled[canon] = key
-        if problems:
-            raise ConfigError(problems)
-        return out
+        return _normalize_keys(cls.key_table(), data, where, prefix)
 
     @model_validator(mode="before")
     @classmethod
@@ -265,6 +248,127 @@ class Model(BaseModel):
         """camelCase, JSON-able dict (loads back to an equal model)."""
         result: dict[str, Any] = self.model_dump(mode="json", by_alias=True)
         return result
+
+
+class SlotModel:
+    """Base of a config model that exists by the tens of thousands (one per tag): a
+    pydantic dataclass with ``slots=True`` (no ``__dict__``, no fields-set bookkeeping:
+    a third of a BaseModel's size) with the key handling of :class:`Model` and the
+    BaseModel methods hosts and the code use (``model_validate``, ``model_fields``,
+    ``model_dump``, ``model_copy``, ``to_dict``).  Assignment is not validated.
+
+    A subclass is decorated with :func:`slot_model`; it validates its input with a
+    ``mode="before"`` model validator calling :meth:`accept_keys`."""
+
+    __slots__ = ()
+
+    model_fields: ClassVar[dict[str, FieldInfo]] = {}
+    __pydantic_validator__: ClassVar[SchemaValidator]
+    __pydantic_serializer__: ClassVar[SchemaSerializer]
+    _extra_keys: ClassVar[tuple[str, ...]] = ()
+    _where: ClassVar[str] = ""
+
+    if typing.TYPE_CHECKING:  # keys in any spelling, as BaseModel's __init__ takes them
+
+        def __init__(self, **data: Any) -> None: ...
+
+    @classmethod
+    def key_table(cls) -> dict[str, str]:
+        """Normalised key -> canonical camelCase key (fields and accepted aliases)."""
+        return _key_table(cls)
+
+    @classmethod
+    def normalize_keys(
+        cls, data: Mapping[Any, Any], where: str, prefix: str = ""
+    ) -> dict[str, Any]:
+        """As :meth:`Model.normalize_keys`."""
+        return _normalize_keys(cls.key_table(), data, where, prefix)
+
+    @classmethod
+    def accept_keys(cls, data: Any) -> Any:
+        """Input of the model validator: keys (a dict's, or the keyword arguments of a
+        call) in their canonical spelling; anything but an object is refused."""
+        if isinstance(data, Mapping):
+            return cls.normalize_keys(data, cls._where or cls.__name__)
+        if isinstance(data, ArgsKwargs):
+            kwargs = cls.normalize_keys(data.kwargs or {}, cls._where or cls.__name__)
+            return ArgsKwargs(data.args, kwargs)
+        if isinstance(data, cls):
+            return data
+        raise WrongType("must be an object ({...})")
+
+    @classmethod
+    def model_validate(cls: type[_S], obj: Any) -> _S:
+        result: _S = cls.__pydantic_validator__.validate_python(obj)
+        return result
+
+    def model_dump(self, **kwargs: Any) -> dict[str, Any]:
+        result: dict[str, Any] = type(self).__pydantic_serializer__.to_python(self, **kwargs)
+        return result
+
+    def model_copy(
+        self: _S, *, update: Mapping[str, Any] | None = None, deep: bool = False
+    ) -> _S:
+        """A copy (deep: of the values too); ``update`` sets attributes, unvalidated
+        (as BaseModel.model_copy)."""
+        copied = copy.deepcopy(self) if deep else copy.copy(self)
+        for name, value in (update or {}).items():
+            setattr(copied, name, value)
+        return copied
+
+    def to_dict(self) -> dict[str, Any]:
+        """camelCase, JSON-able dict (loads back to an equal model)."""
+        return self.model_dump(mode="json", by_alias=True)
+
+
+_S = TypeVar("_S", bound=SlotModel)
+
+
+def slot_model(cls: type[_S]) -> type[_S]:
+    """Make ``cls`` a slotted pydantic dataclass with :class:`Model`'s key rules."""
+    made = cast(type[_S], pydantic_dataclass(cls, slots=True, config=_SLOT_CONFIG))
+    made.model_fields = made.__pydantic_fields__  # type: ignore[attr-defined]
+    return made
+
+
+_SLOT_CONFIG = ConfigDict(alias_generator=to_camel, extra="ignore", ser_json_bytes="base64")
+
+
+_key_tables: dict[type, dict[str, str]] = {}
+
+
+def _key_table(cls: type[Model] | type[SlotModel]) -> dict[str, str]:
+    table = _key_tables.get(cls)
+    if table is None:
+        table = {norm_key(f.alias or n): f.alias or n for n, f in cls.model_fields.items()}
+        table.update({norm_key(k): k for k in cls._extra_keys})
+        _key_tables[cls] = table
+    return table
+
+
+def _normalize_keys(
+    table: dict[str, str], data: Mapping[Any, Any], where: str, prefix: str
+) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    spelled: dict[str, str] = {}
+    problems: list[Problem] = []
+    for key, value in data.items():
+        canon = table.get(norm_key(key)) if isinstance(key, str) else None
+        if canon is None:
+            _unknown_key(where, key)
+            continue
+        if canon in out:
+            problems.append(
+                Problem(
+                    join_path(prefix, canon), value, f"given twice (also as {spelled[canon]!r})"
+                )
+            )
+            continue
+        out[canon] = value
+        spelled[canon] = key
+    if problems:
+        raise ConfigError(problems)
+    return out
 
 
 # --------------------------------------------------------------------------- unknown keys
@@ -312,7 +416,7 @@ def _with_unknown_keys(error: ConfigError, unknown: Sequence[Problem]) -> Config
 Checks = tuple[tuple[str, str, Callable[[Any], Any]], ...]
 
 
-def field_checks(model: type[BaseModel]) -> Checks:
+def field_checks(model: type[BaseModel] | type[SlotModel]) -> Checks:
     """(attribute, JSON key, check) of every Range/Choice-limited field of ``model``."""
     return tuple(
         (name, field.alias or name, meta.check)
@@ -322,7 +426,7 @@ def field_checks(model: type[BaseModel]) -> Checks:
     )
 
 
-def recheck(model: BaseModel, checks: Checks, path: str) -> list[Problem]:
+def recheck(model: BaseModel | SlotModel, checks: Checks, path: str) -> list[Problem]:
     """The field limits again, on the values a model holds now (models do not validate
     assignments: a value may have been changed after loading)."""
     problems: list[Problem] = []

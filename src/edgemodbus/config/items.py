@@ -9,34 +9,42 @@ quantities come from the codec, offsets and bits from the address parser, and
 from __future__ import annotations
 
 import math
+import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
 from datetime import datetime
 from typing import Annotated, Any, ClassVar
 
-from pydantic import field_serializer, field_validator
+from pydantic import field_serializer, field_validator, model_validator
 
 from ..codec import MAX_QUANTITY, ValueSpec, check_spec
 from ..datatypes import Area, DataFormat, DataType, ItemStatus
 from ..protocol.address import Address, check_span, parse_address
 from .base import (
-    Model,
     Range,
+    SlotModel,
     as_number,
     check_encoding,
     field_checks,
     parse_enum_ci,
     parse_format,
     recheck,
+    slot_model,
 )
 from .communication import DriverModbusRtuParameter
 from .compat import iso_timestamp
 from .problems import NO_VALUE, ConfigError, Problem, WrongType
 
 
-class DeviceAddressItem(Model):
+@slot_model
+class DeviceAddressItem(SlotModel):
     """One tag.  ``value``, ``status``, ``update_ts`` and ``error_reason`` are runtime
-    state set by the driver's worker thread: assignment is not validated (cheap)."""
+    state set by the driver's worker thread: assignment is not validated (cheap).
+
+    A slotted pydantic dataclass (see :class:`SlotModel`): a gateway holds one per tag,
+    and a BaseModel's ``__dict__`` and fields-set made up most of a tag's memory.
+    Repeated text (address, description, unit, encoding) is interned: the same
+    addresses recur on every device of a kind."""
 
     _where: ClassVar[str] = "addressList[]"
 
@@ -57,6 +65,17 @@ class DeviceAddressItem(Model):
     encoding: str | None = None
     value: Any = None
     error_reason: str | None = None
+
+    @model_validator(mode="before")
+    @classmethod
+    def _accept_keys(cls, data: Any) -> Any:
+        # by name: pydantic binds ``cls`` to the class before slots=True remade it
+        return DeviceAddressItem.accept_keys(data)
+
+    @field_validator("address", "description", "unit")
+    @classmethod
+    def _intern(cls, value: str) -> str:
+        return sys.intern(value)
 
     @field_validator("name")
     @classmethod
@@ -127,7 +146,7 @@ class DeviceAddressItem(Model):
     @field_validator("encoding")
     @classmethod
     def _encoding(cls, value: str | None) -> str | None:
-        return None if value is None or not value.strip() else check_encoding(value)
+        return None if value is None or not value.strip() else sys.intern(check_encoding(value))
 
     @field_validator("update_ts", mode="before")
     @classmethod

@@ -8,7 +8,7 @@ its pieces; :func:`set_item` stores a read result and
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from datetime import datetime
 from typing import TYPE_CHECKING, Any
 
@@ -22,33 +22,86 @@ if TYPE_CHECKING:
     from ..config import DeviceAddressItem
 
 
-class ItemState:
-    """A configured item with what the poller needs to read, decode and write it."""
+@dataclass(frozen=True, slots=True)
+class Kind:
+    """What items of one area, bit, size and codec spec share (see ItemState)."""
 
-    __slots__ = ("area", "bit", "item", "offset", "size", "spec")
+    area: Area
+    bit: int | None
+    size: int
+    spec: ValueSpec
+
+    @staticmethod
+    def of(area: Area, bit: int | None, size: int, spec: ValueSpec) -> Kind:
+        kind = Kind(area, bit, size, spec)
+        shared = _KINDS.get(kind)
+        if shared is None:
+            if len(_KINDS) >= _MAX_KINDS:  # sharing is an economy, not a registry
+                _KINDS.clear()
+            shared = _KINDS[kind] = kind
+        return shared
+
+
+_KINDS: dict[Kind, Kind] = {}
+_MAX_KINDS = 4096
+
+
+class ItemState:
+    """A configured item with what the poller needs to read, decode and write it.
+
+    Small, as a gateway holds one per tag: the item, its offset and a :class:`Kind`
+    shared by every item of the same area, bit, size and codec spec."""
+
+    __slots__ = ("item", "kind", "offset")
 
     def __init__(self, parsed: ParsedItem) -> None:
-        # the ParsedItem itself is not kept: a gateway holds tens of thousands of these
+        # the ParsedItem itself is not kept
         self.item: DeviceAddressItem = parsed.item
-        self.area: Area = parsed.address.area
         self.offset: int = parsed.address.offset
-        self.bit: int | None = parsed.address.bit
-        self.size: int = 1 if self.area.is_bit else parsed.registers
-        self.spec = ValueSpec(
-            name=parsed.item.name,
-            data_type=parsed.data_type,
-            data_format=parsed.data_format,
-            quantity=parsed.quantity,
-            bit=parsed.address.bit,
-            multiplier=parsed.multiplier,
-            converted_type=parsed.converted_type,
-            deadband=parsed.deadband or 0.0,
-            encoding=parsed.encoding,
+        area = parsed.address.area
+        self.kind = Kind.of(
+            area,
+            parsed.address.bit,
+            1 if area.is_bit else parsed.registers,
+            ValueSpec(
+                name="",
+                data_type=parsed.data_type,
+                data_format=parsed.data_format,
+                quantity=parsed.quantity,
+                bit=parsed.address.bit,
+                multiplier=parsed.multiplier,
+                converted_type=parsed.converted_type,
+                deadband=parsed.deadband or 0.0,
+                encoding=parsed.encoding,
+            ),
         )
 
+    @property
+    def area(self) -> Area:
+        return self.kind.area
+
+    @property
+    def bit(self) -> int | None:
+        return self.kind.bit
+
+    @property
+    def size(self) -> int:
+        return self.kind.size
+
+    @property
+    def shape(self) -> ValueSpec:
+        """The codec spec without the item's name, shared: what decoders are built
+        from (a decoder names no item)."""
+        return self.kind.spec
+
+    @property
+    def spec(self) -> ValueSpec:
+        """The codec spec with the item's name (for writes, whose errors name it)."""
+        return replace(self.kind.spec, name=self.item.name)
+
     def same_definition(self, other: ItemState) -> bool:
-        return (self.item.name, self.area, self.offset, self.spec) == (
-            other.item.name, other.area, other.offset, other.spec
+        return (self.item.name, self.offset, self.kind) == (
+            other.item.name, other.offset, other.kind
         )
 
     def snapshot(self) -> dict[str, Any]:
@@ -75,7 +128,7 @@ class Assembly:
         self.cycle = -1
         self.failed = -1  # the last cycle in which a piece failed
         self.pieces: dict[int, int] = {}
-        self.decoder = BlockDecoder(state.area, state.size, [(0, state.spec)])
+        self.decoder = BlockDecoder(state.area, state.size, [(0, state.shape)])
 
     def add(self, piece: Piece, values: list[int], cycle: int) -> bool:
         """Store a piece read in ``cycle``; True once all pieces of that cycle are in."""
@@ -126,20 +179,18 @@ def set_item(
     item: DeviceAddressItem, value: Any, error: str | None, now: datetime
 ) -> DeviceAddressItem:
     """Store a read result: the value and Ok, or Invalid with the reason (the last good
-    value stays).  Writes the item's ``__dict__`` directly: these runtime fields are not
-    validated on assignment, and pydantic's ``__setattr__`` (with its fields-set
-    bookkeeping) costs several times more on the hot path and memory per item."""
-    fields = item.__dict__
+    value stays).  Plain attribute writes: these runtime fields are not validated on
+    assignment."""
     if error is None:
-        fields["value"] = value
-        if fields["status"] is not _OK:
-            fields["status"] = _OK
-        if fields["error_reason"] is not None:
-            fields["error_reason"] = None
+        item.value = value
+        if item.status is not _OK:
+            item.status = _OK
+        if item.error_reason is not None:
+            item.error_reason = None
     else:
-        fields["status"] = _INVALID
-        fields["error_reason"] = error
-    fields["update_ts"] = now
+        item.status = _INVALID
+        item.error_reason = error
+    item.update_ts = now
     return item
 
 
@@ -166,7 +217,7 @@ def is_news(state: ItemState, value: Any, error: str | None) -> bool:
     held = item.value
     if _same(held, value):
         return False
-    deadband = state.spec.deadband
+    deadband = state.kind.spec.deadband
     if deadband and _is_number(held) and _is_number(value):
         return not abs(value - held) <= deadband
     return True
@@ -178,5 +229,5 @@ def _is_number(value: Any) -> bool:
 
 def copy_runtime(src: DeviceAddressItem, dst: DeviceAddressItem) -> None:
     for name in _RUNTIME_FIELDS:
-        dst.__dict__[name] = src.__dict__[name]
+        setattr(dst, name, getattr(src, name))
 

@@ -139,7 +139,7 @@ class Poller:
             state = self.items[cast(int, piece.key)]
             if piece.item_offset == 0 and piece.size == state.size:
                 whole.append(state)
-                specs.append((piece.block_offset, state.spec))
+                specs.append((piece.block_offset, state.shape))
             else:
                 partial.append((piece, self._assembly(state)))
         decoder = BlockDecoder(block.area, block.count, specs) if specs else None
@@ -207,7 +207,7 @@ class Poller:
             start, end = report.address, report.address + len(values)
             states = [s for s in self.items
                       if s.area is area and start <= s.offset and s.offset + s.size <= end]
-            decoder = BlockDecoder(area, len(values), [(s.offset - start, s.spec)
+            decoder = BlockDecoder(area, len(values), [(s.offset - start, s.shape)
                                                        for s in states]) if states else None
             entry = self._report_decoders[key] = (states, decoder)
         states, decoder = entry
@@ -338,17 +338,16 @@ class Poller:
             items = slot.items
             for index, value, error in changes:  # set_item, inlined: the hot loop
                 item = items[index]
-                fields = item.__dict__
                 if error is None:
-                    fields["value"] = value
-                    if fields["status"] is not _OK:
-                        fields["status"] = _OK
-                    if fields["error_reason"] is not None:
-                        fields["error_reason"] = None
+                    item.value = value
+                    if item.status is not _OK:
+                        item.status = _OK
+                    if item.error_reason is not None:
+                        item.error_reason = None
                 else:
-                    fields["status"] = _INVALID
-                    fields["error_reason"] = error
-                fields["update_ts"] = now
+                    item.status = _INVALID
+                    item.error_reason = error
+                item.update_ts = now
                 reported.append(item)
         if slot.partial:
             values = data.to_list()
