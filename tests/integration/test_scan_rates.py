@@ -77,7 +77,9 @@ def test_a_fast_and_a_slow_item_are_read_at_their_own_rates(sim: Simulator) -> N
     # the fast block: every 50 ms (never more often), 20 to 31 times in 1.5 s
     gaps = [b - a for a, b in zip(fast.times, fast.times[1:], strict=False)]
     assert 20 <= len(fast_reads) <= 31, len(fast_reads)
-    assert min(gaps) >= 0.044 and 0.045 <= statistics.median(gaps) < 0.08, gaps
+    # (a block may join a cycle that begins up to 5 ms before it is due, and its place in
+    # the cycle varies: a single gap may be a little short of 50 ms)
+    assert min(gaps) >= 0.035 and 0.045 <= statistics.median(gaps) < 0.08, gaps
     # values: each counter as of its last read; the float of the fast rate
     fast_item, slow_item, float_item = cfg.address_list
     assert len(fast.times) - 1 <= fast_item.value <= len(fast.times)  # one may be in flight
@@ -106,7 +108,7 @@ def test_update_addresses_changing_a_rate_replans(sim: Simulator) -> None:
         # b: perhaps one read of the old plan (every 100 ms) before the swap, then at the
         # swap and one second later; a: every 50 ms
         assert len(b_reads) in (2, 3) and 0.99 <= b_reads[-1] - b_reads[-2] < 1.2, b_reads
-        assert 20 <= len(a_reads) <= 28, len(a_reads)
+        assert 20 <= len(a_reads) <= 29, len(a_reads)
         wait_for(lambda: all(it.status is ItemStatus.OK for it in new))
     # each value is its counter as of one of the last reads (one may be in flight at stop)
     assert len(a.times) - 1 <= new[0].value <= len(a.times)
