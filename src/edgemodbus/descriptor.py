@@ -3,7 +3,9 @@
 Parameters come from :class:`~edgemodbus.config.DriverModbusRtuParameter`'s fields
 (their defaults, ranges, choices and descriptions) and their UI labels in
 :mod:`edgemodbus.config.labels` (label, category, controlType, options, visibleWhen,
-dataSource).
+dataSource); ``addressParameter`` lists, the same way, the optional fields of an address
+item (:class:`~edgemodbus.config.DeviceAddressItem`) that have labels there
+(``ITEM_LABELS``: the item's scan rate, ``readCycle``).
 The address regex and examples come from :mod:`edgemodbus.protocol.address`.
 """
 
@@ -16,8 +18,8 @@ from typing import Any, Literal
 
 from pydantic.fields import FieldInfo
 
-from .config import Choice, DriverModbusRtuParameter, Parity, Range
-from .config.labels import LABELS
+from .config import Choice, DeviceAddressItem, DriverModbusRtuParameter, Parity, Range
+from .config.labels import ITEM_LABELS, LABELS
 from .datatypes import Area, DataType
 from .protocol.address import address_regex, check_base, check_prefix, parse_address, type_number
 
@@ -55,6 +57,7 @@ def driver_descriptor(prefix: str = "function-code", base: int = 0) -> dict[str,
         "addressList": [],
         "addressExamples": _examples(prefix, base),
         "parameter": parameters(prefix, base),
+        "addressParameter": address_parameters(),
     }
 
 
@@ -86,32 +89,51 @@ def parameters(prefix: str = "function-code", base: int = 0) -> list[dict[str, A
         ui = LABELS.get(name)
         if ui is None:
             raise TypeError(f"DriverModbusRtuParameter.{name}: no UI labels in config/labels.py")
-        key = field.alias or name
-        category = str(ui["category"])
-        order[category] = order.get(category, 0) + 1
-        entry: dict[str, Any] = {
-            "defaultValue": in_force.get(key, _ui_value(field.default)),
-            "description": field.description or "",
-            "label": ui["label"],
-            "name": key,
-            "orderNo": order[category],
-            "type": ui.get("type") or _ui_type(field),
-            "category": category,
-            "controlType": ui["controlType"],
-        }
-        options = ui.get("options", _options(field))
-        if options is not None:
-            entry["options"] = options
-        for meta in field.metadata:
-            if isinstance(meta, Range):
-                entry["min"] = _plain(meta.lo)
-                if meta.hi is not None:
-                    entry["max"] = _plain(meta.hi)
-        for extra in ("visibleWhen", "dataSource"):
-            if extra in ui:
-                entry[extra] = ui[extra]
-        entries.append(entry)
+        entries.append(_entry(name, field, ui, order, in_force))
     return entries
+
+
+def address_parameters() -> list[dict[str, Any]]:
+    """One descriptor entry per labelled field of an address item, in field order."""
+    fields = DeviceAddressItem.model_fields
+    for name in ITEM_LABELS:
+        if name not in fields:
+            raise TypeError(f"config/labels.py ITEM_LABELS: DeviceAddressItem has no field {name}")
+    order: dict[str, int] = {}
+    return [_entry(name, field, ITEM_LABELS[name], order, {})
+            for name, field in fields.items() if name in ITEM_LABELS]
+
+
+def _entry(
+    name: str, field: FieldInfo, ui: dict[str, Any], order: dict[str, int],
+    in_force: dict[str, Any],
+) -> dict[str, Any]:
+    """The descriptor entry of one model field (``order``: entries so far per category)."""
+    key = field.alias or name
+    category = str(ui["category"])
+    order[category] = order.get(category, 0) + 1
+    entry: dict[str, Any] = {
+        "defaultValue": in_force.get(key, _ui_value(field.default)),
+        "description": field.description or "",
+        "label": ui["label"],
+        "name": key,
+        "orderNo": order[category],
+        "type": ui.get("type") or _ui_type(field),
+        "category": category,
+        "controlType": ui["controlType"],
+    }
+    options = ui.get("options", _options(field))
+    if options is not None:
+        entry["options"] = options
+    for meta in field.metadata:
+        if isinstance(meta, Range):
+            entry["min"] = _plain(meta.lo)
+            if meta.hi is not None:
+                entry["max"] = _plain(meta.hi)
+    for extra in ("visibleWhen", "dataSource"):
+        if extra in ui:
+            entry[extra] = ui[extra]
+    return entry
 
 
 def _plain(x: float) -> int | float:

@@ -15,12 +15,14 @@ from dataclasses import dataclass
 from datetime import datetime
 from typing import Annotated, Any, ClassVar
 
-from pydantic import field_serializer, field_validator, model_validator
+from pydantic import Field, field_serializer, field_validator, model_validator
 
 from ..codec import MAX_QUANTITY, ValueSpec, check_spec
 from ..datatypes import Area, DataFormat, DataType, ItemStatus
 from ..protocol.address import Address, check_span, parse_address
 from .base import (
+    MS_RANGE,
+    READ_CYCLE_RANGE,
     Range,
     SlotModel,
     as_number,
@@ -63,6 +65,12 @@ class DeviceAddressItem(SlotModel):
     quantity: Annotated[int | None, Range(1, MAX_QUANTITY)] = None
     deadband: Annotated[float | None, Range(0)] = None
     encoding: str | None = None
+    read_cycle: Annotated[int | None, READ_CYCLE_RANGE] = Field(
+        default=None,
+        description="This item's scan rate (ms), default the device's readCycle; items of "
+        "different rates are never read in one request; 0 = not polled, updated by "
+        "wrapped reports only (framing wrapped-report)",
+    )
     value: Any = None
     error_reason: str | None = None
 
@@ -316,6 +324,12 @@ def validate_items(
         except ValueError as exc:
             message = str(exc).removeprefix(f"{addr}: ")
             problems.append(Problem(f"{path}.address", item.address, message))
+        if item.read_cycle == 0 and comm.framing != "wrapped-report":
+            problems.append(Problem(
+                f"{path}.readCycle", 0,
+                "0 means not polled, updated by wrapped reports only, which needs framing "
+                f"'wrapped-report' (framing is {comm.framing!r}): use {MS_RANGE.describe()} ms, "
+                "or leave it out for the device's readCycle"))
         if len(problems) > before:
             continue
         one = ParsedItem(

@@ -1,6 +1,7 @@
-"""UI labels of the communication parameters, as the driver descriptor shows them
-(descriptor.py): label, category and control type, and where needed the value type,
-options, data source and visibility (``visibleWhen``: serial or TCP parameters).
+"""UI labels of the communication parameters and of the optional address item fields, as
+the driver descriptor shows them (descriptor.py): label, category and control type, and
+where needed the value type, options, data source and visibility (``visibleWhen``:
+serial or TCP parameters).
 
 Kept apart from the model (communication.py): :data:`LABELS` is keyed by
 DriverModbusRtuParameter's field names; the descriptor lists the fields in the model's
@@ -106,3 +107,9 @@ LABELS: dict[str, dict[str, Any]] = {
     "write_single_register_function": _ui("单寄存器写功能码", "Advanced", "select"),
     "snapshot_interval": _ui("快照间隔(ms)", "Advanced", "number"),
 }
+
+ITEM_LABELS: dict[str, dict[str, Any]] = {
+    "read_cycle": _ui("扫描周期(ms)", "Address", "number"),
+}
+"""UI labels of the optional address item fields the descriptor lists
+(``addressParameter``), keyed by DeviceAddressItem's field names."""

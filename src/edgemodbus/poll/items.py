@@ -152,10 +152,11 @@ class Assembly:
         return first
 
 
-@dataclass
+@dataclass(eq=False)
 class Slot:
     """One planned read and how to decode it: its whole items through one decoder, and
-    the pieces of larger items into their assemblies."""
+    the pieces of larger items into their assemblies; when it is read next (see
+    schedule.py)."""
 
     block: ReadBlock
     whole: list[ItemState]
@@ -165,9 +166,12 @@ class Slot:
     # the decoder was reset because an item was set from outside it (a write, a report):
     # its next reports are filtered by what the items hold (is_news)
     recheck: bool = field(default=False, init=False)
+    period: float = field(init=False)  # the block's scan rate, in seconds
+    due: float = field(default=0.0, init=False)  # monotonic time of its next read
 
     def __post_init__(self) -> None:
         self.items = [state.item for state in self.whole]
+        self.period = self.block.rate / 1000
 
 
 _OK = ItemStatus.OK

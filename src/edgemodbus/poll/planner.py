@@ -4,13 +4,15 @@ Pure and I/O-free.  Each slave has its own poller, whose ``build_plan`` filters 
 disabled items before calling :func:`plan_reads`; the planner only knows areas, offsets
 and sizes.
 
-Rules: per area, items sorted by offset (ties keep input order); a block grows while
+Rules: per area and scan rate, items sorted by offset (ties keep input order); a block grows while
 ``next.offset - block.end <= max_gap`` (end exclusive, so contiguous items have gap 0
 and overlapping items share registers) and its span stays within the limit
 (``max_registers`` capped at 125, ``max_bits`` capped at 2000).  ``continuous`` forces
-gap 0.  Areas never merge (FC03 and FC04 are different areas).  An item larger than the
-limit gets blocks of its own and is read in pieces; its :class:`Piece` entries say how
-to reassemble it.  Output order: by area value, then start.
+gap 0.  Areas never merge (FC03 and FC04 are different areas), nor do items of
+different scan rates (``rate``, the item's readCycle in ms): each block carries its
+rate, and the poller keeps a due time per block.  An item larger than the limit gets
+blocks of its own and is read in pieces; its :class:`Piece` entries say how to
+reassemble it.  Output order: by area value, then start, then rate.
 """
 
 from __future__ import annotations
@@ -28,12 +30,14 @@ _ADDRESS_SPACE = 0x10000
 
 @dataclass(frozen=True, slots=True)
 class PlanItem:
-    """One thing to read: ``size`` registers (register areas) or bits from ``offset``."""
+    """One thing to read: ``size`` registers (register areas) or bits from ``offset``,
+    every ``rate`` ms (its scan rate; the planner only compares rates)."""
 
     key: Hashable
     area: Area
     offset: int
     size: int
+    rate: int = 0
 
 
 @dataclass(frozen=True, slots=True)
@@ -49,12 +53,14 @@ class Piece:
 
 @dataclass(frozen=True, slots=True)
 class ReadBlock:
-    """One read request: ``count`` registers/bits of ``area`` from ``start``."""
+    """One read request: ``count`` registers/bits of ``area`` from ``start``, made every
+    ``rate`` ms (the scan rate shared by all its items)."""
 
     area: Area
     start: int
     count: int
     pieces: tuple[Piece, ...]
+    rate: int = 0
 
     @property
     def keys(self) -> tuple[Hashable, ...]:
@@ -97,7 +103,9 @@ def make_limits(
 _Segment = tuple[Hashable, int, int, int]
 
 
-def _merge(area: Area, segments: list[_Segment], span: int, gap: int) -> list[ReadBlock]:
+def _merge(
+    area: Area, segments: list[_Segment], span: int, gap: int, rate: int
+) -> list[ReadBlock]:
     """Greedy merge of segments sorted by start; every segment fits within ``span``."""
     blocks: list[ReadBlock] = []
     append = blocks.append
@@ -110,18 +118,20 @@ def _merge(area: Area, segments: list[_Segment], span: int, gap: int) -> list[Re
             end = new_end
         else:
             if pieces:
-                append(ReadBlock(area, start, end - start, tuple(pieces)))
+                append(ReadBlock(area, start, end - start, tuple(pieces), rate))
             start, end, pieces = seg_start, seg_end, []
         pieces.append(Piece(key, item_offset, seg_start - start, size))
     if pieces:
-        append(ReadBlock(area, start, end - start, tuple(pieces)))
+        append(ReadBlock(area, start, end - start, tuple(pieces), rate))
     return blocks
 
 
-def _oversized(area: Area, key: Hashable, offset: int, size: int, span: int) -> list[ReadBlock]:
+def _oversized(
+    area: Area, key: Hashable, offset: int, size: int, span: int, rate: int
+) -> list[ReadBlock]:
     """Blocks of their own for an item larger than one block, in pieces of ``span``."""
     return [
-        ReadBlock(area, offset + done, n, (Piece(key, done, 0, n),))
+        ReadBlock(area, offset + done, n, (Piece(key, done, 0, n),), rate)
         for done in range(0, size, span)
         for n in (min(span, size - done),)
     ]
@@ -142,11 +152,11 @@ def plan_reads(
     """
     limits = make_limits(max_registers, max_bits, max_gap, continuous)
     span_of = {area: limits.span(area) for area in Area}
-    by_area: dict[Area, list[_Segment]] = {area: [] for area in Area}
+    groups: dict[tuple[Area, int], list[_Segment]] = {}  # (area, rate) -> segments
     blocks: list[ReadBlock] = []
     seen: set[Hashable] = set()
     for item in items:
-        key, area, offset, size = item.key, item.area, item.offset, item.size
+        key, area, offset, size, rate = item.key, item.area, item.offset, item.size, item.rate
         if key in seen:
             raise ValueError(f"plan item {key!r}: duplicate key")
         seen.add(key)
@@ -156,12 +166,15 @@ def plan_reads(
             )
         span = span_of[area]
         if size > span:
-            blocks.extend(_oversized(area, key, offset, size, span))
+            blocks.extend(_oversized(area, key, offset, size, span, rate))
         else:
-            by_area[area].append((key, 0, offset, size))
-    for area, segments in by_area.items():
+            group = groups.get((area, rate))
+            if group is None:
+                group = groups[(area, rate)] = []
+            group.append((key, 0, offset, size))
+    for (area, rate), segments in groups.items():
         segments.sort(key=_segment_start)  # stable: ties keep input order
-        blocks.extend(_merge(area, segments, span_of[area], limits.gap))
+        blocks.extend(_merge(area, segments, span_of[area], limits.gap, rate))
     blocks.sort(key=_block_order)
     return blocks
 
@@ -169,8 +182,8 @@ def plan_reads(
 _segment_start = itemgetter(2)
 
 
-def _block_order(block: ReadBlock) -> tuple[int, int]:
-    return block.area.value, block.start
+def _block_order(block: ReadBlock) -> tuple[int, int, int]:
+    return block.area.value, block.start, block.rate
 
 
 def split_block(
@@ -183,20 +196,21 @@ def split_block(
     continuous: bool = False,
 ) -> list[ReadBlock]:
     """Give each bad key's piece a block of its own and re-plan the block's other pieces
-    (same limits) in as few blocks as possible.  Keys not in the block are ignored."""
+    (same limits) in as few blocks as possible.  Keys not in the block are ignored; the
+    blocks keep the block's rate."""
     limits = make_limits(max_registers, max_bits, max_gap, continuous)
     isolated: list[ReadBlock] = []
     rest: list[_Segment] = []
     for p in block.pieces:
         start = block.start + p.block_offset
         if p.key in bad_keys:
-            isolated.append(
-                ReadBlock(block.area, start, p.size, (Piece(p.key, p.item_offset, 0, p.size),))
-            )
+            isolated.append(ReadBlock(block.area, start, p.size,
+                                      (Piece(p.key, p.item_offset, 0, p.size),), block.rate))
         else:
             rest.append((p.key, p.item_offset, start, p.size))
     rest.sort(key=_segment_start)
-    blocks = isolated + _merge(block.area, rest, limits.span(block.area), limits.gap)
+    blocks = isolated + _merge(block.area, rest, limits.span(block.area), limits.gap,
+                               block.rate)
     blocks.sort(key=_block_order)
     return blocks
 
@@ -211,6 +225,7 @@ def _shrink(block: ReadBlock, indexes: list[int]) -> ReadBlock:
         block.start + first,
         last - first,
         tuple(Piece(p.key, p.item_offset, p.block_offset - first, p.size) for p in pieces),
+        block.rate,
     )
 
 

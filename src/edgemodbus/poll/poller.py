@@ -2,11 +2,12 @@
 
 A :class:`Poller` is attached to its line: the line's worker calls ``poll_step`` when it
 is due, and each step reads one planned block, so writes queued by other threads run
-between two blocks.  What it reads goes to its owner through a :class:`PollSink`.
-Faults are handled per slave:
+between two blocks.  Each block has its own due time (its items' scan rate, see
+schedule.py); a cycle is one pass over the blocks due when it begins.  What it reads goes
+to its owner through a :class:`PollSink`.  Faults are handled per slave:
 
-* a timeout (after ``retries``) ends this slave's cycle: its remaining blocks are not
-  read and their items go Invalid ("device not responding"); after
+* a timeout (after ``retries``) ends this slave's cycle: the cycle's remaining blocks are
+  not read and their items go Invalid ("device not responding"); after
   ``offlineAfterFailedCycles`` such cycles the slave is ``Offline`` and is probed with
   one request per backoff interval (doubling from readCycle up to maxBackoff), so a
   dead slave costs the others at most one response timeout (plus settling) per interval;
@@ -42,7 +43,9 @@ from ..errors import (
 from ..line import LineWorker, Link
 from ..stats import CYCLE_BUCKETS, DeviceStats
 from .items import Assembly, ItemState, Slot, copy_runtime, is_news, set_item
-from .planner import Piece, PlanItem, ReadBlock, bisect_block, plan_reads
+from .planner import Piece, ReadBlock, bisect_block
+from .schedule import build_plan as build_plan  # the CLI's plan command uses it
+from .schedule import due_slots, next_due, reschedule
 from .sink import Delivery, PollSink
 from .writes import WriteOp, Writer
 
@@ -67,8 +70,6 @@ class Poller:
         self.code = code
         self.log = logger
         self.slave = params.slave_id
-        self.cycle = params.read_cycle / 1000
-        self.report_only = params.read_cycle == 0  # wrapped reports only, never polled
         self.timeout = params.read_timeout / 1000
         self.retries = params.retries
         self.offline_after = params.offline_after_failed_cycles
@@ -85,6 +86,7 @@ class Poller:
         self.items: list[ItemState] = []
         self.by_name: dict[str, ItemState] = {}
         self.slots: list[Slot] = []
+        self._pass: list[Slot] = []  # the slots of the cycle under way, in plan order
         self._assemblies: dict[ItemState, Assembly] = {}
         self._owner: dict[ItemState, Slot | Assembly] = {}  # what decodes each item
         self.cycle_no = 0  # counts the cycles begun, for the pieces of large items
@@ -108,8 +110,16 @@ class Poller:
     def start(self, line: LineWorker) -> None:
         self.line = line
         self.active = True
-        self.due = math.inf if self.report_only else time.monotonic()
+        self._all_due_now()
         line.attach(self)
+
+    def _all_due_now(self) -> None:
+        """Read every block now (a start, a new plan, a new link), as a new cycle."""
+        now = time.monotonic()
+        self.index = 0
+        for slot in self.slots:
+            slot.due = now
+        self.due = math.inf if self.report_only else now
 
     def stop(self) -> None:
         self.active = False
@@ -130,6 +140,11 @@ class Poller:
         self._assemblies = {}  # filled by _make_slot: one per large item, for all its pieces
         self._owner = {}
         self.slots = [self._make_slot(b) for b in blocks]
+        self._pass = []
+        # report-only: nothing polled (readCycle 0 and no item with a rate of its own);
+        # cycle: what offline probing backs off from (readCycle, else the fastest rate)
+        self.report_only = self.params.read_cycle == 0 and not blocks
+        self.cycle = (self.params.read_cycle or min((b.rate for b in blocks), default=0)) / 1000
 
     def _make_slot(self, block: ReadBlock) -> Slot:
         whole: list[ItemState] = []
@@ -162,8 +177,7 @@ class Poller:
 
         def swap(_link: Link | None = None) -> None:
             self._install(parsed)
-            self.index = 0
-            self.due = math.inf if self.report_only else time.monotonic()
+            self._all_due_now()
 
         if self.line.on_worker():  # from a callback: the worker is between two reads
             swap()
@@ -176,14 +190,10 @@ class Poller:
     def link_changed(self, up: bool, reason: str | None) -> None:
         if not self.active:
             return
-        self.index = 0
-        if self.report_only:
-            self.due = math.inf
-            if up:
-                self.status = DeviceDriverStatus.RUNNING  # ready for reports
-                return
-        else:
-            self.due = time.monotonic()
+        self._all_due_now()
+        if self.report_only and up:
+            self.status = DeviceDriverStatus.RUNNING  # ready for reports
+            return
         if up:
             return
         self.status = DeviceDriverStatus.RECONNECTING
@@ -230,19 +240,24 @@ class Poller:
             self.delivery.flush()
 
     def poll_step(self, link: Link) -> None:
-        """Read the next block of this cycle.  The straight path (a good answer) is kept
-        short: it runs once per block for every device of a gateway."""
+        """Read the next block of this cycle (a cycle begins with the blocks due then).
+        The straight path (a good answer) is kept short: it runs once per block for
+        every device of a gateway."""
         if not self.active:
             return
         index = self.index
         if index == 0:
-            self.cycle_start = time.monotonic()
+            now = self.cycle_start = time.monotonic()
+            if not self.slots:  # nothing to read: an empty cycle per readCycle
+                self.cycle_no += 1
+                self._end_cycle(failed=False)
+                return
+            self._pass = due_slots(self.slots, now)
+            if not self._pass:  # woken early: nothing due yet
+                self.due = next_due(self.slots)
+                return
             self.cycle_no += 1
-        slots = self.slots
-        if not slots:
-            self._end_cycle(failed=False)
-            return
-        slot = slots[index]
+        slot = self._pass[index]
         link.set_response_timeout(self.timeout)
         self.counters.requests += 1
         try:
@@ -266,7 +281,7 @@ class Poller:
         if self.status is not DeviceDriverStatus.RUNNING:
             self._back_online()
         self.index += 1
-        if self.index >= len(self.slots):
+        if self.index >= len(self._pass):
             self._end_cycle(failed=False)
 
     def _read_failed(self, link: Link, slot: Slot, error: ModbusError) -> None:
@@ -296,7 +311,7 @@ class Poller:
                 continue
             self._good_read(slot, data, changes)
             return
-        slots = self.slots
+        slots = self._pass
         if isinstance(error, ModbusConnectionError):
             self.index = 0  # the line reports the link as down and reconnects
         elif isinstance(error, ModbusTimeoutError):
@@ -304,10 +319,17 @@ class Poller:
             counters.skipped_blocks += len(slots) - self.index - 1
             for rest in slots[self.index:]:
                 self._invalidate(rest, reason)
+            if self.offline or self.failed_cycles + 1 >= self.offline_after:
+                # offline: the blocks not due in this cycle hold no fresh value either
+                for other in [s for s in self.slots if s not in slots]:  # by identity
+                    self._invalidate(other, reason)
             self._end_cycle(failed=True)
         elif isinstance(error, IllegalDataAddress) and len(block.pieces) > 1:
             halves = bisect_block(block)
-            slots[self.index:self.index + 1] = [self._make_slot(b) for b in halves]
+            new = [self._make_slot(b) for b in halves]
+            slots[self.index:self.index + 1] = new
+            at = next(i for i, s in enumerate(self.slots) if s is slot)
+            self.slots[at:at + 1] = new
             self.log.info(
                 "%s: exception 02 on %s@%d+%d: split into %s", self.code,
                 block.area.short_name, block.start, block.count,
@@ -431,11 +453,18 @@ class Poller:
                                  "%.3g s and backing off", self.code, self.slave,
                                  self.failed_cycles, self.backoff)
             self.due = now + self.backoff
-        elif elapsed > self.cycle:
-            counters.overruns += 1
-            self.due = now  # no burst of catch-up cycles
+            for slot in self.slots:  # the probe is a cycle over every block
+                slot.due = self.due
+        elif not self.slots:
+            if elapsed > self.cycle:
+                counters.overruns += 1
+                self.due = now  # no burst of catch-up cycles
+            else:
+                self.due = self.cycle_start + self.cycle
         else:
-            self.due = self.cycle_start + self.cycle
+            if reschedule(self._pass, self.cycle_start, now):
+                counters.overruns += 1
+            self.due = next_due(self.slots)
         self.delivery.flush()
         if self.snapshot_interval and now >= self.next_snapshot:
             self.next_snapshot = now + self.snapshot_interval
@@ -461,22 +490,6 @@ class Poller:
             return False, "device stopped before the write was sent"
         link.set_response_timeout(self.timeout)
         return self.writer.run(link, ops, self._recheck)
-
-
-def build_plan(items: Sequence[ParsedItem], params: DriverModbusRtuParameter) -> list[ReadBlock]:
-    """The read blocks of a device's enabled items; piece keys index ``items``."""
-    plan_items = [
-        PlanItem(i, p.address.area, p.address.offset, 1 if p.address.area.is_bit else p.registers)
-        for i, p in enumerate(items)
-        if p.item.is_enable
-    ]
-    return plan_reads(
-        plan_items,
-        max_registers=params.max_block_read_register_count,
-        max_bits=params.max_block_read_bit_count,
-        max_gap=params.max_merge_address_gap,
-        continuous=params.is_block_read_require_address_continuous,
-    )
 
 
 _REPORT_AREAS = {area.read_function: area for area in Area}  # FC01-04 of a report

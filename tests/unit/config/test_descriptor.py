@@ -13,8 +13,9 @@ import pytest
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
-from edgemodbus.config import DriverModbusRtuParameter
-from edgemodbus.config.labels import LABELS
+from edgemodbus.config import ConfigError, DeviceAddressItem, DriverModbusRtuParameter
+from edgemodbus.config.base import load_model
+from edgemodbus.config.labels import ITEM_LABELS, LABELS
 from edgemodbus.datatypes import Area, DataType
 from edgemodbus.descriptor import EXAMPLE_KEYS, driver_descriptor
 from edgemodbus.protocol.address import parse_address
@@ -104,6 +105,32 @@ def test_seed_parameters_keep_their_label_type_category_control() -> None:
     seed_order = [p["name"] for p in SEED["parameter"]]
     assert [n for n in ours if n in seed_order] == seed_order
     assert ours["dataBits"]["options"] == [5, 6, 7, 8]  # we accept 5..8, not only 7/8
+
+
+def test_address_parameters_are_the_seed_file_s_item_fields() -> None:
+    # the item's scan rate, in full (tests/data/seed-descriptor.json pins it)
+    assert driver_descriptor()["addressParameter"] == SEED["addressParameter"]
+    assert [p["name"] for p in SEED["addressParameter"]] == ["readCycle"]
+
+
+def test_item_read_cycle_has_the_device_s_range_and_loads_its_limits() -> None:
+    item_meta = DeviceAddressItem.model_fields["read_cycle"].metadata
+    device_meta = DriverModbusRtuParameter.model_fields["read_cycle"].metadata
+    assert item_meta == device_meta  # one source: config.base.READ_CYCLE_RANGE
+    (entry,) = driver_descriptor()["addressParameter"]
+    base = {"name": "x", "address": "hr:1", "deviceDataType": "UInt16"}
+    for ok in (entry["min"], entry["max"], entry["defaultValue"]):
+        assert DeviceAddressItem.model_validate({**base, "readCycle": ok}).read_cycle == ok
+    for bad in (entry["min"] - 1, entry["max"] + 1):
+        with pytest.raises(ConfigError, match=rf"readCycle {bad}: must be 0\.\.86400000"):
+            load_model(DeviceAddressItem, {**base, "readCycle": bad})
+
+
+def test_item_labels_name_item_fields(monkeypatch: pytest.MonkeyPatch) -> None:
+    assert set(ITEM_LABELS) <= set(DeviceAddressItem.model_fields)
+    monkeypatch.setitem(ITEM_LABELS, "read_cycel", ITEM_LABELS["read_cycle"])
+    with pytest.raises(TypeError, match="DeviceAddressItem has no field read_cycel"):
+        driver_descriptor()
 
 
 def test_prefix_and_base_in_force() -> None:

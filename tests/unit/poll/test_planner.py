@@ -198,6 +198,7 @@ def check_plan(
         for p in block.pieces:
             item = by_key[p.key]
             assert item.area is block.area
+            assert item.rate == block.rate  # items of different rates never share a block
             assert p.block_offset >= 0 and p.block_offset + p.size <= block.count
             assert p.item_offset >= 0 and p.item_offset + p.size <= item.size
             # The piece's registers really are the item's registers.
@@ -381,3 +382,60 @@ def relabel(blocks: Sequence[ReadBlock]) -> list[ReadBlock]:
         )
         for b in blocks
     ]
+
+
+# ----------------------------------------------------------------------------- scan rates
+
+
+def test_items_of_different_rates_never_merge() -> None:
+    fast, slow = 50, 1000
+    items = [PlanItem("a", HR, 0, 1, fast), PlanItem("b", HR, 1, 1, slow),
+             PlanItem("c", HR, 2, 2, fast), PlanItem("d", HR, 4, 1, slow)]
+    blocks = plan_reads(items, max_gap=10)
+    assert [(b.start, b.count, b.rate, b.keys) for b in blocks] == [
+        (0, 4, fast, ("a", "c")),  # spans may overlap across rates: still two requests
+        (1, 4, slow, ("b", "d")),
+    ]
+    # one rate: one block, as before
+    same = [PlanItem(i.key, i.area, i.offset, i.size, fast) for i in items]
+    assert [(b.start, b.count, b.rate) for b in plan_reads(same)] == [(0, 5, fast)]
+
+
+def test_large_items_split_and_bisect_keep_the_rate() -> None:
+    big = plan_reads([PlanItem("big", HR, 0, 300, 250)], max_registers=120)
+    assert [(b.start, b.count, b.rate) for b in big] == [(0, 120, 250), (120, 120, 250),
+                                                         (240, 60, 250)]
+    (block,) = plan_reads([PlanItem(k, IR, o, 1, 70) for k, o in (("a", 0), ("b", 5), ("c", 9))])
+    assert {b.rate for b in split_block(block, {"b"})} == {70}
+    assert {b.rate for b in bisect_block(block)} == {70}
+
+
+def rated_item_lists() -> st.SearchStrategy[list[PlanItem]]:
+    return item_lists().flatmap(
+        lambda items: st.lists(
+            st.sampled_from([0, 50, 100, 1000, 60_000]), min_size=len(items), max_size=len(items)
+        ).map(lambda rates: [PlanItem(i.key, i.area, i.offset, i.size, r)
+                             for i, r in zip(items, rates, strict=True)])
+    )
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    items=rated_item_lists(),
+    max_registers=st.integers(1, 200),
+    max_bits=st.integers(1, 50),
+    max_gap=st.integers(0, 30),
+)
+def test_rated_plan_is_the_plans_of_each_rate_within_limits(
+    items: list[PlanItem], max_registers: int, max_bits: int, max_gap: int
+) -> None:
+    limits = {"max_registers": max_registers, "max_bits": max_bits, "max_gap": max_gap}
+    blocks = plan_reads(items, **limits)
+    # every block's items share its rate; every item is covered once; limits hold
+    check_plan(items, blocks, max_registers=max_registers, max_bits=max_bits, max_gap=max_gap)
+    # the rates are planned apart and as tightly as alone: the union of each rate's plan
+    alone = [b for rate in {i.rate for i in items}
+             for b in plan_reads([i for i in items if i.rate == rate], **limits)]
+    order = [(b.area.value, b.start, b.rate) for b in blocks]
+    assert order == sorted(order)
+    assert sorted(blocks, key=repr) == sorted(alone, key=repr)
