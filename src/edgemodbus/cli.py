@@ -276,8 +276,9 @@ def _plan(args: argparse.Namespace) -> int:
     for block in blocks:
         names = [parsed[cast(int, p.key)].name for p in block.pieces]
         end = block.start + block.count - 1
+        rate = "" if block.rate == params.read_cycle else f" every {block.rate} ms"
         print(f"  FC{block.area.read_function:02d} {block.area.short_name}:{block.start}-{end} "
-              f"({block.count}): {', '.join(names)}")
+              f"({block.count}){rate}: {', '.join(names)}")
     return 0
 
 

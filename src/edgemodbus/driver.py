@@ -353,6 +353,7 @@ def _block_dict(block: ReadBlock, items: Sequence[ItemState]) -> dict[str, Any]:
         "function": block.area.read_function,
         "start": block.start,
         "count": block.count,
+        "readCycle": block.rate,
         "items": names,
     }
 

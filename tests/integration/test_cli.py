@@ -338,3 +338,22 @@ def test_a_device_that_cannot_start_is_named_by_its_file(tmp_path: Path,
     lines = out.stderr.splitlines()
     assert len(lines) == 1 and lines[0].startswith(f"edgemodbus run: {files[1]}: line "), lines
     assert "9600" in lines[0] and "19200" in lines[0]
+
+
+def test_plan_shows_the_rate_of_blocks_that_have_their_own(tmp_path: Path) -> None:
+    device = tmp_path / "rated.json"
+    device.write_text(json.dumps({
+        "communication": {"transport": "rtu-over-tcp", "tcpHost": "127.0.0.1",
+                          "tcpPort": 5020, "slaveId": 3, "readCycle": 1000},
+        "addressList": [
+            {"name": "fast", "address": "hr:0", "deviceDataType": "UInt16", "readCycle": 100},
+            {"name": "slow", "address": "hr:1", "deviceDataType": "UInt16"},
+        ],
+    }))
+    out = cli("plan", str(device))
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.splitlines() == [
+        "2 items, 2 requests per cycle (slave 3)",
+        "  FC03 hr:0-0 (1) every 100 ms: fast",
+        "  FC03 hr:1-1 (1): slow",
+    ]
