@@ -210,19 +210,18 @@ def parse_format(value: Any) -> Any:
 # --------------------------------------------------------------------------- the model
 
 
-class Model(BaseModel):
-    """Base of every config model: forgiving key spelling, warnings for unknown keys,
-    to_dict().  A subclass may set ``_where`` (the place unknown-key warnings name) and
-    ``_extra_keys`` (keys accepted besides the fields, for its own validators)."""
+class KeyRules:
+    """The key rules every config model shares: keys in any spelling (case, ``_`` and
+    ``-`` ignored), unknown keys logged and dropped, a key given twice in different
+    spellings refused.  A model may set ``_where`` (the place unknown-key warnings name)
+    and ``_extra_keys`` (keys accepted besides the fields, for its own validators)."""
 
-    model_config = ConfigDict(
-        alias_generator=to_camel,
-        extra="ignore",
-        ser_json_bytes="base64",
-    )
+    __slots__ = ()
 
     _extra_keys: ClassVar[tuple[str, ...]] = ()
     _where: ClassVar[str] = ""
+    if typing.TYPE_CHECKING:  # pydantic sets it on every model class
+        model_fields: ClassVar[dict[str, FieldInfo]]
 
     @classmethod
     def key_table(cls) -> dict[str, str]:
@@ -237,6 +236,17 @@ class Model(BaseModel):
         A key given twice in different spellings is a ConfigError (paths from ``prefix``)."""
         return _normalize_keys(cls.key_table(), data, where, prefix)
 
+
+class Model(KeyRules, BaseModel):
+    """Base of every config model: forgiving key spelling (:class:`KeyRules`), warnings
+    for unknown keys, to_dict()."""
+
+    model_config = ConfigDict(
+        alias_generator=to_camel,
+        extra="ignore",
+        ser_json_bytes="base64",
+    )
+
     @model_validator(mode="before")
     @classmethod
     def _accept_keys(cls, data: Any) -> Any:
@@ -250,7 +260,7 @@ class Model(BaseModel):
         return result
 
 
-class SlotModel:
+class SlotModel(KeyRules):
     """Base of a config model that exists by the tens of thousands (one per tag): a
     pydantic dataclass with ``slots=True`` (no ``__dict__``, no fields-set bookkeeping:
     a third of a BaseModel's size) with the key handling of :class:`Model` and the
@@ -265,24 +275,9 @@ class SlotModel:
     model_fields: ClassVar[dict[str, FieldInfo]] = {}
     __pydantic_validator__: ClassVar[SchemaValidator]
     __pydantic_serializer__: ClassVar[SchemaSerializer]
-    _extra_keys: ClassVar[tuple[str, ...]] = ()
-    _where: ClassVar[str] = ""
-
     if typing.TYPE_CHECKING:  # keys in any spelling, as BaseModel's __init__ takes them
 
         def __init__(self, **data: Any) -> None: ...
-
-    @classmethod
-    def key_table(cls) -> dict[str, str]:
-        """Normalised key -> canonical camelCase key (fields and accepted aliases)."""
-        return _key_table(cls)
-
-    @classmethod
-    def normalize_keys(
-        cls, data: Mapping[Any, Any], where: str, prefix: str = ""
-    ) -> dict[str, Any]:
-        """As :meth:`Model.normalize_keys`."""
-        return _normalize_keys(cls.key_table(), data, where, prefix)
 
     @classmethod
     def accept_keys(cls, data: Any) -> Any:
@@ -337,7 +332,7 @@ _SLOT_CONFIG = ConfigDict(alias_generator=to_camel, extra="ignore", ser_json_byt
 _key_tables: dict[type, dict[str, str]] = {}
 
 
-def _key_table(cls: type[Model] | type[SlotModel]) -> dict[str, str]:
+def _key_table(cls: type[KeyRules]) -> dict[str, str]:
     table = _key_tables.get(cls)
     if table is None:
         table = {norm_key(f.alias or n): f.alias or n for n, f in cls.model_fields.items()}
