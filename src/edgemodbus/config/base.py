@@ -115,16 +115,9 @@ class Range:
     def __get_pydantic_core_schema__(
         self, source: Any, handler: GetCoreSchemaHandler
     ) -> CoreSchema:
-        schema = core_schema.no_info_after_validator_function(self.check, handler(source))
-        numeric, integer, optional = _field_kinds(source)
-        if not numeric:
-            return schema
-        allowed = f"{'a whole number' if integer else 'a number'} {self.describe()}"
-
-        def precheck(value: Any) -> Any:
-            return as_number(value, integer, optional, allowed)
-
-        return core_schema.no_info_before_validator_function(precheck, schema)
+        return _checked_schema(self.check, source, handler,
+                               lambda integer: f"{'a whole number' if integer else 'a number'} "
+                                               f"{self.describe()}")
 
 
 @dataclass(frozen=True, slots=True)
@@ -147,16 +140,23 @@ class Choice:
     def __get_pydantic_core_schema__(
         self, source: Any, handler: GetCoreSchemaHandler
     ) -> CoreSchema:
-        schema = core_schema.no_info_after_validator_function(self.check, handler(source))
-        numeric, integer, optional = _field_kinds(source)
-        if not numeric:
-            return schema
-        allowed = self.describe()
+        return _checked_schema(self.check, source, handler, lambda _integer: self.describe())
 
-        def precheck(value: Any) -> Any:
-            return as_number(value, integer, optional, allowed)
 
-        return core_schema.no_info_before_validator_function(precheck, schema)
+def _checked_schema(check: Callable[[Any], Any], source: Any, handler: GetCoreSchemaHandler,
+                    allowed: Callable[[bool], str]) -> CoreSchema:
+    """The field's schema with ``check`` after it and, for a numeric field, a type check
+    before it whose message says what is allowed (``allowed(integer)``)."""
+    schema = core_schema.no_info_after_validator_function(check, handler(source))
+    numeric, integer, optional = _field_kinds(source)
+    if not numeric:
+        return schema
+    text = allowed(integer)
+
+    def precheck(value: Any) -> Any:
+        return as_number(value, integer, optional, text)
+
+    return core_schema.no_info_before_validator_function(precheck, schema)
 
 
 def _num(x: float) -> str:

@@ -223,10 +223,11 @@ class ParsedItem:
     def name(self) -> str:
         return self.item.name
 
-    def value_spec(self) -> ValueSpec:
-        """The codec's spec of this item (what the driver decodes and encodes with)."""
+    def value_spec(self, name: str | None = None) -> ValueSpec:
+        """The codec's spec of this item (what the driver decodes and encodes with);
+        ``name`` replaces the item's name (a spec shared by items of one kind has none)."""
         return ValueSpec(
-            name=self.item.name,
+            name=self.item.name if name is None else name,
             data_type=self.data_type,
             data_format=self.data_format,
             quantity=self.quantity,

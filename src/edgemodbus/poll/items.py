@@ -63,17 +63,7 @@ class ItemState:
             area,
             parsed.address.bit,
             1 if area.is_bit else parsed.registers,
-            ValueSpec(
-                name="",
-                data_type=parsed.data_type,
-                data_format=parsed.data_format,
-                quantity=parsed.quantity,
-                bit=parsed.address.bit,
-                multiplier=parsed.multiplier,
-                converted_type=parsed.converted_type,
-                deadband=parsed.deadband or 0.0,
-                encoding=parsed.encoding,
-            ),
+            parsed.value_spec(name=""),
         )
 
     @property
