@@ -1,11 +1,11 @@
 /* libFuzzer harness for our reply handling in csrc/emb_io.c (emb_read, emb_transact,
  * emb_send: stale-input drop, echo skip, reply checks, "last answer wins", data
  * extraction), built by tools/fuzz.py with clang -fsanitize=fuzzer,address,undefined and
- * linked with Debian's libmodbus, which frames the replies as in production.
+ * linked with Debian's libmodbus, which sends the RTU requests as in production.
  *
  * Each input scripts what a slave (or a DTU, or noise) sends back: the bytes are written
  * into the other end of a socketpair the moment the request has been sent, so the real
- * code path runs: libmodbus reads and frames them, our checks decide.  emb_io.c is
+ * code path runs: our reader (emb_recv_frame) frames them, our checks decide.  emb_io.c is
  * included here so that the send hooks below see each request (and so that its static
  * checks are in reach); nothing else of it changes.  The reply buffer is malloc'ed at the
  * 260 bytes the API requires and the destination at exactly nb elements, so any access
