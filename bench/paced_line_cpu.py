@@ -33,7 +33,7 @@ def measure(baudrate: int, transactions: int, count: int = 125) -> dict[str, flo
     with tempfile.TemporaryDirectory() as tmp, PacedLine(tmp, baudrate) as line, \
             PymodbusSlave("serial", device=line.slave, baudrate=baudrate, units=(1,)):
         port = SerialPort(line.master, baudrate)
-        timing = LineTiming(response_timeout=2.0, byte_timeout=0.1)
+        timing = LineTiming(response_timeout=2.0, byte_timeout=0.5)
         ctx = Context.rtu(port.port, baudrate, port.parity, port.data_bits, port.stop_bits)
         ctx.connect()
         link = context_link(ctx, port, timing, LineStats(), None)  # I/O on this thread

@@ -100,6 +100,61 @@ static int emb_wait_readable(int fd, int ms)
     }
 }
 
+/* Sleep until the monotonic clock reaches t_ns. */
+static void emb_sleep_until(int64_t t_ns)
+{
+    struct timespec ts;
+
+    ts.tv_sec = (time_t)(t_ns / 1000000000);
+    ts.tv_nsec = (long)(t_ns % 1000000000);
+    while (clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME, &ts, NULL) == EINTR)
+        ;
+}
+
+/* When the next bytes of a frame must have come, and whether we slept for them. */
+typedef struct {
+    int64_t deadline; /* monotonic ns */
+    int slept_for;    /* bytes the last sleep waited for, 0 if it did not sleep */
+} emb_pacer;
+
+static void emb_pacer_start(emb_pacer *p, int first_ms)
+{
+    p->deadline = emb_now_ns() + (int64_t)first_ms * 1000000;
+    p->slept_for = 0;
+}
+
+/* After a read that returned n bytes of a frame of which `left` are still to come: on
+ * sockets, the byte timeout counts from now (byte_ms 0: the deadline stays, the whole
+ * frame within the response timeout, as libmodbus).  On a serial line (lk->char_ns) the
+ * rest of the frame is on the wire at one character time per byte (Modbus over Serial
+ * Line v1.02, 2.5.1.1: no gap over 1.5 characters inside a frame), so sleep until it
+ * should all be here, half a character early, and read it in one go, instead of a poll()
+ * and a read() per byte; the byte timeout then counts from that expected arrival.  When
+ * a sleep brought fewer bytes than it waited for, the frame is late or stopped short:
+ * the byte timeout counts from now, without sleeping, until bytes come again. */
+static void emb_pace(const emb_link *lk, emb_pacer *p, int n, int left, int byte_ms)
+{
+    int64_t expected = emb_now_ns();
+
+    if (lk->char_ns > 0 && left > 1 && !(p->slept_for && n < p->slept_for)) {
+        expected += (int64_t)left * lk->char_ns;
+        emb_sleep_until(expected - lk->char_ns / 2);
+        p->slept_for = left;
+    } else {
+        p->slept_for = 0;
+    }
+    if (byte_ms > 0)
+        p->deadline = expected + (int64_t)byte_ms * 1000000;
+}
+
+/* Wait until fd is readable or the monotonic clock passes deadline_ns: 1, 0, -1. */
+static int emb_wait_until(int fd, int64_t deadline_ns)
+{
+    int64_t left = deadline_ns - emb_now_ns();
+
+    return emb_wait_readable(fd, left > 0 ? (int)((left + 999999) / 1000000) : 0);
+}
+
 /* The errno for end-of-file on fd: the peer closed the connection (ECONNRESET) on a
  * socket; on a serial device, a tty that hung up (a USB adapter unplugged, a pty whose
  * master side closed) reads EOF where writes fail with EIO: report EIO there too. */
@@ -249,14 +304,15 @@ static int emb_skip_echo(modbus_t *ctx, emb_link *lk, const uint8_t *sent, int s
 {
     uint8_t echo[EMB_MAX_ADU];
     int fd = modbus_get_socket(ctx);
-    int wait = emb_timeout_ms(ctx, 0);
     int byte_ms = emb_timeout_ms(ctx, 1);
     int got = 0;
     int rc;
     ssize_t n;
+    emb_pacer pace;
 
+    emb_pacer_start(&pace, emb_timeout_ms(ctx, 0));
     while (got < sent_len) {
-        rc = emb_wait_readable(fd, wait);
+        rc = emb_wait_until(fd, pace.deadline);
         if (rc == -1)
             return -1;
         if (rc == 0) {
@@ -274,8 +330,8 @@ static int emb_skip_echo(modbus_t *ctx, emb_link *lk, const uint8_t *sent, int s
             return -1;
         }
         got += (int)n;
-        if (byte_ms > 0)
-            wait = byte_ms;
+        if (got < sent_len)
+            emb_pace(lk, &pace, (int)n, sent_len - got, byte_ms);
     }
     lk->discarded += got;
     if (memcmp(echo, sent, (size_t)sent_len) != 0) {
@@ -330,19 +386,12 @@ static int emb_reply_length(const uint8_t *p, int got, int mbap)
     return n > max ? -1 : n;
 }
 
-/* Wait until fd is readable or the monotonic clock passes deadline_ns: 1, 0, -1. */
-static int emb_wait_until(int fd, int64_t deadline_ns)
-{
-    int64_t left = deadline_ns - emb_now_ns();
-
-    return emb_wait_readable(fd, left > 0 ? (int)((left + 999999) / 1000000) : 0);
-}
-
 /* Receive one reply frame into rsp (at least EMB_MAX_ADU bytes) with poll() and read(),
  * reading exactly what the frame still needs (emb_reply_length), never a byte past its
  * end: what follows stays in the fd (another frame that emb_exchange looks at, or stale
  * input that the next request drops).  first_ms: the wait for the first byte; then the
- * ctx's byte timeout between bytes (0: the whole frame within first_ms, as libmodbus).
+ * ctx's byte timeout between bytes (0: the whole frame within first_ms, as libmodbus),
+ * on a serial line counted from when the bytes should have come (emb_pace).
  * Returns the frame length; 0 for an RTU frame from another slave than `slave` (its CRC
  * not checked: libmodbus does the same); -1 with errno: ETIMEDOUT (nothing came),
  * EMB_EPARTIAL (the frame stopped short), EMBBADDATA (a byte count too large for an ADU),
@@ -352,16 +401,17 @@ static int emb_recv_frame(modbus_t *ctx, const emb_link *lk, int slave, int firs
 {
     int fd = modbus_get_socket(ctx);
     int byte_ms = emb_timeout_ms(ctx, 1);
-    int64_t deadline = emb_now_ns() + (int64_t)first_ms * 1000000;
     int need = emb_reply_length(rsp, 0, lk->mbap);
     int n_got = 0;
     int rc;
     ssize_t n;
     uint16_t crc;
+    emb_pacer pace;
 
     *got = 0;
+    emb_pacer_start(&pace, first_ms);
     for (;;) {
-        rc = emb_wait_until(fd, deadline);
+        rc = emb_wait_until(fd, pace.deadline);
         if (rc == -1)
             return -1;
         if (rc == 0) {
@@ -387,8 +437,7 @@ static int emb_recv_frame(modbus_t *ctx, const emb_link *lk, int slave, int firs
         }
         if (n_got >= need)
             break;
-        if (byte_ms > 0)
-            deadline = emb_now_ns() + (int64_t)byte_ms * 1000000;
+        emb_pace(lk, &pace, (int)n, need - n_got, byte_ms);
     }
     if (lk->mbap)
         return n_got;

@@ -21,7 +21,8 @@
  *         with the request's transaction id and the right length); bit6 the first
  *         fixed-up MBAP frame carries another transaction id; bit7 the peer closes
  *         the connection after its bytes
- *   slave u8, function u8 (read: 1 + % 4), addr u16, nb u16, tid u16 (the last one sent)
+ *   slave u8, function u8 (read: 1 + % 4), addr u16, nb u16, tid u16 (the last one sent;
+ *         RTU: its low 2 bits x 500 ns are the character time, so the reader paces)
  *   stale  n u8 (% 32) and n bytes already waiting before the request (a late reply)
  *   [pdu]  op transact/send: length u8 and the bytes
  *   frames n u8 (% 5), each: length u8 and the bytes (fixed up per bit5)
@@ -226,6 +227,8 @@ int LLVMFuzzerTestOneInput(const uint8_t *input, size_t size)
     lk.mbap = S.mbap;
     lk.echo = (ctl >> 1) & 1;
     lk.tid = tid;
+    if (!lk.mbap)
+        lk.char_ns = (tid & 3u) * 500u; /* a serial line's pacing: sleeps, never sooner */
 
     uint8_t *rsp = malloc(EMB_MAX_ADU);
     size_t elem = function <= 2 ? 1 : 2;

@@ -66,6 +66,11 @@ class Context:
             raise ValueError(f"{self.label}: the echo option applies to RTU framing only")
         self._link.echo = 1 if on else 0
 
+    def set_char_time(self, seconds: float) -> None:
+        """A serial line's time per character on the wire: the reader sleeps while the
+        rest of a frame is on its way instead of waking for every byte (0: a socket)."""
+        self._link.char_ns = max(0, round(seconds * 1e9))
+
     def take_discarded(self) -> int:
         """Bytes thrown away since the last call (stale input, echoes, superseded
         frames), counted by the C transaction helpers."""
