@@ -358,19 +358,14 @@ class LineWorker:
             sock = None
         else:
             sock = connect_tcp(ep, timing.connect_timeout)
-            if ep.transport == "rtu-over-tcp" and (ep.framing != "rtu" or ep.heartbeat):
-                from .stream import StreamLink  # RTU framed in Python
-
-                return StreamLink(sock, ep, timing, self.stats, heartbeat=ep.heartbeat,
-                                  wrapped=ep.framing == "wrapped-report",
-                                  on_report=self.dispatch_report)
             try:
                 ctx = Context.on_socket(sock.fileno(), ep.describe(), mbap=ep.transport == "tcp")
             except ModbusError:
                 sock.close()
                 raise
-        try:
-            return context_link(ctx, ep, timing, self.stats, sock)
+        try:  # heartbeats and wrapped reports are framed in C (csrc/emb_stream.c)
+            return context_link(ctx, ep, timing, self.stats, sock,
+                                on_report=self.dispatch_report)
         except ValueError:
             if sock is not None:
                 sock.close()
