@@ -50,12 +50,14 @@ unit: build
 integration: build
 	$(PYTEST) tests/integration
 
-# The C codec built with AddressSanitizer + UBSan (into build-asan/), driven by the codec
-# tests; --capture=sys lets a sanitizer report (written to fd 2) reach the terminal.
+# Our C built with AddressSanitizer + UBSan (into build-asan/), driven by the codec tests
+# and the line engine's (its schedule, and whole passes against the simulator);
+# --capture=sys lets a sanitizer report (written to fd 2) reach the terminal.
+ASAN_TESTS := tests/unit/codec tests/unit/ffi/test_engine_schedule.py tests/integration/test_engine.py
 test-asan: build
 	$(BIN)/python tools/asan_build.py && \
 	  ASAN_OPTIONS=detect_leaks=0 LD_PRELOAD="$$(gcc -print-file-name=libasan.so)" \
-	  EDGEMODBUS_NATIVE=asan $(PYTEST) -q -p no:cacheprovider --capture=sys tests/unit/codec
+	  EDGEMODBUS_NATIVE=asan $(PYTEST) -q -p no:cacheprovider --capture=sys $(ASAN_TESTS)
 
 bench: build
 	$(PYTEST) bench --benchmark-only --benchmark-columns=min,mean,median,rounds

@@ -11,8 +11,9 @@ socket or a libmodbus context.
 * link.py: the worker's blocking view of an open line: one interface, a libmodbus
   backend (``ContextLink``) and, in stream.py, a backend framed in Python (heartbeats,
   wrapped reports);
-* worker.py: :class:`LineWorker` (one thread per line, a queue for other threads) and
-  :class:`LineRegistry` (one worker per endpoint, shared by its users);
+* worker.py: :class:`LineWorker` (one thread per line, a queue for other threads, the
+  line engine's loop); registry.py: :class:`LineRegistry` (one worker per endpoint,
+  shared by its users);
 * dtu_listener.py and registration.py: listen mode, DTUs that dial in and register.
 
 The counters a worker keeps are :class:`edgemodbus.stats.LineStats`.
@@ -25,8 +26,9 @@ from .dtu_listener import registry as dtu_registry
 from .endpoint import DtuEndpoint, Endpoint, LineTiming, SerialPort, TcpEndpoint, endpoint_for
 from .link import Link
 from .registration import PortSettings
-from .worker import LineRegistry, LineWorker, Poller
-from .worker import registry as line_registry
+from .registry import LineRegistry
+from .registry import registry as line_registry
+from .worker import LineWorker, Poller
 
 __all__ = [
     "DtuEndpoint",

@@ -22,6 +22,7 @@ from collections.abc import Callable, Sequence
 
 from .. import _ffi
 from .._ffi import Block, CodecPlan, Context
+from .._ffi.engine import Engine, EngineDevice, LineCounters, Waker
 from ..codec import BlockDecoder, Change
 from ..datatypes import Area
 from ..errors import (
@@ -106,6 +107,20 @@ class Link:
         raise NotImplementedError
 
     def _fail(self, exc: ModbusError) -> ModbusError:
+        raise NotImplementedError
+
+    def run_engine(self, waker: Waker, counters: LineCounters,
+                   devices: Sequence[EngineDevice],
+                   until: float) -> tuple[int, int, int] | None:
+        """Run ``devices``' passes in C until something needs Python or ``until``: the
+        event, the index of the device concerned and an errno (see _ffi/engine.py).
+        None: this link steps in Python (the worker calls the pollers' poll_step)."""
+        return None
+
+    def read_failed(self, err: int, slave: int, area: Area, address: int,
+                    count: int) -> ModbusError:
+        """A read the engine made failed with errno ``err``: count it and clean the
+        line as :meth:`read` would have; returns the typed error."""
         raise NotImplementedError
 
     def pump(self) -> None:
@@ -217,6 +232,30 @@ class ContextLink(Link):
         self._ctx = ctx
         self._sock = sock
         self._timeouts = timeouts
+        self._engine: Engine | None = None
+
+    # -- the engine --------------------------------------------------------------------
+    def run_engine(self, waker: Waker, counters: LineCounters,
+                   devices: Sequence[EngineDevice],
+                   until: float) -> tuple[int, int, int] | None:
+        """See :meth:`Link.run_engine`; with the frame trace on, the line steps in
+        Python so that every frame is logged."""
+        if self._trace or not self.is_open:
+            return None
+        engine = self._engine
+        if engine is None or engine.waker is not waker:
+            engine = self._engine = Engine(self._ctx, waker, counters, self._pace, self.idle_fd)
+        engine.set_devices(devices)
+        event = engine.run(until, self._ready_at)
+        if self._pace:
+            self._ready_at = engine.ready_at
+        self._timeouts = (-1.0, -1.0)  # the engine sets each device's own
+        return event, engine.event_device, engine.event_errno
+
+    def read_failed(self, err: int, slave: int, area: Area, address: int,
+                    count: int) -> ModbusError:
+        exc = self._ctx.read_error(err, slave, READ_FC[area], address, count)
+        return self._fail(exc)
 
     # -- bookkeeping -----------------------------------------------------------------
     def set_response_timeout(self, seconds: float) -> None:
