@@ -68,7 +68,8 @@ periods_st = st.lists(st.sampled_from([0.001, 0.01, 0.05, 0.1, 0.3, 1.0, 60.0]),
                       min_size=1, max_size=8)
 # idle and pass times in us: whole milliseconds too, which meet the join and overrun
 # boundaries exactly (a block due exactly min(period / 10, 5 ms) from now joins)
-_us = st.one_of(st.integers(0, 400_000), st.integers(0, 400).map(lambda ms: 1000 * ms))
+_us = st.one_of(st.integers(0, 400_000), st.integers(0, 400).map(lambda ms: 1000 * ms),
+                st.sampled_from([1000, 5000, 9000, 10_000, 45_000, 50_000, 100_000, 300_000]))
 steps_st = st.lists(st.tuples(_us, _us), max_size=30)
 
 
