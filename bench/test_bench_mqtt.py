@@ -226,9 +226,9 @@ def test_cpu_per_tag_read_mqtt_on_vs_off(setup: tuple[SimulatorProcess, Mosquitt
         published=published, received=received,
     )
     report("CPU per tag read, 10,000 tags, 1% changing per read, MQTT to mosquitto", rows)
-    gate.record("mqtt.qos0_on_vs_off", ratios[0])
     for mode in modes:
         cpu, reads, changed = results[mode]
         assert 0.9 <= 100 * changed / reads <= 1.1, f"the 1% change did not happen ({mode})"
     assert stats[0]["dropped"] == 0
     assert received >= published > 0
+    gate.record("mqtt.qos0_on_vs_off", ratios[0])  # a valid run only (nothing dropped)
