@@ -233,13 +233,19 @@ class Poller(FaultPolicy):
         order = device.pass_blocks()
         upto = device.index if device.in_pass else len(order)
         report_all = self.report_all
+        slots = self.slots
+        reported: list[DeviceAddressItem] = []
+        now = datetime.now(timezone.utc)  # one time stamp for the pass's reports
         for k in order[device.taken:upto]:
-            slot = self.slots[k]
+            slot = slots[k]
+            n = device.reported(k)
+            if not (n or report_all or slot.partial or slot.recheck):
+                continue  # the usual block: nothing changed
             decoder = slot.decoder
-            changes = decoder.finish(device.reported(k), report_all) if decoder else []
-            if changes or slot.partial or slot.recheck:
-                self._apply(slot, device.data(k), changes)
+            changes = decoder.finish(n, report_all) if decoder else []
+            self._apply(slot, device.data(k), changes, now, reported)
         device.taken = upto
+        self._deliver(reported)
 
     def engine_cycle(self) -> None:
         """The engine ended a pass with news (or one the poller asked to see)."""
@@ -290,7 +296,9 @@ class Poller(FaultPolicy):
 
     def _good_read(self, slot: Slot, data: Block, changes: list[Change]) -> None:
         self.counters.responses += 1
-        self._apply(slot, data, changes)
+        reported: list[DeviceAddressItem] = []
+        self._apply(slot, data, changes, datetime.now(timezone.utc), reported)
+        self._deliver(reported)
         if self.status is not DeviceDriverStatus.RUNNING:
             self._back_online()
         self._next_block()
@@ -302,18 +310,17 @@ class Poller(FaultPolicy):
         if device.index >= len(device.pass_blocks()):
             self._end_cycle(failed=False)
 
-    def _apply(self, slot: Slot, data: Block | None, changes: list[Change]) -> None:
-        """Store what a good read of ``slot`` changed: its whole items' ``changes`` (from
-        the decoder) and the items assembled from pieces (from ``data``)."""
-        reported: list[DeviceAddressItem] = []
-        now: datetime | None = None
+    def _apply(self, slot: Slot, data: Block | None, changes: list[Change], now: datetime,
+               reported: list[DeviceAddressItem]) -> None:
+        """Store what a good read of ``slot`` changed, stamped ``now``: its whole items'
+        ``changes`` (from the decoder) and the items assembled from pieces (from
+        ``data``); the items set are appended to ``reported``."""
         if slot.recheck:  # rare: after a write or a report, see _recheck
             slot.recheck = False
             if not self.report_all:
                 whole = slot.whole
                 changes = [c for c in changes if is_news(whole[c[0]], c[1], c[2])]
         if changes:
-            now = datetime.now(timezone.utc)
             items = slot.items
             for index, value, error in changes:  # set_item, inlined: the hot loop
                 item = items[index]
@@ -337,8 +344,10 @@ class Poller(FaultPolicy):
                     state = asm.state
                     for _, value, error in asm.decoder.decode(block, self.report_all):
                         if self.report_all or is_news(state, value, error):
-                            now = now or datetime.now(timezone.utc)
                             reported.append(set_item(state.item, value, error, now))
+
+    def _deliver(self, reported: list[DeviceAddressItem]) -> None:
+        """Hand the items just set to the callbacks (the batch goes at the cycle's end)."""
         if reported:
             self.counters.values_changed += len(reported)
             self.delivery.report(reported)
