@@ -2,11 +2,14 @@
  *
  * Each function does a whole step (drop stale input, send, skip an echo, receive, check)
  * so that the Python bus worker makes one C call, with the GIL released, per Modbus
- * transaction.  libmodbus frames the reply (lengths from the function code and byte
- * count, byte timeout, CRC); the checks that tie a reply to its request are ours, because
- * 3.1.6 does not make them all: it loses undefined exception codes, ignores the MBAP
- * unit id and length, accepts a protocol id with one zero byte, and sends raw requests
- * with transaction id 0.  No globals, no allocation: callers own every buffer. */
+ * transaction.  libmodbus keeps the line set-up (serial port, termios, RS-485 and RTS)
+ * and sends RTU requests; we receive: poll(), not libmodbus's select(), whose FD_SET
+ * overflows for an fd of 1024 and more; the length from the function code and byte count,
+ * the response and byte timeouts, the CRC (emb_recv_frame).  The checks that tie a reply
+ * to its request are ours too, because 3.1.6 does not make them all: it loses undefined
+ * exception codes, ignores the MBAP unit id and length, accepts a protocol id with one
+ * zero byte, and sends raw requests with transaction id 0.  No globals, no allocation:
+ * callers own every buffer. */
 #include "emb_io.h"
 
 #include <errno.h>
@@ -19,6 +22,7 @@
 #include <unistd.h>
 
 #define EMB_MAX_ADU 260 /* MODBUS_TCP_MAX_ADU_LENGTH: rsp holds at least this much */
+#define EMB_MAX_RTU 256 /* an RTU ADU: address + PDU + CRC (Modbus over Serial Line 2.5.1) */
 #define EMB_MBAP 7      /* MBAP header (Modbus Messaging on TCP/IP v1.0b, 3.1.3) */
 
 /* CRC-16/MODBUS, polynomial 0xA001 reflected, initial 0xFFFF (Modbus over Serial Line
@@ -34,6 +38,14 @@ static uint16_t emb_crc16(const uint8_t *p, int n)
             crc = (crc & 1) ? (uint16_t)((crc >> 1) ^ 0xA001) : (uint16_t)(crc >> 1);
     }
     return crc;
+}
+
+static int64_t emb_now_ns(void)
+{
+    struct timespec now;
+
+    clock_gettime(CLOCK_MONOTONIC, &now);
+    return (int64_t)now.tv_sec * 1000000000 + now.tv_nsec;
 }
 
 static long emb_elapsed_ms(const struct timespec *since)
@@ -86,6 +98,61 @@ static int emb_wait_readable(int fd, int ms)
         }
         return 1;
     }
+}
+
+/* Sleep until the monotonic clock reaches t_ns. */
+static void emb_sleep_until(int64_t t_ns)
+{
+    struct timespec ts;
+
+    ts.tv_sec = (time_t)(t_ns / 1000000000);
+    ts.tv_nsec = (long)(t_ns % 1000000000);
+    while (clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME, &ts, NULL) == EINTR)
+        ;
+}
+
+/* When the next bytes of a frame must have come, and whether we slept for them. */
+typedef struct {
+    int64_t deadline; /* monotonic ns */
+    int slept_for;    /* bytes the last sleep waited for, 0 if it did not sleep */
+} emb_pacer;
+
+static void emb_pacer_start(emb_pacer *p, int first_ms)
+{
+    p->deadline = emb_now_ns() + (int64_t)first_ms * 1000000;
+    p->slept_for = 0;
+}
+
+/* After a read that returned n bytes of a frame of which `left` are still to come: on
+ * sockets, the byte timeout counts from now (byte_ms 0: the deadline stays, the whole
+ * frame within the response timeout, as libmodbus).  On a serial line (lk->char_ns) the
+ * rest of the frame is on the wire at one character time per byte (Modbus over Serial
+ * Line v1.02, 2.5.1.1: no gap over 1.5 characters inside a frame), so sleep until it
+ * should all be here, half a character early, and read it in one go, instead of a poll()
+ * and a read() per byte; the byte timeout then counts from that expected arrival.  When
+ * a sleep brought fewer bytes than it waited for, the frame is late or stopped short:
+ * the byte timeout counts from now, without sleeping, until bytes come again. */
+static void emb_pace(const emb_link *lk, emb_pacer *p, int n, int left, int byte_ms)
+{
+    int64_t expected = emb_now_ns();
+
+    if (lk->char_ns > 0 && left > 1 && !(p->slept_for && n < p->slept_for)) {
+        expected += (int64_t)left * lk->char_ns;
+        emb_sleep_until(expected - lk->char_ns / 2);
+        p->slept_for = left;
+    } else {
+        p->slept_for = 0;
+    }
+    if (byte_ms > 0)
+        p->deadline = expected + (int64_t)byte_ms * 1000000;
+}
+
+/* Wait until fd is readable or the monotonic clock passes deadline_ns: 1, 0, -1. */
+static int emb_wait_until(int fd, int64_t deadline_ns)
+{
+    int64_t left = deadline_ns - emb_now_ns();
+
+    return emb_wait_readable(fd, left > 0 ? (int)((left + 999999) / 1000000) : 0);
 }
 
 /* The errno for end-of-file on fd: the peer closed the connection (ECONNRESET) on a
@@ -237,14 +304,15 @@ static int emb_skip_echo(modbus_t *ctx, emb_link *lk, const uint8_t *sent, int s
 {
     uint8_t echo[EMB_MAX_ADU];
     int fd = modbus_get_socket(ctx);
-    int wait = emb_timeout_ms(ctx, 0);
     int byte_ms = emb_timeout_ms(ctx, 1);
     int got = 0;
     int rc;
     ssize_t n;
+    emb_pacer pace;
 
+    emb_pacer_start(&pace, emb_timeout_ms(ctx, 0));
     while (got < sent_len) {
-        rc = emb_wait_readable(fd, wait);
+        rc = emb_wait_until(fd, pace.deadline);
         if (rc == -1)
             return -1;
         if (rc == 0) {
@@ -262,8 +330,8 @@ static int emb_skip_echo(modbus_t *ctx, emb_link *lk, const uint8_t *sent, int s
             return -1;
         }
         got += (int)n;
-        if (byte_ms > 0)
-            wait = byte_ms;
+        if (got < sent_len)
+            emb_pace(lk, &pace, (int)n, sent_len - got, byte_ms);
     }
     lk->discarded += got;
     if (memcmp(echo, sent, (size_t)sent_len) != 0) {
@@ -273,32 +341,114 @@ static int emb_skip_echo(modbus_t *ctx, emb_link *lk, const uint8_t *sent, int s
     return 0;
 }
 
-/* Receive one frame with libmodbus: its length; 0 for an RTU frame from another slave
- * (libmodbus drops those before their CRC); -1 with errno: ETIMEDOUT when nothing came,
- * EMB_EPARTIAL when a frame stopped short (byte timeout).  wait_ms < 0: libmodbus waits
- * the response timeout for the first byte; else we wait up to wait_ms for it.  The
- * caller puts in rsp[0] a byte the frame cannot start with (the complement of the
- * slave id or of the first MBAP byte): if it changed, bytes came. */
-static int emb_receive(modbus_t *ctx, int wait_ms, uint8_t *rsp)
+/* Length of the reply ADU whose first `got` bytes are in p, as its header tells it
+ * (Modbus Application Protocol v1.1b3, ch. 6: a read reply carries a byte count,
+ * 6.1-6.4; a write reply echoes a fixed-size part of the request, 6.5, 6.6, 6.11, 6.12,
+ * 6.16; an exception reply is function | 0x80 and one code, ch. 7); while fewer than
+ * header + 2 bytes came: that many (every reply has them), so a read of what this
+ * returns never goes past the frame's end.  -1: the byte count does not fit in an ADU
+ * (libmodbus's EMBBADDATA).  Function codes of unknown length are framed as libmodbus
+ * frames them (the function and one byte), on Modbus TCP by the MBAP length when it is
+ * plausible (Modbus Messaging on TCP/IP v1.0b, 3.1.3). */
+static int emb_reply_length(const uint8_t *p, int got, int mbap)
 {
-    uint8_t mark = rsp[0];
-    int rc;
+    int h = mbap ? EMB_MBAP : 1;
+    int crc = mbap ? 0 : 2;
+    int max = mbap ? EMB_MAX_ADU : EMB_MAX_RTU;
+    int fc, n, mlen;
 
-    if (wait_ms >= 0) {
-        rc = emb_wait_readable(modbus_get_socket(ctx), wait_ms);
+    if (got < h + 2)
+        return h + 2 + crc;
+    fc = p[h];
+    if (fc & 0x80) {
+        n = h + 2 + crc;
+    } else {
+        switch (fc) {
+        case 0x01: case 0x02: case 0x03: case 0x04:
+        case 0x11: case 0x17: /* report server id, read/write registers: byte count too */
+            n = h + 2 + p[h + 1] + crc;
+            break;
+        case 0x05: case 0x06: case 0x0F: case 0x10:
+            n = h + 5 + crc;
+            break;
+        case 0x16:
+            n = h + 7 + crc;
+            break;
+        default:
+            n = h + 2 + crc;
+            if (mbap) {
+                mlen = (p[4] << 8) | p[5];
+                if (6 + mlen > n && 6 + mlen <= max)
+                    n = 6 + mlen;
+            }
+        }
+    }
+    return n > max ? -1 : n;
+}
+
+/* Receive one reply frame into rsp (at least EMB_MAX_ADU bytes) with poll() and read(),
+ * reading exactly what the frame still needs (emb_reply_length), never a byte past its
+ * end: what follows stays in the fd (another frame that emb_exchange looks at, or stale
+ * input that the next request drops).  first_ms: the wait for the first byte; then the
+ * ctx's byte timeout between bytes (0: the whole frame within first_ms, as libmodbus),
+ * on a serial line counted from when the bytes should have come (emb_pace).
+ * Returns the frame length; 0 for an RTU frame from another slave than `slave` (its CRC
+ * not checked: libmodbus does the same); -1 with errno: ETIMEDOUT (nothing came),
+ * EMB_EPARTIAL (the frame stopped short), EMBBADDATA (a byte count too large for an ADU),
+ * EMBBADCRC, the emb_eof_errno at end of file, or the read's errno.  *got: bytes read. */
+static int emb_recv_frame(modbus_t *ctx, const emb_link *lk, int slave, int first_ms,
+                          uint8_t *rsp, int *got)
+{
+    int fd = modbus_get_socket(ctx);
+    int byte_ms = emb_timeout_ms(ctx, 1);
+    int need = emb_reply_length(rsp, 0, lk->mbap);
+    int n_got = 0;
+    int rc;
+    ssize_t n;
+    uint16_t crc;
+    emb_pacer pace;
+
+    *got = 0;
+    emb_pacer_start(&pace, first_ms);
+    for (;;) {
+        rc = emb_wait_until(fd, pace.deadline);
         if (rc == -1)
             return -1;
         if (rc == 0) {
-            errno = ETIMEDOUT;
+            errno = n_got ? EMB_EPARTIAL : ETIMEDOUT;
             return -1;
         }
+        n = read(fd, rsp + n_got, (size_t)(need - n_got));
+        if (n == 0) {
+            errno = emb_eof_errno(fd);
+            return -1;
+        }
+        if (n < 0) {
+            if (errno == EINTR || errno == EAGAIN)
+                continue;
+            return -1;
+        }
+        n_got += (int)n;
+        *got = n_got;
+        need = emb_reply_length(rsp, n_got, lk->mbap);
+        if (need < 0) {
+            errno = EMBBADDATA;
+            return -1;
+        }
+        if (n_got >= need)
+            break;
+        emb_pace(lk, &pace, (int)n, need - n_got, byte_ms);
     }
-    rc = modbus_receive_confirmation(ctx, rsp);
-    if (rc == -1 && errno == ETIMEDOUT)
-        errno = (wait_ms >= 0 || rsp[0] != mark) ? EMB_EPARTIAL : ETIMEDOUT;
-    else if (rc == -1 && errno == ECONNRESET) /* libmodbus's word for EOF */
-        errno = emb_eof_errno(modbus_get_socket(ctx));
-    return rc;
+    if (lk->mbap)
+        return n_got;
+    if (rsp[0] != slave && rsp[0] != 0) /* 0: a broadcast address is checked, as libmodbus */
+        return 0;
+    crc = emb_crc16(rsp, n_got - 2);
+    if (rsp[n_got - 2] != (crc & 0xFF) || rsp[n_got - 1] != (crc >> 8)) {
+        errno = EMBBADCRC;
+        return -1;
+    }
+    return n_got;
 }
 
 /* 0 if rsp (len bytes) answers pdu sent to slave: a normal reply (*exc = -1) or an
@@ -339,13 +489,12 @@ static int emb_check(const emb_link *lk, int slave, const uint8_t *pdu, int coun
     return 0;
 }
 
-/* Did what came back start with our own request?  (Bytes libmodbus did not write keep
- * the complement that emb_exchange put there, so they never match.) */
-static int emb_looks_like_echo(const uint8_t *rsp, const uint8_t *sent, int sent_len)
+/* Did what came back (got bytes) start with our own request? */
+static int emb_looks_like_echo(const uint8_t *rsp, int got, const uint8_t *sent, int sent_len)
 {
     int i = 0;
 
-    while (i < sent_len && rsp[i] == sent[i])
+    while (i < sent_len && i < got && rsp[i] == sent[i])
         i++;
     return i >= 5 || (i == sent_len && i > 0);
 }
@@ -361,7 +510,7 @@ static int emb_exchange(modbus_t *ctx, emb_link *lk, int slave, const uint8_t *p
     int rtu = !lk->mbap;
     struct timespec start;
     int sent_len = 0;
-    int len, len2, err, err2, exc, exc2, i, wait, skipped = 0;
+    int len, len2, err, err2, exc, exc2, got, got2, wait, skipped = 0;
 
     lk->rsp_len = 0;
     if (emb_drop_pending(lk, fd) == -1)
@@ -370,18 +519,16 @@ static int emb_exchange(modbus_t *ctx, emb_link *lk, int slave, const uint8_t *p
         return -1;
     if (rtu && lk->echo && emb_skip_echo(ctx, lk, sent, sent_len) == -1)
         return -1;
-    for (i = 0; i < sent_len; i++)
-        rsp[i] = (uint8_t)~sent[i];
-    wait = -1; /* the first byte: libmodbus waits the response timeout */
+    wait = emb_timeout_ms(ctx, 0); /* for the first byte: the response timeout */
     clock_gettime(CLOCK_MONOTONIC, &start);
     for (;;) {
-        len = emb_receive(ctx, wait, rsp);
+        len = emb_recv_frame(ctx, lk, slave, wait, rsp, &got);
         if (len <= 0) {
             err = len == 0 ? EMB_ESLAVE : errno;
             if (err == ETIMEDOUT && skipped)
                 err = EMB_ETID; /* only replies to other requests came */
             if (rtu && !lk->echo && err != ETIMEDOUT &&
-                emb_looks_like_echo(rsp, sent, sent_len))
+                emb_looks_like_echo(rsp, got, sent, sent_len))
                 err = EMB_EECHOSEEN;
             errno = err;
             return -1;
@@ -403,7 +550,7 @@ static int emb_exchange(modbus_t *ctx, emb_link *lk, int slave, const uint8_t *p
      * it with the next one, or repeats a reply): the last answer to this request wins,
      * so a stale reply to an earlier request is never taken for this one. */
     if (emb_pending(fd) >= (rtu ? 5 : EMB_MBAP + 2)) {
-        len2 = emb_receive(ctx, 0, next);
+        len2 = emb_recv_frame(ctx, lk, slave, 0, next, &got2);
         if (len2 > 0) {
             err2 = emb_check(lk, slave, pdu, count, next, len2, &exc2);
             if (err2 == 0) {
@@ -415,11 +562,13 @@ static int emb_exchange(modbus_t *ctx, emb_link *lk, int slave, const uint8_t *p
             } else {
                 lk->discarded += len2;
             }
+        } else {
+            lk->discarded += got2; /* another slave's frame, or a bad one */
         }
     }
     lk->rsp_len = len; /* also when rejected: the caller may show why */
     if (err) {
-        if (rtu && !lk->echo && emb_looks_like_echo(rsp, sent, sent_len))
+        if (rtu && !lk->echo && emb_looks_like_echo(rsp, len, sent, sent_len))
             err = EMB_EECHOSEEN;
         errno = err;
         return -1;

@@ -15,6 +15,10 @@ typedef struct {
     long discarded; /* bytes thrown away (stale input, echoes, superseded frames); the
                      * caller reads and resets it */
     int rsp_len;    /* length of the reply ADU left in rsp by the last call, else 0 */
+    uint32_t char_ns; /* serial lines: nanoseconds per character on the wire (start, data,
+                       * parity and stop bits at the baud rate); 0 on sockets.  The
+                       * reader then sleeps while the rest of a frame is on its way
+                       * instead of waking for every byte. */
 } emb_link;
 
 /* errno values of our own reply checks (libmodbus's own errnos are kept as they are). */

@@ -38,4 +38,3 @@ int modbus_read_registers(modbus_t *ctx, int addr, int nb, uint16_t *dest);
 int modbus_read_input_registers(modbus_t *ctx, int addr, int nb, uint16_t *dest);
 
 int modbus_send_raw_request(modbus_t *ctx, const uint8_t *raw_req, int raw_req_length);
-int modbus_receive_confirmation(modbus_t *ctx, uint8_t *rsp);

@@ -5,6 +5,7 @@ typedef struct {
     unsigned tid;
     long discarded;
     int rsp_len;
+    uint32_t char_ns;
 } emb_link;
 
 #define EMB_EBASE ...

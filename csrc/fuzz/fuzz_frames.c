@@ -1,11 +1,11 @@
 /* libFuzzer harness for our reply handling in csrc/emb_io.c (emb_read, emb_transact,
  * emb_send: stale-input drop, echo skip, reply checks, "last answer wins", data
  * extraction), built by tools/fuzz.py with clang -fsanitize=fuzzer,address,undefined and
- * linked with Debian's libmodbus, which frames the replies as in production.
+ * linked with Debian's libmodbus, which sends the RTU requests as in production.
  *
  * Each input scripts what a slave (or a DTU, or noise) sends back: the bytes are written
  * into the other end of a socketpair the moment the request has been sent, so the real
- * code path runs: libmodbus reads and frames them, our checks decide.  emb_io.c is
+ * code path runs: our reader (emb_recv_frame) frames them, our checks decide.  emb_io.c is
  * included here so that the send hooks below see each request (and so that its static
  * checks are in reach); nothing else of it changes.  The reply buffer is malloc'ed at the
  * 260 bytes the API requires and the destination at exactly nb elements, so any access
@@ -21,7 +21,8 @@
  *         with the request's transaction id and the right length); bit6 the first
  *         fixed-up MBAP frame carries another transaction id; bit7 the peer closes
  *         the connection after its bytes
- *   slave u8, function u8 (read: 1 + % 4), addr u16, nb u16, tid u16 (the last one sent)
+ *   slave u8, function u8 (read: 1 + % 4), addr u16, nb u16, tid u16 (the last one sent;
+ *         RTU: its low 2 bits x 500 ns are the character time, so the reader paces)
  *   stale  n u8 (% 32) and n bytes already waiting before the request (a late reply)
  *   [pdu]  op transact/send: length u8 and the bytes
  *   frames n u8 (% 5), each: length u8 and the bytes (fixed up per bit5)
@@ -226,6 +227,8 @@ int LLVMFuzzerTestOneInput(const uint8_t *input, size_t size)
     lk.mbap = S.mbap;
     lk.echo = (ctl >> 1) & 1;
     lk.tid = tid;
+    if (!lk.mbap)
+        lk.char_ns = (tid & 3u) * 500u; /* a serial line's pacing: sleeps, never sooner */
 
     uint8_t *rsp = malloc(EMB_MAX_ADU);
     size_t elem = function <= 2 ? 1 : 2;

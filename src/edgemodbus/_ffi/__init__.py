@@ -28,7 +28,6 @@ from .codec import (
 from .context import Context, discard_input
 from .errors import error_from_errno
 from .native import (
-    FD_SETSIZE,
     MAX_ADU_LENGTH,
     MAX_READ_BITS,
     MAX_READ_REGISTERS,
@@ -44,7 +43,6 @@ __all__ = [
     "CODEC_MODE_ALL",
     "CODEC_MODE_TRACK",
     "CODEC_MODE_VALUES",
-    "FD_SETSIZE",
     "MAX_ADU_LENGTH",
     "MAX_READ_BITS",
     "MAX_READ_REGISTERS",

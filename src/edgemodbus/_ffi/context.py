@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING, Any
 from ..errors import ModbusConnectionError, ModbusError
 from .block import Block
 from .errors import error_from_errno
-from .native import FD_SETSIZE, MAX_ADU_LENGTH, MAX_READ_BITS, MAX_READ_REGISTERS, ffi, lib
+from .native import MAX_ADU_LENGTH, MAX_READ_BITS, MAX_READ_REGISTERS, ffi, lib
 
 if TYPE_CHECKING:
     from .codec import CodecPlan
@@ -46,12 +46,8 @@ class Context:
 
     @classmethod
     def on_socket(cls, fd: int, label: str, mbap: bool) -> Context:
-        """A context on a connected socket: MBAP framing if ``mbap``, else raw RTU frames."""
-        if fd >= FD_SETSIZE:
-            raise ModbusConnectionError(
-                f"{label}: socket fd {fd} >= {FD_SETSIZE}: libmodbus 3.1.6 cannot select() "
-                "on it (it would abort the process); too many files are open in this process"
-            )
+        """A context on a connected socket: MBAP framing if ``mbap``, else raw RTU frames.
+        Any fd number will do: csrc/emb_io.c waits with poll(), never libmodbus's select()."""
         if mbap:
             ptr = lib.modbus_new_tcp(b"127.0.0.1", 502)  # address unused: we own the socket
         else:
@@ -69,6 +65,11 @@ class Context:
         if on and self._link.mbap:
             raise ValueError(f"{self.label}: the echo option applies to RTU framing only")
         self._link.echo = 1 if on else 0
+
+    def set_char_time(self, seconds: float) -> None:
+        """A serial line's time per character on the wire: the reader sleeps while the
+        rest of a frame is on its way instead of waking for every byte (0: a socket)."""
+        self._link.char_ns = max(0, round(seconds * 1e9))
 
     def take_discarded(self) -> int:
         """Bytes thrown away since the last call (stale input, echoes, superseded
@@ -97,13 +98,6 @@ class Context:
             else:
                 msg = os.strerror(err)
             raise ModbusConnectionError(f"serial port {self.label}: {msg}")
-        fd = self.fd
-        if fd >= FD_SETSIZE:
-            lib.modbus_close(self._ptr)
-            raise ModbusConnectionError(
-                f"serial port {self.label}: fd {fd} >= {FD_SETSIZE}; libmodbus 3.1.6 would "
-                "abort the process in select(); too many files are open"
-            )
         if rs485 == "kernel" and lib.modbus_rtu_set_serial_mode(self._ptr, 1) == -1:
             err = ffi.errno
             lib.modbus_close(self._ptr)

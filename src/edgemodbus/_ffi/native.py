@@ -73,4 +73,3 @@ MAX_READ_BITS: int = lib.MODBUS_MAX_READ_BITS
 MAX_WRITE_REGISTERS: int = lib.MODBUS_MAX_WRITE_REGISTERS
 MAX_WRITE_BITS: int = lib.MODBUS_MAX_WRITE_BITS
 MAX_ADU_LENGTH: int = lib.MODBUS_TCP_MAX_ADU_LENGTH
-FD_SETSIZE = 1024  # libmodbus 3.1.6 FD_SETs the context's fd: a larger fd aborts the process

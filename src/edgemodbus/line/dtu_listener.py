@@ -29,7 +29,6 @@ import time
 from dataclasses import dataclass, field
 from typing import Any
 
-from .._ffi import FD_SETSIZE
 from ..errors import ModbusConnectionError, ModbusError
 from .endpoint import DtuEndpoint
 from .link import Link, open_socket_link
@@ -151,7 +150,7 @@ class DtuListener:
         self._slots: dict[str, DtuSlot] = {}
         self._lock = threading.Lock()
         self.stats: dict[str, int] = {"accepted": 0, "registered": 0, "unknown": 0,
-                                      "silent": 0, "refused": 0}
+                                      "silent": 0}
         family = socket.AF_INET6 if ":" in settings.host else socket.AF_INET
         sock = socket.socket(family, socket.SOCK_STREAM)
         try:
@@ -235,13 +234,6 @@ class DtuListener:
                 return
             peer = f"{addr[0]}:{addr[1]}"
             self.stats["accepted"] += 1
-            if conn.fileno() >= FD_SETSIZE:
-                self.stats["refused"] += 1
-                log.error("DTU listener :%d: refusing %s: socket fd %d >= %d (libmodbus "
-                          "3.1.6 cannot select() on it); too many files are open",
-                          self.port, peer, conn.fileno(), FD_SETSIZE)
-                conn.close()
-                continue
             conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
             conn.setsockopt(socket.SOL_SOCKET, socket.SO_KEEPALIVE, 1)
             if self.settings.registration == "none":

@@ -422,6 +422,8 @@ def context_link(ctx: Context, endpoint: Endpoint, timing: LineTiming, stats: Li
     try:
         ctx.set_timeouts(timing.response_timeout, timing.byte_timeout)
         ctx.set_echo(endpoint.echo)
+        if isinstance(endpoint, SerialPort):
+            ctx.set_char_time(endpoint.char_time)
     except ValueError:
         ctx.close()
         raise

@@ -1,10 +1,8 @@
-"""The binding layer without I/O: errno mapping, buffers, fd limits, source fingerprint."""
+"""The binding layer without I/O: errno mapping, buffers, source fingerprint."""
 
 from __future__ import annotations
 
 import errno
-import os
-import resource
 import socket
 
 import pytest
@@ -82,25 +80,6 @@ def test_block_buffers_are_reused() -> None:
     finally:
         a.close()
         b.close()
-
-
-def test_fd_at_or_above_1024_is_refused() -> None:
-    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
-    if hard != resource.RLIM_INFINITY and hard < 1100:
-        pytest.skip(f"hard fd limit {hard} < 1100")
-    resource.setrlimit(resource.RLIMIT_NOFILE, (max(soft, 1100), hard))
-    sock = socket.socket()
-    try:
-        high = 1050
-        os.dup2(sock.fileno(), high)
-        try:
-            with pytest.raises(ModbusConnectionError, match="1050 >= 1024"):
-                _ffi.Context.on_socket(high, "high", mbap=False)
-        finally:
-            os.close(high)
-    finally:
-        sock.close()
-        resource.setrlimit(resource.RLIMIT_NOFILE, (soft, hard))
 
 
 def test_discard_input_drains_and_reports_eof() -> None:
