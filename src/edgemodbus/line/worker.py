@@ -177,6 +177,7 @@ class LineWorker:
     def detach(self, poller: Poller) -> None:
         with self._pollers_lock:
             self._pollers = [p for p in self._pollers if p is not poller]
+        self._post(None)  # the engine lets go of its device at once
 
     @property
     def pollers(self) -> tuple[Poller, ...]:

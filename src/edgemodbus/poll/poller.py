@@ -245,10 +245,12 @@ class Poller(FaultPolicy):
             changes = decoder.finish(n, report_all) if decoder else []
             self._apply(slot, device.data(k), changes, now, reported)
         device.taken = upto
-        self._deliver(reported)
+        self._deliver(reported)  # callbacks: they may re-plan (update_addresses) at once
 
     def engine_cycle(self) -> None:
         """The engine ended a pass with news (or one the poller asked to see)."""
+        if not self.active:
+            return  # stopped while the engine ran
         self.take_results()
         if self.status is not DeviceDriverStatus.RUNNING:
             self._back_online()
@@ -257,12 +259,16 @@ class Poller(FaultPolicy):
 
     def engine_failed(self, link: Link, err: int) -> None:
         """A read of the engine's pass failed with errno ``err``: the fault policy."""
-        self.take_results()
+        if not self.active:
+            return
         device = self.device
-        slot = self.slots[device.pass_blocks()[device.index]]
+        slots = self.slots
+        slot = slots[device.pass_blocks()[device.index]]
         block = slot.block
         error = link.read_failed(err, self.slave, block.area, block.start, block.count)
-        self._read_failed(link, slot, error)
+        self.take_results()
+        if self.slots is slots:  # not re-planned by a callback meanwhile
+            self._read_failed(link, slot, error)
 
     # -- stepping in Python (a line with a frame trace) ---------------------------------
     def poll_step(self, link: Link) -> None:
