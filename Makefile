@@ -51,19 +51,22 @@ integration: build
 	$(PYTEST) tests/integration
 
 # Our C built with AddressSanitizer + UBSan (into build-asan/), driven by the codec tests
-# and the binding tests (the DTU stream framing and its exchanges on socketpairs);
+# and the binding tests (the DTU stream framing and its exchanges on socketpairs) and the
+# line engine's (its schedule, and whole passes against the simulator);
 # --capture=sys lets a sanitizer report (written to fd 2) reach the terminal.
+ASAN_TESTS := tests/unit/codec tests/unit/ffi tests/integration/test_engine.py
 test-asan: build
 	$(BIN)/python tools/asan_build.py && \
 	  ASAN_OPTIONS=detect_leaks=0 LD_PRELOAD="$$(gcc -print-file-name=libasan.so)" \
-	  EDGEMODBUS_NATIVE=asan $(PYTEST) -q -p no:cacheprovider --capture=sys tests/unit/codec \
-	  tests/unit/ffi
+	  EDGEMODBUS_NATIVE=asan $(PYTEST) -q -p no:cacheprovider --capture=sys $(ASAN_TESTS)
 
+# Both end with one table of the gated ratios (bench/gate.py: targets and limits) and fail
+# when a ratio is past its gate limit or was not recorded.
 bench: build
-	$(PYTEST) bench --benchmark-only --benchmark-columns=min,mean,median,rounds
+	$(PYTEST) bench --benchmark-only --bench-gate-all --benchmark-columns=min,mean,median,rounds
 
 bench-quick: build
-	EDGEMODBUS_BENCH_QUICK=1 $(PYTEST) bench --benchmark-only -q \
+	EDGEMODBUS_BENCH_QUICK=1 $(PYTEST) bench --benchmark-only --bench-gate-all -q \
 	  --benchmark-min-rounds=3 --benchmark-max-time=0.2 --benchmark-columns=min,mean,rounds
 
 # Bounded fuzzing (tools/fuzz.py): our C (the codec, and the reply handling of emb_io.c

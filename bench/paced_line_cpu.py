@@ -22,7 +22,7 @@ from tests.peers import PymodbusSlave, default_register
 from edgemodbus._ffi import Context
 from edgemodbus.datatypes import Area
 from edgemodbus.line import LineTiming, SerialPort
-from edgemodbus.line.link import context_link
+from edgemodbus.line.connect import context_link
 from edgemodbus.stats import LineStats
 
 REQUEST_BYTES = 8  # slave fc address quantity crc (Application Protocol 6.3)

@@ -10,6 +10,11 @@ range change on every read, whatever the type (a bit of a register, a Boolean re
 holding 0, a string), so the fraction of values that change per cycle is exactly the
 fraction of items under a mover; a mover must not straddle two read blocks (it would
 flip twice per cycle), so give it one item's registers or one whole block.
+
+Faults (a slave answering late, say) are set with :meth:`SimulatorProcess.set_faults`,
+and :meth:`SimulatorProcess.record_requests` logs when each request arrived at the
+slave side (``time.monotonic()``, which on Linux is one clock for every process: the
+benchmark compares it with its own).
 """
 
 from __future__ import annotations
@@ -44,8 +49,13 @@ class FlipMover(Mover):
         return self._current
 
 
+#: (arrival time, slave id, function code) of one request, as recorded at the slave side
+Arrival = tuple[float, int, int]
+
+
 def _serve(conn: Connection, slave_ids: list[int], size: int) -> None:
     """The child: serve until told to stop (or until the parent goes away)."""
+    arrivals: list[Arrival] = []
     with Simulator(slave_ids, size) as sim:
         conn.send(sim.serve_tcp("127.0.0.1", 0))
         while True:
@@ -57,12 +67,12 @@ def _serve(conn: Connection, slave_ids: list[int], size: int) -> None:
                 conn.send(None)
                 return
             try:
-                conn.send(("ok", _execute(sim, command, args)))
+                conn.send(("ok", _execute(sim, arrivals, command, args)))
             except Exception as exc:
                 conn.send(("error", repr(exc)))
 
 
-def _execute(sim: Simulator, command: str, args: Any) -> Any:
+def _execute(sim: Simulator, arrivals: list[Arrival], command: str, args: Any) -> Any:
     if command == "set":
         for slave_id, area, address, values in args:
             sim.slave(slave_id).set_registers(area, address, values)
@@ -76,6 +86,20 @@ def _execute(sim: Simulator, command: str, args: Any) -> Any:
         return len(args)
     if command == "stats":
         return sim.stats()
+    if command == "faults":
+        slave_id, knobs = args
+        sim.slave(slave_id).set_faults(**knobs)
+        return None
+    if command == "record":
+        # list.append is atomic: the loop thread appends, this thread swaps the list out
+        sim.on_request = (
+            (lambda at, raw: arrivals.append((at, raw[0], raw[1]))) if args else None
+        )
+        return None
+    if command == "arrivals":
+        taken = arrivals[:]
+        del arrivals[: len(taken)]
+        return taken
     raise ValueError(f"unknown command {command!r}")
 
 
@@ -133,6 +157,19 @@ class SimulatorProcess:
     def stats(self) -> dict[str, Any]:
         result: dict[str, Any] = self._call("stats")
         return result
+
+    def set_faults(self, slave_id: int, **knobs: Any) -> None:
+        """Set fault knobs of one slave (see :class:`edgemodbus.sim.Faults`)."""
+        self._call("faults", (slave_id, knobs))
+
+    def record_requests(self, on: bool = True) -> None:
+        """Start (or stop) logging every request's arrival at the slave side."""
+        self._call("record", on)
+
+    def arrivals(self) -> list[Arrival]:
+        """The requests logged since the last call: (``time.monotonic()`` when the request
+        arrived, slave id, function code), oldest first."""
+        return [(float(t), int(sid), int(fc)) for t, sid, fc in self._call("arrivals")]
 
     def close(self) -> None:
         conn, proc = self._conn, self._proc

@@ -39,7 +39,8 @@ uint16_t emb_crc16(const uint8_t *p, int n)
     return crc;
 }
 
-int64_t emb_now_ns(void)
+/* CLOCK_MONOTONIC in nanoseconds (the reader's and the stream framing's clock). */
+int64_t emb_clock_ns(void)
 {
     struct timespec now;
 
@@ -118,7 +119,7 @@ typedef struct {
 
 static void emb_pacer_start(emb_pacer *p, int first_ms)
 {
-    p->deadline = emb_now_ns() + (int64_t)first_ms * 1000000;
+    p->deadline = emb_clock_ns() + (int64_t)first_ms * 1000000;
     p->slept_for = 0;
 }
 
@@ -133,7 +134,7 @@ static void emb_pacer_start(emb_pacer *p, int first_ms)
  * the byte timeout counts from now, without sleeping, until bytes come again. */
 static void emb_pace(const emb_link *lk, emb_pacer *p, int n, int left, int byte_ms)
 {
-    int64_t expected = emb_now_ns();
+    int64_t expected = emb_clock_ns();
 
     if (lk->char_ns > 0 && left > 1 && !(p->slept_for && n < p->slept_for)) {
         expected += (int64_t)left * lk->char_ns;
@@ -149,7 +150,7 @@ static void emb_pace(const emb_link *lk, emb_pacer *p, int n, int left, int byte
 /* Wait until fd is readable or the monotonic clock passes deadline_ns: 1, 0, -1. */
 int emb_wait_until(int fd, int64_t deadline_ns)
 {
-    int64_t left = deadline_ns - emb_now_ns();
+    int64_t left = deadline_ns - emb_clock_ns();
 
     return emb_wait_readable(fd, left > 0 ? (int)((left + 999999) / 1000000) : 0);
 }

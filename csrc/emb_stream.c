@@ -372,7 +372,7 @@ static int64_t emb_stream_deadline(const emb_link *lk, int64_t response, int64_t
 int emb_stream_skip_echo(emb_link *lk, int fd, const uint8_t *sent, int sent_len,
                          int first_ms, int byte_ms)
 {
-    int64_t response = emb_now_ns() + (int64_t)first_ms * 1000000, last = 0;
+    int64_t response = emb_clock_ns() + (int64_t)first_ms * 1000000, last = 0;
     int rc;
 
     for (;;) {
@@ -394,7 +394,7 @@ int emb_stream_skip_echo(emb_link *lk, int fd, const uint8_t *sent, int sent_len
             errno = lk->rx_len ? EMB_EPARTIAL : ETIMEDOUT;
             return -1;
         }
-        last = emb_now_ns();
+        last = emb_clock_ns();
     }
 }
 
@@ -403,7 +403,7 @@ int emb_stream_skip_echo(emb_link *lk, int fd, const uint8_t *sent, int sent_len
 int emb_stream_recv_frame(emb_link *lk, int fd, int slave, int first_ms, int byte_ms,
                           uint8_t *rsp, int *got)
 {
-    int64_t response = emb_now_ns() + (int64_t)first_ms * 1000000, last = 0;
+    int64_t response = emb_clock_ns() + (int64_t)first_ms * 1000000, last = 0;
     int partial_hb, need = 0, have, rc;
     uint16_t crc;
 
@@ -436,7 +436,7 @@ int emb_stream_recv_frame(emb_link *lk, int fd, int slave, int first_ms, int byt
             errno = lk->rx_len ? EMB_EPARTIAL : ETIMEDOUT;
             return -1;
         }
-        last = emb_now_ns();
+        last = emb_clock_ns();
     }
     if (rsp[0] != slave && rsp[0] != 0) /* as emb_recv_frame: another slave's frame */
         return 0;
@@ -465,7 +465,7 @@ int emb_stream_pending(emb_link *lk, int fd)
 int emb_stream_recv_wrapped(emb_link *lk, int fd, int slave, const uint8_t *pdu, int count,
                             int first_ms, uint8_t *rsp)
 {
-    int64_t deadline = emb_now_ns() + (int64_t)first_ms * 1000000;
+    int64_t deadline = emb_clock_ns() + (int64_t)first_ms * 1000000;
     emb_want want;
     int len, rc;
 
@@ -492,7 +492,7 @@ int emb_stream_recv_wrapped(emb_link *lk, int fd, int slave, const uint8_t *pdu,
  * the rest dropped.  Returns the stale bytes dropped (plain RTU streams). */
 long emb_stream_discard(emb_link *lk, int fd, int total_ms, int quiet_ms, int limit_ms)
 {
-    int64_t start = emb_now_ns(), last = 0, until;
+    int64_t start = emb_clock_ns(), last = 0, until;
     long dropped = 0;
     int rc;
 
@@ -513,7 +513,7 @@ long emb_stream_discard(emb_link *lk, int fd, int total_ms, int quiet_ms, int li
         if (rc == 0)
             return dropped;
         dropped += emb_stream_idle(lk);
-        last = emb_now_ns();
+        last = emb_clock_ns();
     }
 }
 

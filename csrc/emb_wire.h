@@ -15,7 +15,7 @@
 
 /* emb_io.c */
 uint16_t emb_crc16(const uint8_t *p, int n);
-int64_t emb_now_ns(void);
+int64_t emb_clock_ns(void);
 int emb_wait_until(int fd, int64_t deadline_ns);
 int emb_eof_errno(int fd);
 int emb_pending(int fd);

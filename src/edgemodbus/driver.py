@@ -110,10 +110,16 @@ class DriverModbusRtu:
             self.logger.warning("%s: readCycle 0 means report-only, but framing is %r: "
                                 "nothing will update this device's items",
                                 code, params.framing)
-        line, slot = self._acquire(params, endpoint, timing, poller)
+        # the poller is ours before its line runs it: its first callbacks may ask for stats
+        self._poller = poller
+        try:
+            line, slot = self._acquire(params, endpoint, timing, poller)
+        except BaseException:
+            self._poller = None
+            raise
         self._org, self._params, self._enabled = org_param, params, True
         self._slot = slot
-        self._line, self._poller, self._last_poller = line, poller, None
+        self._line, self._last_poller = line, None
         self._status = DeviceDriverStatus.CONNECTING
         self.logger.info(
             "%s: polling slave %d on %s every %d ms (%d items, %d blocks)",

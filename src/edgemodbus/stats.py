@@ -4,8 +4,9 @@ exporter.  The request counters they share are defined once (:class:`RequestStat
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, NamedTuple
 
 # upper bounds (seconds) of the cycle-time histogram behind the Prometheus exporter
 CYCLE_BUCKETS = (0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0)
@@ -21,6 +22,29 @@ def histogram(bounds: tuple[float, ...], counts: list[int], total: float) -> dic
     return {"buckets": buckets, "sum": total, "count": running}
 
 
+class NativeCounts(NamedTuple):
+    """What the line engine counts in C (csrc/emb_engine.h), read live: the engine's
+    thread is the only writer, so another thread reads them without stopping it."""
+
+    requests: int = 0
+    responses: int = 0
+    rtt_total: float = 0.0  # lines
+    discarded_bytes: int = 0  # lines
+    cycles: int = 0  # devices, from here on
+    overruns: int = 0
+    last_cycle_time: float = 0.0
+    total_cycle_time: float = 0.0
+    max_cycle_time: float = 0.0
+    cycle_hist: tuple[int, ...] = (0,) * (len(CYCLE_BUCKETS) + 1)
+
+
+def _no_counts() -> NativeCounts:
+    return _NONE
+
+
+_NONE = NativeCounts()
+
+
 @dataclass
 class RequestStats:
     """How requests ended: the counters a line and a device both keep."""
@@ -32,11 +56,14 @@ class RequestStats:
     protocol_errors: int = 0
     exceptions: dict[int, int] = field(default_factory=dict)  # by exception code
     reports: int = 0  # wrapped reports (line: received unsolicited; device: applied)
+    # the engine's counters, added to the Python ones above (requests, responses)
+    native: Callable[[], NativeCounts] = field(default=_no_counts, repr=False, compare=False)
 
     def as_dict(self) -> dict[str, Any]:
+        native = self.native()
         return {
-            "requests": self.requests,
-            "responses": self.responses,
+            "requests": self.requests + native.requests,
+            "responses": self.responses + native.responses,
             "timeouts": self.timeouts,
             "crcErrors": self.crc_errors,
             "protocolErrors": self.protocol_errors,
@@ -59,16 +86,19 @@ class LineStats(RequestStats):
     rtt_total: float = 0.0
 
     def as_dict(self) -> dict[str, Any]:
+        native = self.native()
+        responses = self.responses + native.responses
+        rtt = self.rtt_total + native.rtt_total
         return {
             **super().as_dict(),
             "linkErrors": self.link_errors,
             "connects": self.connects,
             "reconnects": self.reconnects,
             "connectFailures": self.connect_failures,
-            "discardedBytes": self.discarded_bytes,
+            "discardedBytes": self.discarded_bytes + native.discarded_bytes,
             "heartbeats": self.heartbeats,
             "droppedFrames": self.dropped_frames,
-            "avgRoundTrip": self.rtt_total / self.responses if self.responses else 0.0,
+            "avgRoundTrip": rtt / responses if responses else 0.0,
         }
 
 
@@ -77,14 +107,8 @@ class DeviceStats(RequestStats):
     """Counters of one device (a slave's poller), updated on its line's worker."""
 
     retries: int = 0
-    cycles: int = 0
     failed_cycles: int = 0
-    overruns: int = 0
     skipped_blocks: int = 0
-    last_cycle_time: float = 0.0
-    total_cycle_time: float = 0.0
-    max_cycle_time: float = 0.0
-    cycle_hist: list[int] = field(default_factory=lambda: [0] * (len(CYCLE_BUCKETS) + 1))
     callback_errors: int = 0
     callback_time: float = 0.0
     values_changed: int = 0
@@ -92,18 +116,21 @@ class DeviceStats(RequestStats):
     write_errors: int = 0
 
     def as_dict(self) -> dict[str, Any]:
+        """The counters; cycles and their times are the engine's (every pass ends in
+        C, also one run from Python)."""
+        c = self.native()
         return {
             **super().as_dict(),
             "retries": self.retries,
-            "cycles": self.cycles,
+            "cycles": c.cycles,
             "failedCycles": self.failed_cycles,
-            "overruns": self.overruns,
+            "overruns": c.overruns,
             "skippedBlocks": self.skipped_blocks,
-            "lastCycleTime": self.last_cycle_time,
-            "avgCycleTime": self.total_cycle_time / self.cycles if self.cycles else 0.0,
-            "maxCycleTime": self.max_cycle_time,
-            "cycleTimeHistogram": histogram(CYCLE_BUCKETS, self.cycle_hist,
-                                            self.total_cycle_time),
+            "lastCycleTime": c.last_cycle_time,
+            "avgCycleTime": c.total_cycle_time / c.cycles if c.cycles else 0.0,
+            "maxCycleTime": c.max_cycle_time,
+            "cycleTimeHistogram": histogram(CYCLE_BUCKETS, list(c.cycle_hist),
+                                            c.total_cycle_time),
             "callbackErrors": self.callback_errors,
             "callbackTime": self.callback_time,
             "valuesChanged": self.values_changed,

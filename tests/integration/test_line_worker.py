@@ -18,7 +18,8 @@ from edgemodbus.errors import (
     SlaveDeviceBusy,
 )
 from edgemodbus.line.endpoint import LineTiming, SerialPort, TcpEndpoint
-from edgemodbus.line.worker import LineRegistry, LineWorker
+from edgemodbus.line.registry import LineRegistry
+from edgemodbus.line.worker import LineWorker
 from tests.peers import ExceptionRange, PtyPair, PymodbusSlave, default_bit, default_register
 
 FAST = LineTiming(response_timeout=0.5, byte_timeout=0.05, reconnect_interval=0.3,

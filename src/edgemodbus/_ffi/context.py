@@ -242,8 +242,7 @@ class Context:
         rc = lib.emb_read(self._ptr, self._link, slave, function, address, count, block._ptr,
                           self._rsp)
         if rc == -1:
-            raise self._error(ffi.errno, f"slave {slave} FC{function:02d} @{address}+{count}",
-                              function, 2 * count if function > 2 else (count + 7) // 8)
+            raise self.read_error(ffi.errno, slave, function, address, count)
         block.count = rc
         return block
 
@@ -259,10 +258,16 @@ class Context:
         rc = lib.emb_read_decode(self._ptr, self._link, slave, function, address, count,
                                  block._ptr, self._rsp, plan._plan, mode)
         if rc == -1:
-            raise self._error(ffi.errno, f"slave {slave} FC{function:02d} @{address}+{count}",
-                              function, 2 * count if function > 2 else (count + 7) // 8)
+            raise self.read_error(ffi.errno, slave, function, address, count)
         block.count = count
         return int(rc)
+
+    def read_error(self, err: int, slave: int, function: int, address: int,
+                   count: int) -> ModbusError:
+        """The typed error of a read that failed with errno ``err`` (here or in the
+        engine), with what the rejected reply held."""
+        return self._error(err, f"slave {slave} FC{function:02d} @{address}+{count}",
+                           function, 2 * count if function > 2 else (count + 7) // 8)
 
     def transact(self, slave: int, pdu: bytes) -> bytes:
         """Send ``pdu`` (function code first) to ``slave`` and return the reply ADU.

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import bisect
 import itertools
 import math
+import operator
 from collections.abc import Sequence
 
 from .. import _ffi
@@ -27,6 +29,7 @@ def _fmt_number(v: float) -> str:
 
 
 _NO_TEXT = object()  # a String item whose last report was not a text
+_INDEX = operator.itemgetter(0)
 
 
 class BlockDecoder:
@@ -125,8 +128,14 @@ class BlockDecoder:
         changed = plan.changed(n)
         if n * 8 >= plan.n_items:  # many changed: convert the arrays in one go
             values = plan.values()
-            errors = {k: self._reason(k, plan.status(k)) for k in plan.errors()}
-            reports = [(k, values[k], errors.get(k)) for k in changed]
+            if plan.n_errors:
+                errors = {k: self._reason(k, plan.status(k)) for k in plan.errors()}
+                reports = [(k, values[k], errors.get(k)) for k in changed]
+            elif n == plan.n_items:  # every item, in order
+                reports = list(zip(changed, values, itertools.repeat(None)))
+            else:
+                reports = list(zip(changed, map(values.__getitem__, changed),
+                                   itertools.repeat(None)))
         else:
             status = plan.status_view
             reports = [
@@ -136,18 +145,24 @@ class BlockDecoder:
         return self._new_texts_only(reports) if self._texts else reports
 
     def _new_texts_only(self, reports: list[Change]) -> list[Change]:
-        """``reports`` without the String items whose text is the one last reported."""
+        """``reports`` (in item order) without the String items whose text is the one
+        last reported; only the String items are looked at."""
         texts = self._texts
-        kept: list[Change] = []
-        for report in reports:
-            k, value, error = report
-            if k in texts:
-                last = texts[k]
-                texts[k] = _NO_TEXT if error is not None else value
-                if error is None and last == value:
-                    continue
-            kept.append(report)
-        return kept
+        drop: list[int] = []
+        for k in texts:
+            at = bisect.bisect_left(reports, k, key=_INDEX)
+            if at == len(reports) or reports[at][0] != k:
+                continue
+            _, value, error = reports[at]
+            last = texts[k]
+            texts[k] = _NO_TEXT if error is not None else value
+            if error is None and last == value:
+                drop.append(at)
+        if not drop:
+            return reports
+        for at in sorted(drop, reverse=True):
+            del reports[at]
+        return reports
 
     def _finish_all(self, n: int) -> list[Change]:
         """Report every item; keeps the last tuples so that only the items whose value

@@ -11,8 +11,11 @@ socket or a libmodbus context.
 * link.py: the worker's blocking view of an open line: the interface (``Link``) and
   the link on a libmodbus context and our C (``ContextLink``), which also frames DTU
   streams (heartbeats, wrapped reports);
-* worker.py: :class:`LineWorker` (one thread per line, a queue for other threads) and
-  :class:`LineRegistry` (one worker per endpoint, shared by its users);
+* connect.py: opening a link (our TCP connection, a ``ContextLink`` with the line's
+  settings);
+* worker.py: :class:`LineWorker` (one thread per line, a queue for other threads, the
+  line engine's loop); registry.py: :class:`LineRegistry` (one worker per endpoint,
+  shared by its users);
 * dtu_listener.py and registration.py: listen mode, DTUs that dial in and register.
 
 The counters a worker keeps are :class:`edgemodbus.stats.LineStats`.
@@ -25,8 +28,9 @@ from .dtu_listener import registry as dtu_registry
 from .endpoint import DtuEndpoint, Endpoint, LineTiming, SerialPort, TcpEndpoint, endpoint_for
 from .link import Link
 from .registration import PortSettings
-from .worker import LineRegistry, LineWorker, Poller
-from .worker import registry as line_registry
+from .registry import LineRegistry
+from .registry import registry as line_registry
+from .worker import LineWorker, Poller
 
 __all__ = [
     "DtuEndpoint",

@@ -30,8 +30,9 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from ..errors import ModbusConnectionError, ModbusError
+from .connect import open_socket_link
 from .endpoint import DtuEndpoint
-from .link import Link, open_socket_link
+from .link import Link
 from .registration import Identified, PortSettings, identify
 from .worker import LineWorker
 

@@ -24,6 +24,7 @@ from collections.abc import Callable, Sequence
 
 from .. import _ffi
 from .._ffi import Block, CodecPlan, Context, StreamCounters
+from .._ffi.engine import Engine, EngineDevice, LineCounters, Waker
 from ..codec import BlockDecoder, Change
 from ..datatypes import Area
 from ..errors import (
@@ -37,7 +38,7 @@ from ..errors import (
 from ..protocol import rtu
 from ..protocol.wrapped import Report, report_of
 from ..stats import LineStats
-from .endpoint import DtuEndpoint, Endpoint, LineTiming, SerialPort, TcpEndpoint
+from .endpoint import Endpoint, LineTiming, SerialPort, TcpEndpoint
 
 log = logging.getLogger("edgemodbus.line")  # the frame trace goes to the line worker's logger
 
@@ -109,6 +110,20 @@ class Link:
         raise NotImplementedError
 
     def _fail(self, exc: ModbusError) -> ModbusError:
+        raise NotImplementedError
+
+    def run_engine(self, waker: Waker, counters: LineCounters,
+                   devices: Sequence[EngineDevice],
+                   until: float) -> tuple[int, int, int] | None:
+        """Run ``devices``' passes in C until something needs Python or ``until``: the
+        event, the index of the device concerned and an errno (see _ffi/engine.py).
+        None: this link steps in Python (the worker calls the pollers' poll_step)."""
+        return None
+
+    def read_failed(self, err: int, slave: int, area: Area, address: int,
+                    count: int) -> ModbusError:
+        """A read the engine made failed with errno ``err``: count it and clean the
+        line as :meth:`read` would have; returns the typed error."""
         raise NotImplementedError
 
     def pump(self) -> None:
@@ -228,6 +243,32 @@ class ContextLink(Link):
         self._stream = ctx.is_stream
         if ctx.wrapped:
             self.idle_fd = ctx.fd  # reports come while idle too: the worker pumps
+        self._engine: Engine | None = None
+
+    # -- the engine --------------------------------------------------------------------
+    def run_engine(self, waker: Waker, counters: LineCounters,
+                   devices: Sequence[EngineDevice],
+                   until: float) -> tuple[int, int, int] | None:
+        """See :meth:`Link.run_engine`; with the frame trace on, the line steps in
+        Python so that every frame is logged, and so does a DTU stream (the engine does
+        not take its wrapped reports out of the link yet: they must reach the pollers
+        before the reply they came before, the others after it)."""
+        if self._trace or self._stream or not self.is_open:
+            return None
+        engine = self._engine
+        if engine is None or engine.waker is not waker:
+            engine = self._engine = Engine(self._ctx, waker, counters, self._pace, self.idle_fd)
+        engine.set_devices(devices)
+        event = engine.run(until, self._ready_at)
+        if self._pace:
+            self._ready_at = engine.ready_at
+        self._timeouts = (-1.0, -1.0)  # the engine sets each device's own
+        return event, engine.event_device, engine.event_errno
+
+    def read_failed(self, err: int, slave: int, area: Area, address: int,
+                    count: int) -> ModbusError:
+        exc = self._ctx.read_error(err, slave, READ_FC[area], address, count)
+        return self._fail(exc)
 
     # -- DTU streams -----------------------------------------------------------------
     def flush_reports(self) -> None:
@@ -433,51 +474,3 @@ class ContextLink(Link):
         if reply:
             log.debug("%s RX %s", self.endpoint.describe(), reply.hex(" ").upper())
 
-
-def connect_tcp(ep: TcpEndpoint, timeout: float) -> socket.socket:
-    """Connect with a bounded time, then hand a blocking, no-delay socket to libmodbus."""
-    try:
-        sock = socket.create_connection((ep.host, ep.port), timeout=timeout)
-    except TimeoutError:
-        raise ModbusConnectionError(
-            f"{ep.describe()}: connect timed out after {timeout:g} s"
-        ) from None
-    except OSError as exc:
-        raise ModbusConnectionError(f"{ep.describe()}: connect failed: {exc.strerror or exc}") \
-            from None
-    sock.settimeout(None)
-    sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-    sock.setsockopt(socket.SOL_SOCKET, socket.SO_KEEPALIVE, 1)
-    return sock
-
-
-def context_link(ctx: Context, endpoint: Endpoint, timing: LineTiming, stats: LineStats,
-                 sock: socket.socket | None,
-                 on_close: Callable[[], None] | None = None,
-                 on_report: Callable[[Report], None] | None = None) -> ContextLink:
-    """A link on ``ctx`` with the line's timeouts, echo, character time (serial) and
-    DTU stream framing (heartbeat, wrapped reports to ``on_report``) set.  A setting the
-    context refuses (ValueError) closes ``ctx``; ``sock`` is left to the caller."""
-    try:
-        ctx.set_timeouts(timing.response_timeout, timing.byte_timeout)
-        ctx.set_echo(endpoint.echo)
-        if isinstance(endpoint, SerialPort):
-            ctx.set_char_time(endpoint.char_time)
-        elif isinstance(endpoint, DtuEndpoint) or endpoint.transport == "rtu-over-tcp":
-            ctx.set_stream(endpoint.heartbeat, endpoint.framing == "wrapped-report")
-    except ValueError:
-        ctx.close()
-        raise
-    return ContextLink(ctx, endpoint, timing, stats, sock, on_close,
-                       timeouts=(timing.response_timeout, timing.byte_timeout),
-                       on_report=on_report)
-
-
-def open_socket_link(sock: socket.socket, endpoint: Endpoint, timing: LineTiming,
-                     stats: LineStats, on_close: Callable[[], None] | None = None,
-                     on_report: Callable[[Report], None] | None = None) -> ContextLink:
-    """A link on a connected socket we own (RTU over TCP, no MBAP; heartbeats and
-    wrapped frames as the endpoint says).  On failure the socket is left to the
-    caller."""
-    ctx = Context.on_socket(sock.fileno(), endpoint.describe(), mbap=False)
-    return context_link(ctx, endpoint, timing, stats, sock, on_close, on_report)

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import logging
 import operator
+import os
 import queue
 import random
 import select
@@ -25,14 +26,25 @@ from dataclasses import dataclass
 from typing import Any, Protocol, TypeVar
 
 from .._ffi import Context
+from .._ffi.engine import (
+    EV_CYCLE,
+    EV_ERROR,
+    EV_FAILED,
+    EV_INPUT,
+    EV_WAKE,
+    EngineDevice,
+    LineCounters,
+    Waker,
+)
 from ..datatypes import Area
 from ..errors import (
     ModbusConnectionError,
     ModbusError,
 )
 from ..stats import LineStats
+from .connect import connect_tcp, context_link
 from .endpoint import DtuEndpoint, Endpoint, LineTiming, SerialPort
-from .link import Link, connect_tcp, context_link
+from .link import Link
 
 log = logging.getLogger("edgemodbus.line")
 T = TypeVar("T")
@@ -43,14 +55,34 @@ _DUE = operator.attrgetter("due")
 
 
 class Poller(Protocol):
-    """Something the line worker calls when due: the driver's device polling."""
+    """What the line worker runs: the driver's device polling.  On a link with an
+    engine the engine runs the passes over :attr:`device` and calls the poller only
+    for what needs Python; otherwise the worker calls :meth:`poll_step` when due."""
 
-    due: float
-    """``time.monotonic()`` of the next step (read by the worker on every step)."""
+    device: EngineDevice
+    """The poller's plan and schedule as the engine runs them."""
+
+    @property
+    def due(self) -> float:
+        """``time.monotonic()`` of the next step (read by the worker on every step)."""
+        ...
 
     def poll_step(self, link: Link) -> None:
         """Do one request (one block read) on the worker thread."""
         ...
+
+    def engine_cycle(self) -> None:
+        """The engine ended a pass of this poller that Python must see."""
+        ...
+
+    def engine_failed(self, link: Link, err: int) -> None:
+        """A read of the engine's pass failed with errno ``err``."""
+        ...
+
+    def take_results(self) -> None:
+        """Store the results of the blocks the engine read so far in this pass."""
+        ...
+
 
     def link_changed(self, up: bool, reason: str | None) -> None:
         """The line went up or down (called on the worker thread)."""
@@ -86,6 +118,8 @@ class LineWorker:
         self.connector = connector
         self._connect_now = False  # a connector has a new link ready: take it at once
         self.stats = LineStats()
+        self._counters = LineCounters()  # what the engine counts, across links
+        self.stats.native = self._counters.counts
         self._queue: queue.SimpleQueue[Any] = queue.SimpleQueue()
         self._pollers: list[Poller] = []
         self._pollers_lock = threading.Lock()
@@ -94,11 +128,14 @@ class LineWorker:
         self._link: Link | None = None
         self.link_up = False
         self.last_link_error: str | None = None
+        self._waker = Waker()  # interrupts the engine when a job is queued
 
     # -- lifecycle -------------------------------------------------------------------
     def start(self) -> None:
         if self._thread is not None:
             return
+        if not self._waker.is_open:
+            self._waker = Waker()
         self._thread = threading.Thread(
             target=self._run, name=f"edgemodbus-line {self.endpoint.describe()}", daemon=True
         )
@@ -110,7 +147,7 @@ class LineWorker:
         if thread is None:
             return
         self._stopping.set()
-        self._queue.put(_STOP)
+        self._post(_STOP)
         if thread is not threading.current_thread():
             wait = timeout if timeout is not None else (
                 self.timing.response_timeout + self.timing.settle + self.timing.connect_timeout
@@ -119,6 +156,7 @@ class LineWorker:
             thread.join(wait)
             if thread.is_alive():
                 raise RuntimeError(f"line {self.endpoint.describe()}: worker did not stop")
+            self._waker.close()
         self._thread = None
 
     @property
@@ -135,11 +173,12 @@ class LineWorker:
         with self._pollers_lock:
             if poller not in self._pollers:
                 self._pollers = [*self._pollers, poller]
-        self._queue.put(None)  # wake the worker to reschedule
+        self._post(None)  # wake the worker to reschedule
 
     def detach(self, poller: Poller) -> None:
         with self._pollers_lock:
             self._pollers = [p for p in self._pollers if p is not poller]
+        self._post(None)  # the engine lets go of its device at once
 
     @property
     def pollers(self) -> tuple[Poller, ...]:
@@ -162,7 +201,7 @@ class LineWorker:
         drop the current link, if any, and open the new one without waiting for the
         reconnect interval.  Any thread."""
         self._connect_now = True
-        self._queue.put(None)
+        self._post(None)
 
     # -- requests from any thread ------------------------------------------------------
     def submit(self, fn: Callable[[Link], T]) -> Future[T]:
@@ -173,8 +212,12 @@ class LineWorker:
                 ModbusConnectionError(f"line {self.endpoint.describe()} is not running")
             )
             return future
-        self._queue.put(_Job(fn, future))
+        self._post(_Job(fn, future))
         return future
+
+    def _post(self, item: Any) -> None:
+        self._queue.put(item)
+        self._waker.signal()
 
     def read(self, slave: int, area: Area, address: int, count: int) -> Future[list[int]]:
         """Read registers (ints) or bits (0/1 ints) from one slave."""
@@ -237,13 +280,21 @@ class LineWorker:
         return base * random.uniform(0.8, 1.2)
 
     def _serve(self, link: Link) -> None:
-        """One step while the link is up: a queued request, else the most overdue poller."""
+        """One step while the link is up: a queued request, else the engine's run until
+        it needs Python, else (a link without one) the most overdue poller's step."""
         if not self._queue.empty():
+            self._waker.clear()
             self._handle(self._queue.get_nowait(), link)
             return
         pollers = self._pollers
         if not pollers:
             self._handle(self._queue.get(), link)
+            return
+        until = time.monotonic() + _MAX_IDLE
+        event = link.run_engine(self._waker, self._counters, [p.device for p in pollers],
+                                until)
+        if event is not None:
+            self._dispatch(link, event, pollers)
             return
         poller = min(pollers, key=_DUE)
         wait = poller.due - time.monotonic()
@@ -259,6 +310,28 @@ class LineWorker:
             return
         try:
             poller.poll_step(link)
+        except Exception:  # a poller bug must not kill the line
+            log.exception("%s: poller failed", self.endpoint.describe())
+        link.flush_reports()
+
+    def _dispatch(self, link: Link, event: tuple[int, int, int], pollers: list[Poller]) -> None:
+        """Hand what the engine came back for to whom it concerns."""
+        kind, which, err = event
+        try:
+            if kind == EV_CYCLE:
+                pollers[which].engine_cycle()
+            elif kind == EV_FAILED:
+                pollers[which].engine_failed(link, err)
+            elif kind == EV_WAKE:  # the queue is served next; a stale flag is cleared
+                self._waker.clear()
+                if which >= 0:  # a job may set items of the pass under way: results first
+                    pollers[which].take_results()
+            elif kind == EV_INPUT:
+                link.pump()
+            elif kind == EV_ERROR:
+                log.error("%s: engine wait failed: %s", self.endpoint.describe(),
+                          os.strerror(err))
+                time.sleep(_IDLE_SLICE)
         except Exception:  # a poller bug must not kill the line
             log.exception("%s: poller failed", self.endpoint.describe())
         link.flush_reports()
@@ -401,52 +474,3 @@ class LineWorker:
                 item.future.set_exception(
                     ModbusConnectionError(f"line {self.endpoint.describe()} stopped")
                 )
-
-
-class LineRegistry:
-    """Shares one :class:`LineWorker` among every user of the same endpoint (many slaves on one
-    RS-485 line, many devices behind one serial server port)."""
-
-    def __init__(self) -> None:
-        self._lock = threading.Lock()
-        self._lines: dict[tuple[str, ...], tuple[LineWorker, int]] = {}
-
-    def acquire(self, endpoint: Endpoint, timing: LineTiming | None = None,
-                connector: Callable[[], Connector] | None = None) -> LineWorker:
-        """The line worker of ``endpoint``, started on first use; ``connector`` makes the
-        connector of a new one (DTU links)."""
-        with self._lock:
-            entry = self._lines.get(endpoint.key)
-            if entry is not None:
-                line, users = entry
-                if line.endpoint != endpoint:
-                    raise ValueError(
-                        f"line {endpoint.key[-1]} is already open as "
-                        f"'{line.endpoint.describe()}'; this device asks for "
-                        f"'{endpoint.describe()}': devices on one line must agree"
-                    )
-                self._lines[endpoint.key] = (line, users + 1)
-                return line
-            line = LineWorker(endpoint, timing, connector() if connector is not None else None)
-            line.start()
-            self._lines[endpoint.key] = (line, 1)
-            return line
-
-    def release(self, line: LineWorker) -> None:
-        with self._lock:
-            entry = self._lines.get(line.endpoint.key)
-            if entry is None or entry[0] is not line:
-                return
-            _, users = entry
-            if users > 1:
-                self._lines[line.endpoint.key] = (line, users - 1)
-                return
-            del self._lines[line.endpoint.key]
-        line.stop()
-
-    def lines(self) -> list[LineWorker]:
-        with self._lock:
-            return [line for line, _ in self._lines.values()]
-
-
-registry = LineRegistry()

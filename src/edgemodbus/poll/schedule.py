@@ -1,8 +1,10 @@
-"""Scan rates: which items are read how often, and when each planned read is due.
+"""Scan rates: which items are read how often.
 
 Every item is read at its own rate (the item's readCycle, else the device's); the
-planner never merges items of different rates, so every block has one rate and the
-poller keeps a due time per block (:class:`~edgemodbus.poll.items.Slot`).  A device's
+planner never merges items of different rates, so every block has one rate and a due
+time of its own, which the line engine keeps (csrc/emb_engine.c: a block due within a
+tenth of its period, and 5 ms, joins the pass that begins; after a pass each block is
+due one period after the pass began, or at once when the pass overran it).  A device's
 *pass* (what its counters call a cycle, and what the batch callback, the failed-cycle
 count and the backoff count) is one pass over the blocks due when it begins.  With every
 item at the device's rate every pass reads every block, as a cycle always did.
@@ -16,13 +18,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 from ..config import DriverModbusRtuParameter, ParsedItem
-from .items import Slot
 from .planner import PlanItem, ReadBlock, plan_reads
-
-JOIN = 0.005
-"""A block due at most this much (and a tenth of its period) after a pass begins is read
-in that pass: blocks whose rates are multiples of each other stay in step instead of
-drifting into passes of their own by the worker's latency."""
 
 
 def item_rate(parsed: ParsedItem, params: DriverModbusRtuParameter) -> int:
@@ -46,28 +42,3 @@ def build_plan(items: Sequence[ParsedItem], params: DriverModbusRtuParameter) ->
         max_gap=params.max_merge_address_gap,
         continuous=params.is_block_read_require_address_continuous,
     )
-
-
-def due_slots(slots: Sequence[Slot], now: float) -> list[Slot]:
-    """The slots a pass beginning at ``now`` reads, in plan order."""
-    return [s for s in slots if s.due - now <= min(s.period * 0.1, JOIN)]
-
-
-def reschedule(done: Sequence[Slot], start: float, now: float) -> bool:
-    """Set the next due time of the slots of a pass that began at ``start`` and ends at
-    ``now``: one period after the start, or now if the pass took longer than a slot's
-    period (no burst of catch-up reads).  True if any slot overran."""
-    elapsed = now - start
-    overran = False
-    for slot in done:
-        if elapsed > slot.period:
-            overran = True
-            slot.due = now
-        else:
-            slot.due = start + slot.period
-    return overran
-
-
-def next_due(slots: Sequence[Slot]) -> float:
-    """When the first of ``slots`` (not empty) is due."""
-    return min(s.due for s in slots)

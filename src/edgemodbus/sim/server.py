@@ -11,7 +11,7 @@ import random
 import socket
 import time
 import tty
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from typing import Any
 
 from ..protocol import rtu
@@ -42,6 +42,11 @@ class Simulator(_Loop):
         self._rng = random.Random(seed)
         self.tcp_ports: list[int] = []
         self.pty_paths: list[str] = []
+        self.on_request: Callable[[float, bytes], None] | None = None
+        """Called on the loop thread with (``time.monotonic()`` when the last bytes of a
+        request frame arrived, the frame) for every frame cut out of a line, before it
+        is served, whoever it addresses (a benchmark times requests at the slave side
+        with it).  It must be quick: the loop waits for it.  Assign from any thread."""
 
     # -- slaves
 
@@ -283,6 +288,9 @@ class Simulator(_Loop):
                 self._line_stats["discarded_bytes"] += discarded
 
     def _serve(self, line: _Line, raw: bytes, wrap_address: int | None = None) -> None:
+        hook = self.on_request
+        if hook is not None:
+            hook(line.last_rx, raw)
         with self._lock:
             self._line_stats["frames"] += 1
         address, pdu = raw[0], raw[1:-2]

@@ -653,6 +653,26 @@ def test_stats(sim: Simulator, conn: Client) -> None:
     }
 
 
+def test_on_request_sees_every_frame_when_it_arrived(sim: Simulator, conn: Client) -> None:
+    seen: list[tuple[float, bytes]] = []
+    sim.on_request = lambda at, raw: seen.append((at, raw))
+    sim.slave(1).faults.delay = 0.1
+    write = frame(1, struct.pack(">BHH", 6, 7, 77))
+    t0 = time.monotonic()
+    conn.send(write)
+    assert conn.read_reply()[1] == 6
+    t1 = time.monotonic()
+    conn.send(frame(9, read_req(3, 0, 1)))  # nobody has address 9: still reported
+    conn.expect_silence(0.05)
+    assert [raw for _, raw in seen] == [write, frame(9, read_req(3, 0, 1))]
+    # the arrival, not the (delayed) reply: well before the reply came back
+    assert t0 <= seen[0][0] <= t1 - 0.09
+    assert t1 <= seen[1][0]
+    sim.on_request = None
+    conn.ask(1, read_req(3, 0, 1))
+    assert len(seen) == 2
+
+
 def test_add_and_remove_slave_while_serving(sim: Simulator, conn: Client) -> None:
     sim.add_slave(40)
     assert regs_of(conn.ask(40, read_req(3, 1, 1))) == [40_001]

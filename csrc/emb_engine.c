@@ -1,0 +1,276 @@
+/* edgemodbus: the line engine (see emb_engine.h).
+ *
+ * The straight path of polling, kept in C so that a line re-enters Python once per pass
+ * that has news, not once per request: on a line whose values do not change, a device
+ * costs no Python at all between the caller's deadlines.  What is rare stays in Python
+ * (poll/poller.py): a failed read ends the engine's run at once, with the link as the
+ * failure left it, and Python settles or drains the line, retries, splits the block or
+ * takes the slave offline, then hands the device back. */
+#define _GNU_SOURCE /* ppoll */
+#include "emb_engine.h"
+
+#include <errno.h>
+#include <poll.h>
+#include <time.h>
+
+int64_t emb_now_ns(void)
+{
+    struct timespec ts;
+
+    clock_gettime(CLOCK_MONOTONIC, &ts);
+    return (int64_t)ts.tv_sec * 1000000000LL + ts.tv_nsec;
+}
+
+/* A block due this soon (at most a tenth of its period, and EMB_JOIN_NS) is read in the
+ * pass that begins now: blocks whose rates are multiples of each other stay in step. */
+static int emb_is_due(const emb_eblock *b, int64_t now_ns)
+{
+    int64_t join = b->period_ns / 10;
+
+    if (join > EMB_JOIN_NS)
+        join = EMB_JOIN_NS;
+    return b->due_ns - now_ns <= join;
+}
+
+static int64_t emb_next_due(const emb_device *d)
+{
+    int64_t due = EMB_NEVER;
+    uint32_t i;
+
+    for (i = 0; i < d->n_blocks; i++)
+        if (d->blocks[i].due_ns < due)
+            due = d->blocks[i].due_ns;
+    return due;
+}
+
+/* Begin a pass at now_ns: list the blocks due, in plan order.  Returns how many; 0 with
+ * blocks means none is due yet (the device's due time moves to the first block's). */
+uint32_t emb_dev_begin_pass(emb_device *d, int64_t now_ns)
+{
+    uint32_t i, n = 0;
+
+    for (i = 0; i < d->n_blocks; i++)
+        if (emb_is_due(&d->blocks[i], now_ns))
+            d->pass_list[n++] = i;
+    d->n_pass = n;
+    d->index = 0;
+    d->taken = 0;
+    d->news = 0;
+    if (n == 0 && d->n_blocks > 0) {
+        d->due_ns = emb_next_due(d);
+        return 0;
+    }
+    d->in_pass = 1;
+    d->pass_start_ns = now_ns;
+    d->due_ns = now_ns;
+    d->passes++;
+    return n;
+}
+
+/* End the pass under way at now_ns: count it (time, histogram over bounds_ns) and set
+ * the next due time of its blocks, one period after the pass began, or now when the
+ * pass took longer than a block's period (no burst of catch-up reads).  The pass list
+ * stays readable until the next pass begins.  Returns 1 if a block overran (counted). */
+int emb_dev_end_pass(emb_device *d, int64_t now_ns, const int64_t *bounds_ns,
+                     uint32_t n_bounds)
+{
+    int64_t elapsed = now_ns - d->pass_start_ns;
+    emb_dev_counters *c = &d->c;
+    uint32_t i, k = 0;
+    int overran = 0;
+
+    c->cycles++;
+    c->last_cycle_ns = elapsed;
+    c->total_cycle_ns += elapsed;
+    if (elapsed > c->max_cycle_ns)
+        c->max_cycle_ns = elapsed;
+    while (k < n_bounds && k + 1 < EMB_HIST_MAX && elapsed > bounds_ns[k])
+        k++;
+    c->hist[k]++;
+    d->in_pass = 0;
+    d->index = 0;
+    if (d->n_blocks == 0) {
+        if (elapsed > d->cycle_ns) {
+            overran = 1;
+            d->due_ns = now_ns;
+        } else {
+            d->due_ns = d->cycle_ns ? d->pass_start_ns + d->cycle_ns : EMB_NEVER;
+        }
+    } else {
+        for (i = 0; i < d->n_pass; i++) {
+            emb_eblock *b = &d->blocks[d->pass_list[i]];
+
+            if (elapsed > b->period_ns) {
+                overran = 1;
+                b->due_ns = now_ns;
+            } else {
+                b->due_ns = d->pass_start_ns + b->period_ns;
+            }
+        }
+        d->due_ns = emb_next_due(d);
+    }
+    if (overran)
+        c->overruns++;
+    return overran;
+}
+
+/* Every block due at at_ns, as a new pass (a start, a new plan, a new link, a probe). */
+void emb_dev_all_due(emb_device *d, int64_t at_ns)
+{
+    uint32_t i;
+
+    for (i = 0; i < d->n_blocks; i++)
+        d->blocks[i].due_ns = at_ns;
+    d->in_pass = 0;
+    d->index = 0;
+    d->taken = 0;
+    d->n_pass = 0;
+    d->due_ns = (d->n_blocks || d->cycle_ns) ? at_ns : EMB_NEVER;
+}
+
+static int emb_woken(emb_engine *e)
+{
+    return __atomic_load_n(e->wake, __ATOMIC_ACQUIRE) != 0;
+}
+
+/* Sleep until until_ns, watching the wake fd (and watch_fd when idle): an EMB_EV_*
+ * event, or -1 when the time came. */
+static int emb_sleep(emb_engine *e, int64_t until_ns, int idle)
+{
+    struct pollfd pfd[2];
+    struct timespec ts;
+    int64_t left;
+    nfds_t n = 0;
+    int rc;
+
+    pfd[0].fd = e->wake_fd;
+    pfd[0].events = POLLIN;
+    pfd[1].fd = idle ? e->watch_fd : -1;
+    pfd[1].events = POLLIN;
+    n = pfd[1].fd >= 0 ? 2 : 1;
+    for (;;) {
+        if (emb_woken(e))
+            return EMB_EV_WAKE;
+        left = until_ns - emb_now_ns();
+        if (left <= 0)
+            return -1;
+        ts.tv_sec = (time_t)(left / 1000000000LL);
+        ts.tv_nsec = (long)(left % 1000000000LL);
+        pfd[0].revents = 0;
+        pfd[1].revents = 0;
+        rc = ppoll(pfd, n, &ts, NULL);
+        if (rc == -1) {
+            if (errno == EINTR)
+                continue;
+            e->event_errno = errno;
+            return EMB_EV_ERROR;
+        }
+        if (rc == 0)
+            continue; /* the time came: checked at the top */
+        if (pfd[0].revents)
+            return EMB_EV_WAKE;
+        if (pfd[1].revents)
+            return EMB_EV_INPUT;
+    }
+}
+
+/* The device due first, or NULL when none is polled. */
+static emb_device *emb_pick(emb_engine *e, int *which)
+{
+    emb_device *best = NULL;
+    uint32_t i;
+
+    for (i = 0; i < e->n_devices; i++) {
+        emb_device *d = e->devices[i];
+
+        if (d->active && d->due_ns != EMB_NEVER && (!best || d->due_ns < best->due_ns)) {
+            best = d;
+            *which = (int)i;
+        }
+    }
+    return best;
+}
+
+/* Read and decode the pass's next block.  0, or -1 with errno (the read failed). */
+static int emb_step(emb_engine *e, emb_device *d)
+{
+    emb_eblock *b = &d->blocks[d->pass_list[d->index]];
+    void *data = b->data ? b->data : (b->function <= 2 ? (void *)e->bits : (void *)e->regs);
+    int64_t start;
+    int rc;
+
+    if (d->timeout_ms != e->timeout_ms) {
+        modbus_set_response_timeout(e->ctx, (uint32_t)(d->timeout_ms / 1000),
+                                    (uint32_t)(d->timeout_ms % 1000) * 1000U);
+        e->timeout_ms = d->timeout_ms;
+    }
+    e->lc->requests++;
+    d->c.requests++;
+    start = emb_now_ns();
+    rc = emb_read(e->ctx, e->lk, d->slave, b->function, b->start, b->count, data, e->rsp);
+    e->lc->discarded += e->lk->discarded;
+    e->lk->discarded = 0;
+    if (e->pace_ns)
+        e->ready_ns = emb_now_ns() + e->pace_ns;
+    if (rc == -1)
+        return -1;
+    e->lc->rtt_ns += emb_now_ns() - start;
+    e->lc->responses++;
+    d->c.responses++;
+    b->reported = b->plan ? emb_decode(b->plan, data, (uint32_t)rc, d->mode) : 0;
+    if (b->reported || b->keep)
+        d->news = 1;
+    d->index++;
+    return 0;
+}
+
+/* Run the line until something needs Python (an EMB_EV_* code; event_device and
+ * event_errno say more) or until until_ns. */
+int emb_engine_run(emb_engine *e, int64_t until_ns)
+{
+    emb_device *d;
+    int64_t now, wait;
+    int which = -1, ev;
+
+    e->event_device = -1;
+    e->event_errno = 0;
+    for (;;) {
+        if (emb_woken(e))
+            return EMB_EV_WAKE;
+        now = emb_now_ns();
+        if (now >= until_ns)
+            return EMB_EV_DEADLINE;
+        d = emb_pick(e, &which);
+        if (d == NULL || d->due_ns > now) {
+            wait = d == NULL || d->due_ns > until_ns ? until_ns : d->due_ns;
+            ev = emb_sleep(e, wait, 1);
+            if (ev >= 0)
+                return ev;
+            continue;
+        }
+        if (!d->in_pass && emb_dev_begin_pass(d, now) == 0 && d->n_blocks > 0)
+            continue; /* woken early: nothing due yet */
+        while (d->index < d->n_pass) {
+            ev = -1;
+            if (e->ready_ns > emb_now_ns())
+                ev = emb_sleep(e, e->ready_ns, 0);
+            else if (emb_woken(e))
+                ev = EMB_EV_WAKE;
+            if (ev >= 0) {
+                e->event_device = which; /* interrupted mid-pass */
+                return ev;
+            }
+            if (emb_step(e, d) == -1) {
+                e->event_device = which;
+                e->event_errno = errno;
+                return EMB_EV_FAILED;
+            }
+        }
+        now = emb_now_ns();
+        emb_dev_end_pass(d, now, e->bounds_ns, e->n_bounds);
+        if (d->news || d->notify || now >= d->notify_ns) {
+            e->event_device = which;
+            return EMB_EV_CYCLE;
+        }
+    }
+}

@@ -1,0 +1,90 @@
+"""The line engine end to end (csrc/emb_engine.c): a quiet line runs in C, a write
+interrupts a pass after the transaction in flight.  DriverModbusRtu against our
+simulator over RTU over TCP."""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Iterator
+from types import FrameType
+from typing import Any
+
+import pytest
+
+from edgemodbus.datatypes import ItemStatus
+from edgemodbus.sim import Simulator
+from tests.integration.test_driver import Running, all_ok, device
+from tests.waiting import wait_for
+
+
+@pytest.fixture
+def sim() -> Iterator[Simulator]:
+    with Simulator([1]) as simulator:
+        yield simulator
+
+
+def _uint16s(n: int, step: int = 2) -> list[dict[str, Any]]:
+    return [{"name": f"t{k}", "address": f"hr:{step * k}", "deviceDataType": "UInt16"}
+            for k in range(n)]
+
+
+class MasterCalls:
+    """Counts the calls of edgemodbus's own Python functions (the simulator's aside) in
+    the threads started while it is installed: here, the line worker."""
+
+    def __init__(self) -> None:
+        self.calls = 0
+        self.counting = False
+
+    def __enter__(self) -> MasterCalls:
+        threading.setprofile(self._hook)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        threading.setprofile(None)  # type: ignore[arg-type]
+
+    def _hook(self, frame: FrameType, event: str, _arg: object) -> None:
+        if event == "call" and self.counting:
+            name = frame.f_code.co_filename
+            if "/edgemodbus/" in name and "/edgemodbus/sim/" not in name:
+                self.calls += 1
+
+
+def test_a_line_whose_values_do_not_change_stays_in_c(sim: Simulator) -> None:
+    """20 blocks a cycle, nothing changing: the worker runs no Python per block, and
+    (with no snapshot due) none per cycle either."""
+    port = sim.serve_tcp("127.0.0.1", 0)
+    cfg = device(port, _uint16s(200, step=3), readCycle=5, maxBlockReadRegisterCount=30,
+                 maxMergeAddressGap=2)
+    with MasterCalls() as watch, Running(cfg) as drv:
+        wait_for(all_ok(cfg))
+        before = drv.stats()["cycles"]
+        watch.counting = True
+        time.sleep(1.0)
+        watch.counting = False
+        cycles = drv.stats()["cycles"] - before
+    assert cycles >= 20, cycles
+    assert drv.stats()["requests"] >= 20 * cycles
+    assert watch.calls < cycles, (watch.calls, cycles)  # stepping in Python: > 20 a cycle
+
+
+def test_a_write_waits_only_for_the_transaction_in_flight(sim: Simulator) -> None:
+    """A slow slave (20 ms a reply) and 40 blocks a cycle: a write starts after the
+    read in flight, not after the rest of the cycle (800 ms)."""
+    sim.slave(1).faults.delay = 0.02
+    port = sim.serve_tcp("127.0.0.1", 0)
+    cfg = device(port, _uint16s(40, step=10), readCycle=10, maxMergeAddressGap=0,
+                 readTimeout=1000)
+    with Running(cfg) as drv:
+        wait_for(all_ok(cfg), timeout=10)
+        took = []
+        for k in range(8):
+            time.sleep(0.037 * (k + 1))  # somewhere in the cycle
+            start = time.monotonic()
+            ok, err = drv.write_address("t5", k)
+            took.append(time.monotonic() - start)
+            assert ok, err
+        assert cfg.address_list[5].value == 7 and cfg.address_list[5].status is ItemStatus.OK
+    # the read in flight (<= 20 ms), then the write itself (20 ms), with slack
+    assert max(took) < 0.02 + 0.02 + 0.05, took
