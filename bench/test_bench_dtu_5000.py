@@ -7,10 +7,12 @@ own (one asyncio loop, so that its CPU is not ours).  Reported: the time from th
 dial to every value Ok, what the listener accepted, registered and refused, and the
 gateway's CPU per DTU per second, RSS per DTU and threads (one line worker per DTU).
 
-Quick mode (``EDGEMODBUS_BENCH_QUICK=1``) uses 300 DTUs; ``EDGEMODBUS_BENCH_DTUS=N`` sets
-any count (e.g. 1000), ``EDGEMODBUS_BENCH_DIAL_RATE`` the fleet's dials per second (1000)
-and ``EDGEMODBUS_BENCH_STACK_KB`` the stack size of the threads this process starts (the
-line workers; default: RLIMIT_STACK, 8 MB on Linux), to see what smaller stacks save.
+Quick mode (``EDGEMODBUS_BENCH_QUICK=1``) uses 300 DTUs.  Environment knobs:
+``EDGEMODBUS_BENCH_DTUS`` any count (e.g. 1000); ``EDGEMODBUS_BENCH_DIAL_RATE`` the fleet's
+dials per second (1000); ``EDGEMODBUS_BENCH_CYCLE_MS`` the readCycle (5000; 1000 DTUs at
+1000 ms make the request rate of 5,000 at 5 s); ``EDGEMODBUS_BENCH_STACK_KB`` the stack
+size of the threads this process starts, the line workers (default: RLIMIT_STACK, 8 MB on
+Linux), to see what smaller stacks save.
 Memory is per DTU configured (every driver has its thread and objects, connected or
 not), CPU per DTU whose values are Ok.
 
@@ -42,7 +44,7 @@ from edgemodbus.sim import DtuFleet, raise_open_files_limit
 
 TAGS = 20
 SLAVE = 1
-CYCLE_MS = 5000
+CYCLE_MS = int(os.environ.get("EDGEMODBUS_BENCH_CYCLE_MS", "5000"))
 ID = "DTU{n:05d}"
 N_DTUS = int(os.environ.get("EDGEMODBUS_BENCH_DTUS", "0")) or scale(5000, 300)
 DIAL_RATE = float(os.environ.get("EDGEMODBUS_BENCH_DIAL_RATE", "1000"))

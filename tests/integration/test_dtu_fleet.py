@@ -206,3 +206,19 @@ def test_simulate_dtus_says_when_the_hard_open_files_limit_is_too_low() -> None:
         out = subprocess.run([sys.executable, "-m", "edgemodbus.cli", "simulate", *args],
                              capture_output=True, text=True, timeout=30, check=False)
         assert out.returncode == 2, args
+
+
+def test_stop_while_every_dial_is_refused() -> None:
+    """A cancellation that arrives as a connect fails is not lost (wait_for() before
+    Python 3.12 raises the connect's OSError instead): the fleet still stops at once."""
+    port = free_port()  # nobody listens: every dial is refused at once
+    for _ in range(3):
+        fleet = DtuFleet("127.0.0.1", port, 200, reconnect=0.001, reconnect_max=0.002).start()
+        deadline = time.monotonic() + 8.0
+        while fleet.stats()["dial_failures"] < 2000:  # dialling flat out
+            assert time.monotonic() < deadline, "dials not refused"
+            time.sleep(0.01)
+        started = time.monotonic()
+        fleet.stop(timeout=5.0)
+        assert time.monotonic() - started < 2.0
+        assert fleet_threads() == []

@@ -274,6 +274,7 @@ class DtuFleet:
         self._first = first
         self._live: set[_Connection] = set()  # loop only
         self._next_dial = 0.0
+        self._stopping = False
         self._lock = threading.Lock()
         self._state = "new"
         self._thread: threading.Thread | None = None
@@ -385,6 +386,7 @@ class DtuFleet:
         raise_open_files_limit(len(self.dtus) + FD_MARGIN)
         loop = asyncio.get_running_loop()
         self._loop = loop
+        self._stopping = False
         # Resolved once, here: a numeric address lets asyncio connect without its
         # resolver thread pool.
         family, _, _, _, address = socket.getaddrinfo(self.host, self.port,
@@ -394,9 +396,14 @@ class DtuFleet:
         try:
             await loop.create_future()  # until cancelled
         finally:
-            for task in tasks:
-                task.cancel()
-            await asyncio.gather(*tasks, return_exceptions=True)
+            # Cancelled again until done: before Python 3.12, wait_for() swallows a
+            # cancellation that arrives as its connect fails (it raises the OSError).
+            self._stopping = True
+            pending = set(tasks)
+            while pending:
+                for task in pending:
+                    task.cancel()
+                _, pending = await asyncio.wait(pending, timeout=0.1)
             live = list(self._live)
             for conn in live:
                 conn.abort()
@@ -409,7 +416,7 @@ class DtuFleet:
         family, host = target
         delay = self.reconnect
         factory = functools.partial(_Connection, self, dtu, loop)
-        while True:
+        while not self._stopping:
             await self._dial_turn(loop)
             served = 0
             try:
