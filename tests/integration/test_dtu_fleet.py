@@ -139,7 +139,7 @@ def test_stop_closes_connections_nobody_accepted_and_pending_dials() -> None:
         server.listen(64)  # never accepts: the kernel completes the handshakes
         port = int(server.getsockname()[1])
         fds = open_fds()
-        fleet = DtuFleet("127.0.0.1", port, 40, dial_rate=200.0).start()
+        fleet = DtuFleet("127.0.0.1", port, 40, dial_rate=20.0).start()
         wait_for(lambda: fleet.connected >= 5, what="first connections")
         assert fleet.connected < 40  # the rest wait for their turn
         started = time.monotonic()
