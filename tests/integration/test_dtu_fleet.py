@@ -70,8 +70,8 @@ def test_fifty_dtus_each_answer_from_their_own_registers() -> None:
                 assert values(cfg) == [1000 + k, default_register(1, 1), default_register(1, 7)]
             listener = dtu_registry.listener("127.0.0.1", port)
             assert listener is not None
-            assert listener.stats["registered"] == n
-            assert listener.stats["refused"] == listener.stats["unknown"] == 0
+            assert listener.stats["accepted"] == listener.stats["registered"] == n
+            assert listener.stats["unknown"] == listener.stats["silent"] == 0
             stats = fleet.stats()
             assert stats["connected"] == stats["connections"] == n
             assert stats["requests"] >= n and stats["dial_failures"] == 0
