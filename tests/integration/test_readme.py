@@ -283,6 +283,9 @@ def run_simulate(argv: tuple[str, ...], tmp: Path) -> None:
 
 
 def run_simulate_dial(argv: tuple[str, ...]) -> None:
+    if "--dtus" in argv:
+        run_simulate_fleet(argv)
+        return
     registration = argv[argv.index("--registration") + 1] if "--registration" in argv else ""
     match = re.fullmatch(r"IMEI:(\d{15})", registration)
     assert match, "the README's DTU registers with IMEI:<15 digits>; adapt this runner"
@@ -307,6 +310,42 @@ def run_simulate_dial(argv: tuple[str, ...]) -> None:
             assert item.value == default_register(slave, 42)
     finally:
         drv.stop_device()
+
+
+def item_ok(item: em.DeviceAddressItem) -> Callable[[], bool]:
+    return lambda: item.status is em.ItemStatus.OK
+
+
+def run_simulate_fleet(argv: tuple[str, ...]) -> None:
+    """``simulate --dial ... --dtus N``: drivers listen for the first and the last DTU
+    (the others register with ids nobody configured and are closed) and read a value
+    through each."""
+    def option(name: str, default: str) -> str:
+        return argv[argv.index(name) + 1] if name in argv else default
+
+    n, first = int(option("--dtus", "1")), int(option("--first-dtu", "0"))
+    template, slave = option("--registration", "DTU{n:05d}"), int(option("--slaves", "1"))
+    port = free_port()
+    cfgs = [em.load_device_config({
+        "communication": {"transport": "rtu-over-tcp-server", "listenHost": "127.0.0.1",
+                          "listenPort": port, "dtuId": template.format(n=k),
+                          "registration": "text", "registrationTimeout": 1000,
+                          "slaveId": slave, "readCycle": 200, "readTimeout": 500},
+        "addressList": [{"name": "r", "address": "hr:42", "deviceDataType": "UInt16"}],
+    }) for k in (first, first + n - 1)]
+    drivers = [em.DriverModbusRtu() for _ in cfgs]
+    try:
+        for drv, cfg in zip(drivers, cfgs, strict=True):
+            assert drv.start_device(cfg.organization, cfg.communication, cfg.address_list)
+        with started(rewrite(argv, dial=f"127.0.0.1:{port}")) as proc:
+            assert read_line(proc).startswith(f"dialling 127.0.0.1:{port} with {n} DTUs")
+            for cfg in cfgs:
+                wait_for(item_ok(cfg.address_list[0]), timeout=SLAVE_READY,
+                         what=f"a value through DTU {cfg.communication.dtu_id}")
+                assert cfg.address_list[0].value == default_register(slave, 42)
+    finally:
+        for drv in drivers:
+            drv.stop_device()
 
 
 def run_descriptor(argv: tuple[str, ...], tmp: Path) -> None:

@@ -33,7 +33,7 @@ from ..errors import ModbusConnectionError, ModbusError
 from .connect import open_socket_link
 from .endpoint import DtuEndpoint
 from .link import Link
-from .registration import Identified, PortSettings, identify
+from .registration import Identified, IdIndex, PortSettings, identify
 from .worker import LineWorker
 
 log = logging.getLogger("edgemodbus.dtu")
@@ -144,6 +144,7 @@ class DtuListener:
     def __init__(self, settings: PortSettings) -> None:
         self.settings = settings
         self._slots: dict[str, DtuSlot] = {}
+        self._ids = IdIndex(settings.registration)  # the slots' ids, for identify()
         self._lock = threading.Lock()
         self.stats: dict[str, int] = {"accepted": 0, "registered": 0, "unknown": 0,
                                       "silent": 0}
@@ -152,7 +153,7 @@ class DtuListener:
         try:
             sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
             sock.bind((settings.host, settings.port))
-            sock.listen(128)
+            sock.listen(socket.SOMAXCONN)  # DTUs dial in by the thousand after an outage
             sock.setblocking(False)
         except OSError as exc:
             sock.close()
@@ -175,11 +176,13 @@ class DtuListener:
     def add_slot(self, slot: DtuSlot) -> None:
         with self._lock:
             self._slots[slot.dtu_id] = slot
+            self._ids.add(slot.dtu_id)
 
     def remove_slot(self, slot: DtuSlot) -> None:
         with self._lock:
             if self._slots.get(slot.dtu_id) is slot:
                 del self._slots[slot.dtu_id]
+                self._ids.remove(slot.dtu_id)
         slot.close()
 
     def slot_count(self) -> int:
@@ -285,14 +288,13 @@ class DtuListener:
     def _decide(self, newcomer: _Newcomer, settled: bool) -> bool:
         """Register, or mark unknown, a newcomer whose registration is complete; True
         when it was handed to its DTU's slot."""
-        with self._lock:
-            slots = dict(self._slots)
         buf = bytes(newcomer.buf)
-        found = identify(buf, slots.keys(), self.settings, settled=settled)
+        with self._lock:  # the index is kept sorted as drivers come and go
+            found = identify(buf, self._ids, self.settings, settled=settled)
+            slot = self._slots.get(found.dtu_id) if isinstance(found, Identified) else None
         if found is None:
             return False
         newcomer.quiet_at = math.inf
-        slot = slots.get(found.dtu_id) if isinstance(found, Identified) else None
         if isinstance(found, Identified) and slot is not None:
             self._drop(newcomer)
             self._register(slot, newcomer.sock, newcomer.peer, buf[found.end:])

@@ -19,7 +19,8 @@ can check the master library from the outside.
 Modules: slave.py (a slave: data areas and request handling), faults.py (its fault
 knobs), movers.py (values that follow the clock), line.py and loop.py (lines and the
 loop thread), server.py (:class:`Simulator`), dtu_client.py (DTU-client mode and wrapped
-frames), cli.py (``edgemodbus simulate``).
+frames), fleet.py (:class:`DtuFleet`: thousands of DTUs dialling in, each with its own
+slaves, on one asyncio loop), cli.py (``edgemodbus simulate``).
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ from __future__ import annotations
 from .cli import main
 from .dtu_client import DtuClient
 from .faults import ExceptionRange, Faults
+from .fleet import FLEET_SIZE, DtuFleet, FleetDtu, raise_open_files_limit
 from .movers import (
     CounterMover,
     FloatSineMover,
@@ -41,10 +43,13 @@ from .slave import DEFAULT_SIZE, Slave, default_bit, default_register
 
 __all__ = [
     "DEFAULT_SIZE",
+    "FLEET_SIZE",
     "CounterMover",
     "DtuClient",
+    "DtuFleet",
     "ExceptionRange",
     "Faults",
+    "FleetDtu",
     "FloatSineMover",
     "Mover",
     "MoverHost",
@@ -56,4 +61,5 @@ __all__ = [
     "default_bit",
     "default_register",
     "main",
+    "raise_open_files_limit",
 ]

@@ -10,6 +10,7 @@ from collections.abc import Sequence
 from typing import Any
 
 from ..logs import configure_logging
+from .fleet import FLEET_SIZE, DtuFleet
 from .movers import add_demo_movers
 from .server import Simulator
 from .slave import DEFAULT_SIZE
@@ -37,7 +38,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--host", default="127.0.0.1", help="listen address (127.0.0.1)")
     parser.add_argument("--port", type=int, default=5020, help="TCP port, 0 = any (5020)")
     parser.add_argument("--slaves", type=_parse_ids, default=[1], help="ids, e.g. 1,2,5-8")
-    parser.add_argument("--size", type=int, default=DEFAULT_SIZE, help="points per area")
+    parser.add_argument("--size", type=int, default=None,
+                        help=f"points per area ({DEFAULT_SIZE}; with --dtus {FLEET_SIZE})")
     parser.add_argument("--pty", action="store_true", help="also serve a pty")
     parser.add_argument("--no-tcp", action="store_true", help="do not listen on TCP")
     parser.add_argument("--movers", action="store_true", help="add the demo's moving values")
@@ -45,13 +47,24 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--dial", metavar="HOST:PORT", default=None,
                         help="DTU-client mode: connect to a master listening there "
                         "(rtu-over-tcp-server) instead of listening")
-    parser.add_argument("--registration", default="",
-                        help="with --dial: registration packet sent first (text)")
+    parser.add_argument("--registration", default=None,
+                        help="with --dial: registration packet sent first (text); with --dtus "
+                        "a template of the DTU's number {n} (DTU{n:05d})")
     parser.add_argument("--heartbeat", default="", help="with --dial: heartbeat packet (text)")
     parser.add_argument("--heartbeat-interval", type=float, default=0.0,
                         help="with --dial: seconds between heartbeats (0: none)")
     parser.add_argument("--wrapped", action="store_true",
                         help="speak the edge MCU's wrapped report frames")
+    parser.add_argument("--dtus", type=int, default=None, metavar="N",
+                        help="with --dial: play N DTUs from this one process (asyncio), each "
+                        "with its own --slaves, registering as --registration")
+    parser.add_argument("--first-dtu", type=int, default=0, metavar="N",
+                        help="with --dtus: the number {n} of the first DTU (0)")
+    parser.add_argument("--dial-rate", type=float, default=0.0,
+                        help="with --dtus: new connections per second (0: no limit)")
+    parser.add_argument("--reconnect", type=float, default=1.0,
+                        help="with --dtus: seconds before a dropped DTU dials again, doubling "
+                        "up to 30 while its connections end before any request (1)")
 
 
 DESCRIPTION = "Multi-slave Modbus RTU simulator (raw RTU frames over TCP, or a pty)."
@@ -80,18 +93,24 @@ def run(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
             parser.error(f"--dial {args.dial!r}: use HOST:PORT with a port of 1..65535")
         dial = (host, int(port_text))
 
+    if args.dtus is not None and (dial is None or args.dtus < 1 or args.wrapped or args.pty):
+        parser.error("--dtus N: needs --dial HOST:PORT and N >= 1; not with --wrapped or --pty")
     stop = threading.Event()
     previous: dict[signal.Signals, Any] = {}
     if threading.current_thread() is threading.main_thread():
         for signum in (signal.SIGINT, signal.SIGTERM):
             previous[signum] = signal.signal(signum, lambda *_: stop.set())
     try:
-        with Simulator(args.slaves, args.size, seed=args.seed) as sim:
+        if args.dtus is not None:
+            assert dial is not None
+            return _run_fleet(args, parser, dial, stop)
+        size = DEFAULT_SIZE if args.size is None else args.size
+        with Simulator(args.slaves, size, seed=args.seed) as sim:
             if args.movers:
                 for slave in sim.slaves:
                     add_demo_movers(slave)
             if dial is not None:
-                sim.dial(dial[0], dial[1], registration=args.registration.encode(),
+                sim.dial(dial[0], dial[1], registration=(args.registration or "").encode(),
                          heartbeat=args.heartbeat.encode(),
                          heartbeat_interval=args.heartbeat_interval, wrapped=args.wrapped)
                 print(f"dialled {dial[0]}:{dial[1]}", flush=True)
@@ -112,3 +131,37 @@ def run(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
             signal.signal(signum, handler)
     return 0
 
+
+
+def _run_fleet(args: argparse.Namespace, parser: argparse.ArgumentParser,
+               dial: tuple[str, int], stop: threading.Event) -> int:
+    """``--dial HOST:PORT --dtus N``: a :class:`DtuFleet` until stopped; a status line on
+    stderr every 5 s while it changes."""
+    try:
+        fleet = DtuFleet(dial[0], dial[1], args.dtus, first=args.first_dtu,
+                         registration=args.registration or "DTU{n:05d}", slaves=args.slaves,
+                         size=FLEET_SIZE if args.size is None else args.size,
+                         heartbeat=args.heartbeat.encode(),
+                         heartbeat_interval=args.heartbeat_interval, dial_rate=args.dial_rate,
+                         reconnect=args.reconnect, reconnect_max=max(30.0, args.reconnect),
+                         seed=args.seed)
+    except ValueError as exc:
+        parser.error(str(exc))
+    if args.movers:
+        for dtu in fleet.dtus:
+            for slave in dtu.slaves.values():
+                add_demo_movers(slave)
+    first, last = (d.registration.decode(errors="backslashreplace")
+                   for d in (fleet.dtus[0], fleet.dtus[-1]))
+    with fleet:
+        print(f"dialling {dial[0]}:{dial[1]} with {len(fleet)} DTUs ({first}..{last})",
+              flush=True)
+        shown = ""
+        while not stop.wait(5.0):
+            s = fleet.stats()
+            line = (f"{s['connected']}/{s['dtus']} DTUs connected, {s['requests']} requests, "
+                    f"{s['dial_failures']} failed dials, {s['reconnects']} reconnects")
+            if line != shown:
+                print(line, file=sys.stderr, flush=True)
+                shown = line
+    return 0

@@ -15,11 +15,10 @@ from collections.abc import Callable, Iterable
 from typing import Any
 
 from ..protocol import rtu
-from .actions import _Action
 from .dtu_client import _WRAP_HEADER, DtuClient, _wrap
 from .line import _Line
 from .loop import _Loop
-from .slave import DEFAULT_SIZE, Slave
+from .slave import DEFAULT_SIZE, Slave, answer
 
 
 class Simulator(_Loop):
@@ -293,21 +292,13 @@ class Simulator(_Loop):
             hook(line.last_rx, raw)
         with self._lock:
             self._line_stats["frames"] += 1
-        address, pdu = raw[0], raw[1:-2]
-        actions: list[_Action] = []
-        if address == 0:
-            with self._lock:
+            if raw[0] == 0:
                 self._line_stats["broadcasts"] += 1
-            if pdu[0] in rtu.WRITE_FUNCTIONS:  # Serial Line 2.1: broadcast is for writes only
-                for slave in self.slaves:  # those with answer_broadcast all answer: collision
-                    actions += slave._handle_broadcast(pdu)
-        else:
-            target = self._slaves.get(address)
-            if target is None:
-                with self._lock:
-                    self._line_stats["unknown_slave"] += 1
-                return  # nobody on the line has this address: silence
-            actions = target._handle(raw, pdu, self._rng, line.is_tcp)
+        actions = answer(self._slaves, raw, self._rng, line.is_tcp)
+        if actions is None:
+            with self._lock:
+                self._line_stats["unknown_slave"] += 1
+            return  # nobody on the line has this address: silence
         if wrap_address is not None:
             actions = [(after, _wrap(wrap_address, data) if isinstance(data, bytes) else data)
                        for after, data in actions]

@@ -12,7 +12,7 @@ import struct
 import threading
 import time
 from array import array
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 from ..datatypes import Area
@@ -398,6 +398,26 @@ class Slave:
         regs = self._regs[Area.HOLDING_REGISTER]
         regs[address] = (regs[address] & and_mask) | (or_mask & ~and_mask & 0xFFFF)
         return pdu[:7]
+
+
+def answer(
+    slaves: Mapping[int, Slave], raw: bytes, rng: random.Random, can_close: bool
+) -> list[_Action] | None:
+    """What the slaves of one line put on the wire for the request frame ``raw`` (address,
+    PDU, CRC checked by the caller): a unicast request is handled by the slave it
+    addresses, a broadcast write by every slave (Serial Line 2.1: answered only by those
+    with ``answer_broadcast``, a collision).  None: no slave has the address (silence)."""
+    address, pdu = raw[0], raw[1:-2]
+    if address == 0:
+        actions: list[_Action] = []
+        if pdu[0] in rtu.WRITE_FUNCTIONS:  # Serial Line 2.1: broadcast is for writes only
+            for slave in list(slaves.values()):
+                actions += slave._handle_broadcast(pdu)
+        return actions
+    target = slaves.get(address)
+    if target is None:
+        return None
+    return target._handle(raw, pdu, rng, can_close)
 
 
 def _wrong_byte_count(rpdu: bytes) -> bytes:
