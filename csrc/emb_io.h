@@ -12,8 +12,16 @@
 #define EMB_REPORT_MAX 261  /* a wrapped frame: FF AA, address, RTU frame (<= 256), 0D */
 #define EMB_DROP_SHOW 32    /* bytes of the last dropped wrapped frame kept for the log */
 
+/* The buffers of a DTU stream link (emb_link.sb): bytes received and not framed yet, and
+ * the reports waiting.  The caller allocates them, for stream links only. */
+typedef struct {
+    uint8_t rx[EMB_RX_SIZE];
+    uint8_t ring[EMB_RING_SIZE];
+} emb_stream_buf;
+
 /* State of one line kept between transactions; the caller allocates it zeroed with the
- * context and sets mbap, echo, char_ns, wrapped and the heartbeat once. */
+ * context and sets mbap, echo, char_ns, and for a DTU stream wrapped, the heartbeat and
+ * sb, once. */
 typedef struct {
     int mbap;       /* Modbus TCP: MBAP header (we send it ourselves, with our own tid) */
     int echo;       /* RTU: the line echoes every request; read it back before the reply */
@@ -38,14 +46,13 @@ typedef struct {
     uint32_t n_reports;     /* reports waiting in the ring (emb_report_take) */
     uint32_t n_before;      /* the first n_before of them came before the last reply: the
                              * caller applies them first, the others after the reply */
+    emb_stream_buf *sb;     /* a stream link's buffers (required with wrapped or hb_len) */
     /* private to csrc/emb_stream.c */
     int32_t absorb;         /* bytes of the last dropped frame still to skip, -1: up to the
                              * next header */
     uint32_t rx_len;
     uint32_t ring_head;
     uint32_t ring_used;
-    uint8_t rx[EMB_RX_SIZE];
-    uint8_t ring[EMB_RING_SIZE];
 } emb_link;
 
 /* errno values of our own reply checks (libmodbus's own errnos are kept as they are). */

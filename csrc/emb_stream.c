@@ -14,7 +14,7 @@
  *   resynchronises on the next header: the rules of src/edgemodbus/protocol/wrapped.py
  *   (ReportParser), which the simulator keeps using.
  *
- * Bytes are read into lk->rx, as many as are readable, and framed from there; what is
+ * Bytes are read into lk->sb->rx, as many as are readable, and framed from there; what is
  * left (a frame not complete yet) waits there for the next read.  No globals, no
  * allocation: the buffers are in the link. */
 #include "emb_wire.h"
@@ -32,6 +32,15 @@ int emb_is_stream(const emb_link *lk)
     return lk->wrapped || lk->hb_len > 0;
 }
 
+/* A stream link needs its buffers (lk->sb): 0 with errno EINVAL if they are missing. */
+static int emb_has_buffers(const emb_link *lk)
+{
+    if (lk->sb != NULL)
+        return 1;
+    errno = EINVAL;
+    return 0;
+}
+
 /* -- the report ring: per report a 2-byte length (big-endian) and the wrapped frame -- */
 
 static void emb_ring_put(emb_link *lk, const uint8_t *p, uint32_t n)
@@ -39,8 +48,8 @@ static void emb_ring_put(emb_link *lk, const uint8_t *p, uint32_t n)
     uint32_t at = (lk->ring_head + lk->ring_used) % EMB_RING_SIZE;
     uint32_t first = n < EMB_RING_SIZE - at ? n : EMB_RING_SIZE - at;
 
-    memcpy(lk->ring + at, p, first);
-    memcpy(lk->ring, p + first, n - first);
+    memcpy(lk->sb->ring + at, p, first);
+    memcpy(lk->sb->ring, p + first, n - first);
     lk->ring_used += n;
 }
 
@@ -48,8 +57,8 @@ static void emb_ring_get(emb_link *lk, uint8_t *p, uint32_t n)
 {
     uint32_t first = n < EMB_RING_SIZE - lk->ring_head ? n : EMB_RING_SIZE - lk->ring_head;
 
-    memcpy(p, lk->ring + lk->ring_head, first);
-    memcpy(p + first, lk->ring, n - first);
+    memcpy(p, lk->sb->ring + lk->ring_head, first);
+    memcpy(p + first, lk->sb->ring, n - first);
     lk->ring_head = (lk->ring_head + n) % EMB_RING_SIZE;
     lk->ring_used -= n;
 }
@@ -93,11 +102,11 @@ int emb_report_take(emb_link *lk, uint8_t *out)
 
 static void emb_rx_consume(emb_link *lk, uint32_t n)
 {
-    memmove(lk->rx, lk->rx + n, lk->rx_len - n);
+    memmove(lk->sb->rx, lk->sb->rx + n, lk->rx_len - n);
     lk->rx_len -= n;
 }
 
-/* Read what is readable on fd into lk->rx (up to its free space), waiting until
+/* Read what is readable on fd into lk->sb->rx (up to its free space), waiting until
  * deadline_ns for it (a deadline passed: only what is there now).  Returns the bytes
  * read, 0 if none came in time, -1 with errno (end of file: emb_eof_errno). */
 static int emb_rx_fill(emb_link *lk, int fd, int64_t deadline_ns)
@@ -112,7 +121,7 @@ static int emb_rx_fill(emb_link *lk, int fd, int64_t deadline_ns)
         rc = emb_wait_until(fd, deadline_ns);
         if (rc <= 0)
             return rc;
-        n = read(fd, lk->rx + lk->rx_len, space);
+        n = read(fd, lk->sb->rx + lk->rx_len, space);
         if (n > 0) {
             lk->rx_len += (uint32_t)n;
             return (int)n;
@@ -134,7 +143,7 @@ static uint32_t emb_hb_partial(const emb_link *lk)
     if (n > lk->rx_len)
         n = lk->rx_len;
     for (; n > 0; n--)
-        if (memcmp(lk->rx + lk->rx_len - n, lk->hb, n) == 0)
+        if (memcmp(lk->sb->rx + lk->rx_len - n, lk->hb, n) == 0)
             return n;
     return 0;
 }
@@ -147,11 +156,11 @@ static int emb_hb_strip(emb_link *lk)
 
     if (h == 0)
         return 0;
-    while (lk->rx_len >= h && memcmp(lk->rx, lk->hb, h) == 0) {
+    while (lk->rx_len >= h && memcmp(lk->sb->rx, lk->hb, h) == 0) {
         emb_rx_consume(lk, h);
         lk->heartbeats++;
     }
-    return lk->rx_len > 0 && lk->rx_len < h && memcmp(lk->rx, lk->hb, lk->rx_len) == 0;
+    return lk->rx_len > 0 && lk->rx_len < h && memcmp(lk->sb->rx, lk->hb, lk->rx_len) == 0;
 }
 
 /* Plain RTU stream, nothing asked: heartbeats anywhere in rx are counted, every other
@@ -163,7 +172,7 @@ static long emb_plain_idle(emb_link *lk)
     long dropped = 0;
 
     while (i < lk->rx_len) {
-        if (h && i + h <= lk->rx_len && memcmp(lk->rx + i, lk->hb, h) == 0) {
+        if (h && i + h <= lk->rx_len && memcmp(lk->sb->rx + i, lk->hb, h) == 0) {
             lk->heartbeats++;
             i += h;
         } else {
@@ -182,7 +191,7 @@ static long emb_plain_idle(emb_link *lk)
  * 0 if it cannot be a reply (protocol/wrapped.py _rtu_length). */
 static int emb_wrapped_rtu_length(const emb_link *lk)
 {
-    const uint8_t *p = lk->rx + EMB_WRAP_PREFIX;
+    const uint8_t *p = lk->sb->rx + EMB_WRAP_PREFIX;
     int fc, count;
 
     if (lk->rx_len < EMB_WRAP_PREFIX + 2)
@@ -217,7 +226,7 @@ static void emb_drop(emb_link *lk, const uint8_t *raw, uint32_t n)
  * (else up to the next header), is not counted again. */
 static void emb_bad(emb_link *lk, uint32_t n_show, int end)
 {
-    emb_drop(lk, lk->rx, n_show);
+    emb_drop(lk, lk->sb->rx, n_show);
     emb_rx_consume(lk, 2);
     lk->absorb = end < 0 ? -1 : end - 2;
 }
@@ -230,7 +239,7 @@ static void emb_noise(emb_link *lk, uint32_t n)
         if (n <= (uint32_t)lk->absorb) {
             lk->absorb -= (int32_t)n;
         } else {
-            emb_drop(lk, lk->rx + lk->absorb, n - (uint32_t)lk->absorb);
+            emb_drop(lk, lk->sb->rx + lk->absorb, n - (uint32_t)lk->absorb);
             lk->absorb = -1; /* the run of noise goes on up to the next header */
         }
     }
@@ -267,16 +276,16 @@ static int emb_wrapped_frame(emb_link *lk, const emb_want *want, uint8_t *rsp)
 
     while (lk->rx_len > 0) {
         if (lk->hb_len && lk->rx_len >= lk->hb_len &&
-            memcmp(lk->rx, lk->hb, lk->hb_len) == 0) {
+            memcmp(lk->sb->rx, lk->hb, lk->hb_len) == 0) {
             emb_rx_consume(lk, lk->hb_len);
             lk->heartbeats++;
             continue;
         }
         for (i = 0; i + 1 < lk->rx_len; i++)
-            if (lk->rx[i] == 0xFF && lk->rx[i + 1] == 0xAA)
+            if (lk->sb->rx[i] == 0xFF && lk->sb->rx[i + 1] == 0xAA)
                 break;
         if (i + 1 >= lk->rx_len) { /* no header: keep what may begin one, or a heartbeat */
-            keep = lk->rx[lk->rx_len - 1] == 0xFF ? 1 : 0;
+            keep = lk->sb->rx[lk->rx_len - 1] == 0xFF ? 1 : 0;
             if (emb_hb_partial(lk) > keep)
                 keep = emb_hb_partial(lk);
             if (lk->rx_len > keep)
@@ -296,22 +305,22 @@ static int emb_wrapped_frame(emb_link *lk, const emb_want *want, uint8_t *rsp)
         end = EMB_WRAP_PREFIX + (uint32_t)length + 1;
         if (lk->rx_len < end)
             break;
-        if (lk->rx[end - 1] != EMB_WRAP_TAIL) {
+        if (lk->sb->rx[end - 1] != EMB_WRAP_TAIL) {
             emb_bad(lk, end, -1); /* no 0D tail: the length does not add up */
             continue;
         }
-        rtu = lk->rx + EMB_WRAP_PREFIX;
+        rtu = lk->sb->rx + EMB_WRAP_PREFIX;
         crc = emb_crc16(rtu, length - 2);
         if (rtu[length - 2] != (crc & 0xFF) || rtu[length - 1] != (crc >> 8)) {
             emb_bad(lk, end, (int)end);
             continue;
         }
-        if (want && !found && emb_wrapped_answers(want, lk->rx)) {
+        if (want && !found && emb_wrapped_answers(want, lk->sb->rx)) {
             memcpy(rsp, rtu, (size_t)length);
             found = length;
             lk->n_before = lk->n_reports;
         } else {
-            emb_report_put(lk, lk->rx, end);
+            emb_report_put(lk, lk->sb->rx, end);
         }
         emb_rx_consume(lk, end);
     }
@@ -354,6 +363,8 @@ static long emb_pump_fd(emb_link *lk, int fd)
  * link is found closed. */
 int emb_stream_drop_pending(emb_link *lk, int fd)
 {
+    if (!emb_has_buffers(lk)) /* every transaction begins here */
+        return -1;
     return emb_pump_fd(lk, fd) == -1 ? -1 : 0;
 }
 
@@ -378,7 +389,7 @@ int emb_stream_skip_echo(emb_link *lk, int fd, const uint8_t *sent, int sent_len
     for (;;) {
         emb_hb_strip(lk);
         if (lk->rx_len >= (uint32_t)sent_len) {
-            rc = memcmp(lk->rx, sent, (size_t)sent_len);
+            rc = memcmp(lk->sb->rx, sent, (size_t)sent_len);
             emb_rx_consume(lk, (uint32_t)sent_len);
             lk->discarded += sent_len;
             if (rc != 0) {
@@ -412,11 +423,11 @@ int emb_stream_recv_frame(emb_link *lk, int fd, int slave, int first_ms, int byt
         partial_hb = emb_hb_strip(lk);
         if (lk->rx_len > 0 && !partial_hb) {
             have = lk->rx_len < EMB_MAX_RTU ? (int)lk->rx_len : EMB_MAX_RTU;
-            need = emb_reply_length(lk->rx, have, 0);
+            need = emb_reply_length(lk->sb->rx, have, 0);
             if (need < 0 || have >= need) {
                 if (need > 0)
                     have = need;
-                memcpy(rsp, lk->rx, (size_t)have);
+                memcpy(rsp, lk->sb->rx, (size_t)have);
                 *got = have;
                 if (need < 0) { /* the bytes stay: the drain takes them */
                     errno = EMBBADDATA;
@@ -431,7 +442,7 @@ int emb_stream_recv_frame(emb_link *lk, int fd, int slave, int first_ms, int byt
             return -1;
         if (rc == 0) {
             have = lk->rx_len < EMB_MAX_RTU ? (int)lk->rx_len : EMB_MAX_RTU;
-            memcpy(rsp, lk->rx, (size_t)have);
+            memcpy(rsp, lk->sb->rx, (size_t)have);
             *got = have;
             errno = lk->rx_len ? EMB_EPARTIAL : ETIMEDOUT;
             return -1;
@@ -535,13 +546,15 @@ long emb_pump(modbus_t *ctx, emb_link *lk)
         lk->discarded += n;
         return lk->n_reports;
     }
+    if (!emb_has_buffers(lk))
+        return -1;
     return emb_pump_fd(lk, fd);
 }
 
 /* Bytes that came on the link's socket before the link was made (what a DTU sent after
  * its registration), taken as if received now, nothing having been asked: framed on a
  * stream link, dropped (counted in lk->discarded) on any other.  Returns the reports
- * waiting. */
+ * waiting (-1, EINVAL: a stream link without its buffers). */
 long emb_feed(emb_link *lk, const uint8_t *data, int n)
 {
     uint32_t take;
@@ -552,12 +565,14 @@ long emb_feed(emb_link *lk, const uint8_t *data, int n)
         lk->discarded += n;
         return lk->n_reports;
     }
+    if (!emb_has_buffers(lk))
+        return -1;
     do { /* also with no bytes: what rx holds is framed again, as on any read */
         take = EMB_RX_SIZE - lk->rx_len;
         if (take > (uint32_t)n)
             take = (uint32_t)n;
         if (take)
-            memcpy(lk->rx + lk->rx_len, data, take);
+            memcpy(lk->sb->rx + lk->rx_len, data, take);
         lk->rx_len += take;
         data += take;
         n -= (int)take;
@@ -574,6 +589,7 @@ long emb_link_discard(modbus_t *ctx, emb_link *lk, int total_ms, int quiet_ms, i
     int fd = modbus_get_socket(ctx);
 
     if (emb_is_stream(lk))
-        return emb_stream_discard(lk, fd, total_ms, quiet_ms, limit_ms);
+        return emb_has_buffers(lk) ? emb_stream_discard(lk, fd, total_ms, quiet_ms, limit_ms)
+                                   : -1;
     return emb_discard_input(fd, total_ms, quiet_ms, limit_ms);
 }

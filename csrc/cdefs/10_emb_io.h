@@ -1,5 +1,9 @@
 /* csrc/emb_io.h, for cffi.  All return -1 with errno set on failure. */
 typedef struct {
+    ...;
+} emb_stream_buf;
+
+typedef struct {
     int mbap;
     int echo;
     unsigned tid;
@@ -16,6 +20,7 @@ typedef struct {
     int last_drop_len;
     uint32_t n_reports;
     uint32_t n_before;
+    emb_stream_buf *sb;
     ...;
 } emb_link;
 

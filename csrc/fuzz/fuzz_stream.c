@@ -217,11 +217,13 @@ int LLVMFuzzerTestOneInput(const uint8_t *input, size_t size)
 
     modbus_t *ctx = modbus_new_rtu("/dev/null", 9600, 'N', 8, 1);
     emb_link *lk = calloc(1, sizeof *lk);
+    emb_stream_buf *sb = malloc(sizeof *sb); /* exactly its size: ASan sees any overrun */
     uint8_t *rsp = malloc(EMB_MAX_ADU);
     uint8_t *report = malloc(EMB_REPORT_MAX);
     void *dest = malloc(nb ? (size_t)nb * (function <= 2 ? 1 : 2) : 1);
-    if (!ctx || !lk || !rsp || !report || !dest)
+    if (!ctx || !lk || !sb || !rsp || !report || !dest)
         abort();
+    lk->sb = sb;
     modbus_set_socket(ctx, sv[0]);
     modbus_set_response_timeout(ctx, 0, 2000);
     modbus_set_byte_timeout(ctx, 0, 1000);
@@ -281,6 +283,7 @@ int LLVMFuzzerTestOneInput(const uint8_t *input, size_t size)
     close(sv[0]);
     close(sv[1]);
     free(lk);
+    free(sb);
     free(rsp);
     free(report);
     free(dest);

@@ -57,6 +57,7 @@ class Context:
         self._req = ffi.new("uint8_t[]", MAX_ADU_LENGTH)
         self._link = ffi.new("emb_link *")  # per-line state of csrc/emb_io.c
         self._report = ffi.new("uint8_t[]", lib.EMB_REPORT_MAX)
+        self._stream_buf: Any = None  # a DTU stream's buffers, which _link.sb points at
         self._header = 1  # bytes before the PDU in a reply: slave id, or the MBAP header
 
     # -- construction ----------------------------------------------------------------
@@ -96,6 +97,10 @@ class Context:
         if len(heartbeat) > MAX_HEARTBEAT:
             raise ValueError(f"{self.label}: a heartbeat of {len(heartbeat)} bytes; at most "
                              f"{MAX_HEARTBEAT}")
+        if heartbeat or wrapped:  # 4.6 KB (receive buffer, report ring): stream links only
+            if self._stream_buf is None:
+                self._stream_buf = ffi.new("emb_stream_buf *")
+            self._link.sb = self._stream_buf
         ffi.memmove(self._link.hb, heartbeat, len(heartbeat))
         self._link.hb_len = len(heartbeat)
         self._link.wrapped = 1 if wrapped else 0
@@ -166,7 +171,10 @@ class Context:
     def feed(self, data: bytes) -> int:
         """Bytes that came before the link was made (after a DTU's registration), taken
         as if received now; returns the reports waiting."""
-        return int(lib.emb_feed(self._link, data, len(data)))
+        n = lib.emb_feed(self._link, data, len(data))
+        if n == -1:
+            raise error_from_errno(ffi.errno, f"{self.label}: taking initial bytes")
+        return int(n)
 
     def discard(self, total_s: float, quiet_s: float, limit_s: float) -> int:
         """:func:`discard_input` on this context's fd; on a stream link what comes is
