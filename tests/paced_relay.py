@@ -13,9 +13,12 @@ wire timeline, as on a half-duplex RS-485 pair: a byte is delivered one characte
 in either direction, or after it was written if the wire was idle.  Bytes are written in
 the batches that are due, so a late wake-up of the relay delays but never reorders them.
 
-Used by tests/integration/test_paced_line.py and by benchmarks that need a baud-paced
-line.  ``PacedLine(tmp_dir, baudrate=9600)`` is a context manager; ``.master`` is the
-path the master opens, ``.slave`` the one a serial slave opens.
+Used by tests/integration/test_paced_line.py and by bench/test_bench_serial.py.
+``PacedLine(tmp_dir, baudrate=9600)`` is a context manager; ``.master`` is the path the
+master opens, ``.slave`` the one a serial slave opens.  With ``log_gaps=True`` the relay
+also logs every turnaround on the wire, and :meth:`PacedLine.gaps` returns them: the
+silence before each frame, from the last byte delivered to a side to the first byte that
+side sends back (the master's inter-frame gap, the slave's response latency).
 """
 
 from __future__ import annotations
@@ -54,8 +57,9 @@ class PacedLine:
 
     def __init__(self, directory: str | os.PathLike[str], baudrate: int = 9600, *,
                  parity: str = "N", data_bits: int = 8, stop_bits: int = 1,
-                 timeout: float = 5.0) -> None:
+                 timeout: float = 5.0, log_gaps: bool = False) -> None:
         self.directory = Path(directory)
+        self._gap_log = self.directory / "relay-gaps.log" if log_gaps else None
         self.baudrate = baudrate
         self.char_time = char_time(baudrate, parity, data_bits, stop_bits)
         self.timeout = timeout
@@ -74,6 +78,22 @@ class PacedLine:
         """The path a serial slave opens."""
         return self._slave_pair.b
 
+    def gaps(self, side: str) -> list[float]:
+        """The turnarounds logged so far (``log_gaps=True``), oldest first, in seconds:
+        for ``side`` "master" the silence the master kept between the last reply byte it
+        got and its next request; for "slave", between a request and its reply.  As the
+        relay sees them: its own wake-up latency (tens of us) is in the figures."""
+        if self._gap_log is None:
+            raise ValueError("PacedLine: gaps are logged only with log_gaps=True")
+        if not self._gap_log.exists():
+            return []
+        gaps = []
+        for line in self._gap_log.read_text().splitlines():
+            who, _, seconds = line.partition(" ")
+            if who == side and seconds:
+                gaps.append(float(seconds))
+        return gaps
+
     @property
     def running(self) -> bool:
         return self._proc is not None and self._proc.poll() is None
@@ -91,9 +111,10 @@ class PacedLine:
             self._master_pair.start()
             self._slave_pair.start()
             self._log = tempfile.TemporaryFile(prefix="paced-relay-", suffix=".log")  # noqa: SIM115 - close()
+            log = [] if self._gap_log is None else ["--gap-log", str(self._gap_log)]
             self._proc = subprocess.Popen(
                 [sys.executable, str(RELAY_SCRIPT), "--char-time", repr(self.char_time),
-                 self._master_pair.b, self._slave_pair.a],
+                 *log, self._master_pair.b, self._slave_pair.a],
                 stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=self._log,
                 start_new_session=True, preexec_fn=_die_with_parent,
             )
@@ -143,13 +164,17 @@ def _open_raw(path: str) -> int:
     return fd
 
 
-def relay(a: int, b: int, char: float) -> None:
+def relay(a: int, b: int, char: float, gap_log: IO[str] | None = None) -> None:
     """Move bytes between ``a`` and ``b`` on one wire timeline: each byte is written one
     character time after the previous byte on the wire (either direction) or after it
-    arrived, whichever is later."""
+    arrived, whichever is later.  ``gap_log``: a line "master SECONDS" or "slave SECONDS"
+    for every turnaround (bytes from a side that the last bytes on the idle wire went
+    to), the time from their delivery to the new bytes' arrival."""
     other = {a: b, b: a}
+    side = {a: "master", b: "slave"}
     wire: collections.deque[tuple[float, int, int]] = collections.deque()  # (due, fd, byte)
     wire_free = 0.0  # when the last byte queued is off the wire
+    last_to, last_write = -1, 0.0  # where and when the last bytes were delivered
     while True:
         timeout = max(0.0, wire[0][0] - time.monotonic()) if wire else None
         readable, _, _ = select.select([a, b], [], [], timeout)
@@ -162,6 +187,8 @@ def relay(a: int, b: int, char: float) -> None:
             except OSError:  # the other end of the pair went away (EIO): keep serving
                 time.sleep(0.01)
                 continue
+            if gap_log is not None and data and not wire and last_to == fd:
+                gap_log.write(f"{side[fd]} {now - last_write:.9f}\n")
             for byte in data:
                 wire_free = max(now, wire_free) + char
                 wire.append((wire_free, other[fd], byte))
@@ -173,11 +200,13 @@ def relay(a: int, b: int, char: float) -> None:
         for fd, chunk in due.items():
             with contextlib.suppress(BlockingIOError, OSError):
                 os.write(fd, chunk)
+            last_to, last_write = fd, time.monotonic()
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description="baud-paced relay between two ptys")
     parser.add_argument("--char-time", type=float, required=True, help="seconds per char")
+    parser.add_argument("--gap-log", help="file that gets a line per turnaround on the wire")
     parser.add_argument("a")
     parser.add_argument("b")
     args = parser.parse_args(argv)
@@ -187,13 +216,16 @@ def main(argv: list[str] | None = None) -> int:
 
     signal.signal(signal.SIGTERM, on_term)
     a, b = _open_raw(args.a), _open_raw(args.b)
+    gap_log = open(args.gap_log, "a", buffering=1) if args.gap_log else None  # noqa: SIM115
     try:
         sys.stdout.write("READY\n")
         sys.stdout.flush()
-        relay(a, b, args.char_time)
+        relay(a, b, args.char_time, gap_log)
     finally:
         os.close(a)
         os.close(b)
+        if gap_log is not None:
+            gap_log.close()
     return 0
 
 

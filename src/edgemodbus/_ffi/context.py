@@ -254,6 +254,20 @@ class Context:
         block.count = rc
         return block
 
+    def read_libmodbus(self, slave: int, address: int, count: int) -> Block:
+        """FC03 through libmodbus's own send and receive path (``modbus_read_registers``),
+        not ours.  The benchmark baseline only (bench/test_bench_serial.py): on a serial
+        line libmodbus wakes once per byte of the reply, and it checks less than
+        :meth:`read` does (see csrc/emb_io.c); the driver never calls this."""
+        block = self.registers
+        if lib.modbus_set_slave(self._ptr, slave) == -1:
+            raise error_from_errno(ffi.errno, f"slave {slave}")
+        rc = lib.modbus_read_registers(self._ptr, address, count, block._ptr)
+        if rc == -1:
+            raise error_from_errno(ffi.errno, f"slave {slave} FC03 @{address}+{count}")
+        block.count = rc
+        return block
+
     def read_decode(self, slave: int, function: int, address: int, count: int,
                     plan: CodecPlan, mode: int) -> int:
         """:meth:`read`, then decode the block through ``plan`` in the same C call;
