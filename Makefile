@@ -51,9 +51,10 @@ integration: build
 	$(PYTEST) tests/integration
 
 # Our C built with AddressSanitizer + UBSan (into build-asan/), driven by the codec tests
-# and the line engine's (its schedule, and whole passes against the simulator);
+# and the binding tests (the DTU stream framing and its exchanges on socketpairs) and the
+# line engine's (its schedule, and whole passes against the simulator);
 # --capture=sys lets a sanitizer report (written to fd 2) reach the terminal.
-ASAN_TESTS := tests/unit/codec tests/unit/ffi/test_engine_schedule.py tests/integration/test_engine.py
+ASAN_TESTS := tests/unit/codec tests/unit/ffi tests/integration/test_engine.py
 test-asan: build
 	$(BIN)/python tools/asan_build.py && \
 	  ASAN_OPTIONS=detect_leaks=0 LD_PRELOAD="$$(gcc -print-file-name=libasan.so)" \

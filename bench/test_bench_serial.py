@@ -47,8 +47,9 @@ from bench import gate
 from bench.conftest import QUICK, cpu_seconds, report
 from edgemodbus._ffi import Context
 from edgemodbus.datatypes import Area
+from edgemodbus.line.connect import context_link
 from edgemodbus.line.endpoint import LineTiming, SerialPort
-from edgemodbus.line.link import ContextLink, context_link
+from edgemodbus.line.link import ContextLink
 from edgemodbus.stats import LineStats
 
 REQUEST_BYTES = 8  # slave, function, address, quantity, CRC (Application Protocol 6.3)

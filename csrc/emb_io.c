@@ -8,9 +8,10 @@
  * the response and byte timeouts, the CRC (emb_recv_frame).  The checks that tie a reply
  * to its request are ours too, because 3.1.6 does not make them all: it loses undefined
  * exception codes, ignores the MBAP unit id and length, accepts a protocol id with one
- * zero byte, and sends raw requests with transaction id 0.  No globals, no allocation:
- * callers own every buffer. */
-#include "emb_io.h"
+ * zero byte, and sends raw requests with transaction id 0.  On DTU streams (heartbeats,
+ * wrapped report frames) the receiving is csrc/emb_stream.c's.  No globals, no
+ * allocation: callers own every buffer. */
+#include "emb_wire.h"
 
 #include <errno.h>
 #include <poll.h>
@@ -21,13 +22,11 @@
 #include <time.h>
 #include <unistd.h>
 
-#define EMB_MAX_ADU 260 /* MODBUS_TCP_MAX_ADU_LENGTH: rsp holds at least this much */
-#define EMB_MAX_RTU 256 /* an RTU ADU: address + PDU + CRC (Modbus over Serial Line 2.5.1) */
-#define EMB_MBAP 7      /* MBAP header (Modbus Messaging on TCP/IP v1.0b, 3.1.3) */
+#define EMB_WRAPPED_REQ_MAX (4 + EMB_MAX_RTU + 1) /* FF AA, address, RTU frame, 0D */
 
 /* CRC-16/MODBUS, polynomial 0xA001 reflected, initial 0xFFFF (Modbus over Serial Line
  * v1.02, 6.2.2); sent low byte first. */
-static uint16_t emb_crc16(const uint8_t *p, int n)
+uint16_t emb_crc16(const uint8_t *p, int n)
 {
     uint16_t crc = 0xFFFF;
     int i, bit;
@@ -40,7 +39,8 @@ static uint16_t emb_crc16(const uint8_t *p, int n)
     return crc;
 }
 
-static int64_t emb_now_ns(void)
+/* CLOCK_MONOTONIC in nanoseconds (the reader's and the stream framing's clock). */
+int64_t emb_clock_ns(void)
 {
     struct timespec now;
 
@@ -119,7 +119,7 @@ typedef struct {
 
 static void emb_pacer_start(emb_pacer *p, int first_ms)
 {
-    p->deadline = emb_now_ns() + (int64_t)first_ms * 1000000;
+    p->deadline = emb_clock_ns() + (int64_t)first_ms * 1000000;
     p->slept_for = 0;
 }
 
@@ -134,7 +134,7 @@ static void emb_pacer_start(emb_pacer *p, int first_ms)
  * the byte timeout counts from now, without sleeping, until bytes come again. */
 static void emb_pace(const emb_link *lk, emb_pacer *p, int n, int left, int byte_ms)
 {
-    int64_t expected = emb_now_ns();
+    int64_t expected = emb_clock_ns();
 
     if (lk->char_ns > 0 && left > 1 && !(p->slept_for && n < p->slept_for)) {
         expected += (int64_t)left * lk->char_ns;
@@ -148,9 +148,9 @@ static void emb_pace(const emb_link *lk, emb_pacer *p, int n, int left, int byte
 }
 
 /* Wait until fd is readable or the monotonic clock passes deadline_ns: 1, 0, -1. */
-static int emb_wait_until(int fd, int64_t deadline_ns)
+int emb_wait_until(int fd, int64_t deadline_ns)
 {
-    int64_t left = deadline_ns - emb_now_ns();
+    int64_t left = deadline_ns - emb_clock_ns();
 
     return emb_wait_readable(fd, left > 0 ? (int)((left + 999999) / 1000000) : 0);
 }
@@ -158,7 +158,7 @@ static int emb_wait_until(int fd, int64_t deadline_ns)
 /* The errno for end-of-file on fd: the peer closed the connection (ECONNRESET) on a
  * socket; on a serial device, a tty that hung up (a USB adapter unplugged, a pty whose
  * master side closed) reads EOF where writes fail with EIO: report EIO there too. */
-static int emb_eof_errno(int fd)
+int emb_eof_errno(int fd)
 {
     struct stat st;
 
@@ -168,7 +168,7 @@ static int emb_eof_errno(int fd)
 }
 
 /* Bytes already received on fd and not read yet (0 if the driver cannot tell). */
-static int emb_pending(int fd)
+int emb_pending(int fd)
 {
     int n = 0;
 
@@ -232,8 +232,11 @@ long emb_discard_input(int fd, int total_ms, int quiet_ms, int limit_ms)
  * found closed here fails the request before anything is sent. */
 static int emb_drop_pending(emb_link *lk, int fd)
 {
-    long n = emb_discard_input(fd, 0, 0, 0);
+    long n;
 
+    if (emb_is_stream(lk)) /* reports are kept, heartbeats counted */
+        return emb_stream_drop_pending(lk, fd);
+    n = emb_discard_input(fd, 0, 0, 0);
     if (n == -1)
         return -1;
     lk->discarded += n;
@@ -260,10 +263,13 @@ static int emb_write_all(int fd, const uint8_t *p, int n)
 /* Send pdu (function code first) to slave; the ADU put on the wire goes to sent.
  * Modbus TCP: we build the MBAP header ourselves with the next transaction id
  * (libmodbus 3.1.6 sends raw requests with id 0, which would match any stale reply).
- * RTU: libmodbus adds the CRC and drives RTS on serial lines. */
+ * RTU: libmodbus adds the CRC and drives RTS on serial lines.  Wrapped (an edge MCU):
+ * FF AA | the request's register address | the RTU frame | 0D (sent holds the RTU
+ * frame). */
 static int emb_send_adu(modbus_t *ctx, emb_link *lk, int slave, const uint8_t *pdu,
                         int pdu_len, uint8_t *sent, int *sent_len)
 {
+    uint8_t wrapped[EMB_WRAPPED_REQ_MAX];
     uint16_t crc;
 
     if (pdu_len < 1 || pdu_len > EMB_MAX_ADU - EMB_MBAP || slave < 0 || slave > 255) {
@@ -293,6 +299,19 @@ static int emb_send_adu(modbus_t *ctx, emb_link *lk, int slave, const uint8_t *p
     sent[pdu_len + 1] = (uint8_t)(crc & 0xFF);
     sent[pdu_len + 2] = (uint8_t)(crc >> 8);
     *sent_len = pdu_len + 3;
+    if (lk->wrapped) {
+        if (pdu_len < 3) { /* no register address to wrap it with */
+            errno = EINVAL;
+            return -1;
+        }
+        wrapped[0] = 0xFF;
+        wrapped[1] = 0xAA;
+        wrapped[2] = pdu[1];
+        wrapped[3] = pdu[2];
+        memcpy(wrapped + 4, sent, (size_t)*sent_len);
+        wrapped[4 + *sent_len] = 0x0D;
+        return emb_write_all(modbus_get_socket(ctx), wrapped, *sent_len + 5);
+    }
     if (modbus_set_slave(ctx, slave) == -1)
         return -1;
     return modbus_send_raw_request(ctx, sent, pdu_len + 1) == -1 ? -1 : 0;
@@ -310,6 +329,8 @@ static int emb_skip_echo(modbus_t *ctx, emb_link *lk, const uint8_t *sent, int s
     ssize_t n;
     emb_pacer pace;
 
+    if (emb_is_stream(lk))
+        return emb_stream_skip_echo(lk, fd, sent, sent_len, emb_timeout_ms(ctx, 0), byte_ms);
     emb_pacer_start(&pace, emb_timeout_ms(ctx, 0));
     while (got < sent_len) {
         rc = emb_wait_until(fd, pace.deadline);
@@ -350,7 +371,7 @@ static int emb_skip_echo(modbus_t *ctx, emb_link *lk, const uint8_t *sent, int s
  * (libmodbus's EMBBADDATA).  Function codes of unknown length are framed as libmodbus
  * frames them (the function and one byte), on Modbus TCP by the MBAP length when it is
  * plausible (Modbus Messaging on TCP/IP v1.0b, 3.1.3). */
-static int emb_reply_length(const uint8_t *p, int got, int mbap)
+int emb_reply_length(const uint8_t *p, int got, int mbap)
 {
     int h = mbap ? EMB_MBAP : 1;
     int crc = mbap ? 0 : 2;
@@ -396,7 +417,7 @@ static int emb_reply_length(const uint8_t *p, int got, int mbap)
  * not checked: libmodbus does the same); -1 with errno: ETIMEDOUT (nothing came),
  * EMB_EPARTIAL (the frame stopped short), EMBBADDATA (a byte count too large for an ADU),
  * EMBBADCRC, the emb_eof_errno at end of file, or the read's errno.  *got: bytes read. */
-static int emb_recv_frame(modbus_t *ctx, const emb_link *lk, int slave, int first_ms,
+static int emb_recv_frame(modbus_t *ctx, emb_link *lk, int slave, int first_ms,
                           uint8_t *rsp, int *got)
 {
     int fd = modbus_get_socket(ctx);
@@ -408,6 +429,8 @@ static int emb_recv_frame(modbus_t *ctx, const emb_link *lk, int slave, int firs
     uint16_t crc;
     emb_pacer pace;
 
+    if (emb_is_stream(lk)) /* heartbeats between the request and the reply */
+        return emb_stream_recv_frame(lk, fd, slave, first_ms, byte_ms, rsp, got);
     *got = 0;
     emb_pacer_start(&pace, first_ms);
     for (;;) {
@@ -499,6 +522,31 @@ static int emb_looks_like_echo(const uint8_t *rsp, int got, const uint8_t *sent,
     return i >= 5 || (i == sent_len && i > 0);
 }
 
+/* The reply to a wrapped request already sent: the first wrapped frame that answers it
+ * (csrc/emb_stream.c queues the others as reports), its RTU frame checked as any
+ * reply's.  No "last answer wins": frames behind the reply are reports. */
+static int emb_exchange_wrapped(modbus_t *ctx, emb_link *lk, int slave, const uint8_t *pdu,
+                                int count, uint8_t *rsp)
+{
+    int len, err, exc;
+
+    len = emb_stream_recv_wrapped(lk, modbus_get_socket(ctx), slave, pdu, count,
+                                  emb_timeout_ms(ctx, 0), rsp);
+    if (len == -1)
+        return -1;
+    lk->rsp_len = len;
+    err = emb_check(lk, slave, pdu, count, rsp, len, &exc);
+    if (err) {
+        errno = err;
+        return -1;
+    }
+    if (exc >= 0) {
+        errno = EMB_EEXCEPTION + exc;
+        return -1;
+    }
+    return len;
+}
+
 /* One request and its checked reply (see emb_check); returns the reply ADU length
  * with the ADU in rsp, or -1 with errno (EMB_EEXCEPTION + code for an exception). */
 static int emb_exchange(modbus_t *ctx, emb_link *lk, int slave, const uint8_t *pdu,
@@ -517,6 +565,8 @@ static int emb_exchange(modbus_t *ctx, emb_link *lk, int slave, const uint8_t *p
         return -1;
     if (emb_send_adu(ctx, lk, slave, pdu, pdu_len, sent, &sent_len) == -1)
         return -1;
+    if (lk->wrapped)
+        return emb_exchange_wrapped(ctx, lk, slave, pdu, count, rsp);
     if (rtu && lk->echo && emb_skip_echo(ctx, lk, sent, sent_len) == -1)
         return -1;
     wait = emb_timeout_ms(ctx, 0); /* for the first byte: the response timeout */
@@ -549,7 +599,8 @@ static int emb_exchange(modbus_t *ctx, emb_link *lk, int slave, const uint8_t *p
     /* Another whole frame right behind this one (a DTU that held a late reply and sends
      * it with the next one, or repeats a reply): the last answer to this request wins,
      * so a stale reply to an earlier request is never taken for this one. */
-    if (emb_pending(fd) >= (rtu ? 5 : EMB_MBAP + 2)) {
+    if ((emb_is_stream(lk) ? emb_stream_pending(lk, fd) : emb_pending(fd)) >=
+        (rtu ? 5 : EMB_MBAP + 2)) {
         len2 = emb_recv_frame(ctx, lk, slave, 0, next, &got2);
         if (len2 > 0) {
             err2 = emb_check(lk, slave, pdu, count, next, len2, &exc2);
@@ -641,7 +692,7 @@ int emb_send(modbus_t *ctx, emb_link *lk, int slave, const uint8_t *pdu, int pdu
         return -1;
     if (emb_send_adu(ctx, lk, slave, pdu, pdu_len, sent, &sent_len) == -1)
         return -1;
-    if (!lk->mbap && lk->echo && emb_skip_echo(ctx, lk, sent, sent_len) == -1)
+    if (!lk->mbap && !lk->wrapped && lk->echo && emb_skip_echo(ctx, lk, sent, sent_len) == -1)
         return -1;
     return 0;
 }

@@ -6,8 +6,22 @@
 #include <stdint.h>
 #include <modbus.h>
 
-/* State of one line kept between transactions; the caller allocates it with the
- * context and sets mbap and echo once. */
+#define EMB_HB_MAX 64       /* longest heartbeat pattern */
+#define EMB_RX_SIZE 512     /* stream links: bytes received and not framed yet */
+#define EMB_RING_SIZE 4096  /* stream links: reports waiting (a 2-byte length each) */
+#define EMB_REPORT_MAX 261  /* a wrapped frame: FF AA, address, RTU frame (<= 256), 0D */
+#define EMB_DROP_SHOW 32    /* bytes of the last dropped wrapped frame kept for the log */
+
+/* The buffers of a DTU stream link (emb_link.sb): bytes received and not framed yet, and
+ * the reports waiting.  The caller allocates them, for stream links only. */
+typedef struct {
+    uint8_t rx[EMB_RX_SIZE];
+    uint8_t ring[EMB_RING_SIZE];
+} emb_stream_buf;
+
+/* State of one line kept between transactions; the caller allocates it zeroed with the
+ * context and sets mbap, echo, char_ns, and for a DTU stream wrapped, the heartbeat and
+ * sb, once. */
 typedef struct {
     int mbap;       /* Modbus TCP: MBAP header (we send it ourselves, with our own tid) */
     int echo;       /* RTU: the line echoes every request; read it back before the reply */
@@ -19,6 +33,26 @@ typedef struct {
                        * parity and stop bits at the baud rate); 0 on sockets.  The
                        * reader then sleeps while the rest of a frame is on its way
                        * instead of waking for every byte. */
+    /* DTU streams (RTU over a socket; csrc/emb_stream.c frames them byte for byte) */
+    int wrapped;            /* edge-MCU frames: FF AA | register address | RTU frame | 0D;
+                             * frames other than the reply are unsolicited reports */
+    uint32_t hb_len;        /* the heartbeat a DTU sends on an idle link (0: none), */
+    uint8_t hb[EMB_HB_MAX]; /* skipped wherever a frame could begin, and counted */
+    long heartbeats;        /* heartbeats skipped; the caller reads and resets */
+    long dropped;           /* wrapped frames dropped (bad header, length, tail, CRC, noise) */
+    long reports_lost;      /* reports the full ring could not take */
+    uint8_t last_drop[EMB_DROP_SHOW]; /* the first bytes of the last frame dropped */
+    int last_drop_len;
+    uint32_t n_reports;     /* reports waiting in the ring (emb_report_take) */
+    uint32_t n_before;      /* the first n_before of them came before the last reply: the
+                             * caller applies them first, the others after the reply */
+    emb_stream_buf *sb;     /* a stream link's buffers (required with wrapped or hb_len) */
+    /* private to csrc/emb_stream.c */
+    int32_t absorb;         /* bytes of the last dropped frame still to skip, -1: up to the
+                             * next header */
+    uint32_t rx_len;
+    uint32_t ring_head;
+    uint32_t ring_used;
 } emb_link;
 
 /* errno values of our own reply checks (libmodbus's own errnos are kept as they are). */
@@ -41,5 +75,9 @@ int emb_transact(modbus_t *ctx, emb_link *lk, int slave, const uint8_t *pdu, int
                  uint8_t *rsp);
 int emb_send(modbus_t *ctx, emb_link *lk, int slave, const uint8_t *pdu, int pdu_len);
 long emb_discard_input(int fd, int total_ms, int quiet_ms, int limit_ms);
+long emb_link_discard(modbus_t *ctx, emb_link *lk, int total_ms, int quiet_ms, int limit_ms);
+long emb_pump(modbus_t *ctx, emb_link *lk);
+long emb_feed(emb_link *lk, const uint8_t *data, int n);
+int emb_report_take(emb_link *lk, uint8_t *out);
 
 #endif

@@ -1,20 +1,24 @@
 """Bounded fuzzing of our C code and Python frame handling (`make fuzz`, `make fuzz-quick`).
 
-Two libFuzzer harnesses in csrc/fuzz/, each built with Debian's clang and
+Three libFuzzer harnesses in csrc/fuzz/, each built with Debian's clang and
 -fsanitize=fuzzer,address,undefined (no UB recovery) into build/fuzz/:
   codec   fuzz_codec.c + csrc/emb_codec.c: plans, register blocks, decode and encode;
   frames  fuzz_frames.c (includes csrc/emb_io.c), linked with libmodbus: scripted replies
-          to reads and writes through the real transaction code.
+          to reads and writes through the real transaction code and reply reader;
+  stream  fuzz_stream.c (includes csrc/emb_io.c and csrc/emb_stream.c): DTU streams,
+          heartbeats and wrapped report frames, fed, answered or pumped.
 
-1. Builds both; proves LeakSanitizer works here (a canary build must report a leak).
-2. Runs each for its share of --seconds (codec 40 %, frames 60 %) on build/fuzz/corpus-*
+1. Builds them; proves LeakSanitizer works here (a canary build must report a leak).
+2. Runs each for its share of --seconds (codec 30 %, frames 40 %, stream 30 %) on
+   build/fuzz/corpus-*
    (kept between runs) seeded by tools/fuzz_seeds.py, leak detection on; any crash,
    sanitizer report, leak, timeout or contract violation fails the run and leaves the
    input in build/fuzz/artifacts/.
 3. Replays each corpus through a coverage build and reports the line and branch coverage
    of the C file under test (llvm-cov, from Debian's clang).
 4. Runs the hypothesis fuzz tests of the write-reply check and the simulator's framing
-   (tests/unit/ffi/test_fuzz_reply.py) with --examples examples each.
+   (tests/unit/ffi/test_fuzz_reply.py) and of the C wrapped framing against the Python
+   parser (tests/unit/ffi/test_stream_framing.py) with --examples examples each.
 
 Exit status 0 only if every step passed.  Full libFuzzer logs: build/fuzz/<name>.log.
 """
@@ -65,8 +69,10 @@ class Harness:
 
 HARNESSES = (
     Harness("codec", (CSRC / "fuzz" / "fuzz_codec.c", CSRC / "emb_codec.c"),
-            CSRC / "emb_codec.c", 0.4),
-    Harness("frames", (CSRC / "fuzz" / "fuzz_frames.c",), CSRC / "emb_io.c", 0.6,
+            CSRC / "emb_codec.c", 0.3),
+    Harness("frames", (CSRC / "fuzz" / "fuzz_frames.c",), CSRC / "emb_io.c", 0.4,
+            libmodbus=True),
+    Harness("stream", (CSRC / "fuzz" / "fuzz_stream.c",), CSRC / "emb_stream.c", 0.3,
             libmodbus=True),
 )
 
@@ -206,7 +212,7 @@ def python_fuzz(examples: int) -> None:
     env = dict(os.environ, EDGEMODBUS_FUZZ_EXAMPLES=str(examples))
     env.pop("LD_PRELOAD", None)
     cmd = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
-           "tests/unit/ffi/test_fuzz_reply.py"]
+           "tests/unit/ffi/test_fuzz_reply.py", "tests/unit/ffi/test_stream_framing.py"]
     log(f"hypothesis: {examples} examples per test: {' '.join(cmd[2:])}")
     start = time.monotonic()
     proc = subprocess.run(cmd, cwd=ROOT, env=env, check=False)

@@ -8,8 +8,10 @@ csrc/emb_codec.h, so the seeds follow the codec if its constants move.
 fuzz_frames: good and bad replies to reads and writes, RTU and Modbus TCP: exception
 responses, another slave's reply, a stale reply before ours, two replies at once, an
 echo, a short frame.
+fuzz_stream: wrapped reports, heartbeats and noise fed in chunks, wrapped reads and
+writes behind reports, a plain RTU stream with heartbeats and an echo, an idle link.
 
-    python tools/fuzz_seeds.py build/fuzz   # writes build/fuzz/seeds-codec, seeds-frames
+    python tools/fuzz_seeds.py build/fuzz   # build/fuzz/seeds-codec, -frames, -stream
 """
 
 from __future__ import annotations
@@ -197,10 +199,51 @@ def frame_seeds() -> dict[str, bytes]:
     }
 
 
+# -- fuzz_stream ------------------------------------------------------------------------
+
+WRAPPED, S_ECHO, S_READ, S_WRITE, S_IDLE, S_CRC, S_WRAP, S_CLOSE, S_TAKE = (
+    1, 2, 4, 8, 12, 16, 32, 64, 128)
+
+
+def stream_seed(ctl: int, chunks: list[bytes], *, heartbeat: bytes = b"", slave: int = 1,
+                function: int = 3, addr: int = 1, nb: int = 2, pdu: bytes = b"",
+                rest: bytes = b"") -> bytes:
+    """ctl, heartbeat, slave, function-1, addr, nb, [pdu], chunks, raw rest."""
+    out = bytes([ctl, len(heartbeat)]) + heartbeat
+    out += struct.pack(">BBHH", slave, function - 1, addr, nb)
+    if ctl & 12 == S_WRITE:
+        out += bytes([len(pdu)]) + pdu
+    out += bytes([len(chunks)]) + b"".join(bytes([len(c)]) + c for c in chunks)
+    return out + rest
+
+
+def stream_seeds() -> dict[str, bytes]:
+    regs = bytes([1, 3, 4, 0x12, 0x34, 0xAB, 0xCD])  # slave 1, FC03, 2 registers
+    report = bytes([1, 3, 6, 0, 1, 0, 2, 0, 3])  # the same address, another count
+    fixed = S_CRC | S_WRAP
+    return {
+        "feed-reports": stream_seed(WRAPPED | fixed, [regs, report], heartbeat=b"\xfe",
+                                    rest=b"\xfe\x00\x13\xff\xaa\x00"),
+        "feed-each": stream_seed(WRAPPED | fixed | S_TAKE, [regs, bytes([1, 0x83, 2])]),
+        "feed-bad": stream_seed(WRAPPED | S_WRAP, [regs, bytes([1, 3, 0])]),
+        "feed-plain": stream_seed(S_CRC, [regs], heartbeat=b"HB", rest=b"HBxHBH"),
+        "wrapped-read": stream_seed(WRAPPED | S_READ | fixed, [report, regs, report]),
+        "wrapped-exception": stream_seed(WRAPPED | S_READ | fixed, [bytes([1, 0x83, 2])]),
+        "wrapped-write": stream_seed(WRAPPED | S_WRITE | fixed, [bytes([1, 6, 0, 1, 0, 3])],
+                                     pdu=bytes([1, 0, 1, 0, 3])),
+        "wrapped-short": stream_seed(WRAPPED | S_READ | S_WRAP | S_CLOSE, [regs]),
+        "plain-read": stream_seed(S_READ | S_CRC, [regs], heartbeat=b"HB", rest=b"HB"),
+        "plain-echo": stream_seed(S_READ | S_ECHO | S_CRC, [bytes([1, 3, 0, 1, 0, 2]), regs],
+                                  heartbeat=b"\xfe"),
+        "idle": stream_seed(WRAPPED | S_IDLE | fixed, [regs, report], heartbeat=b"HB"),
+    }
+
+
 def write_seeds(directory: Path) -> dict[str, int]:
     """Seeds of each harness in directory/seeds-<harness>; returns the counts."""
     counts = {}
-    for harness, corpus in (("codec", seeds()), ("frames", frame_seeds())):
+    for harness, corpus in (("codec", seeds()), ("frames", frame_seeds()),
+                            ("stream", stream_seeds())):
         target = directory / f"seeds-{harness}"
         target.mkdir(parents=True, exist_ok=True)
         for name, data in corpus.items():

@@ -1,12 +1,31 @@
 /* csrc/emb_io.h, for cffi.  All return -1 with errno set on failure. */
 typedef struct {
+    ...;
+} emb_stream_buf;
+
+typedef struct {
     int mbap;
     int echo;
     unsigned tid;
     long discarded;
     int rsp_len;
     uint32_t char_ns;
+    int wrapped;
+    uint32_t hb_len;
+    uint8_t hb[64];
+    long heartbeats;
+    long dropped;
+    long reports_lost;
+    uint8_t last_drop[32];
+    int last_drop_len;
+    uint32_t n_reports;
+    uint32_t n_before;
+    emb_stream_buf *sb;
+    ...;
 } emb_link;
+
+#define EMB_HB_MAX ...
+#define EMB_REPORT_MAX ...
 
 #define EMB_EBASE ...
 #define EMB_EEXCEPTION ...
@@ -27,3 +46,7 @@ int emb_transact(modbus_t *ctx, emb_link *lk, int slave, const uint8_t *pdu, int
                  uint8_t *rsp);
 int emb_send(modbus_t *ctx, emb_link *lk, int slave, const uint8_t *pdu, int pdu_len);
 long emb_discard_input(int fd, int total_ms, int quiet_ms, int limit_ms);
+long emb_link_discard(modbus_t *ctx, emb_link *lk, int total_ms, int quiet_ms, int limit_ms);
+long emb_pump(modbus_t *ctx, emb_link *lk);
+long emb_feed(emb_link *lk, const uint8_t *data, int n);
+int emb_report_take(emb_link *lk, uint8_t *out);

@@ -40,6 +40,7 @@ static ssize_t fuzz_send(int fd, const void *buf, size_t n, int flags);
 #define modbus_send_raw_request fuzz_send_raw_request
 #define send fuzz_send
 #include "../emb_io.c"
+#include "../emb_stream.c"
 #undef send
 #undef modbus_send_raw_request
 int modbus_send_raw_request(modbus_t *ctx, const uint8_t *raw_req, int raw_req_length);

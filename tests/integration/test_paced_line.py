@@ -70,10 +70,12 @@ def test_pacing_saves_the_wake_up_per_byte(tmp_path: Path) -> None:
             ctx.set_timeouts(1.0, 0.3)
             assert ctx.read(1, 3, 0, 125).to_list() == [default_register(1, "hr", a)
                                                          for a in range(125)]
-            ctx.set_char_time(0.0)
-            unpaced = _cpu_per_read(ctx, 4)
-            ctx.set_char_time(port.char_time)
-            paced = _cpu_per_read(ctx, 4)
+            unpaced = paced = float("inf")
+            for _ in range(3):  # alternated, the best of each: the machine is shared
+                ctx.set_char_time(0.0)
+                unpaced = min(unpaced, _cpu_per_read(ctx, 2))
+                ctx.set_char_time(port.char_time)
+                paced = min(paced, _cpu_per_read(ctx, 2))
             assert ctx.read(1, 3, 0, 125).to_list() == [default_register(1, "hr", a)
                                                          for a in range(125)]
         finally:

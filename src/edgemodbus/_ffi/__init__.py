@@ -6,7 +6,8 @@ exception hierarchy of :mod:`edgemodbus.errors`.
 
 * native.py: loading the extension (or its ASan build), the source fingerprint, limits;
 * errors.py: errno -> exception;
-* block.py, context.py: the read buffers, a libmodbus context and the csrc/emb_io.c calls;
+* block.py, context.py: the read buffers, a libmodbus context and the csrc/emb_io.c and
+  csrc/emb_stream.c calls;
 * codec.py: the C value codec (csrc/emb_codec.c);
 * sourcehash.py: the fingerprint of the C sources (build_ffi.py loads it by path).
 
@@ -25,10 +26,11 @@ from .codec import (
     codec_constants,
     codec_encode,
 )
-from .context import Context, discard_input
+from .context import Context, StreamCounters, discard_input
 from .errors import error_from_errno
 from .native import (
     MAX_ADU_LENGTH,
+    MAX_HEARTBEAT,
     MAX_READ_BITS,
     MAX_READ_REGISTERS,
     MAX_WRITE_BITS,
@@ -44,6 +46,7 @@ __all__ = [
     "CODEC_MODE_TRACK",
     "CODEC_MODE_VALUES",
     "MAX_ADU_LENGTH",
+    "MAX_HEARTBEAT",
     "MAX_READ_BITS",
     "MAX_READ_REGISTERS",
     "MAX_WRITE_BITS",
@@ -52,6 +55,7 @@ __all__ = [
     "CodecItem",
     "CodecPlan",
     "Context",
+    "StreamCounters",
     "check_fingerprint",
     "codec_constants",
     "codec_encode",

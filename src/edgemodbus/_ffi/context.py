@@ -1,18 +1,38 @@
-"""One libmodbus context and the transactions of csrc/emb_io.c on it; discarding input."""
+"""One libmodbus context and the transactions of csrc/emb_io.c on it (DTU streams:
+csrc/emb_stream.c); discarding input."""
 
 from __future__ import annotations
 
 import errno as _errno
 import os
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from ..errors import ModbusConnectionError, ModbusError
 from .block import Block
 from .errors import error_from_errno
-from .native import MAX_ADU_LENGTH, MAX_READ_BITS, MAX_READ_REGISTERS, ffi, lib
+from .native import (
+    MAX_ADU_LENGTH,
+    MAX_HEARTBEAT,
+    MAX_READ_BITS,
+    MAX_READ_REGISTERS,
+    ffi,
+    lib,
+)
 
 if TYPE_CHECKING:
     from .codec import CodecPlan
+
+
+@dataclass(frozen=True, slots=True)
+class StreamCounters:
+    """What a stream link counted since the last :meth:`Context.take_counters`."""
+
+    heartbeats: int = 0
+    dropped: int = 0  # wrapped frames dropped (bad header, length, tail, CRC, noise)
+    lost: int = 0  # reports the full ring could not take
+    last_drop: bytes = b""  # the first bytes of the last frame dropped, for the log
+
 
 
 class Context:
@@ -36,6 +56,8 @@ class Context:
         self._rsp = ffi.new("uint8_t[]", MAX_ADU_LENGTH)
         self._req = ffi.new("uint8_t[]", MAX_ADU_LENGTH)
         self._link = ffi.new("emb_link *")  # per-line state of csrc/emb_io.c
+        self._report = ffi.new("uint8_t[]", lib.EMB_REPORT_MAX)
+        self._stream_buf: Any = None  # a DTU stream's buffers, which _link.sb points at
         self._header = 1  # bytes before the PDU in a reply: slave id, or the MBAP header
 
     # -- construction ----------------------------------------------------------------
@@ -66,6 +88,31 @@ class Context:
             raise ValueError(f"{self.label}: the echo option applies to RTU framing only")
         self._link.echo = 1 if on else 0
 
+    def set_stream(self, heartbeat: bytes, wrapped: bool) -> None:
+        """A DTU stream (RTU over a socket): skip and count ``heartbeat`` wherever a
+        frame could begin; ``wrapped``: edge-MCU frames (requests go out wrapped, frames
+        other than the reply are queued as reports: :meth:`take_reports`)."""
+        if self._link.mbap:
+            raise ValueError(f"{self.label}: heartbeats and wrapped frames are RTU only")
+        if len(heartbeat) > MAX_HEARTBEAT:
+            raise ValueError(f"{self.label}: a heartbeat of {len(heartbeat)} bytes; at most "
+                             f"{MAX_HEARTBEAT}")
+        if heartbeat or wrapped:  # 4.6 KB (receive buffer, report ring): stream links only
+            if self._stream_buf is None:
+                self._stream_buf = ffi.new("emb_stream_buf *")
+            self._link.sb = self._stream_buf
+        ffi.memmove(self._link.hb, heartbeat, len(heartbeat))
+        self._link.hb_len = len(heartbeat)
+        self._link.wrapped = 1 if wrapped else 0
+
+    @property
+    def is_stream(self) -> bool:
+        return bool(self._link.wrapped or self._link.hb_len)
+
+    @property
+    def wrapped(self) -> bool:
+        return bool(self._link.wrapped)
+
     def set_char_time(self, seconds: float) -> None:
         """A serial line's time per character on the wire: the reader sleeps while the
         rest of a frame is on its way instead of waking for every byte (0: a socket)."""
@@ -78,6 +125,66 @@ class Context:
         if n:
             self._link.discarded = 0
         return n
+
+    def take_counters(self) -> StreamCounters | None:
+        """Heartbeats, dropped frames and lost reports counted since the last call (None:
+        nothing)."""
+        lk = self._link
+        if not (lk.heartbeats or lk.dropped or lk.reports_lost):
+            return None
+        counts = StreamCounters(int(lk.heartbeats), int(lk.dropped), int(lk.reports_lost),
+                                bytes(ffi.buffer(lk.last_drop, lk.last_drop_len)))
+        lk.heartbeats = lk.dropped = lk.reports_lost = 0
+        return counts
+
+    @property
+    def reports_waiting(self) -> int:
+        """Wrapped reports queued (csrc/emb_stream.c's ring)."""
+        return int(self._link.n_reports)
+
+    @property
+    def reports_before(self) -> int:
+        """How many of the reports waiting came before the reply of the last transaction
+        (they are older than it: apply them first)."""
+        return int(self._link.n_before)
+
+    def take_reports(self, limit: int | None = None) -> list[bytes]:
+        """The oldest reports (whole wrapped frames, checked), at most ``limit``."""
+        out: list[bytes] = []
+        n = self.reports_waiting if limit is None else min(limit, self.reports_waiting)
+        for _ in range(n):
+            size = lib.emb_report_take(self._link, self._report)
+            if not size:
+                break
+            out.append(bytes(ffi.buffer(self._report, size)))
+        return out
+
+    def pump(self) -> int:
+        """Take in what is readable now without waiting (reports queued, heartbeats
+        counted, stale bytes dropped); returns the reports waiting.  Raises
+        :class:`ModbusConnectionError` when the link failed or the peer closed it."""
+        n = lib.emb_pump(self._ptr, self._link)
+        if n == -1:
+            raise error_from_errno(ffi.errno, f"{self.label}: reading")
+        return int(n)
+
+    def feed(self, data: bytes) -> int:
+        """Bytes that came before the link was made (after a DTU's registration), taken
+        as if received now; returns the reports waiting."""
+        n = lib.emb_feed(self._link, data, len(data))
+        if n == -1:
+            raise error_from_errno(ffi.errno, f"{self.label}: taking initial bytes")
+        return int(n)
+
+    def discard(self, total_s: float, quiet_s: float, limit_s: float) -> int:
+        """:func:`discard_input` on this context's fd; on a stream link what comes is
+        framed (a late wrapped frame is a report, heartbeats are counted).  Returns the
+        bytes dropped."""
+        n = lib.emb_link_discard(self._ptr, self._link, round(total_s * 1000),
+                                 max(1, round(quiet_s * 1000)), round(limit_s * 1000))
+        if n == -1:
+            raise error_from_errno(ffi.errno, f"{self.label}: discarding input")
+        return int(n)
 
     def last_reply(self) -> bytes:
         """The reply ADU of the last transaction (for frame traces and error details);

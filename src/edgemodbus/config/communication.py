@@ -16,6 +16,7 @@ from typing import Annotated, Any, ClassVar, Literal
 
 from pydantic import Field, field_serializer, field_validator, model_validator
 
+from .._ffi import MAX_HEARTBEAT
 from ..datatypes import DataFormat
 from ..poll.planner import BIT_CAP, REGISTER_CAP
 from ..protocol.address import MAX_OFFSET
@@ -367,6 +368,11 @@ class DriverModbusRtuParameter(Model):
             except ValueError:
                 problems.append(Problem("heartbeatHex", self.heartbeat_hex,
                                         "must be hex bytes, e.g. 'FE'"))
+        if not any(p.path == "heartbeatHex" for p in problems) and \
+                len(self.heartbeat_bytes) > MAX_HEARTBEAT:
+            problems.append(Problem("heartbeatHex" if self.heartbeat_hex else "heartbeat",
+                                    self.heartbeat_hex or self.heartbeat,
+                                    f"at most {MAX_HEARTBEAT} bytes"))
         if (self.heartbeat or self.heartbeat_hex) and self.transport not in (
             "rtu-over-tcp", "rtu-over-tcp-server"
         ):

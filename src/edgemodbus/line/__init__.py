@@ -8,9 +8,11 @@ socket or a libmodbus context.
 
 * endpoint.py: endpoints and line timing (plain data), built from a device's
   communication parameters by :func:`endpoint_for`;
-* link.py: the worker's blocking view of an open line: one interface, a libmodbus
-  backend (``ContextLink``) and, in stream.py, a backend framed in Python (heartbeats,
-  wrapped reports);
+* link.py: the worker's blocking view of an open line: the interface (``Link``) and
+  the link on a libmodbus context and our C (``ContextLink``), which also frames DTU
+  streams (heartbeats, wrapped reports);
+* connect.py: opening a link (our TCP connection, a ``ContextLink`` with the line's
+  settings);
 * worker.py: :class:`LineWorker` (one thread per line, a queue for other threads, the
   line engine's loop); registry.py: :class:`LineRegistry` (one worker per endpoint,
   shared by its users);

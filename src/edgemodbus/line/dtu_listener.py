@@ -30,8 +30,9 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from ..errors import ModbusConnectionError, ModbusError
+from .connect import open_socket_link
 from .endpoint import DtuEndpoint
-from .link import Link, open_socket_link
+from .link import Link
 from .registration import Identified, IdIndex, PortSettings, identify
 from .worker import LineWorker
 
@@ -106,22 +107,17 @@ class DtuSlot:
                     self._current = None
 
         try:
-            if ep.framing == "wrapped-report" or ep.heartbeat:
-                from .stream import StreamLink
-
-                return StreamLink(sock, ep, line.timing, line.stats, heartbeat=ep.heartbeat,
-                                  wrapped=ep.framing == "wrapped-report",
-                                  on_report=line.dispatch_report, on_close=release,
-                                  initial=rest)
-            if rest:  # plain RTU: nothing was asked yet, so these bytes answer nothing
-                line.stats.discarded_bytes += len(rest)
-                log.debug("%s: %d bytes after the registration discarded: %s",
-                          ep.describe(), len(rest), rest.hex(" ").upper())
-            return open_socket_link(sock, ep, line.timing, line.stats, release)
+            link = open_socket_link(sock, ep, line.timing, line.stats, release,
+                                    line.dispatch_report)
         except (ModbusError, ValueError, OSError):
             release()
             sock.close()
             raise
+        # what the DTU sent after its registration, taken as received now: reports are
+        # applied at once, heartbeats counted; on a plain RTU link they answer nothing
+        link.feed(rest)
+        link.flush_reports()
+        return link
 
     def close(self) -> None:
         """Forget a connection not taken yet (the line worker is gone)."""

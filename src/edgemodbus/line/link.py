@@ -5,11 +5,13 @@ inter-frame silence, settles the line after a timeout (RTU has no transaction id
 late reply would pass for the next answer) and drains it after other errors, checks
 write echoes, and counts everything in the line's :class:`~edgemodbus.stats.LineStats`.
 
-One interface, two backends (as libmodbus has one backend table with an RTU and a TCP
-backend): :class:`Link` holds what both share (endpoint, timing and the pacing, settle
-and drain limits computed from them, the counters, the frame trace, the write requests
-and the check of their replies); :class:`ContextLink` does the I/O through the line's
-libmodbus context, :class:`~edgemodbus.line.stream.StreamLink` frames RTU in Python.
+:class:`Link` is the interface and holds what does not depend on the I/O (endpoint,
+timing and the pacing, settle and drain limits computed from them, the counters, the
+frame trace, the write requests and the check of their replies); :class:`ContextLink`
+does the I/O through the line's libmodbus context and our C (csrc/emb_io.c), which also
+frames DTU streams (csrc/emb_stream.c): heartbeats skipped wherever they arrive, and
+wrapped report frames of edge MCUs (:mod:`edgemodbus.protocol.wrapped`), whose
+unsolicited reports it queues for :meth:`Link.flush_reports` and :meth:`Link.pump`.
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ import time
 from collections.abc import Callable, Sequence
 
 from .. import _ffi
-from .._ffi import Block, CodecPlan, Context
+from .._ffi import Block, CodecPlan, Context, StreamCounters
 from .._ffi.engine import Engine, EngineDevice, LineCounters, Waker
 from ..codec import BlockDecoder, Change
 from ..datatypes import Area
@@ -34,6 +36,7 @@ from ..errors import (
     exception_for_code,
 )
 from ..protocol import rtu
+from ..protocol.wrapped import Report, report_of
 from ..stats import LineStats
 from .endpoint import Endpoint, LineTiming, SerialPort, TcpEndpoint
 
@@ -219,19 +222,27 @@ class Link:
 
 
 class ContextLink(Link):
-    """The libmodbus backend: the line's libmodbus context (and, on TCP, the socket we
-    own) does the I/O; a poll step reads and decodes a block in one C call."""
+    """The link: the line's libmodbus context (and, on TCP, the socket we own) and our C
+    do the I/O; a poll step reads and decodes a block in one C call.  On a DTU stream
+    (``ctx.is_stream``) unsolicited wrapped reports go to ``on_report``: those that came
+    before a reply as soon as the transaction returns, the others by
+    :meth:`flush_reports` once the reply was applied (they are newer)."""
 
     def __init__(self, ctx: Context, endpoint: Endpoint, timing: LineTiming,
                  stats: LineStats, sock: socket.socket | None,
                  on_close: Callable[[], None] | None = None, *,
-                 timeouts: tuple[float, float] = (-1.0, -1.0)) -> None:
+                 timeouts: tuple[float, float] = (-1.0, -1.0),
+                 on_report: Callable[[Report], None] | None = None) -> None:
         """``timeouts``: the (response, byte) timeouts already set on ``ctx``."""
         super().__init__(endpoint, timing, stats, ctx.fd, on_close=on_close,
                          mbap=isinstance(endpoint, TcpEndpoint) and endpoint.transport == "tcp")
         self._ctx = ctx
         self._sock = sock
         self._timeouts = timeouts
+        self._on_report = on_report
+        self._stream = ctx.is_stream
+        if ctx.wrapped:
+            self.idle_fd = ctx.fd  # reports come while idle too: the worker pumps
         self._engine: Engine | None = None
 
     # -- the engine --------------------------------------------------------------------
@@ -239,8 +250,10 @@ class ContextLink(Link):
                    devices: Sequence[EngineDevice],
                    until: float) -> tuple[int, int, int] | None:
         """See :meth:`Link.run_engine`; with the frame trace on, the line steps in
-        Python so that every frame is logged."""
-        if self._trace or not self.is_open:
+        Python so that every frame is logged, and so does a DTU stream (the engine does
+        not take its wrapped reports out of the link yet: they must reach the pollers
+        before the reply they came before, the others after it)."""
+        if self._trace or self._stream or not self.is_open:
             return None
         engine = self._engine
         if engine is None or engine.waker is not waker:
@@ -256,6 +269,71 @@ class ContextLink(Link):
                     count: int) -> ModbusError:
         exc = self._ctx.read_error(err, slave, READ_FC[area], address, count)
         return self._fail(exc)
+
+    # -- DTU streams -----------------------------------------------------------------
+    def flush_reports(self) -> None:
+        """Dispatch the reports waiting (behind the last reply, or from a settle)."""
+        if self._stream and self._ctx.reports_waiting:
+            self._dispatch(self._ctx.take_reports())
+
+    def pump(self) -> None:
+        """Read what arrived while idle: reports are dispatched, heartbeats counted."""
+        self.flush_reports()
+        if not self.is_open:
+            return
+        try:
+            self._ctx.pump()
+        except ModbusConnectionError as exc:
+            self._fail(exc)
+        finally:
+            self._collect()
+        self.flush_reports()
+
+    def feed(self, data: bytes) -> None:
+        """Bytes that came on the socket before the link (after a DTU's registration):
+        taken as if received now, nothing having been asked yet (reports queued,
+        heartbeats counted; on a plain RTU link they answer nothing: discarded)."""
+        if not data:
+            return
+        if not self._stream:
+            log.debug("%s: %d bytes after the registration discarded: %s",
+                      self.endpoint.describe(), len(data), data.hex(" ").upper())
+        self._ctx.feed(data)
+        self._collect()
+
+    def _dispatch(self, raws: list[bytes]) -> None:
+        self.stats.reports += len(raws)
+        on_report = self._on_report
+        if on_report is not None:
+            for raw in raws:
+                on_report(report_of(raw))
+
+    def _collect(self) -> None:
+        """Take the C side's counters into the line's stats; dispatch the reports that
+        came before the last reply (older than it)."""
+        ctx = self._ctx
+        self.stats.discarded_bytes += ctx.take_discarded()
+        if not self._stream:
+            return
+        counts = ctx.take_counters()
+        if counts is not None:
+            self._count(counts)
+        before = ctx.reports_before
+        if before:
+            self._dispatch(ctx.take_reports(before))
+
+    def _count(self, counts: StreamCounters) -> None:
+        stats = self.stats
+        stats.heartbeats += counts.heartbeats
+        stats.dropped_frames += counts.dropped + counts.lost
+        where = self.endpoint.describe()
+        if counts.dropped:
+            log.warning("%s: %d wrapped frame(s) dropped (bad header, length, tail or CRC, "
+                        "or noise); the last began %s", where, counts.dropped,
+                        counts.last_drop.hex(" ").upper())
+        if counts.lost:
+            log.warning("%s: %d wrapped report(s) lost: the link's report queue was full",
+                        where, counts.lost)
 
     # -- bookkeeping -----------------------------------------------------------------
     def set_response_timeout(self, seconds: float) -> None:
@@ -288,9 +366,9 @@ class ContextLink(Link):
                 # RTU has no transaction id: a reply that comes late must not be taken
                 # for the answer to the next request, so wait it out (settle) first
                 stats.timeouts += 1
-                if self.timing.settle > 0:
-                    stats.discarded_bytes += _ffi.discard_input(
-                        self._fd, self.timing.settle, self._quiet, self._settle_limit
+                if self.timing.settle > 0:  # a late wrapped frame is a report: kept
+                    stats.discarded_bytes += self._ctx.discard(
+                        self.timing.settle, self._quiet, self._settle_limit
                     )
             else:
                 if isinstance(exc, ProtocolError):
@@ -300,8 +378,8 @@ class ContextLink(Link):
                     else:
                         stats.protocol_errors += 1
                     # the rest of a bad frame may still be on its way
-                    stats.discarded_bytes += _ffi.discard_input(
-                        self._fd, self._quiet, self._quiet, self._drain_limit
+                    stats.discarded_bytes += self._ctx.discard(
+                        self._quiet, self._quiet, self._drain_limit
                     )
                 else:  # an exception response is a complete, valid frame
                     stats.responses += 1
@@ -351,7 +429,7 @@ class ContextLink(Link):
         except ModbusError as exc:
             raise self._fail(exc) from None
         finally:
-            stats.discarded_bytes += ctx.take_discarded()
+            self._collect()
             if self._trace:
                 self._log_reply()
             if self._pace:
@@ -374,7 +452,7 @@ class ContextLink(Link):
             except ModbusError as exc:
                 raise self._fail(exc) from None
             finally:
-                self.stats.discarded_bytes += self._ctx.take_discarded()
+                self._collect()
                 self._done(self.timing.turnaround_delay)
             return
         start = time.monotonic()
@@ -384,7 +462,7 @@ class ContextLink(Link):
         except ModbusError as exc:
             raise self._fail(exc) from None
         finally:
-            self.stats.discarded_bytes += self._ctx.take_discarded()
+            self._collect()
             if self._trace:
                 self._log_reply()
             self._done()
@@ -396,44 +474,3 @@ class ContextLink(Link):
         if reply:
             log.debug("%s RX %s", self.endpoint.describe(), reply.hex(" ").upper())
 
-
-def connect_tcp(ep: TcpEndpoint, timeout: float) -> socket.socket:
-    """Connect with a bounded time, then hand a blocking, no-delay socket to libmodbus."""
-    try:
-        sock = socket.create_connection((ep.host, ep.port), timeout=timeout)
-    except TimeoutError:
-        raise ModbusConnectionError(
-            f"{ep.describe()}: connect timed out after {timeout:g} s"
-        ) from None
-    except OSError as exc:
-        raise ModbusConnectionError(f"{ep.describe()}: connect failed: {exc.strerror or exc}") \
-            from None
-    sock.settimeout(None)
-    sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-    sock.setsockopt(socket.SOL_SOCKET, socket.SO_KEEPALIVE, 1)
-    return sock
-
-
-def context_link(ctx: Context, endpoint: Endpoint, timing: LineTiming, stats: LineStats,
-                 sock: socket.socket | None,
-                 on_close: Callable[[], None] | None = None) -> ContextLink:
-    """A libmodbus link on ``ctx`` with the line's timeouts and echo set.  A setting the
-    context refuses (ValueError) closes ``ctx``; ``sock`` is left to the caller."""
-    try:
-        ctx.set_timeouts(timing.response_timeout, timing.byte_timeout)
-        ctx.set_echo(endpoint.echo)
-        if isinstance(endpoint, SerialPort):
-            ctx.set_char_time(endpoint.char_time)
-    except ValueError:
-        ctx.close()
-        raise
-    return ContextLink(ctx, endpoint, timing, stats, sock, on_close,
-                       timeouts=(timing.response_timeout, timing.byte_timeout))
-
-
-def open_socket_link(sock: socket.socket, endpoint: Endpoint, timing: LineTiming,
-                     stats: LineStats, on_close: Callable[[], None] | None = None) -> Link:
-    """A libmodbus RTU link on a connected socket we own (RTU over TCP, no MBAP).  On
-    failure the socket is left to the caller."""
-    ctx = Context.on_socket(sock.fileno(), endpoint.describe(), mbap=False)
-    return context_link(ctx, endpoint, timing, stats, sock, on_close)

@@ -42,8 +42,9 @@ from ..errors import (
     ModbusError,
 )
 from ..stats import LineStats
+from .connect import connect_tcp, context_link
 from .endpoint import DtuEndpoint, Endpoint, LineTiming, SerialPort
-from .link import Link, connect_tcp, context_link
+from .link import Link
 
 log = logging.getLogger("edgemodbus.line")
 T = TypeVar("T")
@@ -430,19 +431,14 @@ class LineWorker:
             sock = None
         else:
             sock = connect_tcp(ep, timing.connect_timeout)
-            if ep.transport == "rtu-over-tcp" and (ep.framing != "rtu" or ep.heartbeat):
-                from .stream import StreamLink  # RTU framed in Python
-
-                return StreamLink(sock, ep, timing, self.stats, heartbeat=ep.heartbeat,
-                                  wrapped=ep.framing == "wrapped-report",
-                                  on_report=self.dispatch_report)
             try:
                 ctx = Context.on_socket(sock.fileno(), ep.describe(), mbap=ep.transport == "tcp")
             except ModbusError:
                 sock.close()
                 raise
-        try:
-            return context_link(ctx, ep, timing, self.stats, sock)
+        try:  # heartbeats and wrapped reports are framed in C (csrc/emb_stream.c)
+            return context_link(ctx, ep, timing, self.stats, sock,
+                                on_report=self.dispatch_report)
         except ValueError:
             if sock is not None:
                 sock.close()

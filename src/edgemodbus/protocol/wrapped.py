@@ -9,7 +9,8 @@ e.g. ``FFAA 0001 010302030578B7 0D`` reports holding register 1 = 773 of slave 1
 go down wrapped the same way and the device echoes them, wrapped, as confirmation.
 This module parses such a byte stream incrementally (frames split over or packed into
 TCP segments) and builds wrapped requests; bad frames are dropped, logged with their
-hex and counted, and parsing resynchronises on the next header.
+hex and counted, and parsing resynchronises on the next header.  The simulator frames
+with it; the master frames in C by the same rules (csrc/emb_stream.c).
 
 Counting: each bad frame, and each run of noise between frames, is one drop.  After a
 frame whose end is known (its length and 0D tail agree, the CRC does not) the bytes up to
@@ -59,6 +60,14 @@ class Report:
         """Bits of a read reply (FC01/02), first in the low bit of the first byte; the
         byte count carries whole bytes, so the caller knows how many are meaningful."""
         return [(byte >> i) & 1 for byte in self.data[1:] for i in range(8)]
+
+
+def report_of(raw: bytes) -> Report:
+    """The :class:`Report` of one whole wrapped frame whose header, length, tail and CRC
+    were checked (by :class:`ReportParser`, or by the master's C framing,
+    csrc/emb_stream.c)."""
+    rtu = raw[_PREFIX:-1]
+    return Report(struct.unpack_from(">H", raw, 2)[0], rtu[0], rtu[1], rtu[2:-2], raw)
 
 
 def wrap(address: int, slave: int, pdu: bytes) -> bytes:
@@ -147,8 +156,7 @@ class ReportParser:
                 continue
             del buf[:end]
             self.frames += 1
-            address = struct.unpack_from(">H", frame, 2)[0]
-            reports.append(Report(address, rtu[0], rtu[1], rtu[2:-2], frame))
+            reports.append(report_of(frame))
         return reports
 
     def _bad(self, raw: bytes, why: str, end: int | None) -> None:

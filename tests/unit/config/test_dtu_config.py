@@ -43,6 +43,8 @@ def test_listen_port_falls_back_to_tcp_port_and_heartbeat_is_bytes() -> None:
     ({"heartbeat": "HB", "heartbeatHex": "FE"}, "heartbeatHex 'FE': give heartbeat (text) or "
      "heartbeatHex, not both"),
     ({"heartbeatHex": "F"}, "heartbeatHex 'F': must be hex bytes"),
+    ({"heartbeat": "H" * 65}, "heartbeat '" + "H" * 65 + "': at most 64 bytes"),
+    ({"heartbeatHex": "FE" * 65}, "heartbeatHex '" + "FE" * 65 + "': at most 64 bytes"),
     ({"framing": "wrapped-report", "echo": True}, "echo True: no echo option with framing"),
 ])
 def test_bad_listen_options_name_field_and_value(extra: dict[str, Any], expected: str) -> None:

@@ -1,5 +1,5 @@
-"""Fuzz our own frame handling in Python with hypothesis (libmodbus parses read replies;
-the C codec has its libFuzzer harness in csrc/fuzz/).
+"""Fuzz our own frame handling in Python with hypothesis (replies are framed and checked
+in C, the C codec and reply handling have their libFuzzer harnesses in csrc/fuzz/).
 
 * ``Link._check_write_reply``: the write-echo check libmodbus 3.1.6 does not do, fed the
   reply ADU of a real write request (RTU and Modbus TCP) mutated or replaced by random

@@ -1,0 +1,595 @@
+/* edgemodbus: DTU streams, framed byte for byte in C.
+ *
+ * A stream link is RTU over a socket on which a DTU (or an edge MCU behind one) sends
+ * more than replies (emb_is_stream):
+ *
+ * - heartbeats (lk->hb, e.g. "HB" or FE) on an idle link, which can also arrive between a
+ *   request and its reply: skipped wherever a frame could begin, and counted;
+ * - wrapped frames (lk->wrapped): FF AA | register address (2 bytes, big-endian) | RTU
+ *   frame with its CRC | 0D.  Requests go out wrapped (csrc/emb_io.c); the reply is the
+ *   frame with the request's slave, function and address and, for a read, its byte count;
+ *   every other valid frame is an unsolicited report, queued in the link's ring for the
+ *   caller (emb_report_take) whether it came before the reply, behind it, during a settle
+ *   or while the link was idle (emb_pump).  Bad frames are dropped and counted, parsing
+ *   resynchronises on the next header: the rules of src/edgemodbus/protocol/wrapped.py
+ *   (ReportParser), which the simulator keeps using.
+ *
+ * Bytes are read into lk->sb->rx, as many as are readable, and framed from there; what is
+ * left (a frame not complete yet) waits there for the next read.  No globals, no
+ * allocation: the buffers are in the link. */
+#include "emb_wire.h"
+
+#include <errno.h>
+#include <string.h>
+#include <unistd.h>
+
+#define EMB_WRAP_PREFIX 4 /* FF AA and the register address */
+#define EMB_WRAP_TAIL 0x0D
+#define EMB_PUMP_READS 64 /* emb_pump: at most this many reads (a flooding peer) */
+
+int emb_is_stream(const emb_link *lk)
+{
+    return lk->wrapped || lk->hb_len > 0;
+}
+
+/* A stream link needs its buffers (lk->sb): 0 with errno EINVAL if they are missing. */
+static int emb_has_buffers(const emb_link *lk)
+{
+    if (lk->sb != NULL)
+        return 1;
+    errno = EINVAL;
+    return 0;
+}
+
+/* -- the report ring: per report a 2-byte length (big-endian) and the wrapped frame -- */
+
+static void emb_ring_put(emb_link *lk, const uint8_t *p, uint32_t n)
+{
+    uint32_t at = (lk->ring_head + lk->ring_used) % EMB_RING_SIZE;
+    uint32_t first = n < EMB_RING_SIZE - at ? n : EMB_RING_SIZE - at;
+
+    memcpy(lk->sb->ring + at, p, first);
+    memcpy(lk->sb->ring, p + first, n - first);
+    lk->ring_used += n;
+}
+
+static void emb_ring_get(emb_link *lk, uint8_t *p, uint32_t n)
+{
+    uint32_t first = n < EMB_RING_SIZE - lk->ring_head ? n : EMB_RING_SIZE - lk->ring_head;
+
+    memcpy(p, lk->sb->ring + lk->ring_head, first);
+    memcpy(p + first, lk->sb->ring, n - first);
+    lk->ring_head = (lk->ring_head + n) % EMB_RING_SIZE;
+    lk->ring_used -= n;
+}
+
+/* Queue a report (a whole wrapped frame); a full ring loses it, counted. */
+static void emb_report_put(emb_link *lk, const uint8_t *frame, uint32_t n)
+{
+    uint8_t len[2];
+
+    if (EMB_RING_SIZE - lk->ring_used < n + 2) {
+        lk->reports_lost++;
+        return;
+    }
+    len[0] = (uint8_t)(n >> 8);
+    len[1] = (uint8_t)(n & 0xFF);
+    emb_ring_put(lk, len, 2);
+    emb_ring_put(lk, frame, n);
+    lk->n_reports++;
+}
+
+/* Take the oldest report into out (at least EMB_REPORT_MAX bytes): the whole wrapped
+ * frame, already checked (header, length, tail, CRC).  Returns its length, 0 if none
+ * waits. */
+int emb_report_take(emb_link *lk, uint8_t *out)
+{
+    uint8_t len[2];
+    uint32_t n;
+
+    if (lk->n_reports == 0)
+        return 0;
+    emb_ring_get(lk, len, 2);
+    n = (uint32_t)(len[0] << 8 | len[1]);
+    emb_ring_get(lk, out, n);
+    lk->n_reports--;
+    if (lk->n_before > 0)
+        lk->n_before--;
+    return (int)n;
+}
+
+/* -- the receive buffer ------------------------------------------------------------- */
+
+static void emb_rx_consume(emb_link *lk, uint32_t n)
+{
+    memmove(lk->sb->rx, lk->sb->rx + n, lk->rx_len - n);
+    lk->rx_len -= n;
+}
+
+/* Read what is readable on fd into lk->sb->rx (up to its free space), waiting until
+ * deadline_ns for it (a deadline passed: only what is there now).  Returns the bytes
+ * read, 0 if none came in time, -1 with errno (end of file: emb_eof_errno). */
+static int emb_rx_fill(emb_link *lk, int fd, int64_t deadline_ns)
+{
+    uint32_t space = EMB_RX_SIZE - lk->rx_len;
+    ssize_t n;
+    int rc;
+
+    if (space == 0)
+        return 0;
+    for (;;) {
+        rc = emb_wait_until(fd, deadline_ns);
+        if (rc <= 0)
+            return rc;
+        n = read(fd, lk->sb->rx + lk->rx_len, space);
+        if (n > 0) {
+            lk->rx_len += (uint32_t)n;
+            return (int)n;
+        }
+        if (n == 0) {
+            errno = emb_eof_errno(fd);
+            return -1;
+        }
+        if (errno != EINTR && errno != EAGAIN)
+            return -1;
+    }
+}
+
+/* How many trailing bytes of rx are a proper prefix of the heartbeat (it may go on). */
+static uint32_t emb_hb_partial(const emb_link *lk)
+{
+    uint32_t n = lk->hb_len ? lk->hb_len - 1 : 0;
+
+    if (n > lk->rx_len)
+        n = lk->rx_len;
+    for (; n > 0; n--)
+        if (memcmp(lk->sb->rx + lk->rx_len - n, lk->hb, n) == 0)
+            return n;
+    return 0;
+}
+
+/* Count and remove the heartbeats at the start of rx.  Returns 1 if rx then holds only
+ * the beginning of another one (more bytes may complete it). */
+static int emb_hb_strip(emb_link *lk)
+{
+    uint32_t h = lk->hb_len;
+
+    if (h == 0)
+        return 0;
+    while (lk->rx_len >= h && memcmp(lk->sb->rx, lk->hb, h) == 0) {
+        emb_rx_consume(lk, h);
+        lk->heartbeats++;
+    }
+    return lk->rx_len > 0 && lk->rx_len < h && memcmp(lk->sb->rx, lk->hb, lk->rx_len) == 0;
+}
+
+/* Plain RTU stream, nothing asked: heartbeats anywhere in rx are counted, every other
+ * byte is stale and dropped, a heartbeat's beginning at the end too (kept, a stale byte
+ * that happens to begin one would spoil the next reply).  Returns the bytes dropped. */
+static long emb_plain_idle(emb_link *lk)
+{
+    uint32_t h = lk->hb_len, i = 0;
+    long dropped = 0;
+
+    while (i < lk->rx_len) {
+        if (h && i + h <= lk->rx_len && memcmp(lk->sb->rx + i, lk->hb, h) == 0) {
+            lk->heartbeats++;
+            i += h;
+        } else {
+            dropped++;
+            i++;
+        }
+    }
+    lk->rx_len = 0;
+    return dropped;
+}
+
+/* -- wrapped frames ------------------------------------------------------------------- */
+
+/* Length of the RTU frame inside a wrapped frame at rx[0] (from its function code and
+ * byte count: Application Protocol v1.1b3, ch. 6), -1 if more bytes are needed to tell,
+ * 0 if it cannot be a reply (protocol/wrapped.py _rtu_length). */
+static int emb_wrapped_rtu_length(const emb_link *lk)
+{
+    const uint8_t *p = lk->sb->rx + EMB_WRAP_PREFIX;
+    int fc, count;
+
+    if (lk->rx_len < EMB_WRAP_PREFIX + 2)
+        return -1;
+    fc = p[1];
+    if (fc & 0x80)
+        return 5; /* slave, function, exception code, CRC */
+    if (fc >= 1 && fc <= 4) {
+        if (lk->rx_len < EMB_WRAP_PREFIX + 3)
+            return -1;
+        count = p[2];
+        if (count == 0 || (fc >= 3 && count % 2))
+            return 0;
+        return 3 + count + 2;
+    }
+    if (fc == 5 || fc == 6 || fc == 15 || fc == 16)
+        return 8; /* slave, function, address, value or quantity, CRC */
+    if (fc == 22)
+        return 10;
+    return 0;
+}
+
+static void emb_drop(emb_link *lk, const uint8_t *raw, uint32_t n)
+{
+    lk->dropped++;
+    lk->last_drop_len = (int)(n < EMB_DROP_SHOW ? n : EMB_DROP_SHOW);
+    memcpy(lk->last_drop, raw, (size_t)lk->last_drop_len);
+}
+
+/* Drop the frame at rx[0] (the first n_show bytes are shown): count it, skip its
+ * header only (a real header may follow inside it); its rest, up to `end` if known
+ * (else up to the next header), is not counted again. */
+static void emb_bad(emb_link *lk, uint32_t n_show, int end)
+{
+    emb_drop(lk, lk->sb->rx, n_show);
+    emb_rx_consume(lk, 2);
+    lk->absorb = end < 0 ? -1 : end - 2;
+}
+
+/* Discard the n bytes at rx[0], before a header: the rest of the last dropped frame, or
+ * noise (one drop per run, however it is split over reads). */
+static void emb_noise(emb_link *lk, uint32_t n)
+{
+    if (lk->absorb >= 0) {
+        if (n <= (uint32_t)lk->absorb) {
+            lk->absorb -= (int32_t)n;
+        } else {
+            emb_drop(lk, lk->sb->rx + lk->absorb, n - (uint32_t)lk->absorb);
+            lk->absorb = -1; /* the run of noise goes on up to the next header */
+        }
+    }
+    emb_rx_consume(lk, n);
+}
+
+/* The request a wrapped reply answers: slave, function, register address and, for a
+ * read, the byte count (-1: any). */
+typedef struct {
+    int slave, function, address, count;
+} emb_want;
+
+static int emb_wrapped_answers(const emb_want *w, const uint8_t *frame)
+{
+    const uint8_t *rtu = frame + EMB_WRAP_PREFIX;
+
+    if (rtu[0] != w->slave || ((frame[2] << 8) | frame[3]) != w->address)
+        return 0;
+    if (rtu[1] == (w->function | 0x80))
+        return 1;
+    return rtu[1] == w->function && (w->count < 0 || rtu[2] == w->count);
+}
+
+/* Frame what rx holds: heartbeats counted, bad frames and noise dropped, valid frames
+ * queued as reports, except the first that answers `want` (if given), whose RTU frame
+ * goes to rsp: then the reports queued before it are marked (lk->n_before).  Returns
+ * that frame's length, 0 if none came. */
+static int emb_wrapped_frame(emb_link *lk, const emb_want *want, uint8_t *rsp)
+{
+    int found = 0, length;
+    uint32_t i, keep, end;
+    const uint8_t *rtu;
+    uint16_t crc;
+
+    while (lk->rx_len > 0) {
+        if (lk->hb_len && lk->rx_len >= lk->hb_len &&
+            memcmp(lk->sb->rx, lk->hb, lk->hb_len) == 0) {
+            emb_rx_consume(lk, lk->hb_len);
+            lk->heartbeats++;
+            continue;
+        }
+        for (i = 0; i + 1 < lk->rx_len; i++)
+            if (lk->sb->rx[i] == 0xFF && lk->sb->rx[i + 1] == 0xAA)
+                break;
+        if (i + 1 >= lk->rx_len) { /* no header: keep what may begin one, or a heartbeat */
+            keep = lk->sb->rx[lk->rx_len - 1] == 0xFF ? 1 : 0;
+            if (emb_hb_partial(lk) > keep)
+                keep = emb_hb_partial(lk);
+            if (lk->rx_len > keep)
+                emb_noise(lk, lk->rx_len - keep);
+            break;
+        }
+        if (i > 0)
+            emb_noise(lk, i);
+        lk->absorb = 0; /* a header: a new frame begins */
+        length = emb_wrapped_rtu_length(lk);
+        if (length < 0)
+            break;
+        if (length == 0 || length > EMB_MAX_RTU) {
+            emb_bad(lk, EMB_WRAP_PREFIX + 2, -1); /* not a Modbus reply */
+            continue;
+        }
+        end = EMB_WRAP_PREFIX + (uint32_t)length + 1;
+        if (lk->rx_len < end)
+            break;
+        if (lk->sb->rx[end - 1] != EMB_WRAP_TAIL) {
+            emb_bad(lk, end, -1); /* no 0D tail: the length does not add up */
+            continue;
+        }
+        rtu = lk->sb->rx + EMB_WRAP_PREFIX;
+        crc = emb_crc16(rtu, length - 2);
+        if (rtu[length - 2] != (crc & 0xFF) || rtu[length - 1] != (crc >> 8)) {
+            emb_bad(lk, end, (int)end);
+            continue;
+        }
+        if (want && !found && emb_wrapped_answers(want, lk->sb->rx)) {
+            memcpy(rsp, rtu, (size_t)length);
+            found = length;
+            lk->n_before = lk->n_reports;
+        } else {
+            emb_report_put(lk, lk->sb->rx, end);
+        }
+        emb_rx_consume(lk, end);
+    }
+    return found;
+}
+
+/* Frame rx with nothing asked: reports, heartbeats, drops (wrapped); heartbeats and
+ * stale bytes (plain RTU).  Returns the stale bytes dropped. */
+static long emb_stream_idle(emb_link *lk)
+{
+    if (lk->wrapped) {
+        emb_wrapped_frame(lk, NULL, NULL);
+        return 0;
+    }
+    return emb_plain_idle(lk);
+}
+
+/* -- transaction steps (called by csrc/emb_io.c for a stream link) -------------------- */
+
+/* Take in and frame what is readable on fd now, without waiting (at most
+ * EMB_PUMP_READS reads: a peer that floods the link does not hold the worker).
+ * Returns the reports waiting, or -1 with errno. */
+static long emb_pump_fd(emb_link *lk, int fd)
+{
+    int reads, rc;
+
+    for (reads = 0; reads < EMB_PUMP_READS; reads++) {
+        rc = emb_rx_fill(lk, fd, 0);
+        if (rc == -1)
+            return -1;
+        if (rc == 0)
+            break;
+        lk->discarded += emb_stream_idle(lk);
+    }
+    return lk->n_reports;
+}
+
+/* Before a request: take in what is readable now (reports are queued, heartbeats
+ * counted, stale bytes dropped and counted in lk->discarded).  -1 with errno when the
+ * link is found closed. */
+int emb_stream_drop_pending(emb_link *lk, int fd)
+{
+    if (!emb_has_buffers(lk)) /* every transaction begins here */
+        return -1;
+    return emb_pump_fd(lk, fd) == -1 ? -1 : 0;
+}
+
+/* The deadline for the next bytes: the response deadline until bytes of the frame came
+ * in this call (last: when; heartbeats do not count), then the byte timeout from the
+ * last ones (byte_ms 0: the whole frame within the response timeout, as libmodbus). */
+static int64_t emb_stream_deadline(const emb_link *lk, int64_t response, int64_t last,
+                                   int byte_ms)
+{
+    if (lk->rx_len == 0 || last == 0 || byte_ms <= 0)
+        return response;
+    return last + (int64_t)byte_ms * 1000000;
+}
+
+/* Plain RTU stream with the echo option: the request's own bytes come back first. */
+int emb_stream_skip_echo(emb_link *lk, int fd, const uint8_t *sent, int sent_len,
+                         int first_ms, int byte_ms)
+{
+    int64_t response = emb_clock_ns() + (int64_t)first_ms * 1000000, last = 0;
+    int rc;
+
+    for (;;) {
+        emb_hb_strip(lk);
+        if (lk->rx_len >= (uint32_t)sent_len) {
+            rc = memcmp(lk->sb->rx, sent, (size_t)sent_len);
+            emb_rx_consume(lk, (uint32_t)sent_len);
+            lk->discarded += sent_len;
+            if (rc != 0) {
+                errno = EMB_EECHO;
+                return -1;
+            }
+            return 0;
+        }
+        rc = emb_rx_fill(lk, fd, emb_stream_deadline(lk, response, last, byte_ms));
+        if (rc == -1)
+            return -1;
+        if (rc == 0) {
+            errno = lk->rx_len ? EMB_EPARTIAL : ETIMEDOUT;
+            return -1;
+        }
+        last = emb_clock_ns();
+    }
+}
+
+/* Plain RTU stream: receive one reply frame into rsp, heartbeats skipped before it; the
+ * contract of emb_recv_frame (csrc/emb_io.c).  Bytes behind the frame stay in rx. */
+int emb_stream_recv_frame(emb_link *lk, int fd, int slave, int first_ms, int byte_ms,
+                          uint8_t *rsp, int *got)
+{
+    int64_t response = emb_clock_ns() + (int64_t)first_ms * 1000000, last = 0;
+    int partial_hb, need = 0, have, rc;
+    uint16_t crc;
+
+    *got = 0;
+    for (;;) {
+        partial_hb = emb_hb_strip(lk);
+        if (lk->rx_len > 0 && !partial_hb) {
+            have = lk->rx_len < EMB_MAX_RTU ? (int)lk->rx_len : EMB_MAX_RTU;
+            need = emb_reply_length(lk->sb->rx, have, 0);
+            if (need < 0 || have >= need) {
+                if (need > 0)
+                    have = need;
+                memcpy(rsp, lk->sb->rx, (size_t)have);
+                *got = have;
+                if (need < 0) { /* the bytes stay: the drain takes them */
+                    errno = EMBBADDATA;
+                    return -1;
+                }
+                emb_rx_consume(lk, (uint32_t)have);
+                break;
+            }
+        }
+        rc = emb_rx_fill(lk, fd, emb_stream_deadline(lk, response, last, byte_ms));
+        if (rc == -1)
+            return -1;
+        if (rc == 0) {
+            have = lk->rx_len < EMB_MAX_RTU ? (int)lk->rx_len : EMB_MAX_RTU;
+            memcpy(rsp, lk->sb->rx, (size_t)have);
+            *got = have;
+            errno = lk->rx_len ? EMB_EPARTIAL : ETIMEDOUT;
+            return -1;
+        }
+        last = emb_clock_ns();
+    }
+    if (rsp[0] != slave && rsp[0] != 0) /* as emb_recv_frame: another slave's frame */
+        return 0;
+    crc = emb_crc16(rsp, need - 2);
+    if (rsp[need - 2] != (crc & 0xFF) || rsp[need - 1] != (crc >> 8)) {
+        errno = EMBBADCRC;
+        return -1;
+    }
+    return need;
+}
+
+/* Plain RTU stream: bytes received and not framed yet, heartbeats aside. */
+int emb_stream_pending(emb_link *lk, int fd)
+{
+    emb_hb_strip(lk);
+    return (int)lk->rx_len + emb_pending(fd);
+}
+
+/* Wrapped: wait up to first_ms for the frame that answers the request (slave, pdu's
+ * function and register address, and for a read the byte count `count`; -1 for a
+ * write), queueing every other frame as a report, also one of our slave, function and
+ * address with another count (the MCU reporting a range that starts where we read).
+ * The frames behind the reply are queued too.  Returns the reply's RTU frame length in
+ * rsp, or -1 with errno: ETIMEDOUT (no reply, also when a frame stopped short: a late
+ * wrapped frame is still a valid report), or the link's errno. */
+int emb_stream_recv_wrapped(emb_link *lk, int fd, int slave, const uint8_t *pdu, int count,
+                            int first_ms, uint8_t *rsp)
+{
+    int64_t deadline = emb_clock_ns() + (int64_t)first_ms * 1000000;
+    emb_want want;
+    int len, rc;
+
+    want.slave = slave;
+    want.function = pdu[0];
+    want.address = (pdu[1] << 8) | pdu[2];
+    want.count = count;
+    for (;;) {
+        len = emb_wrapped_frame(lk, &want, rsp);
+        if (len > 0)
+            return len;
+        rc = emb_rx_fill(lk, fd, deadline);
+        if (rc == -1)
+            return -1;
+        if (rc == 0) {
+            errno = ETIMEDOUT;
+            return -1;
+        }
+    }
+}
+
+/* emb_discard_input for a stream link: what comes is framed (reports queued: a late
+ * wrapped frame carries its address, so it is a valid report; heartbeats counted) and
+ * the rest dropped.  Returns the stale bytes dropped (plain RTU streams). */
+long emb_stream_discard(emb_link *lk, int fd, int total_ms, int quiet_ms, int limit_ms)
+{
+    int64_t start = emb_clock_ns(), last = 0, until;
+    long dropped = 0;
+    int rc;
+
+    if (limit_ms < total_ms)
+        limit_ms = total_ms;
+    for (;;) {
+        until = start + (int64_t)total_ms * 1000000;
+        if (last) {
+            until = last + (int64_t)quiet_ms * 1000000;
+            if (until < start + (int64_t)total_ms * 1000000)
+                until = start + (int64_t)total_ms * 1000000;
+        }
+        if (until > start + (int64_t)limit_ms * 1000000)
+            until = start + (int64_t)limit_ms * 1000000;
+        rc = emb_rx_fill(lk, fd, until);
+        if (rc == -1)
+            return -1;
+        if (rc == 0)
+            return dropped;
+        dropped += emb_stream_idle(lk);
+        last = emb_clock_ns();
+    }
+}
+
+/* -- the caller's entry points -------------------------------------------------------- */
+
+/* Read what is readable now, without waiting, and frame it (a stream link: reports
+ * queued, heartbeats counted; any other link: stale input dropped, counted in
+ * lk->discarded).  The line worker calls it while idle.  Returns the reports waiting in
+ * the ring, or -1 with errno when the link failed or the peer closed it. */
+long emb_pump(modbus_t *ctx, emb_link *lk)
+{
+    int fd = modbus_get_socket(ctx);
+    long n;
+
+    if (!emb_is_stream(lk)) {
+        n = emb_discard_input(fd, 0, 0, 0);
+        if (n == -1)
+            return -1;
+        lk->discarded += n;
+        return lk->n_reports;
+    }
+    if (!emb_has_buffers(lk))
+        return -1;
+    return emb_pump_fd(lk, fd);
+}
+
+/* Bytes that came on the link's socket before the link was made (what a DTU sent after
+ * its registration), taken as if received now, nothing having been asked: framed on a
+ * stream link, dropped (counted in lk->discarded) on any other.  Returns the reports
+ * waiting (-1, EINVAL: a stream link without its buffers). */
+long emb_feed(emb_link *lk, const uint8_t *data, int n)
+{
+    uint32_t take;
+
+    if (n < 0)
+        n = 0;
+    if (!emb_is_stream(lk)) {
+        lk->discarded += n;
+        return lk->n_reports;
+    }
+    if (!emb_has_buffers(lk))
+        return -1;
+    do { /* also with no bytes: what rx holds is framed again, as on any read */
+        take = EMB_RX_SIZE - lk->rx_len;
+        if (take > (uint32_t)n)
+            take = (uint32_t)n;
+        if (take)
+            memcpy(lk->sb->rx + lk->rx_len, data, take);
+        lk->rx_len += take;
+        data += take;
+        n -= (int)take;
+        lk->discarded += emb_stream_idle(lk);
+    } while (n > 0);
+    return lk->n_reports;
+}
+
+/* Settle or drain a link (emb_discard_input's timing): a stream link frames what comes
+ * (emb_stream_discard), any other drops it.  Returns the bytes dropped, or -1 with
+ * errno. */
+long emb_link_discard(modbus_t *ctx, emb_link *lk, int total_ms, int quiet_ms, int limit_ms)
+{
+    int fd = modbus_get_socket(ctx);
+
+    if (emb_is_stream(lk))
+        return emb_has_buffers(lk) ? emb_stream_discard(lk, fd, total_ms, quiet_ms, limit_ms)
+                                   : -1;
+    return emb_discard_input(fd, total_ms, quiet_ms, limit_ms);
+}

@@ -1,0 +1,64 @@
+"""Opening a link: a TCP connection of our own, and a :class:`~edgemodbus.line.link.ContextLink`
+on a libmodbus context with the line's settings (timeouts, echo, a serial line's character
+time, a DTU stream's heartbeat and wrapped framing)."""
+
+from __future__ import annotations
+
+import socket
+from collections.abc import Callable
+
+from .._ffi import Context
+from ..errors import ModbusConnectionError
+from ..protocol.wrapped import Report
+from ..stats import LineStats
+from .endpoint import DtuEndpoint, Endpoint, LineTiming, SerialPort, TcpEndpoint
+from .link import ContextLink
+
+
+def connect_tcp(ep: TcpEndpoint, timeout: float) -> socket.socket:
+    """Connect with a bounded time, then hand a blocking, no-delay socket to libmodbus."""
+    try:
+        sock = socket.create_connection((ep.host, ep.port), timeout=timeout)
+    except TimeoutError:
+        raise ModbusConnectionError(
+            f"{ep.describe()}: connect timed out after {timeout:g} s"
+        ) from None
+    except OSError as exc:
+        raise ModbusConnectionError(f"{ep.describe()}: connect failed: {exc.strerror or exc}") \
+            from None
+    sock.settimeout(None)
+    sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_KEEPALIVE, 1)
+    return sock
+
+
+def context_link(ctx: Context, endpoint: Endpoint, timing: LineTiming, stats: LineStats,
+                 sock: socket.socket | None,
+                 on_close: Callable[[], None] | None = None,
+                 on_report: Callable[[Report], None] | None = None) -> ContextLink:
+    """A link on ``ctx`` with the line's timeouts, echo, character time (serial) and
+    DTU stream framing (heartbeat, wrapped reports to ``on_report``) set.  A setting the
+    context refuses (ValueError) closes ``ctx``; ``sock`` is left to the caller."""
+    try:
+        ctx.set_timeouts(timing.response_timeout, timing.byte_timeout)
+        ctx.set_echo(endpoint.echo)
+        if isinstance(endpoint, SerialPort):
+            ctx.set_char_time(endpoint.char_time)
+        elif isinstance(endpoint, DtuEndpoint) or endpoint.transport == "rtu-over-tcp":
+            ctx.set_stream(endpoint.heartbeat, endpoint.framing == "wrapped-report")
+    except ValueError:
+        ctx.close()
+        raise
+    return ContextLink(ctx, endpoint, timing, stats, sock, on_close,
+                       timeouts=(timing.response_timeout, timing.byte_timeout),
+                       on_report=on_report)
+
+
+def open_socket_link(sock: socket.socket, endpoint: Endpoint, timing: LineTiming,
+                     stats: LineStats, on_close: Callable[[], None] | None = None,
+                     on_report: Callable[[Report], None] | None = None) -> ContextLink:
+    """A link on a connected socket we own (RTU over TCP, no MBAP; heartbeats and
+    wrapped frames as the endpoint says).  On failure the socket is left to the
+    caller."""
+    ctx = Context.on_socket(sock.fileno(), endpoint.describe(), mbap=False)
+    return context_link(ctx, endpoint, timing, stats, sock, on_close, on_report)
