@@ -35,6 +35,18 @@ def _small_ints(values: list[int]) -> array[int]:
     return array("H" if max(values, default=0) <= 0xFFFF else "I", values)
 
 
+def _indexes(n: int) -> tuple[int, ...]:
+    """At least ``n`` item indexes 0, 1, ...: one tuple shared by every decoder (zipping
+    over a tuple is cheaper than over a range, and a decoder keeps no list of its own)."""
+    global _INDEXES
+    if len(_INDEXES) < n:
+        _INDEXES = tuple(range(max(n, 2 * len(_INDEXES))))
+    return _INDEXES
+
+
+_INDEXES: tuple[int, ...] = tuple(range(257))  # the ints Python keeps anyway
+
+
 class BlockDecoder:
     """Decodes every item of one read block in one C call, reporting only what changed.
 
@@ -176,7 +188,7 @@ class BlockDecoder:
             # Most items are new: build every tuple in one go (a report of all items
             # holds the current value of each, so the rebuilt cache still mirrors C).
             values = plan.values()
-            reported = list(zip(range(total), values, itertools.repeat(None), strict=False))
+            reported = list(zip(_indexes(total), values, itertools.repeat(None), strict=False))
             if plan.n_errors:
                 for k in plan.errors():
                     reported[k] = (k, None, self._reason(k, plan.status(k)))
