@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import operator
 import struct
+from array import array
 from collections.abc import Callable, Sequence
 from typing import Any, NamedTuple
 
@@ -129,27 +130,34 @@ class CodecPlan:
         self._sizes = (ni, nu, nf, nb)
         self.status_view = memoryview(ffi.buffer(self._status, n))  # EMB_E_* of each item
         # Typed views that turn the integer and bool arrays into lists at C speed (for
-        # doubles ffi.unpack is the faster one).
-        self._view_i64 = memoryview(ffi.buffer(self._i64, 8 * ni)).cast("q")
-        self._view_u64 = memoryview(ffi.buffer(self._u64, 8 * nu)).cast("Q")
-        self._view_bool = memoryview(ffi.buffer(self._bool, ffi.sizeof("_Bool") * nb)).cast("?")
+        # doubles ffi.unpack is the faster one); an empty group shares one empty view.
+        self._view_i64 = _typed_view(self._i64, ni, "q")
+        self._view_u64 = _typed_view(self._u64, nu, "Q")
+        self._view_bool = _typed_view(self._bool, nb, "?")
         self._bytes_buf = ffi.buffer(self._bytes)
         # Item k's value is lists[src][idx]: src 0..3 the groups, 4 the post-processed items.
-        arrays = (self._i64, self._u64, self._f64, self._bool)
+        # Per item (a gateway holds one per tag) its group (0..3, or 4 for special[j],
+        # post-processed or bytes) and its slot in that group (or j), as a tuple and a
+        # list of the small ints Python keeps anyway (0..256), which :meth:`value` reads
+        # fastest; larger slots (a block of many bits) go in an int array instead.
+        self._arrays = (self._i64, self._u64, self._f64, self._bool)
         special: list[tuple[int, int, int, Callable[[Any], object] | None, int]] = []
-        where: list[tuple[Any, int, Callable[[Any], object] | None, int]] = []
         place: list[tuple[int, int]] = []
         for k, group in enumerate(group_of):
             g = lib.EMB_O_U64 if group == o_bytes else group
             aux = auxes[k] if group == o_bytes else -1
             post = posts[k]
-            where.append((arrays[g], slots[k], post, aux))
             if post is None and aux < 0:
                 place.append((g, slots[k]))
             else:
                 place.append((4, len(special)))
                 special.append((k, g, slots[k], post, aux))
-        self._where = where
+        self._group = tuple(src for src, _ in place)
+        slot_of = [idx for _, idx in place]
+        self._slot: list[int] | array[int] = (
+            slot_of if max(slot_of, default=0) <= 256 else array("H" if n <= 0xFFFF else "I",
+                                                                   slot_of)
+        )
         self._special = special
         # Assemble the values list from runs of consecutive slots (a few list slices for
         # the usual blocks of same-typed items), or with one itemgetter when interleaved.
@@ -160,13 +168,13 @@ class CodecPlan:
             else:
                 runs.append([src, idx, idx + 1])
         lengths = (ni, nu, nf, nb, len(special))
-        self._runs = [
-            (src, a, b, a == 0 and b == lengths[src]) for src, a, b in runs
-        ]
+        self._runs: list[tuple[int, int, int, bool]] = []
         self._getter: Callable[[list[object]], Any] | None = None
         if len(runs) > max(4, n // 8):
             base = (0, ni, ni + nu, ni + nu + nf, ni + nu + nf + nb)
             self._getter = operator.itemgetter(*[base[src] + idx for src, idx in place])
+        else:
+            self._runs = [(src, a, b, a == 0 and b == lengths[src]) for src, a, b in runs]
 
     def decode(self, block: Block, mode: int) -> int:
         """Run the C decode over ``block``; returns the reported (or failed) item count."""
@@ -242,8 +250,11 @@ class CodecPlan:
 
     def value(self, index: int) -> object:
         """One item's value from the last decode (call only when its status is OK)."""
-        array, slot, post, aux = self._where[index]
-        raw = array[slot]
+        group = self._group[index]
+        if group < 4:
+            return self._arrays[group][self._slot[index]]
+        _, g, slot, post, aux = self._special[self._slot[index]]
+        raw = self._arrays[g][slot]
         if aux >= 0:
             raw = self._bytes_buf[aux : aux + raw]
         return raw if post is None else post(raw)
@@ -251,6 +262,16 @@ class CodecPlan:
     def reset(self) -> None:
         """Forget the reported state: the next TRACK decode reports every item."""
         lib.emb_reset(self._plan)
+
+
+_EMPTY_VIEWS = {code: memoryview(b"").cast(code) for code in "qQ?"}
+
+
+def _typed_view(data: Any, n: int, code: str) -> memoryview:
+    """A memoryview of the first ``n`` elements of a cdata array, as ``code`` values."""
+    if not n:
+        return _EMPTY_VIEWS[code]
+    return memoryview(ffi.buffer(data, n * ffi.sizeof(ffi.typeof(data).item))).cast(code)
 
 
 def codec_encode(item: CodecItem, raw: int, fval: float, data: bytes) -> list[int]:

@@ -6,6 +6,7 @@ import bisect
 import itertools
 import math
 import operator
+from array import array
 from collections.abc import Sequence
 
 from .. import _ffi
@@ -32,6 +33,23 @@ _NO_TEXT = object()  # a String item whose last report was not a text
 _INDEX = operator.itemgetter(0)
 
 
+def _small_ints(values: list[int]) -> array[int]:
+    """Non-negative ints in the narrowest array that holds them (16 or 32 bits)."""
+    return array("H" if max(values, default=0) <= 0xFFFF else "I", values)
+
+
+def _indexes(n: int) -> tuple[int, ...]:
+    """At least ``n`` item indexes 0, 1, ...: one tuple shared by every decoder (zipping
+    over a tuple is cheaper than over a range, and a decoder keeps no list of its own)."""
+    global _INDEXES
+    if len(_INDEXES) < n:
+        _INDEXES = tuple(range(max(n, 2 * len(_INDEXES))))
+    return _INDEXES
+
+
+_INDEXES: tuple[int, ...] = tuple(range(257))  # the ints Python keeps anyway
+
+
 class BlockDecoder:
     """Decodes every item of one read block in one C call, reporting only what changed.
 
@@ -40,14 +58,14 @@ class BlockDecoder:
     """
 
     __slots__ = (
-        "_indices",
         "_offsets",
         "_plan",
         "_reported",
+        "_spec_of",
+        "_specs",
         "_texts",
         "area",
         "count",
-        "specs",
     )
 
     def __init__(self, area: Area, count: int, items: Sequence[tuple[int, ValueSpec]]) -> None:
@@ -65,12 +83,17 @@ class BlockDecoder:
             compiled.append(_compile(spec, area, offset))
         self.area = area
         self.count = count
-        self.specs = [spec for _, spec in items]
-        self._offsets = [offset for offset, _ in items]
+        # Each item's spec and offset, for error reasons (rare) only: as small ints in
+        # arrays (a gateway holds one decoder entry per tag), the specs an index into
+        # the distinct ones (the items of a block share a few specs).
+        distinct: dict[ValueSpec, int] = {}
+        spec_of = [distinct.setdefault(spec, len(distinct)) for _, spec in items]
+        self._specs = tuple(distinct)
+        self._spec_of = _small_ints(spec_of)
+        self._offsets = _small_ints([offset for offset, _ in items])
         # the compiled items live on in the C plan only: error reasons, which are rare,
         # compile their item again (see _reason), which keeps a decoder small per tag
         self._plan = CodecPlan(area.is_bit, [c.item for c in compiled], [c.post for c in compiled])
-        self._indices = list(range(len(compiled)))
         # The tuple last reported for each item: mirrors the C state, so that a report of
         # every item rebuilds only the tuples whose value or status moved.
         self._reported: list[Change] = []
@@ -78,13 +101,19 @@ class BlockDecoder:
         # bytes (which C compares) can give the text already reported: the last text
         # reported for each String item (_NO_TEXT after an error or a reset).
         self._texts: dict[int, object] = {
-            k: _NO_TEXT for k, spec in enumerate(self.specs) if spec.data_type is DataType.STRING
+            k: _NO_TEXT for k, (_, spec) in enumerate(items) if spec.data_type is DataType.STRING
         }
+
+    @property
+    def specs(self) -> list[ValueSpec]:
+        """The spec of each item, in order."""
+        specs = self._specs
+        return [specs[i] for i in self._spec_of]
 
     def _reason(self, index: int, code: int) -> str:
         if code == _E["MISSING"]:
             return "not in response"
-        c = _compile(self.specs[index], self.area, self._offsets[index])
+        c = _compile(self._specs[self._spec_of[index]], self.area, self._offsets[index])
         if code == _E["NAN"]:
             return f"NaN cannot be converted to {c.target_label}"
         v = self._plan.errval(index)
@@ -174,7 +203,7 @@ class BlockDecoder:
             # Most items are new: build every tuple in one go (a report of all items
             # holds the current value of each, so the rebuilt cache still mirrors C).
             values = plan.values()
-            reported = list(zip(self._indices, values, itertools.repeat(None), strict=False))
+            reported = list(zip(_indexes(total), values, itertools.repeat(None), strict=False))
             if plan.n_errors:
                 for k in plan.errors():
                     reported[k] = (k, None, self._reason(k, plan.status(k)))

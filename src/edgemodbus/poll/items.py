@@ -46,6 +46,29 @@ _KINDS: dict[Kind, Kind] = {}
 _MAX_KINDS = 4096
 
 
+def shared_offset(offset: int) -> int:
+    """``offset`` (0..65535) as one int object shared by every item at that offset.
+
+    An int above 256 is 32 bytes of its own per item, and the items of a gateway's
+    devices repeat the same offsets (devices of one kind, maps that start at 0): the
+    first item at an offset lends its int to the others, kept in lists of 256 made on
+    first use (2 KB each).  Other values come back as they are."""
+    chunk_no, index = divmod(offset, _CHUNK)
+    if not 0 <= chunk_no < len(_OFFSETS):
+        return offset
+    chunk = _OFFSETS[chunk_no]
+    if chunk is None:
+        chunk = _OFFSETS[chunk_no] = [None] * _CHUNK
+    shared = chunk[index]
+    if shared is None:
+        shared = chunk[index] = offset
+    return shared
+
+
+_CHUNK = 256
+_OFFSETS: list[list[int | None] | None] = [None] * (0x10000 // _CHUNK)
+
+
 class ItemState:
     """A configured item with what the poller needs to read, decode and write it.
 
@@ -57,7 +80,7 @@ class ItemState:
     def __init__(self, parsed: ParsedItem) -> None:
         # the ParsedItem itself is not kept
         self.item: DeviceAddressItem = parsed.item
-        self.offset: int = parsed.address.offset
+        self.offset: int = shared_offset(parsed.address.offset)
         area = parsed.address.area
         self.kind = Kind.of(
             area,

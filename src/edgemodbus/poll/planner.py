@@ -17,9 +17,11 @@ reassemble it.  Output order: by area value, then start, then rate.
 
 from __future__ import annotations
 
+from array import array
 from collections.abc import Collection, Hashable, Iterable
 from dataclasses import dataclass
 from operator import itemgetter
+from typing import cast
 
 from ..datatypes import Area
 
@@ -51,25 +53,100 @@ class Piece:
     size: int
 
 
-@dataclass(frozen=True, slots=True)
 class ReadBlock:
     """One read request: ``count`` registers/bits of ``area`` from ``start``, made every
-    ``rate`` ms (the scan rate shared by all its items)."""
+    ``rate`` ms (the scan rate shared by all its items).  Immutable, compared by value.
+
+    A gateway holds one :class:`Piece` per configured tag, read only when a plan is
+    installed or a block is split: the pieces are kept as compact int arrays (the keys
+    too when they are ints, the poller's case) and :attr:`pieces` builds the
+    :class:`Piece` objects on demand."""
+
+    __slots__ = ("_keys", "_layout", "area", "count", "rate", "start")
 
     area: Area
     start: int
     count: int
-    pieces: tuple[Piece, ...]
-    rate: int = 0
+    rate: int
+    _keys: array[int] | tuple[Hashable, ...]
+    _layout: array[int]  # item_offset, block_offset, size of each piece, in turn
+
+    def __init__(
+        self, area: Area, start: int, count: int, pieces: Iterable[Piece], rate: int = 0
+    ) -> None:
+        keys: list[Hashable] = []
+        layout: list[int] = []
+        for p in pieces:
+            keys.append(p.key)
+            layout += (p.item_offset, p.block_offset, p.size)
+        init = object.__setattr__
+        init(self, "area", area)
+        init(self, "start", start)
+        init(self, "count", count)
+        init(self, "rate", rate)
+        init(self, "_keys", _compact_keys(keys))
+        init(self, "_layout", _compact(layout))
+
+    def __setattr__(self, name: str, value: object) -> None:
+        raise AttributeError(f"ReadBlock is immutable: cannot set {name!r}")
+
+    def __delattr__(self, name: str) -> None:
+        raise AttributeError(f"ReadBlock is immutable: cannot delete {name!r}")
+
+    @property
+    def pieces(self) -> tuple[Piece, ...]:
+        """Where each item (or piece of a large item) lies in the block, in plan order."""
+        it = iter(self._layout)
+        return tuple(Piece(key, item_offset, block_offset, size)
+                     for key, item_offset, block_offset, size in zip(self._keys, it, it, it,
+                                                                     strict=True))
 
     @property
     def keys(self) -> tuple[Hashable, ...]:
-        return tuple(p.key for p in self.pieces)
+        return tuple(self._keys)
 
     @property
     def end(self) -> int:
         """First address after the block (exclusive)."""
         return self.start + self.count
+
+    def _fields(self) -> tuple[Area, int, int, tuple[Piece, ...], int]:
+        return self.area, self.start, self.count, self.pieces, self.rate
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, ReadBlock):
+            return NotImplemented
+        return self._fields() == other._fields()
+
+    def __hash__(self) -> int:
+        return hash(self._fields())
+
+    def __reduce__(self) -> tuple[type[ReadBlock], tuple[Area, int, int, tuple[Piece, ...], int]]:
+        return ReadBlock, self._fields()  # copy and pickle through __init__
+
+    def __repr__(self) -> str:
+        return (f"ReadBlock(area={self.area!r}, start={self.start!r}, count={self.count!r}, "
+                f"pieces={self.pieces!r}, rate={self.rate!r})")
+
+
+def _compact_keys(keys: list[Hashable]) -> array[int] | tuple[Hashable, ...]:
+    """The keys as an int array when they are all plain ints (no int object per piece
+    kept alive), else as a tuple."""
+    if all(type(k) is int for k in keys):
+        try:
+            return _compact(cast(list[int], keys))
+        except OverflowError:
+            pass
+    return tuple(keys)
+
+
+def _compact(values: list[int]) -> array[int]:
+    """``values`` in the narrowest of a 16- or 64-bit array (offsets and item indices of
+    a device fit 16 bits); OverflowError if they fit neither."""
+    try:
+        return array("H", values)
+    except OverflowError:
+        return array("q", values)
 
 
 @dataclass(frozen=True, slots=True)

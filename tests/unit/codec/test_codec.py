@@ -514,3 +514,50 @@ def test_block_from_values_checks_its_input() -> None:
         Block.from_values([0, 65536], bits=False)
     with pytest.raises(ValueError, match="bit value 2 at index 0"):
         Block.from_values([2], bits=True)
+
+
+# -- many items of one output kind: how a decoder finds one item's value -------------------
+
+
+@pytest.mark.parametrize("changed", [0, 255, 256, 257, 1999])
+def test_one_change_among_2000_coils_reports_that_coil(changed: int) -> None:
+    """A block of 2000 coils (the most one request reads): past 256 items of a kind the
+    plan keeps an item's slot in an array instead of a list (see CodecPlan)."""
+    decoder = BlockDecoder(Area.COIL, 2000, [(k, ValueSpec(f"c{k}", T.BOOLEAN))
+                                             for k in range(2000)])
+    bits = [k % 3 == 0 for k in range(2000)]
+    first = decoder.decode(Block.from_values([int(b) for b in bits], bits=True))
+    assert first == [(k, b, None) for k, b in enumerate(bits)]
+    bits[changed] = not bits[changed]
+    again = decoder.decode(Block.from_values([int(b) for b in bits], bits=True))
+    assert again == [(changed, bits[changed], None)]
+
+
+def test_one_change_among_interleaved_kinds_reports_its_value() -> None:
+    """Items of every output kind in turn, one changing at a time: each report carries the
+    changed item's own value (integers, floats, bools and post-processed strings)."""
+    kinds = [ValueSpec("i", T.INT16), ValueSpec("u", T.UINT16), ValueSpec("f", T.FLOAT),
+             ValueSpec("b", T.BOOLEAN, bit=2), ValueSpec("s", T.STRING, quantity=2)]
+    specs: list[tuple[int, ValueSpec]] = []
+    offset = 0
+    for k in range(60):
+        spec = kinds[k % len(kinds)]
+        specs.append((offset, spec))
+        offset += spec.registers
+    decoder = BlockDecoder(HR, offset, specs)
+    registers = [0x4142] * offset
+    decoder.decode(Block.from_values(registers, bits=False))
+    for index, (at, spec) in enumerate(specs):
+        registers[at] ^= 0x0004
+        [(k, value, error)] = decoder.decode(Block.from_values(registers, bits=False))
+        expected = decoder.decode_values(Block.from_values(registers, bits=False))[index]
+        assert (k, value, error) == (index, expected, None)
+        assert value == one(spec, *registers[at:at + spec.registers])
+        registers[at] ^= 0x0004
+        decoder.decode(Block.from_values(registers, bits=False))
+
+
+def test_decoder_specs_are_the_items_specs_in_order() -> None:
+    items = [(0, ValueSpec("a", T.INT16)), (1, ValueSpec("b", T.FLOAT)),
+             (3, ValueSpec("a", T.INT16)), (4, ValueSpec("c", T.INT16))]
+    assert BlockDecoder(HR, 5, items).specs == [spec for _, spec in items]

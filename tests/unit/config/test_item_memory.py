@@ -11,9 +11,11 @@ from typing import Any
 import pytest
 
 import edgemodbus as em
-from edgemodbus.config import ConfigError, DeviceAddressItem
+from edgemodbus.codec import BlockDecoder
+from edgemodbus.config import ConfigError, DeviceAddressItem, DeviceConfig
 from edgemodbus.datatypes import DataType, ItemStatus
-from edgemodbus.poll.items import ItemState
+from edgemodbus.poll.items import ItemState, Slot, shared_offset
+from edgemodbus.poll.schedule import build_plan
 
 N = 2000
 
@@ -67,6 +69,45 @@ def test_item_states_take_under_100_bytes_each() -> None:
     assert isinstance(states, list)
     kinds = {id(s.kind) for s in states}
     assert len(kinds) == 4  # one per kind of tag, shared
+
+
+def _poll_state(cfg: DeviceConfig) -> tuple[list[ItemState], list[Slot]]:
+    """What a poller keeps of a device, built the way it builds it: the item states, the
+    read plan and a slot with its decoder per block."""
+    parsed = cfg.parsed_items()
+    states = [ItemState(p) for p in parsed]
+    slots: list[Slot] = []
+    for block in build_plan(parsed, cfg.communication):
+        whole = [states[p.key] for p in block.pieces if isinstance(p.key, int)]
+        decoder = BlockDecoder(block.area, block.count,
+                               [(p.block_offset, s.shape) for p, s in zip(block.pieces, whole,
+                                                                          strict=True)])
+        slots.append(Slot(block, whole, decoder, []))
+    return states, slots
+
+
+def test_poll_state_takes_under_200_bytes_per_item() -> None:
+    """The Python side of what polling keeps per tag (the decoders' C arrays come on
+    top, see bench/test_bench_driver.py): item state, plan and decoder, for two devices
+    of one kind."""
+    configs = [em.load_device_config(_device(N, s)) for s in (1, 2)]
+    _poll_state(em.load_device_config(_device(8)))  # imports and one-off caches
+    kept, held = _traced_bytes(lambda: [_poll_state(c) for c in configs])
+    assert isinstance(kept, list)
+    # was 404: a Piece per item in the plan, and per item in each decoder a tuple of
+    # where its value is, its spec, offset and index, and its own offset int
+    assert held / (2 * N) < 200
+
+
+def test_items_at_one_offset_share_one_int() -> None:
+    """Devices of one kind repeat the same offsets: their item states share the ints."""
+    first, second = (em.load_device_config(_device(300, s)).parsed_items() for s in (1, 2))
+    offset = first[-1].address.offset
+    assert offset > 256 and second[-1].address.offset == offset
+    assert first[-1].address.offset is not second[-1].address.offset  # parsed apart
+    a, b = ItemState(first[-1]), ItemState(second[-1])
+    assert a.offset == offset and a.offset is b.offset
+    assert shared_offset(70000) == 70000 and shared_offset(-1) == -1  # outside: as given
 
 
 def test_item_has_no_dict_and_keeps_the_model_api() -> None:

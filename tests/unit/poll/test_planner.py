@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+import copy
+import gc
 import itertools
+import pickle
+import tracemalloc
 from collections import Counter, defaultdict
 from collections.abc import Hashable, Sequence
 
@@ -29,6 +33,42 @@ def hr(key: Hashable, offset: int, size: int = 1) -> PlanItem:
 
 def spans(blocks: Sequence[ReadBlock]) -> list[tuple[Area, int, int]]:
     return [(b.area, b.start, b.count) for b in blocks]
+
+
+# ----------------------------------------------------------------------------- ReadBlock
+
+
+@pytest.mark.parametrize("keys", [[0, 1, 70000, -3], ["a", ("b", 1), 2, None]])
+def test_a_block_gives_back_its_pieces_and_compares_by_value(keys: list[Hashable]) -> None:
+    pieces = tuple(Piece(key, 0 if k else 5, 2 * k, 2) for k, key in enumerate(keys))
+    block = ReadBlock(HR, 100, 8, pieces, 250)
+    assert (block.area, block.start, block.count, block.rate) == (HR, 100, 8, 250)
+    assert block.pieces == pieces and block.keys == tuple(keys) and block.end == 108
+    same = ReadBlock(HR, 100, 8, list(pieces), 250)
+    assert same == block and hash(same) == hash(block)
+    assert copy.deepcopy(block) == block and pickle.loads(pickle.dumps(block)) == block
+    assert block != ReadBlock(HR, 100, 8, pieces, 500)
+    assert block != ReadBlock(HR, 100, 8, pieces[:-1], 250)
+    assert "pieces=(Piece(" in repr(block)
+    with pytest.raises(AttributeError):
+        block.start = 5  # type: ignore[misc]
+
+
+def test_a_block_keeps_its_pieces_in_a_few_bytes_each() -> None:
+    """A gateway holds one piece per tag: a block keeps them as small ints in arrays
+    (keys that are item indexes too), not as a Piece object (64 bytes) each."""
+    items = [hr(k, 300 + k) for k in range(120)]
+    gc.collect()
+    tracemalloc.start()
+    try:
+        before = tracemalloc.get_traced_memory()[0]
+        blocks = plan_reads(items, max_registers=120)
+        gc.collect()
+        held = tracemalloc.get_traced_memory()[0] - before
+    finally:
+        tracemalloc.stop()
+    assert [len(b.pieces) for b in blocks] == [120]
+    assert held / 120 < 16  # was 74: a Piece object and its place in a tuple per item
 
 
 # ----------------------------------------------------------------------------- examples
