@@ -19,7 +19,6 @@ from .codec import CODEC_MODE_ALL, CODEC_MODE_TRACK, CodecPlan
 from .context import Context
 from .native import ffi, lib
 
-EV_DEADLINE: int = lib.EMB_EV_DEADLINE
 EV_CYCLE: int = lib.EMB_EV_CYCLE
 EV_FAILED: int = lib.EMB_EV_FAILED
 EV_WAKE: int = lib.EMB_EV_WAKE
@@ -200,10 +199,6 @@ class EngineDevice:
         """Passes begun (the cycle number the pieces of large items are matched by)."""
         return int(self._dev.passes)
 
-    @property
-    def pass_start(self) -> float:
-        return _seconds(int(self._dev.pass_start_ns))
-
     def pass_blocks(self) -> list[int]:
         """Block indices of the pass under way (or the last one, once it ended)."""
         return list(ffi.unpack(self._pass, int(self._dev.n_pass)))
@@ -343,8 +338,3 @@ class Engine:
     @property
     def event_errno(self) -> int:
         return int(self._e.event_errno)
-
-
-def monotonic_now() -> float:
-    """CLOCK_MONOTONIC as C reads it (the engine's clock; time.monotonic's too)."""
-    return int(lib.emb_now_ns()) / 1e9
