@@ -38,9 +38,10 @@ def _small_ints(values: list[int]) -> array[int]:
     return array("H" if max(values, default=0) <= 0xFFFF else "I", values)
 
 
-def _indexes(n: int) -> tuple[int, ...]:
-    """At least ``n`` item indexes 0, 1, ...: one tuple shared by every decoder (zipping
-    over a tuple is cheaper than over a range, and a decoder keeps no list of its own)."""
+def _shared_indexes(n: int) -> tuple[int, ...]:
+    """At least ``n`` item indexes 0, 1, ...: one tuple shared by every decoder, so that
+    a decoder keeps no list of indexes of its own (and zips over a tuple, which is
+    cheaper than over a range)."""
     global _INDEXES
     if len(_INDEXES) < n:
         _INDEXES = tuple(range(max(n, 2 * len(_INDEXES))))
@@ -58,6 +59,7 @@ class BlockDecoder:
     """
 
     __slots__ = (
+        "_indexes",
         "_offsets",
         "_plan",
         "_reported",
@@ -94,6 +96,7 @@ class BlockDecoder:
         # the compiled items live on in the C plan only: error reasons, which are rare,
         # compile their item again (see _reason), which keeps a decoder small per tag
         self._plan = CodecPlan(area.is_bit, [c.item for c in compiled], [c.post for c in compiled])
+        self._indexes = _shared_indexes(len(compiled))
         # The tuple last reported for each item: mirrors the C state, so that a report of
         # every item rebuilds only the tuples whose value or status moved.
         self._reported: list[Change] = []
@@ -203,7 +206,7 @@ class BlockDecoder:
             # Most items are new: build every tuple in one go (a report of all items
             # holds the current value of each, so the rebuilt cache still mirrors C).
             values = plan.values()
-            reported = list(zip(_indexes(total), values, itertools.repeat(None), strict=False))
+            reported = list(zip(self._indexes, values, itertools.repeat(None), strict=False))
             if plan.n_errors:
                 for k in plan.errors():
                     reported[k] = (k, None, self._reason(k, plan.status(k)))
