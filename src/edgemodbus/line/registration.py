@@ -27,8 +27,8 @@ and regex mode, CR/LF/NUL).  Then, per mode:
 
 The peer is unknown at once when, in text or hex mode, its bytes are no beginning of a
 configured id or what comes before an end is not one, or when, in regex mode, a
-terminated match names no configured id; also after :data:`MAX_REGISTRATION` bytes
-without a registration.  So an id that is a prefix of another configured id is matched
+terminated match names no configured id; also after ``registrationMaxBytes``
+(:attr:`PortSettings.max_bytes`) bytes without a registration.  So an id that is a prefix of another configured id is matched
 at an end, or after the quiet gap, never early.  Bytes after the registration (CR/LF/NUL
 right after it are consumed; a heartbeat or a wrapped frame is not) are handed to the
 link with the socket, never lost nor taken for part of the id.  The quiet gap trades a
@@ -42,15 +42,17 @@ from __future__ import annotations
 import bisect
 import re
 from collections.abc import Collection, Iterable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 QUIET_GAP = 0.5
 """Seconds without a further byte after which a registration that equals a configured id,
 but has no end, is taken.  Longer than Linux's minimum TCP retransmission timeout (0.2 s),
 so that one retransmitted segment of the rest of a longer id is still awaited."""
 
-MAX_REGISTRATION = 2048
-"""Bytes a peer may send without registering before it counts as unknown."""
+DUPLICATE_POLICIES = ("replace", "keep-existing")
+"""What a second connection claiming a connected DTU's id gets: ``replace`` (the newcomer
+takes over: a DTU that re-dialled behind a half-open socket) or ``keep-existing`` (the
+old connection stays while it still answers)."""
 
 _LINE_ENDS = b"\r\n\0"
 
@@ -67,6 +69,15 @@ class PortSettings:
     timeout: float = 5.0  # seconds for a new connection to register
     heartbeat: bytes = b""  # skipped before the registration packet too
     quiet_gap: float = QUIET_GAP  # see the module docstring: when a registration is complete
+    # what an unregistered connection may cost (the listener faces the internet)
+    max_bytes: int = 256  # registrationMaxBytes: bytes before a registration, then closed
+    byte_rate: int = 1024  # registrationByteRate: bytes/s read before it (0: no limit)
+    max_unregistered: int = 512  # maxUnregistered: connections not registered yet
+    max_per_source: int = 64  # maxUnregisteredPerSource: the same, per source address
+    allow_from: tuple[str, ...] = ()  # listenAllowFrom: CIDR networks (empty: any)
+    duplicate_id: str = "replace"  # duplicateId: one of DUPLICATE_POLICIES
+    flip_limit: int = 5  # idFlipLimit: replacements of one id within flip_window ...
+    flip_window: float = 60.0  # idFlipWindow (s): ... beyond which the id is contested
 
     @property
     def key(self) -> tuple[str, int]:
@@ -75,9 +86,21 @@ class PortSettings:
     def differences(self, other: PortSettings) -> list[str]:
         names = {"registration": "registration", "pattern": "registrationPattern",
                  "length": "registrationLength", "timeout": "registrationTimeout",
-                 "heartbeat": "heartbeat"}
+                 "heartbeat": "heartbeat", "max_bytes": "registrationMaxBytes",
+                 "byte_rate": "registrationByteRate", "max_unregistered": "maxUnregistered",
+                 "max_per_source": "maxUnregisteredPerSource",
+                 "allow_from": "listenAllowFrom", "duplicate_id": "duplicateId",
+                 "flip_limit": "idFlipLimit", "flip_window": "idFlipWindow"}
         return [f"{key} {getattr(other, attr)!r} (the port has {getattr(self, attr)!r})"
                 for attr, key in names.items() if getattr(self, attr) != getattr(other, attr)]
+
+
+@dataclass(frozen=True)
+class DtuAccess:
+    """Who may register as one DTU (every device naming the DTU must agree)."""
+
+    allow_from: tuple[str, ...] = ()  # dtuAllowFrom: CIDR networks (empty: as the port)
+    key: bytes = field(default=b"", repr=False)  # registrationKey (never shown nor logged)
 
 
 @dataclass(frozen=True, slots=True)
@@ -86,6 +109,7 @@ class Identified:
 
     dtu_id: str
     end: int  # bytes of the buffer that were the registration; the rest is the DTU's data
+    key: bytes | None = field(default=None, repr=False)  # the pattern's ``key`` group
 
 
 class IdIndex:
@@ -171,8 +195,8 @@ def identify(buf: bytes, ids: Collection[str] | IdIndex, settings: PortSettings,
         found = _regex_terminated(packet, index, settings, start, settled)
     else:
         found = _exact(packet, index, settings, start, settled)
-    if found is None and len(buf) > MAX_REGISTRATION:
-        return f"no registration in the first {MAX_REGISTRATION} bytes"
+    if found is None and len(buf) >= settings.max_bytes:
+        return f"no registration in the first {settings.max_bytes} bytes"
     return found
 
 
@@ -250,13 +274,29 @@ def _regex_terminated(packet: bytes, ids: IdIndex, settings: PortSettings,
 
 def _search(packet: bytes, ids: IdIndex, pattern: str, end: int,
             quiet: bool = False) -> Identified | str | None:
-    """The id ``pattern`` finds in ``packet`` (its first group, else the whole match).
+    """The id ``pattern`` finds in ``packet`` and the key beside it (:func:`pattern_id`).
     No match: None when ``quiet`` (more may come), else the reason."""
     match = re.search(pattern, packet.decode("latin-1"))
     if match is None:
         return None if quiet else "no match of registrationPattern"
-    dtu_id = match.group(1) if match.re.groups else match.group(0)
-    return Identified(dtu_id, end) if ids.has_name(dtu_id) else dtu_id
+    dtu_id, key = pattern_id(match)
+    return Identified(dtu_id, end, key) if ids.has_name(dtu_id) else dtu_id
 
 
-__all__ = ["MAX_REGISTRATION", "QUIET_GAP", "IdIndex", "Identified", "PortSettings", "identify"]
+def pattern_id(match: re.Match[str]) -> tuple[str, bytes | None]:
+    """The id and key a registrationPattern match names: the id is the group named
+    ``id``, else the first group that is not ``key``, else the whole match; the key is the
+    group named ``key`` (None when the pattern has none or it took no part)."""
+    groups = match.re.groupindex
+    key_group = groups.get("key")
+    if "id" in groups:
+        dtu_id = match.group("id")
+    else:
+        first = next((n for n in range(1, match.re.groups + 1) if n != key_group), 0)
+        dtu_id = match.group(first)
+    key = match.group("key") if key_group is not None else None
+    return dtu_id or "", None if key is None else key.encode("latin-1")
+
+
+__all__ = ["DUPLICATE_POLICIES", "QUIET_GAP", "DtuAccess", "IdIndex", "Identified",
+           "PortSettings", "identify", "pattern_id"]

@@ -10,7 +10,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from edgemodbus.line.registration import MAX_REGISTRATION, Identified, PortSettings, identify
+from edgemodbus.line.registration import Identified, PortSettings, identify
 
 HEARTBEAT = b"HB"
 WRAPPED = bytes.fromhex("FFAA0001010302030578B70D")  # a report right after registering
@@ -93,9 +93,9 @@ def test_fixed_length_ends_the_packet() -> None:
 
 def test_a_peer_that_never_registers_is_unknown_after_a_bounded_buffer() -> None:
     ps = port("regex", pattern=r"ID:(\d+)")
-    assert identify(b"x" * 100, ["1"], ps, settled=False) is None
-    assert identify(b"x" * (MAX_REGISTRATION + 1), ["1"], ps, settled=False) == (
-        f"no registration in the first {MAX_REGISTRATION} bytes")
+    assert identify(b"x" * (ps.max_bytes - 1), ["1"], ps, settled=False) is None
+    assert identify(b"x" * ps.max_bytes, ["1"], ps, settled=False) == (
+        f"no registration in the first {ps.max_bytes} bytes")
 
 
 # --- the class: random id sets with prefixes, random segmentation -----------------------
