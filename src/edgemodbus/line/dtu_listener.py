@@ -78,6 +78,7 @@ class _Newcomer:
     quiet_at: float = math.inf  # when to look at the registration again if no byte comes
     resume_at: float = math.inf  # reading paused (byte rate) until then
     held: bool = False  # refused: kept unread until the deadline, then closed
+    waiting: bool = True  # counted against the caps on connections waiting to register
     challenge: tuple[DtuSlot, bytes, int] | None = None  # keep-existing: slot, rest, answers
 
     def wake(self) -> float:
@@ -188,7 +189,7 @@ class DtuListener:
         """Close a new connection at once (reset: no TIME_WAIT kept here), counted and
         logged through the limiter."""
         self.counts[counter] += 1
-        self._logs.event(logging.WARNING, f"connections refused ({why})", source,
+        self._logs.event(logging.WARNING, f"connections refused ({counter})", source,
                          "DTU listener :%d: %s refused: %s", self.port, source, why)
         with contextlib.suppress(OSError):
             conn.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, _RESET)
@@ -269,7 +270,7 @@ class DtuListener:
             self.counts["registered"] += 1
             if outcome == "replaced":
                 self.counts["replaced"] += 1
-            self._logs.event(logging.INFO, "DTUs registered", peer, "DTU %r registered from "
+            self._logs.event(logging.INFO, "DTUs registered", slot.dtu_id, "DTU %r registered from "
                              "%s on port %d", slot.dtu_id, peer, self.port)
             return
         conn.setblocking(False)
@@ -295,9 +296,9 @@ class DtuListener:
             self._sel.unregister(newcomer.sock)
         newcomer.held = True
         newcomer.quiet_at = newcomer.resume_at = math.inf
-        if not counted:
+        if not counted and newcomer.waiting:
             self._waiting.remove(newcomer.source)
-            newcomer.source = ""  # no longer waiting to register
+            newcomer.waiting = False
 
     def _close(self, newcomer: _Newcomer) -> None:
         """Forget a newcomer and close its socket."""
@@ -309,8 +310,9 @@ class DtuListener:
         with contextlib.suppress(KeyError, ValueError):
             self._sel.unregister(newcomer.sock)
         self._newcomers.discard(newcomer)
-        if newcomer.source:
+        if newcomer.waiting:
             self._waiting.remove(newcomer.source)
+            newcomer.waiting = False
 
     def _on_data(self, newcomer: _Newcomer) -> None:
         room = self.settings.max_bytes - len(newcomer.buf)
