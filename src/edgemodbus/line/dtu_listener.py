@@ -171,14 +171,17 @@ class DtuListener:
                 first = min((n.wake() for n in self._newcomers), default=math.inf)
                 first = min(first, self._accept_at, self._logs.next_due())
                 timeout = None if first == math.inf else max(0.0, first - time.monotonic())
+                accept = False
                 for key, _ in self._sel.select(timeout):
                     if key.fileobj is self._sock:
-                        self._accept()
+                        accept = True  # after the registrations: they free waiting places
                     elif key.fileobj is self._wake_r:
                         with contextlib.suppress(OSError):
                             self._wake_r.recv(64)
                     else:
                         self._on_data(key.data)
+                if accept:
+                    self._accept()
                 self._timers(time.monotonic())
                 self._logs.flush()
             self._logs.flush(force=True)
