@@ -302,8 +302,10 @@ class Gateway:
             log.info("%s: %s (%s)", code, status, path.name)
 
     def _change_device(self, dev: ServiceDevice, digest: str, cfg: DeviceConfig) -> None:
+        # secrets compared too (to_dict masks them): a new registrationKey restarts
         same_line = (cfg.organization.to_dict() == dev.cfg.organization.to_dict()
-                     and cfg.communication.to_dict() == dev.cfg.communication.to_dict()
+                     and cfg.communication.to_dict(secrets=True)
+                     == dev.cfg.communication.to_dict(secrets=True)
                      and cfg.driver_type == dev.cfg.driver_type)
         if same_line and dev.driver.device_driver_status.value != "Disabled":
             items = [it.model_copy(deep=True) for it in cfg.address_list]
