@@ -350,14 +350,18 @@ class Gateway:
 
 def _digest(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
 def _start_exporter(config: GatewayConfig) -> MetricsExporter | None:
-    """The exporter ``config`` asks for, listening; OSError names the address."""
+    """The exporter ``config`` asks for, listening, with the drivers' DTU listen ports
+    as its listener source; OSError names the address."""
     metrics = config.metrics
     if metrics is None or not metrics.enabled:
         return None
     from ..northbound.metrics import MetricsExporter
 
     exporter = MetricsExporter(metrics, gateway_id=config.effective_id)
+    exporter.set_listener_stats(DriverModbusRtu.dtu_registry)  # the DTU listen ports
     try:
         exporter.start()
     except OSError as exc:
