@@ -29,6 +29,7 @@ from .config import (
 from .config.listen import key_bytes, networks
 from .datatypes import DeviceDriverStatus
 from .line import (
+    DtuAccess,
     DtuEndpoint,
     DtuRegistry,
     DtuSlot,
@@ -42,7 +43,6 @@ from .line import (
     endpoint_for,
     line_registry,
 )
-from .line.registration import DtuAccess
 from .poll.items import ItemState
 from .poll.planner import ReadBlock
 from .poll.poller import Poller

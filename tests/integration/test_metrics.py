@@ -20,6 +20,7 @@ import edgemodbus as em
 from edgemodbus.config import ConfigError
 from edgemodbus.datatypes import DeviceDriverStatus
 from edgemodbus.gateway import Gateway, GatewayConfig
+from edgemodbus.line.dtu_listener import COUNTERS
 from edgemodbus.northbound.metrics import DTU_LISTENER_EVENTS, MetricsExporter, MetricsSettings
 from edgemodbus.northbound.mqtt import MqttPublisher
 from tests.peers import ExceptionRange, PymodbusSlave, free_port
@@ -213,6 +214,11 @@ def test_dtu_listener_stats_are_a_counter_family_by_event_and_three_gauges() -> 
     assert not any(name.startswith("edgemodbus_dtu_listener") for name in types)
 
 
+def test_every_counter_of_the_listener_is_an_event() -> None:
+    # the gauges are the other keys of DtuListener.stats (checked live below)
+    assert set(DTU_LISTENER_EVENTS) == {*COUNTERS, "logSuppressed"}
+
+
 @pytest.mark.parametrize("broken", ["raises", "not a number"])
 def test_a_failing_listener_source_never_fails_the_scrape(
         broken: str, caplog: pytest.LogCaptureFixture) -> None:
@@ -244,7 +250,7 @@ def test_the_gateway_exports_its_drivers_dtu_listen_ports(tmp_path: Path) -> Non
         "organization": {"deviceCode": "dtu1"},
         "communication": {"transport": "rtu-over-tcp-server", "listenHost": "127.0.0.1",
                           "listenPort": listen, "dtuId": "A1", "registration": "text",
-                          "registrationTimeout": 200},
+                          "registrationTimeout": 5000},
         "addressList": [{"name": "a", "address": "hr:0", "deviceDataType": "UInt16"}],
     }), "utf-8")
     gateway = Gateway(tmp_path, GatewayConfig.model_validate({"metrics": {"port": 0}}))
@@ -256,9 +262,17 @@ def test_the_gateway_exports_its_drivers_dtu_listen_ports(tmp_path: Path) -> Non
         assert exporter is not None
         _, samples = scrape(exporter.port)
         assert samples[("edgemodbus_dtu_listener_events_total", key)] == 0
+        port = lbl(port=f"127.0.0.1:{listen}")
+        assert samples[("edgemodbus_dtu_listener_dtus", port)] == 1
+        assert samples[("edgemodbus_dtu_listener_connected", port)] == 0
+        assert {labels for name, labels in samples
+                if name == "edgemodbus_dtu_listener_events_total"} \
+            == {lbl(port=f"127.0.0.1:{listen}", event=e) for e in DTU_LISTENER_EVENTS}
         with socket.create_connection(("127.0.0.1", listen), timeout=5):
             wait_for(lambda: scrape(exporter.port)[1].get(
                 ("edgemodbus_dtu_listener_events_total", key)) == 1, what="accepted 1")
+            assert scrape(exporter.port)[1][("edgemodbus_dtu_listener_unregistered", port)] \
+                == 1
     finally:
         gateway.stop()
 

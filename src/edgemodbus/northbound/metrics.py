@@ -91,8 +91,8 @@ MQTT_DEVICE_COUNTERS: tuple[tuple[str, str, str], ...] = (
 DTU_LISTENER_EVENTS: tuple[str, ...] = (
     "accepted", "registered", "unknown", "silent", "oversize", "refusedPortCap",
     "refusedSourceCap", "refusedNotAllowed", "refusedDtuNotAllowed", "badKey",
-    "duplicateRefused", "replaced", "contested", "acceptErrors", "acceptPauses",
-    "logSuppressed",
+    "duplicateRefused", "replaced", "contested", "refusedContested", "acceptErrors",
+    "acceptPauses", "logSuppressed",
 )
 DTU_LISTENER_GAUGES: tuple[tuple[str, str, str], ...] = (
     ("unregistered", "dtu_listener_unregistered",
