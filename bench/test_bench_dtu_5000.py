@@ -41,7 +41,7 @@ import pytest
 import edgemodbus as em
 from bench.conftest import QUICK, cpu_seconds, report, scale
 from edgemodbus.datatypes import ItemStatus
-from edgemodbus.line.dtu_listener import registry as dtu_registry
+from edgemodbus.line import dtu_registry
 from edgemodbus.sim import DtuFleet, raise_open_files_limit
 
 TAGS = 20

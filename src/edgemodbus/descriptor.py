@@ -1,7 +1,8 @@
 """The driver descriptor (the seed's descriptor JSON), generated so that it cannot drift.
 
 Parameters come from :class:`~edgemodbus.config.DriverModbusRtuParameter`'s fields
-(their defaults, ranges, choices and descriptions) and their UI labels in
+(their defaults, ranges, choices and descriptions; an allow-list is one text of networks
+separated by commas, a secret's default is never shown) and their UI labels in
 :mod:`edgemodbus.config.labels` (label, category, controlType, options, visibleWhen,
 dataSource); ``addressParameter`` lists, the same way, the optional fields of an address
 item (:class:`~edgemodbus.config.DeviceAddressItem`) that have labels there
@@ -16,6 +17,7 @@ import types
 import typing
 from typing import Any, Literal
 
+from pydantic import SecretStr
 from pydantic.fields import FieldInfo
 
 from .config import Choice, DeviceAddressItem, DriverModbusRtuParameter, Parity, Range
@@ -141,6 +143,12 @@ def _plain(x: float) -> int | float:
 
 
 def _ui_value(value: Any) -> Any:
+    """A default as the UI shows it: parity as its number, an enum as its value, a list
+    (the allow-lists: a text box) as one text separated by commas, a secret never."""
+    if isinstance(value, SecretStr):
+        return ""
+    if isinstance(value, tuple):
+        return ", ".join(str(v) for v in value)
     if isinstance(value, Parity):
         return value.number
     if isinstance(value, enum.Enum):

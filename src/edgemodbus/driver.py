@@ -26,8 +26,10 @@ from .config import (
     validate_items,
     validate_parameters,
 )
+from .config.listen import key_bytes, networks
 from .datatypes import DeviceDriverStatus
 from .line import (
+    DtuAccess,
     DtuEndpoint,
     DtuRegistry,
     DtuSlot,
@@ -138,7 +140,8 @@ class DriverModbusRtu:
         line: LineWorker | None = None
         try:
             if isinstance(endpoint, DtuEndpoint):
-                slot = self.dtu_registry.acquire(_port_settings(params), endpoint)
+                slot = self.dtu_registry.acquire(port_settings(params), endpoint,
+                                                 dtu_access(params))
                 dtu_slot = slot
                 line = self.registry.acquire(endpoint, timing, connector=lambda: dtu_slot)
                 slot.attach(line)
@@ -340,7 +343,10 @@ def _wait_write(future: Future[Any]) -> tuple[bool, str | None]:
     return result
 
 
-def _port_settings(params: DriverModbusRtuParameter) -> PortSettings:
+def port_settings(params: DriverModbusRtuParameter) -> PortSettings:
+    """What a listen-mode device asks of its listen port (every device naming the port
+    must agree; the allow-list normalised and sorted, so that the order it is listed in
+    does not matter)."""
     return PortSettings(
         host=params.listen_host,
         port=params.effective_listen_port,
@@ -349,7 +355,22 @@ def _port_settings(params: DriverModbusRtuParameter) -> PortSettings:
         length=params.registration_length,
         timeout=params.registration_timeout / 1000,
         heartbeat=params.heartbeat_bytes,
+        max_bytes=params.registration_max_bytes,
+        byte_rate=params.registration_byte_rate,
+        max_unregistered=params.max_unregistered,
+        max_per_source=params.max_unregistered_per_source,
+        allow_from=networks(params.listen_allow_from, "listenAllowFrom"),
+        duplicate_id=params.duplicate_id,
+        flip_limit=params.id_flip_limit,
+        flip_window=params.id_flip_window / 1000,
     )
+
+
+def dtu_access(params: DriverModbusRtuParameter) -> DtuAccess:
+    """Who may register as a listen-mode device's DTU (every device behind the DTU must
+    agree): its source allow-list and registration key (bytes, as the packet is read)."""
+    return DtuAccess(allow_from=networks(params.dtu_allow_from, "dtuAllowFrom"),
+                     key=key_bytes(params.registration_key))
 
 
 def _block_dict(block: ReadBlock, items: Sequence[ItemState]) -> dict[str, Any]:

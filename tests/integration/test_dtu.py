@@ -18,7 +18,7 @@ import pytest
 
 import edgemodbus as em
 from edgemodbus.datatypes import Area, DeviceDriverStatus, ItemStatus
-from edgemodbus.line.dtu_listener import registry as dtu_registry
+from edgemodbus.line import dtu_registry
 from edgemodbus.sim import Simulator, default_register
 from tests.waiting import wait_for
 

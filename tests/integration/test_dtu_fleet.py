@@ -16,7 +16,7 @@ import time
 
 import edgemodbus as em
 from edgemodbus.datatypes import Area, ItemStatus
-from edgemodbus.line.dtu_listener import registry as dtu_registry
+from edgemodbus.line import dtu_registry
 from edgemodbus.sim import DtuFleet, default_register
 from tests.integration.test_dtu import dtu_device, free_port, ok, running, values
 from tests.waiting import wait_for

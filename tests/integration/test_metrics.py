@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
+import json
+import logging
+import socket
 import subprocess
 import sys
 import time
 import urllib.request
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -15,9 +19,12 @@ from prometheus_client.parser import text_string_to_metric_families
 import edgemodbus as em
 from edgemodbus.config import ConfigError
 from edgemodbus.datatypes import DeviceDriverStatus
-from edgemodbus.northbound.metrics import MetricsExporter, MetricsSettings
+from edgemodbus.gateway import Gateway, GatewayConfig
+from edgemodbus.line.dtu_listener import COUNTERS
+from edgemodbus.northbound.metrics import DTU_LISTENER_EVENTS, MetricsExporter, MetricsSettings
 from edgemodbus.northbound.mqtt import MqttPublisher
 from tests.peers import ExceptionRange, PymodbusSlave, free_port
+from tests.waiting import wait_for
 
 Samples = dict[tuple[str, tuple[tuple[str, str], ...]], float]
 
@@ -151,6 +158,123 @@ def test_histogram_buckets_are_used_when_stats_carry_them() -> None:
     assert samples[("edgemodbus_cycle_seconds_bucket", lbl(**base, le="+Inf"))] == 10
     assert samples[("edgemodbus_cycle_seconds_sum", lbl(**base))] == 0.2
     assert samples[("edgemodbus_requests_total", lbl(**base))] == 12
+
+
+def parsed(text: bytes) -> tuple[dict[str, str], Samples]:
+    """(family name -> type, samples) of rendered exposition text."""
+    types: dict[str, str] = {}
+    samples: Samples = {}
+    for family in text_string_to_metric_families(text.decode()):
+        types[family.name] = family.type
+        for s in family.samples:
+            samples[(s.name, tuple(sorted(s.labels.items())))] = s.value
+    return types, samples
+
+
+class FakeListeners:
+    """A listener-stats source: what DtuRegistry.stats() gives, or a failure."""
+
+    def __init__(self, stats: dict[str, dict[str, int]]) -> None:
+        self.ports = stats
+        self.fail = False
+
+    def stats(self) -> dict[str, dict[str, int]]:
+        if self.fail:
+            raise RuntimeError("listener gone")
+        return self.ports
+
+
+def test_dtu_listener_stats_are_a_counter_family_by_event_and_three_gauges() -> None:
+    full = {event: n for n, event in enumerate(DTU_LISTENER_EVENTS, start=1)}
+    source = FakeListeners({
+        "0.0.0.0:9502": {**full, "unregistered": 7, "dtus": 120, "connected": 98},
+        "[::]:9600": {"accepted": 3, "badKey": 2, "connected": 1, "somethingNew": 9},
+    })
+    exporter = MetricsExporter({"port": 0})
+    exporter.set_listener_stats(source)
+    types, samples = parsed(exporter.render())
+    assert types["edgemodbus_dtu_listener_events"] == "counter"
+    for gauge in ("unregistered", "dtus", "connected"):
+        assert types[f"edgemodbus_dtu_listener_{gauge}"] == "gauge"
+    events = {labels: v for (name, labels), v in samples.items()
+              if name == "edgemodbus_dtu_listener_events_total"}
+    assert events == {
+        **{lbl(port="0.0.0.0:9502", event=e): float(n) for e, n in full.items()},
+        lbl(port="[::]:9600", event="accepted"): 3.0,
+        lbl(port="[::]:9600", event="badKey"): 2.0,  # the others are missing: not emitted
+    }
+    assert samples[("edgemodbus_dtu_listener_unregistered", lbl(port="0.0.0.0:9502"))] == 7
+    assert samples[("edgemodbus_dtu_listener_dtus", lbl(port="0.0.0.0:9502"))] == 120
+    assert samples[("edgemodbus_dtu_listener_connected", lbl(port="0.0.0.0:9502"))] == 98
+    assert samples[("edgemodbus_dtu_listener_connected", lbl(port="[::]:9600"))] == 1
+    assert ("edgemodbus_dtu_listener_dtus", lbl(port="[::]:9600")) not in samples
+    assert not any("somethingNew" in str(k) for k in samples)
+    exporter.set_listener_stats(None)
+    types, _ = parsed(exporter.render())
+    assert not any(name.startswith("edgemodbus_dtu_listener") for name in types)
+
+
+def test_every_counter_of_the_listener_is_an_event() -> None:
+    # the gauges are the other keys of DtuListener.stats (checked live below)
+    assert set(DTU_LISTENER_EVENTS) == {*COUNTERS, "logSuppressed"}
+
+
+@pytest.mark.parametrize("broken", ["raises", "not a number"])
+def test_a_failing_listener_source_never_fails_the_scrape(
+        broken: str, caplog: pytest.LogCaptureFixture) -> None:
+    class Source:
+        device_driver_status = DeviceDriverStatus.RUNNING
+        data_item_count = 1
+
+        def stats(self) -> dict[str, Any]:
+            return {"cycles": 4, "requests": 4}
+
+    source = FakeListeners({"127.0.0.1:9502": {"accepted": 5}})
+    if broken == "raises":
+        source.fail = True
+    else:
+        source.ports["127.0.0.1:9502"]["registered"] = "many"  # type: ignore[assignment]
+    with MetricsExporter({"port": 0}) as exporter:
+        exporter.attach(Source(), "dev", "line0")
+        exporter.set_listener_stats(source)
+        with caplog.at_level(logging.ERROR, logger="edgemodbus.metrics"):
+            _, samples = scrape(exporter.port)  # HTTP 200, the device's families intact
+    assert samples[("edgemodbus_requests_total", lbl(device="dev", line="line0"))] == 4
+    assert not any(name.startswith("edgemodbus_dtu_listener") for name, _ in samples)
+    assert "DTU listener stats() failed" in caplog.text
+
+
+def test_the_gateway_exports_its_drivers_dtu_listen_ports(tmp_path: Path) -> None:
+    listen = free_port()
+    (tmp_path / "dtu.json").write_text(json.dumps({
+        "organization": {"deviceCode": "dtu1"},
+        "communication": {"transport": "rtu-over-tcp-server", "listenHost": "127.0.0.1",
+                          "listenPort": listen, "dtuId": "A1", "registration": "text",
+                          "registrationTimeout": 5000},
+        "addressList": [{"name": "a", "address": "hr:0", "deviceDataType": "UInt16"}],
+    }), "utf-8")
+    gateway = Gateway(tmp_path, GatewayConfig.model_validate({"metrics": {"port": 0}}))
+    key = lbl(port=f"127.0.0.1:{listen}", event="accepted")
+    try:
+        gateway.start()
+        assert "dtu.json" in {p.name for p in gateway.devices}
+        exporter = gateway.exporter
+        assert exporter is not None
+        _, samples = scrape(exporter.port)
+        assert samples[("edgemodbus_dtu_listener_events_total", key)] == 0
+        port = lbl(port=f"127.0.0.1:{listen}")
+        assert samples[("edgemodbus_dtu_listener_dtus", port)] == 1
+        assert samples[("edgemodbus_dtu_listener_connected", port)] == 0
+        assert {labels for name, labels in samples
+                if name == "edgemodbus_dtu_listener_events_total"} \
+            == {lbl(port=f"127.0.0.1:{listen}", event=e) for e in DTU_LISTENER_EVENTS}
+        with socket.create_connection(("127.0.0.1", listen), timeout=5):
+            wait_for(lambda: scrape(exporter.port)[1].get(
+                ("edgemodbus_dtu_listener_events_total", key)) == 1, what="accepted 1")
+            assert scrape(exporter.port)[1][("edgemodbus_dtu_listener_unregistered", port)] \
+                == 1
+    finally:
+        gateway.stop()
 
 
 def test_bad_metrics_settings_name_the_field() -> None:

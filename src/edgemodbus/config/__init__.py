@@ -10,6 +10,9 @@ what is allowed.  The modules, each one concern:
 * communication.py: :class:`DriverModbusRtuParameter`, :class:`Parity`;
 * items.py: :class:`DeviceAddressItem`, :class:`ParsedItem`, :func:`validate_items`;
 * device.py: :class:`DeviceOrganizationParameter`, :class:`DeviceConfig`, the loaders;
+* listen.py: the listen-mode (DTU) checks and source allow-lists of the communication
+  parameters;
+* secret.py: secret values (:data:`Secret`), never shown, masked in ``to_dict()``;
 * labels.py: the UI labels of the communication parameters (for descriptor.py).
 """
 

@@ -5,7 +5,7 @@ attribute names are the snake_case of the JSON keys.  Unknown keys are ignored a
 logged as warnings on logger ``edgemodbus.config`` (path and key); when the load fails
 anyway they are lines of the error instead, so that each problem is told once
 (:func:`load_model`).  :class:`Range` and :class:`Choice` limit a field; a value outside
-raises :class:`ConfigError` saying what is allowed.
+raises :class:`ConfigError` saying what is allowed.  Secrets: secret.py.
 """
 
 from __future__ import annotations
@@ -47,6 +47,7 @@ from pydantic_core import (
 from ..datatypes import DataFormat
 from .compat import norm_key
 from .problems import NO_VALUE, ConfigError, Problem, WrongType, join_path
+from .secret import SECRETS_CONTEXT, hide_secrets, secret_keys
 
 # One logger for the whole package (the name the CLI and the tests listen to).
 logger = logging.getLogger("edgemodbus.config")
@@ -233,8 +234,11 @@ class KeyRules:
         cls, data: Mapping[Any, Any], where: str, prefix: str = ""
     ) -> dict[str, Any]:
         """Canonical keys; unknown keys are logged (``where`` names the place) and dropped.
-        A key given twice in different spellings is a ConfigError (paths from ``prefix``)."""
-        return _normalize_keys(cls.key_table(), data, where, prefix)
+        A key given twice in different spellings is a ConfigError (paths from ``prefix``).
+        Secrets are wrapped first (secret.py)."""
+        table = cls.key_table()
+        return _normalize_keys(table, hide_secrets(data, table, secret_keys(cls), prefix),
+                               where, prefix)
 
 
 class Model(KeyRules, BaseModel):
@@ -254,9 +258,11 @@ class Model(KeyRules, BaseModel):
             return cls.normalize_keys(data, cls._where or cls.__name__)
         return data
 
-    def to_dict(self) -> dict[str, Any]:
-        """camelCase, JSON-able dict (loads back to an equal model)."""
-        result: dict[str, Any] = self.model_dump(mode="json", by_alias=True)
+    def to_dict(self, *, secrets: bool = False) -> dict[str, Any]:
+        """camelCase, JSON-able dict; secrets masked unless ``secrets`` (then it loads
+        back to an equal model: for a comparison or a file, never for showing)."""
+        result: dict[str, Any] = self.model_dump(mode="json", by_alias=True,
+                                                 context={SECRETS_CONTEXT: secrets})
         return result
 
 

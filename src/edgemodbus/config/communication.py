@@ -10,13 +10,20 @@ compat.py lists are accepted.
 from __future__ import annotations
 
 import enum
-import re
 from collections.abc import Mapping
 from typing import Annotated, Any, ClassVar, Literal
 
-from pydantic import Field, field_serializer, field_validator, model_validator
+from pydantic import (
+    AfterValidator,
+    BeforeValidator,
+    ConfigDict,
+    Field,
+    SecretStr,
+    field_serializer,
+    field_validator,
+    model_validator,
+)
 
-from .._ffi import MAX_HEARTBEAT
 from ..datatypes import DataFormat
 from ..poll.planner import BIT_CAP, REGISTER_CAP
 from ..protocol.address import MAX_OFFSET
@@ -32,7 +39,9 @@ from .base import (
     parse_format,
 )
 from .compat import NG_KEYS, ng_aliases, parity_letter
+from .listen import KEY_EXAMPLE, NETWORKS_ALLOWED, allow_list, check_key, listen_problems, network
 from .problems import ConfigError, Problem, WrongType
+from .secret import Secret
 
 Transport = Literal["rtu-over-tcp-server", "rtu", "rtu-over-tcp", "tcp"]
 Framing = Literal["rtu", "wrapped-report"]
@@ -40,6 +49,10 @@ Registration = Literal["none", "text", "hex", "regex"]
 AddressPrefixOption = Literal["function-code", "modicon"]
 ReportMode = Literal["change", "cycle"]
 Rs485Mode = Literal["none", "kernel", "rts-up", "rts-down"]
+DuplicateId = Literal["replace", "keep-existing"]
+AllowFrom = Annotated[tuple[Annotated[str, AfterValidator(network)], ...],
+                      BeforeValidator(allow_list)]
+"""A source-address allow-list: networks (CIDR) or single addresses, normalised."""
 
 
 class Parity(str, enum.Enum):
@@ -74,6 +87,8 @@ class DriverModbusRtuParameter(Model):
 
     _extra_keys: ClassVar[tuple[str, ...]] = NG_KEYS
     _where: ClassVar[str] = "communication"
+    # registrationKey is a secret: pydantic's own error text must not show the input
+    model_config = ConfigDict(hide_input_in_errors=True)  # merged with Model's
 
     # Field order is the descriptor's order; its UI labels are in labels.py.
     com_port: str = Field(
@@ -139,8 +154,8 @@ class DriverModbusRtuParameter(Model):
         default="none",
         description="rtu-over-tcp-server: how DTUs identify themselves: none (the port's "
         "only DTU takes the connection), text (the first packet is dtuId), hex (the first "
-        "packet is the bytes dtuId spells in hex), regex (registrationPattern's first "
-        "group, else its whole match, is the id)",
+        "packet is the bytes dtuId spells in hex), regex (registrationPattern's group "
+        "named id, else its first group other than key, else its whole match, is the id)",
     )
     registration_pattern: str = Field(
         default="",
@@ -165,6 +180,60 @@ class DriverModbusRtuParameter(Model):
     heartbeat_hex: str = Field(
         default="",
         description="Heartbeat packet as hex bytes (e.g. FE); instead of heartbeat",
+    )
+    # what a connection that has not registered may cost, who may connect and who may be
+    # which DTU (the listener faces the internet); every device of a port must agree on
+    # the port's keys, and every device behind one DTU on dtuAllowFrom and registrationKey
+    registration_max_bytes: Annotated[int, Range(1, 65536)] = Field(
+        default=256,
+        description="rtu-over-tcp-server: bytes a new connection may send without "
+        "registering (heartbeats included); then it is closed",
+    )
+    registration_byte_rate: Annotated[int, Range(0, 100_000_000)] = Field(
+        default=1024,
+        description="rtu-over-tcp-server: bytes per second read from a connection before it "
+        "registers (0 = no limit)",
+    )
+    max_unregistered: Annotated[int, Range(1, 1_000_000)] = Field(
+        default=512,
+        description="rtu-over-tcp-server: connections of the port waiting to register; "
+        "beyond it new ones are closed at once",
+    )
+    max_unregistered_per_source: Annotated[int, Range(1, 1_000_000)] = Field(
+        default=64,
+        description="rtu-over-tcp-server: the same, per source address",
+    )
+    listen_allow_from: AllowFrom = Field(
+        default=(),
+        description="rtu-over-tcp-server: source addresses that may connect to the port "
+        f"({NETWORKS_ALLOWED}; a list, or one text separated by commas); empty = any",
+    )
+    duplicate_id: DuplicateId = Field(
+        default="replace",
+        description="rtu-over-tcp-server: a second connection registering as a connected "
+        "DTU: replace (takes over, for a DTU re-dialling behind a half-open socket) or "
+        "keep-existing (refused while the old connection still answers)",
+    )
+    id_flip_limit: Annotated[int, Range(1, 1000)] = Field(
+        default=5,
+        description="rtu-over-tcp-server: an id that changes connection more often than "
+        "this within idFlipWindow is contested (two DTUs claim it): both are closed and "
+        "the id is refused for idFlipWindow",
+    )
+    id_flip_window: Ms = Field(
+        default=60000,
+        description="rtu-over-tcp-server: the window of idFlipLimit (ms)",
+    )
+    dtu_allow_from: AllowFrom = Field(
+        default=(),
+        description="rtu-over-tcp-server: source addresses that may register as this "
+        "device's DTU (as listenAllowFrom); empty = as the port",
+    )
+    registration_key: Secret = Field(
+        default=SecretStr(""),
+        description="rtu-over-tcp-server with registration regex: the secret this "
+        f"device's DTU sends in the registrationPattern group named key (e.g. {KEY_EXAMPLE}); "
+        "compared in constant time, never shown nor logged",
     )
     framing: Framing = Field(
         default="rtu",
@@ -283,7 +352,7 @@ class DriverModbusRtuParameter(Model):
         return parse_format(value)
 
     @field_validator("transport", "address_prefix", "report_mode", "rs485", "framing",
-                     "registration", mode="before")
+                     "registration", "duplicate_id", mode="before")
     @classmethod
     def _lower(cls, value: Any) -> Any:
         return lower_literal(value)
@@ -292,6 +361,11 @@ class DriverModbusRtuParameter(Model):
     @classmethod
     def _encoding(cls, value: str) -> str:
         return check_encoding(value)
+
+    @field_validator("registration_key")
+    @classmethod
+    def _key(cls, value: SecretStr) -> SecretStr:
+        return check_key(value)
 
     @model_validator(mode="before")
     @classmethod
@@ -328,69 +402,10 @@ class DriverModbusRtuParameter(Model):
             problems.append(Problem("comPort", self.com_port, "a serial port is required"))
         if self.transport in ("rtu-over-tcp", "tcp") and not self.tcp_host.strip():
             problems.append(Problem("tcpHost", self.tcp_host, "a host is required"))
-        problems += self._dtu_checks()
+        problems += listen_problems(self)
         if problems:
             raise ConfigError(problems)
         return self
-
-    def _dtu_checks(self) -> list[Problem]:
-        """Listen mode, registration, heartbeat and framing options."""
-        problems: list[Problem] = []
-        server = self.transport == "rtu-over-tcp-server"
-        if server:
-            if not self.listen_host.strip():
-                problems.append(Problem("listenHost", self.listen_host, "a host is required"))
-            if self.registration != "none" and not self.dtu_id:
-                problems.append(Problem("dtuId", self.dtu_id, f"required with registration "
-                                        f"{self.registration!r}"))
-            if self.registration == "hex":
-                try:
-                    if not bytes.fromhex(self.dtu_id):
-                        raise ValueError
-                except ValueError:
-                    problems.append(Problem("dtuId", self.dtu_id, "registration hex needs hex "
-                                            "bytes, e.g. '38 36 31 30'"))
-            if self.registration == "regex":
-                try:
-                    re.compile(self.registration_pattern)
-                    if not self.registration_pattern:
-                        raise re.error("empty pattern")
-                except re.error as exc:
-                    problems.append(Problem("registrationPattern", self.registration_pattern,
-                                            f"not a regular expression: {exc}"))
-        if self.heartbeat and self.heartbeat_hex:
-            problems.append(Problem("heartbeatHex", self.heartbeat_hex,
-                                    "give heartbeat (text) or heartbeatHex, not both"))
-        if self.heartbeat_hex:
-            try:
-                if not bytes.fromhex(self.heartbeat_hex):
-                    raise ValueError
-            except ValueError:
-                problems.append(Problem("heartbeatHex", self.heartbeat_hex,
-                                        "must be hex bytes, e.g. 'FE'"))
-        if not any(p.path == "heartbeatHex" for p in problems) and \
-                len(self.heartbeat_bytes) > MAX_HEARTBEAT:
-            problems.append(Problem("heartbeatHex" if self.heartbeat_hex else "heartbeat",
-                                    self.heartbeat_hex or self.heartbeat,
-                                    f"at most {MAX_HEARTBEAT} bytes"))
-        if (self.heartbeat or self.heartbeat_hex) and self.transport not in (
-            "rtu-over-tcp", "rtu-over-tcp-server"
-        ):
-            problems.append(Problem("heartbeat", self.heartbeat or self.heartbeat_hex,
-                                    "heartbeats apply to RTU over TCP (rtu-over-tcp, "
-                                    "rtu-over-tcp-server)"))
-        if self.framing == "wrapped-report" and self.transport not in (
-            "rtu-over-tcp", "rtu-over-tcp-server"
-        ):
-            problems.append(Problem("framing", self.framing, "needs transport rtu-over-tcp or "
-                                    f"rtu-over-tcp-server, not {self.transport!r}"))
-        if self.framing == "wrapped-report" and self.echo:
-            problems.append(Problem("echo", self.echo, "no echo option with framing "
-                                    "wrapped-report"))
-        if self.echo and self.transport == "tcp":
-            problems.append(Problem("echo", self.echo, "a Modbus TCP (MBAP) link has no "
-                                    "request echo; the option is for RTU lines"))
-        return problems
 
     @property
     def heartbeat_bytes(self) -> bytes:

@@ -8,7 +8,7 @@ from collections.abc import Mapping
 from datetime import datetime
 from typing import Annotated, Any, ClassVar
 
-from pydantic import Field, field_validator, model_validator
+from pydantic import ConfigDict, Field, field_validator, model_validator
 
 from .base import READ_CYCLE_RANGE, Model, OptionalMs, field_checks, load_model, recheck
 from .communication import DriverModbusRtuParameter
@@ -80,6 +80,10 @@ def validate_parameters(
 
 class DeviceConfig(Model):
     """A whole device file: driver type, organisation, communication, address list."""
+
+    # communication.registrationKey is a secret: pydantic's own error text must not show
+    # the input (ConfigError's lines mask it)
+    model_config = ConfigDict(hide_input_in_errors=True)  # merged with Model's
 
     driver_type: str = "DriverModbusRtu"
     organization: DeviceOrganizationParameter = Field(default_factory=DeviceOrganizationParameter)

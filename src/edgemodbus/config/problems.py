@@ -8,7 +8,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from pydantic import ValidationError
+from pydantic import SecretStr, ValidationError
 
 
 class _NoValue:
@@ -35,7 +35,10 @@ class Problem:
 
 
 def _show(value: Any) -> str:
-    """The value as given; a long list or object is cut (the path says where it is)."""
+    """The value as given; a long list or object is cut (the path says where it is); a
+    secret masked."""
+    if isinstance(value, SecretStr):
+        return repr(str(value))
     text = repr(value)
     if _is_scalar(value) or len(text) <= _SHOW_MAX:
         return text

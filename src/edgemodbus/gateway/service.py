@@ -302,8 +302,10 @@ class Gateway:
             log.info("%s: %s (%s)", code, status, path.name)
 
     def _change_device(self, dev: ServiceDevice, digest: str, cfg: DeviceConfig) -> None:
+        # secrets compared too (to_dict masks them): a new registrationKey restarts
         same_line = (cfg.organization.to_dict() == dev.cfg.organization.to_dict()
-                     and cfg.communication.to_dict() == dev.cfg.communication.to_dict()
+                     and cfg.communication.to_dict(secrets=True)
+                     == dev.cfg.communication.to_dict(secrets=True)
                      and cfg.driver_type == dev.cfg.driver_type)
         if same_line and dev.driver.device_driver_status.value != "Disabled":
             items = [it.model_copy(deep=True) for it in cfg.address_list]
@@ -348,14 +350,18 @@ class Gateway:
 
 def _digest(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
 def _start_exporter(config: GatewayConfig) -> MetricsExporter | None:
-    """The exporter ``config`` asks for, listening; OSError names the address."""
+    """The exporter ``config`` asks for, listening, with the drivers' DTU listen ports
+    as its listener source; OSError names the address."""
     metrics = config.metrics
     if metrics is None or not metrics.enabled:
         return None
     from ..northbound.metrics import MetricsExporter
 
     exporter = MetricsExporter(metrics, gateway_id=config.effective_id)
+    exporter.set_listener_stats(DriverModbusRtu.dtu_registry)  # the DTU listen ports
     try:
         exporter.start()
     except OSError as exc:

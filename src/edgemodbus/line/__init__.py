@@ -16,23 +16,26 @@ socket or a libmodbus context.
 * worker.py: :class:`LineWorker` (one thread per line, a queue for other threads, the
   line engine's loop); registry.py: :class:`LineRegistry` (one worker per endpoint,
   shared by its users);
-* dtu_listener.py and registration.py: listen mode, DTUs that dial in and register.
+* dtu_registry.py, dtu_listener.py, dtu_slot.py, registration.py, admission.py and
+  log_limit.py: listen mode, DTUs that dial in and register.
 
 The counters a worker keeps are :class:`edgemodbus.stats.LineStats`.
 """
 
 from __future__ import annotations
 
-from .dtu_listener import DtuRegistry, DtuSlot
-from .dtu_listener import registry as dtu_registry
+from .dtu_registry import DtuRegistry
+from .dtu_registry import registry as dtu_registry
+from .dtu_slot import DtuSlot
 from .endpoint import DtuEndpoint, Endpoint, LineTiming, SerialPort, TcpEndpoint, endpoint_for
 from .link import Link
-from .registration import PortSettings
+from .registration import DtuAccess, PortSettings
 from .registry import LineRegistry
 from .registry import registry as line_registry
 from .worker import LineWorker, Poller
 
 __all__ = [
+    "DtuAccess",
     "DtuEndpoint",
     "DtuRegistry",
     "DtuSlot",

@@ -4,138 +4,85 @@ Most 4G/Ethernet DTUs are TCP clients: they connect to a server, optionally send
 registration packet (IMEI, ICCID, a serial number) and then pass RTU frames through
 unchanged.  One :class:`DtuListener` thread serves each listen port (a ``selectors``
 loop: accept, read registrations with a deadline, no busy loop); every identified
-connection is handed to the :class:`DtuSlot` of its DTU id, the connector of that DTU's
-line (one line, one worker thread per DTU, shared by the devices that name the id).
+connection is handed to the :class:`DtuSlot` of its DTU id (:mod:`.dtu_slot`), the
+connector of that DTU's line.  The registration rule is :func:`identify`.
 
-* Identification per port: ``registration`` text / hex / regex (with an optional fixed
-  length), or none: then the port's one configured DTU takes the connection.  The
-  registration rule is in :mod:`edgemodbus.line.registration` (:func:`identify`).
-* An unknown or silent peer is logged with its address and closed when the
-  registration timeout runs out (held until then, so a misconfigured DTU cannot
-  reconnect in a tight loop); it never takes another DTU's place.
-* A DTU that reconnects replaces its old connection: the listener shuts the old socket
-  down (its fd stays valid until the worker closes it) and asks the line to switch.
+The port faces the internet, so nothing a peer does before it registers may cost more
+than a bound (:mod:`.admission`):
+
+* at accept: the port's allow-list (``listenAllowFrom``), then the caps on connections
+  waiting to register, per port and per source; a refused connection is reset at once.
+  Accept errors (EMFILE, ENFILE, ENOBUFS, ENOMEM) pause accepting, doubling up to
+  :data:`MAX_ACCEPT_PAUSE`, instead of spinning;
+* before registering: at most ``registrationMaxBytes`` bytes (then closed at once),
+  read at ``registrationByteRate`` at most (reading pauses; TCP slows the sender), within
+  the registration timeout;
+* a peer that named an unknown id, a DTU it may not be (``dtuAllowFrom``) or a wrong
+  ``registrationKey`` is held without being read until the registration timeout, then
+  closed (a misconfigured DTU cannot reconnect in a tight loop);
+* a second connection for a connected id follows the duplicate-id policy (dtu_slot.py).
+
+Every refusal is counted in :attr:`DtuListener.stats`; log lines go through a
+:class:`LogLimiter` (a few per kind and interval, the rest summarised) and show at most a
+short hex prefix of untrusted bytes, and none of a registration that carries a key.
 """
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import logging
 import math
 import selectors
 import socket
+import struct
 import threading
 import time
 from dataclasses import dataclass, field
-from typing import Any
 
-from ..errors import ModbusConnectionError, ModbusError
-from .connect import open_socket_link
-from .endpoint import DtuEndpoint
-from .link import Link
+from .admission import ByteBudget, Networks, Unregistered, key_matches
+from .dtu_slot import DtuSlot
+from .log_limit import LogLimiter, hex_prefix, short_text
 from .registration import Identified, IdIndex, PortSettings, identify
-from .worker import LineWorker
 
 log = logging.getLogger("edgemodbus.dtu")
 
-NOT_CONNECTED = "DTU not connected"
+ACCEPT_BATCH = 64
+"""Connections accepted per turn of the loop, so that registrations are read between
+accepts when thousands of DTUs dial in at once (the caps count waiting connections)."""
+
+MIN_ACCEPT_PAUSE = 0.05
+MAX_ACCEPT_PAUSE = 2.0
+"""Seconds accepting pauses after an accept error (doubling from the first)."""
+
+BUDGET_BURST = 64
+"""Bytes a newcomer may send at once before ``registrationByteRate`` applies."""
+
+_ACCEPT_ERRORS = (errno.EMFILE, errno.ENFILE, errno.ENOBUFS, errno.ENOMEM)
+_RESET = struct.pack("ii", 1, 0)  # SO_LINGER on, 0 s: close with RST, no TIME_WAIT here
+
+COUNTERS = ("accepted", "registered", "unknown", "silent", "oversize", "refusedPortCap",
+            "refusedSourceCap", "refusedNotAllowed", "refusedDtuNotAllowed", "badKey",
+            "duplicateRefused", "replaced", "contested", "refusedContested", "acceptErrors",
+            "acceptPauses")
 
 
-class DtuSlot:
-    """The connector of one DTU's line: holds the socket the listener handed over until
-    the line worker opens a link on it, and the socket in use (to replace it)."""
-
-    def __init__(self, endpoint: DtuEndpoint, port: PortSettings) -> None:
-        self.endpoint = endpoint
-        self.port = port
-        self.line: LineWorker | None = None
-        self._lock = threading.Lock()
-        self._pending: tuple[socket.socket, str, bytes] | None = None
-        self._current: socket.socket | None = None
-        self.peer: str | None = None
-        self.connections = 0
-        self.replaced = 0
-
-    @property
-    def dtu_id(self) -> str:
-        return self.endpoint.dtu_id
-
-    def attach(self, line: LineWorker | None) -> None:
-        """The line worker this slot feeds (None: detached)."""
-        with self._lock:
-            self.line = line
-
-    def offer(self, sock: socket.socket, peer: str, rest: bytes = b"") -> None:
-        """A new connection of this DTU (listener thread): it replaces the old one.
-        ``rest``: what the DTU sent after its registration, for the link."""
-        with self._lock:
-            stale = self._pending
-            self._pending = (sock, peer, rest)
-            self.connections += 1
-            current = self._current
-            if current is not None or stale is not None:
-                self.replaced += 1
-            if current is not None:
-                with contextlib.suppress(OSError):  # the worker sees a link error
-                    current.shutdown(socket.SHUT_RDWR)
-            line = self.line
-        if stale is not None:
-            stale[0].close()
-        if current is not None or stale is not None:
-            log.info("%s: reconnected from %s; replacing its previous connection",
-                     self.endpoint.describe(), peer)
-        if line is not None:
-            line.connect_now()
-
-    def open(self, line: LineWorker) -> Link:
-        """The line worker takes the handed-over socket (Connector protocol)."""
-        with self._lock:
-            pending, self._pending = self._pending, None
-            if pending is None:
-                raise ModbusConnectionError(
-                    f"{NOT_CONNECTED} (dtuId {self.dtu_id!r}, listening on "
-                    f"{self.port.host}:{self.port.port})"
-                )
-            sock, peer, rest = pending
-            self._current = sock
-            self.peer = peer
-        ep = self.endpoint
-
-        def release() -> None:
-            with self._lock:
-                if self._current is sock:
-                    self._current = None
-
-        try:
-            link = open_socket_link(sock, ep, line.timing, line.stats, release,
-                                    line.dispatch_report)
-        except (ModbusError, ValueError, OSError):
-            release()
-            sock.close()
-            raise
-        # what the DTU sent after its registration, taken as received now: reports are
-        # applied at once, heartbeats counted; on a plain RTU link they answer nothing
-        link.feed(rest)
-        link.flush_reports()
-        return link
-
-    def close(self) -> None:
-        """Forget a connection not taken yet (the line worker is gone)."""
-        with self._lock:
-            pending, self._pending = self._pending, None
-            self.line = None
-        if pending is not None:
-            pending[0].close()
-
-
-@dataclass
+@dataclass(eq=False)
 class _Newcomer:
     sock: socket.socket
     peer: str
+    source: str  # the peer's address without the port
     deadline: float
+    budget: ByteBudget
     buf: bytearray = field(default_factory=bytearray)
-    unknown: bool = False
     quiet_at: float = math.inf  # when to look at the registration again if no byte comes
+    resume_at: float = math.inf  # reading paused (byte rate) until then
+    held: bool = False  # refused: kept unread until the deadline, then closed
+    waiting: bool = True  # counted against the caps on connections waiting to register
+    challenge: tuple[DtuSlot, bytes, int] | None = None  # keep-existing: slot, rest, answers
+
+    def wake(self) -> float:
+        return min(self.deadline, self.quiet_at, self.resume_at)
 
 
 class DtuListener:
@@ -146,8 +93,11 @@ class DtuListener:
         self._slots: dict[str, DtuSlot] = {}
         self._ids = IdIndex(settings.registration)  # the slots' ids, for identify()
         self._lock = threading.Lock()
-        self.stats: dict[str, int] = {"accepted": 0, "registered": 0, "unknown": 0,
-                                      "silent": 0}
+        self._allowed = Networks(settings.allow_from, "listenAllowFrom")
+        self._waiting = Unregistered(settings.max_unregistered, settings.max_per_source)
+        self._logs = LogLimiter(log)
+        self._keyed = "(?P<key>" in settings.pattern  # registrations carry secrets
+        self.counts: dict[str, int] = dict.fromkeys(COUNTERS, 0)
         family = socket.AF_INET6 if ":" in settings.host else socket.AF_INET
         sock = socket.socket(family, socket.SOCK_STREAM)
         try:
@@ -166,13 +116,15 @@ class DtuListener:
         self._wake_r.setblocking(False)
         self._sel.register(sock, selectors.EVENT_READ, None)
         self._sel.register(self._wake_r, selectors.EVENT_READ, None)
-        self._newcomers: dict[int, _Newcomer] = {}
+        self._newcomers: set[_Newcomer] = set()
+        self._accept_pause = 0.0  # the last pause after an accept error (0: none)
+        self._accept_at = math.inf  # accepting paused until then
         self._stopping = False
         self._thread = threading.Thread(target=self._run, daemon=True,
                                         name=f"edgemodbus-dtu-listener :{self.port}")
         self._thread.start()
 
-    # -- slots (any thread) ----------------------------------------------------------------
+    # -- slots and figures (any thread) -----------------------------------------------------
     def add_slot(self, slot: DtuSlot) -> None:
         with self._lock:
             self._slots[slot.dtu_id] = slot
@@ -189,12 +141,22 @@ class DtuListener:
         with self._lock:
             return len(self._slots)
 
+    @property
+    def stats(self) -> dict[str, int]:
+        """Counters of what the port accepted and refused, and gauges: connections
+        waiting to register, configured DTUs, DTUs connected now."""
+        with self._lock:
+            slots = list(self._slots.values())
+        return {**self.counts, "logSuppressed": self._logs.suppressed,
+                "unregistered": self._waiting.total, "dtus": len(slots),
+                "connected": sum(1 for s in slots if s.connected())}
+
     def stop(self) -> None:
         self._stopping = True
         with contextlib.suppress(OSError):
             self._wake_w.send(b"\0")
         self._thread.join(10.0)
-        for newcomer in self._newcomers.values():
+        for newcomer in self._newcomers:
             newcomer.sock.close()
         self._newcomers.clear()
         self._sel.close()
@@ -206,88 +168,192 @@ class DtuListener:
     def _run(self) -> None:
         try:
             while not self._stopping:
-                timeout = None
-                if self._newcomers:
-                    first = min(min(n.deadline, n.quiet_at) for n in self._newcomers.values())
-                    timeout = max(0.0, first - time.monotonic())
+                first = min((n.wake() for n in self._newcomers), default=math.inf)
+                first = min(first, self._accept_at, self._logs.next_due())
+                timeout = None if first == math.inf else max(0.0, first - time.monotonic())
+                accept = False
                 for key, _ in self._sel.select(timeout):
                     if key.fileobj is self._sock:
-                        self._accept()
+                        accept = True  # after the registrations: they free waiting places
                     elif key.fileobj is self._wake_r:
                         with contextlib.suppress(OSError):
                             self._wake_r.recv(64)
                     else:
                         self._on_data(key.data)
-                self._expire()
+                if accept:
+                    self._accept()
+                self._timers(time.monotonic())
+                self._logs.flush()
+            self._logs.flush(force=True)
         except Exception:
             log.exception("DTU listener on port %d failed", self.port)
 
+    def _refuse(self, counter: str, source: str, conn: socket.socket, why: str) -> None:
+        """Close a new connection at once (reset: no TIME_WAIT kept here), counted and
+        logged through the limiter."""
+        self.counts[counter] += 1
+        self._logs.event(logging.WARNING, f"connections refused ({counter})", source,
+                         "DTU listener :%d: %s refused: %s", self.port, source, why)
+        with contextlib.suppress(OSError):
+            conn.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, _RESET)
+        conn.close()
+
     def _accept(self) -> None:
-        while True:
+        for _ in range(ACCEPT_BATCH):
             try:
                 conn, addr = self._sock.accept()
             except (BlockingIOError, InterruptedError):
                 return
-            except OSError as exc:  # EMFILE: leave it in the backlog for now
-                log.warning("DTU listener :%d: accept failed: %s", self.port, exc)
+            except OSError as exc:
+                if exc.errno in _ACCEPT_ERRORS:
+                    self._pause_accepting(exc)
+                else:
+                    log.warning("DTU listener :%d: accept failed: %s", self.port, exc)
                 return
-            peer = f"{addr[0]}:{addr[1]}"
-            self.stats["accepted"] += 1
+            self._accept_pause = 0.0
+            self.counts["accepted"] += 1
+            self._admit(conn, str(addr[0]), f"{addr[0]}:{addr[1]}")
+
+    def _pause_accepting(self, exc: OSError) -> None:
+        """Out of fds or buffers: stop accepting for a while (the backlog waits)."""
+        self.counts["acceptErrors"] += 1
+        self.counts["acceptPauses"] += 1
+        self._accept_pause = min(MAX_ACCEPT_PAUSE, max(MIN_ACCEPT_PAUSE,
+                                                       self._accept_pause * 2))
+        self._accept_at = time.monotonic() + self._accept_pause
+        with contextlib.suppress(KeyError, ValueError):
+            self._sel.unregister(self._sock)
+        self._logs.event(logging.WARNING, "accept pauses", "accept",
+                         "DTU listener :%d: accept failed (%s); pausing accepting for %.2g s",
+                         self.port, exc.strerror or exc, self._accept_pause)
+
+    def _admit(self, conn: socket.socket, source: str, peer: str) -> None:
+        if not self._allowed.allows(source):
+            self._refuse("refusedNotAllowed", source, conn, "not in listenAllowFrom")
+            return
+        if self.settings.registration == "none":
+            self._hand_over_single(conn, peer)
+            return
+        refusal = self._waiting.refusal(source)
+        if refusal is not None:
+            counter, why = refusal
+            self._refuse(counter, source, conn, why)
+            return
+        with contextlib.suppress(OSError):
             conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
             conn.setsockopt(socket.SOL_SOCKET, socket.SO_KEEPALIVE, 1)
-            if self.settings.registration == "none":
-                self._hand_over_single(conn, peer)
-                continue
-            conn.setblocking(False)
-            newcomer = _Newcomer(conn, peer, time.monotonic() + self.settings.timeout)
-            self._newcomers[conn.fileno()] = newcomer
-            self._sel.register(conn, selectors.EVENT_READ, newcomer)
+        conn.setblocking(False)
+        now = time.monotonic()
+        budget = ByteBudget(self.settings.byte_rate,
+                            min(BUDGET_BURST, self.settings.max_bytes), now)
+        newcomer = _Newcomer(conn, peer, source, now + self.settings.timeout, budget)
+        self._newcomers.add(newcomer)
+        self._waiting.add(source)
+        self._sel.register(conn, selectors.EVENT_READ, newcomer)
 
     def _hand_over_single(self, conn: socket.socket, peer: str) -> None:
         with self._lock:
             slots = list(self._slots.values())
         if len(slots) != 1:
-            self.stats["unknown"] += 1
-            log.warning("DTU listener :%d: %s connected but %d DTUs are configured on this "
-                        "port without registration; closed", self.port, peer, len(slots))
-            conn.close()
+            self._refuse("unknown", peer.rsplit(":", 1)[0], conn,
+                         f"{len(slots)} DTUs are configured on this port without "
+                         "registration")
             return
-        self._register(slots[0], conn, peer)
+        self._offer(slots[0], conn, peer, b"")
 
-    def _register(self, slot: DtuSlot, conn: socket.socket, peer: str,
-                  rest: bytes = b"") -> None:
-        self.stats["registered"] += 1
+    def _offer(self, slot: DtuSlot, conn: socket.socket, peer: str, rest: bytes,
+               newcomer: _Newcomer | None = None) -> None:
+        """Hand an identified connection (a newcomer's, or one accepted on a port without
+        registration) to its slot, under the duplicate-id policy."""
         conn.setblocking(True)
-        log.info("DTU %r registered from %s on port %d", slot.dtu_id, peer, self.port)
-        slot.offer(conn, peer, rest)
+        outcome = slot.offer(conn, peer, rest, time.monotonic())
+        if outcome in ("taken", "replaced"):
+            if newcomer is not None:
+                self._release(newcomer)
+            self.counts["registered"] += 1
+            if outcome == "replaced":
+                self.counts["replaced"] += 1
+            self._logs.event(logging.INFO, "DTUs registered", slot.dtu_id, "DTU %r registered from "
+                             "%s on port %d", slot.dtu_id, peer, self.port)
+            return
+        conn.setblocking(False)
+        if newcomer is None:  # no registration to hold it by: closed at once
+            self._refuse("duplicateRefused" if outcome == "challenge" else "refusedContested",
+                         peer.rsplit(":", 1)[0], conn, f"DTU {slot.dtu_id!r} is connected")
+            return
+        if outcome == "challenge":
+            newcomer.challenge = (slot, rest, slot.answers())
+            newcomer.deadline = time.monotonic() + self.settings.timeout
+            self._hold(newcomer, counted=False)
+            return
+        self.counts["contested" if outcome == "contested" else "refusedContested"] += 1
+        self._hold(newcomer)
+        self._logs.event(logging.WARNING, "connections refused (contested id)",
+                         newcomer.source, "DTU listener :%d: %s claims contested DTU id %r; "
+                         "held until the registration timeout", self.port, peer, slot.dtu_id)
 
-    def _drop(self, newcomer: _Newcomer) -> None:
+    def _hold(self, newcomer: _Newcomer, counted: bool = True) -> None:
+        """Keep a refused (or challenging) newcomer without reading it until its
+        deadline; ``counted``: it still counts against the caps."""
         with contextlib.suppress(KeyError, ValueError):
             self._sel.unregister(newcomer.sock)
-        self._newcomers.pop(newcomer.sock.fileno(), None)
+        newcomer.held = True
+        newcomer.quiet_at = newcomer.resume_at = math.inf
+        if not counted and newcomer.waiting:
+            self._waiting.remove(newcomer.source)
+            newcomer.waiting = False
+
+    def _close(self, newcomer: _Newcomer) -> None:
+        """Forget a newcomer and close its socket."""
+        self._release(newcomer)
+        newcomer.sock.close()
+
+    def _release(self, newcomer: _Newcomer) -> None:
+        """Forget a newcomer whose socket is handed over or closed."""
+        with contextlib.suppress(KeyError, ValueError):
+            self._sel.unregister(newcomer.sock)
+        self._newcomers.discard(newcomer)
+        if newcomer.waiting:
+            self._waiting.remove(newcomer.source)
+            newcomer.waiting = False
 
     def _on_data(self, newcomer: _Newcomer) -> None:
+        room = self.settings.max_bytes - len(newcomer.buf)
         try:
-            data = newcomer.sock.recv(1024)
+            data = newcomer.sock.recv(max(1, min(room, 4096)))
         except (BlockingIOError, InterruptedError):
             return
         except OSError:
             data = b""
         if not data:
-            self._drop(newcomer)
-            log.warning("DTU listener :%d: %s closed before registering (got %s)", self.port,
-                        newcomer.peer, bytes(newcomer.buf).hex(" ").upper() or "nothing")
-            newcomer.sock.close()
+            self._logs.event(logging.WARNING, "peers closed before registering",
+                             newcomer.source, "DTU listener :%d: %s closed before "
+                             "registering (got %s)", self.port, newcomer.peer,
+                             self._shown(newcomer.buf))
+            self._close(newcomer)
             return
-        if newcomer.unknown:
-            return  # held until the timeout, then closed
         newcomer.buf += data
-        newcomer.quiet_at = time.monotonic() + self.settings.quiet_gap
-        self._decide(newcomer, settled=False)
+        now = time.monotonic()
+        if self._decide(newcomer, settled=False) or newcomer.held:
+            return
+        pause = newcomer.budget.spend(len(data), now)
+        if pause:  # too fast: stop reading; the quiet gap counts from when reading resumes
+            with contextlib.suppress(KeyError, ValueError):
+                self._sel.unregister(newcomer.sock)
+            newcomer.resume_at = now + pause
+            newcomer.quiet_at = math.inf
+        else:
+            newcomer.quiet_at = now + self.settings.quiet_gap
+
+    def _shown(self, buf: bytes | bytearray) -> str:
+        """Untrusted registration bytes as a log line may show them."""
+        if self._keyed:
+            return f"{len(buf)} bytes, not shown: registrations carry a key"
+        return hex_prefix(bytes(buf))
 
     def _decide(self, newcomer: _Newcomer, settled: bool) -> bool:
-        """Register, or mark unknown, a newcomer whose registration is complete; True
-        when it was handed to its DTU's slot."""
+        """Register, hold or close a newcomer whose registration is complete; True when
+        it left the listener's reading (handed over or closed)."""
         buf = bytes(newcomer.buf)
         with self._lock:  # the index is kept sorted as drivers come and go
             found = identify(buf, self._ids, self.settings, settled=settled)
@@ -296,101 +362,88 @@ class DtuListener:
             return False
         newcomer.quiet_at = math.inf
         if isinstance(found, Identified) and slot is not None:
-            self._drop(newcomer)
-            self._register(slot, newcomer.sock, newcomer.peer, buf[found.end:])
+            refusal = self._access_refusal(slot, newcomer, found)
+            if refusal is None:
+                self._offer(slot, newcomer.sock, newcomer.peer, buf[found.end:], newcomer)
+                return True
+            counter, why = refusal
+        elif len(buf) >= self.settings.max_bytes:
+            self.counts["oversize"] += 1
+            self._logs.event(logging.WARNING, "connections closed (no registration in "
+                             "registrationMaxBytes)", newcomer.source,
+                             "DTU listener :%d: %s sent %d bytes without registering (%s); "
+                             "closed", self.port, newcomer.peer, len(buf), self._shown(buf))
+            self._close(newcomer)
             return True
-        newcomer.unknown = True
-        self.stats["unknown"] += 1
-        log.warning("DTU listener :%d: unknown DTU from %s (registration %s, %r); closing it "
-                    "after the registration timeout", self.port, newcomer.peer,
-                    buf.hex(" ").upper(), found)
+        else:
+            counter = "unknown"
+            why = f"unknown DTU {short_text(str(found))}" if not self._keyed else \
+                "unknown DTU"
+        self.counts[counter] += 1
+        self._hold(newcomer)
+        self._logs.event(logging.WARNING, f"connections held ({counter})", newcomer.source,
+                         "DTU listener :%d: %s: %s (registration %s); closing it after the "
+                         "registration timeout", self.port, newcomer.peer, why,
+                         self._shown(buf))
         return False
 
-    def _expire(self) -> None:
-        now = time.monotonic()
-        for newcomer in [n for n in self._newcomers.values() if n.quiet_at <= now]:
-            newcomer.quiet_at = math.inf  # looked at again when the next byte comes
-            self._decide(newcomer, settled=True)
-        for newcomer in [n for n in self._newcomers.values() if n.deadline <= now]:
-            if not newcomer.unknown and self._decide(newcomer, settled=True):
-                continue  # registered: an exact match at the timeout
-            self._drop(newcomer)
-            if not newcomer.unknown:
-                self.stats["silent"] += 1
-                got = bytes(newcomer.buf).hex(" ").upper() or "nothing"
-                log.warning("DTU listener :%d: %s did not register within %.3g s (got %s); "
-                            "closed", self.port, newcomer.peer, self.settings.timeout, got)
-            newcomer.sock.close()
+    def _access_refusal(self, slot: DtuSlot, newcomer: _Newcomer,
+                        found: Identified) -> tuple[str, str] | None:
+        """Why the newcomer may not be this DTU: (counter, reason), or None."""
+        if not slot.allowed.allows(newcomer.source):
+            return "refusedDtuNotAllowed", f"DTU {slot.dtu_id!r} not allowed from " \
+                f"{newcomer.source} (dtuAllowFrom)"
+        key = slot.access.key
+        if key and not key_matches(found.key, key):
+            return "badKey", f"DTU {slot.dtu_id!r} with a missing or wrong registrationKey"
+        return None
+
+    def _timers(self, now: float) -> None:
+        if now >= self._accept_at:
+            self._accept_at = math.inf
+            self._sel.register(self._sock, selectors.EVENT_READ, None)
+        for newcomer in [n for n in self._newcomers if n.wake() <= now]:
+            if newcomer.challenge is not None:
+                self._settle(newcomer, now)
+            elif newcomer.resume_at <= now and newcomer.deadline > now:
+                newcomer.resume_at = math.inf
+                newcomer.quiet_at = now + self.settings.quiet_gap
+                self._sel.register(newcomer.sock, selectors.EVENT_READ, newcomer)
+            elif newcomer.quiet_at <= now and newcomer.deadline > now:
+                newcomer.quiet_at = math.inf  # looked at again when the next byte comes
+                self._decide(newcomer, settled=True)
+            elif newcomer.deadline <= now:
+                self._expire(newcomer)
+
+    def _expire(self, newcomer: _Newcomer) -> None:
+        """The registration timeout ran out."""
+        if not newcomer.held and self._decide(newcomer, settled=True):
+            return  # registered (an exact match at the timeout) or closed
+        if not newcomer.held:
+            self.counts["silent"] += 1
+            self._logs.event(logging.WARNING, "connections closed (no registration in "
+                             "registrationTimeout)", newcomer.source,
+                             "DTU listener :%d: %s did not register within %.3g s (got %s); "
+                             "closed", self.port, newcomer.peer, self.settings.timeout,
+                             self._shown(newcomer.buf))
+        self._close(newcomer)
+
+    def _settle(self, newcomer: _Newcomer, now: float) -> None:
+        """keep-existing: the challenger's time is up."""
+        assert newcomer.challenge is not None
+        slot, rest, answers = newcomer.challenge
+        self._release(newcomer)
+        newcomer.sock.setblocking(True)
+        if slot.settle(newcomer.sock, newcomer.peer, rest, answers, now):
+            self.counts["registered"] += 1
+            self.counts["replaced"] += 1
+            return
+        self.counts["duplicateRefused"] += 1
+        self._logs.event(logging.WARNING, "connections refused (duplicate id)",
+                         newcomer.source, "DTU listener :%d: %s claims DTU id %r, whose "
+                         "connection from %s still answers; closed (duplicateId "
+                         "keep-existing)", self.port, newcomer.peer, slot.dtu_id, slot.peer)
+        newcomer.sock.close()
 
 
-class DtuRegistry:
-    """One listener per listen port, refcounted by its DTU slots; one slot per DTU id,
-    refcounted by the devices that name it."""
-
-    def __init__(self) -> None:
-        self._lock = threading.Lock()
-        self._listeners: dict[tuple[str, int], DtuListener] = {}
-        self._slots: dict[tuple[str, int, str], tuple[DtuSlot, int]] = {}
-
-    def acquire(self, settings: PortSettings, endpoint: DtuEndpoint) -> DtuSlot:
-        with self._lock:
-            listener = self._listeners.get(settings.key)
-            if listener is not None:
-                diffs = listener.settings.differences(settings)
-                if diffs:
-                    raise ValueError(f"listenPort {settings.port}: devices on one listen port "
-                                     "must agree; this device has " + "; ".join(diffs))
-            key = (*settings.key, endpoint.dtu_id)
-            entry = self._slots.get(key)
-            if entry is not None:
-                slot, users = entry
-                if slot.endpoint != endpoint:
-                    raise ValueError(f"dtuId {endpoint.dtu_id!r}: already open as "
-                                     f"'{slot.endpoint.describe()}'; this device asks for "
-                                     f"'{endpoint.describe()}': devices on one DTU must agree")
-                self._slots[key] = (slot, users + 1)
-                return slot
-            if listener is None:
-                listener = DtuListener(settings)
-                self._listeners[settings.key] = listener
-            elif settings.registration == "none" and listener.slot_count():
-                raise ValueError(f"dtuId {endpoint.dtu_id!r}: port {settings.port} has no "
-                                 "registration and already serves a DTU; without a "
-                                 "registration packet a port serves one DTU")
-            slot = DtuSlot(endpoint, settings)
-            listener.add_slot(slot)
-            self._slots[key] = (slot, 1)
-            return slot
-
-    def release(self, slot: DtuSlot) -> None:
-        stop: DtuListener | None = None
-        with self._lock:
-            key = (*slot.port.key, slot.dtu_id)
-            entry = self._slots.get(key)
-            if entry is None or entry[0] is not slot:
-                return
-            if entry[1] > 1:
-                self._slots[key] = (slot, entry[1] - 1)
-                return
-            del self._slots[key]
-            listener = self._listeners[slot.port.key]
-            listener.remove_slot(slot)
-            if not listener.slot_count():
-                del self._listeners[slot.port.key]
-                stop = listener
-        if stop is not None:
-            stop.stop()
-
-    def listener(self, host: str, port: int) -> DtuListener | None:
-        with self._lock:
-            return self._listeners.get((host, port))
-
-    def stats(self) -> dict[str, Any]:
-        with self._lock:
-            return {f"{h}:{p}": dict(li.stats) for (h, p), li in self._listeners.items()}
-
-
-registry = DtuRegistry()
-
-__all__ = ["NOT_CONNECTED", "DtuListener", "DtuRegistry", "DtuSlot", "PortSettings",
-           "registry"]
+__all__ = ["COUNTERS", "DtuListener"]

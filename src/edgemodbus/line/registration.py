@@ -28,8 +28,9 @@ and regex mode, CR/LF/NUL).  Then, per mode:
 The peer is unknown at once when, in text or hex mode, its bytes are no beginning of a
 configured id or what comes before an end is not one, or when, in regex mode, a
 terminated match names no configured id; also after ``registrationMaxBytes``
-(:attr:`PortSettings.max_bytes`) bytes without a registration.  So an id that is a prefix of another configured id is matched
-at an end, or after the quiet gap, never early.  Bytes after the registration (CR/LF/NUL
+(:attr:`PortSettings.max_bytes`) bytes without a registration.  So an id that is a
+prefix of another configured id is matched at an end, or after the quiet gap, never
+early.  Bytes after the registration (CR/LF/NUL
 right after it are consumed; a heartbeat or a wrapped frame is not) are handed to the
 link with the socket, never lost nor taken for part of the id.  The quiet gap trades a
 short delay of an unterminated registration for safety: a DTU that pauses longer than the

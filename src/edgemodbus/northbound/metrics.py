@@ -13,7 +13,11 @@ writes; cycle time and round-trip time as histograms when ``stats()`` carries bu
 (``cycleTimeHistogram`` / ``roundTripHistogram``), else as summaries (count and sum,
 exact).  Per line (label ``line``, once even when several devices share it): the
 line's own counters, reconnects among them.  Per publisher: connection state,
-published and dropped updates per device, queue depth, commands.
+published and dropped updates per device, queue depth, commands.  Per DTU listen port
+(label ``port``, ``host:port``, from a listener source such as the drivers'
+``DtuRegistry``): its events by kind (``edgemodbus_dtu_listener_events_total``, label
+``event``: accepted, registered, refusals, ...) and its unregistered connections,
+configured DTUs and connected DTUs as gauges.
 """
 
 from __future__ import annotations
@@ -83,6 +87,20 @@ MQTT_DEVICE_COUNTERS: tuple[tuple[str, str, str], ...] = (
      "Snapshots replaced by a newer one before they could be published"),
 )
 
+# DtuRegistry.stats() per port: the counters (label ``event``) and the gauges
+DTU_LISTENER_EVENTS: tuple[str, ...] = (
+    "accepted", "registered", "unknown", "silent", "oversize", "refusedPortCap",
+    "refusedSourceCap", "refusedNotAllowed", "refusedDtuNotAllowed", "badKey",
+    "duplicateRefused", "replaced", "contested", "refusedContested", "acceptErrors",
+    "acceptPauses", "logSuppressed",
+)
+DTU_LISTENER_GAUGES: tuple[tuple[str, str, str], ...] = (
+    ("unregistered", "dtu_listener_unregistered",
+     "Connections of the listen port waiting to register"),
+    ("dtus", "dtu_listener_dtus", "DTU ids configured on the listen port"),
+    ("connected", "dtu_listener_connected", "DTUs connected to the listen port"),
+)
+
 
 class MetricsSettings(Model):
     """The ``metrics`` section of the gateway file."""
@@ -118,6 +136,13 @@ class PublisherStats(Protocol):
     def stats(self) -> dict[str, Any]: ...
 
 
+class ListenerStats(Protocol):
+    """What the exporter reads of the DTU listen ports (DtuRegistry satisfies it): per
+    ``host:port``, counters and gauges by name."""
+
+    def stats(self) -> dict[str, dict[str, int]]: ...
+
+
 class MetricsExporter:
     """Serves ``/metrics`` for attached drivers (and an MQTT publisher).
 
@@ -144,6 +169,7 @@ class MetricsExporter:
         self._lock = threading.Lock()
         self._drivers: dict[str, tuple[StatsSource, str]] = {}
         self._publisher: PublisherStats | None = None
+        self._listeners: ListenerStats | None = None
         self.registry = CollectorRegistry(auto_describe=False)
         self.registry.register(self)  # we are the Collector (collect/describe)
         self._server: Any = None
@@ -171,6 +197,11 @@ class MetricsExporter:
         """Export the MQTT publisher's counters (None: stop exporting them)."""
         with self._lock:
             self._publisher = publisher
+
+    def set_listener_stats(self, source: ListenerStats | None) -> None:
+        """Export the DTU listen ports' counters (None: stop exporting them)."""
+        with self._lock:
+            self._listeners = source
 
     # -- HTTP ----------------------------------------------------------------------------
     def start(self) -> int:
@@ -232,6 +263,7 @@ class MetricsExporter:
         with self._lock:
             drivers = list(self._drivers.items())
             publisher = self._publisher
+            listeners = self._listeners
         dev_labels = ["device", "line"]
         counters = {key: CounterMetricFamily(f"{NAMESPACE}_{name}", doc, labels=dev_labels)
                     for key, name, doc in DEVICE_COUNTERS}
@@ -312,6 +344,8 @@ class MetricsExporter:
         yield from (line_exceptions, line_rtt)
         if publisher is not None:
             yield from self._mqtt_metrics(publisher)
+        if listeners is not None:
+            yield from _listener_metrics(listeners)
 
     def _mqtt_metrics(self, publisher: PublisherStats) -> Iterator[Metric]:
         from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
@@ -339,6 +373,33 @@ class MetricsExporter:
             for code, dev in sorted(per_device.items()):
                 family.add_metric([code], float(dev.get(key, 0)))
             yield family
+
+
+def _listener_metrics(source: ListenerStats) -> list[Metric]:
+    """The DTU listen ports' families; none (logged) when the source fails, so that a
+    scrape never does.  A counter or gauge a port's stats lack is not emitted."""
+    from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
+
+    events = CounterMetricFamily(
+        f"{NAMESPACE}_dtu_listener_events",
+        "Events of a DTU listen port by kind (connections accepted, registered, refused "
+        "and why, replaced, contested ids, accept errors, log lines folded)",
+        labels=["port", "event"])
+    gauges = {key: GaugeMetricFamily(f"{NAMESPACE}_{name}", doc, labels=["port"])
+              for key, name, doc in DTU_LISTENER_GAUGES}
+    try:
+        ports = sorted(source.stats().items())
+        for port, stats in ports:
+            for event in DTU_LISTENER_EVENTS:
+                if event in stats:
+                    events.add_metric([port, event], float(stats[event]))
+            for key, family in gauges.items():
+                if key in stats:
+                    family.add_metric([port], float(stats[key]))
+    except Exception:  # a source must never break the scrape
+        log.exception("DTU listener stats() failed")
+        return []
+    return [events, *gauges.values()]
 
 
 class _QuietHandler(WSGIRequestHandler):
@@ -383,4 +444,4 @@ def _le(bound: Any) -> str:
     return "+Inf" if bound == float("inf") else repr(float(bound))
 
 
-__all__ = ["MetricsExporter", "MetricsSettings"]
+__all__ = ["ListenerStats", "MetricsExporter", "MetricsSettings"]

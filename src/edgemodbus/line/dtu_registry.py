@@ -1,0 +1,91 @@
+"""The DTU listeners of a process: one :class:`DtuListener` per listen port, refcounted by
+its DTU slots, and one :class:`DtuSlot` per DTU id, refcounted by the devices that name
+it (:data:`registry` is the process's; the driver acquires from it)."""
+
+from __future__ import annotations
+
+import threading
+
+from .dtu_listener import DtuListener
+from .dtu_slot import DtuSlot
+from .endpoint import DtuEndpoint
+from .registration import DtuAccess, PortSettings
+
+
+class DtuRegistry:
+    """One listener per listen port, refcounted by its DTU slots; one slot per DTU id,
+    refcounted by the devices that name it."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._listeners: dict[tuple[str, int], DtuListener] = {}
+        self._slots: dict[tuple[str, int, str], tuple[DtuSlot, int]] = {}
+
+    def acquire(self, settings: PortSettings, endpoint: DtuEndpoint,
+                access: DtuAccess | None = None) -> DtuSlot:
+        access = access or DtuAccess()
+        with self._lock:
+            listener = self._listeners.get(settings.key)
+            if listener is not None:
+                diffs = listener.settings.differences(settings)
+                if diffs:
+                    raise ValueError(f"listenPort {settings.port}: devices on one listen port "
+                                     "must agree; this device has " + "; ".join(diffs))
+            key = (*settings.key, endpoint.dtu_id)
+            entry = self._slots.get(key)
+            if entry is not None:
+                slot, users = entry
+                if slot.endpoint != endpoint:
+                    raise ValueError(f"dtuId {endpoint.dtu_id!r}: already open as "
+                                     f"'{slot.endpoint.describe()}'; this device asks for "
+                                     f"'{endpoint.describe()}': devices on one DTU must agree")
+                if slot.access != access:
+                    raise ValueError(f"dtuId {endpoint.dtu_id!r}: devices on one DTU must "
+                                     "agree on dtuAllowFrom and registrationKey")
+                self._slots[key] = (slot, users + 1)
+                return slot
+            if listener is None:
+                listener = DtuListener(settings)
+                self._listeners[settings.key] = listener
+            elif settings.registration == "none" and listener.slot_count():
+                raise ValueError(f"dtuId {endpoint.dtu_id!r}: port {settings.port} has no "
+                                 "registration and already serves a DTU; without a "
+                                 "registration packet a port serves one DTU")
+            slot = DtuSlot(endpoint, settings, access)
+            listener.add_slot(slot)
+            self._slots[key] = (slot, 1)
+            return slot
+
+    def release(self, slot: DtuSlot) -> None:
+        stop: DtuListener | None = None
+        with self._lock:
+            key = (*slot.port.key, slot.dtu_id)
+            entry = self._slots.get(key)
+            if entry is None or entry[0] is not slot:
+                return
+            if entry[1] > 1:
+                self._slots[key] = (slot, entry[1] - 1)
+                return
+            del self._slots[key]
+            listener = self._listeners[slot.port.key]
+            listener.remove_slot(slot)
+            if not listener.slot_count():
+                del self._listeners[slot.port.key]
+                stop = listener
+        if stop is not None:
+            stop.stop()
+
+    def listener(self, host: str, port: int) -> DtuListener | None:
+        with self._lock:
+            return self._listeners.get((host, port))
+
+    def stats(self) -> dict[str, dict[str, int]]:
+        """Per listen port ("host:port"): :attr:`DtuListener.stats`."""
+        with self._lock:
+            listeners = list(self._listeners.items())
+        return {f"{h}:{p}": li.stats for (h, p), li in listeners}
+
+
+registry = DtuRegistry()
+
+__all__ = ["DtuRegistry", "registry"]
