@@ -535,7 +535,7 @@ def human(n: float) -> str:
 
 
 def table(results: list[dict[str, Any]]) -> str:
-    head = ("| case | attacker: conns / closed by us / sent (polled: requests it got) "
+    head = ("| case | attacker: dials / closed or reset by us / sent (polled: requests it got) "
             "| fds max | threads max | RSS MB | CPU s/s quiet -> attacked "
             "| log lines (longest, hex bytes) | listener counters "
             "| bystander rate | redial s | wrong | result |")
@@ -552,9 +552,10 @@ def table(results: list[dict[str, Any]]) -> str:
         if r["wrongAfterContested"] is not None:
             wrong += f" ({r['wrongAfterContested']} after contested)"
         polled = a.get("requests_answered", 0) + a.get("polled", 0)
+        refused = a.get("closed_by_peer", 0) + a.get("errors", {}).get("ECONNRESET", 0)
         rows.append(
-            f"| {r['case']} | {human(a.get('connected', 0))} / "
-            f"{human(a.get('closed_by_peer', 0))} / {human(a.get('bytes_sent', 0))}B"
+            f"| {r['case']} | {human(a.get('dials', 0))} / {human(refused)} / "
+            f"{human(a.get('bytes_sent', 0))}B"
             + (f", polled {human(polled)}" if polled else "") + " "
             f"| {r['fds']['max']} | {r['threads']['max']} | {r['rssMb']['start']:.0f} -> "
             f"{r['rssMb']['max']:.0f} | {r['quiet']['cpu']:.2f} -> {r['cpu']:.2f} "
@@ -563,6 +564,13 @@ def table(results: list[dict[str, Any]]) -> str:
             f"| {'-' if r['redialSeconds'] is None else r['redialSeconds']} | {wrong} "
             f"| {'ok' if not r['failures'] else 'FAIL: ' + '; '.join(r['failures'])} |")
     return "\n".join(rows)
+
+
+def retable(path: str) -> int:
+    """Print the table of a --json file again."""
+    with open(path) as fh:
+        print(table(json.load(fh)["cases"]))
+    return 0
 
 
 def soak(args: argparse.Namespace) -> int:
@@ -619,12 +627,16 @@ def main() -> int:
                         default=[], help="comma-separated: " + ",".join(c.name for c in cases()))
     parser.add_argument("--json", default="", help="write every figure to this file")
     parser.add_argument("--log-file", default="", help="also write the edgemodbus log here")
+    parser.add_argument("--table", default="", metavar="JSON",
+                        help="print the table of an earlier --json file and exit")
     parser.add_argument("--serve-dtus", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--port", type=int, default=0, help=argparse.SUPPRESS)
     parser.add_argument("--template", default="", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.serve_dtus:
         return serve_dtus(args)
+    if args.table:
+        return retable(args.table)
     if args.quick:
         args.seconds, args.quiet = 6.0, 3.0
     unknown = set(args.cases) - {c.name for c in cases()}
