@@ -15,7 +15,9 @@ size of the threads this process starts, the line workers (default: RLIMIT_STACK
 Linux), to see what smaller stacks save; ``EDGEMODBUS_BENCH_CRLF=1`` ends each registration
 with CR LF (by default it has no end, so the listener takes it after its 0.5 s quiet gap,
 line/registration.py).  Memory is per DTU configured (every driver has its thread and
-objects, connected or not), CPU per DTU whose values are Ok.
+objects, connected or not), CPU per DTU whose values are Ok.  The fleet dials from one
+address, so the caps on connections waiting to register (maxUnregistered and
+maxUnregisteredPerSource, made for the internet) are raised to the fleet's size.
 
 The run asserts, after its report, that every value became Ok and that no connection
 was turned away: the listener registered every connection it accepted (none unknown,
@@ -86,6 +88,9 @@ def _config(port: int, n: int) -> em.DeviceConfig:
             "transport": "rtu-over-tcp-server", "listenHost": "127.0.0.1", "listenPort": port,
             "dtuId": ID.format(n=n), "registration": "text", "registrationTimeout": 10000,
             "slaveId": SLAVE, "readCycle": CYCLE_MS, "readTimeout": 1000,
+            # the whole fleet dials from one address, and an unterminated registration
+            # waits the quiet gap: up to dial rate x 0.5 s connections wait at once
+            "maxUnregistered": N_DTUS, "maxUnregisteredPerSource": N_DTUS,
         },
         "addressList": [{"name": f"t{a}", "address": f"3:{a}", "deviceDataType": "UInt16"}
                         for a in range(TAGS)],

@@ -92,7 +92,7 @@ def test_two_dtus_on_one_port_each_feed_their_own_devices() -> None:
 def test_not_connected_then_dial_in_then_a_reconnect_replaces_the_old_link() -> None:
     port = free_port()
     cfg = dtu_device(port, "861234567890123", registration="regex",
-                     registrationPattern=r"IMEI:(\d{15})")
+                     registrationPattern=r"IMEI:(\d{15})", duplicateId="replace")
     with Simulator(slaves=[1]) as sim, running(cfg) as (drv,):
         wait_for(lambda: drv.device_driver_status is DeviceDriverStatus.RECONNECTING)
         wait_for(lambda: all(it.status is ItemStatus.INVALID for it in cfg.address_list))
@@ -111,6 +111,28 @@ def test_not_connected_then_dial_in_then_a_reconnect_replaces_the_old_link() -> 
         wait_for(lambda: drv.device_driver_status is DeviceDriverStatus.RECONNECTING)
         wait_for(lambda: all("DTU not connected" in (it.error_reason or "")
                              for it in cfg.address_list), what="DTU not connected")
+
+
+def test_keep_existing_refuses_a_second_connection_while_the_first_answers() -> None:
+    """The default duplicateId: the newcomer is held for the registration timeout and
+    closed, because the connection in use answered meanwhile; then, once that one is
+    gone, the next dial takes the id at once."""
+    port = free_port()
+    cfg = dtu_device(port, "D7")
+    with Simulator(slaves=[1]) as sim, running(cfg) as (drv,):
+        first = sim.dial("127.0.0.1", port, registration=b"D7\r\n")
+        wait_for(ok(cfg), what="values after dial-in")
+        second = sim.dial("127.0.0.1", port, registration=b"D7\r\n")
+        wait_for(lambda: second.closed, what="the newcomer closed")
+        assert not first.closed
+        listener = dtu_registry.listener("127.0.0.1", port)
+        assert listener is not None
+        assert listener.stats["duplicateRefused"] == 1 and listener.stats["replaced"] == 0
+        first.close()
+        wait_for(lambda: drv.device_driver_status is DeviceDriverStatus.RECONNECTING)
+        sim.dial("127.0.0.1", port, registration=b"D7\r\n")
+        wait_for(lambda: drv.device_driver_status is DeviceDriverStatus.RUNNING)
+        assert listener.stats["duplicateRefused"] == 1
 
 
 def test_unknown_and_silent_dtus_are_closed_after_the_timeout_and_take_no_place() -> None:

@@ -49,7 +49,7 @@ Registration = Literal["none", "text", "hex", "regex"]
 AddressPrefixOption = Literal["function-code", "modicon"]
 ReportMode = Literal["change", "cycle"]
 Rs485Mode = Literal["none", "kernel", "rts-up", "rts-down"]
-DuplicateId = Literal["replace", "keep-existing"]
+DuplicateId = Literal["keep-existing", "replace"]
 AllowFrom = Annotated[tuple[Annotated[str, AfterValidator(network)], ...],
                       BeforeValidator(allow_list)]
 """A source-address allow-list: networks (CIDR) or single addresses, normalised."""
@@ -209,10 +209,10 @@ class DriverModbusRtuParameter(Model):
         f"({NETWORKS_ALLOWED}; a list, or one text separated by commas); empty = any",
     )
     duplicate_id: DuplicateId = Field(
-        default="replace",
+        default="keep-existing",
         description="rtu-over-tcp-server: a second connection registering as a connected "
-        "DTU: replace (takes over, for a DTU re-dialling behind a half-open socket) or "
-        "keep-existing (refused while the old connection still answers)",
+        "DTU: keep-existing (held for registrationTimeout, then refused if the old "
+        "connection answered meanwhile, else it takes over) or replace (takes over at once)",
     )
     id_flip_limit: Annotated[int, Range(1, 1000)] = Field(
         default=5,

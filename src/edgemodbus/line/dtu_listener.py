@@ -166,27 +166,32 @@ class DtuListener:
 
     # -- the loop ----------------------------------------------------------------------------
     def _run(self) -> None:
-        try:
-            while not self._stopping:
-                first = min((n.wake() for n in self._newcomers), default=math.inf)
-                first = min(first, self._accept_at, self._logs.next_due())
-                timeout = None if first == math.inf else max(0.0, first - time.monotonic())
-                accept = False
-                for key, _ in self._sel.select(timeout):
-                    if key.fileobj is self._sock:
-                        accept = True  # after the registrations: they free waiting places
-                    elif key.fileobj is self._wake_r:
-                        with contextlib.suppress(OSError):
-                            self._wake_r.recv(64)
-                    else:
-                        self._on_data(key.data)
-                if accept:
-                    self._accept()
-                self._timers(time.monotonic())
-                self._logs.flush()
-            self._logs.flush(force=True)
-        except Exception:
-            log.exception("DTU listener on port %d failed", self.port)
+        while not self._stopping:
+            try:
+                self._turn()
+            except Exception:  # a bug must not stop the port: log it and go on
+                log.exception("DTU listener on port %d: unexpected error", self.port)
+                time.sleep(0.1)
+        self._logs.flush(force=True)
+
+    def _turn(self) -> None:
+        """One turn of the loop: wait for sockets or the next timer, then serve them."""
+        first = min((n.wake() for n in self._newcomers), default=math.inf)
+        first = min(first, self._accept_at, self._logs.next_due())
+        timeout = None if first == math.inf else max(0.0, first - time.monotonic())
+        accept = False
+        for key, _ in self._sel.select(timeout):
+            if key.fileobj is self._sock:
+                accept = True  # after the registrations: they free waiting places
+            elif key.fileobj is self._wake_r:
+                with contextlib.suppress(OSError):
+                    self._wake_r.recv(64)
+            else:
+                self._on_data(key.data)
+        if accept:
+            self._accept()
+        self._timers(time.monotonic())
+        self._logs.flush()
 
     def _refuse(self, counter: str, source: str, conn: socket.socket, why: str) -> None:
         """Close a new connection at once (reset: no TIME_WAIT kept here), counted and
@@ -231,17 +236,17 @@ class DtuListener:
         if not self._allowed.allows(source):
             self._refuse("refusedNotAllowed", source, conn, "not in listenAllowFrom")
             return
+        with contextlib.suppress(OSError):
+            conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            conn.setsockopt(socket.SOL_SOCKET, socket.SO_KEEPALIVE, 1)
         if self.settings.registration == "none":
-            self._hand_over_single(conn, peer)
+            self._hand_over_single(conn, source, peer)
             return
         refusal = self._waiting.refusal(source)
         if refusal is not None:
             counter, why = refusal
             self._refuse(counter, source, conn, why)
             return
-        with contextlib.suppress(OSError):
-            conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-            conn.setsockopt(socket.SOL_SOCKET, socket.SO_KEEPALIVE, 1)
         conn.setblocking(False)
         now = time.monotonic()
         budget = ByteBudget(self.settings.byte_rate,
@@ -251,18 +256,18 @@ class DtuListener:
         self._waiting.add(source)
         self._sel.register(conn, selectors.EVENT_READ, newcomer)
 
-    def _hand_over_single(self, conn: socket.socket, peer: str) -> None:
+    def _hand_over_single(self, conn: socket.socket, source: str, peer: str) -> None:
         with self._lock:
             slots = list(self._slots.values())
         if len(slots) != 1:
-            self._refuse("unknown", peer.rsplit(":", 1)[0], conn,
+            self._refuse("unknown", source, conn,
                          f"{len(slots)} DTUs are configured on this port without "
                          "registration")
             return
-        self._offer(slots[0], conn, peer, b"")
+        self._offer(slots[0], conn, source, peer, b"")
 
-    def _offer(self, slot: DtuSlot, conn: socket.socket, peer: str, rest: bytes,
-               newcomer: _Newcomer | None = None) -> None:
+    def _offer(self, slot: DtuSlot, conn: socket.socket, source: str, peer: str,
+               rest: bytes, newcomer: _Newcomer | None = None) -> None:
         """Hand an identified connection (a newcomer's, or one accepted on a port without
         registration) to its slot, under the duplicate-id policy."""
         conn.setblocking(True)
@@ -279,7 +284,7 @@ class DtuListener:
         conn.setblocking(False)
         if newcomer is None:  # no registration to hold it by: closed at once
             self._refuse("duplicateRefused" if outcome == "challenge" else "refusedContested",
-                         peer.rsplit(":", 1)[0], conn, f"DTU {slot.dtu_id!r} is connected")
+                         source, conn, f"DTU {slot.dtu_id!r} is connected")
             return
         if outcome == "challenge":
             newcomer.challenge = (slot, rest, slot.answers())
@@ -364,7 +369,8 @@ class DtuListener:
         if isinstance(found, Identified) and slot is not None:
             refusal = self._access_refusal(slot, newcomer, found)
             if refusal is None:
-                self._offer(slot, newcomer.sock, newcomer.peer, buf[found.end:], newcomer)
+                self._offer(slot, newcomer.sock, newcomer.source, newcomer.peer,
+                            buf[found.end:], newcomer)
                 return True
             counter, why = refusal
         elif len(buf) >= self.settings.max_bytes:

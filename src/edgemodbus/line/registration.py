@@ -50,10 +50,10 @@ QUIET_GAP = 0.5
 but has no end, is taken.  Longer than Linux's minimum TCP retransmission timeout (0.2 s),
 so that one retransmitted segment of the rest of a longer id is still awaited."""
 
-DUPLICATE_POLICIES = ("replace", "keep-existing")
-"""What a second connection claiming a connected DTU's id gets: ``replace`` (the newcomer
-takes over: a DTU that re-dialled behind a half-open socket) or ``keep-existing`` (the
-old connection stays while it still answers)."""
+DUPLICATE_POLICIES = ("keep-existing", "replace")
+"""What a second connection claiming a connected DTU's id gets: ``keep-existing`` (the
+old connection stays while it still answers; the default, so that an impostor cannot
+take an answering DTU's place) or ``replace`` (the newcomer takes over at once)."""
 
 _LINE_ENDS = b"\r\n\0"
 
@@ -76,7 +76,7 @@ class PortSettings:
     max_unregistered: int = 512  # maxUnregistered: connections not registered yet
     max_per_source: int = 64  # maxUnregisteredPerSource: the same, per source address
     allow_from: tuple[str, ...] = ()  # listenAllowFrom: CIDR networks (empty: any)
-    duplicate_id: str = "replace"  # duplicateId: one of DUPLICATE_POLICIES
+    duplicate_id: str = "keep-existing"  # duplicateId: one of DUPLICATE_POLICIES
     flip_limit: int = 5  # idFlipLimit: replacements of one id within flip_window ...
     flip_window: float = 60.0  # idFlipWindow (s): ... beyond which the id is contested
 

@@ -58,8 +58,8 @@ KEYS: list[tuple[str, str, Any, Any, Any, str]] = [
     ("idFlipLimit", "id_flip_limit", 5, 1, 0, "must be 1..1000"),
     ("idFlipWindow", "id_flip_window", 60000, 1, 0, "must be 1..86400000"),
     ("idFlipWindow", "id_flip_window", 60000, 86_400_000, 86_400_001, "must be 1..86400000"),
-    ("duplicateId", "duplicate_id", "replace", "keep-existing", "first",
-     "must be 'replace' or 'keep-existing'"),
+    ("duplicateId", "duplicate_id", "keep-existing", "replace", "first",
+     "must be 'keep-existing' or 'replace'"),
     ("listenAllowFrom", "listen_allow_from", (), ["10.0.0.0/8"], ["10.0.0.0/33"],
      "must be an IPv4 or IPv6 network in CIDR notation or a single address"),
     ("dtuAllowFrom", "dtu_allow_from", (), ["2001:db8::/32"], ["2001:db8::/129"],
@@ -291,17 +291,17 @@ def test_port_settings_carry_every_port_key() -> None:
     p = DriverModbusRtuParameter.model_validate(server(
         registrationMaxBytes=128, registrationByteRate=0, maxUnregistered=100,
         maxUnregisteredPerSource=4, listenAllowFrom=["2001:db8::/32", "10.0.0.9"],
-        duplicateId="keep-existing", idFlipLimit=3, idFlipWindow=1500,
+        duplicateId="replace", idFlipLimit=3, idFlipWindow=1500,
         registrationTimeout=2500, heartbeat="HB"))
     assert port_settings(p) == PortSettings(
         host="127.0.0.1", port=9502, registration="regex", pattern=PATTERN, length=None,
         timeout=2.5, heartbeat=b"HB", max_bytes=128, byte_rate=0, max_unregistered=100,
         max_per_source=4, allow_from=("10.0.0.9/32", "2001:db8::/32"),
-        duplicate_id="keep-existing", flip_limit=3, flip_window=1.5)
+        duplicate_id="replace", flip_limit=3, flip_window=1.5)
     defaults = port_settings(DriverModbusRtuParameter.model_validate(server()))
     assert (defaults.max_bytes, defaults.byte_rate, defaults.max_unregistered,
             defaults.max_per_source, defaults.allow_from, defaults.duplicate_id,
-            defaults.flip_limit, defaults.flip_window) == (256, 1024, 512, 64, (), "replace",
+            defaults.flip_limit, defaults.flip_window) == (256, 1024, 512, 64, (), "keep-existing",
                                                            5, 60.0)
 
 
