@@ -35,6 +35,7 @@ from edgemodbus.datatypes import Area, DeviceDriverStatus, ItemStatus
 from edgemodbus.line import DtuEndpoint, DtuRegistry, PortSettings
 from edgemodbus.sim import DtuFleet, Simulator, default_register
 from tests.integration.test_dtu import dtu_device, free_port, ok, running, values
+from tests.integration.test_dtu_fleet import tcp_fds
 from tests.waiting import wait_for
 
 ATTACKER = Path(__file__).resolve().parents[2] / "tools" / "dtu_attack.py"
@@ -427,15 +428,39 @@ def test_keep_existing_refuses_a_second_connection_while_the_first_answers(
     assert all(st is not ItemStatus.OK or v == real[n] for n, v, st in seen), seen
 
 
+def test_challengers_of_a_connected_id_count_against_the_caps() -> None:
+    """keep-existing holds a connection that claims a connected id for the registration
+    timeout; such challengers must stay within maxUnregistered / maxUnregisteredPerSource
+    like any connection not yet admitted, or whoever knows one DTU id can hold as many
+    of our fds as he likes (60 here, 2000 at an fd limit of 1024)."""
+    port = free_port()
+    extra = {"duplicateId": "keep-existing", "registrationTimeout": 5000,
+             "maxUnregistered": 10, "maxUnregisteredPerSource": 10}
+    with legit(port, **extra) as (cfg, _drv, _sim):
+        with attacking(port, "impostor", "GOOD", "-n", "60", "--template",
+                       r"{id}\r\n") as attacker:
+            wait_for(lambda: attacker.proc.poll() is not None or counter(
+                port, "accepted") >= 61, what="the 60 connections accepted")
+            peak = 0
+            for _ in range(20):  # the listener's ends of the attacker's connections
+                peak = max(peak, tcp_fds(port)[1] - 1)  # less the legitimate DTU's
+                time.sleep(0.05)
+            refused = counter(port, "refusedPortCap") + counter(port, "refusedSourceCap")
+        assert peak <= 10, f"{peak} challengers held (caps 10), {refused} refused"
+        assert refused >= 50
+        assert attacker.summary["requests_answered"] == 0
+        assert values(cfg) == REAL
+
+
 def test_an_id_that_flips_between_two_connections_becomes_contested(
         caplog: pytest.LogCaptureFixture) -> None:
-    """duplicateId replace (the default): the real DTU (re-dialling when replaced) and an
+    """duplicateId replace: the real DTU (re-dialling when replaced) and an
     impostor take the id in turn.  Beyond idFlipLimit flips the id is contested: counted,
     one WARNING naming both peers, items Invalid with an errorReason naming both, and no
     impostor value is reported Ok from then on."""
     caplog.set_level(logging.INFO, logger="edgemodbus")
     port = free_port()
-    cfg = dtu_device(port, "DUP0", idFlipLimit=3, idFlipWindow=30000)
+    cfg = dtu_device(port, "DUP0", duplicateId="replace", idFlipLimit=3, idFlipWindow=30000)
     seen: list[tuple[float, Any, ItemStatus]] = []
     fleet = DtuFleet("127.0.0.1", port, 1, registration="DUP{n}\r\n", size=16,
                      reconnect=0.1, reconnect_max=0.2)
