@@ -201,6 +201,15 @@ def test_beyond_the_per_source_cap_new_connections_are_closed_at_once_and_counte
         wait_for(lambda: sum(map(closed_by_peer, socks)) == 7, timeout=5,
                  what="7 connections closed")
         assert values(cfg) == REAL
+        for sock in socks:  # the five waiting ones leave: their places are free again
+            if sock is not None:
+                sock.close()
+        socks.clear()
+        wait_for(lambda: counter(port, "unregistered") == 0, what="places freed")
+        with raw_connections(port, 5) as again:
+            wait_for(lambda: counter(port, "unregistered") == 5, what="5 waiting again")
+            assert counter(port, "refusedSourceCap") == 7
+            assert not any(closed_by_peer(s) for s in again)
 
 
 def test_a_reconnect_storm_is_refused_counted_and_summarised_in_the_log(
@@ -262,6 +271,19 @@ def test_bytes_before_registration_are_bounded(
         assert values(cfg) == REAL
     assert_log_lines_bounded(caplog)
     assert len(dtu_records(caplog)) <= 10, [r.getMessage()[:200] for r in caplog.records]
+
+
+def test_a_long_registration_sent_at_once_registers_under_the_byte_rate() -> None:
+    """registrationByteRate slows reading (TCP slows the sender), it refuses nothing: a
+    200-byte registration sent at once, at 100 bytes/s, registers."""
+    port = free_port()
+    packet = b"ID:GOOD;PAD:" + b"x" * 186 + b"\r\n"
+    with legit(port, "GOOD", packet, registration="regex",
+               registrationPattern=r"ID:(\w+);PAD:\w*\r\n", registrationByteRate=100,
+               registrationMaxBytes=256, registrationTimeout=8000) as (cfg, _drv, _sim):
+        assert values(cfg) == REAL
+        stats = port_stats(port)
+        assert stats["registered"] == 1 and stats["oversize"] == 0
 
 
 def test_accept_errors_back_off_and_accepting_resumes() -> None:
@@ -363,7 +385,10 @@ def test_registration_key(caplog: pytest.LogCaptureFixture) -> None:
     key = "Kx7secretQ93"
     cfg = dtu_device(port, "861234567890123", registration="regex",
                      registrationPattern=KEY_PATTERN, registrationKey=key)
-    assert key not in repr(cfg.communication)
+    comm = cfg.communication
+    for shown in (repr(comm), str(comm), comm.model_dump_json(by_alias=True),
+                  json.dumps(comm.model_dump(mode="json", by_alias=True))):
+        assert key not in shown
     with ExitStack() as stack:
         sims = [stack.enter_context(Simulator(slaves=[1])) for _ in range(3)]
         stack.enter_context(running(cfg))
@@ -426,6 +451,35 @@ def test_keep_existing_refuses_a_second_connection_while_the_first_answers(
         assert drv.device_driver_status is DeviceDriverStatus.RUNNING
     real = dict(zip(("r0", "r1", "r7"), REAL, strict=True))
     assert all(st is not ItemStatus.OK or v == real[n] for n, v, st in seen), seen
+
+
+def test_without_registration_a_dtu_redialling_behind_a_silent_connection_gets_back_in(
+        ) -> None:
+    """registration none, duplicateId keep-existing (the default): the DTU's old
+    connection answers no more (half-open behind a NAT that forgot it: no FIN, no RST)
+    and the DTU dials again every second.  As with a registration (the challenger is
+    held for the registration timeout, then takes over), the new connection must get the
+    DTU's place once the old one is found silent, not be refused for as long as the old
+    socket lives (TCP keepalive: hours)."""
+    port = free_port()
+    cfg = dtu_device(port, "", registration="none", tcpPort=port, listenPort=None)
+    with ExitStack() as stack:
+        old = stack.enter_context(Simulator(slaves=[1]))
+        new = stack.enter_context(Simulator(slaves=[1]))
+        new.slave(1).set_registers(Area.HOLDING_REGISTER, 0, [31, 32, 33, 34, 35, 36, 37, 38])
+        (drv,) = stack.enter_context(running(cfg))
+        old.dial("127.0.0.1", port)
+        wait_for(ok(cfg), what="the DTU Ok")
+        assert values(cfg) == REAL
+        old.slave(1).faults.silent = True
+        deadline = time.monotonic() + 15.0
+        while values(cfg) != [31, 32, 38] and time.monotonic() < deadline:
+            new.dial("127.0.0.1", port)  # a DTU re-dials every second or so
+            time.sleep(1.0)
+        refused = counter(port, "duplicateRefused")
+        assert values(cfg) == [31, 32, 38], (
+            f"the re-dialled DTU never got its place: {refused} connections refused, "
+            f"{drv.stats()['timeouts']} timeouts on the silent one")
 
 
 def test_challengers_of_a_connected_id_count_against_the_caps() -> None:
