@@ -12,6 +12,8 @@ than a bound (:mod:`.admission`):
 
 * at accept: the port's allow-list (``listenAllowFrom``), then the caps on connections
   waiting to register, per port and per source; a refused connection is reset at once.
+  When the port is full, the oldest connection held as refused, or silent for the quiet
+  gap, is evicted first, so that idle connections cannot keep DTUs out.
   Accept errors (EMFILE, ENFILE, ENOBUFS, ENOMEM) pause accepting, doubling up to
   :data:`MAX_ACCEPT_PAUSE`, instead of spinning;
 * before registering: at most ``registrationMaxBytes`` bytes (then closed at once),
@@ -55,13 +57,17 @@ MIN_ACCEPT_PAUSE = 0.05
 MAX_ACCEPT_PAUSE = 2.0
 """Seconds accepting pauses after an accept error (doubling from the first)."""
 
+EVICT_SCAN = 32
+"""Oldest waiting connections looked at for one to evict when the port is full."""
+
 BUDGET_BURST = 64
 """Bytes a newcomer may send at once before ``registrationByteRate`` applies."""
 
 _ACCEPT_ERRORS = (errno.EMFILE, errno.ENFILE, errno.ENOBUFS, errno.ENOMEM)
 _RESET = struct.pack("ii", 1, 0)  # SO_LINGER on, 0 s: close with RST, no TIME_WAIT here
 
-COUNTERS = ("accepted", "registered", "unknown", "silent", "oversize", "refusedPortCap",
+COUNTERS = ("accepted", "registered", "unknown", "silent", "oversize", "evicted",
+            "refusedPortCap",
             "refusedSourceCap", "refusedNotAllowed", "refusedDtuNotAllowed", "badKey",
             "duplicateRefused", "replaced", "contested", "refusedContested", "acceptErrors",
             "acceptPauses")
@@ -74,6 +80,7 @@ class _Newcomer:
     source: str  # the peer's address without the port
     deadline: float
     budget: ByteBudget
+    since: float  # accepted at (monotonic)
     buf: bytearray = field(default_factory=bytearray)
     quiet_at: float = math.inf  # when to look at the registration again if no byte comes
     resume_at: float = math.inf  # reading paused (byte rate) until then
@@ -116,7 +123,7 @@ class DtuListener:
         self._wake_r.setblocking(False)
         self._sel.register(sock, selectors.EVENT_READ, None)
         self._sel.register(self._wake_r, selectors.EVENT_READ, None)
-        self._newcomers: set[_Newcomer] = set()
+        self._newcomers: dict[_Newcomer, None] = {}  # in accept order, oldest first
         self._challenged: set[str] = set()  # ids with a connection held as challenger
         self._accept_pause = 0.0  # the last pause after an accept error (0: none)
         self._accept_at = math.inf  # accepting paused until then
@@ -241,6 +248,8 @@ class DtuListener:
             conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
             conn.setsockopt(socket.SOL_SOCKET, socket.SO_KEEPALIVE, 1)
         refusal = self._waiting.refusal(source)
+        if refusal is not None and refusal[0] == "refusedPortCap" and self._evict():
+            refusal = self._waiting.refusal(source)
         if refusal is not None:
             counter, why = refusal
             self._refuse(counter, source, conn, why)
@@ -249,13 +258,31 @@ class DtuListener:
         now = time.monotonic()
         budget = ByteBudget(self.settings.byte_rate,
                             min(BUDGET_BURST, self.settings.max_bytes), now)
-        newcomer = _Newcomer(conn, peer, source, now + self.settings.timeout, budget)
-        self._newcomers.add(newcomer)
+        newcomer = _Newcomer(conn, peer, source, now + self.settings.timeout, budget, now)
+        self._newcomers[newcomer] = None
         self._waiting.add(source)
         if self.settings.registration == "none":
             self._hand_over_single(newcomer)
         else:
             self._sel.register(conn, selectors.EVENT_READ, newcomer)
+
+    def _evict(self) -> bool:
+        """The port is full: make room for a new connection by closing the oldest one
+        that is either held as refused or has sent nothing for the quiet gap, so that
+        idle connections cannot keep DTUs out.  False: none of the oldest qualifies."""
+        idle_since = time.monotonic() - self.settings.quiet_gap
+        for k, newcomer in enumerate(self._newcomers):
+            if k == EVICT_SCAN:
+                break
+            if newcomer.challenge is None and (
+                    newcomer.held or (not newcomer.buf and newcomer.since <= idle_since)):
+                self.counts["evicted"] += 1
+                self._logs.event(logging.WARNING, "connections evicted", newcomer.source,
+                                 "DTU listener :%d: %s evicted: the port is full and it has "
+                                 "not registered", self.port, newcomer.peer)
+                self._close(newcomer)
+                return True
+        return False
 
     def _hand_over_single(self, newcomer: _Newcomer) -> None:
         """A port without registration: its one DTU takes every connection."""
@@ -321,7 +348,7 @@ class DtuListener:
         """Forget a newcomer whose socket is handed over or closed."""
         with contextlib.suppress(KeyError, ValueError):
             self._sel.unregister(newcomer.sock)
-        self._newcomers.discard(newcomer)
+        self._newcomers.pop(newcomer, None)
         if newcomer.waiting:
             self._waiting.remove(newcomer.source)
             newcomer.waiting = False
