@@ -278,3 +278,25 @@ def test_a_registration_in_segments_is_never_taken_for_an_id_it_begins_with(
         listener = dtu_registry.listener("127.0.0.1", port)
         assert listener is not None
         assert listener.stats["registered"] == 2 and listener.stats["unknown"] == 0
+
+
+def test_a_full_port_evicts_its_oldest_idle_connection_for_a_dtu() -> None:
+    """maxUnregistered idle connections do not keep a DTU out: when the port is full, the
+    oldest connection that has sent nothing for the quiet gap makes room."""
+    port = free_port()
+    cfg = dtu_device(port, "D9", maxUnregistered=3, registrationTimeout=5000)
+    with Simulator(slaves=[1]) as sim, running(cfg), ExitStack() as stack:
+        listener = dtu_registry.listener("127.0.0.1", port)
+        assert listener is not None
+        idle = [stack.enter_context(socket.create_connection(("127.0.0.1", port)))
+                for _ in range(3)]
+        wait_for(lambda: listener.stats["unregistered"] == 3, what="three waiting")
+        time.sleep(0.6)  # longer than the quiet gap: they are idle now
+        sim.dial("127.0.0.1", port, registration=b"D9\r\n")
+        wait_for(ok(cfg), what="the DTU polled")
+        stats = listener.stats
+        assert stats["evicted"] == 1 and stats["refusedPortCap"] == 0
+        assert stats["unregistered"] == 2
+        oldest = idle[0]
+        oldest.settimeout(2)
+        assert oldest.recv(1) == b""  # the oldest was closed

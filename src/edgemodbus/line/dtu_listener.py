@@ -12,6 +12,8 @@ than a bound (:mod:`.admission`):
 
 * at accept: the port's allow-list (``listenAllowFrom``), then the caps on connections
   waiting to register, per port and per source; a refused connection is reset at once.
+  When the port is full, the oldest connection held as refused, or silent for the quiet
+  gap, is evicted first, so that idle connections cannot keep DTUs out.
   Accept errors (EMFILE, ENFILE, ENOBUFS, ENOMEM) pause accepting, doubling up to
   :data:`MAX_ACCEPT_PAUSE`, instead of spinning;
 * before registering: at most ``registrationMaxBytes`` bytes (then closed at once),
@@ -55,13 +57,17 @@ MIN_ACCEPT_PAUSE = 0.05
 MAX_ACCEPT_PAUSE = 2.0
 """Seconds accepting pauses after an accept error (doubling from the first)."""
 
+EVICT_SCAN = 32
+"""Oldest waiting connections looked at for one to evict when the port is full."""
+
 BUDGET_BURST = 64
 """Bytes a newcomer may send at once before ``registrationByteRate`` applies."""
 
 _ACCEPT_ERRORS = (errno.EMFILE, errno.ENFILE, errno.ENOBUFS, errno.ENOMEM)
 _RESET = struct.pack("ii", 1, 0)  # SO_LINGER on, 0 s: close with RST, no TIME_WAIT here
 
-COUNTERS = ("accepted", "registered", "unknown", "silent", "oversize", "refusedPortCap",
+COUNTERS = ("accepted", "registered", "unknown", "silent", "oversize", "evicted",
+            "refusedPortCap",
             "refusedSourceCap", "refusedNotAllowed", "refusedDtuNotAllowed", "badKey",
             "duplicateRefused", "replaced", "contested", "refusedContested", "acceptErrors",
             "acceptPauses")
@@ -74,6 +80,7 @@ class _Newcomer:
     source: str  # the peer's address without the port
     deadline: float
     budget: ByteBudget
+    since: float  # accepted at (monotonic)
     buf: bytearray = field(default_factory=bytearray)
     quiet_at: float = math.inf  # when to look at the registration again if no byte comes
     resume_at: float = math.inf  # reading paused (byte rate) until then
@@ -116,7 +123,8 @@ class DtuListener:
         self._wake_r.setblocking(False)
         self._sel.register(sock, selectors.EVENT_READ, None)
         self._sel.register(self._wake_r, selectors.EVENT_READ, None)
-        self._newcomers: set[_Newcomer] = set()
+        self._newcomers: dict[_Newcomer, None] = {}  # in accept order, oldest first
+        self._challenged: set[str] = set()  # ids with a connection held as challenger
         self._accept_pause = 0.0  # the last pause after an accept error (0: none)
         self._accept_at = math.inf  # accepting paused until then
         self._stopping = False
@@ -239,10 +247,9 @@ class DtuListener:
         with contextlib.suppress(OSError):
             conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
             conn.setsockopt(socket.SOL_SOCKET, socket.SO_KEEPALIVE, 1)
-        if self.settings.registration == "none":
-            self._hand_over_single(conn, source, peer)
-            return
         refusal = self._waiting.refusal(source)
+        if refusal is not None and refusal[0] == "refusedPortCap" and self._evict():
+            refusal = self._waiting.refusal(source)
         if refusal is not None:
             counter, why = refusal
             self._refuse(counter, source, conn, why)
@@ -251,62 +258,86 @@ class DtuListener:
         now = time.monotonic()
         budget = ByteBudget(self.settings.byte_rate,
                             min(BUDGET_BURST, self.settings.max_bytes), now)
-        newcomer = _Newcomer(conn, peer, source, now + self.settings.timeout, budget)
-        self._newcomers.add(newcomer)
+        newcomer = _Newcomer(conn, peer, source, now + self.settings.timeout, budget, now)
+        self._newcomers[newcomer] = None
         self._waiting.add(source)
-        self._sel.register(conn, selectors.EVENT_READ, newcomer)
+        if self.settings.registration == "none":
+            self._hand_over_single(newcomer)
+        else:
+            self._sel.register(conn, selectors.EVENT_READ, newcomer)
 
-    def _hand_over_single(self, conn: socket.socket, source: str, peer: str) -> None:
+    def _evict(self) -> bool:
+        """The port is full: make room for a new connection by closing the oldest one
+        that is either held as refused or has sent nothing for the quiet gap, so that
+        idle connections cannot keep DTUs out.  False: none of the oldest qualifies."""
+        idle_since = time.monotonic() - self.settings.quiet_gap
+        for k, newcomer in enumerate(self._newcomers):
+            if k == EVICT_SCAN:
+                break
+            if newcomer.challenge is None and (
+                    newcomer.held or (not newcomer.buf and newcomer.since <= idle_since)):
+                self.counts["evicted"] += 1
+                self._logs.event(logging.WARNING, "connections evicted", newcomer.source,
+                                 "DTU listener :%d: %s evicted: the port is full and it has "
+                                 "not registered", self.port, newcomer.peer)
+                self._close(newcomer)
+                return True
+        return False
+
+    def _hand_over_single(self, newcomer: _Newcomer) -> None:
+        """A port without registration: its one DTU takes every connection."""
         with self._lock:
             slots = list(self._slots.values())
-        if len(slots) != 1:
-            self._refuse("unknown", source, conn,
-                         f"{len(slots)} DTUs are configured on this port without "
-                         "registration")
+        if len(slots) == 1:
+            self._offer(slots[0], newcomer, b"")
             return
-        self._offer(slots[0], conn, source, peer, b"")
+        self.counts["unknown"] += 1
+        self._close(newcomer)
+        self._logs.event(logging.WARNING, "connections refused (unknown)", newcomer.source,
+                         "DTU listener :%d: %s refused: %d DTUs are configured on this port "
+                         "without registration", self.port, newcomer.peer, len(slots))
 
-    def _offer(self, slot: DtuSlot, conn: socket.socket, source: str, peer: str,
-               rest: bytes, newcomer: _Newcomer | None = None) -> None:
-        """Hand an identified connection (a newcomer's, or one accepted on a port without
-        registration) to its slot, under the duplicate-id policy."""
+    def _offer(self, slot: DtuSlot, newcomer: _Newcomer, rest: bytes) -> None:
+        """Hand an identified connection to its slot, under the duplicate-id policy:
+        handed over, held as the id's one challenger, or held as refused."""
+        conn, peer = newcomer.sock, newcomer.peer
         conn.setblocking(True)
         outcome = slot.offer(conn, peer, rest, time.monotonic())
         if outcome in ("taken", "replaced"):
-            if newcomer is not None:
-                self._release(newcomer)
+            self._release(newcomer)
             self.counts["registered"] += 1
             if outcome == "replaced":
                 self.counts["replaced"] += 1
-            self._logs.event(logging.INFO, "DTUs registered", slot.dtu_id, "DTU %r registered from "
-                             "%s on port %d", slot.dtu_id, peer, self.port)
+            self._logs.event(logging.INFO, "DTUs registered", slot.dtu_id,
+                             "DTU %r registered from %s on port %d", slot.dtu_id, peer,
+                             self.port)
             return
         conn.setblocking(False)
-        if newcomer is None:  # no registration to hold it by: closed at once
-            self._refuse("duplicateRefused" if outcome == "challenge" else "refusedContested",
-                         source, conn, f"DTU {slot.dtu_id!r} is connected")
-            return
-        if outcome == "challenge":
+        if outcome == "challenge" and slot.dtu_id not in self._challenged:
+            self._challenged.add(slot.dtu_id)
             newcomer.challenge = (slot, rest, slot.answers())
             newcomer.deadline = time.monotonic() + self.settings.timeout
-            self._hold(newcomer, counted=False)
+            self._hold(newcomer)
             return
-        self.counts["contested" if outcome == "contested" else "refusedContested"] += 1
+        if outcome == "challenge":
+            counter, why = "duplicateRefused", "already challenged by another connection"
+        elif outcome == "contested":
+            counter, why = "contested", "the id is contested"
+        else:
+            counter, why = "refusedContested", "the id is contested"
+        self.counts[counter] += 1
         self._hold(newcomer)
-        self._logs.event(logging.WARNING, "connections refused (contested id)",
-                         newcomer.source, "DTU listener :%d: %s claims contested DTU id %r; "
-                         "held until the registration timeout", self.port, peer, slot.dtu_id)
+        self._logs.event(logging.WARNING, f"connections held ({counter})", newcomer.source,
+                         "DTU listener :%d: %s claims DTU id %r: %s; held until the "
+                         "registration timeout", self.port, peer, slot.dtu_id, why)
 
-    def _hold(self, newcomer: _Newcomer, counted: bool = True) -> None:
+    def _hold(self, newcomer: _Newcomer) -> None:
         """Keep a refused (or challenging) newcomer without reading it until its
-        deadline; ``counted``: it still counts against the caps."""
+        deadline; it still counts against the caps."""
         with contextlib.suppress(KeyError, ValueError):
             self._sel.unregister(newcomer.sock)
         newcomer.held = True
         newcomer.quiet_at = newcomer.resume_at = math.inf
-        if not counted and newcomer.waiting:
-            self._waiting.remove(newcomer.source)
-            newcomer.waiting = False
 
     def _close(self, newcomer: _Newcomer) -> None:
         """Forget a newcomer and close its socket."""
@@ -317,7 +348,7 @@ class DtuListener:
         """Forget a newcomer whose socket is handed over or closed."""
         with contextlib.suppress(KeyError, ValueError):
             self._sel.unregister(newcomer.sock)
-        self._newcomers.discard(newcomer)
+        self._newcomers.pop(newcomer, None)
         if newcomer.waiting:
             self._waiting.remove(newcomer.source)
             newcomer.waiting = False
@@ -369,8 +400,7 @@ class DtuListener:
         if isinstance(found, Identified) and slot is not None:
             refusal = self._access_refusal(slot, newcomer, found)
             if refusal is None:
-                self._offer(slot, newcomer.sock, newcomer.source, newcomer.peer,
-                            buf[found.end:], newcomer)
+                self._offer(slot, newcomer, buf[found.end:])
                 return True
             counter, why = refusal
         elif len(buf) >= self.settings.max_bytes:
@@ -438,6 +468,7 @@ class DtuListener:
         """keep-existing: the challenger's time is up."""
         assert newcomer.challenge is not None
         slot, rest, answers = newcomer.challenge
+        self._challenged.discard(slot.dtu_id)
         self._release(newcomer)
         newcomer.sock.setblocking(True)
         if slot.settle(newcomer.sock, newcomer.peer, rest, answers, now):

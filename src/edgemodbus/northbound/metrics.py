@@ -89,7 +89,7 @@ MQTT_DEVICE_COUNTERS: tuple[tuple[str, str, str], ...] = (
 
 # DtuRegistry.stats() per port: the counters (label ``event``) and the gauges
 DTU_LISTENER_EVENTS: tuple[str, ...] = (
-    "accepted", "registered", "unknown", "silent", "oversize", "refusedPortCap",
+    "accepted", "registered", "unknown", "silent", "oversize", "evicted", "refusedPortCap",
     "refusedSourceCap", "refusedNotAllowed", "refusedDtuNotAllowed", "badKey",
     "duplicateRefused", "replaced", "contested", "refusedContested", "acceptErrors",
     "acceptPauses", "logSuppressed",
