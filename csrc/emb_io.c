@@ -474,6 +474,19 @@ static int emb_recv_frame(modbus_t *ctx, emb_link *lk, int slave, int first_ms,
     return n_got;
 }
 
+/* What emb_check found, as a reader returns it: len for a normal reply, else -1 with
+ * errno err, or EMB_EEXCEPTION + the code of an exception response. */
+static int emb_checked(int err, int exc, int len)
+{
+    if (!err && exc >= 0)
+        err = EMB_EEXCEPTION + exc;
+    if (err) {
+        errno = err;
+        return -1;
+    }
+    return len;
+}
+
 /* 0 if rsp (len bytes) answers pdu sent to slave: a normal reply (*exc = -1) or an
  * exception response to the request's function (*exc = its code, any of 0..255:
  * Modbus Application Protocol v1.1b3, 7); else the EMB_E* errno saying why not.
@@ -536,15 +549,7 @@ static int emb_exchange_wrapped(modbus_t *ctx, emb_link *lk, int slave, const ui
         return -1;
     lk->rsp_len = len;
     err = emb_check(lk, slave, pdu, count, rsp, len, &exc);
-    if (err) {
-        errno = err;
-        return -1;
-    }
-    if (exc >= 0) {
-        errno = EMB_EEXCEPTION + exc;
-        return -1;
-    }
-    return len;
+    return emb_checked(err, exc, len);
 }
 
 /* One request and its checked reply (see emb_check); returns the reply ADU length
@@ -618,17 +623,9 @@ static int emb_exchange(modbus_t *ctx, emb_link *lk, int slave, const uint8_t *p
         }
     }
     lk->rsp_len = len; /* also when rejected: the caller may show why */
-    if (err) {
-        if (rtu && !lk->echo && emb_looks_like_echo(rsp, len, sent, sent_len))
-            err = EMB_EECHOSEEN;
-        errno = err;
-        return -1;
-    }
-    if (exc >= 0) {
-        errno = EMB_EEXCEPTION + exc;
-        return -1;
-    }
-    return len;
+    if (err && rtu && !lk->echo && emb_looks_like_echo(rsp, len, sent, sent_len))
+        err = EMB_EECHOSEEN;
+    return emb_checked(err, exc, len);
 }
 
 /* Read one block with function code 1, 2, 3 or 4 (Modbus Application Protocol

@@ -27,22 +27,7 @@
  *   chunks n u8 (% 6), each: length u8 and the bytes (fixed up per bits 4 and 5)
  *   the rest: raw bytes sent after the chunks
  */
-#include <stddef.h>
-#include <stdint.h>
-#include <sys/types.h>
-
-#include <modbus.h>
-
-static int fuzz_send_raw_request(modbus_t *ctx, const uint8_t *req, int len);
-static ssize_t fuzz_send(int fd, const void *buf, size_t n, int flags);
-#define modbus_send_raw_request fuzz_send_raw_request
-#define send fuzz_send
-#include "../emb_io.c"
-#include "../emb_stream.c"
-#undef send
-#undef modbus_send_raw_request
-int modbus_send_raw_request(modbus_t *ctx, const uint8_t *raw_req, int raw_req_length);
-ssize_t send(int fd, const void *buf, size_t n, int flags);
+#include "fuzz_io_hooks.h" /* the code under test sends through the hooks below */
 
 #include <stdio.h>
 #include <stdlib.h>
