@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import json
 import logging
 import shlex
 import signal
@@ -19,8 +18,7 @@ from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any, NoReturn, cast
 
-from .codec import jsonable
-from .config import (
+from ..config import (
     ConfigError,
     DeviceAddressItem,
     DeviceConfig,
@@ -28,17 +26,18 @@ from .config import (
     DriverModbusRtuParameter,
     load_device_config,
 )
-from .datatypes import Area, ItemStatus
-from .descriptor import driver_descriptor
-from .driver import DriverModbusRtu
-from .gateway.run import add_arguments as add_service_arguments
-from .logs import configure_logging
-from .poll.poller import build_plan
-from .protocol.address import parse_address
-from .sim.cli import DESCRIPTION as SIMULATOR
-from .sim.cli import add_arguments as add_simulator_arguments
+from ..datatypes import Area, ItemStatus
+from ..descriptor import driver_descriptor
+from ..driver import DriverModbusRtu
+from ..gateway.run import add_arguments as add_service_arguments
+from ..logs import configure_logging
+from ..poll.poller import build_plan
+from ..protocol.address import parse_address
+from ..sim.cli import DESCRIPTION as SIMULATOR
+from ..sim.cli import add_arguments as add_simulator_arguments
+from .output import CliError, emit, json_line, one_line, print_json, problem_lines, value_text
 
-DEMO_FILE = Path(__file__).resolve().with_name("demo-device.json")  # examples/ links here
+DEMO_FILE = Path(__file__).resolve().parent.parent / "demo-device.json"  # examples/ links here
 MAX_SLAVE_ID = 247  # the demo's simulator serves unicast addresses only
 
 #: read/write: the option (argparse dest) behind each field of the generated configuration,
@@ -67,22 +66,11 @@ _JSON_HELP = (
     "are exact (shortest round-trip form); NaN and infinities are null"
 )
 
-_stdout_lock = threading.Lock()  # lines from several line workers must not interleave
-
-
-class CliError(Exception):
-    """A user error: printed one line per problem, exit code 2."""
-
-    def __init__(self, *lines: str) -> None:
-        super().__init__("\n".join(lines))
-        self.lines = list(lines)
-
-
 class _Parser(argparse.ArgumentParser):
     """argparse with a one-line error (the usage is one ``-h`` away)."""
 
     def error(self, message: str) -> NoReturn:
-        self.exit(2, f"{self.prog}: {_one_line(message)} (see {self.prog} -h)\n")
+        self.exit(2, f"{self.prog}: {one_line(message)} (see {self.prog} -h)\n")
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -90,14 +78,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     _logging(args)
     if args.command == "simulate":
-        from .sim.cli import run as simulate
+        from ..sim.cli import run as simulate
 
         return simulate(args, parser)
     try:
         result: int = args.func(args)
         return result
     except (CliError, ValueError, OSError) as exc:
-        for line in _problem_lines(exc):
+        for line in problem_lines(exc):
             print(f"edgemodbus {args.command}: {line}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
@@ -156,7 +144,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     desc = sub.add_parser("descriptor", help="print the driver descriptor JSON")
     desc.add_argument("--prefix", choices=["function-code", "modicon"], default="function-code")
-    desc.set_defaults(func=lambda a: _print_json(driver_descriptor(a.prefix)))
+    desc.set_defaults(func=lambda a: print_json(driver_descriptor(a.prefix)))
     return parser
 
 
@@ -183,7 +171,7 @@ def _line_options(p: argparse.ArgumentParser) -> None:
 
 # -- commands ----------------------------------------------------------------------------
 def _demo(args: argparse.Namespace) -> int:
-    from .sim import Simulator, add_demo_movers
+    from ..sim import Simulator, add_demo_movers
 
     slaves: list[int] = args.slaves
     cfg = load_device_config(DEMO_FILE)
@@ -215,7 +203,7 @@ def _run(args: argparse.Namespace) -> int:
     if args.config_dir is not None:
         if args.files:
             raise CliError("give device files or --config-dir, not both")
-        from .gateway import run_service
+        from ..gateway import run_service
 
         return run_service(args.config_dir, args.gateway, seconds=args.seconds)
     if not args.files:
@@ -227,7 +215,7 @@ def _run(args: argparse.Namespace) -> int:
             try:
                 drv = _start(cfg.organization, cfg.communication, cfg.address_list, args.json)
             except (ValueError, OSError) as exc:  # e.g. a serial port opened with other settings
-                raise CliError(*(_in_file(file, line) for line in _problem_lines(exc))) from None
+                raise CliError(*(_in_file(file, line) for line in problem_lines(exc))) from None
             if not drv.is_enable:
                 print(f"{file}: device is disabled (isEnable false), not polled",
                       file=sys.stderr)
@@ -296,7 +284,7 @@ def _load_file(file: Path, command: str) -> DeviceConfig:
 
 
 def _in_file(file: Path, message: str) -> str:
-    message = _one_line(message)
+    message = one_line(message)
     return message if message.startswith(f"{file}:") else f"{file}: {message}"
 
 
@@ -333,11 +321,11 @@ def _start(org: DeviceOrganizationParameter, comm: DriverModbusRtuParameter,
     drv = DriverModbusRtu()
     code = org.device_code or f"slave{comm.slave_id}"
     if json_lines:
-        drv.address_updated_callback = lambda it: _emit(json_line({
+        drv.address_updated_callback = lambda it: emit(json_line({
             "device": code, "name": it.name, "value": it.value, "status": it.status.value,
             "updateTs": it.update_ts, "errorReason": it.error_reason}))
     else:
-        drv.address_updated_callback = lambda it: _emit(_line(code, it))
+        drv.address_updated_callback = lambda it: emit(_line(code, it))
     drv.start_device(org, comm, items)
     return drv
 
@@ -385,11 +373,11 @@ def _option_problem(args: argparse.Namespace, path: str, message: str) -> str:
     """A problem of the generated configuration, told as the option the user typed."""
     dest = _OPTION_OF_FIELD.get(path)
     if dest is None:
-        return _one_line(f"{path}: {message}")
+        return one_line(f"{path}: {message}")
     value = shlex.quote(str(getattr(args, dest)))
     if dest == "address":
-        return _one_line(f"{value}: {message}")
-    return _one_line(f"--{dest.replace('_', '-')} {value}: {message}")
+        return one_line(f"{value}: {message}")
+    return one_line(f"--{dest.replace('_', '-')} {value}: {message}")
 
 
 def _slave_ids(text: str) -> list[int]:
@@ -437,64 +425,15 @@ def _summary(drv: DriverModbusRtu, json_lines: bool) -> None:
     s = drv.stats()
     code = drv.snapshot()["deviceCode"]
     if json_lines:
-        _emit(json_line({"device": code, "summary": s}))
+        emit(json_line({"device": code, "summary": s}))
         return
-    _emit(f"{code}: {s['deviceDriverStatus']}, {s.get('cycles', 0)} cycles, "
+    emit(f"{code}: {s['deviceDriverStatus']}, {s.get('cycles', 0)} cycles, "
           f"{s.get('requests', 0)} requests, {s.get('timeouts', 0)} timeouts, "
           f"{s.get('crcErrors', 0)} CRC errors, avg cycle "
           f"{s.get('avgCycleTime', 0.0) * 1000:.1f} ms, avg round trip "
           f"{s.get('avgRoundTrip', 0.0) * 1000:.2f} ms, {s.get('valuesChanged', 0)} updates")
 
 
-def value_text(value: Any) -> str:
-    """A value as text that reads back exactly: a float is its shortest round-trip form
-    (``repr``: ``1.5e-07``, ``nan``, ``inf``), bytes are hex, times ISO 8601."""
-    if isinstance(value, float):
-        return repr(value)
-    if isinstance(value, (bytes, bytearray)):
-        return bytes(value).hex()
-    if hasattr(value, "isoformat"):
-        return str(value.isoformat())
-    return str(value)
-
-
-def json_line(obj: Any) -> str:
-    """One strict JSON line (the `run --json` output): NaN and infinities are null."""
-    return json.dumps(jsonable(obj), ensure_ascii=False, allow_nan=False, default=str)
-
-
-def _emit(line: str) -> None:
-    """One whole line on stdout (print() writes the newline separately, so lines from two
-    line workers could interleave)."""
-    with _stdout_lock:
-        sys.stdout.write(line + "\n")
-        sys.stdout.flush()
-
-
 def _text_registers(text: str, registers: int) -> list[int]:
     raw = text.encode().ljust(2 * registers, b"\0")[: 2 * registers]
     return [raw[i] << 8 | raw[i + 1] for i in range(0, len(raw), 2)]
-
-
-def _print_json(data: Any) -> int:
-    print(json.dumps(data, indent=2, ensure_ascii=False))
-    return 0
-
-
-def _problem_lines(exc: BaseException) -> list[str]:
-    """One line per problem: a ConfigError may hold several."""
-    if isinstance(exc, CliError):
-        return [_one_line(line) for line in exc.lines]
-    if isinstance(exc, ConfigError):
-        return [_one_line(str(p)) for p in exc.problems]
-    if isinstance(exc, OSError) and exc.filename is not None and exc.strerror:
-        return [f"{exc.filename}: {exc.strerror}"]
-    return [_one_line(str(exc)) or type(exc).__name__]
-
-
-def _one_line(text: str) -> str:
-    return " ".join(text.split())
-
-
-if __name__ == "__main__":
-    sys.exit(main())
