@@ -54,10 +54,9 @@ class Link:
 
     The base of the two backends, never used on its own: a backend implements
     :meth:`read`, :meth:`read_decode`, :meth:`set_response_timeout`, :meth:`close`,
-    ``_write`` (send a request PDU, check the reply) and ``_fail`` (count an error, clean
-    the line).  Every method raises a :class:`ModbusError` subclass; a
-    :class:`ModbusConnectionError` means the link is closed and the worker will
-    reconnect.  Only the line worker calls it.
+    :meth:`transact` and ``_write`` (a request and its checked reply) and ``_fail``
+    (count an error, clean the line).  Every method raises a :class:`ModbusError`; a
+    :class:`ModbusConnectionError` means the link is closed (the worker reconnects).
     """
 
     idle_fd: int | None = None
@@ -108,6 +107,16 @@ class Link:
 
     def _write(self, slave: int, pdu: bytes) -> None:
         raise NotImplementedError
+
+    def transact(self, slave: int, pdu: bytes, check: Callable[[int, bytes, bytes], None],
+                 timeout: float | None = None) -> bytes:
+        """A request to ``slave`` (not 0) and its reply ADU, which ``check(slave, pdu,
+        adu)`` vets; ``timeout``: the response timeout of this request only."""
+        raise NotImplementedError
+
+    def reply_pdu(self, adu: bytes) -> bytes:
+        """The PDU of a reply ADU: without the MBAP header, or the slave id and CRC."""
+        return adu[_MBAP_LEN:] if self._mbap else adu[1:-2]
 
     def _fail(self, exc: ModbusError) -> ModbusError:
         raise NotImplementedError
@@ -440,34 +449,48 @@ class ContextLink(Link):
 
     # -- writes ----------------------------------------------------------------------
     def _write(self, slave: int, pdu: bytes) -> None:
-        if not self.is_open:
-            raise ModbusConnectionError(f"{self.endpoint.describe()}: link is down")
-        self._wait_turn()
-        self.stats.requests += 1
-        if self._trace:
-            self._log_frame("TX", slave, pdu)
-        if slave == 0:  # broadcast: no reply (Modbus over Serial Line v1.02, 2.1)
-            try:
-                self._ctx.send(0, pdu)
-            except ModbusError as exc:
-                raise self._fail(exc) from None
-            finally:
-                self._collect()
-                self._done(self.timing.turnaround_delay)
+        if slave:
+            self.transact(slave, pdu, self._check_write_reply)
             return
-        start = time.monotonic()
+        self._begin(slave, pdu)  # broadcast: no reply (Modbus over Serial Line v1.02, 2.1)
         try:
-            adu = self._ctx.transact(slave, pdu)
-            self._check_write_reply(slave, pdu, adu)
+            self._ctx.send(0, pdu)
         except ModbusError as exc:
             raise self._fail(exc) from None
         finally:
+            self._collect()
+            self._done(self.timing.turnaround_delay)
+
+    def transact(self, slave: int, pdu: bytes, check: Callable[[int, bytes, bytes], None],
+                 timeout: float | None = None) -> bytes:
+        self._begin(slave, pdu)
+        before = self._timeouts
+        if timeout is not None:
+            self.set_response_timeout(timeout)
+        start = time.monotonic()
+        try:
+            adu = self._ctx.transact(slave, pdu)
+            check(slave, pdu, adu)
+        except ModbusError as exc:
+            raise self._fail(exc) from None
+        finally:
+            if timeout is not None and before[0] >= 0 and self.is_open:
+                self.set_response_timeout(before[0])  # (the engine sets its own anyway)
             self._collect()
             if self._trace:
                 self._log_reply()
             self._done()
         self.stats.responses += 1
         self.stats.rtt_total += time.monotonic() - start
+        return adu
+
+    def _begin(self, slave: int, pdu: bytes) -> None:
+        if not self.is_open:
+            raise ModbusConnectionError(f"{self.endpoint.describe()}: link is down")
+        self._wait_turn()
+        self.stats.requests += 1
+        if self._trace:
+            self._log_frame("TX", slave, pdu)
 
     def _log_reply(self) -> None:
         reply = self._ctx.last_reply()
