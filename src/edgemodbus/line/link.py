@@ -1,17 +1,12 @@
 """The worker's view of an open line: one request at a time, blocking.
 
-A :class:`Link` is used only by the line worker thread that opened it.  It keeps the
-inter-frame silence, settles the line after a timeout (RTU has no transaction id, so a
-late reply would pass for the next answer) and drains it after other errors, checks
-write echoes, and counts everything in the line's :class:`~edgemodbus.stats.LineStats`.
-
-:class:`Link` is the interface and holds what does not depend on the I/O (endpoint,
-timing and the pacing, settle and drain limits computed from them, the counters, the
-frame trace, the write requests and the check of their replies); :class:`ContextLink`
-does the I/O through the line's libmodbus context and our C (csrc/emb_io.c), which also
-frames DTU streams (csrc/emb_stream.c): heartbeats skipped wherever they arrive, and
-wrapped report frames of edge MCUs (:mod:`edgemodbus.protocol.wrapped`), whose
-unsolicited reports it queues for :meth:`Link.flush_reports` and :meth:`Link.pump`.
+Used only by the worker thread that opened it, a link keeps the inter-frame silence,
+settles the line after a timeout (RTU has no transaction id) and drains it after other
+errors, and counts all in :class:`~edgemodbus.stats.LineStats`.  :class:`Link`, the
+interface, holds what does not depend on the I/O (timing, pacing, counters, frame trace,
+writes and the check of their echoes); :class:`ContextLink` does the I/O through the
+libmodbus context and our C (csrc/emb_io.c; csrc/emb_stream.c for DTU streams: heartbeats
+skipped, wrapped reports queued for :meth:`Link.flush_reports` and :meth:`Link.pump`).
 """
 
 from __future__ import annotations
@@ -109,9 +104,11 @@ class Link:
         raise NotImplementedError
 
     def transact(self, slave: int, pdu: bytes, check: Callable[[int, bytes, bytes], None],
-                 timeout: float | None = None) -> bytes:
+                 timeout: float | None = None, early: Callable[[ModbusError], None] | None = None
+                 ) -> bytes:
         """A request to ``slave`` (not 0) and its reply ADU, which ``check(slave, pdu,
-        adu)`` vets; ``timeout``: the response timeout of this request only."""
+        adu)`` vets; ``timeout``: the response timeout of this request only; ``early``:
+        called with a failure before the line is settled or drained."""
         raise NotImplementedError
 
     def reply_pdu(self, adu: bytes) -> bytes:
@@ -462,7 +459,8 @@ class ContextLink(Link):
             self._done(self.timing.turnaround_delay)
 
     def transact(self, slave: int, pdu: bytes, check: Callable[[int, bytes, bytes], None],
-                 timeout: float | None = None) -> bytes:
+                 timeout: float | None = None, early: Callable[[ModbusError], None] | None = None
+                 ) -> bytes:
         self._begin(slave, pdu)
         before = self._timeouts
         if timeout is not None:
@@ -472,6 +470,8 @@ class ContextLink(Link):
             adu = self._ctx.transact(slave, pdu)
             check(slave, pdu, adu)
         except ModbusError as exc:
+            if early is not None:
+                early(exc)
             raise self._fail(exc) from None
         finally:
             if timeout is not None and before[0] >= 0 and self.is_open:
