@@ -294,7 +294,9 @@ class DriverModbusRtu:
         bad ``timeout`` (seconds; default the device's readTimeout).  The future fails
         with ``ModbusTimeoutError``, ``ProtocolError`` or ``ModbusConnectionError``
         (also when the device is not running): ``exception_code_for`` in
-        :mod:`edgemodbus.protocol.forward` maps each to the code to answer."""
+        :mod:`edgemodbus.protocol.forward` maps each to the code to answer.  A timeout
+        fails the future after ``timeout``, before the line's settle.  Done-callbacks
+        run on the line's worker: keep them short (hand over to an event loop)."""
         check_request(pdu)
         line, params = self._line, self._params
         if line is None or params is None or self._poller is None:

@@ -1,9 +1,11 @@
 """Gateway forward mode, line side: ``DriverModbusRtu.forward`` sends request PDUs to
 pymodbus (own process) over RTU on TCP, Modbus TCP and RTU on a socat pty pair, between
-the line's own polling; our simulator plays the slave whose replies are corrupted."""
+the line's own polling; our simulator plays the slave whose replies are corrupted and a
+DTU that dials in."""
 
 from __future__ import annotations
 
+import socket
 import struct
 import time
 import urllib.request
@@ -13,7 +15,7 @@ from typing import Any
 import pytest
 
 import edgemodbus as em
-from edgemodbus.datatypes import DeviceDriverStatus, ItemStatus
+from edgemodbus.datatypes import Area, DeviceDriverStatus, ItemStatus
 from edgemodbus.errors import CrcError, ModbusConnectionError, ModbusTimeoutError, ProtocolError
 from edgemodbus.northbound.metrics import MetricsExporter
 from edgemodbus.protocol.forward import (
@@ -315,3 +317,29 @@ def test_a_forward_cancelled_while_queued_is_not_sent(started: Started,
         peer.registers(1, "hr", 9, 1))
     assert peer.registers(1, "hr", 9, 1) != [4321]
     assert drv.stats()["line"]["forwarded"] == 2
+
+
+def test_forward_to_a_slave_behind_a_dtu_that_dialled_in_with_heartbeats(
+        started: Started) -> None:
+    """Listen mode: the DTU's stream (heartbeats before the replies) frames the reply."""
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = int(probe.getsockname()[1])
+    drv = started({"transport": "rtu-over-tcp-server", "listenHost": "127.0.0.1",
+                   "listenPort": port, "dtuId": "DTU9", "registration": "text",
+                   "heartbeat": "HB", "slaveId": 1, "readTimeout": 1000, "readCycle": 50,
+                   "byteTimeout": 100, "reconnectInterval": 300})
+    with Simulator(slaves=[1]) as simulator:
+        simulator.dial("127.0.0.1", port, registration=b"DTU9", heartbeat=b"HB",
+                       heartbeat_interval=0.03, heartbeat_before_reply=True)
+        running(drv)
+        want = simulator.slave(1).get_registers(Area.HOLDING_REGISTER, 0, 5)
+        assert forward(drv, struct.pack(">BHH", 3, 0, 5)) == b"\x03\x0a" + regs(want)
+        pdu = struct.pack(">BHHB2H", 16, 20, 2, 4, 0xCAFE, 0x0102)
+        assert forward(drv, pdu) == pdu[:5]
+        assert simulator.slave(1).get_registers(Area.HOLDING_REGISTER, 20, 2) == [0xCAFE,
+                                                                               0x0102]
+        assert forward(drv, struct.pack(">BHH", 4, 60000, 1))[0] == 0x84  # an exception
+        line = drv.stats()["line"]
+        assert line["forwarded"] == 3 and line["forwardExceptions"] == 1
+        assert line["heartbeats"] >= 1
