@@ -517,3 +517,4 @@ def test_a_password_protected_broker_takes_our_credentials_and_never_sees_them_s
             assert not gw.pub.stats()["connected"]
     logged = "\n".join(r.getMessage() for r in caplog.records)
     assert secret not in logged and wrong not in logged
+    assert MqttSettings.load({"password": None}).password is None  # as examples/ writes it

@@ -57,7 +57,7 @@ def hide_secrets(data: Mapping[Any, Any], table: Mapping[str, str], keys: frozen
     problems: list[Problem] = []
     for key, value in data.items():
         canon = table.get(norm_key(key)) if isinstance(key, str) else None
-        if canon not in keys or isinstance(value, SecretStr):
+        if canon not in keys or value is None or isinstance(value, SecretStr):
             continue
         if isinstance(value, str):
             out[key] = SecretStr(value)
