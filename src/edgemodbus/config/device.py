@@ -12,7 +12,7 @@ from pydantic import ConfigDict, Field, field_validator, model_validator
 
 from .base import READ_CYCLE_RANGE, Model, OptionalMs, field_checks, load_model, recheck
 from .communication import DriverModbusRtuParameter
-from .compat import iso_timestamp
+from .compat import NG_DEVICE_KEYS, iso_timestamp, ng_device
 from .items import DeviceAddressItem, ParsedItem, validate_items
 from .problems import ConfigError
 
@@ -85,6 +85,8 @@ class DeviceConfig(Model):
     # the input (ConfigError's lines mask it)
     model_config = ConfigDict(hide_input_in_errors=True)  # merged with Model's
 
+    _extra_keys: ClassVar[tuple[str, ...]] = NG_DEVICE_KEYS
+
     driver_type: str = "DriverModbusRtu"
     organization: DeviceOrganizationParameter = Field(default_factory=DeviceOrganizationParameter)
     communication: DriverModbusRtuParameter = Field(default_factory=DriverModbusRtuParameter)
@@ -96,7 +98,7 @@ class DeviceConfig(Model):
         """Warn about unknown nested keys with their full paths before pydantic sees them."""
         if not isinstance(data, Mapping):
             return data
-        data = cls.normalize_keys(data, "")
+        data = ng_device(cls.normalize_keys(data, ""))
         for key, model in (
             ("organization", DeviceOrganizationParameter),
             ("communication", DriverModbusRtuParameter),

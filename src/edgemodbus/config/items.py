@@ -35,7 +35,7 @@ from .base import (
     slot_model,
 )
 from .communication import DriverModbusRtuParameter
-from .compat import iso_timestamp
+from .compat import NG_POINT_KEYS, iso_timestamp, ng_point
 from .problems import NO_VALUE, ConfigError, Problem, WrongType
 
 _log = logging.getLogger("edgemodbus.config")
@@ -77,11 +77,14 @@ class DeviceAddressItem(SlotModel):
     value: Any = None
     error_reason: str | None = None
 
+    _extra_keys: ClassVar[tuple[str, ...]] = NG_POINT_KEYS
+
     @model_validator(mode="before")
     @classmethod
     def _accept_keys(cls, data: Any) -> Any:
         # by name: pydantic binds ``cls`` to the class before slots=True remade it
-        return DeviceAddressItem.accept_keys(data)
+        data = DeviceAddressItem.accept_keys(data)
+        return ng_point(data) if isinstance(data, dict) else data
 
     @field_validator("address", "description", "unit")
     @classmethod

@@ -150,7 +150,7 @@ def test_unknown_keys_are_warned_with_paths(caplog: pytest.LogCaptureFixture) ->
             "bogus": 1,
             "organization": {"deviceCode": "x", "colour": "red"},
             "communication": {"Speed": 1},
-            "addressList": [item("a", "hr:1"), item("b", "hr:2", Scale=2)],
+            "addressList": [item("a", "hr:1"), item("b", "hr:2", Gain=2)],
         }
     )
     assert len(cfg.address_list) == 2
@@ -158,7 +158,7 @@ def test_unknown_keys_are_warned_with_paths(caplog: pytest.LogCaptureFixture) ->
     assert "<root>: unknown key 'bogus' ignored" in messages
     assert "organization: unknown key 'colour' ignored" in messages
     assert "communication: unknown key 'Speed' ignored" in messages
-    assert "addressList[1]: unknown key 'Scale' ignored" in messages
+    assert "addressList[1]: unknown key 'Gain' ignored" in messages
     assert len(messages) == 4
 
 
