@@ -205,6 +205,46 @@ def ng_device(data: dict[str, Any]) -> dict[str, Any]:
     return data
 
 
+NG_ACTION_KEYS: tuple[str, ...] = ("inputParameters",)
+"""NG's action keys, accepted besides the fields (see :func:`ng_action`)."""
+
+NG_PARAMETER_KEYS: tuple[str, ...] = ("key", "type", "default", "address")
+"""NG's (and the short) parameter keys, accepted besides the fields."""
+
+
+def ng_action(data: dict[str, Any]) -> dict[str, Any]:
+    """NG's ``inputParameters`` -> ``parameters`` (keys already normalised)."""
+    if "inputParameters" in data:
+        if "parameters" in data:
+            raise ValueError("give parameters or inputParameters, not both")
+        data["parameters"] = data.pop("inputParameters")
+    return data
+
+
+def ng_action_parameter(data: dict[str, Any]) -> dict[str, Any]:
+    """A parameter's ``key`` -> ``name`` (NG: ``key`` is the id, ``name`` a label, kept
+    as description), ``type`` -> ``dataType``, ``default`` -> ``defaultValue``.  NG's
+    per-parameter ``address`` is refused: a parameter sets an item of the address list."""
+    if "key" in data:
+        key = data.pop("key")
+        label = data.get("name")
+        if label is not None and label != key:
+            data.setdefault("description", label)
+        data["name"] = key
+    for short, ours in (("type", "dataType"), ("default", "defaultValue")):
+        if short in data:
+            value = data.pop(short)
+            if ours in data and data[ours] != value:
+                raise ValueError(f"{short} {value!r} disagrees with {ours} {data[ours]!r}")
+            data[ours] = value
+    if "address" in data:
+        raise ValueError(
+            f"address {data['address']!r}: a parameter sets an item: name it with "
+            '"item" (add the address to the address list as an item)'
+        )
+    return data
+
+
 def _parse_format_or_none(value: Any) -> DataFormat | None:
     try:
         return DataFormat.parse(value) if isinstance(value, str) else value

@@ -10,6 +10,7 @@ from typing import Annotated, Any, ClassVar
 
 from pydantic import ConfigDict, Field, field_validator, model_validator
 
+from .actions import DeviceAction, validate_actions
 from .base import READ_CYCLE_RANGE, Model, OptionalMs, field_checks, load_model, recheck
 from .communication import DriverModbusRtuParameter
 from .compat import NG_DEVICE_KEYS, iso_timestamp, ng_device
@@ -91,6 +92,7 @@ class DeviceConfig(Model):
     organization: DeviceOrganizationParameter = Field(default_factory=DeviceOrganizationParameter)
     communication: DriverModbusRtuParameter = Field(default_factory=DriverModbusRtuParameter)
     address_list: list[DeviceAddressItem] = Field(default_factory=list)
+    actions: list[DeviceAction] = Field(default_factory=list)
 
     @model_validator(mode="before")
     @classmethod
@@ -117,7 +119,9 @@ class DeviceConfig(Model):
 
     @model_validator(mode="after")
     def _items(self) -> DeviceConfig:
-        validate_items(self.address_list, self.communication)
+        parsed = validate_items(self.address_list, self.communication)
+        if self.actions:
+            validate_actions(self.actions, parsed)
         return self
 
     def parsed_items(self) -> list[ParsedItem]:
