@@ -1,4 +1,4 @@
-"""The ``edgemodbus`` command: demo, run, read, write, plan, simulate, descriptor.
+"""The ``edgemodbus`` command: demo, run, read, write, plan, simulate, descriptor, action.
 
 Errors are one line per problem on stderr and a non-zero exit code.  Values print so that
 they read back exactly: a float as its shortest round-trip form (``repr``; ``nan``,
