@@ -30,6 +30,7 @@ from .config import (
 )
 from .config.listen import key_bytes, networks
 from .datatypes import DeviceDriverStatus
+from .errors import ModbusConnectionError
 from .line import (
     DtuAccess,
     DtuEndpoint,
@@ -51,6 +52,7 @@ from .poll.planner import ReadBlock
 from .poll.poller import Poller
 from .poll.sink import BatchCallback, ItemCallback
 from .poll.writes import WriteOp, plan_writes
+from .protocol.forward import check_request
 
 SnapshotPublisher = Callable[[str, dict[str, Any]], None]
 
@@ -331,6 +333,30 @@ class DriverModbusRtu:
             return str(exc)
         future = poller.submit_writes(ops, whole=True)
         return prefix_errors(future, f"action {name!r}: ")
+
+    # -- gateway forward mode -------------------------------------------------------------
+    def forward(self, pdu: bytes, timeout: float | None = None) -> Future[bytes]:
+        """Send a request PDU (function code and data) to this device's slave through
+        its line's queue, like a write (edgemodbus/line/forward.py); the future's
+        result is the reply PDU: normal, or an exception reply passed through.
+
+        Raises at once a :class:`~edgemodbus.protocol.forward.ForwardRequestError` for a
+        PDU that is not forwarded (``exception_code`` 01 or 03), ``ValueError`` for a
+        bad ``timeout`` (seconds; default the device's readTimeout).  The future fails
+        with ``ModbusTimeoutError``, ``ProtocolError`` or ``ModbusConnectionError``
+        (also when the device is not running): ``exception_code_for`` in
+        :mod:`edgemodbus.protocol.forward` maps each to the code to answer.  A timeout
+        fails the future after ``timeout``, before the line's settle.  Done-callbacks
+        run on the line's worker: keep them short (hand over to an event loop)."""
+        check_request(pdu)
+        line, params = self._line, self._params
+        if line is None or params is None or self._poller is None:
+            failed: Future[bytes] = Future()
+            failed.set_exception(ModbusConnectionError(
+                f"{self._code(self._org)}: device is not running, nothing forwarded"))
+            return failed
+        wait = params.read_timeout / 1000 if timeout is None else timeout
+        return line.forward(params.slave_id, pdu, wait)
 
     # -- helpers -------------------------------------------------------------------------
     def _code(self, org: DeviceOrganizationParameter | None) -> str:

@@ -84,6 +84,13 @@ class LineStats(RequestStats):
     heartbeats: int = 0  # DTU heartbeat packets discarded
     dropped_frames: int = 0  # wrapped frames dropped (bad header, tail, CRC, length)
     rtt_total: float = 0.0
+    # gateway forward mode (line/forward.py): requests forwarded, and how many of them
+    # timed out, got an exception reply (passed through), or failed otherwise (a bad
+    # reply, the link lost); they count in the counters above too, as every request
+    forwarded: int = 0
+    forward_timeouts: int = 0
+    forward_exceptions: int = 0
+    forward_errors: int = 0
 
     def as_dict(self) -> dict[str, Any]:
         native = self.native()
@@ -99,6 +106,10 @@ class LineStats(RequestStats):
             "heartbeats": self.heartbeats,
             "droppedFrames": self.dropped_frames,
             "avgRoundTrip": rtt / responses if responses else 0.0,
+            "forwarded": self.forwarded,
+            "forwardTimeouts": self.forward_timeouts,
+            "forwardExceptions": self.forward_exceptions,
+            "forwardErrors": self.forward_errors,
         }
 
 

@@ -7,6 +7,7 @@ import json
 import logging
 import os
 import re
+import subprocess
 import time
 from collections.abc import Iterator
 from datetime import datetime, timezone
@@ -486,3 +487,33 @@ def test_tls_key_problems_are_named(tmp_path: Path) -> None:
         found = [str(p) for p in TlsSettings.model_validate(
             {"certFile": str(cert), "keyFile": str(key)}).problems()]
         assert found and "not readable by this process" in found[0], found
+
+
+def test_a_password_protected_broker_takes_our_credentials_and_never_sees_them_shown(
+    tmp_path: Path, slave: PymodbusSlave, caplog: pytest.LogCaptureFixture
+) -> None:
+    """mosquitto with a password file and no anonymous access: the right password
+    connects and publishes; a wrong one is a failed connect; neither password shows in
+    a log line, the settings' repr or their to_dict()."""
+    caplog.set_level(logging.DEBUG, logger="edgemodbus")
+    secret, wrong = "s3cret-Passw0rd", "guessed-Passw0rd"
+    pw_file = tmp_path / "passwords"
+    subprocess.run(["mosquitto_passwd", "-c", "-b", str(pw_file), "gw", secret], check=True,
+                   capture_output=True)
+    pw_file.chmod(0o600)
+    extra = ["allow_anonymous false", f"password_file {pw_file}"]
+    with Mosquitto(tmp_path / "broker", extra_config=extra) as broker:
+        cfg = device(slave.port)
+        with Gateway(broker.port, cfg, username="gw", password=secret) as gw:
+            wait_for(lambda: gw.pub.stats()["connected"]
+                     and gw.pub.stats()["devices"]["dev1"]["published"] >= 8,
+                     what="connected with the password, item updates published")
+            settings = gw.pub.settings
+            assert secret not in repr(settings) and secret not in json.dumps(settings.to_dict())
+            assert settings.to_dict(secrets=True)["password"] == secret
+        with Gateway(broker.port, device(slave.port, code="dev2"), username="gw",
+                     password=wrong) as gw:
+            wait_for(lambda: gw.pub.stats()["connectFailures"] >= 1, what="a failed connect")
+            assert not gw.pub.stats()["connected"]
+    logged = "\n".join(r.getMessage() for r in caplog.records)
+    assert secret not in logged and wrong not in logged

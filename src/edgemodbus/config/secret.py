@@ -41,7 +41,7 @@ def secret_keys(model: type[Any]) -> frozenset[str]:
     keys = _secret_keys.get(model)
     if keys is None:
         keys = frozenset(f.alias or n for n, f in model.model_fields.items()
-                         if f.annotation is SecretStr)
+                         if f.annotation in (SecretStr, Secret | None))
         _secret_keys[model] = keys
     return keys
 

@@ -30,9 +30,14 @@ log = logging.getLogger("edgemodbus.service")
 
 
 def line_label(params: DriverModbusRtuParameter) -> str:
-    """A name for the line a device is on (metrics label): port or transport://host:port."""
+    """A name for the line a device is on (metrics label): the serial port,
+    transport://host:port, or for a DTU that dials in dtu://listenHost:port/dtuId (its
+    tcpHost and tcpPort say nothing of it)."""
     if params.transport == "rtu":
         return str(params.com_port)
+    if params.transport == "rtu-over-tcp-server":
+        return (f"dtu://{params.listen_host}:{params.effective_listen_port}/"
+                f"{params.dtu_id or '(single)'}")
     return f"{params.transport}://{params.tcp_host}:{params.tcp_port}"
 
 

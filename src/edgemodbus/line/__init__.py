@@ -18,6 +18,8 @@ socket or a libmodbus context.
   shared by its users);
 * dtu_registry.py, dtu_listener.py, dtu_slot.py, registration.py, admission.py and
   log_limit.py: listen mode, DTUs that dial in and register.
+* forward.py: gateway forward mode, a request PDU sent as a job on the line's queue
+  (:meth:`LineWorker.forward`).
 
 The counters a worker keeps are :class:`edgemodbus.stats.LineStats`.
 """

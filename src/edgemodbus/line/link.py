@@ -1,17 +1,12 @@
 """The worker's view of an open line: one request at a time, blocking.
 
-A :class:`Link` is used only by the line worker thread that opened it.  It keeps the
-inter-frame silence, settles the line after a timeout (RTU has no transaction id, so a
-late reply would pass for the next answer) and drains it after other errors, checks
-write echoes, and counts everything in the line's :class:`~edgemodbus.stats.LineStats`.
-
-:class:`Link` is the interface and holds what does not depend on the I/O (endpoint,
-timing and the pacing, settle and drain limits computed from them, the counters, the
-frame trace, the write requests and the check of their replies); :class:`ContextLink`
-does the I/O through the line's libmodbus context and our C (csrc/emb_io.c), which also
-frames DTU streams (csrc/emb_stream.c): heartbeats skipped wherever they arrive, and
-wrapped report frames of edge MCUs (:mod:`edgemodbus.protocol.wrapped`), whose
-unsolicited reports it queues for :meth:`Link.flush_reports` and :meth:`Link.pump`.
+Used only by the worker thread that opened it, a link keeps the inter-frame silence,
+settles the line after a timeout (RTU has no transaction id) and drains it after other
+errors, and counts all in :class:`~edgemodbus.stats.LineStats`.  :class:`Link`, the
+interface, holds what does not depend on the I/O (timing, pacing, counters, frame trace,
+writes and the check of their echoes); :class:`ContextLink` does the I/O through the
+libmodbus context and our C (csrc/emb_io.c; csrc/emb_stream.c for DTU streams: heartbeats
+skipped, wrapped reports queued for :meth:`Link.flush_reports` and :meth:`Link.pump`).
 """
 
 from __future__ import annotations
@@ -54,10 +49,9 @@ class Link:
 
     The base of the two backends, never used on its own: a backend implements
     :meth:`read`, :meth:`read_decode`, :meth:`set_response_timeout`, :meth:`close`,
-    ``_write`` (send a request PDU, check the reply) and ``_fail`` (count an error, clean
-    the line).  Every method raises a :class:`ModbusError` subclass; a
-    :class:`ModbusConnectionError` means the link is closed and the worker will
-    reconnect.  Only the line worker calls it.
+    :meth:`transact` and ``_write`` (a request and its checked reply) and ``_fail``
+    (count an error, clean the line).  Every method raises a :class:`ModbusError`; a
+    :class:`ModbusConnectionError` means the link is closed (the worker reconnects).
     """
 
     idle_fd: int | None = None
@@ -108,6 +102,18 @@ class Link:
 
     def _write(self, slave: int, pdu: bytes) -> None:
         raise NotImplementedError
+
+    def transact(self, slave: int, pdu: bytes, check: Callable[[int, bytes, bytes], None],
+                 timeout: float | None = None, early: Callable[[ModbusError], None] | None = None
+                 ) -> bytes:
+        """A request to ``slave`` (not 0) and its reply ADU, which ``check(slave, pdu,
+        adu)`` vets; ``timeout``: the response timeout of this request only; ``early``:
+        called with a failure before the line is settled or drained."""
+        raise NotImplementedError
+
+    def reply_pdu(self, adu: bytes) -> bytes:
+        """The PDU of a reply ADU: without the MBAP header, or the slave id and CRC."""
+        return adu[_MBAP_LEN:] if self._mbap else adu[1:-2]
 
     def _fail(self, exc: ModbusError) -> ModbusError:
         raise NotImplementedError
@@ -440,34 +446,51 @@ class ContextLink(Link):
 
     # -- writes ----------------------------------------------------------------------
     def _write(self, slave: int, pdu: bytes) -> None:
-        if not self.is_open:
-            raise ModbusConnectionError(f"{self.endpoint.describe()}: link is down")
-        self._wait_turn()
-        self.stats.requests += 1
-        if self._trace:
-            self._log_frame("TX", slave, pdu)
-        if slave == 0:  # broadcast: no reply (Modbus over Serial Line v1.02, 2.1)
-            try:
-                self._ctx.send(0, pdu)
-            except ModbusError as exc:
-                raise self._fail(exc) from None
-            finally:
-                self._collect()
-                self._done(self.timing.turnaround_delay)
+        if slave:
+            self.transact(slave, pdu, self._check_write_reply)
             return
-        start = time.monotonic()
+        self._begin(slave, pdu)  # broadcast: no reply (Modbus over Serial Line v1.02, 2.1)
         try:
-            adu = self._ctx.transact(slave, pdu)
-            self._check_write_reply(slave, pdu, adu)
+            self._ctx.send(0, pdu)
         except ModbusError as exc:
             raise self._fail(exc) from None
         finally:
+            self._collect()
+            self._done(self.timing.turnaround_delay)
+
+    def transact(self, slave: int, pdu: bytes, check: Callable[[int, bytes, bytes], None],
+                 timeout: float | None = None, early: Callable[[ModbusError], None] | None = None
+                 ) -> bytes:
+        self._begin(slave, pdu)
+        before = self._timeouts
+        if timeout is not None:
+            self.set_response_timeout(timeout)
+        start = time.monotonic()
+        try:
+            adu = self._ctx.transact(slave, pdu)
+            check(slave, pdu, adu)
+        except ModbusError as exc:
+            if early is not None:
+                early(exc)
+            raise self._fail(exc) from None
+        finally:
+            if timeout is not None and before[0] >= 0 and self.is_open:
+                self.set_response_timeout(before[0])  # (the engine sets its own anyway)
             self._collect()
             if self._trace:
                 self._log_reply()
             self._done()
         self.stats.responses += 1
         self.stats.rtt_total += time.monotonic() - start
+        return adu
+
+    def _begin(self, slave: int, pdu: bytes) -> None:
+        if not self.is_open:
+            raise ModbusConnectionError(f"{self.endpoint.describe()}: link is down")
+        self._wait_turn()
+        self.stats.requests += 1
+        if self._trace:
+            self._log_frame("TX", slave, pdu)
 
     def _log_reply(self) -> None:
         reply = self._ctx.last_reply()

@@ -44,6 +44,7 @@ from ..errors import (
 from ..stats import LineStats
 from .connect import connect_tcp, context_link
 from .endpoint import DtuEndpoint, Endpoint, LineTiming, SerialPort
+from .forward import forward_future
 from .link import Link
 
 log = logging.getLogger("edgemodbus.line")
@@ -241,6 +242,14 @@ class LineWorker:
                             or_mask: int) -> Future[None]:
         return self.submit(lambda link: link.mask_write_register(slave, address, and_mask,
                                                                  or_mask))
+
+    def forward(self, slave: int, pdu: bytes, timeout: float | None = None) -> Future[bytes]:
+        """Forward a request PDU to ``slave`` like a write; the future's result is the
+        reply PDU, its failure comes before the line's settle (see
+        :mod:`edgemodbus.line.forward`, which raises here for a PDU that is not
+        forwarded).  ``timeout``: default the line's response timeout."""
+        wait = self.timing.response_timeout if timeout is None else timeout
+        return forward_future(self.submit, slave, pdu, wait)
 
     # -- the worker ------------------------------------------------------------------
     def _run(self) -> None:

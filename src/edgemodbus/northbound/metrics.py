@@ -12,8 +12,9 @@ cycles, failed cycles, overruns, skipped blocks, callback errors, values changed
 writes; cycle time and round-trip time as histograms when ``stats()`` carries buckets
 (``cycleTimeHistogram`` / ``roundTripHistogram``), else as summaries (count and sum,
 exact).  Per line (label ``line``, once even when several devices share it): the
-line's own counters, reconnects among them.  Per publisher: connection state,
-published and dropped updates per device, queue depth, commands.  Per DTU listen port
+line's own counters, reconnects and forwarded requests (gateway) among them.  Per
+publisher: connection state, published and dropped updates per device, queue depth,
+commands.  Per DTU listen port
 (label ``port``, ``host:port``, from a listener source such as the drivers'
 ``DtuRegistry``): its events by kind (``edgemodbus_dtu_listener_events_total``, label
 ``event``: accepted, registered, refusals, ...) and its unregistered connections,
@@ -69,6 +70,12 @@ LINE_COUNTERS: tuple[tuple[str, str, str], ...] = (
     ("connects", "line_connects", "Successful connects of the line"),
     ("reconnects", "line_reconnects", "Reconnects after the line was lost"),
     ("discardedBytes", "line_discarded_bytes", "Stray bytes discarded before requests"),
+    ("forwarded", "line_forwarded_requests", "Requests forwarded onto the line (gateway)"),
+    ("forwardTimeouts", "line_forward_timeouts", "Forwarded requests that timed out"),
+    ("forwardExceptions", "line_forward_exceptions",
+     "Forwarded requests answered with an exception reply (passed through)"),
+    ("forwardErrors", "line_forward_errors",
+     "Forwarded requests that failed otherwise (bad reply, link lost)"),
 )
 MQTT_COUNTERS: tuple[tuple[str, str, str], ...] = (
     ("connects", "mqtt_connects", "Connections to the MQTT broker"),

@@ -249,7 +249,8 @@ class MqttPublisher:
         client.will_set(self.topic(s.gateway_topic),
                         gateway_payload(self.gateway_id, False, "lost"), qos=1, retain=True)
         if s.username is not None:
-            client.username_pw_set(s.username, s.password)
+            client.username_pw_set(
+                s.username, s.password.get_secret_value() if s.password is not None else None)
         if s.tls is not None and s.tls.enabled:
             client.tls_set(ca_certs=s.tls.ca_file, certfile=s.tls.cert_file,
                            keyfile=s.tls.key_file)

@@ -15,6 +15,7 @@ from typing import Annotated, Any, ClassVar
 from pydantic import ValidationError, field_validator, model_validator
 
 from ...config import MAX_MS, Choice, ConfigError, Model, Ms, Problem, Range
+from ...config.secret import Secret
 
 PLACEHOLDERS = ("prefix", "deviceCode", "itemName", "gatewayId")
 FORBIDDEN = ("+", "#", "\0")  # never in a topic level: the wildcards and NUL
@@ -167,7 +168,7 @@ class MqttSettings(Model):
     port: Annotated[int, Range(1, 65535)] = 1883
     client_id: str | None = None  # default: edgemodbus-{gatewayId}
     username: str | None = None
-    password: str | None = None
+    password: Secret | None = None  # never shown: masked in a dump, absent from a repr
     keepalive: Annotated[int, Range(5, 3600)] = 30  # seconds (MQTT's unit)
     connect_timeout: Annotated[int, Range(100, 60_000)] = 5000
     tls: TlsSettings | None = None

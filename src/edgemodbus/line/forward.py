@@ -1,0 +1,115 @@
+"""Forward mode on a line: one request PDU from a gateway's TCP master sent to a slave
+through the line worker's queue, and the slave's reply PDU handed back.
+
+The job runs on the worker like a write (:meth:`LineWorker.submit`: before the next
+read, between two transactions of the engine), through :meth:`Link.transact`, so the
+line's pacing (request interval, t3.5 silence), settle after a timeout and drain after
+a bad frame are those of every request.  What the request may be and how a failure
+maps to an exception code is :mod:`edgemodbus.protocol.forward`.
+
+A forwarded request's failure is the line's (its counters) and the TCP master's (the
+exception it gets), never the device's: no poller sees it, so it does not count towards
+``offlineAfterFailedCycles`` nor change the device's status; and a device that is
+Offline still gets forwarded requests (the TCP master asked for that slave).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from concurrent.futures import Future, InvalidStateError
+
+from ..errors import ModbusError, ModbusExceptionResponse, ModbusTimeoutError
+from ..protocol.forward import check_reply, check_request
+from .link import Link
+
+Submit = Callable[[Callable[[Link], bytes]], "Future[bytes]"]
+
+
+def forward_future(submit: Submit, slave: int, pdu: bytes, timeout: float) -> Future[bytes]:
+    """Queue the forward of ``pdu`` to ``slave`` with ``submit`` (the line worker's) and
+    return its future, which fails as soon as the transaction failed: a timeout is
+    answered after ``timeout``, not after the settle that follows it on the line.
+    Cancelling the future before the worker took the job leaves the line untouched.
+    Raises as :func:`forward_job` does, before anything is queued."""
+    result: Future[bytes] = Future()
+
+    def early(exc: ModbusError) -> None:
+        _resolve(result, None, exc)
+
+    job = submit(forward_job(slave, pdu, timeout, early))
+    job.add_done_callback(lambda done: _resolve(
+        result, None if done.cancelled() or done.exception() else done.result(),
+        None if done.cancelled() else done.exception()))
+    result.add_done_callback(lambda mine: mine.cancelled() and job.cancel())
+    return result
+
+
+def _resolve(future: Future[bytes], value: bytes | None, exc: BaseException | None) -> None:
+    """Set ``future`` once (the first of the early failure and the job's end wins)."""
+    if future.done():
+        return
+    try:
+        if exc is not None:
+            future.set_exception(exc)
+        elif value is not None:
+            future.set_result(value)
+        else:
+            future.cancel()
+    except InvalidStateError:  # cancelled by its owner meanwhile
+        pass
+
+
+def forward_job(slave: int, pdu: bytes, timeout: float,
+                early: Callable[[ModbusError], None] | None = None) -> Callable[[Link], bytes]:
+    """The worker job forwarding ``pdu`` to ``slave``, whose reply must come within
+    ``timeout`` seconds; ``early`` is told of a failure before the line is cleaned up.
+    Raises here, before anything is queued: a
+    :class:`~edgemodbus.protocol.forward.ForwardRequestError` for a PDU that is not
+    forwarded, a ``ValueError`` for slave 0 (a broadcast gets no reply to pass back) or
+    an id above 255, or a timeout that is not a positive number of seconds."""
+    pdu = bytes(pdu)
+    check_request(pdu)
+    if not 1 <= slave <= 255:
+        raise ValueError(f"forward to slave {slave}: must be 1..255 (0, broadcast, gets no "
+                         "reply and is not forwarded)")
+    if not (math.isfinite(timeout) and timeout > 0):
+        raise ValueError(f"forward timeout {timeout!r}: must be a positive number of seconds")
+    return lambda link: forward_on(link, slave, pdu, timeout, early)
+
+
+def forward_on(link: Link, slave: int, pdu: bytes, timeout: float,
+               early: Callable[[ModbusError], None] | None = None) -> bytes:
+    """Send a checked request PDU to ``slave`` on ``link`` (worker thread) and return the
+    reply PDU: a normal reply, or an exception reply (``function | 0x80``, code) as the
+    slave sent it.  Raises :class:`~edgemodbus.errors.ModbusTimeoutError` when no reply
+    came within ``timeout``, :class:`~edgemodbus.errors.ProtocolError` (``CrcError``
+    among them) for a reply that does not answer the request,
+    :class:`~edgemodbus.errors.ModbusConnectionError` when the link failed; ``early``
+    hears of these (once counted) before the line is settled or drained."""
+    stats = link.stats
+    stats.forwarded += 1
+    told = False
+
+    def failed(exc: ModbusError) -> None:
+        nonlocal told
+        if isinstance(exc, ModbusExceptionResponse) or told:
+            return  # an exception reply is an answer, passed through below
+        told = True
+        if isinstance(exc, ModbusTimeoutError):
+            stats.forward_timeouts += 1
+        else:
+            stats.forward_errors += 1
+        if early is not None:
+            early(exc)
+
+    try:
+        adu = link.transact(slave, pdu, lambda _s, request, reply: check_reply(
+            request, link.reply_pdu(reply)), timeout, failed)
+    except ModbusExceptionResponse as exc:  # a valid reply: passed through unchanged
+        stats.forward_exceptions += 1
+        return bytes((pdu[0] | 0x80, exc.code))
+    except ModbusError as exc:  # also one before the request went out (link down)
+        failed(exc)
+        raise
+    return link.reply_pdu(adu)
