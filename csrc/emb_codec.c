@@ -29,6 +29,7 @@ static unsigned wire_width(unsigned wire)
     case EMB_W_U16: case EMB_W_I16: case EMB_W_BCD16:
         return 1;
     case EMB_W_U32: case EMB_W_I32: case EMB_W_F32: case EMB_W_BCD32: case EMB_W_SEC32:
+    case EMB_W_I24: case EMB_W_U24:
         return 2;
     case EMB_W_U64: case EMB_W_I64: case EMB_W_F64: case EMB_W_MS64:
         return 4;
@@ -127,6 +128,8 @@ static void target_range(unsigned target, int64_t *lo, int64_t *hi)
     case EMB_C_BCD16: *lo = 0; *hi = 9999; break;
     case EMB_C_BCD32: *lo = 0; *hi = 99999999; break;
     case EMB_C_DATETIME: *lo = EMB_MS_MIN; *hi = EMB_MS_MAX; break;
+    case EMB_C_I24: *lo = -8388608; *hi = 8388607; break;
+    case EMB_C_U24: *lo = 0; *hi = 16777215; break;
     default: *lo = INT64_MIN; *hi = INT64_MAX; break;
     }
 }
@@ -259,6 +262,13 @@ static int read_raw(const emb_item *it, const void *data, emb_num *n, emb_errval
     case EMB_W_I32:
         n->cls = NUM_INT;
         n->i = sext(gather(r, 2, fl), 32);
+        return EMB_E_OK;
+    case EMB_W_I24: /* byte A (most significant of the 2 registers) unused: emb_codec.h */
+        n->cls = NUM_INT;
+        n->i = sext(gather(r, 2, fl) & 0xFFFFFF, 24);
+        return EMB_E_OK;
+    case EMB_W_U24:
+        n->u = gather(r, 2, fl) & 0xFFFFFF;
         return EMB_E_OK;
     case EMB_W_U64:
         n->u = gather(r, 4, fl);
@@ -571,6 +581,10 @@ int emb_encode(const emb_item *it, uint64_t raw, double fval, const uint8_t *byt
                 (fl & EMB_F_BYTE_SWAP) ? bswap16(word) : word;
         }
         return (int)w;
+    case EMB_W_I24:
+    case EMB_W_U24: /* the unused byte A is written as 0 (emb_codec.h) */
+        scatter(raw & 0xFFFFFF, 2, fl, regs);
+        return 2;
     case EMB_W_REGBIT:
         return -1; /* a bit is written by read-modify-write of its register */
     default: /* 16/32/64-bit integers, SEC32, MS64: two's complement bits */

@@ -40,7 +40,14 @@
 #define EMB_W_SEC32 16  /* uint32 Unix seconds, reported as int64 milliseconds */
 #define EMB_W_MS64 17   /* int64 Unix milliseconds */
 #define EMB_W_BYTES 18  /* nregs registers as bytes in format order */
-#define EMB_W_LAST 18
+/* 24-bit integers in 2 registers: the 2-register value is rebuilt as for I32 (bytes
+ * A B C D, A most significant, in the item's format) and its low 3 bytes B C D are the
+ * value; byte A is unused: ignored when read, written as 0.  A sits in the high byte of
+ * register 0 (ABCD), low byte of register 0 (BADC), high byte of register 1 (CDAB), low
+ * byte of register 1 (DCBA).  README.md, "Int24 and UInt24", shows the table. */
+#define EMB_W_I24 19    /* sign-extended from bit 23 */
+#define EMB_W_U24 20
+#define EMB_W_LAST 20
 
 /* Item flags. */
 #define EMB_F_BYTE_SWAP 0x01
@@ -65,7 +72,9 @@
 #define EMB_C_F32 12      /* a double whose magnitude fits a float32 */
 #define EMB_C_F64 13
 #define EMB_C_DATETIME 14 /* milliseconds within years 1..9999 (Python datetime) */
-#define EMB_C_LAST 14
+#define EMB_C_I24 15      /* -8388608..8388607 */
+#define EMB_C_U24 16      /* 0..16777215 */
+#define EMB_C_LAST 16
 
 /* Output groups: which typed array holds the item's result (at index `slot`). */
 #define EMB_O_I64 0

@@ -82,6 +82,7 @@ static unsigned width_of(unsigned wire)
     case EMB_W_U16: case EMB_W_I16: case EMB_W_BCD16:
         return 1;
     case EMB_W_U32: case EMB_W_I32: case EMB_W_F32: case EMB_W_BCD32: case EMB_W_SEC32:
+    case EMB_W_I24: case EMB_W_U24:
         return 2;
     case EMB_W_U64: case EMB_W_I64: case EMB_W_F64: case EMB_W_MS64:
         return 4;
@@ -114,6 +115,8 @@ static int int_range(unsigned target, int64_t *lo, int64_t *hi)
     case EMB_C_BCD16: *lo = 0; *hi = 9999; return 1;
     case EMB_C_BCD32: *lo = 0; *hi = 99999999; return 1;
     case EMB_C_DATETIME: *lo = -62135596800000LL; *hi = 253402300799999LL; return 1;
+    case EMB_C_I24: *lo = -8388608; *hi = 8388607; return 1;
+    case EMB_C_U24: *lo = 0; *hi = 16777215; return 1;
     case EMB_C_I64: *lo = INT64_MIN; *hi = INT64_MAX; return 1;
     default: return 0;
     }
@@ -651,6 +654,8 @@ static void round_trip(const emb_item *src, const uint16_t *regs, int n, uint64_
     case EMB_W_I16: CHECK(i64 == sext(raw & 0xFFFF, 16)); break;
     case EMB_W_U32: CHECK(i64 == (int64_t)(raw & 0xFFFFFFFF)); break;
     case EMB_W_I32: CHECK(i64 == sext(raw & 0xFFFFFFFF, 32)); break;
+    case EMB_W_U24: CHECK(i64 == (int64_t)(raw & 0xFFFFFF)); break;
+    case EMB_W_I24: CHECK(i64 == sext(raw & 0xFFFFFF, 24)); break;
     case EMB_W_U64: CHECK(u64 == raw); break;
     case EMB_W_I64: case EMB_W_MS64: CHECK(i64 == sext(raw, 64)); break;
     case EMB_W_SEC32: CHECK(i64 == (int64_t)(raw & 0xFFFFFFFF) * 1000); break;

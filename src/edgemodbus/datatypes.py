@@ -47,7 +47,8 @@ _AREA_SHORT = {
 
 
 class DataType(enum.Enum):
-    """Device data types of the seed (plus NG's Timestamp/Binary and BCD)."""
+    """Device data types of the seed (plus NG's Timestamp/Binary, BCD, and the 24-bit
+    integers the Pascal.Edge seed lists as an extension: 2 registers, one byte unused)."""
 
     BOOLEAN = "Boolean"
     BYTE = "Byte"
@@ -55,6 +56,8 @@ class DataType(enum.Enum):
     CHAR = "Char"
     INT16 = "Int16"
     UINT16 = "UInt16"
+    INT24 = "Int24"
+    UINT24 = "UInt24"
     INT32 = "Int32"
     UINT32 = "UInt32"
     INT64 = "Int64"
@@ -130,6 +133,8 @@ _REGISTERS = {
     DataType.UINT32: 2,
     DataType.FLOAT: 2,
     DataType.BCD32: 2,
+    DataType.INT24: 2,
+    DataType.UINT24: 2,
     DataType.DATETIME: 2,
     DataType.TIMESTAMP: 2,
     DataType.INT64: 4,
@@ -144,6 +149,8 @@ _INTEGER_RANGES = {
     DataType.SBYTE: (-0x80, 0x7F),
     DataType.INT16: (-0x8000, 0x7FFF),
     DataType.UINT16: (0, 0xFFFF),
+    DataType.INT24: (-0x80_0000, 0x7F_FFFF),
+    DataType.UINT24: (0, 0xFF_FFFF),
     DataType.INT32: (-0x8000_0000, 0x7FFF_FFFF),
     DataType.UINT32: (0, 0xFFFF_FFFF),
     DataType.INT64: (-0x8000_0000_0000_0000, 0x7FFF_FFFF_FFFF_FFFF),

@@ -13,16 +13,18 @@ from __future__ import annotations
 
 import asyncio
 import logging
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from concurrent.futures import Future
 from typing import Any, ClassVar
 
 from .config import (
+    DeviceAction,
     DeviceAddressItem,
     DeviceOrganizationParameter,
     DriverModbusRtuParameter,
     device_enabled,
     effective_parameters,
+    validate_actions,
     validate_items,
     validate_parameters,
 )
@@ -44,6 +46,7 @@ from .line import (
     endpoint_for,
     line_registry,
 )
+from .poll.actions import find_action, plan_action, prefix_errors
 from .poll.items import ItemState
 from .poll.planner import ReadBlock
 from .poll.poller import Poller
@@ -78,6 +81,7 @@ class DriverModbusRtu:
         self._params: DriverModbusRtuParameter | None = None
         self._org: DeviceOrganizationParameter | None = None
         self._enabled = False
+        self._actions: list[DeviceAction] = []
 
     # -- lifecycle ---------------------------------------------------------------------
     def start_device(
@@ -85,8 +89,10 @@ class DriverModbusRtu:
         org_param: DeviceOrganizationParameter | None,
         comm_param: DriverModbusRtuParameter,
         addresses: Sequence[DeviceAddressItem],
+        actions: Sequence[DeviceAction] = (),
     ) -> bool:
-        """Start polling.  Returns True when polling started; False when the device is
+        """Start polling (``actions``: the device file's, for :meth:`run_action`).
+        Returns True when polling started; False when the device is
         disabled (status ``Disabled``) or the driver is already running (nothing done).
         Raises ``ValueError`` (a :class:`ConfigError` for the configuration, naming the
         item, field, value and what is allowed) or a line already open with other serial
@@ -105,6 +111,8 @@ class DriverModbusRtu:
             self.logger.info("%s: disabled, not polled", code)
             return False
         parsed = validate_items(list(addresses), params)
+        validate_actions(actions, parsed)
+        self._actions = list(actions)
         endpoint = endpoint_for(params)
         timing = _timing(params)
         # builds the items' codec specs, the plan and its decoders: raises here, not
@@ -185,6 +193,7 @@ class DriverModbusRtu:
         if self._params is None:
             raise RuntimeError("update_addresses before start_device")
         parsed = validate_items(list(addresses), self._params)
+        validate_actions(self._actions, parsed)  # an action's item may be gone
         if self._poller is None:
             return
         # a trial build of the specs, plan and decoders: a list the codec or the planner
@@ -282,6 +291,48 @@ class DriverModbusRtu:
         except ValueError as exc:
             return str(exc)
         return poller.submit_writes(ops)
+
+    # -- actions (poll/actions.py) --------------------------------------------------------
+    @property
+    def actions(self) -> list[DeviceAction]:
+        """The actions given to :meth:`start_device`."""
+        return list(self._actions)
+
+    def run_action(self, name: str,
+                   params: Mapping[str, Any] | None = None) -> tuple[bool, str | None]:
+        """Run the action ``name`` with ``params`` (parameter name -> value; missing ones
+        take their defaults): everything is checked before a request is sent, then its
+        requests go out in its function code; (True, None) once the slave confirmed all
+        of them, else (False, why): the first failure stops the action."""
+        line = self._line
+        if line is not None and line.on_worker():
+            return False, ("run_action called on the line worker (from a callback) cannot "
+                           "wait for its own line: use run_action_async, or another thread")
+        prepared = self._prepare_action(name, params)
+        return (False, prepared) if isinstance(prepared, str) else _wait_write(prepared)
+
+    async def run_action_async(self, name: str, params: Mapping[str, Any] | None = None
+                               ) -> tuple[bool, str | None]:
+        prepared = self._prepare_action(name, params)
+        if isinstance(prepared, str):
+            return False, prepared
+        try:
+            return await asyncio.wrap_future(prepared)
+        except Exception as exc:
+            return False, str(exc)
+
+    def _prepare_action(self, name: str,
+                        params: Mapping[str, Any] | None) -> Future[Any] | str:
+        poller = self._poller
+        if poller is None:
+            return "device is not running"
+        try:
+            action = find_action(self._actions, name)
+            ops = plan_action(action, params or {}, poller.by_name)
+        except ValueError as exc:
+            return str(exc)
+        future = poller.submit_writes(ops, whole=True)
+        return prefix_errors(future, f"action {name!r}: ")
 
     # -- gateway forward mode -------------------------------------------------------------
     def forward(self, pdu: bytes, timeout: float | None = None) -> Future[bytes]:

@@ -148,7 +148,8 @@ def test_option_errors_name_the_option() -> None:
         (["--format", "XYZ", "hr:1"], "--format XYZ: unknown data format 'XYZ'"),
         (["--slave", "300", "hr:1"], "--slave 300: must be 0..255"),
         (["--timeout", "0", "hr:1"], "--timeout 0: must be 1..86400000"),
-        (["--quantity", "3", "hr:1"], "--quantity 3: UInt16 allows quantity 1"),
+        (["--quantity", "3", "--type", "Timestamp", "hr:1"],
+         "--quantity 3: Timestamp allows quantity 2 or 4"),
         (["hr:99999"], "hr:99999: offset 99999 out of range 0..65535"),
     ]
     for args, message in cases:

@@ -266,6 +266,30 @@ def run_plan(argv: tuple[str, ...], tmp: Path) -> None:
     ]
 
 
+def run_action(argv: tuple[str, ...], tmp: Path) -> None:
+    """The README's action example: a pump whose action ``start`` sets a Float speed and
+    a UInt16 mode (default 1) in one FC16 request."""
+    assert argv[3:] == ("start", "speed=42.5"), "adapt this runner to the README's action"
+    with Simulator([1]) as sim:
+        port = sim.serve_tcp("127.0.0.1", 0)
+        path = tmp / "pump.json"
+        path.write_text(json.dumps({
+            "communication": {"transport": "rtu-over-tcp", "tcpHost": "127.0.0.1",
+                              "tcpPort": port, "readTimeout": 500},
+            "addressList": [
+                {"name": "PumpSpeed", "address": "hr:100", "deviceDataType": "Float"},
+                {"name": "Mode", "address": "hr:102", "deviceDataType": "UInt16"}],
+            "actions": [{"name": "start", "functionCode": 16, "parameters": [
+                {"name": "speed", "item": "PumpSpeed", "type": "Float32", "minValue": 0,
+                 "maxValue": 100},
+                {"name": "mode", "item": "Mode", "type": "UInt16", "default": 1}]}],
+        }))
+        out = run(rewrite(argv, file=str(path)))
+        assert (out.returncode, out.stdout.strip()) == (0, "ok"), out.stderr
+        assert sim.slave(1).get_registers(Area.HOLDING_REGISTER, 100, 3) == [
+            *struct.unpack(">2H", struct.pack(">f", 42.5)), 1]
+
+
 def run_simulate(argv: tuple[str, ...], tmp: Path) -> None:
     if "--dial" in argv:
         run_simulate_dial(argv)
@@ -381,6 +405,7 @@ RUNNERS: dict[tuple[str, ...], Runner] = {
     ("edgemodbus", "plan"): run_plan,
     ("edgemodbus", "simulate"): run_simulate,
     ("edgemodbus", "descriptor"): run_descriptor,
+    ("edgemodbus", "action"): run_action,
     ("python", "-m", "edgemodbus.gateway"): run_service,
 }
 

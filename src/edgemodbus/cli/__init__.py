@@ -1,4 +1,4 @@
-"""The ``edgemodbus`` command: demo, run, read, write, plan, simulate, descriptor.
+"""The ``edgemodbus`` command: demo, run, read, write, plan, simulate, descriptor, action.
 
 Errors are one line per problem on stderr and a non-zero exit code.  Values print so that
 they read back exactly: a float as its shortest round-trip form (``repr``; ``nan``,
@@ -35,6 +35,7 @@ from ..poll.poller import build_plan
 from ..protocol.address import parse_address
 from ..sim.cli import DESCRIPTION as SIMULATOR
 from ..sim.cli import add_arguments as add_simulator_arguments
+from . import action as action_command
 from .output import CliError, emit, json_line, one_line, print_json, problem_lines, value_text
 
 DEMO_FILE = Path(__file__).resolve().parent.parent / "demo-device.json"  # examples/ links here
@@ -141,6 +142,11 @@ def build_parser() -> argparse.ArgumentParser:
     simulate = sub.add_parser("simulate", help="serve simulated RTU slaves",
                               description=SIMULATOR)
     add_simulator_arguments(simulate)
+
+    act = sub.add_parser("action", help="run an action of a device file (NAME param=value "
+                         "...), or list its actions", description=action_command.__doc__)
+    action_command.add_arguments(act)
+    act.set_defaults(func=action_command.run)
 
     desc = sub.add_parser("descriptor", help="print the driver descriptor JSON")
     desc.add_argument("--prefix", choices=["function-code", "modicon"], default="function-code")

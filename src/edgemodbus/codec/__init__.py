@@ -3,13 +3,19 @@ and encoding of writes; normalizing what a host hands to a write; values as JSON
 
 Choices this package makes (where the data type definitions leave them open):
 
-* A ``quantity`` larger than a fixed-size type needs: the value is read from the item's
-  first registers (as many as the type needs, combined in the item's word order); the
-  other registers are ignored on read and not written by :func:`encode`.
-* Smart Cast (a ``quantity`` smaller than the type needs) reads the widest smaller
-  value that fits: Int64/UInt64/Double from 2 registers read Int32/UInt32/Float32, from
-  1 register Int16/UInt16/Int16; Int32/UInt32/Float from 1 register read Int16/UInt16/Int16;
-  BCD32 from 1 register reads BCD16; DateTime/Timestamp need 2 (seconds) or 4 (ms).
+* Smart Cast (NG; README.md "Smart Cast"): a numeric item of ``quantity`` registers is
+  read with the widest of 4, 2 (Int24/UInt24: their own 24-bit value), 1 registers that
+  fits in it.  Fewer registers than the type needs hold a smaller value that is widened
+  (Int64/UInt64/Double from 2 registers read Int32/UInt32/Float32, from 1
+  Int16/UInt16/Int16; Int32/UInt32/Float from 1 read Int16/UInt16/Int16; BCD32 from 1
+  reads BCD16); more hold a wider one that is narrowed to the type and range-checked
+  (Int16 from 4 reads Int64; Float from 4 reads Float64).  The registers are taken in
+  the item's format order, most significant first: the value is in the first ones, the
+  rest (e.g. the 3rd of 3) are ignored on read and written as 0 by :func:`encode`; with a
+  word swap (CDAB, DCBA) the first ones in that order are the last ones by address.
+  DateTime/Timestamp need 2 (seconds) or 4 (ms).
+* Int24/UInt24 are 2 registers rebuilt like an Int32 (bytes A B C D in format order)
+  of which the low 3 bytes are the value; byte A is unused (ignored, written as 0).
 * Byte/Sbyte and Char are the low byte of the register after the byte swap; Char is a
   1-character str of that byte's code point (latin-1: ``chr(byte)``).
 * A bit of a register (``hr:100.3``) is taken after the byte swap, so it agrees with the
@@ -27,10 +33,11 @@ from .decoder import BlockDecoder, Change
 from .encoder import encode, register_bit
 from .jsonable import jsonable
 from .normalize import normalize_value
-from .spec import MAX_QUANTITY, ValueSpec, check_spec
+from .spec import MAX_QUANTITY, SMART_CAST_TYPES, ValueSpec, check_spec, smart_cast
 
 __all__ = [
     "MAX_QUANTITY",
+    "SMART_CAST_TYPES",
     "BlockDecoder",
     "Change",
     "ValueSpec",
@@ -39,4 +46,5 @@ __all__ = [
     "jsonable",
     "normalize_value",
     "register_bit",
+    "smart_cast",
 ]

@@ -53,6 +53,12 @@ def _encode_int(spec: ValueSpec, value: object, wire: str) -> int:
     x = _number(spec, value)
     m = spec.multiplier
     lo, hi = _WIRE_RANGE[wire]
+    what = _WIRE_TYPE[wire]
+    t = spec.data_type
+    if t.is_integer and spec.converted_type in (None, t):
+        tlo, thi = t.integer_range
+        if tlo > lo or thi < hi:  # Smart Cast from a wider read: the type's own range
+            lo, hi, what = max(lo, tlo), min(hi, thi), t.value
     if (isinstance(x, float) and not math.isfinite(x)) or (
         isinstance(x, Decimal) and not x.is_finite()
     ):
@@ -62,7 +68,6 @@ def _encode_int(spec: ValueSpec, value: object, wire: str) -> int:
         d = d / _decimal(m)
     raw = int(d.to_integral_value(rounding=ROUND_HALF_EVEN))
     if not lo <= raw <= hi:
-        what = _WIRE_TYPE[wire]
         raise _fail(spec, value, f"{_scaled_range(lo, hi, m)} ({what} on the device)")
     return raw
 
@@ -74,7 +79,7 @@ def _encode_float(spec: ValueSpec, value: object, wire: str) -> float:
         x = x * k
     elif flag:
         x = x / k
-    if wire == "F32" and math.isfinite(x):
+    if (wire == "F32" or spec.data_type is DataType.FLOAT) and math.isfinite(x):
         try:
             struct.pack(">f", x)
         except OverflowError:
@@ -171,4 +176,8 @@ def encode(spec: ValueSpec, value: object) -> list[int]:
         fval = _encode_float(spec, value, wire)
     else:
         raw = _encode_int(spec, value, wire)
-    return _ffi.codec_encode(item, raw, fval, data)
+    regs = _ffi.codec_encode(item, raw, fval, data)
+    pad = (spec.quantity or item.nregs) - len(regs)
+    if pad > 0:  # Smart Cast: the registers the value does not use are written as 0
+        return [0] * pad + regs if item.offset else regs + [0] * pad
+    return regs

@@ -15,7 +15,7 @@ from .. import _ffi
 from .._ffi import CodecItem
 from ..datatypes import Area, DataFormat, DataType
 
-__all__ = ["MAX_QUANTITY", "ValueSpec", "check_spec"]
+__all__ = ["MAX_QUANTITY", "SMART_CAST_TYPES", "ValueSpec", "check_spec", "smart_cast"]
 
 _W = _ffi.codec_constants("W")
 _F = _ffi.codec_constants("F")
@@ -120,17 +120,23 @@ def check_spec(spec: ValueSpec, area: Area) -> None:
 # -- compiling a spec into a C item ------------------------------------------------------
 
 # (wire, registers) for each width a fixed-size type may be read with, widest first.
+# Smart Cast (NG, README.md "Smart Cast"): an item of `quantity` registers is read with
+# the widest of these that fits in it: fewer registers than the type needs hold a smaller
+# value that is widened; more registers hold a wider integer (or Float64) that is
+# narrowed to the type, range-checked (out of range -> Invalid, never a silent wrap).
 _WIDTHS: dict[DataType, tuple[tuple[str, int], ...]] = {
-    DataType.INT16: (("I16", 1),),
-    DataType.UINT16: (("U16", 1),),
-    DataType.BCD16: (("BCD16", 1),),
-    DataType.BYTE: (("U8", 1),),
-    DataType.SBYTE: (("I8", 1),),
+    DataType.INT16: (("I64", 4), ("I32", 2), ("I16", 1)),
+    DataType.UINT16: (("U64", 4), ("U32", 2), ("U16", 1)),
+    DataType.BCD16: (("BCD32", 2), ("BCD16", 1)),
+    DataType.BYTE: (("U64", 4), ("U32", 2), ("U8", 1)),
+    DataType.SBYTE: (("I64", 4), ("I32", 2), ("I8", 1)),
     DataType.CHAR: (("U8", 1),),
     DataType.BOOLEAN: (("REGBOOL", 1),),
-    DataType.INT32: (("I32", 2), ("I16", 1)),
-    DataType.UINT32: (("U32", 2), ("U16", 1)),
-    DataType.FLOAT: (("F32", 2), ("I16", 1)),
+    DataType.INT24: (("I64", 4), ("I24", 2), ("I16", 1)),
+    DataType.UINT24: (("U64", 4), ("U24", 2), ("U16", 1)),
+    DataType.INT32: (("I64", 4), ("I32", 2), ("I16", 1)),
+    DataType.UINT32: (("U64", 4), ("U32", 2), ("U16", 1)),
+    DataType.FLOAT: (("F64", 4), ("F32", 2), ("I16", 1)),
     DataType.BCD32: (("BCD32", 2), ("BCD16", 1)),
     DataType.INT64: (("I64", 4), ("I32", 2), ("I16", 1)),
     DataType.UINT64: (("U64", 4), ("U32", 2), ("U16", 1)),
@@ -139,12 +145,19 @@ _WIDTHS: dict[DataType, tuple[tuple[str, int], ...]] = {
     DataType.TIMESTAMP: (("MS64", 4), ("SEC32", 2)),
 }
 
+SMART_CAST_TYPES: frozenset[DataType] = frozenset(
+    t for t, widths in _WIDTHS.items() if len(widths) > 1 and t.is_numeric
+)
+"""Types that take any quantity 1..125 (Smart Cast); the others keep their own."""
+
 # Integer range of each integer wire (what the registers can hold).
 _WIRE_RANGE: dict[str, tuple[int, int]] = {
     "U8": (0, 0xFF),
     "I8": (-0x80, 0x7F),
     "U16": (0, 0xFFFF),
     "I16": (-0x8000, 0x7FFF),
+    "U24": (0, 0xFF_FFFF),
+    "I24": (-0x80_0000, 0x7F_FFFF),
     "U32": (0, 0xFFFF_FFFF),
     "I32": (-0x8000_0000, 0x7FFF_FFFF),
     "U64": (0, 0xFFFF_FFFF_FFFF_FFFF),
@@ -157,6 +170,8 @@ _WIRE_TYPE = {
     "I8": "Sbyte",
     "U16": "UInt16",
     "I16": "Int16",
+    "U24": "UInt24",
+    "I24": "Int24",
     "U32": "UInt32",
     "I32": "Int32",
     "U64": "UInt64",
@@ -173,6 +188,8 @@ _TARGET = {
     DataType.BYTE: "U8",
     DataType.INT16: "I16",
     DataType.UINT16: "U16",
+    DataType.INT24: "I24",
+    DataType.UINT24: "U24",
     DataType.INT32: "I32",
     DataType.UINT32: "U32",
     DataType.INT64: "I64",
@@ -199,6 +216,51 @@ def _wire(spec: ValueSpec, area: Area) -> tuple[str, int]:
         if n <= have:
             return wire, n
     return widths[-1]
+
+
+def _wire_shift(spec: ValueSpec, n: int) -> int:
+    """Where the value's ``n`` registers start inside the item's ``quantity``: the item's
+    registers in its format's order, most significant first, hold the value in their
+    first ``n`` (NG's rule); the word swap reverses that order, so they are the last
+    ``n`` in address order under CDAB/DCBA.  The others are ignored when read and
+    written as 0."""
+    q = spec.quantity
+    if q is None or q <= n or not spec.data_format.word_swap or spec.bit is not None:
+        return 0
+    return q - n
+
+
+def smart_cast(spec: ValueSpec) -> str | None:
+    """What Smart Cast does with this item's quantity (None: nothing, the quantity is the
+    type's own): the text of the warning logged once when the item is configured."""
+    t, q = spec.data_type, spec.quantity
+    if q is None or t not in SMART_CAST_TYPES or q == t.registers or spec.bit is not None:
+        return None
+    wire, n = _wire(spec, Area.HOLDING_REGISTER)
+    what = _WIRE_TYPE[wire]
+    if n > t.registers:
+        how = f"read as {what} and narrowed to {t.value}"
+        if spec.multiplier != 1:
+            how += " (with a dataMultiplier the scaled value is reported as read)"
+        elif t.is_integer:
+            lo, hi = t.integer_range
+            how += f" (a value outside {lo}..{hi} makes the item Invalid)"
+        else:
+            how += " (a value beyond Float's range makes the item Invalid)"
+    elif n < t.registers:
+        how = f"read as {what} and widened to {t.value}"
+    else:
+        how = f"read as {what}"
+    text = f"{t.value} from {q} register{'s' if q != 1 else ''}: {how}"
+    if q > n:
+        first = _wire_shift(spec, n)
+        unused = [k for k in range(q) if not first <= k < first + n]
+        text += (
+            f"; register{'s' if len(unused) > 1 else ''} "
+            f"+{', +'.join(map(str, unused))} of the item "
+            f"{'are' if len(unused) > 1 else 'is'} ignored when read and written as 0"
+        )
+    return text
 
 
 def _scale(m: float) -> tuple[int, float]:
@@ -268,6 +330,11 @@ def _compile(spec: ValueSpec, area: Area, offset: int) -> _Compiled:
             out = "U64"
         else:
             out = "I64"
+        if nregs > t.registers and not scale_flag and t in SMART_CAST_TYPES:
+            # Smart Cast from a wider read: narrowed to the type, range-checked in C
+            target = _TARGET[t]
+            if t.is_integer:
+                out, rng = "I64", t.integer_range
         if conv is DataType.STRING:
             post = str
     else:
@@ -284,7 +351,7 @@ def _compile(spec: ValueSpec, area: Area, offset: int) -> _Compiled:
     # str) are compared for any change, as bool and bytes are
     deadband = float(spec.deadband) if post is None else 0.0
     item = CodecItem(
-        offset=offset,
+        offset=offset + _wire_shift(spec, nregs),
         nregs=nregs,
         wire=_W[wire],
         flags=flags,

@@ -18,6 +18,13 @@ what is allowed.  The modules, each one concern:
 
 from __future__ import annotations
 
+from .actions import (
+    ACTION_FUNCTIONS,
+    PARAMETER_TYPES,
+    ActionParameter,
+    DeviceAction,
+    validate_actions,
+)
 from .base import (
     MAX_MS,
     MS_RANGE,
@@ -53,15 +60,19 @@ from .labels import BAUD_RATES
 from .problems import NO_VALUE, ConfigError, Problem, WrongType, join_path
 
 __all__ = [
+    "ACTION_FUNCTIONS",
     "ALLOWED_QUANTITIES",
     "BAUD_RATES",
     "MAX_MS",
     "MS_RANGE",
     "NO_VALUE",
+    "PARAMETER_TYPES",
     "READ_CYCLE_RANGE",
+    "ActionParameter",
     "AddressPrefixOption",
     "Choice",
     "ConfigError",
+    "DeviceAction",
     "DeviceAddressItem",
     "DeviceConfig",
     "DeviceOrganizationParameter",
@@ -85,6 +96,7 @@ __all__ = [
     "load_communication",
     "load_device_config",
     "load_model",
+    "validate_actions",
     "validate_items",
     "validate_parameters",
 ]

@@ -6,7 +6,12 @@ them, parity as numbers and names, timestamps as .NET writes them.
   snake_case name the same field.
 * NG's communication keys (:data:`NG_KEYS`, :func:`ng_aliases`): ``maxGap`` for
   ``maxMergeAddressGap``, ``maxBatch`` for ``maxBlockReadRegisterCount``,
-  ``byteOrder``/``wordOrder`` for ``dataFormat``.
+  ``byteOrder``/``wordOrder`` (names, or NG's numbers 0 = BigEndian, 1 = LittleEndian)
+  for ``dataFormat``, and the nested ``connection{kind, host, port, baudRate, dataBits,
+  stopBits, parity}`` for ``transport``/``tcpHost``/``tcpPort``/``comPort``/....
+* NG's point keys (:data:`NG_POINT_KEYS`, :func:`ng_point`): ``functionCode`` (1..4 or
+  NG's names) with a numeric ``address`` for our ``"hr:100"``, ``dataType`` for
+  ``deviceDataType``, ``scale`` for ``dataMultiplier``, ``key`` for a missing ``name``.
 * Parity (:func:`parity_letter`): ``None/Odd/Even``, ``0/1/2`` (the seed descriptor's
   numbering) and libmodbus's ``N/O/E``, in any case.
 * Timestamps (:func:`iso_timestamp`): fractions of more than 6 digits are cut.
@@ -25,14 +30,59 @@ def norm_key(key: str) -> str:
     return key.replace("_", "").replace("-", "").lower()
 
 
-NG_KEYS: tuple[str, ...] = ("maxGap", "maxBatch", "byteOrder", "wordOrder")
+NG_KEYS: tuple[str, ...] = ("maxGap", "maxBatch", "byteOrder", "wordOrder", "connection")
 """NG's communication keys, accepted besides the fields (see :func:`ng_aliases`)."""
+
+_ENDIAN_NUMBERS = {0: "BigEndian", 1: "LittleEndian"}  # NG's Endianness (serde_repr)
+
+# NG connection.kind -> our transport, and connection keys -> ours, per kind
+_NG_KINDS = {"tcp": "tcp", "rtu": "rtu"}
+_NG_CONNECTION = {
+    "tcp": {"host": "tcpHost", "port": "tcpPort"},
+    "rtu": {"port": "comPort", "baudrate": "baudRate", "databits": "dataBits",
+            "stopbits": "stopBits", "parity": "parity"},
+}
+
+
+def _put(data: dict[str, Any], key: str, value: Any, where: str,
+         problems: list[Problem]) -> None:
+    """``data[key] = value`` unless ``data`` already says otherwise (a problem)."""
+    if key in data and data[key] != value:
+        problems.append(Problem(where, value, f"disagrees with {key} {data[key]!r}"))
+    else:
+        data[key] = value
+
+
+def _connection(conn: Any, data: dict[str, Any], problems: list[Problem]) -> None:
+    """NG's nested ``connection{kind, ...}`` -> our communication keys in ``data``."""
+    if not isinstance(conn, dict):
+        problems.append(Problem("connection", conn, "must be an object with a kind"))
+        return
+    fields = {norm_key(k): v for k, v in conn.items() if isinstance(k, str)}
+    kind = str(fields.pop("kind", "")).strip().lower()
+    if kind not in _NG_KINDS:
+        problems.append(Problem("connection.kind", conn.get("kind", NO_VALUE),
+                                "use tcp (Modbus TCP) or rtu (serial RTU)"))
+        return
+    _put(data, "transport", _NG_KINDS[kind], "connection.kind", problems)
+    _put(data, "useTcp", kind == "tcp", "connection.kind", problems)
+    names = _NG_CONNECTION[kind]
+    for key, value in fields.items():
+        ours = names.get(key)
+        if ours is None:
+            problems.append(Problem(f"connection.{key}", value,
+                                    f"not a {kind} connection key (use kind, "
+                                    f"{', '.join(names)})"))
+        else:
+            _put(data, ours, value, f"connection.{key}", problems)
 
 
 def ng_aliases(data: dict[str, Any]) -> dict[str, Any]:
     """NG spellings -> ours in ``data`` (keys already normalised, changed in place);
     disagreements are errors."""
     problems: list[Problem] = []
+    if "connection" in data:
+        _connection(data.pop("connection"), data, problems)
     for ng, ours in (
         ("maxGap", "maxMergeAddressGap"),
         ("maxBatch", "maxBlockReadRegisterCount"),
@@ -46,6 +96,8 @@ def ng_aliases(data: dict[str, Any]) -> dict[str, Any]:
     if "byteOrder" in data or "wordOrder" in data:
         byte_order = data.pop("byteOrder", "BigEndian")
         word_order = data.pop("wordOrder", "BigEndian")
+        byte_order = _ENDIAN_NUMBERS.get(byte_order, byte_order)
+        word_order = _ENDIAN_NUMBERS.get(word_order, word_order)
         try:
             fmt = DataFormat.from_orders(str(byte_order), str(word_order))
         except ValueError as exc:
@@ -61,6 +113,135 @@ def ng_aliases(data: dict[str, Any]) -> dict[str, Any]:
             data["dataFormat"] = fmt
     if problems:
         raise ConfigError(problems)
+    return data
+
+
+NG_POINT_KEYS: tuple[str, ...] = ("functionCode", "dataType", "scale", "key")
+"""NG's point keys, accepted on an item besides the fields (see :func:`ng_point`)."""
+
+NG_FUNCTION_CODES: dict[str, int] = {
+    "readcoils": 1,
+    "readdiscreteinputs": 2,
+    "readholdingregisters": 3,
+    "readinputregisters": 4,
+    "writesinglecoil": 5,
+    "writesingleregister": 6,
+    "writemultiplecoils": 15,
+    "writemultipleregisters": 16,
+}
+"""NG's function code names (ModbusFunctionCode) -> their numbers."""
+
+_READ_AREA = {1: "coil", 2: "di", 3: "hr", 4: "ir"}
+
+
+def function_code(value: Any) -> int | None:
+    """A function code as NG writes it: a number (5, "0x10", "16") or a name
+    (``WriteMultipleRegisters``, case and ``_`` ignored); None if it is neither."""
+    if isinstance(value, bool):
+        return None
+    if isinstance(value, int):
+        return value
+    if isinstance(value, str):
+        text = value.strip().lower()
+        try:
+            return int(text, 16) if text.startswith("0x") else int(text)
+        except ValueError:
+            return NG_FUNCTION_CODES.get(norm_key(text))
+    return None
+
+
+def ng_point(data: dict[str, Any]) -> dict[str, Any]:
+    """NG's point keys -> ours in ``data`` (keys already normalised, changed in place):
+    ``functionCode`` 1..4 with a numeric (0-based, protocol) ``address`` -> ``"hr:100"``
+    etc., ``dataType`` -> ``deviceDataType``, ``scale`` -> ``dataMultiplier`` (null: 1),
+    ``key`` -> ``name`` when there is none.  Raises ValueError naming the key."""
+    if "key" in data:
+        key = data.pop("key")
+        data.setdefault("name", key)
+    for ng, ours in (("dataType", "deviceDataType"), ("scale", "dataMultiplier")):
+        if ng in data:
+            value = data.pop(ng)
+            if value is None and ng == "scale":
+                continue
+            if ours in data and data[ours] != value:
+                raise ValueError(f"{ng} {value!r} disagrees with {ours} {data[ours]!r}")
+            data[ours] = value
+    if "functionCode" in data:
+        given = data.pop("functionCode")
+        code = function_code(given)
+        if code not in _READ_AREA:
+            raise ValueError(
+                f"functionCode {given!r}: a point is read with 1 (ReadCoils), "
+                "2 (ReadDiscreteInputs), 3 (ReadHoldingRegisters) or 4 (ReadInputRegisters)"
+            )
+        area = _READ_AREA[code]
+        address = data.get("address")
+        if isinstance(address, bool) or address is None:
+            raise ValueError(f"functionCode {given!r} needs an address (0..65535)")
+        if isinstance(address, str) and ":" not in address:
+            address = address.strip()
+        if isinstance(address, int) or (isinstance(address, str) and address.isdigit()):
+            data["address"] = f"{area}:{address}"
+        else:
+            raise ValueError(
+                f"address {address!r}: with functionCode give the offset alone "
+                f"(a whole number 0..65535, read as {area}:<offset>)"
+            )
+    return data
+
+
+NG_DEVICE_KEYS: tuple[str, ...] = ("points",)
+"""NG's device-file keys, accepted besides the fields (see :func:`ng_device`)."""
+
+
+def ng_device(data: dict[str, Any]) -> dict[str, Any]:
+    """NG's ``points`` -> ``addressList`` in ``data`` (keys already normalised, changed
+    in place); both at once is an error."""
+    if "points" in data:
+        if "addressList" in data:
+            raise ConfigError([Problem("points", NO_VALUE,
+                                       "give the items in points or in addressList, not both")])
+        data["addressList"] = data.pop("points")
+    return data
+
+
+NG_ACTION_KEYS: tuple[str, ...] = ("inputParameters",)
+"""NG's action keys, accepted besides the fields (see :func:`ng_action`)."""
+
+NG_PARAMETER_KEYS: tuple[str, ...] = ("key", "type", "default", "address")
+"""NG's (and the short) parameter keys, accepted besides the fields."""
+
+
+def ng_action(data: dict[str, Any]) -> dict[str, Any]:
+    """NG's ``inputParameters`` -> ``parameters`` (keys already normalised)."""
+    if "inputParameters" in data:
+        if "parameters" in data:
+            raise ValueError("give parameters or inputParameters, not both")
+        data["parameters"] = data.pop("inputParameters")
+    return data
+
+
+def ng_action_parameter(data: dict[str, Any]) -> dict[str, Any]:
+    """A parameter's ``key`` -> ``name`` (NG: ``key`` is the id, ``name`` a label, kept
+    as description), ``type`` -> ``dataType``, ``default`` -> ``defaultValue``.  NG's
+    per-parameter ``address`` is refused: a parameter sets an item of the address list."""
+    if "key" in data:
+        key = data.pop("key")
+        label = data.get("name")
+        if label is not None and label != key:
+            data.setdefault("description", label)
+        data["name"] = key
+    for short, ours in (("type", "dataType"), ("default", "defaultValue")):
+        if short in data:
+            value = data.pop(short)
+            if ours in data and data[ours] != value:
+                raise ValueError(f"{short} {value!r} disagrees with {ours} {data[ours]!r}")
+            data[ours] = value
+    if "address" in data:
+        raise ValueError(
+            f"address {data['address']!r}: a parameter sets an item: name it with "
+            '"item" (add the address to the address list as an item)'
+        )
     return data
 
 

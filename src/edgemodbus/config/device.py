@@ -10,9 +10,10 @@ from typing import Annotated, Any, ClassVar
 
 from pydantic import ConfigDict, Field, field_validator, model_validator
 
+from .actions import DeviceAction, validate_actions
 from .base import READ_CYCLE_RANGE, Model, OptionalMs, field_checks, load_model, recheck
 from .communication import DriverModbusRtuParameter
-from .compat import iso_timestamp
+from .compat import NG_DEVICE_KEYS, iso_timestamp, ng_device
 from .items import DeviceAddressItem, ParsedItem, validate_items
 from .problems import ConfigError
 
@@ -85,10 +86,13 @@ class DeviceConfig(Model):
     # the input (ConfigError's lines mask it)
     model_config = ConfigDict(hide_input_in_errors=True)  # merged with Model's
 
+    _extra_keys: ClassVar[tuple[str, ...]] = NG_DEVICE_KEYS
+
     driver_type: str = "DriverModbusRtu"
     organization: DeviceOrganizationParameter = Field(default_factory=DeviceOrganizationParameter)
     communication: DriverModbusRtuParameter = Field(default_factory=DriverModbusRtuParameter)
     address_list: list[DeviceAddressItem] = Field(default_factory=list)
+    actions: list[DeviceAction] = Field(default_factory=list)
 
     @model_validator(mode="before")
     @classmethod
@@ -96,7 +100,7 @@ class DeviceConfig(Model):
         """Warn about unknown nested keys with their full paths before pydantic sees them."""
         if not isinstance(data, Mapping):
             return data
-        data = cls.normalize_keys(data, "")
+        data = ng_device(cls.normalize_keys(data, ""))
         for key, model in (
             ("organization", DeviceOrganizationParameter),
             ("communication", DriverModbusRtuParameter),
@@ -115,7 +119,9 @@ class DeviceConfig(Model):
 
     @model_validator(mode="after")
     def _items(self) -> DeviceConfig:
-        validate_items(self.address_list, self.communication)
+        parsed = validate_items(self.address_list, self.communication)
+        if self.actions:
+            validate_actions(self.actions, parsed)
         return self
 
     def parsed_items(self) -> list[ParsedItem]:

@@ -8,6 +8,7 @@ quantities come from the codec, offsets and bits from the address parser, and
 
 from __future__ import annotations
 
+import logging
 import math
 import sys
 from collections.abc import Sequence
@@ -17,7 +18,7 @@ from typing import Annotated, Any, ClassVar
 
 from pydantic import Field, field_serializer, field_validator, model_validator
 
-from ..codec import MAX_QUANTITY, ValueSpec, check_spec
+from ..codec import MAX_QUANTITY, SMART_CAST_TYPES, ValueSpec, check_spec, smart_cast
 from ..datatypes import Area, DataFormat, DataType, ItemStatus
 from ..protocol.address import Address, check_span, parse_address
 from .base import (
@@ -34,8 +35,10 @@ from .base import (
     slot_model,
 )
 from .communication import DriverModbusRtuParameter
-from .compat import iso_timestamp
+from .compat import NG_POINT_KEYS, iso_timestamp, ng_point
 from .problems import NO_VALUE, ConfigError, Problem, WrongType
+
+_log = logging.getLogger("edgemodbus.config")
 
 
 @slot_model
@@ -74,11 +77,14 @@ class DeviceAddressItem(SlotModel):
     value: Any = None
     error_reason: str | None = None
 
+    _extra_keys: ClassVar[tuple[str, ...]] = NG_POINT_KEYS
+
     @model_validator(mode="before")
     @classmethod
     def _accept_keys(cls, data: Any) -> Any:
         # by name: pydantic binds ``cls`` to the class before slots=True remade it
-        return DeviceAddressItem.accept_keys(data)
+        data = DeviceAddressItem.accept_keys(data)
+        return ng_point(data) if isinstance(data, dict) else data
 
     @field_validator("address", "description", "unit")
     @classmethod
@@ -174,24 +180,32 @@ def _strip_echo(text: str, exc: ValueError) -> str:
 
 ALLOWED_QUANTITIES: dict[DataType, tuple[int, ...]] = {
     DataType.BOOLEAN: (1,),
-    DataType.BYTE: (1,),
-    DataType.SBYTE: (1,),
     DataType.CHAR: (1,),
-    DataType.INT16: (1,),
-    DataType.UINT16: (1,),
-    DataType.BCD16: (1,),
-    DataType.INT32: (1, 2),
-    DataType.UINT32: (1, 2),
-    DataType.FLOAT: (1, 2),
-    DataType.BCD32: (1, 2),
-    DataType.INT64: (1, 2, 4),
-    DataType.UINT64: (1, 2, 4),
-    DataType.DOUBLE: (1, 2, 4),
     DataType.DATETIME: (2, 4),
     DataType.TIMESTAMP: (2, 4),
 }
-"""Register counts an item of each type may read (Smart Cast: fewer registers hold a
-smaller integer that is widened).  String and Binary take any quantity >= 1."""
+"""Register counts an item of these types may read.  The numeric types
+(:data:`SMART_CAST_TYPES`) take any quantity 1..125 (Smart Cast: fewer registers hold a
+smaller value that is widened, more hold a wider one that is narrowed, see README.md
+"Smart Cast"); String and Binary take any quantity >= 1."""
+
+_SMART_CAST_WARNED: set[tuple[Any, ...]] = set()
+_SMART_CAST_WARNED_MAX = 10_000  # forget (and warn again) past this many distinct items
+
+
+def _warn_smart_cast(spec: ValueSpec, path: str) -> None:
+    """Log once per item (by name and shape) what Smart Cast does with its quantity."""
+    text = smart_cast(spec)
+    if text is None:
+        return
+    key = (spec.name, spec.data_type, spec.quantity, spec.data_format, spec.multiplier != 1)
+    if key in _SMART_CAST_WARNED:
+        return
+    if len(_SMART_CAST_WARNED) >= _SMART_CAST_WARNED_MAX:
+        _SMART_CAST_WARNED.clear()
+    _SMART_CAST_WARNED.add(key)
+    _log.warning("%s (%r): Smart Cast: %s", path, spec.name, text)
+
 
 _AREA_NAMES = {
     Area.COIL: "coil",
@@ -270,6 +284,8 @@ def _item_registers(
         return quantity
     if quantity is None:
         return dtype.registers
+    if dtype in SMART_CAST_TYPES:
+        return quantity
     allowed = ALLOWED_QUANTITIES[dtype]
     if quantity not in allowed:
         problems.append(
@@ -356,6 +372,7 @@ def validate_items(
                 problems.append(_codec_problem(exc, spec, item, path))
                 continue
             checked.add(shape)
+        _warn_smart_cast(one.value_spec(), path)
         parsed.append(one)
     if problems:
         raise ConfigError(problems)

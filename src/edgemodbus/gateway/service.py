@@ -294,7 +294,7 @@ class Gateway:
                 self.publisher.attach(driver, code)
             if self.exporter is not None:
                 self.exporter.attach(driver, code, line_label(cfg.effective_parameters()))
-            running = driver.start_device(org, comm, items)
+            running = driver.start_device(org, comm, items, cfg.actions)
         except (ValueError, OSError) as exc:
             self._detach(driver)
             log.error("%s: not started: %s", path, exc)

@@ -392,9 +392,10 @@ class Poller(FaultPolicy):
                 owner.recheck = True
 
     # -- writes --------------------------------------------------------------------------
-    def submit_writes(self, ops: list[WriteOp]) -> Future[tuple[bool, str | None]]:
+    def submit_writes(self, ops: list[WriteOp],
+                      whole: bool = False) -> Future[tuple[bool, str | None]]:
         assert self.line is not None
-        future = self.line.submit(lambda link: self._run_writes(link, ops))
+        future = self.line.submit(lambda link: self._run_writes(link, ops, whole))
 
         def count_unsent(done: Future[tuple[bool, str | None]]) -> None:
             # the line failed the job without running it (link down, line stopped): the
@@ -406,11 +407,12 @@ class Poller(FaultPolicy):
         future.add_done_callback(count_unsent)
         return future
 
-    def _run_writes(self, link: Link, ops: list[WriteOp]) -> tuple[bool, str | None]:
+    def _run_writes(self, link: Link, ops: list[WriteOp],
+                    whole: bool = False) -> tuple[bool, str | None]:
         if not self.active:
             return False, "device stopped before the write was sent"
         link.set_response_timeout(self.timeout)
-        return self.writer.run(link, ops, self._recheck)
+        return self.writer.run(link, ops, self._recheck, whole)
 
 _OK = ItemStatus.OK
 _INVALID = ItemStatus.INVALID

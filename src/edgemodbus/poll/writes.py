@@ -42,6 +42,7 @@ class WriteOp:
     bits: list[bool] = field(default_factory=list)
     bit: int | None = None
     updates: list[tuple[ItemState, Any]] = field(default_factory=list)
+    function: int | None = None  # an action's function code (5, 6, 15, 16); None: ours
 
     @property
     def names(self) -> str:
@@ -55,6 +56,14 @@ def plan_writes(by_name: Mapping[str, ItemState], items: list[tuple[str, Any]]) 
     coils) of one area are merged into one request, up to the protocol's limits;
     bit-in-register items are written one by one.
     """
+    return merge_writes(prepare_writes(by_name, items))
+
+
+def prepare_writes(
+    by_name: Mapping[str, ItemState], items: list[tuple[str, Any]]
+) -> list[WriteOp]:
+    """Normalize and encode a batch of writes, one request per item (not merged yet);
+    raises ValueError naming the item."""
     if not items:
         raise ValueError("nothing to write")
     seen: set[str] = set()
@@ -86,10 +95,12 @@ def plan_writes(by_name: Mapping[str, ItemState], items: list[tuple[str, Any]]) 
         )[0]
         single.append(WriteOp(state.area, state.offset, registers=registers,
                               updates=[(state, decoded)]))
-    return _merge(single)
+    return single
 
 
-def _merge(ops: list[WriteOp]) -> list[WriteOp]:
+def merge_writes(ops: list[WriteOp]) -> list[WriteOp]:
+    """Contiguous coils or registers of one area in one request, up to the protocol's
+    limits (bits of registers stay alone)."""
     ops.sort(key=lambda o: (o.area.value, o.address))
     merged: list[WriteOp] = []
     for op in ops:
@@ -129,8 +140,10 @@ class Writer:
         self.no_fc22 = False
 
     def run(self, link: Link, ops: list[WriteOp],
-            recheck: Callable[[list[ItemState]], None]) -> tuple[bool, str | None]:
-        """Send ``ops`` in order; ``recheck`` is told which items a confirmed write set."""
+            recheck: Callable[[list[ItemState]], None],
+            whole: bool = False) -> tuple[bool, str | None]:
+        """Send ``ops`` in order; ``recheck`` is told which items a confirmed write set.
+        ``whole`` (an action): the first failure stops the batch, the rest is not sent."""
         errors: list[str] = []
         now = datetime.now(timezone.utc)
         written: list[DeviceAddressItem] = []
@@ -143,6 +156,12 @@ class Writer:
                 errors.append(f"{op.names}: {exc}")
                 if isinstance(exc, ModbusConnectionError):
                     errors.extend(f"{o.names}: not sent (link down)" for o in ops[i + 1:])
+                    break
+                if whole:
+                    errors.extend(f"{o.names}: not sent" for o in ops[i + 1:])
+                    if i:
+                        errors.append("written before the failure: "
+                                      + ", ".join(o.names for o in ops[:i]))
                     break
                 continue
             recheck([state for state, _ in op.updates])
@@ -166,6 +185,9 @@ class Writer:
 
     def _execute(self, link: Link, op: WriteOp) -> None:
         slave = self.slave
+        if op.function is not None:
+            self._execute_as(link, op)
+            return
         if op.area is Area.COIL:
             if len(op.bits) == 1:
                 link.write_coil(slave, op.address, op.bits[0])
@@ -189,6 +211,23 @@ class Writer:
                                  self.code, slave)
         for offset, value in enumerate(regs):
             link.write_register(slave, op.address + offset, value)
+
+    def _execute_as(self, link: Link, op: WriteOp) -> None:
+        """An action's request with exactly its function code, no fallback (MODBUS
+        Application Protocol v1.1b3: 6.5 FC05, 6.6 FC06, 6.11 FC15, 6.12 FC16)."""
+        slave, fc = self.slave, op.function
+        if fc == 5:
+            for k, on in enumerate(op.bits):
+                link.write_coil(slave, op.address + k, on)
+        elif fc == 15:
+            link.write_coils(slave, op.address, op.bits)
+        elif fc == 6:
+            for k, value in enumerate(op.registers):
+                link.write_register(slave, op.address + k, value)
+        elif fc == 16:
+            link.write_registers(slave, op.address, op.registers)
+        else:
+            raise ValueError(f"function code {fc!r} does not write (use 5, 6, 15 or 16)")
 
     def _write_bit(self, link: Link, address: int, bit: int, on: bool) -> None:
         """Set one bit of a holding register: FC22 mask write (6.16), else read-modify-

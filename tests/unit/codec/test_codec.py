@@ -142,12 +142,22 @@ def test_smart_cast_reads_the_smaller_type() -> None:
     assert encode(ValueSpec("x", T.DOUBLE, quantity=2), 123456.0) == [0x47F1, 0x2000]
 
 
-def test_a_larger_quantity_uses_the_first_registers() -> None:
+def test_a_larger_quantity_reads_a_wider_value_and_narrows_it() -> None:
+    """Smart Cast (NG): 4 registers are an Int64 narrowed to the type, range-checked;
+    3 registers read the first 2 in format order (the last 2 by address under CDAB)."""
     spec = ValueSpec("x", T.INT32, F.CDAB, quantity=4)
     assert spec.registers == 4
-    assert one(spec, 0x1DC0, 0xFFFE, 0x1111, 0x2222) == -123456
-    assert encode(spec, -123456) == [0x1DC0, 0xFFFE]
-    assert one(ValueSpec("x", T.INT16, quantity=3), 7, 8, 9) == 7
+    assert one(spec, 0x1DC0, 0xFFFE, 0xFFFF, 0xFFFF) == -123456
+    assert one(spec, 0x1DC0, 0xFFFE, 0x1111, 0x2222) is None
+    assert reason(spec, 0x1DC0, 0xFFFE, 0x1111, 0x2222) == (
+        f"value {0x22221111FFFE1DC0} is out of range for Int32 (-2147483648..2147483647)"
+    )
+    assert encode(spec, -123456) == [0x1DC0, 0xFFFE, 0xFFFF, 0xFFFF]
+    assert one(ValueSpec("x", T.INT16, quantity=4), 0xFFFF, 0xFFFF, 0xFFFF, 0xFFF9) == -7
+    assert one(ValueSpec("x", T.INT16, quantity=3), 0, 7, 9) == 7
+    assert encode(ValueSpec("x", T.INT16, quantity=3), 7) == [0, 7, 0]
+    assert one(ValueSpec("x", T.INT32, F.CDAB, quantity=3), 9, 0x1DC0, 0xFFFE) == -123456
+    assert encode(ValueSpec("x", T.INT32, F.CDAB, quantity=3), -123456) == [0, 0x1DC0, 0xFFFE]
 
 
 # -- bits, bytes, chars -------------------------------------------------------------------

@@ -36,30 +36,63 @@ def ordered_bytes(registers: list[int], fmt: DataFormat) -> bytes:
     return b"".join(struct.pack("<H" if fmt.byte_swap else ">H", w) for w in words)
 
 
-# type -> [(registers needed, struct code)] widest first (the Smart Cast table)
+# type -> [(registers, how to read them)] widest first: the Smart Cast table (NG), in
+# which an item of q registers is read with the widest entry that fits in q.
+I64, U64, I32, U32, I16, U16 = ">q", ">Q", ">i", ">I", ">h", ">H"
 REFERENCE: dict[DataType, list[tuple[int, str]]] = {
-    T.INT16: [(1, ">h")],
-    T.UINT16: [(1, ">H")],
-    T.INT32: [(2, ">i"), (1, ">h")],
-    T.UINT32: [(2, ">I"), (1, ">H")],
-    T.INT64: [(4, ">q"), (2, ">i"), (1, ">h")],
-    T.UINT64: [(4, ">Q"), (2, ">I"), (1, ">H")],
-    T.FLOAT: [(2, ">f"), (1, ">h")],
-    T.DOUBLE: [(4, ">d"), (2, ">f"), (1, ">h")],
+    T.INT16: [(4, I64), (2, I32), (1, I16)],
+    T.UINT16: [(4, U64), (2, U32), (1, U16)],
+    T.INT24: [(4, I64), (2, "i24"), (1, I16)],
+    T.UINT24: [(4, U64), (2, "u24"), (1, U16)],
+    T.INT32: [(4, I64), (2, I32), (1, I16)],
+    T.UINT32: [(4, U64), (2, U32), (1, U16)],
+    T.INT64: [(4, I64), (2, I32), (1, I16)],
+    T.UINT64: [(4, U64), (2, U32), (1, U16)],
+    T.FLOAT: [(4, ">d"), (2, ">f"), (1, I16)],
+    T.DOUBLE: [(4, ">d"), (2, ">f"), (1, I16)],
+    T.BYTE: [(4, U64), (2, U32), (1, "low")],
+    T.SBYTE: [(4, I64), (2, I32), (1, "slow")],
 }
+# the types' ranges, written out (not taken from the package)
+RANGE: dict[DataType, tuple[int, int]] = {
+    T.INT16: (-32768, 32767),
+    T.UINT16: (0, 65535),
+    T.INT24: (-8388608, 8388607),
+    T.UINT24: (0, 16777215),
+    T.INT32: (-(2**31), 2**31 - 1),
+    T.UINT32: (0, 2**32 - 1),
+    T.BYTE: (0, 255),
+    T.SBYTE: (-128, 127),
+}
+FLT_MAX = struct.unpack(">f", b"\x7f\x7f\xff\xff")[0]
+
+
+def smart_value(t: DataType, data: bytes, code: str) -> object:
+    """The value of ``data`` (the item's leading bytes in value order) read as ``code``
+    and narrowed to ``t``: None when it does not fit."""
+    if code in ("i24", "u24"):  # byte A (data[0]) unused: the low 3 bytes are the value
+        value: object = int.from_bytes(data[1:4], "big", signed=code == "i24")
+    elif code == "low":
+        value = data[1]
+    elif code == "slow":
+        value = struct.unpack(">b", data[1:2])[0]
+    else:
+        (value,) = struct.unpack(code, data)
+    if t in (T.FLOAT, T.DOUBLE):
+        f = float(value)  # type: ignore[arg-type]
+        return None if t is T.FLOAT and math.isfinite(f) and abs(f) > FLT_MAX else f
+    lo, hi = RANGE.get(t, (-(2**63), 2**64))
+    return value if lo <= value <= hi else None  # type: ignore[operator]
 
 
 def reference(spec: ValueSpec, registers: list[int]) -> object:
     t, fmt = spec.data_type, spec.data_format
     quantity = spec.quantity or t.registers
     if t in REFERENCE:
+        # all q registers in value order, most significant first; the value is in the
+        # leading bytes, whatever follows is ignored (NG's Smart Cast)
         width, code = next((w, c) for w, c in REFERENCE[t] if w <= quantity)
-        (value,) = struct.unpack(code, ordered_bytes(registers[:width], fmt))
-        return float(value) if t in (T.FLOAT, T.DOUBLE) else value
-    if t is T.BYTE:
-        return ordered_bytes(registers[:1], fmt)[1]
-    if t is T.SBYTE:
-        return struct.unpack(">b", ordered_bytes(registers[:1], fmt)[1:])[0]
+        return smart_value(t, ordered_bytes(registers, fmt)[: 2 * width], code)
     if t is T.CHAR:
         return chr(ordered_bytes(registers[:1], fmt)[1])
     if t is T.BOOLEAN:
@@ -69,10 +102,11 @@ def reference(spec: ValueSpec, registers: list[int]) -> object:
     if t is T.BINARY:
         return ordered_bytes(registers[:quantity], fmt)
     if t in (T.DATETIME, T.TIMESTAMP):
+        lead = ordered_bytes(registers, fmt)
         if quantity >= 4:
-            (ms,) = struct.unpack(">q", ordered_bytes(registers[:4], fmt))
+            (ms,) = struct.unpack(">q", lead[:8])
         else:
-            ms = struct.unpack(">I", ordered_bytes(registers[:2], fmt))[0] * 1000
+            ms = struct.unpack(">I", lead[:4])[0] * 1000
         if t is T.TIMESTAMP:
             return ms
         try:
@@ -80,8 +114,10 @@ def reference(spec: ValueSpec, registers: list[int]) -> object:
         except OverflowError:
             return None
     if t in (T.BCD16, T.BCD32):
-        digits = ordered_bytes(registers[: 1 if t is T.BCD16 or quantity < 2 else 2], fmt).hex()
-        return int(digits) if digits.isdigit() else None
+        digits = ordered_bytes(registers, fmt)[: 2 if quantity < 2 else 4].hex()
+        if not digits.isdigit():
+            return None
+        return int(digits) if t is T.BCD32 or int(digits) <= 9999 else None
     raise AssertionError(t)
 
 
@@ -94,9 +130,14 @@ def same(a: object, b: object) -> bool:
 SPECS = st.one_of(
     st.builds(
         lambda t, f, q: ValueSpec("x", t, f, quantity=q),
-        st.sampled_from([*REFERENCE, T.BYTE, T.SBYTE, T.CHAR, T.BOOLEAN, T.BCD16, T.BCD32]),
+        st.sampled_from([*REFERENCE, T.BCD16, T.BCD32]),
         FORMATS,
         st.one_of(st.none(), st.integers(1, 6)),
+    ),
+    st.builds(
+        lambda t, f: ValueSpec("x", t, f),
+        st.sampled_from([T.CHAR, T.BOOLEAN]),
+        FORMATS,
     ),
     st.builds(
         lambda t, f, q: ValueSpec("x", t, f, quantity=q),
@@ -126,6 +167,8 @@ MULTIPLIERS = st.sampled_from([1.0, 0.1, 0.01, 0.001, 0.5, 2.0, 10.0, -1.0, 0.25
 INTEGER_TYPES = [
     T.INT16,
     T.UINT16,
+    T.INT24,
+    T.UINT24,
     T.INT32,
     T.UINT32,
     T.INT64,

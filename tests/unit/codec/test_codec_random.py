@@ -95,6 +95,8 @@ WIDTH = {
     W["F32"]: 2,
     W["BCD32"]: 2,
     W["SEC32"]: 2,
+    W["I24"]: 2,
+    W["U24"]: 2,
     W["U64"]: 4,
     W["I64"]: 4,
     W["F64"]: 4,
@@ -107,7 +109,7 @@ def random_c_item(rng: random.Random, bits: bool) -> CodecItem:
     if bits:
         wire = W["COIL"]
     else:
-        wire = rng.choice([w for w in W.values() if w not in (W["COIL"], W["LAST"])])
+        wire = rng.choice([w for name, w in W.items() if name not in ("COIL", "LAST")])
     nregs = rng.randint(1, 200) if wire == W["BYTES"] else WIDTH[wire]
     out = O["BYTES"] if wire == W["BYTES"] else rng.randint(0, 3)
     fields = {
@@ -116,7 +118,7 @@ def random_c_item(rng: random.Random, bits: bool) -> CodecItem:
         "wire": wire,
         "flags": rng.randint(0, 255) & (0x13 if wire == W["BYTES"] else 0xFF),
         "bit": rng.randint(0, 15),
-        "target": 0 if wire == W["BYTES"] else rng.randint(0, 14),
+        "target": 0 if wire == W["BYTES"] else rng.randint(0, _ffi.codec_constants("C")["LAST"]),
         "out": out,
         "scale": rng.choice(WEIRD_NUMBERS),
         "deadband": rng.choice(WEIRD_NUMBERS),

@@ -150,7 +150,7 @@ def test_unknown_keys_are_warned_with_paths(caplog: pytest.LogCaptureFixture) ->
             "bogus": 1,
             "organization": {"deviceCode": "x", "colour": "red"},
             "communication": {"Speed": 1},
-            "addressList": [item("a", "hr:1"), item("b", "hr:2", Scale=2)],
+            "addressList": [item("a", "hr:1"), item("b", "hr:2", Gain=2)],
         }
     )
     assert len(cfg.address_list) == 2
@@ -158,7 +158,7 @@ def test_unknown_keys_are_warned_with_paths(caplog: pytest.LogCaptureFixture) ->
     assert "<root>: unknown key 'bogus' ignored" in messages
     assert "organization: unknown key 'colour' ignored" in messages
     assert "communication: unknown key 'Speed' ignored" in messages
-    assert "addressList[1]: unknown key 'Scale' ignored" in messages
+    assert "addressList[1]: unknown key 'Gain' ignored" in messages
     assert len(messages) == 4
 
 
@@ -364,7 +364,7 @@ def test_cross_checks_against_communication() -> None:
                 item("f", "hr:1.3", "Float"),
                 item("c", "coil:1", "Int16"),
                 item("d", "di:1", "String", quantity=4),
-                item("q", "hr:1", "Int16", quantity=2),
+                item("q", "hr:1", "Boolean", quantity=2),
                 item("w", "hr:65535", "Float"),
                 item("b", "coil:1", "Boolean", quantity=2),
             ]
@@ -377,7 +377,7 @@ def test_cross_checks_against_communication() -> None:
         "addressList[4].deviceDataType 'Int16': a coil holds one bit: use Boolean",
         "addressList[5].deviceDataType 'String': a discrete input holds one bit: use Boolean",
         "addressList[5].quantity 4: a discrete input holds one bit: use 1 or leave it out",
-        "addressList[6].quantity 2: Int16 allows quantity 1 (or leave it out)",
+        "addressList[6].quantity 2: Boolean allows quantity 1 (or leave it out)",
         "addressList[7].address 'hr:65535': 2 registers from here run past the last address 65535",
         "addressList[8].quantity 2: a coil holds one bit: use 1 or leave it out",
     ]

@@ -388,10 +388,10 @@ def test_a_failed_load_tells_unknown_keys_in_the_error_not_as_warnings(
 def test_a_good_load_warns_once_per_unknown_key(caplog: pytest.LogCaptureFixture) -> None:
     caplog.set_level(logging.WARNING, logger="edgemodbus.config")
     load_device_config({"communication": {"Speed": 1}, "addressList": [
-        {"name": "a", "address": "hr:1", "deviceDataType": "Int16", "Scale": 2}]})
+        {"name": "a", "address": "hr:1", "deviceDataType": "Int16", "Gain": 2}]})
     assert [r.getMessage() for r in caplog.records if r.name == "edgemodbus.config"] == [
         "communication: unknown key 'Speed' ignored",
-        "addressList[0]: unknown key 'Scale' ignored",
+        "addressList[0]: unknown key 'Gain' ignored",
     ]
     caplog.clear()
     DeviceConfig.model_validate({"bogus": 1})  # outside a load: logged at once

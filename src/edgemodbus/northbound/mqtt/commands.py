@@ -1,8 +1,8 @@
-"""Writes from MQTT: the command payloads, and the thread that runs them.
+"""Writes and actions from MQTT: the command payloads, and the thread that runs them.
 
 Commands run on one ``edgemodbus-mqtt-cmd`` thread with an asyncio loop through
-``write_addresses_async`` (many devices' writes in flight at once; per device in arrival
-order); the result goes to the device's reply topic."""
+``write_addresses_async`` or ``run_action_async`` (many devices' writes in flight at once;
+per device in arrival order); the result goes to the device's reply topic."""
 
 from __future__ import annotations
 
@@ -89,6 +89,29 @@ def parse_command(name: str | None, payload: bytes) -> tuple[Any, list[tuple[str
     return request_id, items
 
 
+def parse_action(payload: bytes) -> tuple[Any, str, dict[str, Any]]:
+    """(request id, action name, parameters) of an action payload
+    ``{"action": "start", "parameters": {"speed": 12.5}, "id": 7}`` (parameters may be
+    left out: all take their defaults); ValueError says what is wrong."""
+    if len(payload) > _MAX_COMMAND_BYTES:
+        raise ValueError(f"payload of {len(payload)} bytes is too large "
+                         f"(at most {_MAX_COMMAND_BYTES})")
+    try:
+        body = json.loads(payload.decode("utf-8"))
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise ValueError(f"action payload is not JSON: {exc}") from None
+    if not isinstance(body, dict) or not isinstance(body.get("action"), str):
+        raise ValueError('action payload: use {"action": "<name>", "parameters": {...}, '
+                         '"id": ...}')
+    params = body.get("parameters", {})
+    if params is None:
+        params = {}
+    if not isinstance(params, dict):
+        raise ValueError(f"action payload: parameters {params!r} must be an object of "
+                         "parameter names to values")
+    return body.get("id"), body["action"], params
+
+
 class CommandRunner:
     """The command thread: a write per command, replies through the outbox."""
 
@@ -105,7 +128,8 @@ class CommandRunner:
                                         name="edgemodbus-mqtt-cmd", daemon=True)
         self._thread.start()
 
-    def dispatch(self, dev: AttachedDevice, name: str | None, payload: bytes) -> None:
+    def dispatch(self, dev: AttachedDevice, name: str | None, payload: bytes,
+                 action: bool = False) -> None:
         loop = self._loop
         if loop is None or loop.is_closed():
             return
@@ -119,13 +143,32 @@ class CommandRunner:
                         "too many writes pending; try again later", [])
             return
         try:
-            loop.call_soon_threadsafe(self._spawn, dev, name, payload)
+            loop.call_soon_threadsafe(self._spawn, dev, name, payload, action)
         except RuntimeError:  # the loop is closing: stop() is under way
             with self._outbox.lock:
                 self.pending -= 1
 
-    def _spawn(self, dev: AttachedDevice, name: str | None, payload: bytes) -> None:
-        asyncio.get_running_loop().create_task(self._command(dev, name, payload))
+    def _spawn(self, dev: AttachedDevice, name: str | None, payload: bytes,
+               action: bool) -> None:
+        command = self._action(dev, payload) if action else self._command(dev, name, payload)
+        asyncio.get_running_loop().create_task(command)
+
+    async def _action(self, dev: AttachedDevice, payload: bytes) -> None:
+        request_id: Any = None
+        try:
+            try:
+                request_id, action, params = parse_action(payload)
+            except ValueError as exc:
+                self._reply(dev, request_id_of(payload), False, str(exc), [])
+                return
+            ok, error = await dev.driver.run_action_async(action, params)
+            self._reply(dev, request_id, ok, error, [], action)
+        except Exception as exc:  # never let a command kill the loop
+            log.exception("%s: MQTT action failed", dev.code)
+            self._reply(dev, request_id, False, f"internal error: {exc}", [])
+        finally:
+            with self._outbox.lock:
+                self.pending -= 1
 
     async def _command(self, dev: AttachedDevice, name: str | None, payload: bytes) -> None:
         request_id: Any = None
@@ -147,10 +190,13 @@ class CommandRunner:
                 self.pending -= 1
 
     def _reply(self, dev: AttachedDevice, request_id: Any, ok: bool, error: str | None,
-               names: list[str]) -> None:
+               names: list[str], action: str | None = None) -> None:
         if not ok:
             self._outbox.count("commandErrors")
-        body = {"id": request_id, "ok": ok, "error": error, "items": names, "ts": now()}
+        body: dict[str, Any] = {"id": request_id, "ok": ok, "error": error, "items": names,
+                                "ts": now()}
+        if action is not None:
+            body["action"] = action
         self._outbox.push_control(dev.reply_topic, dumps(body), 1, False)
 
     def _run(self, loop: asyncio.AbstractEventLoop) -> None:

@@ -15,7 +15,8 @@ class AttachedDevice:
     """What the publisher keeps per attached driver."""
 
     __slots__ = (
-        "batch_topic", "code", "command_prefix", "driver", "dropped", "item_heads", "item_topics",
+        "action_topic", "batch_topic", "code", "command_prefix", "driver", "dropped",
+        "item_heads", "item_topics",
         "prev_batch", "prev_snapshot", "published", "published_status", "reply_topic",
         "seen_status", "snapshot_topic", "snapshots", "snapshots_coalesced", "status_topic",
     )
@@ -29,6 +30,7 @@ class AttachedDevice:
         self.status_topic = topic(settings.status_topic, code)
         self.reply_topic = topic(settings.reply_topic, code)
         self.batch_topic = topic(settings.batch_command_topic, code)
+        self.action_topic = topic(settings.action_topic, code)
         self.command_prefix = topic(settings.command_topic, code, "\0").removesuffix("\0")
         self.item_topics: dict[str, str] = {}
         self.item_heads: dict[str, bytes] = {}  # topic length + topic, for raw packets
@@ -47,5 +49,7 @@ class AttachedDevice:
         filters = [self.command_prefix + "#"]
         if self.batch_topic + "/" != self.command_prefix:
             filters.append(self.batch_topic)
+        if not self.action_topic.startswith(self.command_prefix):
+            filters.append(self.action_topic)
         return filters
 

@@ -96,6 +96,7 @@ class MqttPublisher:
         reserved = {
             self.topic(s.status_topic, device_code): "status",
             self.topic(s.reply_topic, device_code): "reply",
+            self.topic(s.action_topic, device_code): "action",
             self.topic(s.snapshot_topic, device_code): "snapshot",
         }
         command = self.topic(s.command_topic, device_code, "\0").removesuffix("\0") + "#"
@@ -451,6 +452,9 @@ class MqttPublisher:
         with self._lock:
             devices = list(self._devices.values())
         for dev in devices:
+            if topic == dev.action_topic:
+                self._commands.dispatch(dev, None, payload, action=True)
+                return
             if topic == dev.batch_topic:
                 self._commands.dispatch(dev, None, payload)
                 return

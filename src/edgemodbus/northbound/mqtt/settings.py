@@ -180,6 +180,7 @@ class MqttSettings(Model):
     command_topic: str = "{prefix}/{deviceCode}/set/{itemName}"
     batch_command_topic: str = "{prefix}/{deviceCode}/set"
     reply_topic: str = "{prefix}/{deviceCode}/$reply"
+    action_topic: str = "{prefix}/{deviceCode}/$action"  # {"action": n, "parameters": {...}}
     qos: Annotated[int, Choice((0, 1, 2))] = 0  # item updates: a stream, state is retained
     retain: bool = False
     snapshot_qos: Annotated[int, Choice((0, 1, 2))] = 1
@@ -211,7 +212,7 @@ class MqttSettings(Model):
         return _check_template(value, PLACEHOLDERS, last="itemName")
 
     @field_validator(
-        "snapshot_topic", "status_topic", "batch_command_topic", "reply_topic"
+        "snapshot_topic", "status_topic", "batch_command_topic", "reply_topic", "action_topic"
     )
     @classmethod
     def _device_topics(cls, value: str) -> str:
