@@ -273,7 +273,7 @@ def test_no_error_shows_the_key(comm: dict[str, Any],
     shown(caplog.text)
 
 
-@pytest.mark.parametrize("bad", [123456, 12.5, True, None, [SECRET], {"k": SECRET}])
+@pytest.mark.parametrize("bad", [123456, 12.5, True, [SECRET], {"k": SECRET}])
 def test_a_key_of_the_wrong_type_is_refused_unshown(bad: Any) -> None:
     (line,) = errors_of(server(registrationKey=bad))
     assert line == ("communication.registrationKey: must be a string (the value given, of "
@@ -282,6 +282,11 @@ def test_a_key_of_the_wrong_type_is_refused_unshown(bad: Any) -> None:
         DriverModbusRtuParameter.model_validate(server(registrationKey=bad))
     for value in ("123456", "12.5", SECRET):
         assert value not in str(raw.value)
+
+
+def test_a_null_key_is_no_secret_and_is_refused_as_missing_text() -> None:
+    (line,) = errors_of(server(registrationKey=None))
+    assert line.startswith("communication.registrationKey None: ") and "string" in line
 
 
 # ----------------------------------------------------------------------------- the driver
