@@ -21,14 +21,26 @@ The probe of one slave id: a read of one item at address 0 with each function of
 * no reply to the first function: nothing at this id (a device that does not
   implement a function answers exception 01; waiting for FC04 and FC01 too would
   triple the time of every empty id);
-* garbage (a frame with a bad CRC, a wrong slave id or function, a bad byte count):
-  counted for the setting, the probe of this id ends.
+* garbage: bytes that are not a reply to the request (a frame with a bad CRC, a wrong
+  slave id, function or byte count, or bytes that stop short of a whole frame): counted
+  for the setting, the probe of this id ends.
 
 Early stop (serial settings and TCP transports alike): once ``garbage_limit`` probes of
 one setting got garbage and none got a well-formed reply, the setting is taken for the
 wrong one (bytes arrive, but at another baud rate, parity or framing) and its remaining
 ids are skipped.  A setting with one well-formed reply is never cut short: garbage there
 is noise on a line that works.  ``garbage_limit=0`` disables the rule.
+
+What a wrong setting looks like on a line (a UART receiving at other settings than the
+sender's): at a wrong parity with the right baud rate, a slave set to no parity still
+reads the request (the parity bit falls where it expects the stop bit) and answers, and
+the master misreads the reply: garbage, so the setting stops after ``garbage_limit``
+devices answered.  At a wrong baud rate the slave reads junk and stays silent, so the
+master hears garbage only when something else talks on the line (another master still
+polling, a device that sends on its own): then that setting stops early too; on a quiet
+line every id of it is probed and times out.  Scan with no other master on the line:
+its traffic at the right setting is well-formed but not ours (another slave id), which
+counts as garbage as well.
 """
 
 from __future__ import annotations
@@ -38,6 +50,7 @@ from dataclasses import dataclass, field
 
 from ..datatypes import Area
 from ..errors import (
+    IncompleteReplyError,
     ModbusConnectionError,
     ModbusExceptionResponse,
     ModbusTimeoutError,
@@ -301,6 +314,8 @@ class _Prober:
                 self.link.read(slave, Area(fc), address, 1)
             except ModbusExceptionResponse as exc:
                 return Answer(fc, "exception", exc.code, exc.label)
+            except IncompleteReplyError as exc:
+                return Answer(fc, "garbage", None, str(exc))
             except ModbusTimeoutError:
                 return Answer(fc, "timeout")
             except ProtocolError as exc:
