@@ -161,6 +161,31 @@ def test_simulator_rtu_over_tcp(sim: Simulator) -> None:
     ]
 
 
+def test_gateway_exception_for_an_absent_unit_is_not_a_device(
+    slave_factory: Callable[..., PymodbusSlave]
+) -> None:
+    """A Modbus TCP gateway answers exception 0B (target failed to respond) for units
+    with nothing behind them: well-formed replies, no device."""
+    slave = slave_factory("tcp", units=(2,), ignore_missing_devices=False,
+                          missing_unit_code=0x0B)
+    found, (done,) = run([TcpEndpoint("127.0.0.1", slave.port, "tcp")], [1, 2, 3],
+                         timeout=TIMEOUT)
+    assert table(found) == [("tcp", 2, "FC03 ok")]
+    assert (done.probes, done.replies, done.timeouts, done.garbage) == (3, 3, 0, 0)
+    assert slave.request_count() == 3  # one probe each: FC04 is not tried after 0B
+
+
+def test_peer_that_hangs_up_is_given_up_and_the_scan_goes_on(sim: Simulator) -> None:
+    sim.slave(2).faults.close_every = 1  # closes the connection instead of answering
+    port = sim.serve_tcp("127.0.0.1", 0)
+    found, (done,) = run([TcpEndpoint("127.0.0.1", port, "rtu-over-tcp")], [2, 3],
+                         timeout=TIMEOUT)
+    assert table(found) == [("rtu-over-tcp", 3, "FC03 ok")]
+    assert (done.closed, done.replies, done.ids_probed) == (1, 1, 2)
+    assert sim.slave(2).stats()["requests"] == 2  # tried again once on a new connection
+    assert sim.stats()["line"]["connections"] == 3
+
+
 def test_closing_the_scan_closes_the_line(sim: Simulator) -> None:
     """Stopping a scan between two events (what Ctrl-C in the CLI does) closes the link
     at once; the leak check of conftest.py sees no socket or thread left."""

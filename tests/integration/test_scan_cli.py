@@ -38,7 +38,7 @@ def sim() -> Iterator[Simulator]:
 SETTING_KEYS = {"setting": str, "transport": str, "baudrate": (int, type(None)),
                 "parity": (str, type(None)), "dataBits": (int, type(None)),
                 "stopBits": (int, type(None))}
-ANSWER_RESULTS = {"ok", "exception", "timeout", "garbage"}
+ANSWER_RESULTS = {"ok", "exception", "timeout", "garbage", "closed"}
 
 
 def check_schema(doc: dict[str, Any]) -> None:
@@ -48,7 +48,7 @@ def check_schema(doc: dict[str, Any]) -> None:
     assert isinstance(doc["line"], str) and isinstance(doc["slaveIds"], int)
     assert isinstance(doc["complete"], bool) and isinstance(doc["interrupted"], bool)
     assert doc["error"] is None or isinstance(doc["error"], str)
-    counts = {"probes", "replies", "garbage", "timeouts", "idsProbed"}
+    counts = {"probes", "replies", "garbage", "timeouts", "closed", "idsProbed"}
     for s in doc["settings"]:
         assert set(s) == set(SETTING_KEYS) | counts | {"stoppedEarly"}
         for key, kind in SETTING_KEYS.items():

@@ -44,10 +44,11 @@ JSON_HELP = (
     "interrupted or the line failed), \"interrupted\", \"error\" (text or null), \"slaveIds\" "
     "(count), \"settings\": [{\"setting\", \"transport\", \"baudrate\", \"parity\", "
     "\"dataBits\", \"stopBits\" (null on TCP), \"probes\", \"replies\", \"garbage\", "
-    "\"timeouts\", \"idsProbed\", \"stoppedEarly\" (reason or null)}], \"found\": "
+    "\"timeouts\", \"closed\", \"idsProbed\", \"stoppedEarly\" (reason or null)}], \"found\": "
     "[{\"setting\", \"transport\", \"baudrate\", \"parity\", \"dataBits\", \"stopBits\", "
-    "\"slaveId\", \"answers\": [{\"function\", \"result\": ok|exception|timeout|garbage, "
-    "\"exceptionCode\", \"exception\" (exceptions only), \"detail\" (garbage)}]}]}"
+    "\"slaveId\", \"answers\": [{\"function\", \"result\": ok|exception|timeout|garbage|"
+    "closed, \"exceptionCode\", \"exception\" (exceptions only), \"detail\" (garbage, "
+    "closed)}]}]}"
 )
 
 
@@ -183,7 +184,8 @@ class Report:
             "slaveIds": self.slave_ids,
             "settings": [{**_setting_json(s.endpoint), "probes": s.probes,
                           "replies": s.replies, "garbage": s.garbage, "timeouts": s.timeouts,
-                          "idsProbed": s.ids_probed, "stoppedEarly": s.stopped_early}
+                          "closed": s.closed, "idsProbed": s.ids_probed,
+                          "stoppedEarly": s.stopped_early}
                          for s in self.settings],
             "found": [{**_setting_json(f.endpoint), "slaveId": f.slave_id,
                        "answers": [a.as_dict() for a in f.answers]} for f in self.found],
@@ -202,7 +204,10 @@ class Report:
         out.append("")
         rows = [("setting", "ids", "probes", "replies", "garbage", "timeouts", "note")]
         for s in self.settings:
-            note = f"stopped early: {s.stopped_early}" if s.stopped_early else ""
+            notes = [f"stopped early: {s.stopped_early}"] if s.stopped_early else []
+            if s.closed:
+                notes.append(f"the peer closed the connection {s.closed} time(s)")
+            note = "; ".join(notes)
             rows.append((setting_text(s.endpoint), str(s.ids_probed), str(s.probes),
                          str(s.replies), str(s.garbage), str(s.timeouts), note))
         out += _table(rows, right={1, 2, 3, 4, 5})

@@ -18,6 +18,12 @@ The probe of one slave id: a read of one item at address 0 with each function of
 * an exception reply: the device is there (Modbus Application Protocol v1.1b3, 7),
   the next function is tried (a device without holding registers may have input
   registers or coils);
+* exception 0A or 0B (gateway path unavailable, gateway target failed to respond): a
+  gateway answered for a device that is not there (Application Protocol v1.1b3, 7):
+  a well-formed reply, but nothing at this id;
+* the peer closed the connection (a TCP gateway that hangs up on an unknown unit): the
+  link is reopened and the read tried once more; closed again, the id is given up
+  (result ``closed``) and the next one probed on a new connection;
 * no reply to the first function: nothing at this id (a device that does not
   implement a function answers exception 01; waiting for FC04 and FC01 too would
   triple the time of every empty id);
@@ -72,18 +78,30 @@ DEFAULT_GARBAGE_LIMIT = 3
 SERIAL_TIMEOUT = 0.1  # seconds per probe at 9600 baud and above
 TCP_TIMEOUT = 0.5  # a DTU's serial side behind a mobile network adds some 100 ms
 MAX_UNIT_ID = 255  # Modbus TCP unit ids (Messaging on TCP/IP v1.0b, 4.4.2: 255 = the device)
+GATEWAY_CODES = frozenset({0x0A, 0x0B})  # the gateway speaks for an absent device
 
 
 @dataclass(frozen=True)
 class Answer:
     """What one read got: ``result`` is ``ok``, ``exception`` (``code`` and its
-    ``detail``, e.g. "illegal data address"), ``timeout`` or ``garbage`` (``detail``:
-    what was wrong with the reply)."""
+    ``detail``, e.g. "illegal data address"), ``timeout``, ``garbage`` or ``closed``
+    (``detail``: what was wrong)."""
 
     function: int
     result: str
     code: int | None = None
     detail: str = ""
+
+    @property
+    def well_formed(self) -> bool:
+        """A reply that answers the request (normal or exception)."""
+        return self.result in ("ok", "exception")
+
+    @property
+    def device_there(self) -> bool:
+        """A device answered: any well-formed reply but a gateway's for an absent one."""
+        return self.result == "ok" or (self.result == "exception"
+                                       and self.code not in GATEWAY_CODES)
 
     def text(self) -> str:
         if self.result == "exception":
@@ -136,14 +154,16 @@ class Progress:
 
 @dataclass
 class SettingDone:
-    """The end of one setting: probes sent, well-formed replies, garbage, timeouts, ids
-    probed, and ``stopped_early`` (why the rest was skipped) or None."""
+    """The end of one setting: probes sent, well-formed replies, garbage, timeouts,
+    connections the peer closed, ids probed, and ``stopped_early`` (why the rest was
+    skipped) or None."""
 
     endpoint: ScanEndpoint
     probes: int = 0
     replies: int = 0
     garbage: int = 0
     timeouts: int = 0
+    closed: int = 0
     ids_probed: int = 0
     stopped_early: str | None = None
     found: list[int] = field(default_factory=list)
@@ -205,7 +225,7 @@ def scan_line(endpoints: Sequence[ScanEndpoint],
     module's text for the probe and the early stop).  ``timeout``: seconds per probe
     (None: :func:`default_timeout` of each setting).  Raises ValueError for a bad
     argument before any I/O, and :class:`ModbusConnectionError` when a line cannot be
-    opened (or reopened once after it broke)."""
+    opened (or reopened after the peer closed it)."""
     eps = list(endpoints)
     if not eps:
         raise ValueError("settings: give at least one endpoint to scan")
@@ -221,7 +241,7 @@ def scan_line(endpoints: Sequence[ScanEndpoint],
             for n, slave in enumerate(ids, 1):
                 answers = prober.probe(slave, functions, address, done)
                 done.ids_probed += 1
-                if any(a.result in ("ok", "exception") for a in answers):
+                if any(a.device_there for a in answers):
                     done.found.append(slave)
                     yield Found(ep, slave, tuple(answers))
                 if garbage_limit and done.garbage >= garbage_limit and not done.replies:
@@ -295,21 +315,25 @@ class _Prober:
             answer = self._read(slave, fc, address)
             done.probes += 1
             answers.append(answer)
-            if answer.result in ("ok", "exception"):
+            if answer.well_formed:
                 done.replies += 1
             elif answer.result == "garbage":
                 done.garbage += 1
+            elif answer.result == "closed":
+                done.closed += 1
             else:
                 done.timeouts += 1
-            if answer.result == "exception":
+            if answer.device_there and answer.result == "exception":
                 continue  # the device is there: another function may answer normally
-            if answer.result == "timeout" and len(answers) > 1:
+            if answer.result == "timeout" and any(a.device_there for a in answers):
                 continue  # it answered an earlier function
             break
         return answers
 
     def _read(self, slave: int, fc: int, address: int) -> Answer:
         for attempt in (1, 2):
+            if not self.link.is_open:
+                self._reopen()
             try:
                 self.link.read(slave, Area(fc), address, 1)
             except ModbusExceptionResponse as exc:
@@ -320,11 +344,15 @@ class _Prober:
                 return Answer(fc, "timeout")
             except ProtocolError as exc:
                 return Answer(fc, "garbage", None, str(exc))
-            except ModbusConnectionError:
-                if attempt == 2:
-                    raise
+            except ModbusConnectionError as exc:
                 self.link.close()
-                self.link = open_link(self.ep, self.timing, self.stats)
+                if attempt == 2:
+                    return Answer(fc, "closed", None, str(exc))
                 continue
             return Answer(fc, "ok")
         raise AssertionError("unreachable")  # pragma: no cover
+
+    def _reopen(self) -> None:
+        """A new link; raises ModbusConnectionError if the line cannot be opened."""
+        self.link.close()
+        self.link = open_link(self.ep, self.timing, self.stats)
