@@ -16,6 +16,11 @@ class ModbusTimeoutError(ModbusError, TimeoutError):
     """The slave did not answer within the response timeout (or a frame stopped short)."""
 
 
+class IncompleteReplyError(ModbusTimeoutError):
+    """A reply began but stopped short of a whole frame (the byte timeout ran out):
+    something answered, but not in frames we could read (noise, another baud rate)."""
+
+
 class ModbusConnectionError(ModbusError, ConnectionError):
     """The link is down: refused, reset, closed, serial I/O error, or not open."""
 

@@ -33,7 +33,8 @@ import pytest
 import edgemodbus as em
 from edgemodbus.datatypes import Area
 from edgemodbus.sim import Simulator, default_register
-from tests.peers import free_port
+from tests.peers import PymodbusSlave, free_port
+from tests.uart_line import UartLine, UartSettings
 from tests.waiting import wait_for
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -396,6 +397,26 @@ def run_service(argv: tuple[str, ...], tmp: Path) -> None:
                      timeout=SLAVE_READY, what="the service polling both devices")
 
 
+def run_scan(argv: tuple[str, ...], tmp: Path) -> None:
+    """``scan --serial``: our simulator (slaves 1 and 3) behind a UART model at 19200 8E1
+    (tests/uart_line.py), found there only; ``scan --host``: a pymodbus Modbus TCP slave
+    (unit 1), in the JSON document."""
+    if "--serial" in argv:
+        with Simulator([1, 3]) as sim:
+            sim.slave(3).faults.exception_ranges = [(Area.HOLDING_REGISTER, 0, 1, 2)]
+            with UartLine(sim.serve_pty(baudrate=19200), UartSettings(19200, "E")) as line:
+                out = run(rewrite(argv, serial=line.path))
+        assert out.returncode == 0, out.stderr
+        assert "19200 8E1      1  FC03 ok" in out.stdout
+        assert "19200 8E1      3  FC03 exception 02 (illegal data address), FC04 ok" in out.stdout
+        return
+    with PymodbusSlave("tcp", units=(1,)) as slave:
+        out = run(rewrite(argv, host="127.0.0.1", port=str(slave.port)))
+    assert out.returncode == 0, out.stderr
+    doc = json.loads(out.stdout)
+    assert [(f["setting"], f["slaveId"]) for f in doc["found"]] == [("tcp", 1)]
+
+
 Runner = Callable[[tuple[str, ...], Path], None]
 RUNNERS: dict[tuple[str, ...], Runner] = {
     ("edgemodbus", "demo"): run_demo,
@@ -406,6 +427,7 @@ RUNNERS: dict[tuple[str, ...], Runner] = {
     ("edgemodbus", "simulate"): run_simulate,
     ("edgemodbus", "descriptor"): run_descriptor,
     ("edgemodbus", "action"): run_action,
+    ("edgemodbus", "scan"): run_scan,
     ("python", "-m", "edgemodbus.gateway"): run_service,
 }
 

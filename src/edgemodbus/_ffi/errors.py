@@ -9,6 +9,7 @@ import os
 
 from ..errors import (
     CrcError,
+    IncompleteReplyError,
     ModbusConnectionError,
     ModbusError,
     ModbusTimeoutError,
@@ -64,7 +65,7 @@ def error_from_errno(err: int, what: str) -> ModbusError:
     if err == _errno.ETIMEDOUT:
         return ModbusTimeoutError(f"{what}: no response (timeout)")
     if err == _EMB_PARTIAL:
-        return ModbusTimeoutError(f"{what}: incomplete reply (byte timeout)")
+        return IncompleteReplyError(f"{what}: incomplete reply (byte timeout)")
     if _EMB_EXCEPTION <= err <= _EMB_EXCEPTION + 255:
         return exception_for_code(err - _EMB_EXCEPTION, what)
     if err in _EMB_PROTOCOL_ERRNOS:

@@ -1,4 +1,5 @@
-"""The ``edgemodbus`` command: demo, run, read, write, plan, simulate, descriptor, action.
+"""The ``edgemodbus`` command: demo, run, read, write, plan, simulate, descriptor, action,
+scan.
 
 Errors are one line per problem on stderr and a non-zero exit code.  Values print so that
 they read back exactly: a float as its shortest round-trip form (``repr``; ``nan``,
@@ -36,6 +37,7 @@ from ..protocol.address import parse_address
 from ..sim.cli import DESCRIPTION as SIMULATOR
 from ..sim.cli import add_arguments as add_simulator_arguments
 from . import action as action_command
+from . import scan as scan_command
 from .output import CliError, emit, json_line, one_line, print_json, problem_lines, value_text
 
 DEMO_FILE = Path(__file__).resolve().parent.parent / "demo-device.json"  # examples/ links here
@@ -151,6 +153,11 @@ def build_parser() -> argparse.ArgumentParser:
     desc = sub.add_parser("descriptor", help="print the driver descriptor JSON")
     desc.add_argument("--prefix", choices=["function-code", "modicon"], default="function-code")
     desc.set_defaults(func=lambda a: print_json(driver_descriptor(a.prefix)))
+
+    scan = sub.add_parser("scan", help="find what answers on a line (settings, slave ids)",
+                          description=scan_command.__doc__,
+                          formatter_class=argparse.RawDescriptionHelpFormatter)
+    scan_command.add_arguments(scan)
     return parser
 
 

@@ -8,7 +8,7 @@ import socket
 from collections.abc import Callable
 
 from .._ffi import Context
-from ..errors import ModbusConnectionError
+from ..errors import ModbusConnectionError, ModbusError
 from ..protocol.wrapped import Report
 from ..stats import LineStats
 from .endpoint import DtuEndpoint, Endpoint, LineTiming, SerialPort, TcpEndpoint
@@ -62,3 +62,33 @@ def open_socket_link(sock: socket.socket, endpoint: Endpoint, timing: LineTiming
     caller."""
     ctx = Context.on_socket(sock.fileno(), endpoint.describe(), mbap=False)
     return context_link(ctx, endpoint, timing, stats, sock, on_close, on_report)
+
+
+def open_link(ep: SerialPort | TcpEndpoint, timing: LineTiming, stats: LineStats,
+              on_report: Callable[[Report], None] | None = None) -> ContextLink:
+    """Open a serial port or connect to a TCP peer and return the link on it, with the
+    line's settings (see :func:`context_link`).  Used by the line worker, and by callers
+    that own one line on their own thread (edgemodbus.commission's scan).  Raises
+    :class:`ModbusConnectionError` (or ValueError for a setting the context refuses);
+    nothing stays open on failure."""
+    if isinstance(ep, SerialPort):
+        ctx = Context.rtu(ep.port, ep.baudrate, ep.parity, ep.data_bits, ep.stop_bits)
+        try:
+            ctx.connect(ep.rs485)
+        except ModbusError:
+            ctx.close()
+            raise
+        sock = None
+    else:
+        sock = connect_tcp(ep, timing.connect_timeout)
+        try:
+            ctx = Context.on_socket(sock.fileno(), ep.describe(), mbap=ep.transport == "tcp")
+        except ModbusError:
+            sock.close()
+            raise
+    try:  # heartbeats and wrapped reports are framed in C (csrc/emb_stream.c)
+        return context_link(ctx, ep, timing, stats, sock, on_report=on_report)
+    except ValueError:
+        if sock is not None:
+            sock.close()
+        raise

@@ -25,7 +25,6 @@ from concurrent.futures import Future
 from dataclasses import dataclass
 from typing import Any, Protocol, TypeVar
 
-from .._ffi import Context
 from .._ffi.engine import (
     EV_CYCLE,
     EV_ERROR,
@@ -42,8 +41,8 @@ from ..errors import (
     ModbusError,
 )
 from ..stats import LineStats
-from .connect import connect_tcp, context_link
-from .endpoint import DtuEndpoint, Endpoint, LineTiming, SerialPort
+from .connect import open_link
+from .endpoint import DtuEndpoint, Endpoint, LineTiming
 from .forward import forward_future
 from .link import Link
 
@@ -427,31 +426,9 @@ class LineWorker:
 
     def _open(self) -> Link:
         ep = self.endpoint
-        timing = self.timing
         if isinstance(ep, DtuEndpoint):
             raise ModbusConnectionError(f"{ep.describe()}: a DTU link needs a connector")
-        if isinstance(ep, SerialPort):
-            ctx = Context.rtu(ep.port, ep.baudrate, ep.parity, ep.data_bits, ep.stop_bits)
-            try:
-                ctx.connect(ep.rs485)
-            except ModbusError:
-                ctx.close()
-                raise
-            sock = None
-        else:
-            sock = connect_tcp(ep, timing.connect_timeout)
-            try:
-                ctx = Context.on_socket(sock.fileno(), ep.describe(), mbap=ep.transport == "tcp")
-            except ModbusError:
-                sock.close()
-                raise
-        try:  # heartbeats and wrapped reports are framed in C (csrc/emb_stream.c)
-            return context_link(ctx, ep, timing, self.stats, sock,
-                                on_report=self.dispatch_report)
-        except ValueError:
-            if sock is not None:
-                sock.close()
-            raise
+        return open_link(ep, self.timing, self.stats, on_report=self.dispatch_report)
 
     def _link_lost(self, link: Link) -> None:
         self._link = None
