@@ -72,11 +72,11 @@ def error_text(exc: BaseException, tls: bool) -> str:
     return str(exc) or type(exc).__name__
 
 
-def close_socket(client: Client) -> None:
-    """Drop a connection that never got its CONNACK (paho has no public call for a
-    connection that is not established; its reconnect() closes the old socket first)."""
-    close = getattr(client, "_sock_close", None)
-    if callable(close):
-        close()
-    else:  # pragma: no cover - a paho without it: DISCONNECT, closed once written
-        client.disconnect()
+def abandon(client: Client) -> None:
+    """Drop a connection that never got its CONNACK, through paho's public calls:
+    disconnect() queues a DISCONNECT, and paho closes the socket once loop_write() has
+    written it (if the socket cannot take it now, the MQTT thread's next loop_write()
+    does; the socket is gone in either case before the next attempt)."""
+    client.disconnect()
+    if client.socket() is not None:
+        client.loop_write()

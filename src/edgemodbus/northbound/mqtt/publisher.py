@@ -18,10 +18,9 @@ from typing import TYPE_CHECKING, Any
 from ...config import ConfigError
 from ...driver import DriverModbusRtu
 from .commands import CommandRunner
-from .connection import FailureLog, close_socket, error_text
+from .connection import FailureLog, abandon, error_text
 from .devices import AttachedDevice
-from .outbox import Outbox
-from .packets import raw_packet_queue
+from .outbox import Message, Outbox
 from .payload import gateway_payload, status_payload, status_text
 from .sender import Sender
 from .settings import FORBIDDEN, MqttSettings, check_name
@@ -101,6 +100,22 @@ class MqttPublisher:
         }
         command = self.topic(s.command_topic, device_code, "\0").removesuffix("\0") + "#"
         batch = self.topic(s.batch_command_topic, device_code)
+
+        def clash_of(topic: str) -> str | None:
+            clash = reserved.get(topic)
+            if clash is None and (topic == batch or (s.writes and matches(command, topic))):
+                clash = "command"
+            return clash
+
+        if s.mode == "batch":  # item names are JSON keys, not topics
+            topic = self.topic(s.batch_topic, device_code)
+            clash = clash_of(topic)
+            if clash is not None:
+                raise ValueError(
+                    f"device {device_code!r}: its batch topic {topic!r} is the device's "
+                    f"{clash} topic; change mqtt.batchTopic"
+                )
+            return
         for name in names:
             if any(ch in name for ch in FORBIDDEN):
                 raise ValueError(
@@ -108,9 +123,7 @@ class MqttPublisher:
                     "'+', '#' or NUL; rename the item"
                 )
             topic = self.item_topic(device_code, name)
-            clash = reserved.get(topic)
-            if clash is None and (topic == batch or (s.writes and matches(command, topic))):
-                clash = "command"
+            clash = clash_of(topic)
             if clash is not None:
                 raise ValueError(
                     f"item {name!r} of device {device_code!r}: its topic {topic!r} is the "
@@ -175,7 +188,8 @@ class MqttPublisher:
         and per device ``published``, ``dropped``, ``snapshotsCoalesced``."""
         with self._lock:
             result: dict[str, Any] = dict(self._outbox.counts)
-            result["queued"] = len(self._outbox.rows)
+            result["queued"] = self._outbox.queued
+            result["queueLimit"] = self._outbox.limit()
             result["queueSize"] = self.settings.queue_size
             result["pendingSnapshots"] = len(self._outbox.snapshots)
             result["devices"] = {
@@ -225,12 +239,13 @@ class MqttPublisher:
             devs = [d for d in self._devices.values() if d.driver is driver]
             for dev in devs:
                 del self._devices[dev.code]
+                self._outbox.forget(dev)
         for dev in devs:
             driver.addresses_updated_callback = dev.prev_batch
             driver.snapshot_publisher = dev.prev_snapshot
             payload = status_payload(self.gateway_id, dev.code,
                                      status_text(driver.device_driver_status))
-            self._outbox.push_control(dev.status_topic, payload, 1, True)
+            self._outbox.push_control(Message(dev.code, dev.status_topic, payload, 1, True))
             self._outbox.act(lambda dev=dev: self._unsubscribe(dev))  # type: ignore[misc]
 
     # -- the MQTT thread -------------------------------------------------------------------
@@ -255,7 +270,10 @@ class MqttPublisher:
             client.tls_set(ca_certs=s.tls.ca_file, certfile=s.tls.cert_file,
                            keyfile=s.tls.key_file)
             client.tls_insecure_set(s.tls.insecure)
-        self._sender.raw_queue = raw_packet_queue(client)
+        # paho's external-loop mode: with this callback set, publish() queues a message
+        # instead of writing it at once, and one loop_write() (our select loop) sends what
+        # a pump handed over; our select() asks want_write() itself
+        client.on_socket_register_write = _write_wanted
         client.on_connect = self._on_connect
         client.on_disconnect = self._on_disconnect
         client.on_message = self._on_message
@@ -287,7 +305,7 @@ class MqttPublisher:
             elif self._attempt is not None and now - self._attempt >= s.connect_timeout / 1000:
                 self._connect_failed(f"no CONNACK within {s.connect_timeout} ms "
                                      "(connectTimeout); is this an MQTT broker?")
-                close_socket(client)
+                abandon(client)
             if self._connected.is_set():
                 delay = s.reconnect_min / 1000
                 self._run_actions()
@@ -311,6 +329,7 @@ class MqttPublisher:
     def _connect_failed(self, reason: str) -> None:
         """One failed connection attempt: counted always, logged rate-limited."""
         self._attempt = None
+        self._outbox.set_outage(True)
         self._outbox.count("connectFailures")
         self._failures.failed(reason, time.monotonic())
 
@@ -348,7 +367,8 @@ class MqttPublisher:
         log.info("MQTT connected to %s:%d as %s%s", self.settings.host, self.settings.port,
                  self.client_id, f" after {failed} failed attempts" if failed else "")
         self._connected.set()
-        self._sender.window.clear()  # qos>0 messages still pending are resent by paho
+        self._outbox.set_outage(False)
+        self._sender.connection_lost()  # qos>0 messages still pending are resent by paho
         s = self.settings
         client.publish(self.topic(s.gateway_topic),
                        gateway_payload(self.gateway_id, True, None), qos=1, retain=True)
@@ -361,6 +381,7 @@ class MqttPublisher:
     def _on_disconnect(self, _client: Client, _userdata: Any, _flags: Any, reason: Any,
                        _props: Any) -> None:
         if self._connected.is_set():
+            self._outbox.set_outage(True)
             self._outbox.count("disconnects")
             if not self._stopping.is_set():
                 log.warning("MQTT connection to %s:%d lost (%s); reconnecting",
@@ -409,7 +430,8 @@ class MqttPublisher:
                 dev.published_status = status
                 payload = status_payload(self.gateway_id, dev.code, status)
                 with self._lock:
-                    self._outbox.control.append((dev.status_topic, payload, 1, True))
+                    self._outbox.control.append(Message(dev.code, dev.status_topic, payload,
+                                                        1, True))
 
     def _shutdown(self, client: Client) -> None:
         """Last words on a clean stop: statuses, gateway offline, flush, disconnect."""
@@ -419,7 +441,8 @@ class MqttPublisher:
                 s = self.settings
                 offline = gateway_payload(self.gateway_id, False, self._stop_reason)
                 with self._lock:
-                    self._outbox.control.append((self.topic(s.gateway_topic), offline, 1, True))
+                    self._outbox.control.append(Message(None, self.topic(s.gateway_topic),
+                                                        offline, 1, True))
                 started = time.monotonic()
                 deadline = started + self._flush_timeout
                 left = 0
@@ -427,7 +450,7 @@ class MqttPublisher:
                     self._sender.pump(client)
                     outbox = self._outbox
                     with self._lock:
-                        left = len(outbox.control) + len(outbox.rows) + len(outbox.snapshots)
+                        left = len(outbox.control) + outbox.queued + len(outbox.snapshots)
                     if not left and not self._sender.busy():
                         break
                     self._wait(client, client.socket(), 0.05)
@@ -455,10 +478,14 @@ class MqttPublisher:
             if topic == dev.action_topic:
                 self._commands.dispatch(dev, None, payload, action=True)
                 return
-            if topic == dev.batch_topic:
+            if topic == dev.batch_command_topic:
                 self._commands.dispatch(dev, None, payload)
                 return
             if topic.startswith(dev.command_prefix):
                 self._commands.dispatch(dev, topic[len(dev.command_prefix):], payload)
                 return
 
+
+def _write_wanted(_client: Client, _userdata: Any, _sock: Any) -> None:
+    """paho has bytes to write: nothing to do, the MQTT thread's select() asks
+    ``want_write()`` before it sleeps."""

@@ -10,7 +10,7 @@ import ssl
 import string
 from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import Annotated, Any, ClassVar
+from typing import Annotated, Any, ClassVar, Literal
 
 from pydantic import ValidationError, field_validator, model_validator
 
@@ -18,6 +18,9 @@ from ...config import MAX_MS, Choice, ConfigError, Model, Ms, Problem, Range
 from ...config.secret import Secret
 
 PLACEHOLDERS = ("prefix", "deviceCode", "itemName", "gatewayId")
+# What item updates look like on the wire: one message per item update on its item topic,
+# or one message per device and cycle on its batch topic (payload.batch_payload).
+Mode = Literal["per-item", "batch"]
 FORBIDDEN = ("+", "#", "\0")  # never in a topic level: the wildcards and NUL
 
 
@@ -172,8 +175,10 @@ class MqttSettings(Model):
     keepalive: Annotated[int, Range(5, 3600)] = 30  # seconds (MQTT's unit)
     connect_timeout: Annotated[int, Range(100, 60_000)] = 5000
     tls: TlsSettings | None = None
+    mode: Mode = "per-item"
     topic_prefix: str = "edgemodbus"
     item_topic: str = "{prefix}/{deviceCode}/{itemName}"
+    batch_topic: str = "{prefix}/{deviceCode}/$batch"  # mode "batch"
     snapshot_topic: str = "/real/{deviceCode}"
     status_topic: str = "{prefix}/{deviceCode}/$status"
     gateway_topic: str = "{prefix}/$gateway/{gatewayId}"
@@ -181,7 +186,7 @@ class MqttSettings(Model):
     batch_command_topic: str = "{prefix}/{deviceCode}/set"
     reply_topic: str = "{prefix}/{deviceCode}/$reply"
     action_topic: str = "{prefix}/{deviceCode}/$action"  # {"action": n, "parameters": {...}}
-    qos: Annotated[int, Choice((0, 1, 2))] = 0  # item updates: a stream, state is retained
+    qos: Annotated[int, Choice((0, 1, 2))] = 0  # item updates (either mode): a stream
     retain: bool = False
     snapshot_qos: Annotated[int, Choice((0, 1, 2))] = 1
     snapshot_retain: bool = True
@@ -212,7 +217,8 @@ class MqttSettings(Model):
         return _check_template(value, PLACEHOLDERS, last="itemName")
 
     @field_validator(
-        "snapshot_topic", "status_topic", "batch_command_topic", "reply_topic", "action_topic"
+        "snapshot_topic", "status_topic", "batch_command_topic", "reply_topic", "action_topic",
+        "batch_topic",
     )
     @classmethod
     def _device_topics(cls, value: str) -> str:
