@@ -1,8 +1,10 @@
 """The connection to the broker, in words and in the log: why an attempt failed, failures
-logged without flooding, and dropping a connection that never got its CONNACK."""
+logged without flooding, dropping a connection that never got its CONNACK, and writing
+what paho queued in as few TCP segments as it fits."""
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import socket
 import ssl
@@ -12,6 +14,8 @@ if TYPE_CHECKING:
     from paho.mqtt.client import Client
 
 log = logging.getLogger("edgemodbus.mqtt")
+
+_CORK = getattr(socket, "TCP_CORK", None)  # Linux
 
 
 class FailureLog:
@@ -80,3 +84,25 @@ def abandon(client: Client) -> None:
     client.disconnect()
     if client.socket() is not None:
         client.loop_write()
+
+
+def write(client: Client) -> None:
+    """``client.loop_write()`` with the socket corked (Linux TCP_CORK, on the socket
+    paho's public ``socket()`` returns): paho writes each queued packet with a send() of
+    its own, and every send() on an uncorked socket is a TCP segment of its own, whose
+    transmission (and on loopback, the broker's receive) costs far more CPU than the
+    send() itself; corked, they leave together when the cork is pulled."""
+    sock = client.socket()
+    corked = False
+    if _CORK is not None and sock is not None:
+        try:
+            sock.setsockopt(socket.IPPROTO_TCP, _CORK, 1)
+            corked = True
+        except OSError:  # not a TCP socket
+            pass
+    try:
+        client.loop_write()
+    finally:
+        if corked:
+            with contextlib.suppress(OSError):  # closed meanwhile: nothing left to send
+                sock.setsockopt(socket.IPPROTO_TCP, _CORK, 0)

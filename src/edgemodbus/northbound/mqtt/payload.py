@@ -22,7 +22,7 @@ def now() -> str:
 def encode_item(value: Any, status: Any, ts: Any, error: Any) -> bytes:
     """The payload of one item update on its item topic (mode "per-item"):
     ``{"value", "status", "updateTs", "errorReason"}``."""
-    return json_bytes({"value": value, "status": enum_value(status), "updateTs": ts,
+    return json_bytes({"value": value, "status": status, "updateTs": ts,
                        "errorReason": error})
 
 
@@ -44,7 +44,7 @@ def batch_payload(code: str, rows: Iterable[tuple[str, Any, Any, Any, Any]]) -> 
     newest: Any = None
     for name, value, status, ts, error in rows:
         values[name] = value
-        statuses[name] = enum_value(status)
+        statuses[name] = status  # an ItemStatus is a str: orjson writes its value
         if error is not None:
             errors[name] = error
         if ts is not None and (newest is None or ts > newest):

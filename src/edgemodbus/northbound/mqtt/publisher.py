@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING, Any
 from ...config import ConfigError
 from ...driver import DriverModbusRtu
 from .commands import CommandRunner
-from .connection import FailureLog, abandon, error_text
+from .connection import FailureLog, abandon, error_text, write
 from .devices import AttachedDevice
 from .outbox import Message, Outbox
 from .payload import gateway_payload, status_payload, status_text
@@ -72,6 +72,8 @@ class MqttPublisher:
         self._sender = Sender(self._outbox, settings, paho, self.gateway_id, self.item_topic,
                               self._connected)
         self._commands = CommandRunner(self._outbox)
+        self._linger = settings.linger / 1000
+        self._linger_until = 0.0  # no blocking wait before this: let messages gather
         self._flush_timeout = 1.0
         self._stop_reason = "shutdown"
         self.client_id = settings.client_id or f"edgemodbus-{self.gateway_id}"
@@ -340,17 +342,25 @@ class MqttPublisher:
         wake_r = self._outbox.wake_r
         readers: list[Any] = [wake_r] if sock is None else [wake_r, sock]
         writers: list[Any] = [sock] if sock is not None and client.want_write() else []
+        linger = self._linger_until - time.monotonic()
+        if linger > 0 and timeout > 0 and not writers and not self._stopping.is_set():
+            # woken less than `linger` ago: sleep that out first, so that what arrives
+            # meanwhile (reports, acknowledgements) costs one wake-up, not one each
+            self._stopping.wait(min(linger, timeout))
+            timeout = max(0.0, timeout - linger)
         try:
             readable, writable, _ = select.select(readers, writers, [], timeout)
         except (OSError, ValueError):  # the socket was closed under us: reconnect
             return
+        if readable:
+            self._linger_until = time.monotonic() + self._linger
         if wake_r in readable:
             self._outbox.woken()
         try:
             if sock is not None and (sock in readable or timeout == 0.0):
                 client.loop_read()
             if client.socket() is not None and (writable or client.want_write()):
-                client.loop_write()
+                write(client)
             if client.socket() is not None:
                 client.loop_misc()
         except Exception:  # a bug in a callback must not kill the MQTT thread
