@@ -15,7 +15,7 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("edgemodbus.mqtt")
 
-_CORK = getattr(socket, "TCP_CORK", None)  # Linux
+_CORK: int | None = getattr(socket, "TCP_CORK", None)  # Linux
 
 
 class FailureLog:
@@ -94,7 +94,7 @@ def write(client: Client) -> None:
     send() itself; corked, they leave together when the cork is pulled."""
     sock = client.socket()
     corked = False
-    if _CORK is not None and sock is not None:
+    if _CORK is not None and isinstance(sock, socket.socket):  # an SSLSocket is one too
         try:
             sock.setsockopt(socket.IPPROTO_TCP, _CORK, 1)
             corked = True
@@ -103,6 +103,6 @@ def write(client: Client) -> None:
     try:
         client.loop_write()
     finally:
-        if corked:
+        if corked and _CORK is not None and isinstance(sock, socket.socket):
             with contextlib.suppress(OSError):  # closed meanwhile: nothing left to send
                 sock.setsockopt(socket.IPPROTO_TCP, _CORK, 0)
