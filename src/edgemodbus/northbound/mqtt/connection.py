@@ -8,7 +8,7 @@ import contextlib
 import logging
 import socket
 import ssl
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     from paho.mqtt.client import Client
@@ -106,3 +106,9 @@ def write(client: Client) -> None:
         if corked and _CORK is not None and isinstance(sock, socket.socket):
             with contextlib.suppress(OSError):  # closed meanwhile: nothing left to send
                 sock.setsockopt(socket.IPPROTO_TCP, _CORK, 0)
+
+
+def write_wanted(_client: Client, _userdata: Any, _sock: Any) -> None:
+    """paho's ``on_socket_register_write``: paho has bytes to write.  Nothing to do: the
+    MQTT thread's select() asks ``want_write()`` before it sleeps; set, the callback
+    makes publish() queue a message instead of writing it at once."""

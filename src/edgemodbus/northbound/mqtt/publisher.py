@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING, Any
 from ...config import ConfigError
 from ...driver import DriverModbusRtu
 from .commands import CommandRunner
-from .connection import FailureLog, abandon, error_text, write
+from .connection import FailureLog, abandon, error_text, write, write_wanted
 from .devices import AttachedDevice
 from .outbox import Message, Outbox
 from .payload import gateway_payload, status_payload, status_text
@@ -275,7 +275,7 @@ class MqttPublisher:
         # paho's external-loop mode: with this callback set, publish() queues a message
         # instead of writing it at once, and one loop_write() (our select loop) sends what
         # a pump handed over; our select() asks want_write() itself
-        client.on_socket_register_write = _write_wanted
+        client.on_socket_register_write = write_wanted
         client.on_connect = self._on_connect
         client.on_disconnect = self._on_disconnect
         client.on_message = self._on_message
@@ -494,8 +494,3 @@ class MqttPublisher:
             if topic.startswith(dev.command_prefix):
                 self._commands.dispatch(dev, topic[len(dev.command_prefix):], payload)
                 return
-
-
-def _write_wanted(_client: Client, _userdata: Any, _sock: Any) -> None:
-    """paho has bytes to write: nothing to do, the MQTT thread's select() asks
-    ``want_write()`` before it sleeps."""
