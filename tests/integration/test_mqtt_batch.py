@@ -13,7 +13,7 @@ from typing import Any
 import pytest
 
 from edgemodbus.northbound.mqtt import MqttPublisher
-from tests.integration.test_mqtt import P, Gateway, device
+from tests.integration.test_mqtt import Gateway, P, device
 from tests.mosquitto import Mosquitto, MqttProbe, Received
 from tests.peers import PymodbusSlave, default_register
 from tests.waiting import wait_for
