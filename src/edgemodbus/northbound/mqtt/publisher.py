@@ -378,7 +378,7 @@ class MqttPublisher:
                  self.client_id, f" after {failed} failed attempts" if failed else "")
         self._connected.set()
         self._outbox.set_outage(False)
-        self._sender.connection_lost()  # qos>0 messages still pending are resent by paho
+        self._sender.reconnected()  # qos>0 messages still pending are resent by paho
         s = self.settings
         client.publish(self.topic(s.gateway_topic),
                        gateway_payload(self.gateway_id, True, None), qos=1, retain=True)

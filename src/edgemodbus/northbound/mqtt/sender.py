@@ -89,7 +89,7 @@ class Sender:
         if acknowledged:
             self._outbox.count("acknowledged", acknowledged)
 
-    def connection_lost(self) -> None:
+    def reconnected(self) -> None:
         """A new connection: QoS 0 messages that had not been written are gone (paho
         empties its output queue on reconnect; counted as ``lostOnDisconnect``); QoS 1
         and 2 ones stay in the window, paho sends them again."""
