@@ -311,6 +311,12 @@ class DriverModbusRtuParameter(Model):
         default=0,
         description="Silence kept between two requests on the line (ms)",
     )
+    forward_coalesce: Annotated[int, Range(0, MAX_MS)] = Field(
+        default=0,
+        description="Gateway forward mode: a forwarded read that a block of this device "
+        "read within this many ms covers is answered from that block, with no line "
+        "traffic (ms); 0 = off (every forwarded read goes to the slave)",
+    )
     settle_timeout: Annotated[int | None, Range(0, MAX_MS)] = Field(
         default=None,
         description="After a timeout, discard late replies for this long before the next "
