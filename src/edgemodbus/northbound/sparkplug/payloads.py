@@ -49,6 +49,7 @@ SPARKPLUG_TYPES: dict[DataType, int] = {
 TYPE_NAMES = {value: pb.DataType.Name(value) for value in set(SPARKPLUG_TYPES.values())}
 _SIGNED_BITS = {INT8: 8, INT16: 16, INT32: 32, INT64: 64}
 
+REBIRTH = "Node Control/Rebirth"
 QUALITY_GOOD = 192
 QUALITY_BAD = 0
 
@@ -166,7 +167,7 @@ def node_birth(bd_seq: int, now: int) -> bytes:
     """NBIRTH: seq 0, the session's bdSeq and ``Node Control/Rebirth`` (false)."""
     payload = pb.Payload(timestamp=now, seq=0)
     payload.metrics.add(name="bdSeq", timestamp=now, datatype=INT64, long_value=bd_seq)
-    payload.metrics.add(name="Node Control/Rebirth", timestamp=now, datatype=BOOLEAN,
+    payload.metrics.add(name=REBIRTH, timestamp=now, datatype=BOOLEAN,
                         boolean_value=False)
     return bytes(payload.SerializeToString())
 
@@ -250,3 +251,16 @@ def command_value(command: CommandMetric, datatype: int) -> Any:
     if datatype == INT64 and field == "long_value":
         return int(raw) - (1 << 64) if raw >= 1 << 63 else int(raw)
     return raw
+
+
+def node_command(payload: bytes) -> tuple[bool, list[str]]:
+    """(rebirth asked: ``Node Control/Rebirth`` = true, the other metrics of the NCMD in
+    words); ValueError when it is not a Sparkplug payload."""
+    rebirth, others = False, []
+    for metric in parse_command(payload):
+        if metric.name == REBIRTH and metric.field == "boolean_value" and metric.raw:
+            rebirth = True
+        else:
+            label = metric.name if metric.name is not None else f"alias {metric.alias}"
+            others.append(f"metric {label!r}")
+    return rebirth, others

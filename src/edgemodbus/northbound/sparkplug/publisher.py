@@ -20,13 +20,14 @@ from .bdseq import BdSeqStore
 from .client import make_client
 from .devices import NodeDevice, is_good, sample_of
 from .payloads import (
+    REBIRTH,
     Sample,
     device_birth,
     device_data,
     device_death,
     node_birth,
+    node_command,
     node_death,
-    parse_command,
 )
 from .settings import check_id
 from .state import HostState
@@ -38,7 +39,6 @@ if TYPE_CHECKING:
 log = logging.getLogger("edgemodbus.sparkplug")
 
 NAMESPACE = "spBv1.0"
-REBIRTH = "Node Control/Rebirth"
 _COUNTERS = ("connects", "disconnects", "connectFailures", "published", "publishErrors",
              "dropped", "nbirths", "dbirths", "ddata", "ddeaths", "rebirths", "commands",
              "commandErrors", "writes", "writesRefused")
@@ -160,12 +160,6 @@ class SparkplugPublisher:
             self._thread = None
         self._connected.clear()
         self._closed = True
-
-    def __enter__(self) -> SparkplugPublisher:
-        return self.start()
-
-    def __exit__(self, *exc: object) -> None:
-        self.stop()
 
     @property
     def connected(self) -> bool:
@@ -304,20 +298,16 @@ class SparkplugPublisher:
     def _node_command(self, payload: bytes) -> None:
         self._count("commands")
         try:
-            metrics = parse_command(payload)
+            rebirth, unsupported = node_command(payload)
         except ValueError as exc:
+            unsupported, rebirth = [str(exc)], False
+        if rebirth:
+            log.info("Sparkplug: rebirth requested (NCMD %s)", REBIRTH)
+            self._push(("rebirth",))
+        for what in unsupported:
             self._count("commandErrors")
-            log.warning("Sparkplug: NCMD ignored: %s", exc)
-            return
-        for metric in metrics:
-            if metric.name == REBIRTH and metric.field == "boolean_value" and metric.raw:
-                log.info("Sparkplug: rebirth requested (NCMD %s)", REBIRTH)
-                self._push(("rebirth",))
-            else:
-                self._count("commandErrors")
-                log.warning("Sparkplug: NCMD metric %r not supported (only %s = true)",
-                            metric.name if metric.name is not None else metric.alias,
-                            REBIRTH)
+            log.warning("Sparkplug: NCMD %s ignored (only %s = true is supported)", what,
+                        REBIRTH)
 
     def _device_command(self, code: str, payload: bytes) -> None:
         self._count("commands")
