@@ -48,6 +48,7 @@ SPARKPLUG_TYPES: dict[DataType, int] = {
 }
 TYPE_NAMES = {value: pb.DataType.Name(value) for value in set(SPARKPLUG_TYPES.values())}
 _SIGNED_BITS = {INT8: 8, INT16: 16, INT32: 32, INT64: 64}
+_UNSIGNED_MAX = {UINT8: 0xFF, UINT16: 0xFFFF, UINT32: 0xFFFF_FFFF}
 
 REBIRTH = "Node Control/Rebirth"
 QUALITY_GOOD = 192
@@ -114,7 +115,7 @@ def _set_value(metric: Any, datatype: int, value: Any) -> None:
         number = _integer(value, -(1 << (bits - 1)), (1 << (bits - 1)) - 1)
         metric.int_value = number & 0xFFFF_FFFF
     else:  # UInt8, UInt16, UInt32
-        metric.int_value = _integer(value, 0, 0xFFFF_FFFF)
+        metric.int_value = _integer(value, 0, _UNSIGNED_MAX.get(datatype, 0xFFFF_FFFF))
 
 
 def _integer(value: Any, low: int, high: int) -> int:
