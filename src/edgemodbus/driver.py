@@ -217,6 +217,13 @@ class DriverModbusRtu:
         poller = self._poller or self._last_poller
         return len(poller.items) if poller is not None else 0
 
+    @property
+    def address_items(self) -> list[DeviceAddressItem]:
+        """The items in force (after ``update_addresses`` too): the objects whose value,
+        status and updateTs the line worker sets; for reading only.  [] before start."""
+        poller = self._poller or self._last_poller
+        return [state.item for state in poller.items] if poller is not None else []
+
     def read_plan(self) -> list[dict[str, Any]]:
         """The read blocks in force: area, start, count and the names of their items."""
         if self._poller is None:

@@ -55,9 +55,22 @@ def load_gateway_config(path: str | os.PathLike[str] | dict[str, Any]) -> Gatewa
             tls = tls.resolved(Path(path).absolute().parent)
             cfg = cfg.model_copy(update={"mqtt": mqtt.model_copy(update={"tls": tls})})
         problems += tls.problems()
+    sparkplug = mqtt.sparkplug
+    if mqtt.mode == "sparkplug" and sparkplug is not None:
+        if _is_file_path(path) and not isinstance(path, dict):  # relative: the file's folder
+            sparkplug = sparkplug.resolved(Path(path).absolute().parent)
+            current = cfg.mqtt if cfg.mqtt is not None else mqtt
+            cfg = cfg.model_copy(
+                update={"mqtt": current.model_copy(update={"sparkplug": sparkplug})})
+        problems += sparkplug.problems()
     if problems:
         raise ConfigError(problems)
     return cfg
+
+
+def _is_file_path(path: str | os.PathLike[str] | dict[str, Any]) -> bool:
+    return isinstance(path, os.PathLike) or (
+        isinstance(path, str) and not path.lstrip("\ufeff \t\r\n").startswith(("{", "[")))
 
 
 def gateway_digest(path: Path, config: GatewayConfig) -> str | None:

@@ -24,7 +24,10 @@ from .config import (
 
 if TYPE_CHECKING:
     from ..northbound.metrics import MetricsExporter
-    from ..northbound.mqtt import MqttPublisher
+    from ..northbound.mqtt import MqttPublisher, MqttSettings
+    from ..northbound.sparkplug.publisher import SparkplugPublisher
+
+    Publisher = MqttPublisher | SparkplugPublisher
 
 log = logging.getLogger("edgemodbus.service")
 
@@ -64,7 +67,7 @@ class Gateway:
         self.gateway_file = (gateway_file or config_dir / GATEWAY_FILE).resolve()
         self.gateway_id = config.effective_id
         self.devices: dict[Path, ServiceDevice] = {}
-        self.publisher: MqttPublisher | None = None
+        self.publisher: Publisher | None = None
         self.exporter: MetricsExporter | None = None
         self._gateway_digest = gateway_digest(self.gateway_file, config)
 
@@ -72,11 +75,9 @@ class Gateway:
     def start(self) -> None:
         mqtt = self.config.mqtt
         if mqtt is not None and mqtt.enabled:
-            from ..northbound.mqtt import MqttPublisher
-
-            self.publisher = MqttPublisher(mqtt, gateway_id=self.gateway_id).start()
-            log.info("MQTT: gateway %s publishing to %s:%d", self.gateway_id, mqtt.host,
-                     mqtt.port)
+            self.publisher = make_publisher(mqtt, self.gateway_id).start()
+            log.info("MQTT: gateway %s publishing to %s:%d (%s)", self.gateway_id, mqtt.host,
+                     mqtt.port, mqtt.mode)
         self.exporter = _start_exporter(self.config)
         if self.exporter is not None and self.publisher is not None:
             self.exporter.set_publisher(self.publisher)
@@ -139,12 +140,10 @@ class Gateway:
         (ValueError, OSError) with nothing changed when they cannot be applied."""
         old = self.config
         done: list[str] = []
-        publisher: MqttPublisher | None = None
+        publisher: Publisher | None = None
         mqtt_changed = mqtt_key(old) != mqtt_key(new)
         if mqtt_changed and new.mqtt is not None and new.mqtt.enabled:
-            from ..northbound.mqtt import MqttPublisher
-
-            publisher = MqttPublisher(new.mqtt, gateway_id=new.effective_id)
+            publisher = make_publisher(new.mqtt, new.effective_id)
             try:
                 for dev in self.devices.values():
                     publisher.check_item_names(dev.code,
@@ -205,7 +204,7 @@ class Gateway:
             exporter.set_publisher(self.publisher)
         self.exporter = exporter
 
-    def _swap_publisher(self, new: MqttPublisher | None) -> None:
+    def _swap_publisher(self, new: Publisher | None) -> None:
         """Move every device from the running publisher to ``new`` (not yet started):
         each is detached and re-attached at once, so updates of the moment go to one of
         the two; then the old one flushes and says offline, and the new one connects."""
@@ -351,6 +350,17 @@ class Gateway:
                 level = logging.WARNING if status in ("Offline", "Reconnecting") else logging.INFO
                 log.log(level, "%s: %s -> %s", dev.code, dev.status, status)
                 dev.status = status
+
+
+def make_publisher(mqtt: MqttSettings, gateway_id: str) -> Publisher:
+    """The publisher ``mqtt.mode`` asks for (not started): per-item MQTT or Sparkplug B."""
+    if mqtt.mode == "sparkplug":
+        from ..northbound.sparkplug.publisher import SparkplugPublisher
+
+        return SparkplugPublisher(mqtt, gateway_id=gateway_id)
+    from ..northbound.mqtt import MqttPublisher
+
+    return MqttPublisher(mqtt, gateway_id=gateway_id)
 
 
 def _digest(path: Path) -> str:

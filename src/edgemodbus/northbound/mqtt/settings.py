@@ -10,12 +10,13 @@ import ssl
 import string
 from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import Annotated, Any, ClassVar
+from typing import Annotated, Any, ClassVar, Literal
 
 from pydantic import ValidationError, field_validator, model_validator
 
 from ...config import MAX_MS, Choice, ConfigError, Model, Ms, Problem, Range
 from ...config.secret import Secret
+from ..sparkplug.settings import SparkplugSettings
 
 PLACEHOLDERS = ("prefix", "deviceCode", "itemName", "gatewayId")
 FORBIDDEN = ("+", "#", "\0")  # never in a topic level: the wildcards and NUL
@@ -164,6 +165,10 @@ class MqttSettings(Model):
     _where: ClassVar[str] = "mqtt"
 
     enabled: bool = True
+    # per-item: one topic per item (the templates below); sparkplug: Sparkplug B (v3.0)
+    # with the ``sparkplug`` section (northbound/sparkplug/)
+    mode: Literal["per-item", "sparkplug"] = "per-item"
+    sparkplug: SparkplugSettings | None = None
     host: str = "127.0.0.1"
     port: Annotated[int, Range(1, 65535)] = 1883
     client_id: str | None = None  # default: edgemodbus-{gatewayId}
@@ -230,6 +235,13 @@ class MqttSettings(Model):
             return cls.model_validate(dict(data))
         except ValidationError as exc:
             raise ConfigError.from_validation_error(exc, where) from None
+
+    @model_validator(mode="after")
+    def _sparkplug(self) -> MqttSettings:
+        if self.mode == "sparkplug" and self.sparkplug is None:
+            raise ValueError('mode "sparkplug" needs the section mqtt.sparkplug with at '
+                             'least its groupId, e.g. "sparkplug": {"groupId": "plant1"}')
+        return self
 
     @model_validator(mode="after")
     def _backoff(self) -> MqttSettings:
