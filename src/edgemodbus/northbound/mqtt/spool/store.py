@@ -232,7 +232,8 @@ class Spool:
             if claimed:
                 for i, row in zip(ids, rows, strict=True):
                     self._inflight[i] = row[6]
-        self._limiter.flush()
+        with self._lock:
+            self._limiter.flush()  # a summary of drops, once its interval is over
         return ids
 
     def next_batch(self, limit: int) -> list[Stored]:
@@ -267,7 +268,7 @@ class Spool:
                         break
                 if len(found) < _SCAN:
                     break
-        self._limiter.flush()
+            self._limiter.flush()
         return taken
 
     def ack(self, ids: Iterable[int]) -> int:
