@@ -105,7 +105,7 @@ class Spool:
     Thread-safe: one SQLite connection, every call under one lock.  The sender calls the
     mutating methods from the MQTT thread (so no line worker ever waits for the disk);
     :meth:`stats`, :meth:`pending_count`, :meth:`size_bytes` may be called from any
-    thread (they read counters kept in memory).
+    thread (they read counters kept in memory; at worst they wait for one commit).
 
     ``synchronous="normal"`` (the default): a committed transaction is in the WAL file,
     i.e. in the kernel's page cache, when :meth:`append` returns; a killed process (also
