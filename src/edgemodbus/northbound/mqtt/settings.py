@@ -17,6 +17,7 @@ from pydantic import ValidationError, field_validator, model_validator
 from ...config import MAX_MS, Choice, ConfigError, Model, Ms, Problem, Range
 from ...config.secret import Secret
 from ..sparkplug.settings import SparkplugSettings
+from .spool import SYNCHRONOUS, path_problem
 
 PLACEHOLDERS = ("prefix", "deviceCode", "itemName", "gatewayId")
 FORBIDDEN = ("+", "#", "\0")  # never in a topic level: the wildcards and NUL
@@ -159,6 +160,40 @@ def _check_template(template: str, allowed: tuple[str, ...], *, last: str | None
     return template
 
 
+class StoreAndForwardSettings(Model):
+    """``mqtt.storeAndForward``: the SQLite file that keeps messages while the broker is
+    away or has not acknowledged them (spool/__init__.py says how), and its bounds."""
+
+    _where: ClassVar[str] = "mqtt.storeAndForward"
+
+    path: str  # relative: from the gateway file's folder
+    max_bytes: Annotated[int, Range(1)] = 100_000_000  # topics + payloads (+32 a row)
+    max_age_s: Annotated[int, Range(1)] = 7 * 86_400
+    replay_rate_per_s: Annotated[float, Range(0.01)] = 500.0  # messages replayed per second
+    replay_bytes_per_s: Annotated[int | None, Range(1)] = None  # no byte limit by default
+    synchronous: Annotated[str, Choice(SYNCHRONOUS)] = "normal"  # "full": fsync each commit
+
+    @field_validator("path")
+    @classmethod
+    def _path(cls, value: str) -> str:
+        if not value.strip():
+            raise ValueError("must not be empty (the spool file, e.g. /var/lib/edgemodbus/"
+                             "spool.db)")
+        return value
+
+    def resolved(self, base: str | os.PathLike[str]) -> StoreAndForwardSettings:
+        """A copy whose relative path is taken from folder ``base``."""
+        if os.path.isabs(self.path):
+            return self
+        return self.model_copy(update={"path": str(Path(base, self.path))})
+
+    def problems(self, where: str = "mqtt.storeAndForward") -> list[Problem]:
+        """[] when the spool file can be kept at ``path`` (its folder exists and is
+        writable), else the problem named by its field."""
+        message = path_problem(self.path)
+        return [] if message is None else [Problem(f"{where}.path", self.path, message)]
+
+
 class MqttSettings(Model):
     """The ``mqtt`` section of the gateway file.  Times in ms unless named otherwise."""
 
@@ -198,6 +233,7 @@ class MqttSettings(Model):
     reconnect_max: Ms = 30_000
     failure_log_interval: Ms = 60_000  # failed connects: first logged, then one line per this
     status_check_interval: Ms = 500
+    store_and_forward: StoreAndForwardSettings | None = None  # off unless set
 
     @field_validator("topic_prefix")
     @classmethod
