@@ -151,7 +151,8 @@ def build_parser() -> argparse.ArgumentParser:
     act.set_defaults(func=action_command.run)
 
     desc = sub.add_parser("descriptor", help="print the driver descriptor JSON")
-    desc.add_argument("--prefix", choices=["function-code", "modicon"], default="function-code")
+    desc.add_argument("--prefix", choices=["function-code", "modicon", "entity"],
+                      default="function-code")
     desc.set_defaults(func=lambda a: print_json(driver_descriptor(a.prefix)))
 
     scan = sub.add_parser("scan", help="find what answers on a line (settings, slave ids)",
