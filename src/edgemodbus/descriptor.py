@@ -7,7 +7,9 @@ separated by commas, a secret's default is never shown) and their UI labels in
 dataSource); ``addressParameter`` lists, the same way, the optional fields of an address
 item (:class:`~edgemodbus.config.DeviceAddressItem`) that have labels there
 (``ITEM_LABELS``: the item's scan rate, ``readCycle``).
-The address regex and examples come from :mod:`edgemodbus.protocol.address`.
+The address regex and examples come from :mod:`edgemodbus.protocol.address`;
+``presets`` lists the device templates on the search path (name, description, source:
+:mod:`edgemodbus.config.templates`), which a device file names with ``"template"``.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ from pydantic.fields import FieldInfo
 
 from .config import Choice, DeviceAddressItem, DriverModbusRtuParameter, Parity, Range
 from .config.labels import ITEM_LABELS, LABELS
+from .config.templates import find_templates
 from .datatypes import Area, DataType
 from .protocol.address import (
     Address,
@@ -60,7 +63,8 @@ def driver_descriptor(prefix: str = "function-code", base: int = 0) -> dict[str,
         "description": "Modbus RTU driver (serial RTU, RTU over TCP, Modbus TCP)",
         "supportedDataTypes": [t.value for t in DataType],
         "addressRegex": address_regex(prefix, base),
-        "supportsPresets": False,
+        "supportsPresets": True,
+        "presets": [t.summary() for t in find_templates()],
         "allowManualAddress": True,
         "hasBuiltInAddresses": False,
         "supportsDynamicBrowse": False,

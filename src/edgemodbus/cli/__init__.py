@@ -1,5 +1,5 @@
 """The ``edgemodbus`` command: demo, run, read, write, plan, simulate, descriptor, action,
-scan.
+scan, templates, import.
 
 Errors are one line per problem on stderr and a non-zero exit code.  Values print so that
 they read back exactly: a float as its shortest round-trip form (``repr``; ``nan``,
@@ -38,6 +38,7 @@ from ..sim.cli import DESCRIPTION as SIMULATOR
 from ..sim.cli import add_arguments as add_simulator_arguments
 from . import action as action_command
 from . import scan as scan_command
+from . import templates as templates_command
 from .output import CliError, emit, json_line, one_line, print_json, problem_lines, value_text
 
 DEMO_FILE = Path(__file__).resolve().parent.parent / "demo-device.json"  # examples/ links here
@@ -159,6 +160,12 @@ def build_parser() -> argparse.ArgumentParser:
                           description=scan_command.__doc__,
                           formatter_class=argparse.RawDescriptionHelpFormatter)
     scan_command.add_arguments(scan)
+
+    tpl = sub.add_parser("templates", help="list the device templates (or show one)",
+                         description=templates_command.__doc__,
+                         formatter_class=argparse.RawDescriptionHelpFormatter)
+    templates_command.add_arguments(tpl)
+    tpl.set_defaults(func=templates_command.run)
     return parser
 
 
