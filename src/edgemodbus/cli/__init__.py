@@ -37,6 +37,7 @@ from ..protocol.address import parse_address
 from ..sim.cli import DESCRIPTION as SIMULATOR
 from ..sim.cli import add_arguments as add_simulator_arguments
 from . import action as action_command
+from . import import_tags as import_command
 from . import scan as scan_command
 from . import templates as templates_command
 from .output import CliError, emit, json_line, one_line, print_json, problem_lines, value_text
@@ -166,6 +167,12 @@ def build_parser() -> argparse.ArgumentParser:
                          formatter_class=argparse.RawDescriptionHelpFormatter)
     templates_command.add_arguments(tpl)
     tpl.set_defaults(func=templates_command.run)
+
+    imp = sub.add_parser("import", help="turn a tag list (Kepware CSV export, or generic "
+                         "CSV) into a device file", description=import_command.__doc__,
+                         formatter_class=argparse.RawDescriptionHelpFormatter)
+    import_command.add_arguments(imp)
+    imp.set_defaults(func=import_command.run)
     return parser
 
 
