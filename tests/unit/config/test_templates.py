@@ -165,3 +165,17 @@ def test_descriptor_lists_the_templates_as_presets() -> None:
     assert {"eastron-sdm120", "eastron-sdm630", "xy-md02", "waveshare-relay-d-8ch"} <= set(names)
     for preset in desc["presets"]:
         assert set(preset) == {"name", "description", "source"}
+
+
+def test_the_readme_example_loads() -> None:
+    """README.md "Device templates": its device file loads as described."""
+    readme = (Path(__file__).resolve().parents[3] / "README.md").read_text("utf-8")
+    section = readme.split("## Device templates", 1)[1]
+    example = json.loads(section.split("```json", 1)[1].split("```", 1)[0])
+    cfg = em.load_device_config(example)
+    items = {i.name: i for i in cfg.address_list}
+    assert len(items) == 15 and list(items)[-1] == "Relay"
+    assert items["PhaseAngle"].is_enable is False
+    assert items["ImportActiveEnergy"].deadband == 0.01
+    assert items["Voltage"].address == "ir:0"
+    assert (cfg.communication.baud_rate, cfg.communication.slave_id) == (2400, 7)
