@@ -16,7 +16,7 @@ from .communication import DriverModbusRtuParameter
 from .compat import NG_DEVICE_KEYS, iso_timestamp, ng_device
 from .items import DeviceAddressItem, ParsedItem, validate_items
 from .problems import ConfigError
-from .templates import apply_template, device_folder
+from .templates import apply_template, device_loading
 
 
 class DeviceOrganizationParameter(Model):
@@ -148,7 +148,7 @@ def load_device_config(source: str | os.PathLike[str] | Mapping[str, Any]) -> De
     """Load a device file: a path, a str of JSON text, or a dict.  Raises ConfigError.
     A ``template`` is applied (templates.py; ``templateDirs`` are relative to the
     file's folder)."""
-    with device_folder(source):
+    with device_loading(source):
         return load_model(DeviceConfig, source)
 
 

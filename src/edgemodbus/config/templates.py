@@ -23,6 +23,7 @@ from __future__ import annotations
 import difflib
 import json
 import os
+import re
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from contextvars import ContextVar
@@ -54,21 +55,48 @@ _TEMPLATE_KEYS = ("name", "description", "source", "communication", "itemDefault
 
 # The folder of the device file being loaded (its templateDirs are relative to it).
 _base_dir: ContextVar[Path | None] = ContextVar("edgemodbus_template_base", default=None)
+# Where each item of the merged address list came from (see device_loading).
+_origins: ContextVar[dict[int, tuple[str, str]] | None] = ContextVar("edgemodbus_template_origins",
+                                                         default=None)
 
 
 @contextmanager
-def device_folder(source: Any) -> Iterator[None]:
-    """While loading ``source``: relative ``templateDirs`` are relative to its folder
-    (a path), else to the current directory."""
+def device_loading(source: Any) -> Iterator[None]:
+    """While loading ``source``: relative ``templateDirs`` are relative to its folder (a
+    path), else to the current directory; a ConfigError's ``addressList[i]`` paths are
+    told as the device file has them (the merged list counts the template's items
+    first): ``addressList[0].unit (over template item 'Voltage')`` (the device file's
+    item), ``addressList[3].unit (template eastron-sdm120 item 'Current')`` (the
+    template's)."""
     folder = (Path(os.fspath(source)).resolve().parent
               if isinstance(source, os.PathLike)
               or (isinstance(source, str) and not source.lstrip("\ufeff \t\r\n").startswith("{"))
               else None)
-    token = _base_dir.set(folder)
+    origins: dict[int, tuple[str, str]] = {}
+    tokens = (_base_dir.set(folder), _origins.set(origins))
     try:
         yield
+    except ConfigError as exc:
+        if not origins:
+            raise
+        raise ConfigError([_told(p, origins) for p in exc.problems]) from None
     finally:
-        _base_dir.reset(token)
+        _origins.reset(tokens[1])
+        _base_dir.reset(tokens[0])
+
+
+def _told(problem: Problem, origins: dict[int, tuple[str, str]]) -> Problem:
+    head, sep, rest = problem.path.partition("]")
+    if not sep or not head.startswith("addressList["):
+        return problem
+    try:
+        where, note = origins[int(head.removeprefix("addressList["))]
+    except (ValueError, KeyError):
+        return problem
+    message = re.sub(r"addressList\[(\d+)\]",
+                     lambda m: origins.get(int(m.group(1)), (m.group(0), ""))[0],
+                     problem.message)
+    return Problem(f"{where}{rest}{note}", problem.value, message)
 
 
 @dataclass(frozen=True, slots=True)
@@ -278,6 +306,8 @@ def apply_template(data: dict[str, Any]) -> dict[str, Any]:
                                         str(exc)))
         index[item["name"]] = len(items)
         items.append(item)
+    origins = {k: (f"addressList[{k}]", f" (template {name} item {item['name']!r})")
+               for k, item in enumerate(items)}
     own = data.get("addressList") or []
     if not isinstance(own, list):
         raise ConfigError(problems) if problems else ConfigError(
@@ -291,9 +321,16 @@ def apply_template(data: dict[str, Any]) -> dict[str, Any]:
                                  f"{p.message}: an override of template item {name_of!r}")
                          for p in found]
             items[index[name_of]].update(override)
+            origins[index[name_of]] = (f"addressList[{i}]",
+                                       f" (over template item {name_of!r})")
         else:
+            origins[len(items) + len(extra)] = (f"addressList[{i}]", "")
             extra.append(raw)
     if problems:
         raise ConfigError(problems)
     data["addressList"] = [*items, *extra]
+    told = _origins.get()
+    if told is not None:
+        told.clear()
+        told.update(origins)
     return data

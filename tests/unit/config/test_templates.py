@@ -179,3 +179,22 @@ def test_the_readme_example_loads() -> None:
     assert items["ImportActiveEnergy"].deadband == 0.01
     assert items["Voltage"].address == "ir:0"
     assert (cfg.communication.baud_rate, cfg.communication.slave_id) == (2400, 7)
+
+
+def test_errors_point_at_the_device_files_items(pump_dir: Path) -> None:
+    """The merged list counts the template's items first; messages name the item as the
+    device file (or the template) has it."""
+    lines = _errors({"template": "acme-pump", "addressList": [
+        {"name": "Fault", "deviceDataType": "Float"},
+        {"name": "X", "address": "coil:1", "deviceDataType": "UInt16"}]})
+    assert lines == [
+        "addressList[0].deviceDataType (over template item 'Fault') 'Float': a discrete "
+        "input holds one bit: use Boolean",
+        "addressList[1].deviceDataType 'UInt16': a coil holds one bit: use Boolean"]
+    (line,) = _errors({"template": "acme-pump", "addressList": [
+        {"name": "X", "address": "hr:1", "deviceDataType": "Flot"}]})
+    assert line.startswith("addressList[0].deviceDataType 'Flot': unknown data type")
+    lines = _errors({"template": "acme-pump", "addressList": [
+        {"name": "X", "address": "hr:1", "deviceDataType": "UInt16"},
+        {"name": "X", "address": "hr:2", "deviceDataType": "UInt16"}]})
+    assert lines == ["addressList[1].name 'X': duplicate item name (also addressList[0])"]
