@@ -192,6 +192,22 @@ def load_template(name: str, dirs: Sequence[str | os.PathLike[str]] = ()) -> dic
     return _read(template_file(name, dirs), name)
 
 
+def template_bytes(device_file: str | os.PathLike[str]) -> bytes:
+    """The bytes of the template a device file names (b"" if none, or if it cannot be
+    found: loading the file says why), so that a reload notices a changed template."""
+    try:
+        path = Path(os.fspath(device_file))
+        data = json.loads(path.read_text(encoding="utf-8-sig"))
+        keys = {norm_key(k): v for k, v in data.items()} if isinstance(data, dict) else {}
+        name, dirs = keys.get("template"), keys.get("templatedirs") or []
+        if not isinstance(name, str):
+            return b""
+        with device_loading(path):
+            return template_file(name, [dirs] if isinstance(dirs, str) else dirs).read_bytes()
+    except (OSError, ValueError, TypeError, ConfigError):
+        return b""
+
+
 # --------------------------------------------------------------------------- merging
 
 

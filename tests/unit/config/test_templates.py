@@ -16,6 +16,7 @@ from edgemodbus.config.templates import (
     TEMPLATE_PATH_ENV,
     find_templates,
     search_path,
+    template_bytes,
 )
 from edgemodbus.descriptor import driver_descriptor
 
@@ -198,3 +199,16 @@ def test_errors_point_at_the_device_files_items(pump_dir: Path) -> None:
         {"name": "X", "address": "hr:1", "deviceDataType": "UInt16"},
         {"name": "X", "address": "hr:2", "deviceDataType": "UInt16"}]})
     assert lines == ["addressList[1].name 'X': duplicate item name (also addressList[0])"]
+
+
+def test_template_bytes_follow_the_named_template(tmp_path: Path) -> None:
+    """What the gateway adds to a device file's digest: a changed template reloads."""
+    tpl = _template(tmp_path / "tpl", "local", addressList=[])
+    device = tmp_path / "device.json"
+    device.write_text(json.dumps({"Template": "local", "templateDirs": "tpl"}))
+    assert template_bytes(device) == tpl.read_bytes()
+    device.write_text(json.dumps({"template": "eastron-sdm120"}))
+    assert template_bytes(device) == (SHIPPED_DIR / "eastron-sdm120.json").read_bytes()
+    for text in ('{"template": "nowhere"}', "{}", "not json"):
+        device.write_text(text)
+        assert template_bytes(device) == b""
