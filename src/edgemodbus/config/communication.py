@@ -46,7 +46,7 @@ from .secret import Secret
 Transport = Literal["rtu-over-tcp-server", "rtu", "rtu-over-tcp", "tcp"]
 Framing = Literal["rtu", "wrapped-report"]
 Registration = Literal["none", "text", "hex", "regex"]
-AddressPrefixOption = Literal["function-code", "modicon"]
+AddressPrefixOption = Literal["function-code", "modicon", "entity"]
 ReportMode = Literal["change", "cycle"]
 Rs485Mode = Literal["none", "kernel", "rts-up", "rts-down"]
 DuplicateId = Literal["keep-existing", "replace"]
@@ -296,8 +296,10 @@ class DriverModbusRtuParameter(Model):
     )
     address_prefix: AddressPrefixOption = Field(
         default="function-code",
-        description="Numeric address types: function-code (3=holding, 4=input) or modicon "
-        "(3=input, 4=holding)",
+        description="Numeric address types: function-code (3=holding, 4=input), modicon "
+        "(3=input, 4=holding), or entity: Modicon entity numbers (40001 or 400001 = "
+        "holding register 0, 30001 input, 10001 discrete input, 00001 coil; typed "
+        "addresses such as hr:0 as under function-code)",
     )
     address_base: Annotated[int, Choice((0, 1))] = Field(
         default=0,

@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from ..config import ConfigError, DeviceConfig, DriverModbusRtuParameter, load_device_config
+from ..config.templates import template_bytes
 from ..driver import DriverModbusRtu
 from .config import (
     GATEWAY_FILE,
@@ -364,7 +365,8 @@ def make_publisher(mqtt: MqttSettings, gateway_id: str) -> Publisher:
 
 
 def _digest(path: Path) -> str:
-    return hashlib.sha256(path.read_bytes()).hexdigest()
+    """The device file's digest, with the template it names (a changed template reloads)."""
+    return hashlib.sha256(path.read_bytes() + template_bytes(path)).hexdigest()
 
 
 def _start_exporter(config: GatewayConfig) -> MetricsExporter | None:
