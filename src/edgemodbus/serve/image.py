@@ -69,7 +69,7 @@ class UnitImage:
             area = p.address.area
             size = 1 if area.is_bit or p.address.bit is not None else p.registers
             address = p.address.offset + offset
-            if not (0 <= address and address + size <= 0x10000):
+            if not (address >= 0 and address + size <= 0x10000):
                 problems.append(Problem(f"serve.units[unitId={unit}].offset", offset,
                                         f"item {p.name!r} of {device!r} would be at "
                                         f"{address}..{address + size - 1}: outside 0..65535"))
