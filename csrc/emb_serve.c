@@ -7,7 +7,7 @@
  * Protocol 1.1b3 gives (its figures 14-26: 01 function, 03 quantity or byte count, 02
  * address), because libmodbus's own refusal sleeps for the response timeout and flushes
  * the socket, which would lose a master's pipelined requests. */
-#define _GNU_SOURCE /* accept4 */
+#define _GNU_SOURCE /* accept4, POLLRDHUP */
 #include "emb_serve.h"
 #include "emb_engine.h" /* emb_now_ns */
 
@@ -597,7 +597,7 @@ int emb_sv_run(emb_server *s, int64_t until_ns)
             }
             s->pidx[n] = i;
             pfds[n].fd = c->fd;
-            pfds[n++].events = c->busy ? 0 : POLLIN;
+            pfds[n++].events = c->busy ? POLLRDHUP : POLLIN;
         }
         wait_ns = wake_at - now;
         if (wait_ns > 60000000000LL)
@@ -624,7 +624,9 @@ int emb_sv_run(emb_server *s, int64_t until_ns)
             if (c->fd != pfds[i].fd || !pfds[i].revents)
                 continue;
             if (c->busy) {
-                if (pfds[i].revents & (POLLHUP | POLLERR)) {
+                /* a master that left while Python holds its request (a FIN
+                 * is POLLRDHUP): its slot is freed, the answer will be dropped */
+                if (pfds[i].revents & (POLLRDHUP | POLLHUP | POLLERR)) {
                     pthread_mutex_lock(&s->lock);
                     emb_sv_close(c, &s->c.closed_peer);
                     pthread_mutex_unlock(&s->lock);
