@@ -42,3 +42,19 @@ def test_units_naming_no_device() -> None:
     problems = unknown_devices(s, ["m1"])
     assert [str(p) for p in problems] == [
         "serve.units[1].forward 'gone': no device has this deviceCode; known: m1"]
+
+
+def test_the_readme_gateway_file_loads() -> None:
+    """The worked gateway file of README.md's gateway mode section is a valid one."""
+    import json
+    from pathlib import Path
+
+    from edgemodbus.gateway import load_gateway_config
+
+    text = (Path(__file__).resolve().parents[3] / "README.md").read_text()
+    section = text[text.index("## Gateway mode: a Modbus TCP server for SCADA"):]
+    block = section[section.index("```json\n") + 8:]
+    cfg = load_gateway_config(json.loads(block[:block.index("```")]))
+    assert cfg.serve is not None
+    assert [(u.unit_id, u.target, u.offset) for u in cfg.serve.units] == [
+        (1, "meter1", 0), (2, "meter1", 1000), (9, "meter2", 0)]
