@@ -70,6 +70,24 @@ def test_gateway_serves_forwards_and_rebinds_on_reload(
         want4 = [default_register(1, "hr", a) for a in range(4)]
         wait_for(lambda: getattr(client.read_holding_registers(100, count=4, device_id=1),
                                  "registers", None) == want4, what="the fourth tag served")
+        # a changed unit in the gateway file: the new offset applies on reload
+        gateway_file = json.loads((path / "gateway.json").read_text())
+        gateway_file["serve"]["units"][0]["offset"] = 200
+        (path / "gateway.json").write_text(json.dumps(gateway_file))
+        gateway.reload()
+        assert gateway.serving.server is server  # same listen settings: same server
+        wait_for(lambda: getattr(client.read_holding_registers(200, count=4, device_id=1),
+                                 "registers", None) == want4, what="meter1 served at +200")
+        assert client.read_holding_registers(100, count=1, device_id=1).exception_code == 2
+        # another subscriber took the batch callback (as an MQTT publisher's detach
+        # leaves it): hooked in again, values keep following the slave
+        meter1 = next(d for d in gateway.devices.values() if d.code == "meter1")
+        meter1.driver.addresses_updated_callback = None
+        gateway.serving.apply(gateway.config.serve, {
+            d.code: (d.driver, d.cfg) for d in gateway.devices.values()}, rehook=True)
+        _peer.set_registers(1, "hr", 0, [4321])
+        wait_for(lambda: getattr(client.read_holding_registers(200, count=1, device_id=1),
+                                 "registers", None) == [4321], what="a new value served")
     finally:
         if client is not None:
             client.close()

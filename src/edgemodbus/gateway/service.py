@@ -107,10 +107,14 @@ class Gateway:
 
     def reload(self) -> None:
         """SIGHUP: the gateway file, then the device files (see gateway/__init__.py)."""
+        publisher = self.publisher
         self.reload_gateway()
         self.reload_devices()
         try:
-            for done in self.serving.apply(self.config.serve, self._served()):
+            # a new publisher took the drivers' batch callbacks (its detach restored what
+            # was under it): every unit hooks in again on top of it
+            for done in self.serving.apply(self.config.serve, self._served(),
+                                           rehook=self.publisher is not publisher):
                 log.info("serve: %s", done)
         except OSError as exc:
             log.error("serve: %s; the Modbus TCP server is off", exc)

@@ -10,7 +10,7 @@ from typing import Any
 
 from ..config import DeviceConfig
 from ..driver import DriverModbusRtu
-from ..serve import ModbusTcpServer, ServeSettings, unknown_devices
+from ..serve import ModbusTcpServer, ServeSettings, ServeUnit, unknown_devices
 
 log = logging.getLogger("edgemodbus.service")
 
@@ -22,13 +22,16 @@ class GatewayServer:
     def __init__(self) -> None:
         self.server: ModbusTcpServer | None = None
         self._key: dict[str, Any] | None = None  # what the server was made from
-        self._bound: dict[int, tuple[DriverModbusRtu, DeviceConfig]] = {}  # unit -> target
+        # unit id -> what it was bound with: its device's driver and config, its settings
+        self._bound: dict[int, tuple[DriverModbusRtu, DeviceConfig, ServeUnit]] = {}
 
     def apply(self, settings: ServeSettings | None,
-              devices: Mapping[str, tuple[DriverModbusRtu, DeviceConfig]]) -> list[str]:
+              devices: Mapping[str, tuple[DriverModbusRtu, DeviceConfig]],
+              rehook: bool = False) -> list[str]:
         """Bring the server in line with ``settings`` and ``devices`` (device code ->
-        its driver and config); what was done, in words.  Raises OSError when the server
-        cannot listen (the old one is stopped: serving is off)."""
+        its driver and config); what was done, in words.  ``rehook``: bind every unit
+        again (another subscriber replaced the drivers' batch callbacks).  Raises OSError
+        when the server cannot listen (the old one is stopped: serving is off)."""
         done: list[str] = []
         key = None
         if settings is not None and settings.enabled:
@@ -48,16 +51,17 @@ class GatewayServer:
             return done
         for problem in unknown_devices(settings, list(devices)):
             log.error("gateway file: %s; that unit answers exception 0A", problem)
-        wanted: dict[int, tuple[DriverModbusRtu, DeviceConfig]] = {}
+        wanted: dict[int, tuple[DriverModbusRtu, DeviceConfig, ServeUnit]] = {}
         for unit in settings.units:
             target = devices.get(unit.target)
             if target is None:
                 continue
             driver, cfg = target
             # a restarted device is a new driver, a changed address list a new config
-            wanted[unit.unit_id] = target
+            wanted[unit.unit_id] = (driver, cfg, unit)
             bound = self._bound.get(unit.unit_id)
-            if bound is not None and bound[0] is driver and bound[1] is cfg:
+            if (not rehook and bound is not None and bound[0] is driver and bound[1] is cfg
+                    and bound[2] == unit):
                 continue
             try:
                 if unit.device is not None:
