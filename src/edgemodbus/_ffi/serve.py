@@ -93,10 +93,12 @@ class ServerCore:
     def set_fresh(self, unit: int, until_ns: int) -> None:
         """Reads of ``unit`` after ``until_ns`` (``time.monotonic_ns``) get exception 0B."""
         with self._lock:
-            lib.emb_sv_unit_fresh(self._live(), unit, until_ns)
+            if self._ptr is not None:  # (a driver's callback racing close(): nothing to do)
+                lib.emb_sv_unit_fresh(self._ptr, unit, until_ns)
 
     def update(self, runs: Sequence[ImageRun]) -> None:
-        """Apply ``runs`` to the images in one C call (one lock of the server)."""
+        """Apply ``runs`` to the images in one C call (one lock of the server); nothing
+        once the server is closed."""
         if not runs:
             return
         ops = ffi.new("emb_sv_run_op[]", len(runs))
@@ -108,7 +110,8 @@ class ServerCore:
             values += run.values
         buf = ffi.new("uint16_t[]", values or [0])
         with self._lock:
-            lib.emb_sv_update(self._live(), ops, len(runs), buf)
+            if self._ptr is not None:  # (a driver's callback racing close(): nothing to do)
+                lib.emb_sv_update(self._ptr, ops, len(runs), buf)
 
     def post(self, conn: int, gen: int, kind: int, data: bytes) -> bool:
         """Answer the request of connection ``conn`` (generation ``gen``); False when the
