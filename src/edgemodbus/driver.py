@@ -275,6 +275,17 @@ class DriverModbusRtu:
             return False, prepared
         return _wait_write(prepared)
 
+    def submit_writes(self, items: Iterable[tuple[str, Any]]) -> Future[tuple[bool, str | None]]:
+        """:meth:`write_addresses` without waiting (the gateway's Modbus TCP server): the
+        future resolves to what it returns.  Raises at once, before anything is queued,
+        ``ValueError`` for an unknown item or a value its codec refuses, and
+        ``ModbusConnectionError`` when the device is not running.  Done-callbacks run on
+        the line's worker: keep them short."""
+        poller = self._poller
+        if poller is None:
+            raise ModbusConnectionError(f"{self._code(self._org)}: device is not running")
+        return poller.submit_writes(plan_writes(poller.by_name, list(items)))
+
     async def write_address_async(self, name: str, value: Any) -> tuple[bool, str | None]:
         return await self.write_addresses_async([(name, value)])
 

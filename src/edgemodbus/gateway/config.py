@@ -1,5 +1,5 @@
 """The gateway file: who this gateway is and where its data goes (``gatewayId``, ``mqtt``,
-``metrics``), loaded and checked; and what of it a reload compares."""
+``metrics``, ``serve``), loaded and checked; and what of it a reload compares."""
 
 from __future__ import annotations
 
@@ -12,6 +12,7 @@ from typing import Any, ClassVar
 from ..config import ConfigError, Model, Ms, Problem, load_model
 from ..northbound.metrics import MetricsSettings
 from ..northbound.mqtt import MqttSettings, check_name
+from ..serve import ServeSettings
 
 GATEWAY_FILE = "gateway.json"
 
@@ -24,6 +25,7 @@ class GatewayConfig(Model):
     gateway_id: str | None = None  # default: the host name
     mqtt: MqttSettings | None = None
     metrics: MetricsSettings | None = None
+    serve: ServeSettings | None = None  # the Modbus TCP server (edgemodbus/serve/)
     device_pattern: str = "*.json"
     status_check_interval: Ms = 500
 

@@ -22,6 +22,7 @@ from .config import (
     metrics_key,
     mqtt_key,
 )
+from .serving import GatewayServer
 
 if TYPE_CHECKING:
     from ..northbound.metrics import MetricsExporter
@@ -70,6 +71,7 @@ class Gateway:
         self.devices: dict[Path, ServiceDevice] = {}
         self.publisher: Publisher | None = None
         self.exporter: MetricsExporter | None = None
+        self.serving = GatewayServer()  # the Modbus TCP server (gateway file: serve)
         self._gateway_digest = gateway_digest(self.gateway_file, config)
 
     # -- lifecycle -------------------------------------------------------------------
@@ -83,9 +85,13 @@ class Gateway:
         if self.exporter is not None and self.publisher is not None:
             self.exporter.set_publisher(self.publisher)
         self.reload_devices()
+        for done in self.serving.apply(self.config.serve, self._served()):
+            log.info("serve: %s", done)
 
     def stop(self) -> None:
-        """Stop every device in parallel, then the publisher and the exporter."""
+        """Stop the Modbus TCP server, every device in parallel, then the publisher and
+        the exporter."""
+        self.serving.stop()
         devices = list(self.devices.values())
         self.devices.clear()
         threads = [threading.Thread(target=self._stop_device, args=(dev,),
@@ -103,8 +109,21 @@ class Gateway:
 
     def reload(self) -> None:
         """SIGHUP: the gateway file, then the device files (see gateway/__init__.py)."""
+        publisher = self.publisher
         self.reload_gateway()
         self.reload_devices()
+        try:
+            # a new publisher took the drivers' batch callbacks (its detach restored what
+            # was under it): every unit hooks in again on top of it
+            for done in self.serving.apply(self.config.serve, self._served(),
+                                           rehook=self.publisher is not publisher):
+                log.info("serve: %s", done)
+        except OSError as exc:
+            log.error("serve: %s; the Modbus TCP server is off", exc)
+
+    def _served(self) -> dict[str, tuple[DriverModbusRtu, DeviceConfig]]:
+        """What the ``serve`` units may name: device code -> driver and config."""
+        return {dev.code: (dev.driver, dev.cfg) for dev in self.devices.values()}
 
     # -- the gateway file ------------------------------------------------------------
     def reload_gateway(self) -> None:
