@@ -5,13 +5,13 @@
 PY      ?= python3
 VENV    := .venv
 BIN     := $(VENV)/bin
-DEB     := libmodbus-dev pkg-config socat mosquitto
+DEB     := libmodbus-dev pkg-config socat mosquitto mbpoll
 SUDO    := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 CSRC    := $(wildcard csrc/*.c csrc/*.h csrc/cdefs/*.h)
 PYTEST  := $(BIN)/python -m pytest
 QUICK   ?= 0
 
-.PHONY: all deps build demo test lint typecheck unit integration test-asan bench bench-quick fuzz fuzz-quick soak soak-listener clean
+.PHONY: all deps build demo test lint typecheck unit integration test-asan bench bench-quick fuzz fuzz-quick soak soak-listener proto clean
 
 all: test
 
@@ -116,6 +116,16 @@ SOAK_LISTENER_SECONDS ?= 20
 SOAK_LISTENER_ARGS    ?=
 soak-listener: build
 	$(BIN)/python tools/soak_listener.py --seconds $(SOAK_LISTENER_SECONDS) $(SOAK_LISTENER_ARGS)
+
+# The Sparkplug B payload classes, generated from the specification's schema and committed
+# (src/edgemodbus/northbound/sparkplug/sparkplug_b.proto): protoc 31.1 from grpcio-tools
+# 1.76.0 in a throw-away venv; its gencode needs the protobuf 6.x runtime (pyproject pins it).
+PROTO_DIR := src/edgemodbus/northbound/sparkplug
+proto:
+	$(PY) -m venv build/protoc-venv
+	build/protoc-venv/bin/python -m pip install -q grpcio-tools==1.76.0
+	cd $(PROTO_DIR) && $(CURDIR)/build/protoc-venv/bin/python -m grpc_tools.protoc \
+	  --proto_path=. --python_out=. --pyi_out=. sparkplug_b.proto
 
 clean:
 	rm -rf build build-asan dist *.egg-info src/*.egg-info .stamp-* src/edgemodbus/_native*

@@ -216,6 +216,7 @@ static int emb_step(emb_engine *e, emb_device *d)
         return -1;
     e->lc->rtt_ns += emb_now_ns() - start;
     e->lc->responses++;
+    b->read_ns = start; /* the data is no older than the request */
     d->c.responses++;
     b->reported = b->plan ? emb_decode(b->plan, data, (uint32_t)rc, d->mode) : 0;
     if (b->reported || b->keep)

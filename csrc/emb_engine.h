@@ -28,6 +28,7 @@ typedef struct emb_eblock {
     void *data;          /* the block's own buffer (kept for Python), NULL: the line's */
     int64_t period_ns;   /* the scan rate of its items */
     int64_t due_ns;      /* CLOCK_MONOTONIC of its next read */
+    int64_t read_ns;     /* CLOCK_MONOTONIC when its last good read was sent; 0: none */
     long reported;       /* the last decode's count (see emb_decode) */
     uint16_t start;
     uint16_t count;

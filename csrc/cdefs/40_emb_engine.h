@@ -12,6 +12,7 @@ typedef struct emb_eblock {
     void *data;
     int64_t period_ns;
     int64_t due_ns;
+    int64_t read_ns;
     long reported;
     uint16_t start;
     uint16_t count;

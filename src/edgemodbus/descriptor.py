@@ -7,7 +7,9 @@ separated by commas, a secret's default is never shown) and their UI labels in
 dataSource); ``addressParameter`` lists, the same way, the optional fields of an address
 item (:class:`~edgemodbus.config.DeviceAddressItem`) that have labels there
 (``ITEM_LABELS``: the item's scan rate, ``readCycle``).
-The address regex and examples come from :mod:`edgemodbus.protocol.address`.
+The address regex and examples come from :mod:`edgemodbus.protocol.address`;
+``presets`` lists the device templates on the search path (name, description, source:
+:mod:`edgemodbus.config.templates`), which a device file names with ``"template"``.
 """
 
 from __future__ import annotations
@@ -22,8 +24,17 @@ from pydantic.fields import FieldInfo
 
 from .config import Choice, DeviceAddressItem, DriverModbusRtuParameter, Parity, Range
 from .config.labels import ITEM_LABELS, LABELS
+from .config.templates import find_templates
 from .datatypes import Area, DataType
-from .protocol.address import address_regex, check_base, check_prefix, parse_address, type_number
+from .protocol.address import (
+    Address,
+    address_regex,
+    check_base,
+    check_prefix,
+    format_entity,
+    parse_address,
+    type_number,
+)
 
 DRIVER_TYPE = "DriverModbusRtu"
 
@@ -52,7 +63,8 @@ def driver_descriptor(prefix: str = "function-code", base: int = 0) -> dict[str,
         "description": "Modbus RTU driver (serial RTU, RTU over TCP, Modbus TCP)",
         "supportedDataTypes": [t.value for t in DataType],
         "addressRegex": address_regex(prefix, base),
-        "supportsPresets": False,
+        "supportsPresets": True,
+        "presets": [t.summary() for t in find_templates()],
         "allowManualAddress": True,
         "hasBuiltInAddresses": False,
         "supportsDynamicBrowse": False,
@@ -64,6 +76,8 @@ def driver_descriptor(prefix: str = "function-code", base: int = 0) -> dict[str,
 
 
 def _examples(prefix: str, base: int) -> dict[str, str]:
+    if prefix == "entity":
+        return _entity_examples(base)
     examples = {key: f"{type_number(area, prefix)}:00001" for key, area in EXAMPLE_KEYS.items()}
     for key, area in EXAMPLE_KEYS.items():  # the examples must parse to their area
         if parse_address(examples[key], prefix, base).area is not area:
@@ -78,6 +92,23 @@ def _examples(prefix: str, base: int) -> dict[str, str]:
         f"格式为 [<类型>:]<偏移>[.<位>],类型 {numbering}({scheme});"
         "也可写 coil/c、di/discreteinput、hr/holding、ir/input(不区分大小写),省略类型即 hr;"
         f"偏移为十进制 {offsets},可带前导零;.<位> (0..15) 仅用于 hr/ir 寄存器"
+    )
+    return examples
+
+
+def _entity_examples(base: int) -> dict[str, str]:
+    """addressPrefix entity: the first entity of each table, 6-digit form."""
+    examples = {key: format_entity(Address(area, 0)) for key, area in EXAMPLE_KEYS.items()}
+    for key, area in EXAMPLE_KEYS.items():  # the examples must parse to their area
+        if parse_address(examples[key], "entity", base) != Address(area, 0):
+            raise RuntimeError(f"address example {key} {examples[key]!r} is not a {area}")
+    typed = "0..65535,协议地址(0 基)" if base == 0 else "1..65536,1 基(addressBase 1)"
+    examples["note"] = (
+        "Modicon 实体编号:首位为表 0=Coil 1=Discrete Input 3=Input Register "
+        "4=Holding Register,其后为从 1 起的编号;五位 40001..49999 或六位 400001..465536"
+        "(40001 与 400001 均为保持寄存器 0),不足五位为线圈(1 即 00001);"
+        ".<位> (0..15) 仅用于 3/4 表;也可写 <类型>:<偏移>,类型按读功能码编号"
+        f"(3=Holding Register,4=Input Register),偏移 {typed}"
     )
     return examples
 

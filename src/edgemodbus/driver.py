@@ -217,6 +217,13 @@ class DriverModbusRtu:
         poller = self._poller or self._last_poller
         return len(poller.items) if poller is not None else 0
 
+    @property
+    def address_items(self) -> list[DeviceAddressItem]:
+        """The items in force (after ``update_addresses`` too): the objects whose value,
+        status and updateTs the line worker sets; for reading only.  [] before start."""
+        poller = self._poller or self._last_poller
+        return [state.item for state in poller.items] if poller is not None else []
+
     def read_plan(self) -> list[dict[str, Any]]:
         """The read blocks in force: area, start, count and the names of their items."""
         if self._poller is None:
@@ -267,6 +274,17 @@ class DriverModbusRtu:
         if isinstance(prepared, str):
             return False, prepared
         return _wait_write(prepared)
+
+    def submit_writes(self, items: Iterable[tuple[str, Any]]) -> Future[tuple[bool, str | None]]:
+        """:meth:`write_addresses` without waiting (the gateway's Modbus TCP server): the
+        future resolves to what it returns.  Raises at once, before anything is queued,
+        ``ValueError`` for an unknown item or a value its codec refuses, and
+        ``ModbusConnectionError`` when the device is not running.  Done-callbacks run on
+        the line's worker: keep them short."""
+        poller = self._poller
+        if poller is None:
+            raise ModbusConnectionError(f"{self._code(self._org)}: device is not running")
+        return poller.submit_writes(plan_writes(poller.by_name, list(items)))
 
     async def write_address_async(self, name: str, value: Any) -> tuple[bool, str | None]:
         return await self.write_addresses_async([(name, value)])

@@ -86,11 +86,13 @@ class LineStats(RequestStats):
     rtt_total: float = 0.0
     # gateway forward mode (line/forward.py): requests forwarded, and how many of them
     # timed out, got an exception reply (passed through), or failed otherwise (a bad
-    # reply, the link lost); they count in the counters above too, as every request
+    # reply, the link lost); they count in the counters above too, as every request.
+    # Reads answered by coalescing never reach the line and count only in the last one.
     forwarded: int = 0
     forward_timeouts: int = 0
     forward_exceptions: int = 0
     forward_errors: int = 0
+    forward_coalesced: int = 0  # forwarded reads answered from a fresh polled block
 
     def as_dict(self) -> dict[str, Any]:
         native = self.native()
@@ -110,6 +112,7 @@ class LineStats(RequestStats):
             "forwardTimeouts": self.forward_timeouts,
             "forwardExceptions": self.forward_exceptions,
             "forwardErrors": self.forward_errors,
+            "forwardCoalesced": self.forward_coalesced,
         }
 
 

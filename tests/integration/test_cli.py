@@ -195,12 +195,13 @@ def test_floats_print_so_that_they_read_back_exactly(tmp_path: Path) -> None:
                           for i, r in enumerate(_f32_registers(v, "CDAB"))}}}
     with PymodbusSlave("rtu-over-tcp", units=(2,), initial=initial) as slave:
         base = ["--host", "127.0.0.1", "--port", str(slave.port), "--slave", "2",
-                "--type", "Float", "--format", "CDAB"]
+                "--type", "Float", "--format", "CDAB", "--timeout", "5000"]  # a loaded CI
         for address, value in values.items():
             out = cli("read", *base, f"hr:{address}")
             assert out.returncode == 0, out.stderr
             assert _same(float(out.stdout), _f32(value)), (value, out.stdout)
         out = cli("read", *base, "hr:110")
+        assert out.returncode == 0, out.stderr
         assert out.stdout.strip() == "inf"
         device = tmp_path / "floats.json"
         device.write_text(json.dumps({

@@ -173,6 +173,6 @@ def test_a_batch_topic_that_is_a_command_topic_is_refused() -> None:
         pub.check_item_names("dev1", ["a+b", "set", "$status"])
     finally:
         pub.stop()
-    with pytest.raises(ValueError, match=r"mqtt.mode 'sparkplug': must be 'per-item' or "
-                                         r"'batch'"):
-        MqttPublisher({"mode": "sparkplug"})
+    with pytest.raises(ValueError, match=r"mqtt.mode 'bulk': must be 'per-item', 'batch' or "
+                                         r"'sparkplug'"):
+        MqttPublisher({"mode": "bulk"})

@@ -417,6 +417,39 @@ def run_scan(argv: tuple[str, ...], tmp: Path) -> None:
     assert [(f["setting"], f["slaveId"]) for f in doc["found"]] == [("tcp", 1)]
 
 
+def run_templates(argv: tuple[str, ...], tmp: Path) -> None:
+    """``templates``: lists the shipped templates with their source documents."""
+    out = run(list(argv))
+    assert out.returncode == 0, out.stderr
+    for name in ("eastron-sdm120", "eastron-sdm630", "xy-md02", "waveshare-relay-d-8ch"):
+        assert f"\n{name}: " in f"\n{out.stdout}", (name, out.stdout)
+    assert "  source: Eastron Electronic Co., Ltd., SDM120 Modbus protocol" in out.stdout
+
+
+KEPWARE_CSV = (
+    '"Tag Name","Address","Data Type","Respect Data Type","Client Access","Scan Rate",'
+    '"Scaling","Raw Low","Raw High","Scaled Low","Scaled High","Scaled Data Type",'
+    '"Clamp Low","Clamp High","Eng Units","Description"\n'
+    '"Level","400001","Word",1,RO,1000,"Linear",0,1000,0,100,"Float",0,0,"%","Tank level"\n'
+    '"Pump","000017","Boolean",1,R/W,250,"None",,,,,,0,0,,\n'
+)
+
+
+def run_import(argv: tuple[str, ...], tmp: Path) -> None:
+    """``import tags.csv -o tank.json``: a Kepware export (written here) becomes a device
+    file that loads back."""
+    csv_file, out_file = tmp / "tags.csv", tmp / "tank.json"
+    csv_file.write_text(KEPWARE_CSV, encoding="utf-8")
+    words = [str(csv_file) if w.endswith(".csv") else str(out_file) if w.endswith(".json")
+             else w for w in argv]
+    out = run(words)
+    assert out.returncode == 0, out.stderr
+    assert "kepware form, 2 rows converted, 0 refused" in out.stderr
+    cfg = em.load_device_config(out_file)
+    assert [(i.name, i.address, i.data_multiplier, i.read_cycle) for i in cfg.address_list] \
+        == [("Level", "hr:0", 0.1, 1000), ("Pump", "coil:16", 1.0, 250)]
+
+
 Runner = Callable[[tuple[str, ...], Path], None]
 RUNNERS: dict[tuple[str, ...], Runner] = {
     ("edgemodbus", "demo"): run_demo,
@@ -428,6 +461,8 @@ RUNNERS: dict[tuple[str, ...], Runner] = {
     ("edgemodbus", "descriptor"): run_descriptor,
     ("edgemodbus", "action"): run_action,
     ("edgemodbus", "scan"): run_scan,
+    ("edgemodbus", "templates"): run_templates,
+    ("edgemodbus", "import"): run_import,
     ("python", "-m", "edgemodbus.gateway"): run_service,
 }
 

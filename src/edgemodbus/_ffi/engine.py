@@ -56,7 +56,9 @@ class EngineDevice:
     Owned by a poller; touched by its line's worker only (and never while the engine
     runs, which is on that same thread)."""
 
-    def __init__(self, slave: int, timeout: float, report_all: bool, cycle: float) -> None:
+    def __init__(self, slave: int, timeout: float, report_all: bool, cycle: float,
+                 coalesce: float = 0.0) -> None:
+        self.coalesce = coalesce  # > 0: every block keeps its last read, this long fresh
         self._dev = ffi.new("emb_device *")
         dev = self._dev
         dev.slave = slave
@@ -67,6 +69,10 @@ class EngineDevice:
         self._specs: list[BlockSpec] = []
         self._buffers: list[Block | None] = []
         self.set_blocks([])
+
+    @property
+    def slave(self) -> int:
+        return int(self._dev.slave)
 
     # -- the plan ---------------------------------------------------------------------
     def set_blocks(self, specs: Sequence[BlockSpec], dues: Sequence[float] | None = None) -> None:
@@ -82,11 +88,11 @@ class EngineDevice:
             b.period_ns = _ns(spec.period)
             b.plan = spec.plan._plan if spec.plan is not None else ffi.NULL
             buf = None
-            if spec.keep:
+            if spec.keep or self.coalesce > 0:
                 bits = spec.function <= 2
                 buf = Block(ffi.new("uint8_t[]" if bits else "uint16_t[]", spec.size), bits)
                 b.data = buf._ptr
-                b.keep = 1
+                b.keep = spec.keep
             buffers.append(buf)
         self._blocks = blocks
         self._pass = ffi.new("uint32_t[]", max(n, 1))
@@ -213,6 +219,24 @@ class EngineDevice:
         if buf is not None:
             buf.count = self._specs[block].size
         return buf
+
+    def cached(self, function: int, start: int, count: int, since: float) -> list[int] | None:
+        """The values (registers, or bits as 0/1) at ``start..start+count`` of function
+        ``function`` from a block of this device read (its request sent) at or after
+        ``since`` and within :attr:`coalesce` seconds (``time.monotonic()``), or None when
+        no such block holds them all.  The worker's thread only."""
+        if self.coalesce <= 0:
+            return None
+        since_ns = max(_ns(since), lib.emb_now_ns() - _ns(self.coalesce))
+        for k, spec in enumerate(self._specs):
+            buf = self._buffers[k]
+            if (buf is None or spec.function != function or start < spec.start
+                    or start + count > spec.start + spec.size):
+                continue
+            read_ns = int(self._blocks[k].read_ns)
+            if read_ns and read_ns >= since_ns:
+                return list(ffi.unpack(buf._ptr + (start - spec.start), count))
+        return None
 
     def due_of(self, block: int) -> float:
         return _seconds(int(self._blocks[block].due_ns))

@@ -1,5 +1,5 @@
 """The ``edgemodbus`` command: demo, run, read, write, plan, simulate, descriptor, action,
-scan.
+scan, templates, import.
 
 Errors are one line per problem on stderr and a non-zero exit code.  Values print so that
 they read back exactly: a float as its shortest round-trip form (``repr``; ``nan``,
@@ -37,7 +37,9 @@ from ..protocol.address import parse_address
 from ..sim.cli import DESCRIPTION as SIMULATOR
 from ..sim.cli import add_arguments as add_simulator_arguments
 from . import action as action_command
+from . import import_tags as import_command
 from . import scan as scan_command
+from . import templates as templates_command
 from .output import CliError, emit, json_line, one_line, print_json, problem_lines, value_text
 
 DEMO_FILE = Path(__file__).resolve().parent.parent / "demo-device.json"  # examples/ links here
@@ -151,13 +153,26 @@ def build_parser() -> argparse.ArgumentParser:
     act.set_defaults(func=action_command.run)
 
     desc = sub.add_parser("descriptor", help="print the driver descriptor JSON")
-    desc.add_argument("--prefix", choices=["function-code", "modicon"], default="function-code")
+    desc.add_argument("--prefix", choices=["function-code", "modicon", "entity"],
+                      default="function-code")
     desc.set_defaults(func=lambda a: print_json(driver_descriptor(a.prefix)))
 
     scan = sub.add_parser("scan", help="find what answers on a line (settings, slave ids)",
                           description=scan_command.__doc__,
                           formatter_class=argparse.RawDescriptionHelpFormatter)
     scan_command.add_arguments(scan)
+
+    tpl = sub.add_parser("templates", help="list the device templates (or show one)",
+                         description=templates_command.__doc__,
+                         formatter_class=argparse.RawDescriptionHelpFormatter)
+    templates_command.add_arguments(tpl)
+    tpl.set_defaults(func=templates_command.run)
+
+    imp = sub.add_parser("import", help="turn a tag list (Kepware CSV export, or generic "
+                         "CSV) into a device file", description=import_command.__doc__,
+                         formatter_class=argparse.RawDescriptionHelpFormatter)
+    import_command.add_arguments(imp)
+    imp.set_defaults(func=import_command.run)
     return parser
 
 

@@ -46,7 +46,7 @@ from .secret import Secret
 Transport = Literal["rtu-over-tcp-server", "rtu", "rtu-over-tcp", "tcp"]
 Framing = Literal["rtu", "wrapped-report"]
 Registration = Literal["none", "text", "hex", "regex"]
-AddressPrefixOption = Literal["function-code", "modicon"]
+AddressPrefixOption = Literal["function-code", "modicon", "entity"]
 ReportMode = Literal["change", "cycle"]
 Rs485Mode = Literal["none", "kernel", "rts-up", "rts-down"]
 DuplicateId = Literal["keep-existing", "replace"]
@@ -296,8 +296,10 @@ class DriverModbusRtuParameter(Model):
     )
     address_prefix: AddressPrefixOption = Field(
         default="function-code",
-        description="Numeric address types: function-code (3=holding, 4=input) or modicon "
-        "(3=input, 4=holding)",
+        description="Numeric address types: function-code (3=holding, 4=input), modicon "
+        "(3=input, 4=holding), or entity: Modicon entity numbers (40001 or 400001 = "
+        "holding register 0, 30001 input, 10001 discrete input, 00001 coil; typed "
+        "addresses such as hr:0 as under function-code)",
     )
     address_base: Annotated[int, Choice((0, 1))] = Field(
         default=0,
@@ -310,6 +312,12 @@ class DriverModbusRtuParameter(Model):
     request_interval: Annotated[int, Range(0, MAX_MS)] = Field(
         default=0,
         description="Silence kept between two requests on the line (ms)",
+    )
+    forward_coalesce: Annotated[int, Range(0, MAX_MS)] = Field(
+        default=0,
+        description="Gateway forward mode: a forwarded read that a block of this device "
+        "read within this many ms covers is answered from that block, with no line "
+        "traffic (ms); 0 = off (every forwarded read goes to the slave)",
     )
     settle_timeout: Annotated[int | None, Range(0, MAX_MS)] = Field(
         default=None,

@@ -16,6 +16,7 @@ from .communication import DriverModbusRtuParameter
 from .compat import NG_DEVICE_KEYS, iso_timestamp, ng_device
 from .items import DeviceAddressItem, ParsedItem, validate_items
 from .problems import ConfigError
+from .templates import apply_template, device_loading
 
 
 class DeviceOrganizationParameter(Model):
@@ -89,6 +90,11 @@ class DeviceConfig(Model):
     _extra_keys: ClassVar[tuple[str, ...]] = NG_DEVICE_KEYS
 
     driver_type: str = "DriverModbusRtu"
+    template: str | None = Field(
+        default=None, description="The device template applied (config/templates.py)")
+    template_dirs: list[str] = Field(
+        default_factory=list,
+        description="Folders searched for templates first (relative to the device file)")
     organization: DeviceOrganizationParameter = Field(default_factory=DeviceOrganizationParameter)
     communication: DriverModbusRtuParameter = Field(default_factory=DriverModbusRtuParameter)
     address_list: list[DeviceAddressItem] = Field(default_factory=list)
@@ -107,6 +113,7 @@ class DeviceConfig(Model):
         ):
             if isinstance(data.get(key), Mapping):
                 data[key] = model.normalize_keys(data[key], key, key)
+        data = apply_template(data)
         items = data.get("addressList")
         if isinstance(items, list):
             data["addressList"] = [
@@ -138,8 +145,11 @@ class DeviceConfig(Model):
 
 
 def load_device_config(source: str | os.PathLike[str] | Mapping[str, Any]) -> DeviceConfig:
-    """Load a device file: a path, a str of JSON text, or a dict.  Raises ConfigError."""
-    return load_model(DeviceConfig, source)
+    """Load a device file: a path, a str of JSON text, or a dict.  Raises ConfigError.
+    A ``template`` is applied (templates.py; ``templateDirs`` are relative to the
+    file's folder)."""
+    with device_loading(source):
+        return load_model(DeviceConfig, source)
 
 
 def load_communication(

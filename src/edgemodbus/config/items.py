@@ -20,7 +20,7 @@ from pydantic import Field, field_serializer, field_validator, model_validator
 
 from ..codec import MAX_QUANTITY, SMART_CAST_TYPES, ValueSpec, check_spec, smart_cast
 from ..datatypes import Area, DataFormat, DataType, ItemStatus
-from ..protocol.address import Address, check_span, parse_address
+from ..protocol.address import ENTITY_TABLES, Address, check_span, parse_address
 from .base import (
     MS_RANGE,
     READ_CYCLE_RANGE,
@@ -123,7 +123,11 @@ class DeviceAddressItem(SlotModel):
             try:
                 parse_address(value, base=1)
             except ValueError:
-                raise ValueError(_strip_echo(value, exc)) from None
+                if not _entity_like(value):
+                    raise ValueError(_strip_echo(value, exc)) from None
+            # a bare number: an entity number under addressPrefix entity, whose own
+            # message (its table's range) validate_items gives with the options
+        return value
         return value
 
     @field_validator("device_data_type", mode="before")
@@ -170,6 +174,14 @@ class DeviceAddressItem(SlotModel):
     @field_serializer("converted_data_type")
     def _ser_converted(self, value: DataType | None) -> str:
         return "" if value is None else value.value
+
+
+def _entity_like(text: str) -> bool:
+    """A bare decimal number of at most 6 digits whose first is a table digit, with or
+    without ``.bit``: the shape of an entity number (its range is checked later)."""
+    number, _, bit = text.strip().partition(".")
+    return (number.isascii() and number.isdigit() and len(number) <= 6
+            and number.zfill(5)[0] in ENTITY_TABLES and (not bit or bit.isdigit()))
 
 
 def _strip_echo(text: str, exc: ValueError) -> str:
@@ -331,9 +343,8 @@ def validate_items(
         try:
             addr = parse_address(item.address, comm.address_prefix, comm.address_base)
         except ValueError as exc:
-            problems.append(
-                Problem(f"{path}.address", item.address, _strip_echo(item.address, exc))
-            )
+            problems.append(Problem(f"{path}.address", item.address,
+                                    _strip_echo(item.address, exc) + _entity_hint(item, comm)))
             continue
         registers = _item_registers(item, addr, path, problems)
         try:
@@ -380,6 +391,17 @@ def validate_items(
 
 
 _ITEM_CHECKS = field_checks(DeviceAddressItem)
+
+
+def _entity_hint(item: DeviceAddressItem, comm: DriverModbusRtuParameter) -> str:
+    """A hint when an address the options refuse is a Modicon entity number."""
+    if comm.address_prefix == "entity" or ":" in item.address:
+        return ""
+    try:
+        addr = parse_address(item.address, "entity")
+    except ValueError:
+        return ""
+    return f" (with addressPrefix 'entity' it is the entity number of {addr})"
 
 
 def _codec_problem(

@@ -110,6 +110,7 @@ LABELS: dict[str, dict[str, Any]] = {
     "address_base": _ui("地址起始", "Advanced", "select"),
     "retries": _ui("重试次数", "Advanced", "number"),
     "request_interval": _ui("请求间隔(ms)", "Advanced", "number"),
+    "forward_coalesce": _ui("转发读合并时效(ms)", "Advanced", "number"),
     "settle_timeout": _ui("超时后静默(ms)", "Advanced", "number"),
     "offline_after_failed_cycles": _ui("离线判定周期数", "Advanced", "number"),
     "max_backoff": _ui("最大退避(ms)", "Advanced", "number"),

@@ -1,5 +1,5 @@
 """The gateway file: who this gateway is and where its data goes (``gatewayId``, ``mqtt``,
-``metrics``), loaded and checked; and what of it a reload compares."""
+``metrics``, ``serve``), loaded and checked; and what of it a reload compares."""
 
 from __future__ import annotations
 
@@ -12,6 +12,7 @@ from typing import Any, ClassVar
 from ..config import ConfigError, Model, Ms, Problem, load_model
 from ..northbound.metrics import MetricsSettings
 from ..northbound.mqtt import MqttSettings, check_name
+from ..serve import ServeSettings
 
 GATEWAY_FILE = "gateway.json"
 
@@ -24,6 +25,7 @@ class GatewayConfig(Model):
     gateway_id: str | None = None  # default: the host name
     mqtt: MqttSettings | None = None
     metrics: MetricsSettings | None = None
+    serve: ServeSettings | None = None  # the Modbus TCP server (edgemodbus/serve/)
     device_pattern: str = "*.json"
     status_check_interval: Ms = 500
 
@@ -36,7 +38,8 @@ def load_gateway_config(path: str | os.PathLike[str] | dict[str, Any]) -> Gatewa
     """Load and check a gateway file; ConfigError names the field, value and rule.
 
     The TLS files of an enabled ``mqtt.tls`` must exist and hold PEM data (checked here,
-    so a bad path is reported before anything connects); relative paths are taken from
+    so a bad path is reported before anything connects), and so must the folder of
+    ``mqtt.storeAndForward.path``; relative paths are taken from
     the gateway file's folder."""
     cfg = load_model(GatewayConfig, path)
     mqtt = cfg.mqtt
@@ -47,14 +50,31 @@ def load_gateway_config(path: str | os.PathLike[str] | dict[str, Any]) -> Gatewa
         check_name("gatewayId", cfg.effective_id)
     except ValueError as exc:
         problems.append(Problem("gatewayId", cfg.effective_id, str(exc)))
+    folder = None  # relative paths are taken from the gateway file's folder
+    if isinstance(path, os.PathLike) or (
+            isinstance(path, str) and not path.lstrip("\ufeff \t\r\n").startswith(("{", "["))):
+        folder = Path(path).absolute().parent
     if mqtt.tls is not None and mqtt.tls.enabled:
         tls = mqtt.tls
-        if isinstance(path, os.PathLike) or (
-                isinstance(path, str)
-                and not path.lstrip("\ufeff \t\r\n").startswith(("{", "["))):
-            tls = tls.resolved(Path(path).absolute().parent)
-            cfg = cfg.model_copy(update={"mqtt": mqtt.model_copy(update={"tls": tls})})
+        if folder is not None:
+            tls = tls.resolved(folder)
+            mqtt = mqtt.model_copy(update={"tls": tls})
+            cfg = cfg.model_copy(update={"mqtt": mqtt})
         problems += tls.problems()
+    sparkplug = mqtt.sparkplug
+    if mqtt.mode == "sparkplug" and sparkplug is not None:
+        if folder is not None:
+            sparkplug = sparkplug.resolved(folder)
+            mqtt = mqtt.model_copy(update={"sparkplug": sparkplug})
+            cfg = cfg.model_copy(update={"mqtt": mqtt})
+        problems += sparkplug.problems()
+    spool = mqtt.store_and_forward
+    if spool is not None:
+        if folder is not None:
+            spool = spool.resolved(folder)
+            mqtt = mqtt.model_copy(update={"store_and_forward": spool})
+            cfg = cfg.model_copy(update={"mqtt": mqtt})
+        problems += spool.problems()
     if problems:
         raise ConfigError(problems)
     return cfg

@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from ..config import ConfigError, DeviceConfig, DriverModbusRtuParameter, load_device_config
+from ..config.templates import template_bytes
 from ..driver import DriverModbusRtu
 from .config import (
     GATEWAY_FILE,
@@ -21,10 +22,14 @@ from .config import (
     metrics_key,
     mqtt_key,
 )
+from .serving import GatewayServer
 
 if TYPE_CHECKING:
     from ..northbound.metrics import MetricsExporter
-    from ..northbound.mqtt import MqttPublisher
+    from ..northbound.mqtt import MqttPublisher, MqttSettings
+    from ..northbound.sparkplug.publisher import SparkplugPublisher
+
+    Publisher = MqttPublisher | SparkplugPublisher
 
 log = logging.getLogger("edgemodbus.service")
 
@@ -64,26 +69,29 @@ class Gateway:
         self.gateway_file = (gateway_file or config_dir / GATEWAY_FILE).resolve()
         self.gateway_id = config.effective_id
         self.devices: dict[Path, ServiceDevice] = {}
-        self.publisher: MqttPublisher | None = None
+        self.publisher: Publisher | None = None
         self.exporter: MetricsExporter | None = None
+        self.serving = GatewayServer()  # the Modbus TCP server (gateway file: serve)
         self._gateway_digest = gateway_digest(self.gateway_file, config)
 
     # -- lifecycle -------------------------------------------------------------------
     def start(self) -> None:
         mqtt = self.config.mqtt
         if mqtt is not None and mqtt.enabled:
-            from ..northbound.mqtt import MqttPublisher
-
-            self.publisher = MqttPublisher(mqtt, gateway_id=self.gateway_id).start()
-            log.info("MQTT: gateway %s publishing to %s:%d", self.gateway_id, mqtt.host,
-                     mqtt.port)
+            self.publisher = make_publisher(mqtt, self.gateway_id).start()
+            log.info("MQTT: gateway %s publishing to %s:%d (%s)", self.gateway_id, mqtt.host,
+                     mqtt.port, mqtt.mode)
         self.exporter = _start_exporter(self.config)
         if self.exporter is not None and self.publisher is not None:
             self.exporter.set_publisher(self.publisher)
         self.reload_devices()
+        for done in self.serving.apply(self.config.serve, self._served()):
+            log.info("serve: %s", done)
 
     def stop(self) -> None:
-        """Stop every device in parallel, then the publisher and the exporter."""
+        """Stop the Modbus TCP server, every device in parallel, then the publisher and
+        the exporter."""
+        self.serving.stop()
         devices = list(self.devices.values())
         self.devices.clear()
         threads = [threading.Thread(target=self._stop_device, args=(dev,),
@@ -101,8 +109,21 @@ class Gateway:
 
     def reload(self) -> None:
         """SIGHUP: the gateway file, then the device files (see gateway/__init__.py)."""
+        publisher = self.publisher
         self.reload_gateway()
         self.reload_devices()
+        try:
+            # a new publisher took the drivers' batch callbacks (its detach restored what
+            # was under it): every unit hooks in again on top of it
+            for done in self.serving.apply(self.config.serve, self._served(),
+                                           rehook=self.publisher is not publisher):
+                log.info("serve: %s", done)
+        except OSError as exc:
+            log.error("serve: %s; the Modbus TCP server is off", exc)
+
+    def _served(self) -> dict[str, tuple[DriverModbusRtu, DeviceConfig]]:
+        """What the ``serve`` units may name: device code -> driver and config."""
+        return {dev.code: (dev.driver, dev.cfg) for dev in self.devices.values()}
 
     # -- the gateway file ------------------------------------------------------------
     def reload_gateway(self) -> None:
@@ -139,12 +160,10 @@ class Gateway:
         (ValueError, OSError) with nothing changed when they cannot be applied."""
         old = self.config
         done: list[str] = []
-        publisher: MqttPublisher | None = None
+        publisher: Publisher | None = None
         mqtt_changed = mqtt_key(old) != mqtt_key(new)
         if mqtt_changed and new.mqtt is not None and new.mqtt.enabled:
-            from ..northbound.mqtt import MqttPublisher
-
-            publisher = MqttPublisher(new.mqtt, gateway_id=new.effective_id)
+            publisher = make_publisher(new.mqtt, new.effective_id)
             try:
                 for dev in self.devices.values():
                     publisher.check_item_names(dev.code,
@@ -205,7 +224,7 @@ class Gateway:
             exporter.set_publisher(self.publisher)
         self.exporter = exporter
 
-    def _swap_publisher(self, new: MqttPublisher | None) -> None:
+    def _swap_publisher(self, new: Publisher | None) -> None:
         """Move every device from the running publisher to ``new`` (not yet started):
         each is detached and re-attached at once, so updates of the moment go to one of
         the two; then the old one flushes and says offline, and the new one connects."""
@@ -353,8 +372,20 @@ class Gateway:
                 dev.status = status
 
 
+def make_publisher(mqtt: MqttSettings, gateway_id: str) -> Publisher:
+    """The publisher ``mqtt.mode`` asks for (not started): per-item MQTT or Sparkplug B."""
+    if mqtt.mode == "sparkplug":
+        from ..northbound.sparkplug.publisher import SparkplugPublisher
+
+        return SparkplugPublisher(mqtt, gateway_id=gateway_id)
+    from ..northbound.mqtt import MqttPublisher
+
+    return MqttPublisher(mqtt, gateway_id=gateway_id)
+
+
 def _digest(path: Path) -> str:
-    return hashlib.sha256(path.read_bytes()).hexdigest()
+    """The device file's digest, with the template it names (a changed template reloads)."""
+    return hashlib.sha256(path.read_bytes() + template_bytes(path)).hexdigest()
 
 
 def _start_exporter(config: GatewayConfig) -> MetricsExporter | None:

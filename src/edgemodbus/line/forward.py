@@ -20,24 +20,30 @@ from collections.abc import Callable
 from concurrent.futures import Future, InvalidStateError
 
 from ..errors import ModbusError, ModbusExceptionResponse, ModbusTimeoutError
-from ..protocol.forward import check_reply, check_request
+from ..protocol.forward import check_reply, check_request, read_reply, read_span
 from .link import Link
 
-Submit = Callable[[Callable[[Link], bytes]], "Future[bytes]"]
+#: ``submit(job, reads)``: the worker's queue; ``reads``: the job changes nothing on a slave
+Submit = Callable[[Callable[[Link], bytes], bool], "Future[bytes]"]
+#: ``cached(slave, function, address, quantity)``: values a fresh polled block holds, or None
+Cached = Callable[[int, int, int, int], "list[int] | None"]
 
 
-def forward_future(submit: Submit, slave: int, pdu: bytes, timeout: float) -> Future[bytes]:
+def forward_future(submit: Submit, slave: int, pdu: bytes, timeout: float,
+                   cached: Cached | None = None) -> Future[bytes]:
     """Queue the forward of ``pdu`` to ``slave`` with ``submit`` (the line worker's) and
     return its future, which fails as soon as the transaction failed: a timeout is
     answered after ``timeout``, not after the settle that follows it on the line.
     Cancelling the future before the worker took the job leaves the line untouched.
+    ``cached`` (read coalescing): asked on the worker first for a read's values.
     Raises as :func:`forward_job` does, before anything is queued."""
     result: Future[bytes] = Future()
 
     def early(exc: ModbusError) -> None:
         _resolve(result, None, exc)
 
-    job = submit(forward_job(slave, pdu, timeout, early))
+    job = submit(forward_job(slave, pdu, timeout, early, cached),
+                 read_span(pdu) is not None)
     job.add_done_callback(lambda done: _resolve(
         result, None if done.cancelled() or done.exception() else done.result(),
         None if done.cancelled() else done.exception()))
@@ -61,9 +67,11 @@ def _resolve(future: Future[bytes], value: bytes | None, exc: BaseException | No
 
 
 def forward_job(slave: int, pdu: bytes, timeout: float,
-                early: Callable[[ModbusError], None] | None = None) -> Callable[[Link], bytes]:
+                early: Callable[[ModbusError], None] | None = None,
+                cached: Cached | None = None) -> Callable[[Link], bytes]:
     """The worker job forwarding ``pdu`` to ``slave``, whose reply must come within
     ``timeout`` seconds; ``early`` is told of a failure before the line is cleaned up.
+    A read that ``cached`` answers is replied from those values, with no line traffic.
     Raises here, before anything is queued: a
     :class:`~edgemodbus.protocol.forward.ForwardRequestError` for a PDU that is not
     forwarded, a ``ValueError`` for slave 0 (a broadcast gets no reply to pass back) or
@@ -75,7 +83,19 @@ def forward_job(slave: int, pdu: bytes, timeout: float,
                          "reply and is not forwarded)")
     if not (math.isfinite(timeout) and timeout > 0):
         raise ValueError(f"forward timeout {timeout!r}: must be a positive number of seconds")
-    return lambda link: forward_on(link, slave, pdu, timeout, early)
+    span = read_span(pdu) if cached is not None else None
+    if cached is None or span is None:
+        return lambda link: forward_on(link, slave, pdu, timeout, early)
+    fetch = cached
+
+    def job(link: Link) -> bytes:
+        values = fetch(slave, *span)
+        if values is None:
+            return forward_on(link, slave, pdu, timeout, early)
+        link.stats.forward_coalesced += 1
+        return read_reply(span[0], values)
+
+    return job
 
 
 def forward_on(link: Link, slave: int, pdu: bytes, timeout: float,

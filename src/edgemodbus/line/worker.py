@@ -102,6 +102,7 @@ class Connector(Protocol):
 class _Job:
     fn: Callable[[Link], Any]
     future: Future[Any]
+    reads: bool = False  # changes nothing on a slave (read coalescing keeps its data)
 
 
 _STOP = object()
@@ -129,6 +130,7 @@ class LineWorker:
         self.link_up = False
         self.last_link_error: str | None = None
         self._waker = Waker()  # interrupts the engine when a job is queued
+        self._changed = 0.0  # monotonic end of the last job that may have written a slave
 
     # -- lifecycle -------------------------------------------------------------------
     def start(self) -> None:
@@ -204,15 +206,16 @@ class LineWorker:
         self._post(None)
 
     # -- requests from any thread ------------------------------------------------------
-    def submit(self, fn: Callable[[Link], T]) -> Future[T]:
-        """Run ``fn(link)`` on the worker, before the next poll step."""
+    def submit(self, fn: Callable[[Link], T], reads: bool = False) -> Future[T]:
+        """Run ``fn(link)`` on the worker, before the next poll step.  ``reads``: the
+        job only reads, so the data of blocks polled before it still holds."""
         future: Future[T] = Future()
         if self._stopping.is_set() or self._thread is None:
             future.set_exception(
                 ModbusConnectionError(f"line {self.endpoint.describe()} is not running")
             )
             return future
-        self._post(_Job(fn, future))
+        self._post(_Job(fn, future, reads))
         return future
 
     def _post(self, item: Any) -> None:
@@ -221,7 +224,8 @@ class LineWorker:
 
     def read(self, slave: int, area: Area, address: int, count: int) -> Future[list[int]]:
         """Read registers (ints) or bits (0/1 ints) from one slave."""
-        return self.submit(lambda link: link.read(slave, area, address, count).to_list())
+        return self.submit(lambda link: link.read(slave, area, address, count).to_list(),
+                           reads=True)
 
     def write_coil(self, slave: int, address: int, value: bool) -> Future[None]:
         return self.submit(lambda link: link.write_coil(slave, address, value))
@@ -248,7 +252,19 @@ class LineWorker:
         :mod:`edgemodbus.line.forward`, which raises here for a PDU that is not
         forwarded).  ``timeout``: default the line's response timeout."""
         wait = self.timing.response_timeout if timeout is None else timeout
-        return forward_future(self.submit, slave, pdu, wait)
+        return forward_future(self.submit, slave, pdu, wait, self._cached)
+
+    def _cached(self, slave: int, function: int, address: int, count: int) -> list[int] | None:
+        """Read coalescing (worker thread): the values a block of a device polling
+        ``slave`` read since the last job that may have written, within that device's
+        ``forwardCoalesce`` age; None if no such block covers the span."""
+        for poller in self._pollers:
+            device = poller.device
+            if device.slave == slave:
+                values = device.cached(function, address, count, self._changed)
+                if values is not None:
+                    return values
+        return None
 
     # -- the worker ------------------------------------------------------------------
     def _run(self) -> None:
@@ -378,6 +394,9 @@ class LineWorker:
             job.future.set_exception(exc)
         else:
             job.future.set_result(result)
+        finally:
+            if not job.reads:
+                self._changed = time.monotonic()
         link.flush_reports()
 
     def _serve_queue_while_down(self, until: float) -> None:

@@ -76,6 +76,8 @@ LINE_COUNTERS: tuple[tuple[str, str, str], ...] = (
      "Forwarded requests answered with an exception reply (passed through)"),
     ("forwardErrors", "line_forward_errors",
      "Forwarded requests that failed otherwise (bad reply, link lost)"),
+    ("forwardCoalesced", "line_forward_coalesced",
+     "Forwarded reads answered from a fresh polled block (no line traffic)"),
 )
 MQTT_COUNTERS: tuple[tuple[str, str, str], ...] = (
     ("connects", "mqtt_connects", "Connections to the MQTT broker"),

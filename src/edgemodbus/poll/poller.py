@@ -78,7 +78,8 @@ class Poller(FaultPolicy):
         self.slots: list[Slot] = []  # in plan order: slot k is the device's block k
         self._assemblies: dict[ItemState, Assembly] = {}
         self._owner: dict[ItemState, Slot | Assembly] = {}  # what decodes each item
-        self.device = EngineDevice(self.slave, self.timeout, self.report_all, 0.0)
+        self.device = EngineDevice(self.slave, self.timeout, self.report_all, 0.0,
+                                   coalesce=params.forward_coalesce / 1000)
         self.counters.native = self.device.counts  # the engine counts requests and cycles
         self._install(parsed)
         self.failed_cycles = 0

@@ -5,6 +5,13 @@ The numeric type prefix is the Modbus read function code by default (3 = holding
 numbering of the seed's descriptor note (3 = input, 4 = holding).  Offsets are decimal
 (leading zeros allowed) and 0-based protocol addresses unless ``base=1``.
 
+``prefix="entity"`` also takes Modicon entity numbers as people type them (README.md,
+"Entity addresses"): the first digit is the table (0 coil, 1 discrete input, 3 input
+register, 4 holding register) and the rest the 1-based entity, in the 5-digit form
+(``40001`` = holding register 0, up to ``49999``; fewer digits are coils: ``1`` =
+``00001``) or the 6-digit form (``400001``..``465536``).  A text with a ``:`` is read as
+under ``function-code`` (with ``base``); entity numbers are 1-based whatever ``base``.
+
 :func:`address_regex` builds the regular expression that accepts exactly the texts
 :func:`parse_address` accepts, so the driver descriptor cannot drift from the parser.
 """
@@ -16,9 +23,9 @@ from typing import Literal
 
 from ..datatypes import Area
 
-AddressPrefix = Literal["function-code", "modicon"]
+AddressPrefix = Literal["function-code", "modicon", "entity"]
 
-PREFIXES: tuple[AddressPrefix, ...] = ("function-code", "modicon")
+PREFIXES: tuple[AddressPrefix, ...] = ("function-code", "modicon", "entity")
 MAX_OFFSET = 0xFFFF
 MAX_BIT = 15
 
@@ -50,6 +57,18 @@ _NUMERIC_TYPES: dict[str, dict[str, Area]] = {
         "4": Area.HOLDING_REGISTER,
     },
 }
+_NUMERIC_TYPES["entity"] = _NUMERIC_TYPES["function-code"]  # its texts with a ':'
+
+# Modicon entity numbers: table digit -> area (the 5- and 6-digit forms)
+ENTITY_TABLES: dict[str, Area] = {
+    "0": Area.COIL,
+    "1": Area.DISCRETE_INPUT,
+    "3": Area.INPUT_REGISTER,
+    "4": Area.HOLDING_REGISTER,
+}
+ENTITY_DIGITS: dict[Area, str] = {area: digit for digit, area in ENTITY_TABLES.items()}
+MAX_ENTITY_5 = 9999  # 5-digit form: 4 digits of entity
+MAX_ENTITY_6 = MAX_OFFSET + 1  # 6-digit form: 00001..65536
 
 
 @dataclass(frozen=True, slots=True)
@@ -70,7 +89,7 @@ def check_prefix(prefix: str) -> AddressPrefix:
     for known in PREFIXES:
         if prefix == known:
             return known
-    raise ValueError(f"address prefix {prefix!r}: use 'function-code' or 'modicon'")
+    raise ValueError(f"address prefix {prefix!r}: use 'function-code', 'modicon' or 'entity'")
 
 
 def check_base(base: int) -> int:
@@ -112,6 +131,8 @@ def parse_address(text: str, prefix: str = "function-code", base: int = 0) -> Ad
     body = text.strip(_STRIP)
     if not body:
         raise ValueError(f"{text!r}: empty address (use [type:]offset[.bit], e.g. 'hr:100')")
+    if ":" not in body and prefix == "entity":
+        return _parse_entity(text, body)
     if ":" in body:
         token, rest = body.split(":", 1)
         area = numeric.get(token) or (_NAMED_TYPES.get(token.lower()) if token.isascii() else None)
@@ -127,16 +148,80 @@ def parse_address(text: str, prefix: str = "function-code", base: int = 0) -> Ad
     if not low <= number <= high:
         where = "" if base == 0 else f" (addressBase {base})"
         raise ValueError(f"{text!r}: offset {number} out of range {low}..{high}{where}")
-    bit: int | None = None
-    if dot:
-        if area.is_bit:
-            raise ValueError(f"{text!r}: a bit index is only allowed on hr/ir registers")
-        if not _is_decimal(bit_text):
-            raise ValueError(f"{text!r}: bit {bit_text!r} is not a decimal number")
-        bit = int(bit_text)
-        if bit > MAX_BIT:
-            raise ValueError(f"{text!r}: bit {bit} out of range 0..{MAX_BIT}")
-    return Address(area, number - base, bit)
+    return Address(area, number - base, _bit(text, area, dot, bit_text))
+
+
+def _bit(text: str, area: Area, dot: str, bit_text: str) -> int | None:
+    """The ``.bit`` of an address (None without a dot)."""
+    if not dot:
+        return None
+    if area.is_bit:
+        raise ValueError(f"{text!r}: a bit index is only allowed on hr/ir registers")
+    if not _is_decimal(bit_text):
+        raise ValueError(f"{text!r}: bit {bit_text!r} is not a decimal number")
+    bit = int(bit_text)
+    if bit > MAX_BIT:
+        raise ValueError(f"{text!r}: bit {bit} out of range 0..{MAX_BIT}")
+    return bit
+
+
+def entity_range(area: Area, six_digits: bool) -> str:
+    """The entity numbers of ``area`` in one form, as text (``400001..465536``)."""
+    table = ENTITY_DIGITS[area]
+    if six_digits:
+        return f"{table}00001..{table}{MAX_ENTITY_6}"
+    return f"{table}0001..{table}{MAX_ENTITY_5}"
+
+
+def _parse_entity(text: str, body: str) -> Address:
+    """A Modicon entity number (``40001``, ``400001``, ``1`` ...) -> its address."""
+    number_text, dot, bit_text = body.partition(".")
+    if not _is_decimal(number_text):
+        raise ValueError(f"{text!r}: entity number {number_text!r} is not a decimal number "
+                         "(use e.g. 40001, 400001, or hr:0)")
+    if len(number_text) > 6:
+        raise ValueError(f"{text!r}: an entity number has 5 digits (40001..49999) or 6 "
+                         "(400001..465536), fewer for coils (1 = 00001)")
+    six = len(number_text) == 6
+    digits = number_text if six else number_text.zfill(5)
+    area = ENTITY_TABLES.get(digits[0])
+    if area is None:
+        raise ValueError(f"{text!r}: table digit {digits[0]!r} is not a Modbus table "
+                         "(use 0 coil, 1 discrete input, 3 input register, 4 holding register)")
+    entity = int(digits[1:])
+    if not 1 <= entity <= (MAX_ENTITY_6 if six else MAX_ENTITY_5):
+        raise ValueError(f"{text!r}: entity number out of range: {_AREA_WORDS[area]} "
+                         f"{entity_range(area, False)} (5 digits) or "
+                         f"{entity_range(area, True)} (6 digits)")
+    return Address(area, entity - 1, _bit(text, area, dot, bit_text))
+
+
+_AREA_WORDS = {
+    Area.COIL: "coils are",
+    Area.DISCRETE_INPUT: "discrete inputs are",
+    Area.INPUT_REGISTER: "input registers are",
+    Area.HOLDING_REGISTER: "holding registers are",
+}
+
+
+def format_entity(addr: Address, six_digits: bool = True) -> str:
+    """``addr`` as a Modicon entity number (6-digit form by default; the 5-digit form
+    only reaches offset 9998)."""
+    entity = addr.offset + 1
+    if not six_digits and entity > MAX_ENTITY_5:
+        raise ValueError(f"{addr}: offset {addr.offset} has no 5-digit entity number "
+                         f"(the 5-digit form ends at {entity_range(addr.area, False)})")
+    text = f"{ENTITY_DIGITS[addr.area]}{entity:0{5 if six_digits else 4}d}"
+    return text if addr.bit is None else f"{text}.{addr.bit}"
+
+
+def format_address(addr: Address, prefix: str = "function-code", base: int = 0) -> str:
+    """``addr`` as text that :func:`parse_address` reads back with these options: a
+    6-digit entity number under ``entity``, else ``type:offset[.bit]`` (named type)."""
+    if check_prefix(prefix) == "entity":
+        return format_entity(addr)
+    text = f"{addr.area.short_name}:{addr.offset + check_base(base)}"
+    return text if addr.bit is None else f"{text}.{addr.bit}"
 
 
 def check_span(addr: Address, registers: int) -> None:
@@ -171,6 +256,28 @@ def address_regex(prefix: str = "function-code", base: int = 0) -> str:
     ws = "[ \\t\\r\\n]*"
     offset = _offset_regex(base)
     bit = "0*(?:1[0-5]|[0-9])"
-    registers = f"(?:(?:{'|'.join(register_tokens)}):)?{offset}(?:\\.{bit})?"
+    if prefix == "entity":  # the typed form needs its type; a bare number is an entity
+        registers = f"(?:{'|'.join(register_tokens)}):{offset}(?:\\.{bit})?"
+    else:
+        registers = f"(?:(?:{'|'.join(register_tokens)}):)?{offset}(?:\\.{bit})?"
     bits = f"(?:{'|'.join(bit_tokens)}):{offset}"
-    return f"^{ws}(?:{registers}|{bits}){ws}$"
+    forms = [registers, bits]
+    if prefix == "entity":
+        forms += _entity_regexes(bit)
+    return f"^{ws}(?:{'|'.join(forms)}){ws}$"
+
+
+def _nonzero(width: int) -> str:
+    """Exactly ``width`` decimal digits, not all zero."""
+    return "(?:" + "|".join(f"0{{{z}}}[1-9][0-9]{{{width - z - 1}}}"
+                            for z in range(width)) + ")"
+
+
+def _entity_regexes(bit: str) -> list[str]:
+    """The entity-number forms of :func:`_parse_entity`: coils of 1..4 digits, then the
+    5- and 6-digit forms (a bit only on the register tables 3 and 4)."""
+    six = ("(?:0000[1-9]|000[1-9][0-9]|00[1-9][0-9]{2}|0[1-9][0-9]{3}|[1-5][0-9]{4}"
+           "|6[0-4][0-9]{3}|65[0-4][0-9]{2}|655[0-2][0-9]|6553[0-6])")
+    short = "|".join(_nonzero(w) for w in range(1, 5))
+    return [f"(?:{short})", f"[01](?:{_nonzero(4)}|{six})",
+            f"[34](?:{_nonzero(4)}|{six})(?:\\.{bit})?"]

@@ -167,6 +167,30 @@ def check_reply(request: bytes, reply: bytes) -> None:
                             f"request {request[1:want].hex(' ')}")
 
 
+def read_span(request: bytes) -> tuple[int, int, int] | None:
+    """``(function, address, quantity)`` of a valid read request (01-04, 6.1-6.4), or
+    None for any other function: what read coalescing may answer from a polled block."""
+    if request[0] not in _READ_LIMITS:
+        return None
+    address, qty = struct.unpack_from(">HH", request, 1)
+    return request[0], address, qty
+
+
+def read_reply(function: int, values: list[int]) -> bytes:
+    """The normal reply PDU of read function ``function`` (01-04) carrying ``values``:
+    bits packed first bit in the low bit of the first byte (6.1, 6.2), registers
+    big-endian (6.3, 6.4), after the byte count."""
+    if function in (0x01, 0x02):
+        packed = bytearray((len(values) + 7) // 8)
+        for i, bit in enumerate(values):
+            if bit:
+                packed[i // 8] |= 1 << (i % 8)
+        data = bytes(packed)
+    else:
+        data = struct.pack(f">{len(values)}H", *values)
+    return bytes((function, len(data))) + data
+
+
 def exception_code_for(exc: BaseException) -> int:
     """The Modbus exception code a gateway answers for a forwarded request that failed
     with ``exc`` (Modbus Application Protocol v1.1b3, 7):

@@ -23,7 +23,8 @@ from edgemodbus.protocol.address import parse_address
 SEED = json.loads(
     (Path(__file__).resolve().parents[2] / "data" / "seed-descriptor.json").read_text("utf-8")
 )
-OPTIONS = [("function-code", 0), ("modicon", 0), ("function-code", 1), ("modicon", 1)]
+OPTIONS = [("function-code", 0), ("modicon", 0), ("function-code", 1), ("modicon", 1),
+           ("entity", 0), ("entity", 1)]
 
 
 def parses(text: str, prefix: str = "function-code", base: int = 0) -> bool:

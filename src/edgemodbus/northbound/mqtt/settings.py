@@ -16,11 +16,14 @@ from pydantic import ValidationError, field_validator, model_validator
 
 from ...config import MAX_MS, Choice, ConfigError, Model, Ms, Problem, Range
 from ...config.secret import Secret
+from ..sparkplug.settings import SparkplugSettings
+from .spool import SYNCHRONOUS, path_problem
 
 PLACEHOLDERS = ("prefix", "deviceCode", "itemName", "gatewayId")
-# What item updates look like on the wire: one message per item update on its item topic,
-# or one message per device and cycle on its batch topic (payload.batch_payload).
-Mode = Literal["per-item", "batch"]
+# What goes on the wire: per-item, one message per item update on its item topic; batch,
+# one message per device and cycle on its batch topic (payload.batch_payload); sparkplug,
+# Sparkplug B (v3.0) with the ``sparkplug`` section (northbound/sparkplug/)
+Mode = Literal["per-item", "batch", "sparkplug"]
 FORBIDDEN = ("+", "#", "\0")  # never in a topic level: the wildcards and NUL
 
 
@@ -161,12 +164,48 @@ def _check_template(template: str, allowed: tuple[str, ...], *, last: str | None
     return template
 
 
+class StoreAndForwardSettings(Model):
+    """``mqtt.storeAndForward``: the SQLite file that keeps messages while the broker is
+    away or has not acknowledged them (spool/__init__.py says how), and its bounds."""
+
+    _where: ClassVar[str] = "mqtt.storeAndForward"
+
+    path: str  # relative: from the gateway file's folder
+    max_bytes: Annotated[int, Range(1)] = 100_000_000  # topics + payloads (+32 a row)
+    max_age_s: Annotated[int, Range(1)] = 7 * 86_400
+    replay_rate_per_s: Annotated[float, Range(0.01)] = 500.0  # messages replayed per second
+    replay_bytes_per_s: Annotated[int | None, Range(1)] = None  # no byte limit by default
+    synchronous: Annotated[str, Choice(SYNCHRONOUS)] = "normal"  # "full": fsync each commit
+
+    @field_validator("path")
+    @classmethod
+    def _path(cls, value: str) -> str:
+        if not value.strip():
+            raise ValueError("must not be empty (the spool file, e.g. /var/lib/edgemodbus/"
+                             "spool.db)")
+        return value
+
+    def resolved(self, base: str | os.PathLike[str]) -> StoreAndForwardSettings:
+        """A copy whose relative path is taken from folder ``base``."""
+        if os.path.isabs(self.path):
+            return self
+        return self.model_copy(update={"path": str(Path(base, self.path))})
+
+    def problems(self, where: str = "mqtt.storeAndForward") -> list[Problem]:
+        """[] when the spool file can be kept at ``path`` (its folder exists and is
+        writable), else the problem named by its field."""
+        message = path_problem(self.path)
+        return [] if message is None else [Problem(f"{where}.path", self.path, message)]
+
+
 class MqttSettings(Model):
     """The ``mqtt`` section of the gateway file.  Times in ms unless named otherwise."""
 
     _where: ClassVar[str] = "mqtt"
 
     enabled: bool = True
+    mode: Mode = "per-item"
+    sparkplug: SparkplugSettings | None = None
     host: str = "127.0.0.1"
     port: Annotated[int, Range(1, 65535)] = 1883
     client_id: str | None = None  # default: edgemodbus-{gatewayId}
@@ -175,7 +214,6 @@ class MqttSettings(Model):
     keepalive: Annotated[int, Range(5, 3600)] = 30  # seconds (MQTT's unit)
     connect_timeout: Annotated[int, Range(100, 60_000)] = 5000
     tls: TlsSettings | None = None
-    mode: Mode = "per-item"
     topic_prefix: str = "edgemodbus"
     item_topic: str = "{prefix}/{deviceCode}/{itemName}"
     batch_topic: str = "{prefix}/{deviceCode}/$batch"  # mode "batch"
@@ -201,6 +239,7 @@ class MqttSettings(Model):
     reconnect_max: Ms = 30_000
     failure_log_interval: Ms = 60_000  # failed connects: first logged, then one line per this
     status_check_interval: Ms = 500
+    store_and_forward: StoreAndForwardSettings | None = None  # off unless set
 
     @field_validator("topic_prefix")
     @classmethod
@@ -239,6 +278,13 @@ class MqttSettings(Model):
             return cls.model_validate(dict(data))
         except ValidationError as exc:
             raise ConfigError.from_validation_error(exc, where) from None
+
+    @model_validator(mode="after")
+    def _sparkplug(self) -> MqttSettings:
+        if self.mode == "sparkplug" and self.sparkplug is None:
+            raise ValueError('mode "sparkplug" needs the section mqtt.sparkplug with at '
+                             'least its groupId, e.g. "sparkplug": {"groupId": "plant1"}')
+        return self
 
     @model_validator(mode="after")
     def _backoff(self) -> MqttSettings:

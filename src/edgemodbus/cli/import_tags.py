@@ -1,0 +1,68 @@
+"""``edgemodbus import FILE.csv [-o device.json]``: a tag list exported from another tool
+(Kepware's CSV export, or a generic ``name,address,type[,scanRate,scale]`` list) as our
+device file (README.md, "Importing a tag list").
+
+Every row that cannot be converted is one line on stderr (row, column, value, what is
+allowed).  Exit code 0 when every row was converted; 1 when rows were refused, and then
+nothing is written unless ``--partial`` (which writes the converted rows and exits 0).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from ..commission.tag_import import import_tags
+from ..config import ConfigError, load_device_config
+from ..protocol.address import PREFIXES
+from .output import CliError, one_line
+
+__all__ = ["add_arguments", "run"]
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("file", type=Path, help="the CSV tag list")
+    p.add_argument("-o", "--output", type=Path, default=None,
+                   help="the device file to write (default: stdout)")
+    p.add_argument("--partial", action="store_true",
+                   help="write the rows that converted even if others were refused (exit 0)")
+    p.add_argument("--address-prefix", choices=PREFIXES, default="function-code",
+                   help="how the generic form's addresses are read (Kepware's are entity "
+                   "numbers)")
+    p.add_argument("--slave", type=int, default=None, help="slaveId of the device file")
+    p.add_argument("--device-code", default=None, help="organization.deviceCode")
+    p.add_argument("--encoding", default="utf-8-sig", help="the file's text encoding")
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        text = args.file.read_text(encoding=args.encoding)
+    except (OSError, LookupError, UnicodeDecodeError) as exc:
+        raise CliError(f"{args.file}: {getattr(exc, 'strerror', None) or exc}") from None
+    try:
+        result = import_tags(text, args.address_prefix)
+    except ValueError as exc:
+        raise CliError(f"{args.file}: {exc}") from None
+    for refusal in result.refused:
+        print(f"edgemodbus import: {args.file}: {refusal}", file=sys.stderr)
+    comm = {} if args.slave is None else {"slaveId": args.slave}
+    org = {} if args.device_code is None else {"deviceCode": args.device_code}
+    device = result.device(comm, org)
+    try:
+        load_device_config(device)  # what we write must load
+    except ConfigError as exc:
+        raise CliError(*(one_line(str(p)) for p in exc.problems)) from None
+    print(f"edgemodbus import: {args.file}: {result.form} form, {len(result.items)} rows "
+          f"converted, {len(result.refused)} refused", file=sys.stderr)
+    if result.refused and not args.partial:
+        print("edgemodbus import: nothing written (--partial writes the converted rows)",
+              file=sys.stderr)
+        return 1
+    out = json.dumps(device, indent=2, ensure_ascii=False) + "\n"
+    if args.output is None:
+        sys.stdout.write(out)
+    else:
+        args.output.write_text(out, encoding="utf-8")
+    return 0

@@ -1,0 +1,70 @@
+"""What the edge node keeps per Sparkplug device (one attached driver): its metrics as
+born (names, node-wide aliases, types), which of them were last published bad, and its
+counters."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import TYPE_CHECKING
+
+from ...datatypes import DataType, ItemStatus
+from .payloads import MetricDef, Sample, epoch_ms, sparkplug_type
+
+if TYPE_CHECKING:
+    from ...config import DeviceAddressItem
+    from ...driver import DriverModbusRtu
+
+
+def sample_of(item: DeviceAddressItem) -> Sample:
+    """An item's report as a metric carries it (its fields copied now)."""
+    return Sample(item.name, item.value, item.status, epoch_ms(item.update_ts),
+                  item.error_reason)
+
+
+def is_good(sample: Sample) -> bool:
+    return sample.status is ItemStatus.OK and sample.value is not None
+
+
+class NodeDevice:
+    """One Sparkplug device of the edge node: an attached driver."""
+
+    __slots__ = ("bad", "born", "by_alias", "code", "driver", "dropped", "kinds",
+                 "metrics", "prev_batch", "published")
+
+    def __init__(self, driver: DriverModbusRtu, code: str) -> None:
+        self.driver = driver
+        self.code = code
+        self.born = False  # DBIRTH published in this node session, no DDEATH since
+        # replaced whole at each birth (read by the MQTT thread for commands)
+        self.metrics: dict[str, MetricDef] = {}
+        self.by_alias: dict[int, MetricDef] = {}
+        self.kinds: dict[str, DataType] = {}  # the type of the values written to an item
+        self.bad: set[str] = set()  # metrics last published null
+        self.prev_batch: Callable[[list[DeviceAddressItem]], None] | None = None
+        self.published = 0
+        self.dropped = 0
+
+    def birth(self, alias: Callable[[str, str], int]) -> list[tuple[Sample, MetricDef]]:
+        """The metrics of a DBIRTH, from the items in force now (their types and
+        current values); ``alias(device, item)`` gives the node-wide alias."""
+        samples: list[tuple[Sample, MetricDef]] = []
+        metrics: dict[str, MetricDef] = {}
+        kinds: dict[str, DataType] = {}
+        for item in self.driver.address_items:
+            spec = MetricDef(item.name, alias(self.code, item.name),
+                             sparkplug_type(item.device_data_type, item.converted_data_type,
+                                            item.data_multiplier))
+            metrics[item.name] = spec
+            kinds[item.name] = item.converted_data_type or item.device_data_type
+            samples.append((sample_of(item), spec))
+        self.metrics, self.kinds = metrics, kinds
+        self.by_alias = {spec.alias: spec for spec in metrics.values()}
+        self.bad = {sample.name for sample, _ in samples if not is_good(sample)}
+        return samples
+
+    def changed_items(self) -> bool:
+        """True when the driver's items are no longer the metrics as born (a hot update
+        of the address list): the device needs a new DBIRTH."""
+        items = self.driver.address_items
+        return len(items) != len(self.metrics) or any(
+            item.name not in self.metrics for item in items)

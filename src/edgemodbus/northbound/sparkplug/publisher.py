@@ -1,0 +1,498 @@
+"""The Sparkplug B edge node: its lifecycle, the drivers it publishes (one Sparkplug device
+each) and the thread that orders births, data and deaths.  The package's ``__init__.py``
+describes the messages and threads."""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import deque
+from collections.abc import Iterable, Mapping
+from typing import TYPE_CHECKING, Any
+
+from ...config import ConfigError, DeviceAddressItem
+from ...datatypes import DeviceDriverStatus
+from ...driver import DriverModbusRtu
+from ..mqtt.connection import FailureLog
+from ..mqtt.settings import MqttSettings, check_name
+from .bdseq import BdSeqStore
+from .client import make_client
+from .devices import NodeDevice, is_good, sample_of
+from .payloads import (
+    REBIRTH,
+    Sample,
+    device_birth,
+    device_data,
+    device_death,
+    node_birth,
+    node_command,
+    node_death,
+)
+from .settings import check_id
+from .state import HostState
+from .writes import WriteRunner
+
+if TYPE_CHECKING:
+    from paho.mqtt.client import Client, MQTTMessage
+
+log = logging.getLogger("edgemodbus.sparkplug")
+
+NAMESPACE = "spBv1.0"
+_COUNTERS = ("connects", "disconnects", "connectFailures", "published", "publishErrors",
+             "dropped", "nbirths", "dbirths", "ddata", "ddeaths", "rebirths", "commands",
+             "commandErrors", "writes", "writesRefused")
+
+
+def _now() -> int:
+    return time.time_ns() // 1_000_000
+
+
+class SparkplugPublisher:
+    """A Sparkplug B (v3.0) edge node on an MQTT broker: one device per attached driver.
+
+    ``attach(driver, "dev1")`` (before or after ``start_device``), ``start()`` connects in
+    the background and returns at once, ``stop()`` publishes NDEATH and disconnects.  The
+    same methods as :class:`~edgemodbus.northbound.mqtt.MqttPublisher`, so the gateway
+    uses either."""
+
+    def __init__(self, settings: MqttSettings | Mapping[str, Any], *,
+                 gateway_id: str = "edgemodbus") -> None:
+        try:
+            import paho.mqtt.client as paho
+        except ImportError:  # pragma: no cover - depends on the install
+            raise ImportError("Sparkplug needs paho-mqtt and protobuf: "
+                              "pip install 'edgemodbus[sparkplug]'") from None
+        if not isinstance(settings, MqttSettings):
+            settings = MqttSettings.load(settings)
+        if settings.sparkplug is None:
+            raise ValueError('mqtt.sparkplug: needed by a Sparkplug publisher, e.g. '
+                             '"sparkplug": {"groupId": "plant1"}')
+        self.settings = settings
+        sp = settings.sparkplug
+        self.gateway_id = check_name("gatewayId", gateway_id)
+        self.group_id = sp.group_id
+        self.node_id = check_id("edgeNodeId", sp.edge_node_id or self.gateway_id)
+        self.client_id = settings.client_id or f"edgemodbus-{self.gateway_id}"
+        self._paho = paho
+        self._base = f"{NAMESPACE}/{self.group_id}"
+        self._ncmd = f"{self._base}/NCMD/{self.node_id}"
+        self._dcmd = f"{self._base}/DCMD/{self.node_id}/"
+        self._host = HostState(sp.primary_host_id)
+        self._lock = threading.Lock()
+        self._wake = threading.Condition(self._lock)
+        self._events: deque[tuple[Any, ...]] = deque()  # control: connects, commands...
+        self._samples: deque[tuple[NodeDevice, list[Sample]]] = deque()  # bounded
+        self._queued = 0  # samples in self._samples
+        self._devices: dict[str, NodeDevice] = {}
+        self._counts = dict.fromkeys(_COUNTERS, 0)
+        self._store = BdSeqStore(sp.bd_seq_file)
+        self._next_bd_seq = self._store.load()
+        self.bd_seq: int | None = None  # the session's (the NBIRTH's and the will's)
+        self._seq = 0
+        self._born = False  # NBIRTH published in this session, no NDEATH since
+        self._aliases: dict[tuple[str, str], int] = {}
+        self._writes = WriteRunner(self._count)
+        self._failures = FailureLog(f"{settings.host}:{settings.port}",
+                                    settings.failure_log_interval / 1000,
+                                    settings.reconnect_max / 1000)
+        self._connected = threading.Event()
+        self._stopping = False
+        self._thread: threading.Thread | None = None
+        self._client: Client | None = None
+        self._closed = False
+
+    # -- topics --------------------------------------------------------------------------
+    def topic(self, kind: str, device: str | None = None) -> str:
+        """``spBv1.0/<group>/<kind>/<node>[/<device>]``."""
+        node = f"{self._base}/{kind}/{self.node_id}"
+        return node if device is None else f"{node}/{device}"
+
+    def check_item_names(self, device_code: str, names: Iterable[str]) -> None:
+        """Raise ValueError if the device code cannot be a Sparkplug device id (item names
+        are metric names: any text)."""
+        check_id("deviceCode", device_code)
+        for name in names:
+            if not name:
+                raise ValueError(f"device {device_code!r}: an item has an empty name")
+
+    # -- lifecycle -----------------------------------------------------------------------
+    def start(self) -> SparkplugPublisher:
+        """Connect in the background; births follow the connection (and the primary
+        host's STATE online, when one is configured)."""
+        if self._thread is not None:
+            return self
+        if self._closed:
+            raise RuntimeError("SparkplugPublisher cannot be restarted after stop()")
+        problems = self.settings.tls.problems() if self.settings.tls is not None else []
+        assert self.settings.sparkplug is not None
+        problems += self.settings.sparkplug.problems()
+        if problems:
+            raise ConfigError(problems)
+        self._client = client = make_client(self._paho, self.settings, self.client_id)
+        self._set_will(client)
+        client.on_connect = self._on_connect
+        client.on_connect_fail = self._on_connect_fail
+        client.on_disconnect = self._on_disconnect
+        client.on_message = self._on_message
+        self._writes.start()
+        self._thread = threading.Thread(target=self._run, name="edgemodbus-sparkplug",
+                                        daemon=True)
+        self._thread.start()
+        s = self.settings
+        client.connect_async(s.host, s.port, s.keepalive)
+        client.loop_start()
+        return self
+
+    def stop(self, timeout: float = 1.0, reason: str = "shutdown") -> None:
+        """Publish NDEATH (if connected), wait at most ``timeout`` s for it to go out,
+        disconnect (the broker then drops the will) and join the threads.  Idempotent."""
+        self._writes.stop()
+        thread, client = self._thread, self._client
+        if thread is not None and client is not None:
+            with self._lock:
+                self._stopping = True
+                self._events.append(("stop", timeout, reason))
+                self._wake.notify()
+            thread.join(timeout + 2.0)
+            client.disconnect()
+            client.loop_stop()
+            self._thread = None
+        self._connected.clear()
+        self._closed = True
+
+    @property
+    def connected(self) -> bool:
+        return self._connected.is_set()
+
+    def wait_connected(self, timeout: float) -> bool:
+        return self._connected.wait(timeout)
+
+    def rebirth(self) -> None:
+        """NBIRTH and every DBIRTH again (what NCMD ``Node Control/Rebirth`` does)."""
+        self._push(("rebirth",))
+
+    def stats(self) -> dict[str, Any]:
+        """Counters (camelCase) as MqttPublisher's, plus the Sparkplug ones (births,
+        ddata, ddeaths, rebirths, writes, writesRefused), bdSeq and seq."""
+        with self._lock:
+            result: dict[str, Any] = dict(self._counts)
+            result["queued"] = self._queued
+            result["queueSize"] = self.settings.queue_size
+            result["devices"] = {d.code: {"published": d.published, "dropped": d.dropped,
+                                          "born": d.born} for d in self._devices.values()}
+            result["bdSeq"] = self.bd_seq
+            result["seq"] = self._seq
+            result["born"] = self._born
+        result["pendingCommands"] = self._writes.pending
+        result["connected"] = self.connected
+        return result
+
+    # -- drivers -------------------------------------------------------------------------
+    def attach(self, driver: DriverModbusRtu, device_code: str | None = None) -> None:
+        """Publish ``driver`` as Sparkplug device ``device_code`` (default the driver's);
+        chains a batch callback that was already set."""
+        code = device_code or str(driver.snapshot()["deviceCode"])
+        self.check_item_names(code, [])
+        dev = NodeDevice(driver, code)
+        with self._lock:
+            if code in self._devices:
+                raise ValueError(f"deviceCode {code!r} is already attached to this publisher")
+            self._devices[code] = dev
+        dev.prev_batch = prev = driver.addresses_updated_callback
+
+        def on_batch(items: list[DeviceAddressItem]) -> None:
+            self._offer(dev, [sample_of(item) for item in items])
+            if prev is not None:
+                prev(items)
+
+        driver.addresses_updated_callback = on_batch
+        self._push(("attach", dev))
+
+    def detach(self, driver: DriverModbusRtu) -> None:
+        """Stop publishing ``driver``: DDEATH (if it was born), its callback restored."""
+        with self._lock:
+            devs = [d for d in self._devices.values() if d.driver is driver]
+            for dev in devs:
+                del self._devices[dev.code]
+        for dev in devs:
+            driver.addresses_updated_callback = dev.prev_batch
+            self._push(("detach", dev))
+
+    def _offer(self, dev: NodeDevice, samples: list[Sample]) -> None:
+        """From a line worker: queue, never block; past ``queueSize`` the oldest are
+        dropped and their device is born again (its DBIRTH carries every value)."""
+        with self._lock:
+            self._samples.append((dev, samples))
+            self._queued += len(samples)
+            while self._queued > self.settings.queue_size and len(self._samples) > 1:
+                old, lost = self._samples.popleft()
+                self._queued -= len(lost)
+                old.dropped += len(lost)
+                self._counts["dropped"] += len(lost)
+                self._events.append(("resync", old))
+            self._wake.notify()
+
+    def _push(self, event: tuple[Any, ...]) -> None:
+        with self._lock:
+            self._events.append(event)
+            self._wake.notify()
+
+    def _count(self, key: str, n: int = 1) -> None:
+        with self._lock:
+            self._counts[key] += n
+
+    # -- the paho client (its network thread calls these) ------------------------------
+    def _set_will(self, client: Client) -> None:
+        """The NDEATH of the next session as the MQTT will (QoS 1, not retained: 6.4.5)."""
+        client.will_set(self.topic("NDEATH"), node_death(self._next_bd_seq, _now()), qos=1,
+                        retain=False)
+
+    def _on_connect(self, client: Client, _userdata: Any, _flags: Any, reason: Any,
+                    _props: Any) -> None:
+        if getattr(reason, "is_failure", False):
+            self._count("connectFailures")
+            self._failures.failed(f"the broker refused the connection: {reason}",
+                                  time.monotonic())
+            return
+        bd_seq = self._next_bd_seq  # the will the broker holds now carries it
+        self._next_bd_seq = (bd_seq + 1) % 256
+        self._store.save(self._next_bd_seq)
+        self._set_will(client)  # for the next session
+        failed = self._failures.succeeded()
+        log.info("Sparkplug: edge node %s/%s connected to %s:%d (bdSeq %d)%s",
+                 self.group_id, self.node_id, self.settings.host, self.settings.port,
+                 bd_seq, f" after {failed} failed attempts" if failed else "")
+        topics = [(self._ncmd, 1), (self._dcmd + "+", 1)]
+        if self._host.topic is not None:  # before NBIRTH: its retained STATE comes first
+            topics.append((self._host.topic, 1))
+        client.subscribe(topics)
+        self._connected.set()
+        self._count("connects")
+        self._push(("connected", bd_seq))
+
+    def _on_connect_fail(self, _client: Client, _userdata: Any) -> None:
+        self._count("connectFailures")
+        self._failures.failed("cannot connect (TCP or TLS)", time.monotonic())
+
+    def _on_disconnect(self, _client: Client, _userdata: Any, _flags: Any, reason: Any,
+                       _props: Any) -> None:
+        if self._connected.is_set():
+            self._count("disconnects")
+            if not self._stopping:
+                log.warning("Sparkplug: connection to %s:%d lost (%s); reconnecting",
+                            self.settings.host, self.settings.port, reason)
+        self._connected.clear()
+        self._push(("disconnected",))
+
+    def _on_message(self, _client: Client, _userdata: Any, message: MQTTMessage) -> None:
+        topic, payload = message.topic, bytes(message.payload)
+        if topic == self._host.topic:
+            self._push(("state", payload))
+        elif topic == self._ncmd:
+            self._node_command(payload)
+        elif topic.startswith(self._dcmd):
+            self._device_command(topic[len(self._dcmd):], payload)
+
+    # -- commands ------------------------------------------------------------------------
+    def _node_command(self, payload: bytes) -> None:
+        self._count("commands")
+        try:
+            rebirth, unsupported = node_command(payload)
+        except ValueError as exc:
+            unsupported, rebirth = [str(exc)], False
+        if rebirth:
+            log.info("Sparkplug: rebirth requested (NCMD %s)", REBIRTH)
+            self._push(("rebirth",))
+        for what in unsupported:
+            self._count("commandErrors")
+            log.warning("Sparkplug: NCMD %s ignored (only %s = true is supported)", what,
+                        REBIRTH)
+
+    def _device_command(self, code: str, payload: bytes) -> None:
+        self._count("commands")
+        with self._lock:
+            dev = self._devices.get(code)
+        if dev is None:
+            self._count("commandErrors")
+            log.warning("Sparkplug: DCMD for unknown device %r ignored", code)
+            return
+        self._writes.command(dev, payload)
+
+    # -- the Sparkplug thread ------------------------------------------------------------
+    def _run(self) -> None:
+        interval = self.settings.status_check_interval / 1000
+        next_check = time.monotonic() + interval
+        while True:
+            with self._lock:
+                while not self._events and not self._samples:
+                    left = next_check - time.monotonic()
+                    if left <= 0:
+                        break
+                    self._wake.wait(left)
+                events = list(self._events)
+                self._events.clear()
+                samples = list(self._samples)
+                self._samples.clear()
+                self._queued = 0
+            try:
+                for event in events:
+                    if event[0] == "stop":
+                        self._shutdown(event[1])
+                        return
+                    self._handle(event)
+                for dev, batch in samples:
+                    self._data(dev, batch)
+                if time.monotonic() >= next_check:
+                    next_check = time.monotonic() + interval
+                    self._check_devices()
+            except Exception:  # a bug must not end publishing
+                log.exception("Sparkplug: publishing failed")
+
+    def _handle(self, event: tuple[Any, ...]) -> None:
+        kind = event[0]
+        if kind == "connected":
+            self.bd_seq, self._born = event[1], False
+            self._host.reset()
+            self._birth_all()
+        elif kind == "disconnected":
+            self._unborn()
+        elif kind == "state":
+            change = self._host.update(event[1])
+            if change is True:
+                self._birth_all()
+            elif change is False and self._born:
+                log.warning("Sparkplug: primary host %s offline: NDEATH published, births "
+                            "wait for it to come back", self._host.host_id)
+                self._publish(self.topic("NDEATH"), node_death(self._session(), _now()), 1)
+                self._unborn()
+        elif kind == "rebirth":
+            self._count("rebirths")
+            self._birth_all()
+        elif kind == "attach":
+            self._device_birth(event[1])
+        elif kind == "detach":
+            dev = event[1]
+            if dev.born and self._born:
+                self._death(dev)
+        elif kind == "resync" and event[1].born:
+            self._device_birth(event[1])
+
+    def _session(self) -> int:
+        return self.bd_seq if self.bd_seq is not None else 0
+
+    def _unborn(self) -> None:
+        self._born = False
+        with self._lock:
+            devices = list(self._devices.values())
+        for dev in devices:
+            dev.born = False
+
+    def _next_seq(self) -> int:
+        self._seq = (self._seq + 1) % 256
+        return self._seq
+
+    def _publish(self, topic: str, payload: bytes, qos: int = 0) -> bool:
+        client = self._client
+        if client is None or not self._connected.is_set():
+            return False
+        info = client.publish(topic, payload, qos=qos, retain=False)
+        if info.rc != self._paho.MQTT_ERR_SUCCESS:
+            self._count("publishErrors")
+            return False
+        self._count("published")
+        return True
+
+    def _birth_all(self) -> None:
+        """NBIRTH (seq 0) then a DBIRTH per running device, once connected and (with a
+        primary host) the host is online."""
+        if not self._connected.is_set() or not self._host.online:
+            return
+        self._unborn()
+        self._seq = 0
+        if not self._publish(self.topic("NBIRTH"), node_birth(self._session(), _now())):
+            return
+        self._born = True
+        self._count("nbirths")
+        with self._lock:
+            devices = list(self._devices.values())
+        for dev in devices:
+            self._device_birth(dev)
+
+    def _alias(self, code: str, name: str) -> int:
+        key = (code, name)
+        alias = self._aliases.get(key)
+        if alias is None:  # unique in the edge node and kept for the process' life
+            alias = self._aliases[key] = len(self._aliases) + 1
+        return alias
+
+    def _device_birth(self, dev: NodeDevice) -> None:
+        with self._lock:
+            attached = self._devices.get(dev.code) is dev
+        if not self._born or not attached:
+            return
+        if dev.driver.device_driver_status is not DeviceDriverStatus.RUNNING:
+            if dev.born:
+                self._death(dev)
+            return
+        payload = device_birth(self._next_seq(), _now(), dev.birth(self._alias))
+        if self._publish(self.topic("DBIRTH", dev.code), payload):
+            dev.born = True
+            dev.published += 1
+            self._count("dbirths")
+
+    def _death(self, dev: NodeDevice) -> None:
+        dev.born = False
+        if self._publish(self.topic("DDEATH", dev.code), device_death(self._next_seq(),
+                                                                      _now())):
+            self._count("ddeaths")
+
+    def _data(self, dev: NodeDevice, samples: list[Sample]) -> None:
+        if not self._born:
+            return  # the births after (re)connecting carry the current values
+        if not dev.born or any(s.name not in dev.metrics for s in samples):
+            self._device_birth(dev)  # a new item, or a device that was not born yet
+            return
+        metrics = []
+        bad = dev.bad
+        for sample in samples:
+            good = is_good(sample)
+            recovered = good and sample.name in bad
+            if good:
+                bad.discard(sample.name)
+            else:
+                bad.add(sample.name)
+            metrics.append((sample, dev.metrics[sample.name], recovered))
+        if self._publish(self.topic("DDATA", dev.code),
+                         device_data(self._next_seq(), _now(), metrics)):
+            dev.published += 1
+            self._count("ddata")
+
+    def _check_devices(self) -> None:
+        """A device that stopped running gets DDEATH; one running again (or whose items
+        changed) a DBIRTH."""
+        if not self._born:
+            return
+        with self._lock:
+            devices = list(self._devices.values())
+        for dev in devices:
+            running = dev.driver.device_driver_status is DeviceDriverStatus.RUNNING
+            if dev.born and not running:
+                log.info("Sparkplug: device %s is %s: DDEATH", dev.code,
+                         dev.driver.device_driver_status.value)
+                self._death(dev)
+            elif running and (not dev.born or dev.changed_items()):
+                self._device_birth(dev)
+
+    def _shutdown(self, timeout: float) -> None:
+        """NDEATH on a clean stop (Sparkplug 3.0, 7.1.5), confirmed or ``timeout``."""
+        client = self._client
+        if client is None or not self._connected.is_set() or not self._born:
+            return
+        info = client.publish(self.topic("NDEATH"), node_death(self._session(), _now()),
+                              qos=1, retain=False)
+        try:
+            info.wait_for_publish(timeout)
+        except (RuntimeError, ValueError) as exc:
+            log.debug("Sparkplug: NDEATH on stop not confirmed: %s", exc)
+        self._born = False

@@ -1,0 +1,346 @@
+"""Sparkplug B edge node end to end: a real mosquitto, a real paho subscriber, our driver
+polling a pymodbus slave (own process); every payload is read by tests/sparkplug_wire.py,
+a protobuf reader written by hand from the specification's field numbers (not our
+encoder), and commands are written by it."""
+
+from __future__ import annotations
+
+import itertools
+import json
+import logging
+import os
+import signal
+import struct
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+import edgemodbus as em
+from edgemodbus.northbound.sparkplug.publisher import SparkplugPublisher
+from tests.mosquitto import Mosquitto, MqttProbe, Received
+from tests.peers import ExceptionRange, PymodbusSlave, default_register
+from tests.sparkplug_wire import TYPES, Payload, decode, encode, encode_metric
+from tests.waiting import wait_for
+
+G, N = "plant1", "gw1"
+BASE = f"spBv1.0/{G}"
+
+
+@pytest.fixture
+def broker(tmp_path: Path) -> Iterator[Mosquitto]:
+    with Mosquitto(tmp_path / "broker") as peer:
+        yield peer
+
+
+@pytest.fixture
+def slave() -> Iterator[PymodbusSlave]:
+    # hr 150..159 answer exception 04 (slave device failure): reads and writes refused
+    with PymodbusSlave("rtu-over-tcp", units=(1,), size=200,
+                       exception_ranges=[ExceptionRange(150, 160, code=4, area="hr")]) as peer:
+        yield peer
+
+
+ITEMS: list[dict[str, Any]] = [
+    {"name": "t0", "address": "hr:0", "deviceDataType": "UInt16"},
+    {"name": "neg", "address": "hr:1", "deviceDataType": "Int16"},
+    {"name": "f", "address": "hr:10", "deviceDataType": "Float32"},
+    {"name": "d", "address": "hr:20", "deviceDataType": "Float64"},
+    {"name": "u32", "address": "hr:30", "deviceDataType": "UInt32"},
+    {"name": "s", "address": "hr:40", "deviceDataType": "String", "quantity": 2},
+    {"name": "scaled", "address": "hr:50", "deviceDataType": "Int16", "dataMultiplier": 0.1},
+    {"name": "coil", "address": "coil:3", "deviceDataType": "Boolean"},
+    {"name": "sp", "address": "hr:100", "deviceDataType": "UInt16"},
+    {"name": "bad", "address": "hr:150", "deviceDataType": "UInt16"},
+]
+
+
+def device(port: int, code: str = "dev1", **comm: Any) -> em.DeviceConfig:
+    base: dict[str, Any] = {
+        "transport": "rtu-over-tcp", "tcpHost": "127.0.0.1", "tcpPort": port, "slaveId": 1,
+        "readCycle": 100, "readTimeout": 300, "reconnectInterval": 300, "byteTimeout": 50,
+        "offlineAfterFailedCycles": 1,
+    }
+    base.update(comm)
+    return em.load_device_config(
+        {"organization": {"deviceCode": code}, "communication": base, "addressList": ITEMS})
+
+
+def fill(slave: PymodbusSlave) -> None:
+    slave.set_registers(1, "hr", 1, [0xFFFB])  # -5
+    slave.set_registers(1, "hr", 10, list(struct.unpack(">2H", struct.pack(">f", 1.5))))
+    slave.set_registers(1, "hr", 20, list(struct.unpack(">4H", struct.pack(">d", -2.25))))
+    slave.set_registers(1, "hr", 30, [0x0001, 0x0002])  # 65538
+    slave.set_registers(1, "hr", 40, [0x4F4B, 0x2100])  # "OK!"
+    slave.set_registers(1, "hr", 50, [0xFF9C])  # -100 * 0.1
+    slave.set_bits(1, "co", 3, [True])
+
+
+class Node:
+    """A Sparkplug publisher plus one driver: started on enter, stopped on exit."""
+
+    def __init__(self, broker_port: int, cfg: em.DeviceConfig, **sparkplug: Any) -> None:
+        sparkplug.setdefault("groupId", G)
+        settings = {"mode": "sparkplug", "port": broker_port, "sparkplug": sparkplug,
+                    "statusCheckInterval": 100}
+        self.cfg = cfg
+        self.pub = SparkplugPublisher(settings, gateway_id=N)
+        self.drv = em.DriverModbusRtu()
+
+    def __enter__(self) -> Node:
+        self.pub.start()
+        self.pub.attach(self.drv, self.cfg.organization.device_code)
+        assert self.drv.start_device(self.cfg.organization, self.cfg.communication,
+                                     self.cfg.address_list)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.drv.stop_device()
+        self.pub.stop()
+
+
+def payload_of(msg: Received) -> Payload:
+    return decode(msg.payload)
+
+
+def wait_payload(probe: MqttProbe, topic: str, match: Any = lambda p: True,
+                 after: int = 0, timeout: float = 10.0) -> Payload:
+    msg = probe.wait_for(topic, lambda m: match(decode(m.payload)), timeout=timeout,
+                         after=after)
+    return decode(msg.payload)
+
+
+def dcmd(probe: MqttProbe, code: str, *metrics: bytes) -> None:
+    probe.publish(f"{BASE}/DCMD/{N}/{code}", encode(list(metrics), int(time.time() * 1000)))
+
+
+def test_births_aliases_types_quality_and_ddata(broker: Mosquitto,
+                                                 slave: PymodbusSlave) -> None:
+    fill(slave)
+    before = int(time.time() * 1000)
+    with MqttProbe(broker.port, [f"{BASE}/#"]) as probe, Node(broker.port,
+                                                              device(slave.port)):
+        nbirth = wait_payload(probe, f"{BASE}/NBIRTH/{N}")
+        assert nbirth.seq == 0
+        node = nbirth.by_name()
+        assert node["bdSeq"].datatype == TYPES["Int64"] and node["bdSeq"].value == 0
+        rebirth = node["Node Control/Rebirth"]
+        assert rebirth.datatype == TYPES["Boolean"] and rebirth.raw is False
+
+        birth = wait_payload(probe, f"{BASE}/DBIRTH/{N}/dev1")
+        assert birth.seq == 1
+        assert before <= (birth.timestamp or 0) <= int(time.time() * 1000)
+        m = birth.by_name()
+        assert set(m) == {it["name"] for it in ITEMS}
+        expect = {"t0": ("UInt16", default_register(1, "hr", 0)), "neg": ("Int16", -5),
+                  "f": ("Float", 1.5), "d": ("Double", -2.25), "u32": ("UInt32", 65538),
+                  "s": ("String", "OK!"), "scaled": ("Double", -10.0),
+                  "coil": ("Boolean", True), "sp": ("UInt16", default_register(1, "hr", 100))}
+        for name, (kind, value) in expect.items():
+            assert m[name].datatype == TYPES[kind], name
+            assert m[name].value == pytest.approx(value), name
+            assert not m[name].is_null and m[name].properties["Quality"] == 192, name
+            assert before - 60_000 <= (m[name].timestamp or 0) <= int(time.time() * 1000)
+        # an Invalid item: null, bad quality, the reason
+        assert m["bad"].datatype == TYPES["UInt16"] and m["bad"].is_null
+        assert m["bad"].raw is None and m["bad"].properties["Quality"] == 0
+        assert "04" in m["bad"].properties["errorReason"] or \
+            "failure" in m["bad"].properties["errorReason"].lower()
+        aliases = [metric.alias for metric in birth.metrics]
+        assert None not in aliases and len(set(aliases)) == len(aliases)
+
+        # a change: DDATA by alias only, next seq
+        mark = probe.mark()
+        slave.set_registers(1, "hr", 0, [4242])
+        data = wait_payload(probe, f"{BASE}/DDATA/{N}/dev1", after=mark)
+        assert data.seq == 2
+        assert [(x.name, x.alias, x.value) for x in data.metrics] == [
+            (None, m["t0"].alias, 4242)]
+        assert data.metrics[0].datatype == TYPES["UInt16"]
+
+
+def test_seq_wraps_after_255(broker: Mosquitto, slave: PymodbusSlave) -> None:
+    cfg = device(slave.port, readCycle=10)
+    with MqttProbe(broker.port, [f"{BASE}/#"]) as probe, Node(broker.port, cfg):
+        wait_payload(probe, f"{BASE}/DBIRTH/{N}/dev1")
+        deadline = time.monotonic() + 60
+        value = 0
+        while time.monotonic() < deadline:
+            seqs = [decode(r.payload).seq for r in probe.received
+                    if r.topic.startswith(f"{BASE}/D") or "/NBIRTH/" in r.topic]
+            if len(seqs) > 260:
+                break
+            value += 1
+            slave.set_registers(1, "hr", 0, [value])
+            time.sleep(0.012)
+        assert len(seqs) > 260, f"only {len(seqs)} messages"
+        assert seqs[:2] == [0, 1]
+        assert all(b == (a + 1) % 256 for a, b in itertools.pairwise(seqs)), seqs
+        assert 255 in seqs and seqs[seqs.index(255) + 1] == 0
+
+
+def test_rebirth_on_ncmd_keeps_bdseq_and_aliases(broker: Mosquitto,
+                                                 slave: PymodbusSlave) -> None:
+    with MqttProbe(broker.port, [f"{BASE}/#"]) as probe, Node(broker.port,
+                                                              device(slave.port)) as node:
+        first = wait_payload(probe, f"{BASE}/DBIRTH/{N}/dev1")
+        bd_seq = wait_payload(probe, f"{BASE}/NBIRTH/{N}").by_name()["bdSeq"].value
+        mark = probe.mark()
+        probe.publish(f"{BASE}/NCMD/{N}", encode(
+            [encode_metric(name="Node Control/Rebirth", datatype="Boolean", value=True)]))
+        again = wait_payload(probe, f"{BASE}/NBIRTH/{N}", after=mark)
+        assert again.seq == 0 and again.by_name()["bdSeq"].value == bd_seq
+        dbirth = wait_payload(probe, f"{BASE}/DBIRTH/{N}/dev1", after=mark)
+        assert dbirth.seq == 1
+        assert {k: v.alias for k, v in dbirth.by_name().items()} == {
+            k: v.alias for k, v in first.by_name().items()}
+        assert node.pub.stats()["rebirths"] == 1
+
+
+def test_dcmd_writes_are_confirmed_in_ddata(broker: Mosquitto,
+                                           slave: PymodbusSlave) -> None:
+    with MqttProbe(broker.port, [f"{BASE}/#"]) as probe, Node(broker.port,
+                                                              device(slave.port)) as node:
+        birth = wait_payload(probe, f"{BASE}/DBIRTH/{N}/dev1").by_name()
+        mark = probe.mark()
+        # by alias (as a host does after the birth), and by name with a negative Int16
+        dcmd(probe, "dev1", encode_metric(alias=birth["sp"].alias, datatype="UInt16",
+                                          value=777))
+        data = wait_payload(probe, f"{BASE}/DDATA/{N}/dev1",
+                            lambda p: birth["sp"].alias in p.by_alias(), after=mark)
+        assert data.by_alias()[birth["sp"].alias].value == 777
+        assert slave.registers(1, "hr", 100) == [777]
+        dcmd(probe, "dev1", encode_metric(name="neg", datatype="Int16", value=-1234))
+        data = wait_payload(probe, f"{BASE}/DDATA/{N}/dev1",
+                            lambda p: birth["neg"].alias in p.by_alias(), after=mark)
+        assert data.by_alias()[birth["neg"].alias].value == -1234
+        assert slave.registers(1, "hr", 1) == [(-1234) & 0xFFFF]
+        wait_for(lambda: node.pub.stats()["writes"] == 2, what="2 writes counted")
+        assert node.pub.stats()["writesRefused"] == 0
+
+
+def test_refused_writes_are_logged_and_counted(broker: Mosquitto, slave: PymodbusSlave,
+                                               caplog: pytest.LogCaptureFixture) -> None:
+    caplog.set_level(logging.WARNING, logger="edgemodbus.sparkplug")
+    with MqttProbe(broker.port, [f"{BASE}/#"]) as probe, Node(broker.port,
+                                                              device(slave.port)) as node:
+        wait_payload(probe, f"{BASE}/DBIRTH/{N}/dev1")
+        dcmd(probe, "dev1", encode_metric(name="bad", datatype="UInt16", value=5))
+        wait_for(lambda: node.pub.stats()["writesRefused"] == 1, what="a refused write")
+        dcmd(probe, "dev1", encode_metric(name="nosuch", datatype="UInt16", value=5))
+        wait_for(lambda: node.pub.stats()["writesRefused"] == 2, what="unknown metric")
+        dcmd(probe, "dev1", encode_metric(name="sp", datatype="UInt16", value=70000))
+        wait_for(lambda: node.pub.stats()["writesRefused"] == 3, what="out of range")
+        assert node.pub.stats()["writes"] == 0
+        assert slave.registers(1, "hr", 100) == [default_register(1, "hr", 100)]
+        text = caplog.text
+        assert "dev1: DCMD write bad=5 refused: bad: slave 1 FC06: exception 0x04" in text
+        assert "'nosuch' refused: no such metric" in text
+        assert "sp=70000 refused: item 'sp': cannot write 70000: allowed 0..65535" in text
+
+
+def test_ddeath_when_offline_then_dbirth(broker: Mosquitto, slave: PymodbusSlave) -> None:
+    with MqttProbe(broker.port, [f"{BASE}/#"]) as probe, Node(broker.port,
+                                                              device(slave.port)) as node:
+        wait_payload(probe, f"{BASE}/DBIRTH/{N}/dev1")
+        mark = probe.mark()
+        slave.set_offline(1)
+        death = wait_payload(probe, f"{BASE}/DDEATH/{N}/dev1", after=mark)
+        assert death.metrics == [] and death.seq is not None
+        slave.set_offline(1, False)
+        wait_payload(probe, f"{BASE}/DBIRTH/{N}/dev1", after=mark)
+        mark = probe.mark()
+        node.pub.detach(node.drv)
+        wait_payload(probe, f"{BASE}/DDEATH/{N}/dev1", after=mark)
+
+
+def state(online: bool, stamp: int) -> bytes:
+    return json.dumps({"online": online, "timestamp": stamp}).encode()
+
+
+def test_primary_host_state_gates_births(broker: Mosquitto, slave: PymodbusSlave) -> None:
+    host = "spBv1.0/STATE/scada"
+    with MqttProbe(broker.port, [f"{BASE}/#"]) as probe, Node(
+            broker.port, device(slave.port), primaryHostId="scada") as node:
+        assert node.pub.wait_connected(10)
+        wait_for(lambda: node.drv.stats().get("cycles", 0) >= 3, what="3 cycles")
+        time.sleep(0.3)
+        assert probe.on(f"{BASE}/NBIRTH/{N}") == [] and probe.on(
+            f"{BASE}/DBIRTH/{N}/dev1") == []
+        now = int(time.time() * 1000)
+        probe.publish(host, state(True, now))  # the host comes online
+        wait_payload(probe, f"{BASE}/NBIRTH/{N}")
+        wait_payload(probe, f"{BASE}/DBIRTH/{N}/dev1")
+        mark = probe.mark()
+        probe.publish(host, state(True, now - 5000))  # stale: ignored
+        probe.publish(host, state(False, now + 1))
+        death = wait_payload(probe, f"{BASE}/NDEATH/{N}", after=mark)
+        assert death.by_name()["bdSeq"].value == node.pub.stats()["bdSeq"]
+        mark = probe.mark()
+        probe.publish(host, state(True, now + 2))
+        birth = wait_payload(probe, f"{BASE}/NBIRTH/{N}", after=mark)
+        assert birth.seq == 0
+        wait_payload(probe, f"{BASE}/DBIRTH/{N}/dev1", after=mark)
+        assert len(probe.on(f"{BASE}/NBIRTH/{N}")) == 2  # the stale STATE did nothing
+
+
+def test_ndeath_is_the_will_with_the_sessions_bdseq(broker: Mosquitto, slave: PymodbusSlave,
+                                                   tmp_path: Path) -> None:
+    """The gateway service in its own process (mode sparkplug): killed, the broker sends
+    its will, the NDEATH whose bdSeq is the NBIRTH's; restarted, bdSeq (kept in
+    bdSeqFile) is one more; stopped cleanly, it publishes NDEATH itself."""
+    folder = tmp_path / "conf"
+    folder.mkdir()
+    (folder / "gateway.json").write_text(json.dumps({
+        "gatewayId": N,
+        "mqtt": {"mode": "sparkplug", "port": broker.port, "keepalive": 5,
+                 "sparkplug": {"groupId": G, "bdSeqFile": "bdseq"}}}))
+    dev = device(slave.port)
+    (folder / "dev1.json").write_text(json.dumps({
+        "organization": {"deviceCode": "dev1"},
+        "communication": dev.communication.to_dict(), "addressList": ITEMS}))
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[2] / "src"))
+
+    def gateway() -> subprocess.Popen[bytes]:
+        return subprocess.Popen([sys.executable, "-m", "edgemodbus.gateway", "--config-dir",
+                                 str(folder), "-q"], env=env, stdout=subprocess.DEVNULL,
+                                stderr=subprocess.PIPE)
+
+    with MqttProbe(broker.port, [f"{BASE}/#"]) as probe:
+        proc = gateway()
+        try:
+            birth = wait_payload(probe, f"{BASE}/NBIRTH/{N}", timeout=20)
+            wait_payload(probe, f"{BASE}/DBIRTH/{N}/dev1")
+            first = birth.by_name()["bdSeq"].value
+            mark = probe.mark()
+            proc.send_signal(signal.SIGKILL)
+            proc.wait(10)
+            death = wait_payload(probe, f"{BASE}/NDEATH/{N}", after=mark)
+            assert death.by_name()["bdSeq"].value == first
+            assert death.seq is None
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+            proc.wait()
+        assert (folder / "bdseq").read_text().strip() == str(first + 1)
+        mark = probe.mark()
+        proc = gateway()
+        try:
+            birth = wait_payload(probe, f"{BASE}/NBIRTH/{N}", after=mark, timeout=20)
+            assert birth.by_name()["bdSeq"].value == first + 1
+            wait_payload(probe, f"{BASE}/DBIRTH/{N}/dev1", after=mark)
+            mark = probe.mark()
+            proc.send_signal(signal.SIGTERM)
+            assert proc.wait(15) == 0
+            death = wait_payload(probe, f"{BASE}/NDEATH/{N}", after=mark)
+            assert death.by_name()["bdSeq"].value == first + 1
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+            stderr = proc.stderr.read().decode() if proc.stderr else ""
+            proc.wait()
+        assert "Traceback" not in stderr, stderr
