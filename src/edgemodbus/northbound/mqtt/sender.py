@@ -99,7 +99,7 @@ class Sender:
         for info, message in self.window:
             if message.qos > 0:
                 kept.append((info, message))
-            else:
+            elif not info.is_published():  # (written ones may wait behind a QoS 1 one)
                 lost += 1
         self.window = kept
         if lost:
