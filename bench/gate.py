@@ -73,10 +73,22 @@ GATES: dict[str, Gate] = {
     # over pymodbus' sync client.  Issue 2: at most a third; half is the noise margin.
     "line.worker_vs_pymodbus": Gate(
         0.33, 0.5, "lower", "x", "CPU per transaction / pymodbus"),
-    # bench/test_bench_mqtt.py: CPU per tag read with MQTT QoS 0 publishing over MQTT off.
-    # Issue 8: at most 1.5x; 2.0x leaves room for the broker sharing the machine.
+    # bench/test_bench_mqtt.py: CPU per tag read with MQTT QoS 0 publishing (mode
+    # "per-item": a message per update) over MQTT off.  Issue 8: at most 1.5x.  NOT MET
+    # since issue 15 took out the hand-built PUBLISH packets (1.27x) for paho's public
+    # publish(): 1.1-2.0x, paho's own cost per message; mode "batch" (below) is the
+    # answer for CPU.  The limit guards against a regression beyond that, not the target.
     "mqtt.qos0_on_vs_off": Gate(
-        1.5, 2.0, "lower", "x", "CPU/tag read, MQTT QoS 0 on / off"),
+        1.5, 3.0, "lower", "x", "CPU/tag read, MQTT per-item QoS 0 on / off"),
+    # The same in mode "batch" (a message per device and cycle).  Issue 15: at most 1.2x
+    # at QoS 0 and 1.5x at QoS 1; the limits add a third for noise, as above.  Measured
+    # (median of six rounds) 1.07-1.19 and 1.16-1.47, once 1.50 and 1.30: single rounds
+    # spread 0.76-1.57 on the shared VM, where the rate polled without MQTT itself varied
+    # from 300,000 to 730,000 tag reads/s between runs.
+    "mqtt.batch_qos0_on_vs_off": Gate(
+        1.2, 1.6, "lower", "x", "CPU/tag read, MQTT batch QoS 0 on / off"),
+    "mqtt.batch_qos1_on_vs_off": Gate(
+        1.5, 2.0, "lower", "x", "CPU/tag read, MQTT batch QoS 1 on / off"),
     # bench/test_bench_driver.py: RSS growth per configured and polled tag (configs plus
     # drivers; 100,000 tags, 10,000 in quick mode).  Issue 13: at most 0.7 KB; gate 1 KB.
     "memory.kb_per_tag": Gate(

@@ -8,14 +8,20 @@ process) receives the updates and a subscriber (own process) counts what arrives
 The same drivers run all along (polling as fast as the line allows); a publisher is
 attached (MQTT on) and detached (MQTT off) in alternating phases of the same run, and
 the client CPU of this process (time.process_time: every thread, the line worker and the
-MQTT thread included) per tag read is compared.  Target: on / off <= 1.5 with the
-default item QoS 0 (gated: bench/gate.py); QoS 1 (paho's publish and a PUBACK per
-update) is reported beside it.  The benchmark fixture times the line worker's side of
-MQTT: the batch callback handing 100 updates over.
+MQTT thread included) per tag read is compared: each on window against the mean of the
+off windows before and after its round, the median over the rounds (the machine is
+shared: a burst of someone else's load spoils a window, not the figure).  Publishers in
+mode "batch" (one message per device and cycle) and "per-item" (one message per update),
+each at QoS 0 and QoS 1, all through paho's public publish().  Targets (issue 15, gated:
+bench/gate.py): batch on / off <= 1.2 at QoS 0 and <= 1.5 at QoS 1; per-item QoS 0 keeps
+issue 8's target (<= 1.5, not met since the hand-built packets went: its limit is a
+regression guard) and per-item QoS 1 is reported.  The benchmark fixture times the line
+worker's side of MQTT: the batch callback handing 100 updates over.
 """
 
 from __future__ import annotations
 
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -38,8 +44,10 @@ from edgemodbus.northbound.mqtt import MqttPublisher
 SLAVES = list(range(1, 11))
 TAGS = 1000  # per slave
 CHANGING_EVERY = 100  # 1%
-PHASE_SECONDS = 1.5 if QUICK else 5.0
-PHASES = 2 if QUICK else 3  # pairs of off/on
+PHASE_SECONDS = 1.0 if QUICK else 2.5
+PHASES = 3 if QUICK else 6  # rounds of off and every on mode, then off once more
+Mode = tuple[str, int]  # (mqtt.mode, qos)
+ON: list[Mode] = [("batch", 0), ("batch", 1), ("per-item", 0), ("per-item", 1)]
 
 SUBSCRIBER = textwrap.dedent("""
     import sys, threading
@@ -136,12 +144,14 @@ def test_cpu_per_tag_read_mqtt_on_vs_off(setup: tuple[SimulatorProcess, Mosquitt
                                          benchmark: Any) -> None:
     sim, broker = setup
     configs = [device(sim.port, s) for s in SLAVES]
-    publishers = {qos: MqttPublisher({"port": broker.port, "qos": qos},
-                                     gateway_id=f"bench-q{qos}").start() for qos in (0, 1)}
+    publishers = {(mode, qos): MqttPublisher({"port": broker.port, "qos": qos, "mode": mode},
+                                             gateway_id=f"bench-{mode}-q{qos}").start()
+                  for mode, qos in ON}
     subscriber = Subscriber(broker.port, "edgemodbus/+/+")
     drivers: list[em.DriverModbusRtu] = []
-    modes: list[int | None] = [None, 0, 1]  # MQTT off, QoS 0, QoS 1
-    results: dict[int | None, list[float]] = {m: [0.0, 0.0, 0.0] for m in modes}
+    modes: list[Mode | None] = [None, *ON]  # MQTT off, then each way of publishing
+    results: dict[Mode | None, list[float]] = {m: [0.0, 0.0, 0.0] for m in modes}
+    windows: dict[Mode | None, list[float]] = {m: [] for m in modes}  # CPU per read
     try:
         for pub in publishers.values():
             assert pub.wait_connected(10)
@@ -155,8 +165,8 @@ def test_cpu_per_tag_read_mqtt_on_vs_off(setup: tuple[SimulatorProcess, Mosquitt
             time.sleep(0.1)
         time.sleep(1.0)  # warm up
 
-        for _ in range(PHASES):
-            for mode in modes:
+        for last in [False] * PHASES + [True]:
+            for mode in modes[:1] if last else modes:
                 pub = publishers[mode] if mode is not None else None
                 if pub is not None:
                     for drv, cfg in zip(drivers, configs, strict=True):
@@ -171,12 +181,19 @@ def test_cpu_per_tag_read_mqtt_on_vs_off(setup: tuple[SimulatorProcess, Mosquitt
                 acc[0] += cpu1 - cpu0
                 acc[1] += reads1 - reads0
                 acc[2] += changed1 - changed0
+                windows[mode].append((cpu1 - cpu0) / (reads1 - reads0))
                 if pub is not None:
                     for drv in drivers:
                         pub.detach(drv)
-        stats = {qos: pub.stats() for qos, pub in publishers.items()}
-        published = sum(st["published"] for st in stats.values())
-        # every published update reached the subscriber
+                    # what it still holds is sent before the next window, not in it
+                    deadline = time.monotonic() + 10
+                    while pub.stats()["queued"] and time.monotonic() < deadline:
+                        time.sleep(0.05)
+        stats = {mode: pub.stats() for mode, pub in publishers.items()}
+        # messages: an update each (per-item), a device's cycle each (batch)
+        published = sum(st["batchesPublished"] if mode[0] == "batch" else st["published"]
+                        for mode, st in stats.items())
+        # every published message reached the subscriber
         deadline = time.monotonic() + 15
         while subscriber.count() < published:
             assert time.monotonic() < deadline, (subscriber.count(), published)
@@ -185,12 +202,12 @@ def test_cpu_per_tag_read_mqtt_on_vs_off(setup: tuple[SimulatorProcess, Mosquitt
 
         # the worker's side: the batch callback handing 100 updates to the publisher
         drv = drivers[0]
-        publishers[0].attach(drv, "bench1")
+        publishers["batch", 0].attach(drv, "bench1")
         callback = drv.addresses_updated_callback
         assert callback is not None
         batch = configs[0].address_list[:100]
         benchmark.pedantic(lambda: callback(batch), rounds=scale(2000, 200), iterations=1)
-        publishers[0].detach(drv)
+        publishers["batch", 0].detach(drv)
     finally:
         for drv in drivers:
             drv.stop_device()
@@ -198,37 +215,50 @@ def test_cpu_per_tag_read_mqtt_on_vs_off(setup: tuple[SimulatorProcess, Mosquitt
             pub.stop()
         subscriber.close()
 
-    seconds = PHASES * PHASE_SECONDS
+    seconds = PHASES * PHASE_SECONDS  # of each on mode (off has one window more)
     off_cpu, off_reads, off_changed = results[None]
     per_off = off_cpu / off_reads
+    offs = windows[None]  # PHASES + 1: before and after each round
     rows: list[tuple[str, float, str]] = [("MQTT off: CPU per tag read", per_off * 1e9, "ns")]
-    ratios: dict[int, float] = {}
-    for qos in (0, 1):
-        cpu, reads, changed = results[qos]
-        ratios[qos] = (cpu / reads) / per_off
+    ratios: dict[Mode, float] = {}
+    for mode, qos in ON:
+        cpu, reads, changed = results[mode, qos]
+        rounds = [on / ((offs[r] + offs[r + 1]) / 2) for r, on in enumerate(windows[mode, qos])]
+        ratios[mode, qos] = statistics.median(rounds)
+        st = stats[mode, qos]
+        name = f"MQTT {mode} QoS {qos}"
         rows += [
-            (f"MQTT QoS {qos}: CPU per tag read", cpu / reads * 1e9, "ns"),
-            (f"MQTT QoS {qos}: ratio to off" + (" (gated)" if qos == 0 else ""),
-             ratios[qos], "x"),
-            (f"MQTT QoS {qos}: updates published per second", changed / seconds, "/s"),
-            (f"MQTT QoS {qos}: CPU, % of one core", 100 * cpu / seconds, "%"),
-            (f"MQTT QoS {qos}: values changed per read", 100 * changed / reads, "%"),
+            (f"{name}: CPU per tag read", cpu / reads * 1e9, "ns"),
+            (f"{name}: ratio to off (median of rounds)", ratios[mode, qos], "x"),
+            (f"{name}: ratio to off (all windows)", (cpu / reads) / per_off, "x"),
+            (f"{name}: ratio to off (lowest round)", min(rounds), "x"),
+            (f"{name}: ratio to off (highest round)", max(rounds), "x"),
+            (f"{name}: updates published per second", changed / seconds, "/s"),
+            (f"{name}: CPU, % of one core", 100 * cpu / seconds, "%"),
+            (f"{name}: values changed per read", 100 * changed / reads, "%"),
+            (f"{name}: updates dropped (queue full)", float(st["dropped"]), ""),
         ]
+        if mode == "batch":
+            rows.append((f"{name}: updates per message",
+                         st["published"] / max(1, st["batchesPublished"]), ""))
     rows += [
         ("MQTT off: values changed per read", 100 * off_changed / off_reads, "%"),
-        ("MQTT off: tag reads per second", off_reads / seconds, "/s"),
-        ("MQTT off: CPU, % of one core", 100 * off_cpu / seconds, "%"),
-        ("MQTT QoS 0: updates dropped (queue full)", float(stats[0]["dropped"]), ""),
-        ("MQTT QoS 1: updates dropped (queue full)", float(stats[1]["dropped"]), ""),
+        ("MQTT off: tag reads per second", off_reads / (seconds + PHASE_SECONDS), "/s"),
+        ("MQTT off: CPU, % of one core", 100 * off_cpu / (seconds + PHASE_SECONDS), "%"),
     ]
     benchmark.extra_info.update(
-        ns_per_tag_read_off=per_off * 1e9, ratio_qos0=ratios[0], ratio_qos1=ratios[1],
-        published=published, received=received,
+        ns_per_tag_read_off=per_off * 1e9, published=published, received=received,
+        **{f"ratio_{mode}_qos{qos}": ratio for (mode, qos), ratio in ratios.items()},
     )
     report("CPU per tag read, 10,000 tags, 1% changing per read, MQTT to mosquitto", rows)
     for mode in modes:
         cpu, reads, changed = results[mode]
         assert 0.9 <= 100 * changed / reads <= 1.1, f"the 1% change did not happen ({mode})"
-    assert stats[0]["dropped"] == 0
     assert received >= published > 0
-    gate.record("mqtt.qos0_on_vs_off", ratios[0])  # a valid run only (nothing dropped)
+    # a valid run only: nothing dropped where a figure is gated (a dropped update is work
+    # not done, which would flatter the ratio)
+    for key in (("batch", 0), ("batch", 1), ("per-item", 0)):
+        assert stats[key]["dropped"] == 0, (key, stats[key]["dropped"])
+    gate.record("mqtt.batch_qos0_on_vs_off", ratios["batch", 0])
+    gate.record("mqtt.batch_qos1_on_vs_off", ratios["batch", 1])
+    gate.record("mqtt.qos0_on_vs_off", ratios["per-item", 0])

@@ -90,7 +90,7 @@ class Gateway:
         self.pub.stop()
 
 
-@pytest.mark.parametrize("qos", [0, 1])  # 0: our raw PUBLISH packets; 1: paho's publish()
+@pytest.mark.parametrize("qos", [0, 1])
 def test_item_updates_status_and_snapshot_reach_a_subscriber(
     broker: Mosquitto, slave: PymodbusSlave, qos: int
 ) -> None:

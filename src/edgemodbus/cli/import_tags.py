@@ -10,10 +10,10 @@ nothing is written unless ``--partial`` (which writes the converted rows and exi
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
+from ..codec import json_text
 from ..commission.tag_import import import_tags
 from ..config import ConfigError, load_device_config
 from ..protocol.address import PREFIXES
@@ -60,7 +60,7 @@ def run(args: argparse.Namespace) -> int:
         print("edgemodbus import: nothing written (--partial writes the converted rows)",
               file=sys.stderr)
         return 1
-    out = json.dumps(device, indent=2, ensure_ascii=False) + "\n"
+    out = json_text(device, indent=True) + "\n"
     if args.output is None:
         sys.stdout.write(out)
     else:

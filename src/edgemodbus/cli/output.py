@@ -3,12 +3,11 @@ lines, whole-line output and one-line problems."""
 
 from __future__ import annotations
 
-import json
 import sys
 import threading
 from typing import Any
 
-from ..codec import jsonable
+from ..codec import json_text
 from ..config import ConfigError
 
 _stdout_lock = threading.Lock()  # lines from several line workers must not interleave
@@ -36,7 +35,7 @@ def value_text(value: Any) -> str:
 
 def json_line(obj: Any) -> str:
     """One strict JSON line (the `run --json` output): NaN and infinities are null."""
-    return json.dumps(jsonable(obj), ensure_ascii=False, allow_nan=False, default=str)
+    return json_text(obj)
 
 
 def emit(line: str) -> None:
@@ -48,7 +47,7 @@ def emit(line: str) -> None:
 
 
 def print_json(data: Any) -> int:
-    print(json.dumps(data, indent=2, ensure_ascii=False))
+    print(json_text(data, indent=True))
     return 0
 
 

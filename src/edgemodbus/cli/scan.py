@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import json
 import sys
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
@@ -33,7 +32,7 @@ from ..commission.scan import (
 from ..errors import ModbusConnectionError
 from ..line.endpoint import SerialPort, TcpEndpoint
 from ..protocol.rtu import MAX_SLAVE_ID
-from .output import CliError
+from .output import CliError, print_json
 
 DEFAULT_BAUDS = "9600,19200,38400,57600,115200"
 TRANSPORTS = ("rtu-over-tcp", "tcp")
@@ -264,7 +263,7 @@ def run(args: argparse.Namespace) -> int:
     finally:
         events.close()  # closes the line if the scan stopped between two events
     if args.json:
-        sys.stdout.write(json.dumps(report.as_json(), indent=2) + "\n")
+        print_json(report.as_json())
     else:
         sys.stdout.write("\n".join(report.text_lines()) + "\n")
     sys.stdout.flush()

@@ -31,7 +31,7 @@ from __future__ import annotations
 
 from .decoder import BlockDecoder, Change
 from .encoder import encode, register_bit
-from .jsonable import jsonable
+from .jsonable import json_bytes, json_text, jsonable
 from .normalize import normalize_value
 from .spec import MAX_QUANTITY, SMART_CAST_TYPES, ValueSpec, check_spec, smart_cast
 
@@ -43,6 +43,8 @@ __all__ = [
     "ValueSpec",
     "check_spec",
     "encode",
+    "json_bytes",
+    "json_text",
     "jsonable",
     "normalize_value",
     "register_bit",

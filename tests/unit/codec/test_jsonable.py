@@ -12,7 +12,7 @@ from typing import Any
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from edgemodbus.codec import jsonable
+from edgemodbus.codec import json_bytes, json_text, jsonable
 
 scalars = st.one_of(
     st.none(),
@@ -76,3 +76,28 @@ def test_the_rules_on_examples() -> None:
         "a": [None, None, 1.5e-7, True, 3],
         "b": ["00ff", "2026-01-18T12:16:58.250000+00:00"],
     }
+
+
+@settings(max_examples=300, deadline=None)
+@given(values, st.booleans())
+def test_json_text_is_the_same_conversion(value: Any, indent: bool) -> None:
+    """json_bytes / json_text (orjson, with the careful stdlib path for what orjson
+    refuses) write exactly what jsonable says, as strict JSON."""
+    text = json_text(value, indent=indent)
+    assert json_bytes(value, indent=indent) == text.encode()
+    assert json.loads(text) == json.loads(json.dumps(jsonable(value)))
+    assert "NaN" not in text and "Infinity" not in text
+
+
+def test_json_text_on_examples() -> None:
+    when = datetime(2026, 1, 18, 12, 16, 58, 250000, tzinfo=timezone(timedelta(seconds=30)))
+    given_ = {"a": [math.nan, 1e300, -0.0], "b": b"\x00\xff", "c": when, 1: 2**63}
+    assert json_bytes(given_) == (
+        b'{"a":[null,1e+300,-0.0],"b":"00ff","c":"2026-01-18T12:16:58.250000+00:00:30",'
+        b'"1":9223372036854775808}')
+    # past 64 bits orjson refuses: the standard library's encoder, the same values
+    assert json.loads(json_bytes({**given_, 1: 2**70})) == {
+        "a": [None, 1e300, -0.0], "b": "00ff", "c": "2026-01-18T12:16:58.250000+00:00:30",
+        "1": 2**70}
+    assert json_text({"s": "é"}) == '{"s":"é"}'  # UTF-8, not \u escapes
+    assert json_text([1], indent=True) == "[\n  1\n]"

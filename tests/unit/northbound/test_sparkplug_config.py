@@ -46,7 +46,7 @@ def error(data: dict[str, object]) -> str:
 
 def test_mode_and_section_errors_name_the_field() -> None:
     assert error({"mqtt": {"mode": "sparkplugb"}}) == (
-        "mqtt.mode 'sparkplugb': must be 'per-item' or 'sparkplug'")
+        "mqtt.mode 'sparkplugb': must be 'per-item', 'batch' or 'sparkplug'")
     assert 'mqtt: mode "sparkplug" needs the section mqtt.sparkplug' in error(
         {"mqtt": {"mode": "sparkplug"}})
     assert error({"mqtt": {"mode": "sparkplug", "sparkplug": {}}}) == (

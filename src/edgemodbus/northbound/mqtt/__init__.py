@@ -4,15 +4,18 @@ Needs the extra ``edgemodbus[mqtt]`` (paho-mqtt); ``import edgemodbus`` never im
 this package, and paho is imported only when a :class:`MqttPublisher` is made.
 
 Modules: settings.py (the ``mqtt`` section), publisher.py (lifecycle, attached drivers,
-the MQTT thread), outbox.py and sender.py (the queues, and handing them to paho),
-packets.py (item payloads and hand-built PUBLISH packets), payload.py (the other JSON
-messages), commands.py (writes from MQTT), connection.py (failed connects in the log).
+the MQTT thread), outbox.py and sender.py (the queues, and handing them to paho through
+its public API: ``publish()``, ``loop_read/loop_write/loop_misc``), payload.py (every JSON
+payload, through edgemodbus.codec's one value conversion), commands.py (writes from
+MQTT), connection.py (failed connects in the log).
 
 Threads and queues (why polling is never blocked):
 
 * the driver's batch callback and snapshot publisher run on the line worker thread; here
   they only copy the reported fields into a bounded queue (oldest updates are dropped
-  and counted when it is full) or replace the device's pending snapshot (latest wins);
+  and counted when it is full: ``queueSize`` during an outage, ``queueSize`` plus one
+  full report of every device while the broker is connected, so that the start-up burst
+  of first reads is kept) or replace the device's pending snapshot (latest wins);
 * one ``edgemodbus-mqtt`` thread owns the paho client (external-loop mode: our own
   ``select``), connects and reconnects with exponential backoff and jitter, serialises
   to JSON and publishes; nothing else touches the client;
@@ -29,6 +32,8 @@ Topic layout (every template configurable; placeholders ``{prefix}``, ``{deviceC
 ``{itemName}``, ``{gatewayId}``)::
 
     {prefix}/{deviceCode}/{itemName}      item change  {"value","status","updateTs","errorReason"}
+    {prefix}/{deviceCode}/$batch          mode "batch": a device's changes of one cycle
+                                          {"deviceCode","ts","values","status","errors"}
     /real/{deviceCode}                    periodic snapshot (the seed's topic), retained
     {prefix}/{deviceCode}/$status         device status, retained
     {prefix}/$gateway/{gatewayId}         gateway online/offline, retained; last will: offline
@@ -39,7 +44,7 @@ Topic layout (every template configurable; placeholders ``{prefix}``, ``{deviceC
 
 from ...codec import jsonable
 from .commands import parse_command
-from .packets import encode_item
+from .payload import batch_payload, encode_item
 from .publisher import MqttPublisher
 from .settings import MqttSettings, TlsSettings, check_name
 
@@ -47,6 +52,7 @@ __all__ = [
     "MqttPublisher",
     "MqttSettings",
     "TlsSettings",
+    "batch_payload",
     "check_name",
     "encode_item",
     "jsonable",

@@ -14,7 +14,7 @@ import threading
 from typing import Any
 
 from .devices import AttachedDevice
-from .outbox import Outbox
+from .outbox import Message, Outbox
 from .payload import dumps, now
 
 log = logging.getLogger("edgemodbus.mqtt")
@@ -197,7 +197,7 @@ class CommandRunner:
                                 "ts": now()}
         if action is not None:
             body["action"] = action
-        self._outbox.push_control(dev.reply_topic, dumps(body), 1, False)
+        self._outbox.push_control(Message(dev.code, dev.reply_topic, dumps(body), 1, False))
 
     def _run(self, loop: asyncio.AbstractEventLoop) -> None:
         asyncio.set_event_loop(loop)

@@ -1,17 +1,21 @@
 """The connection to the broker, in words and in the log: why an attempt failed, failures
-logged without flooding, and dropping a connection that never got its CONNACK."""
+logged without flooding, dropping a connection that never got its CONNACK, and writing
+what paho queued in as few TCP segments as it fits."""
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import socket
 import ssl
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     from paho.mqtt.client import Client
 
 log = logging.getLogger("edgemodbus.mqtt")
+
+_CORK: int | None = getattr(socket, "TCP_CORK", None)  # Linux
 
 
 class FailureLog:
@@ -72,11 +76,39 @@ def error_text(exc: BaseException, tls: bool) -> str:
     return str(exc) or type(exc).__name__
 
 
-def close_socket(client: Client) -> None:
-    """Drop a connection that never got its CONNACK (paho has no public call for a
-    connection that is not established; its reconnect() closes the old socket first)."""
-    close = getattr(client, "_sock_close", None)
-    if callable(close):
-        close()
-    else:  # pragma: no cover - a paho without it: DISCONNECT, closed once written
-        client.disconnect()
+def abandon(client: Client) -> None:
+    """Drop a connection that never got its CONNACK, through paho's public calls:
+    disconnect() queues a DISCONNECT, and paho closes the socket once loop_write() has
+    written it (if the socket cannot take it now, the MQTT thread's next loop_write()
+    does; the socket is gone in either case before the next attempt)."""
+    client.disconnect()
+    if client.socket() is not None:
+        client.loop_write()
+
+
+def write(client: Client) -> None:
+    """``client.loop_write()`` with the socket corked (Linux TCP_CORK, on the socket
+    paho's public ``socket()`` returns): paho writes each queued packet with a send() of
+    its own, and every send() on an uncorked socket is a TCP segment of its own, whose
+    transmission (and on loopback, the broker's receive) costs far more CPU than the
+    send() itself; corked, they leave together when the cork is pulled."""
+    sock = client.socket()
+    corked = False
+    if _CORK is not None and isinstance(sock, socket.socket):  # an SSLSocket is one too
+        try:
+            sock.setsockopt(socket.IPPROTO_TCP, _CORK, 1)
+            corked = True
+        except OSError:  # not a TCP socket
+            pass
+    try:
+        client.loop_write()
+    finally:
+        if corked and _CORK is not None and isinstance(sock, socket.socket):
+            with contextlib.suppress(OSError):  # closed meanwhile: nothing left to send
+                sock.setsockopt(socket.IPPROTO_TCP, _CORK, 0)
+
+
+def write_wanted(_client: Client, _userdata: Any, _sock: Any) -> None:
+    """paho's ``on_socket_register_write``: paho has bytes to write.  Nothing to do: the
+    MQTT thread's select() asks ``want_write()`` before it sleeps; set, the callback
+    makes publish() queue a message instead of writing it at once."""

@@ -8,62 +8,154 @@ import socket
 import threading
 from collections import deque
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 from .devices import AttachedDevice
 
 if TYPE_CHECKING:
     from ...config import DeviceAddressItem
 
-Row = tuple[AttachedDevice, str, Any, Any, Any, Any]  # device, name, value, status, ts, error
-Control = tuple[str, bytes, int, bool]  # topic, payload, qos, retain
+Row = tuple[str, Any, Any, Any, Any]  # item name, value, status, updateTs, errorReason
+
+
+class Message(NamedTuple):
+    """One MQTT message on its way to the broker (control messages wait as these; item
+    updates and snapshots become these when the MQTT thread sends them)."""
+
+    device: str | None  # the device it is about; None: the gateway's own
+    topic: str
+    payload: bytes
+    qos: int
+    retain: bool
+
 
 _CONTROL_LIMIT = 10_000
 
 
+class Report:
+    """What one device reported in one cycle (its batch callback): the unit of the batch
+    mode's messages.  Trimming (an outage) may drop its oldest rows."""
+
+    __slots__ = ("dev", "rows")
+
+    def __init__(self, dev: AttachedDevice, rows: list[Row]) -> None:
+        self.dev = dev
+        self.rows = rows
+
+
 class Outbox:
-    """Item updates (bounded: the oldest are dropped and counted), the latest snapshot of
-    each device, control messages (statuses, replies), actions for the MQTT thread, and
-    the publisher's counters, all under one lock; a socket pair wakes the MQTT thread's
-    select() when something arrives."""
+    """Item updates (bounded, see :meth:`limit`), the latest snapshot of each device,
+    control messages (statuses, replies), actions for the MQTT thread, and the publisher's
+    counters, all under one lock; a socket pair wakes the MQTT thread's select() when
+    something arrives."""
 
     def __init__(self, queue_size: int) -> None:
         self.queue_size = queue_size
         self.lock = threading.Lock()
-        self.rows: deque[Row] = deque()
+        self.reports: deque[Report] = deque()
+        self.queued = 0  # item updates in self.reports
+        self.burst = 0  # the largest report of each attached device, summed
+        self.outage = False  # a connect failed or the connection was lost, no CONNACK since
         self.snapshots: dict[str, tuple[AttachedDevice, dict[str, Any]]] = {}
-        self.control: deque[Control] = deque()
+        self.control: deque[Message] = deque()
         self.actions: deque[Callable[[], None]] = deque()
         self.counts: dict[str, int] = dict.fromkeys(
-            ("connects", "disconnects", "connectFailures", "published", "dropped",
-             "publishErrors", "snapshotsPublished", "snapshotsCoalesced", "commands",
-             "commandErrors", "controlDropped"), 0)
+            ("connects", "disconnects", "connectFailures", "published", "batchesPublished",
+             "acknowledged", "dropped", "publishErrors", "lostOnDisconnect",
+             "snapshotsPublished",
+             "snapshotsCoalesced", "commands", "commandErrors", "controlDropped"), 0)
         self.wake_r, self._wake_w = socket.socketpair()
         self.wake_r.setblocking(False)
         self._wake_w.setblocking(False)
         self._wake_pending = False
         self.status_dirty = False  # a device's status changed: check the statuses now
 
+    def limit(self) -> int:
+        """How many item updates may wait (under the lock).  During an outage,
+        ``queueSize``.  Otherwise also one full report of every attached device (its
+        largest so far: at start-up every item's first read), so that a burst is never
+        dropped while the broker takes what we send; the bound is still there against a
+        broker too slow for the updates."""
+        return self.queue_size if self.outage else self.queue_size + self.burst
+
     def offer_items(self, dev: AttachedDevice, items: list[DeviceAddressItem]) -> None:
-        rows = [(dev, it.name, it.value, it.status, it.update_ts, it.error_reason)
-                for it in items]
-        limit = self.queue_size
+        rows = [(it.name, it.value, it.status, it.update_ts, it.error_reason) for it in items]
         status = dev.driver.device_driver_status  # a cheap look: did the status change?
         with self.lock:
             if status is not dev.seen_status:
                 dev.seen_status = status
                 self.status_dirty = True
-            queue = self.rows
-            queue.extend(rows)
-            over = len(queue) - limit
-            if over > 0:  # drop the oldest: a newer update of an item supersedes it
-                self.counts["dropped"] += over
-                for _ in range(over):
-                    queue.popleft()[0].dropped += 1
+            if len(rows) > dev.largest and dev.attached:
+                self.burst += len(rows) - dev.largest
+                dev.largest = len(rows)
+            self.reports.append(Report(dev, rows))
+            self.queued += len(rows)
+            self._trim()
             wake = not self._wake_pending
             self._wake_pending = True
         if wake:
             self.wake()
+
+    def _trim(self) -> None:
+        """Drop the oldest updates beyond the limit (under the lock): a newer update of an
+        item supersedes them."""
+        over = self.queued - self.limit()
+        if over <= 0:
+            return
+        self.counts["dropped"] += over
+        self.queued -= over
+        reports = self.reports
+        while over:
+            first = reports[0]
+            if len(first.rows) <= over:
+                reports.popleft()
+                first.dev.dropped += len(first.rows)
+                over -= len(first.rows)
+            else:
+                first.dev.dropped += over
+                first.rows = first.rows[over:]
+                over = 0
+
+    def set_outage(self, outage: bool) -> None:
+        """The broker became unreachable (True: the queue shrinks to ``queueSize`` at once,
+        oldest dropped) or took our connection (False)."""
+        with self.lock:
+            self.outage = outage
+            self._trim()
+
+    def forget(self, dev: AttachedDevice) -> None:
+        """A detached device's burst no longer counts (under the lock)."""
+        dev.attached = False
+        self.burst -= dev.largest
+
+    def take_reports(self, room: int, split: bool) -> list[Report]:
+        """The oldest reports (under the lock), at most ``room`` messages' worth: one
+        message a report, or with ``split`` one a row (a report is cut to fit)."""
+        taken: list[Report] = []
+        reports = self.reports
+        while room > 0 and reports:
+            first = reports[0]
+            if not split:
+                taken.append(reports.popleft())
+                self.queued -= len(first.rows)
+                room -= 1
+            elif len(first.rows) <= room:
+                taken.append(reports.popleft())
+                self.queued -= len(first.rows)
+                room -= len(first.rows)
+            else:
+                taken.append(Report(first.dev, first.rows[:room]))
+                first.rows = first.rows[room:]
+                self.queued -= room
+                room = 0
+        return taken
+
+    def put_back(self, reports: list[Report]) -> None:
+        """Reports (or their remainders) not taken by paho, to the front, oldest first
+        (under the lock)."""
+        for report in reversed(reports):
+            self.reports.appendleft(report)
+            self.queued += len(report.rows)
 
     def offer_snapshot(self, dev: AttachedDevice, snapshot: dict[str, Any]) -> None:
         with self.lock:
@@ -76,12 +168,12 @@ class Outbox:
         if wake:
             self.wake()
 
-    def push_control(self, topic: str, payload: bytes, qos: int, retain: bool) -> None:
+    def push_control(self, message: Message) -> None:
         with self.lock:
             if len(self.control) >= _CONTROL_LIMIT:
                 self.counts["controlDropped"] += 1
                 return
-            self.control.append((topic, payload, qos, retain))
+            self.control.append(message)
         self.wake()
 
     def count(self, key: str, n: int = 1) -> None:

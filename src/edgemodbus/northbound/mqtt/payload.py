@@ -1,28 +1,56 @@
-"""The JSON the publisher sends (snapshots, statuses, gateway state, replies): strict
-JSON, compact, UTF-8; item updates have their own fast encoder in packets.py."""
+"""The JSON the publisher sends (item updates, batches, snapshots, statuses, gateway
+state, replies): strict JSON, compact, UTF-8, all through the one value conversion of
+edgemodbus.codec (:func:`~edgemodbus.codec.json_bytes`: NaN and infinities null, bytes
+hex, times ISO 8601)."""
 
 from __future__ import annotations
 
-import json
+from collections.abc import Iterable
 from datetime import datetime, timezone
 from typing import Any
 
-from ...codec import jsonable
+from ...codec import json_bytes
 from ...datatypes import enum_value
 
-
-def dumps(obj: Any) -> bytes:
-    try:
-        text = json.dumps(obj, ensure_ascii=False, separators=(",", ":"), allow_nan=False,
-                          default=str)
-    except ValueError:  # a NaN somewhere: the slow, careful path
-        text = json.dumps(jsonable(obj), ensure_ascii=False, separators=(",", ":"),
-                          default=str)
-    return text.encode()
+dumps = json_bytes
 
 
 def now() -> str:
     return datetime.now(timezone.utc).isoformat()
+
+
+def encode_item(value: Any, status: Any, ts: Any, error: Any) -> bytes:
+    """The payload of one item update on its item topic (mode "per-item"):
+    ``{"value", "status", "updateTs", "errorReason"}``."""
+    return json_bytes({"value": value, "status": status, "updateTs": ts,
+                       "errorReason": error})
+
+
+def batch_payload(code: str, rows: Iterable[tuple[str, Any, Any, Any, Any]]) -> bytes:
+    """The payload of one device's report of one cycle on its batch topic (mode
+    "batch"), from rows ``(name, value, status, updateTs, errorReason)``::
+
+        {"deviceCode": "dev1", "ts": "2026-...+00:00",
+         "values": {"t0": 1, "t1": 2.5}, "status": {"t0": "Ok", "t1": "Invalid"},
+         "errors": {"t1": "..."}}
+
+    ``values`` and ``status`` have every item reported in the cycle (a changed value or
+    status; an Invalid item keeps its last good value, null if it never had one),
+    ``errors`` the reason of each item that has one (``{}`` if none), ``ts`` the newest
+    ``updateTs`` of them (null if none has one)."""
+    values: dict[str, Any] = {}
+    statuses: dict[str, Any] = {}
+    errors: dict[str, Any] = {}
+    newest: Any = None
+    for name, value, status, ts, error in rows:
+        values[name] = value
+        statuses[name] = status  # an ItemStatus is a str: orjson writes its value
+        if error is not None:
+            errors[name] = error
+        if ts is not None and (newest is None or ts > newest):
+            newest = ts
+    return json_bytes({"deviceCode": code, "ts": newest, "values": values,
+                       "status": statuses, "errors": errors})
 
 
 def status_text(status: Any) -> str:

@@ -18,10 +18,9 @@ from typing import TYPE_CHECKING, Any
 from ...config import ConfigError
 from ...driver import DriverModbusRtu
 from .commands import CommandRunner
-from .connection import FailureLog, close_socket, error_text
+from .connection import FailureLog, abandon, error_text, write, write_wanted
 from .devices import AttachedDevice
-from .outbox import Outbox
-from .packets import raw_packet_queue
+from .outbox import Message, Outbox
 from .payload import gateway_payload, status_payload, status_text
 from .sender import Sender
 from .settings import FORBIDDEN, MqttSettings, check_name
@@ -73,6 +72,8 @@ class MqttPublisher:
         self._sender = Sender(self._outbox, settings, paho, self.gateway_id, self.item_topic,
                               self._connected)
         self._commands = CommandRunner(self._outbox)
+        self._linger = settings.linger / 1000
+        self._linger_until = 0.0  # no blocking wait before this: let messages gather
         self._flush_timeout = 1.0
         self._stop_reason = "shutdown"
         self.client_id = settings.client_id or f"edgemodbus-{self.gateway_id}"
@@ -101,6 +102,22 @@ class MqttPublisher:
         }
         command = self.topic(s.command_topic, device_code, "\0").removesuffix("\0") + "#"
         batch = self.topic(s.batch_command_topic, device_code)
+
+        def clash_of(topic: str) -> str | None:
+            clash = reserved.get(topic)
+            if clash is None and (topic == batch or (s.writes and matches(command, topic))):
+                clash = "command"
+            return clash
+
+        if s.mode == "batch":  # item names are JSON keys, not topics
+            topic = self.topic(s.batch_topic, device_code)
+            clash = clash_of(topic)
+            if clash is not None:
+                raise ValueError(
+                    f"device {device_code!r}: its batch topic {topic!r} is the device's "
+                    f"{clash} topic; change mqtt.batchTopic"
+                )
+            return
         for name in names:
             if any(ch in name for ch in FORBIDDEN):
                 raise ValueError(
@@ -108,9 +125,7 @@ class MqttPublisher:
                     "'+', '#' or NUL; rename the item"
                 )
             topic = self.item_topic(device_code, name)
-            clash = reserved.get(topic)
-            if clash is None and (topic == batch or (s.writes and matches(command, topic))):
-                clash = "command"
+            clash = clash_of(topic)
             if clash is not None:
                 raise ValueError(
                     f"item {name!r} of device {device_code!r}: its topic {topic!r} is the "
@@ -175,7 +190,8 @@ class MqttPublisher:
         and per device ``published``, ``dropped``, ``snapshotsCoalesced``."""
         with self._lock:
             result: dict[str, Any] = dict(self._outbox.counts)
-            result["queued"] = len(self._outbox.rows)
+            result["queued"] = self._outbox.queued
+            result["queueLimit"] = self._outbox.limit()
             result["queueSize"] = self.settings.queue_size
             result["pendingSnapshots"] = len(self._outbox.snapshots)
             result["devices"] = {
@@ -225,12 +241,13 @@ class MqttPublisher:
             devs = [d for d in self._devices.values() if d.driver is driver]
             for dev in devs:
                 del self._devices[dev.code]
+                self._outbox.forget(dev)
         for dev in devs:
             driver.addresses_updated_callback = dev.prev_batch
             driver.snapshot_publisher = dev.prev_snapshot
             payload = status_payload(self.gateway_id, dev.code,
                                      status_text(driver.device_driver_status))
-            self._outbox.push_control(dev.status_topic, payload, 1, True)
+            self._outbox.push_control(Message(dev.code, dev.status_topic, payload, 1, True))
             self._outbox.act(lambda dev=dev: self._unsubscribe(dev))  # type: ignore[misc]
 
     # -- the MQTT thread -------------------------------------------------------------------
@@ -255,7 +272,10 @@ class MqttPublisher:
             client.tls_set(ca_certs=s.tls.ca_file, certfile=s.tls.cert_file,
                            keyfile=s.tls.key_file)
             client.tls_insecure_set(s.tls.insecure)
-        self._sender.raw_queue = raw_packet_queue(client)
+        # paho's external-loop mode: with this callback set, publish() queues a message
+        # instead of writing it at once, and one loop_write() (our select loop) sends what
+        # a pump handed over; our select() asks want_write() itself
+        client.on_socket_register_write = write_wanted
         client.on_connect = self._on_connect
         client.on_disconnect = self._on_disconnect
         client.on_message = self._on_message
@@ -287,7 +307,7 @@ class MqttPublisher:
             elif self._attempt is not None and now - self._attempt >= s.connect_timeout / 1000:
                 self._connect_failed(f"no CONNACK within {s.connect_timeout} ms "
                                      "(connectTimeout); is this an MQTT broker?")
-                close_socket(client)
+                abandon(client)
             if self._connected.is_set():
                 delay = s.reconnect_min / 1000
                 self._run_actions()
@@ -311,6 +331,7 @@ class MqttPublisher:
     def _connect_failed(self, reason: str) -> None:
         """One failed connection attempt: counted always, logged rate-limited."""
         self._attempt = None
+        self._outbox.set_outage(True)
         self._outbox.count("connectFailures")
         self._failures.failed(reason, time.monotonic())
 
@@ -321,17 +342,25 @@ class MqttPublisher:
         wake_r = self._outbox.wake_r
         readers: list[Any] = [wake_r] if sock is None else [wake_r, sock]
         writers: list[Any] = [sock] if sock is not None and client.want_write() else []
+        linger = self._linger_until - time.monotonic()
+        if linger > 0 and timeout > 0 and not writers and not self._stopping.is_set():
+            # woken less than `linger` ago: sleep that out first, so that what arrives
+            # meanwhile (reports, acknowledgements) costs one wake-up, not one each
+            self._stopping.wait(min(linger, timeout))
+            timeout = max(0.0, timeout - linger)
         try:
             readable, writable, _ = select.select(readers, writers, [], timeout)
         except (OSError, ValueError):  # the socket was closed under us: reconnect
             return
+        if readable:
+            self._linger_until = time.monotonic() + self._linger
         if wake_r in readable:
             self._outbox.woken()
         try:
             if sock is not None and (sock in readable or timeout == 0.0):
                 client.loop_read()
             if client.socket() is not None and (writable or client.want_write()):
-                client.loop_write()
+                write(client)
             if client.socket() is not None:
                 client.loop_misc()
         except Exception:  # a bug in a callback must not kill the MQTT thread
@@ -348,7 +377,8 @@ class MqttPublisher:
         log.info("MQTT connected to %s:%d as %s%s", self.settings.host, self.settings.port,
                  self.client_id, f" after {failed} failed attempts" if failed else "")
         self._connected.set()
-        self._sender.window.clear()  # qos>0 messages still pending are resent by paho
+        self._outbox.set_outage(False)
+        self._sender.reconnected()  # qos>0 messages still pending are resent by paho
         s = self.settings
         client.publish(self.topic(s.gateway_topic),
                        gateway_payload(self.gateway_id, True, None), qos=1, retain=True)
@@ -361,6 +391,7 @@ class MqttPublisher:
     def _on_disconnect(self, _client: Client, _userdata: Any, _flags: Any, reason: Any,
                        _props: Any) -> None:
         if self._connected.is_set():
+            self._outbox.set_outage(True)
             self._outbox.count("disconnects")
             if not self._stopping.is_set():
                 log.warning("MQTT connection to %s:%d lost (%s); reconnecting",
@@ -409,7 +440,8 @@ class MqttPublisher:
                 dev.published_status = status
                 payload = status_payload(self.gateway_id, dev.code, status)
                 with self._lock:
-                    self._outbox.control.append((dev.status_topic, payload, 1, True))
+                    self._outbox.control.append(Message(dev.code, dev.status_topic, payload,
+                                                        1, True))
 
     def _shutdown(self, client: Client) -> None:
         """Last words on a clean stop: statuses, gateway offline, flush, disconnect."""
@@ -419,7 +451,8 @@ class MqttPublisher:
                 s = self.settings
                 offline = gateway_payload(self.gateway_id, False, self._stop_reason)
                 with self._lock:
-                    self._outbox.control.append((self.topic(s.gateway_topic), offline, 1, True))
+                    self._outbox.control.append(Message(None, self.topic(s.gateway_topic),
+                                                        offline, 1, True))
                 started = time.monotonic()
                 deadline = started + self._flush_timeout
                 left = 0
@@ -427,7 +460,7 @@ class MqttPublisher:
                     self._sender.pump(client)
                     outbox = self._outbox
                     with self._lock:
-                        left = len(outbox.control) + len(outbox.rows) + len(outbox.snapshots)
+                        left = len(outbox.control) + outbox.queued + len(outbox.snapshots)
                     if not left and not self._sender.busy():
                         break
                     self._wait(client, client.socket(), 0.05)
@@ -455,10 +488,9 @@ class MqttPublisher:
             if topic == dev.action_topic:
                 self._commands.dispatch(dev, None, payload, action=True)
                 return
-            if topic == dev.batch_topic:
+            if topic == dev.batch_command_topic:
                 self._commands.dispatch(dev, None, payload)
                 return
             if topic.startswith(dev.command_prefix):
                 self._commands.dispatch(dev, topic[len(dev.command_prefix):], payload)
                 return
-

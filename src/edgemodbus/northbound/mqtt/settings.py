@@ -20,6 +20,10 @@ from ..sparkplug.settings import SparkplugSettings
 from .spool import SYNCHRONOUS, path_problem
 
 PLACEHOLDERS = ("prefix", "deviceCode", "itemName", "gatewayId")
+# What goes on the wire: per-item, one message per item update on its item topic; batch,
+# one message per device and cycle on its batch topic (payload.batch_payload); sparkplug,
+# Sparkplug B (v3.0) with the ``sparkplug`` section (northbound/sparkplug/)
+Mode = Literal["per-item", "batch", "sparkplug"]
 FORBIDDEN = ("+", "#", "\0")  # never in a topic level: the wildcards and NUL
 
 
@@ -200,9 +204,7 @@ class MqttSettings(Model):
     _where: ClassVar[str] = "mqtt"
 
     enabled: bool = True
-    # per-item: one topic per item (the templates below); sparkplug: Sparkplug B (v3.0)
-    # with the ``sparkplug`` section (northbound/sparkplug/)
-    mode: Literal["per-item", "sparkplug"] = "per-item"
+    mode: Mode = "per-item"
     sparkplug: SparkplugSettings | None = None
     host: str = "127.0.0.1"
     port: Annotated[int, Range(1, 65535)] = 1883
@@ -214,6 +216,7 @@ class MqttSettings(Model):
     tls: TlsSettings | None = None
     topic_prefix: str = "edgemodbus"
     item_topic: str = "{prefix}/{deviceCode}/{itemName}"
+    batch_topic: str = "{prefix}/{deviceCode}/$batch"  # mode "batch"
     snapshot_topic: str = "/real/{deviceCode}"
     status_topic: str = "{prefix}/{deviceCode}/$status"
     gateway_topic: str = "{prefix}/$gateway/{gatewayId}"
@@ -221,7 +224,7 @@ class MqttSettings(Model):
     batch_command_topic: str = "{prefix}/{deviceCode}/set"
     reply_topic: str = "{prefix}/{deviceCode}/$reply"
     action_topic: str = "{prefix}/{deviceCode}/$action"  # {"action": n, "parameters": {...}}
-    qos: Annotated[int, Choice((0, 1, 2))] = 0  # item updates: a stream, state is retained
+    qos: Annotated[int, Choice((0, 1, 2))] = 0  # item updates (either mode): a stream
     retain: bool = False
     snapshot_qos: Annotated[int, Choice((0, 1, 2))] = 1
     snapshot_retain: bool = True
@@ -229,6 +232,9 @@ class MqttSettings(Model):
     writes: bool = True
     queue_size: Annotated[int, Range(1, 10_000_000)] = 10_000
     max_inflight: Annotated[int, Range(1, 65_535)] = 100
+    # ms: a busy MQTT thread wakes at most about once per linger, sending all that came
+    # meanwhile (a wake-up costs more CPU than a message); 0: each message at once
+    linger: Annotated[int, Range(0, 1000)] = 10
     reconnect_min: Ms = 500
     reconnect_max: Ms = 30_000
     failure_log_interval: Ms = 60_000  # failed connects: first logged, then one line per this
@@ -253,7 +259,8 @@ class MqttSettings(Model):
         return _check_template(value, PLACEHOLDERS, last="itemName")
 
     @field_validator(
-        "snapshot_topic", "status_topic", "batch_command_topic", "reply_topic", "action_topic"
+        "snapshot_topic", "status_topic", "batch_command_topic", "reply_topic", "action_topic",
+        "batch_topic",
     )
     @classmethod
     def _device_topics(cls, value: str) -> str:
