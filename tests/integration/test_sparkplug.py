@@ -21,7 +21,9 @@ from typing import Any
 import pytest
 
 import edgemodbus as em
+from edgemodbus.northbound.metrics import MetricsExporter
 from edgemodbus.northbound.sparkplug.publisher import SparkplugPublisher
+from tests.integration.test_metrics import lbl, scrape
 from tests.mosquitto import Mosquitto, MqttProbe, Received
 from tests.peers import ExceptionRange, PymodbusSlave, default_register
 from tests.sparkplug_wire import TYPES, Payload, decode, encode, encode_metric
@@ -241,6 +243,40 @@ def test_refused_writes_are_logged_and_counted(broker: Mosquitto, slave: Pymodbu
         assert "dev1: DCMD write bad=5 refused: bad: slave 1 FC06: exception 0x04" in text
         assert "'nosuch' refused: no such metric" in text
         assert "sp=70000 refused: item 'sp': cannot write 70000: allowed 0..65535" in text
+
+
+def test_prometheus_exports_the_sparkplug_counters(broker: Mosquitto,
+                                                   slave: PymodbusSlave) -> None:
+    """The real exporter, scraped over HTTP, with the publisher set as the gateway sets
+    it: births, DDATA, rebirths, DCMD writes (confirmed, refused), bdSeq, born."""
+    with MqttProbe(broker.port, [f"{BASE}/#"]) as probe, Node(
+            broker.port, device(slave.port)) as node, MetricsExporter({"port": 0}) as exporter:
+        exporter.set_publisher(node.pub)
+        birth = wait_payload(probe, f"{BASE}/DBIRTH/{N}/dev1").by_name()
+        _, samples = scrape(exporter.port)
+        assert samples[("edgemodbus_sparkplug_born", ())] == 1
+        mark = probe.mark()
+        probe.publish(f"{BASE}/NCMD/{N}", encode(
+            [encode_metric(name="Node Control/Rebirth", datatype="Boolean", value=True)]))
+        wait_payload(probe, f"{BASE}/DBIRTH/{N}/dev1", after=mark)
+        mark = probe.mark()
+        dcmd(probe, "dev1", encode_metric(alias=birth["sp"].alias, datatype="UInt16",
+                                          value=4321))
+        wait_payload(probe, f"{BASE}/DDATA/{N}/dev1",
+                     lambda p: birth["sp"].alias in p.by_alias(), after=mark)
+        dcmd(probe, "dev1", encode_metric(name="nosuch", datatype="UInt16", value=5))
+        wait_for(lambda: node.pub.stats()["writesRefused"] == 1, what="a refused write")
+        _, samples = scrape(exporter.port)
+        stats = node.pub.stats()
+    got = {name: samples[(f"edgemodbus_sparkplug_{name}_total", ())] for name in (
+        "nbirths", "dbirths", "ddata", "ddeaths", "rebirths", "writes", "writes_refused")}
+    assert got == {"nbirths": 2, "dbirths": 2, "ddata": stats["ddata"], "ddeaths": 0,
+                   "rebirths": 1, "writes": 1, "writes_refused": 1}
+    assert got["ddata"] >= 1
+    assert samples[("edgemodbus_sparkplug_bd_seq", ())] == stats["bdSeq"] == 0
+    assert samples[("edgemodbus_sparkplug_born", ())] == 1
+    assert samples[("edgemodbus_mqtt_published_total", lbl(device="dev1"))] == stats[
+        "devices"]["dev1"]["published"]
 
 
 def test_ddeath_when_offline_then_dbirth(broker: Mosquitto, slave: PymodbusSlave) -> None:
