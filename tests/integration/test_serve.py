@@ -326,6 +326,20 @@ def test_bad_frames_do_not_disturb_the_others(gateway: Gateway) -> None:
         client.close()
 
 
+def test_a_function_code_with_the_high_bit_gets_its_own_code_back(gateway: Gateway) -> None:
+    """0x80..0xFF are exception replies' codes, no request's (Application Protocol 1.1b3,
+    4.1): the exception reply keeps the code (libmodbus's own would wrap 0xFF + 0x80 into
+    0x7F, a normal reply's code); found by csrc/fuzz/fuzz_serve.c."""
+    with socket.create_connection(("127.0.0.1", gateway.port)) as sock:
+        sock.settimeout(5)
+        for tid, (unit, fc, code) in enumerate([(1, 0xFF, 1), (1, 0x83, 1), (77, 0xFF, 0x0A),
+                                                (9, 0x90, 1), (77, 0x7F, 0x0A)]):
+            sock.sendall(mbap(tid, unit, bytes([fc, 0, 0, 0, 1])))
+            assert recv_adu(sock) == mbap(tid, unit, bytes([fc | 0x80, code])), (unit, fc)
+        sock.sendall(mbap(9, 1, b"\x03\x00\x00\x00\x01"))  # the connection is fine
+        assert recv_adu(sock)[7:9] == b"\x03\x02"
+
+
 def test_connection_cap_and_idle_timeout(gateway: Gateway) -> None:
     socks = [socket.create_connection(("127.0.0.1", gateway.port)) for _ in range(4)]
     try:
