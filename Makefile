@@ -69,9 +69,9 @@ bench-quick: build
 	EDGEMODBUS_BENCH_QUICK=1 $(PYTEST) bench --benchmark-only --bench-gate-all -q \
 	  --benchmark-min-rounds=3 --benchmark-max-time=0.2 --benchmark-columns=min,mean,rounds
 
-# Bounded fuzzing (tools/fuzz.py): our C (the codec, and the reply handling of emb_io.c
-# against libmodbus) under libFuzzer with ASan, UBSan and LeakSanitizer (Debian's clang,
-# installed when missing), then the hypothesis fuzz tests of our Python frame checks.
+# Bounded fuzzing (tools/fuzz.py): our C (the codec, the reply handling of emb_io.c and
+# the Modbus TCP server's request path of emb_serve.c, against libmodbus) under libFuzzer
+# with ASan, UBSan and LeakSanitizer (Debian's clang, installed when missing), then the hypothesis fuzz tests of our Python frame checks.
 # Findings are kept in build/fuzz/artifacts/; FUZZ_SECONDS is the libFuzzer time in all.
 FUZZ_DEB           := clang
 FUZZ_SECONDS       ?= 300

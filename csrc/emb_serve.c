@@ -253,7 +253,8 @@ int emb_sv_post(emb_server *s, int conn, uint32_t gen, int kind, const uint8_t *
         pthread_mutex_unlock(&s->lock);
         return 0; /* the connection is gone (or was answered): dropped */
     }
-    memcpy(c->out, data, (size_t)len);
+    if (len > 0) /* data may be NULL when there is none (memcpy's arguments may not) */
+        memcpy(c->out, data, (size_t)len);
     c->out_len = len;
     c->out_kind = kind;
     c->ready = 1;
@@ -299,12 +300,27 @@ static uint32_t emb_sv_frame_len(const emb_sv_conn *c)
     return 6u + (((uint32_t)c->buf[4] << 8) | c->buf[5]);
 }
 
-/* the lock is held: 0 sent, -1 the connection is to be closed */
+/* the lock is held: 0 sent, -1 the connection is to be closed.  An exception reply's
+ * function is the request's with the high bit set (Application Protocol 1.1b3, 7).
+ * libmodbus adds 0x80, which wraps for a function code of 0x80 or more (no request has
+ * one: that range is the exception replies', 4.1) into a normal reply's code (0xFF ->
+ * 0x7F); such a request is answered here with its own code. */
 static int emb_sv_exception(emb_server *s, emb_sv_conn *c, int code)
 {
-    modbus_set_socket(s->ctx, c->fd);
     if (code > 0 && code < 12)
         s->c.exceptions[code]++;
+    if (c->buf[EMB_SV_HDR] & 0x80) {
+        uint8_t adu[EMB_SV_HDR + 2];
+
+        memcpy(adu, c->buf, 4); /* transaction and protocol ids */
+        adu[4] = 0;
+        adu[5] = 3; /* unit id, function, code */
+        adu[6] = c->buf[6];
+        adu[7] = c->buf[EMB_SV_HDR];
+        adu[8] = (uint8_t)code;
+        return send(c->fd, adu, sizeof(adu), MSG_NOSIGNAL) == (ssize_t)sizeof(adu) ? 0 : -1;
+    }
+    modbus_set_socket(s->ctx, c->fd);
     return modbus_reply_exception(s->ctx, c->buf, (unsigned)code) < 0 ? -1 : 0;
 }
 

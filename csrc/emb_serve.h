@@ -119,6 +119,7 @@ int emb_sv_unit_set(emb_server *s, int unit, int mode, const int *spans);
 void emb_sv_unit_fresh(emb_server *s, int unit, int64_t until_ns);
 void emb_sv_update(emb_server *s, const emb_sv_run_op *ops, uint32_t n_ops,
                    const uint16_t *values);
+/* data: len bytes (NULL when len is 0) */
 int emb_sv_post(emb_server *s, int conn, uint32_t gen, int kind, const uint8_t *data,
                 int len);
 void emb_sv_stop(emb_server *s);

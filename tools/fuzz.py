@@ -1,15 +1,19 @@
 """Bounded fuzzing of our C code and Python frame handling (`make fuzz`, `make fuzz-quick`).
 
-Three libFuzzer harnesses in csrc/fuzz/, each built with Debian's clang and
+Four libFuzzer harnesses in csrc/fuzz/, each built with Debian's clang and
 -fsanitize=fuzzer,address,undefined (no UB recovery) into build/fuzz/:
   codec   fuzz_codec.c + csrc/emb_codec.c: plans, register blocks, decode and encode;
   frames  fuzz_frames.c (includes csrc/emb_io.c), linked with libmodbus: scripted replies
           to reads and writes through the real transaction code and reply reader;
   stream  fuzz_stream.c (includes csrc/emb_io.c and csrc/emb_stream.c): DTU streams,
-          heartbeats and wrapped report frames, fed, answered or pumped.
+          heartbeats and wrapped report frames, fed, answered or pumped;
+  serve   fuzz_serve.c (includes csrc/emb_serve.c), linked with libmodbus: a master's
+          byte stream into the Modbus TCP server's connection: MBAP framing, the request
+          checks, libmodbus's replies, the answers Python posts.
 
 1. Builds them; proves LeakSanitizer works here (a canary build must report a leak).
-2. Runs each for its share of --seconds (codec 30 %, frames 40 %, stream 30 %) on
+2. Runs each for its share of --seconds (codec 25 %, frames 30 %, stream 25 %, serve
+   20 %) on
    build/fuzz/corpus-*
    (kept between runs) seeded by tools/fuzz_seeds.py, leak detection on; any crash,
    sanitizer report, leak, timeout or contract violation fails the run and leaves the
@@ -69,10 +73,12 @@ class Harness:
 
 HARNESSES = (
     Harness("codec", (CSRC / "fuzz" / "fuzz_codec.c", CSRC / "emb_codec.c"),
-            CSRC / "emb_codec.c", 0.3),
-    Harness("frames", (CSRC / "fuzz" / "fuzz_frames.c",), CSRC / "emb_io.c", 0.4,
+            CSRC / "emb_codec.c", 0.25),
+    Harness("frames", (CSRC / "fuzz" / "fuzz_frames.c",), CSRC / "emb_io.c", 0.3,
             libmodbus=True),
-    Harness("stream", (CSRC / "fuzz" / "fuzz_stream.c",), CSRC / "emb_stream.c", 0.3,
+    Harness("stream", (CSRC / "fuzz" / "fuzz_stream.c",), CSRC / "emb_stream.c", 0.25,
+            libmodbus=True),
+    Harness("serve", (CSRC / "fuzz" / "fuzz_serve.c",), CSRC / "emb_serve.c", 0.2,
             libmodbus=True),
 )
 

@@ -10,8 +10,12 @@ responses, another slave's reply, a stale reply before ours, two replies at once
 echo, a short frame.
 fuzz_stream: wrapped reports, heartbeats and noise fed in chunks, wrapped reads and
 writes behind reports, a plain RTU stream with heartbeats and an echo, an idle link.
+fuzz_serve: requests to the Modbus TCP server: reads of its image (fresh, stale, fed a
+byte at a time), refused ones (address, quantity, function, unit), writes confirmed or
+refused, forwarded requests, a request split across pieces, bad MBAP headers, function
+codes with the high bit.
 
-    python tools/fuzz_seeds.py build/fuzz   # build/fuzz/seeds-codec, -frames, -stream
+    python tools/fuzz_seeds.py build/fuzz   # build/fuzz/seeds-codec, -frames, -stream, -serve
 """
 
 from __future__ import annotations
@@ -239,11 +243,77 @@ def stream_seeds() -> dict[str, bytes]:
     }
 
 
+# -- fuzz_serve -------------------------------------------------------------------------
+
+FRAMED, FRESH = 1, 2
+WRITABLE_VALID = 1 | 4
+
+
+def serve_seed(ctl: int, chunk: int, areas: list[tuple[int, list[int]]],
+               answers: list[tuple[int, int, bytes]], stream: bytes) -> bytes:
+    """ctl, chunk, the image (per area: start, count, state and value per address),
+    Python's answers (kind, code, pdu), the stream."""
+    out = bytes([ctl, chunk])
+    for start, states in areas + [(0, [])] * (4 - len(areas)):
+        out += struct.pack(">HB", start, len(states))
+        out += b"".join(struct.pack(">BH", st, 100 + k) for k, st in enumerate(states))
+    out += bytes([len(answers)])
+    out += b"".join(bytes([kind, code, max(len(pdu), 1) - 1]) + (pdu or b"\x00")
+                    for kind, code, pdu in answers)
+    return out + stream
+
+
+def mbap(tid: int, unit: int, pdu: bytes, proto: int = 0, length: int | None = None) -> bytes:
+    return struct.pack(">HHHB", tid, proto, len(pdu) + 1 if length is None else length,
+                       unit) + pdu
+
+
+def framed(*requests: tuple[int, bytes]) -> bytes:
+    """(unit, pdu) pairs in fuzz_serve's framed layout."""
+    return b"".join(bytes([unit, len(pdu)]) + pdu for unit, pdu in requests)
+
+
+def serve_seeds() -> dict[str, bytes]:
+    image = [(0, [WRITABLE_VALID] * 8), (0, [1, 1]), (10, [WRITABLE_VALID] * 6 + [2, 0]),
+             (0, [1] * 4)]
+    reads = framed((1, bytes([3, 0, 10, 0, 4])), (1, bytes([1, 0, 0, 0, 8])),
+                   (1, bytes([2, 0, 0, 0, 2])), (1, bytes([4, 0, 0, 0, 4])))
+    refused = framed((1, bytes([3, 0, 16, 0, 2])), (1, bytes([3, 0, 0, 0, 1])),
+                     (1, bytes([3, 0, 10, 0, 0])), (1, bytes([0x41, 0])), (1, bytes([3, 0])),
+                     (7, bytes([3, 0, 0, 0, 1])))
+    writes = framed((1, bytes([6, 0, 10, 0x12, 0x34])), (1, bytes([5, 0, 1, 0xFF, 0])),
+                    (1, bytes([0x10, 0, 10, 0, 2, 4, 0, 1, 0, 2])),
+                    (1, bytes([0x0F, 0, 0, 0, 3, 1, 5])), (1, bytes([5, 0, 1, 0x12, 0])))
+    forward = framed((2, bytes([3, 1, 0, 0, 1])), (2, bytes([0x17, 0, 0, 0, 1])),
+                     (2, bytes([6, 0, 0, 0, 1])))
+    answers = [(0, 0, bytes([3, 2, 0, 7])), (1, 4, b""), (0, 0, bytes([0x83, 2]))]
+    raw = (mbap(1, 1, bytes([3, 0, 10, 0, 1])) + mbap(2, 1, bytes([3, 0, 10, 0, 1]))[:9])
+    return {
+        "reads": serve_seed(FRAMED | FRESH, 0, image, [], reads),
+        "reads-stale": serve_seed(FRAMED, 0, image, [], reads),
+        "reads-bytewise": serve_seed(FRAMED | FRESH, 1, image, [], reads),
+        "refused": serve_seed(FRAMED | FRESH, 5, image, [], refused),
+        "writes": serve_seed(FRAMED | FRESH, 0, image, [(0, 0, b""), (1, 4, b"")], writes),
+        "forward": serve_seed(FRAMED | FRESH, 3, image, answers, forward),
+        "raw-split": serve_seed(FRESH, 7, image, [], raw),
+        "raw-bad-protocol": serve_seed(FRESH, 0, image, [], mbap(1, 1, bytes([3, 0, 0, 0, 1]))
+                                       + mbap(2, 1, bytes([3, 0, 0, 0, 1]), proto=7)),
+        "raw-bad-length": serve_seed(FRESH, 0, image, [],
+                                     mbap(1, 1, bytes([3, 0, 0, 0, 1]), length=1000)),
+        "raw-max-length": serve_seed(FRESH, 0, image, [answers[0]],
+                                     mbap(3, 2, bytes([0x10]) + bytes(252))),
+        # a function code with the high bit (libmodbus's exception reply wrapped it)
+        "high-bit-function": serve_seed(FRAMED | FRESH, 0, image, [(1, 1, b"")],
+                                        framed((1, bytes([0xFF, 0, 0, 0, 1])),
+                                               (9, bytes([0x80])), (2, bytes([0x83, 0])))),
+    }
+
+
 def write_seeds(directory: Path) -> dict[str, int]:
     """Seeds of each harness in directory/seeds-<harness>; returns the counts."""
     counts = {}
     for harness, corpus in (("codec", seeds()), ("frames", frame_seeds()),
-                            ("stream", stream_seeds())):
+                            ("stream", stream_seeds()), ("serve", serve_seeds())):
         target = directory / f"seeds-{harness}"
         target.mkdir(parents=True, exist_ok=True)
         for name, data in corpus.items():

@@ -1,5 +1,6 @@
 /* edgemodbus fuzz harnesses: the contract check and the reader that splits a fuzzer's
- * input into fields.  Shared by every harness (fuzz_codec.c, fuzz_frames.c, fuzz_stream.c); not part of the module. */
+ * input into fields.  Shared by every harness (fuzz_codec.c, fuzz_frames.c, fuzz_stream.c,
+ * fuzz_serve.c); not part of the module. */
 #ifndef EMB_FUZZ_INPUT_H
 #define EMB_FUZZ_INPUT_H
 

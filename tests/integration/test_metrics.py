@@ -277,6 +277,25 @@ def test_the_gateway_exports_its_drivers_dtu_listen_ports(tmp_path: Path) -> Non
         gateway.stop()
 
 
+def test_the_gateway_exports_its_modbus_tcp_server(tmp_path: Path) -> None:
+    gateway = Gateway(tmp_path, GatewayConfig.model_validate(
+        {"metrics": {"port": 0}, "serve": {"listen": "127.0.0.1:0"}}))
+    try:
+        gateway.start()
+        exporter, server = gateway.exporter, gateway.serving.server
+        assert exporter is not None and server is not None
+        at = lbl(listen=f"127.0.0.1:{server.port}")
+        _, samples = scrape(exporter.port)
+        assert samples[("edgemodbus_serve_accepted_total", at)] == 0
+        assert samples[("edgemodbus_serve_connections", at)] == 0
+        with socket.create_connection(("127.0.0.1", server.port), timeout=5):
+            wait_for(lambda: scrape(exporter.port)[1].get(
+                ("edgemodbus_serve_connections", at)) == 1, what="1 open connection")
+            assert scrape(exporter.port)[1][("edgemodbus_serve_accepted_total", at)] == 1
+    finally:
+        gateway.stop()
+
+
 def test_bad_metrics_settings_name_the_field() -> None:
     with pytest.raises(ConfigError, match=r"metrics\.port 70000: must be 0\.\.65535"):
         MetricsSettings.load({"port": 70000})

@@ -17,8 +17,10 @@ import pytest
 from pymodbus.client import ModbusTcpClient
 
 import edgemodbus as em
+from edgemodbus.northbound.metrics import MetricsExporter
 from edgemodbus.serve import ModbusTcpServer, write_exception_code
 from tests.conftest import SlaveFactory
+from tests.integration.test_metrics import lbl, scrape
 from tests.peers import ExceptionRange, PymodbusSlave, default_bit, default_register
 from tests.waiting import wait_for
 
@@ -324,6 +326,20 @@ def test_bad_frames_do_not_disturb_the_others(gateway: Gateway) -> None:
         client.close()
 
 
+def test_a_function_code_with_the_high_bit_gets_its_own_code_back(gateway: Gateway) -> None:
+    """0x80..0xFF are exception replies' codes, no request's (Application Protocol 1.1b3,
+    4.1): the exception reply keeps the code (libmodbus's own would wrap 0xFF + 0x80 into
+    0x7F, a normal reply's code); found by csrc/fuzz/fuzz_serve.c."""
+    with socket.create_connection(("127.0.0.1", gateway.port)) as sock:
+        sock.settimeout(5)
+        for tid, (unit, fc, code) in enumerate([(1, 0xFF, 1), (1, 0x83, 1), (77, 0xFF, 0x0A),
+                                                (9, 0x90, 1), (77, 0x7F, 0x0A)]):
+            sock.sendall(mbap(tid, unit, bytes([fc, 0, 0, 0, 1])))
+            assert recv_adu(sock) == mbap(tid, unit, bytes([fc | 0x80, code])), (unit, fc)
+        sock.sendall(mbap(9, 1, b"\x03\x00\x00\x00\x01"))  # the connection is fine
+        assert recv_adu(sock)[7:9] == b"\x03\x02"
+
+
 def test_connection_cap_and_idle_timeout(gateway: Gateway) -> None:
     socks = [socket.create_connection(("127.0.0.1", gateway.port)) for _ in range(4)]
     try:
@@ -389,3 +405,38 @@ def test_mbpoll_reads_and_writes_both_modes(gateway: Gateway) -> None:
     assert gateway.peer.registers(1, "hr", 4) == [321]
     out = mbpoll("-a", "1", "-r", "12", "-c", "1")
     assert "Illegal data address" in out, out
+
+
+# -- Prometheus ------------------------------------------------------------------------
+def test_prometheus_exports_the_servers_counters(gateway: Gateway) -> None:
+    """The real exporter, scraped over HTTP: the server's counters (label ``listen``),
+    its exception replies by code and the connections open now."""
+    listen = f"127.0.0.1:{gateway.port}"
+    client = gateway.client()
+    bad = socket.create_connection(("127.0.0.1", gateway.port))
+    try:
+        with MetricsExporter({"port": 0}) as exporter:
+            exporter.set_server_stats(gateway.server)
+            bad.sendall(mbap(1, 1, b"\x03\x00\x00\x00\x01", proto=7))  # not Modbus
+            assert closed(bad)
+            assert client.read_holding_registers(10, count=1, device_id=1).exception_code == 2
+            assert client.read_holding_registers(0, count=1, device_id=77).exception_code == 10
+            assert not client.write_register(3, 777, device_id=1).isError()
+            assert client.read_holding_registers(500, count=2, device_id=9).registers == hr(
+                2, 500, 2)
+            assert client.read_holding_registers(0, count=2, device_id=1).registers == hr(
+                1, 0, 2)
+            _, samples = scrape(exporter.port)
+            stats = gateway.server.stats()
+    finally:
+        bad.close()
+        client.close()
+    at = lbl(listen=listen)
+    expect = {"accepted": 2, "refused": 0, "closed_idle": 0, "closed_bad": 1,
+              "closed_by_peer": 0, "requests": 5, "cached_replies": 1, "writes": 1,
+              "write_errors": 0, "forwarded": 1}
+    assert {k: samples[(f"edgemodbus_serve_{k}_total", at)] for k in expect} == expect
+    assert samples[("edgemodbus_serve_exceptions_total", lbl(listen=listen, code="2"))] == 1
+    assert samples[("edgemodbus_serve_exceptions_total", lbl(listen=listen, code="10"))] == 1
+    assert samples[("edgemodbus_serve_connections", at)] == 1  # the client's
+    assert stats["accepted"] == 2 and stats["exceptions"] == {2: 1, 10: 1}

@@ -21,7 +21,9 @@ from typing import Any
 import pytest
 
 import edgemodbus as em
+from edgemodbus.northbound.metrics import MetricsExporter
 from edgemodbus.northbound.sparkplug.publisher import SparkplugPublisher
+from tests.integration.test_metrics import lbl, scrape
 from tests.mosquitto import Mosquitto, MqttProbe, Received
 from tests.peers import ExceptionRange, PymodbusSlave, default_register
 from tests.sparkplug_wire import TYPES, Payload, decode, encode, encode_metric
@@ -243,6 +245,40 @@ def test_refused_writes_are_logged_and_counted(broker: Mosquitto, slave: Pymodbu
         assert "sp=70000 refused: item 'sp': cannot write 70000: allowed 0..65535" in text
 
 
+def test_prometheus_exports_the_sparkplug_counters(broker: Mosquitto,
+                                                   slave: PymodbusSlave) -> None:
+    """The real exporter, scraped over HTTP, with the publisher set as the gateway sets
+    it: births, DDATA, rebirths, DCMD writes (confirmed, refused), bdSeq, born."""
+    with MqttProbe(broker.port, [f"{BASE}/#"]) as probe, Node(
+            broker.port, device(slave.port)) as node, MetricsExporter({"port": 0}) as exporter:
+        exporter.set_publisher(node.pub)
+        birth = wait_payload(probe, f"{BASE}/DBIRTH/{N}/dev1").by_name()
+        _, samples = scrape(exporter.port)
+        assert samples[("edgemodbus_sparkplug_born", ())] == 1
+        mark = probe.mark()
+        probe.publish(f"{BASE}/NCMD/{N}", encode(
+            [encode_metric(name="Node Control/Rebirth", datatype="Boolean", value=True)]))
+        wait_payload(probe, f"{BASE}/DBIRTH/{N}/dev1", after=mark)
+        mark = probe.mark()
+        dcmd(probe, "dev1", encode_metric(alias=birth["sp"].alias, datatype="UInt16",
+                                          value=4321))
+        wait_payload(probe, f"{BASE}/DDATA/{N}/dev1",
+                     lambda p: birth["sp"].alias in p.by_alias(), after=mark)
+        dcmd(probe, "dev1", encode_metric(name="nosuch", datatype="UInt16", value=5))
+        wait_for(lambda: node.pub.stats()["writesRefused"] == 1, what="a refused write")
+        _, samples = scrape(exporter.port)
+        stats = node.pub.stats()
+    got = {name: samples[(f"edgemodbus_sparkplug_{name}_total", ())] for name in (
+        "nbirths", "dbirths", "ddata", "ddeaths", "rebirths", "writes", "writes_refused")}
+    assert got == {"nbirths": 2, "dbirths": 2, "ddata": stats["ddata"], "ddeaths": 0,
+                   "rebirths": 1, "writes": 1, "writes_refused": 1}
+    assert got["ddata"] >= 1
+    assert samples[("edgemodbus_sparkplug_bd_seq", ())] == stats["bdSeq"] == 0
+    assert samples[("edgemodbus_sparkplug_born", ())] == 1
+    assert samples[("edgemodbus_mqtt_published_total", lbl(device="dev1"))] == stats[
+        "devices"]["dev1"]["published"]
+
+
 def test_ddeath_when_offline_then_dbirth(broker: Mosquitto, slave: PymodbusSlave) -> None:
     with MqttProbe(broker.port, [f"{BASE}/#"]) as probe, Node(broker.port,
                                                               device(slave.port)) as node:
@@ -262,7 +298,15 @@ def state(online: bool, stamp: int) -> bytes:
     return json.dumps({"online": online, "timestamp": stamp}).encode()
 
 
+def connections(broker: Mosquitto) -> int:
+    """How many times the edge node connected, as the broker logged it."""
+    return broker.log_text.count(f" as edgemodbus-{N} ")
+
+
 def test_primary_host_state_gates_births(broker: Mosquitto, slave: PymodbusSlave) -> None:
+    """Births wait for the host's online STATE; offline: NDEATH (the session's bdSeq),
+    disconnect, a new connection, births again only once the host is online, bdSeq + 1
+    and the same aliases."""
     host = "spBv1.0/STATE/scada"
     with MqttProbe(broker.port, [f"{BASE}/#"]) as probe, Node(
             broker.port, device(slave.port), primaryHostId="scada") as node:
@@ -273,19 +317,34 @@ def test_primary_host_state_gates_births(broker: Mosquitto, slave: PymodbusSlave
             f"{BASE}/DBIRTH/{N}/dev1") == []
         now = int(time.time() * 1000)
         probe.publish(host, state(True, now))  # the host comes online
-        wait_payload(probe, f"{BASE}/NBIRTH/{N}")
-        wait_payload(probe, f"{BASE}/DBIRTH/{N}/dev1")
+        first = wait_payload(probe, f"{BASE}/NBIRTH/{N}").by_name()["bdSeq"].value
+        aliases = {k: v.alias for k, v in wait_payload(
+            probe, f"{BASE}/DBIRTH/{N}/dev1").by_name().items()}
+        assert connections(broker) == 1
         mark = probe.mark()
         probe.publish(host, state(True, now - 5000))  # stale: ignored
         probe.publish(host, state(False, now + 1))
         death = wait_payload(probe, f"{BASE}/NDEATH/{N}", after=mark)
-        assert death.by_name()["bdSeq"].value == node.pub.stats()["bdSeq"]
+        assert death.by_name()["bdSeq"].value == first
+        wait_for(lambda: connections(broker) == 2, what="the edge node's new connection")
+        assert f"Client edgemodbus-{N} disconnected." in broker.log_text  # not a will
+        wait_for(lambda: node.pub.stats()["bdSeq"] == first + 1, what="the new session")
+        stats = node.pub.stats()
+        assert stats["connects"] == 2 and stats["disconnects"] == 1 and not stats["born"]
+        time.sleep(0.3)  # connected, the host still offline: no birth
+        assert probe.on(f"{BASE}/NBIRTH/{N}")[1:] == []
+        assert len(probe.on(f"{BASE}/NDEATH/{N}")) == 1
         mark = probe.mark()
         probe.publish(host, state(True, now + 2))
         birth = wait_payload(probe, f"{BASE}/NBIRTH/{N}", after=mark)
-        assert birth.seq == 0
-        wait_payload(probe, f"{BASE}/DBIRTH/{N}/dev1", after=mark)
+        assert birth.seq == 0 and birth.by_name()["bdSeq"].value == first + 1
+        dbirth = wait_payload(probe, f"{BASE}/DBIRTH/{N}/dev1", after=mark)
+        assert {k: v.alias for k, v in dbirth.by_name().items()} == aliases
         assert len(probe.on(f"{BASE}/NBIRTH/{N}")) == 2  # the stale STATE did nothing
+        mark = probe.mark()
+        node.pub.stop()  # the new session's NDEATH
+        death = wait_payload(probe, f"{BASE}/NDEATH/{N}", after=mark)
+        assert death.by_name()["bdSeq"].value == first + 1
 
 
 def test_ndeath_is_the_will_with_the_sessions_bdseq(broker: Mosquitto, slave: PymodbusSlave,

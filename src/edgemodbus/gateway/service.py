@@ -81,7 +81,7 @@ class Gateway:
             self.publisher = make_publisher(mqtt, self.gateway_id).start()
             log.info("MQTT: gateway %s publishing to %s:%d (%s)", self.gateway_id, mqtt.host,
                      mqtt.port, mqtt.mode)
-        self.exporter = _start_exporter(self.config)
+        self.exporter = _start_exporter(self.config, self.serving)
         if self.exporter is not None and self.publisher is not None:
             self.exporter.set_publisher(self.publisher)
         self.reload_devices()
@@ -208,7 +208,7 @@ class Gateway:
         if old is not None:
             old.stop()
         try:
-            exporter = _start_exporter(new)
+            exporter = _start_exporter(new, self.serving)
         except OSError:
             if old is not None:
                 try:
@@ -388,9 +388,10 @@ def _digest(path: Path) -> str:
     return hashlib.sha256(path.read_bytes() + template_bytes(path)).hexdigest()
 
 
-def _start_exporter(config: GatewayConfig) -> MetricsExporter | None:
+def _start_exporter(config: GatewayConfig, serving: GatewayServer) -> MetricsExporter | None:
     """The exporter ``config`` asks for, listening, with the drivers' DTU listen ports
-    as its listener source; OSError names the address."""
+    as its listener source and ``serving`` (the Modbus TCP server); OSError names the
+    address."""
     metrics = config.metrics
     if metrics is None or not metrics.enabled:
         return None
@@ -398,6 +399,7 @@ def _start_exporter(config: GatewayConfig) -> MetricsExporter | None:
 
     exporter = MetricsExporter(metrics, gateway_id=config.effective_id)
     exporter.set_listener_stats(DriverModbusRtu.dtu_registry)  # the DTU listen ports
+    exporter.set_server_stats(serving)
     try:
         exporter.start()
     except OSError as exc:

@@ -14,11 +14,12 @@ writes; cycle time and round-trip time as histograms when ``stats()`` carries bu
 exact).  Per line (label ``line``, once even when several devices share it): the
 line's own counters, reconnects and forwarded requests (gateway) among them.  Per
 publisher: connection state, published and dropped updates per device, queue depth,
-commands.  Per DTU listen port
+commands (and a Sparkplug publisher's own counters: metrics_extra.py).  Per DTU listen port
 (label ``port``, ``host:port``, from a listener source such as the drivers'
 ``DtuRegistry``): its events by kind (``edgemodbus_dtu_listener_events_total``, label
 ``event``: accepted, registered, refusals, ...) and its unregistered connections,
-configured DTUs and connected DTUs as gauges.
+configured DTUs and connected DTUs as gauges.  The gateway's Modbus TCP server: see
+metrics_extra.py.
 """
 
 from __future__ import annotations
@@ -35,6 +36,7 @@ from pydantic import ValidationError
 
 from ..config import ConfigError, Model, Range
 from ..datatypes import DeviceDriverStatus, enum_value
+from .metrics_extra import ServerStats, server_metrics, sparkplug_metrics
 
 if TYPE_CHECKING:
     from prometheus_client.metrics_core import Metric
@@ -179,6 +181,7 @@ class MetricsExporter:
         self._drivers: dict[str, tuple[StatsSource, str]] = {}
         self._publisher: PublisherStats | None = None
         self._listeners: ListenerStats | None = None
+        self._serve: ServerStats | None = None  # the Modbus TCP server (gateway)
         self.registry = CollectorRegistry(auto_describe=False)
         self.registry.register(self)  # we are the Collector (collect/describe)
         self._server: Any = None
@@ -211,6 +214,11 @@ class MetricsExporter:
         """Export the DTU listen ports' counters (None: stop exporting them)."""
         with self._lock:
             self._listeners = source
+
+    def set_server_stats(self, source: ServerStats | None) -> None:
+        """Export the Modbus TCP server's counters (None: stop exporting them)."""
+        with self._lock:
+            self._serve = source
 
     # -- HTTP ----------------------------------------------------------------------------
     def start(self) -> int:
@@ -273,6 +281,7 @@ class MetricsExporter:
             drivers = list(self._drivers.items())
             publisher = self._publisher
             listeners = self._listeners
+            serve = self._serve
         dev_labels = ["device", "line"]
         counters = {key: CounterMetricFamily(f"{NAMESPACE}_{name}", doc, labels=dev_labels)
                     for key, name, doc in DEVICE_COUNTERS}
@@ -355,6 +364,8 @@ class MetricsExporter:
             yield from self._mqtt_metrics(publisher)
         if listeners is not None:
             yield from _listener_metrics(listeners)
+        if serve is not None:
+            yield from server_metrics(serve)
 
     def _mqtt_metrics(self, publisher: PublisherStats) -> Iterator[Metric]:
         from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
@@ -382,6 +393,7 @@ class MetricsExporter:
             for code, dev in sorted(per_device.items()):
                 family.add_metric([code], float(dev.get(key, 0)))
             yield family
+        yield from sparkplug_metrics(stats)
 
 
 def _listener_metrics(source: ListenerStats) -> list[Metric]:

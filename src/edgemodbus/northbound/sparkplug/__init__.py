@@ -7,10 +7,12 @@ Needs the extra ``edgemodbus[sparkplug]`` (paho-mqtt, protobuf).  This package's
 imported with it).
 
 Modules: settings.py (``mqtt.sparkplug``), publisher.py (lifecycle, births, data,
-deaths, commands), devices.py (per device: metrics as born, aliases), payloads.py (our
-types and values as Sparkplug metrics; sparkplug_b.proto is the specification's schema,
-sparkplug_b_pb2.py generated from it by ``make proto``), state.py (the primary host's
-STATE), bdseq.py (bdSeq kept across restarts), writes.py (DCMD writes).
+deaths, commands), session.py (the paho client, the will, connecting; a new session when
+the primary host goes offline), client.py (the paho client's options), devices.py (per
+device: metrics as born, aliases), payloads.py (our types and values as Sparkplug
+metrics; sparkplug_b.proto is the specification's schema, sparkplug_b_pb2.py generated
+from it by ``make proto``), state.py (the primary host's STATE), bdseq.py (bdSeq kept
+across restarts), writes.py (DCMD writes).
 
 Messages (group ``G``, edge node ``N``: ``edgeNodeId``, default the gateway id; device
 ``D``: the device code)::
@@ -27,7 +29,8 @@ Messages (group ``G``, edge node ``N``: ``edgeNodeId``, default the gateway id; 
 Every message but NDEATH has ``seq`` (0-255, wrapping, NBIRTH 0); timestamps are ms since
 the epoch (a metric's is its item's updateTs).  Threads: paho's network thread (connect,
 reconnect with backoff, callbacks that only queue events), ``edgemodbus-sparkplug`` (the
-one that orders and publishes every message, so seq follows the publish order),
+one that orders and publishes every message, so seq follows the publish order; it also
+ends the session and starts paho's thread again when the primary host goes offline),
 ``edgemodbus-sparkplug-cmd`` (DCMD writes).  Line workers only copy their reports into a
 bounded queue; past ``queueSize`` the oldest are dropped (counted) and the device gets a
 DBIRTH that carries every current value.  While the broker is unreachable nothing is

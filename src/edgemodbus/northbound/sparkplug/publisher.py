@@ -14,10 +14,7 @@ from typing import TYPE_CHECKING, Any
 from ...config import ConfigError, DeviceAddressItem
 from ...datatypes import DeviceDriverStatus
 from ...driver import DriverModbusRtu
-from ..mqtt.connection import FailureLog
 from ..mqtt.settings import MqttSettings, check_name
-from .bdseq import BdSeqStore
-from .client import make_client
 from .devices import NodeDevice, is_good, sample_of
 from .payloads import (
     REBIRTH,
@@ -29,12 +26,13 @@ from .payloads import (
     node_command,
     node_death,
 )
+from .session import NodeSession
 from .settings import check_id
 from .state import HostState
 from .writes import WriteRunner
 
 if TYPE_CHECKING:
-    from paho.mqtt.client import Client, MQTTMessage
+    from paho.mqtt.client import MQTTMessage
 
 log = logging.getLogger("edgemodbus.sparkplug")
 
@@ -86,20 +84,18 @@ class SparkplugPublisher:
         self._queued = 0  # samples in self._samples
         self._devices: dict[str, NodeDevice] = {}
         self._counts = dict.fromkeys(_COUNTERS, 0)
-        self._store = BdSeqStore(sp.bd_seq_file)
-        self._next_bd_seq = self._store.load()
+        self._session = NodeSession(
+            paho, settings, self.client_id, node_name=f"{self.group_id}/{self.node_id}",
+            death_topic=self.topic("NDEATH"), death=lambda bd: node_death(bd, _now()),
+            subscriptions=self._subscriptions, count=self._count, push=self._push,
+            on_message=self._on_message)
         self.bd_seq: int | None = None  # the session's (the NBIRTH's and the will's)
         self._seq = 0
         self._born = False  # NBIRTH published in this session, no NDEATH since
         self._aliases: dict[tuple[str, str], int] = {}
         self._writes = WriteRunner(self._count)
-        self._failures = FailureLog(f"{settings.host}:{settings.port}",
-                                    settings.failure_log_interval / 1000,
-                                    settings.reconnect_max / 1000)
-        self._connected = threading.Event()
-        self._stopping = False
+        self._connected = self._session.connected
         self._thread: threading.Thread | None = None
-        self._client: Client | None = None
         self._closed = False
 
     # -- topics --------------------------------------------------------------------------
@@ -129,34 +125,25 @@ class SparkplugPublisher:
         problems += self.settings.sparkplug.problems()
         if problems:
             raise ConfigError(problems)
-        self._client = client = make_client(self._paho, self.settings, self.client_id)
-        self._set_will(client)
-        client.on_connect = self._on_connect
-        client.on_connect_fail = self._on_connect_fail
-        client.on_disconnect = self._on_disconnect
-        client.on_message = self._on_message
         self._writes.start()
         self._thread = threading.Thread(target=self._run, name="edgemodbus-sparkplug",
                                         daemon=True)
         self._thread.start()
-        s = self.settings
-        client.connect_async(s.host, s.port, s.keepalive)
-        client.loop_start()
+        self._session.start()
         return self
 
     def stop(self, timeout: float = 1.0, reason: str = "shutdown") -> None:
         """Publish NDEATH (if connected), wait at most ``timeout`` s for it to go out,
         disconnect (the broker then drops the will) and join the threads.  Idempotent."""
         self._writes.stop()
-        thread, client = self._thread, self._client
-        if thread is not None and client is not None:
+        thread = self._thread
+        if thread is not None:
             with self._lock:
-                self._stopping = True
+                self._session.stopping = True
                 self._events.append(("stop", timeout, reason))
                 self._wake.notify()
             thread.join(timeout + 2.0)
-            client.disconnect()
-            client.loop_stop()
+            self._session.close()
             self._thread = None
         self._connected.clear()
         self._closed = True
@@ -243,49 +230,15 @@ class SparkplugPublisher:
             self._counts[key] += n
 
     # -- the paho client (its network thread calls these) ------------------------------
-    def _set_will(self, client: Client) -> None:
-        """The NDEATH of the next session as the MQTT will (QoS 1, not retained: 6.4.5)."""
-        client.will_set(self.topic("NDEATH"), node_death(self._next_bd_seq, _now()), qos=1,
-                        retain=False)
-
-    def _on_connect(self, client: Client, _userdata: Any, _flags: Any, reason: Any,
-                    _props: Any) -> None:
-        if getattr(reason, "is_failure", False):
-            self._count("connectFailures")
-            self._failures.failed(f"the broker refused the connection: {reason}",
-                                  time.monotonic())
-            return
-        bd_seq = self._next_bd_seq  # the will the broker holds now carries it
-        self._next_bd_seq = (bd_seq + 1) % 256
-        self._store.save(self._next_bd_seq)
-        self._set_will(client)  # for the next session
-        failed = self._failures.succeeded()
-        log.info("Sparkplug: edge node %s/%s connected to %s:%d (bdSeq %d)%s",
-                 self.group_id, self.node_id, self.settings.host, self.settings.port,
-                 bd_seq, f" after {failed} failed attempts" if failed else "")
+    def _subscriptions(self) -> list[tuple[str, int]]:
+        """Commands, and the primary host's STATE (its retained one comes before any
+        NBIRTH)."""
         topics = [(self._ncmd, 1), (self._dcmd + "+", 1)]
-        if self._host.topic is not None:  # before NBIRTH: its retained STATE comes first
+        if self._host.topic is not None:
             topics.append((self._host.topic, 1))
-        client.subscribe(topics)
-        self._connected.set()
-        self._count("connects")
-        self._push(("connected", bd_seq))
+        return topics
 
-    def _on_connect_fail(self, _client: Client, _userdata: Any) -> None:
-        self._count("connectFailures")
-        self._failures.failed("cannot connect (TCP or TLS)", time.monotonic())
-
-    def _on_disconnect(self, _client: Client, _userdata: Any, _flags: Any, reason: Any,
-                       _props: Any) -> None:
-        if self._connected.is_set():
-            self._count("disconnects")
-            if not self._stopping:
-                log.warning("Sparkplug: connection to %s:%d lost (%s); reconnecting",
-                            self.settings.host, self.settings.port, reason)
-        self._connected.clear()
-        self._push(("disconnected",))
-
-    def _on_message(self, _client: Client, _userdata: Any, message: MQTTMessage) -> None:
+    def _on_message(self, _client: Any, _userdata: Any, message: MQTTMessage) -> None:
         topic, payload = message.topic, bytes(message.payload)
         if topic == self._host.topic:
             self._push(("state", payload))
@@ -361,11 +314,8 @@ class SparkplugPublisher:
             change = self._host.update(event[1])
             if change is True:
                 self._birth_all()
-            elif change is False and self._born:
-                log.warning("Sparkplug: primary host %s offline: NDEATH published, births "
-                            "wait for it to come back", self._host.host_id)
-                self._publish(self.topic("NDEATH"), node_death(self._session(), _now()), 1)
-                self._unborn()
+            elif change is False:
+                self._host_offline()
         elif kind == "rebirth":
             self._count("rebirths")
             self._birth_all()
@@ -378,8 +328,19 @@ class SparkplugPublisher:
         elif kind == "resync" and event[1].born:
             self._device_birth(event[1])
 
-    def _session(self) -> int:
+    def _session_bd_seq(self) -> int:
         return self.bd_seq if self.bd_seq is not None else 0
+
+    def _host_offline(self) -> None:
+        """The primary host went offline (Sparkplug 3.0, the edge node's behaviour on
+        its STATE): NDEATH, disconnect, connect again (a new session, bdSeq + 1) and wait for
+        the host's online STATE before NBIRTH."""
+        log.warning("Sparkplug: primary host %s offline: NDEATH, reconnecting; births wait "
+                    "for it to come back", self._host.host_id)
+        if self._born:
+            self._session.goodbye(self._session_bd_seq(), 1.0)
+        self._unborn()
+        self._session.restart()
 
     def _unborn(self) -> None:
         self._born = False
@@ -393,7 +354,7 @@ class SparkplugPublisher:
         return self._seq
 
     def _publish(self, topic: str, payload: bytes, qos: int = 0) -> bool:
-        client = self._client
+        client = self._session.client
         if client is None or not self._connected.is_set():
             return False
         info = client.publish(topic, payload, qos=qos, retain=False)
@@ -410,7 +371,7 @@ class SparkplugPublisher:
             return
         self._unborn()
         self._seq = 0
-        if not self._publish(self.topic("NBIRTH"), node_birth(self._session(), _now())):
+        if not self._publish(self.topic("NBIRTH"), node_birth(self._session_bd_seq(), _now())):
             return
         self._born = True
         self._count("nbirths")
@@ -486,13 +447,6 @@ class SparkplugPublisher:
 
     def _shutdown(self, timeout: float) -> None:
         """NDEATH on a clean stop (Sparkplug 3.0, 7.1.5), confirmed or ``timeout``."""
-        client = self._client
-        if client is None or not self._connected.is_set() or not self._born:
-            return
-        info = client.publish(self.topic("NDEATH"), node_death(self._session(), _now()),
-                              qos=1, retain=False)
-        try:
-            info.wait_for_publish(timeout)
-        except (RuntimeError, ValueError) as exc:
-            log.debug("Sparkplug: NDEATH on stop not confirmed: %s", exc)
+        if self._born:
+            self._session.goodbye(self._session_bd_seq(), timeout)
         self._born = False

@@ -1,0 +1,117 @@
+"""Prometheus families beside metrics.py's: the Sparkplug publisher's own counters and the
+gateway's Modbus TCP server (serve/).  The exporter calls these at each scrape; like
+metrics.py they read ``stats()`` and never raise into a scrape.
+
+Sparkplug (from the publisher's ``stats()``, only when it is a Sparkplug one): births
+(``edgemodbus_sparkplug_nbirths_total``, ``_dbirths_total``), ``_ddata_total``,
+``_ddeaths_total``, ``_rebirths_total``, DCMD ``_writes_total`` and
+``_writes_refused_total``; gauges ``edgemodbus_sparkplug_bd_seq`` (the session's bdSeq:
+it moves once per MQTT session) and ``edgemodbus_sparkplug_born`` (1 between NBIRTH and
+NDEATH).  ``seq`` is not exported: it moves with every message and wraps at 256, so a
+scrape of it says nothing.
+
+Modbus TCP server (label ``listen``, ``host:port``): ``edgemodbus_serve_<counter>_total``
+for its connection and request counters, ``edgemodbus_serve_exceptions_total`` by
+exception ``code``, and the gauge ``edgemodbus_serve_connections``
+(the masters' connections open now).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Mapping
+from typing import TYPE_CHECKING, Any, Protocol
+
+if TYPE_CHECKING:
+    from prometheus_client.metrics_core import Metric
+
+log = logging.getLogger("edgemodbus.metrics")
+
+NAMESPACE = "edgemodbus"
+
+# stats() key -> (metric name without namespace and _total, help)
+SPARKPLUG_COUNTERS: tuple[tuple[str, str, str], ...] = (
+    ("nbirths", "sparkplug_nbirths", "NBIRTH messages published (one per session and rebirth)"),
+    ("dbirths", "sparkplug_dbirths", "DBIRTH messages published"),
+    ("ddata", "sparkplug_ddata", "DDATA messages published"),
+    ("ddeaths", "sparkplug_ddeaths", "DDEATH messages published"),
+    ("rebirths", "sparkplug_rebirths", "Rebirths requested (NCMD Node Control/Rebirth)"),
+    ("writes", "sparkplug_writes", "DCMD writes the slave confirmed"),
+    ("writesRefused", "sparkplug_writes_refused",
+     "DCMD writes refused (unknown metric, bad value, slave exception or timeout)"),
+)
+SERVE_COUNTERS: tuple[tuple[str, str, str], ...] = (
+    ("accepted", "serve_accepted", "Connections of Modbus TCP masters accepted"),
+    ("refused", "serve_refused", "Connections refused (maxConnections reached)"),
+    ("closedIdle", "serve_closed_idle", "Connections closed after the idle timeout"),
+    ("closedBad", "serve_closed_bad",
+     "Connections closed for a malformed MBAP header (protocol id, length) or a failed send"),
+    ("closedByPeer", "serve_closed_by_peer", "Connections the master closed"),
+    ("requests", "serve_requests", "Requests received"),
+    ("cachedReplies", "serve_cached_replies", "Reads answered from the register image"),
+    ("writes", "serve_writes", "Write requests to a served device"),
+    ("writeErrors", "serve_write_errors", "Writes a device refused or failed"),
+    ("forwarded", "serve_forwarded", "Requests forwarded to a device's line"),
+)
+
+
+class ServerStats(Protocol):
+    """What the exporter reads of the Modbus TCP server (ModbusTcpServer and the
+    gateway's GatewayServer satisfy it): its counters, or None while there is none."""
+
+    def stats(self) -> Mapping[str, Any] | None: ...
+
+
+def sparkplug_metrics(stats: Mapping[str, Any]) -> list[Metric]:
+    """The Sparkplug families from a publisher's ``stats()``; none for a publisher that
+    is not a Sparkplug edge node (no ``nbirths`` counter)."""
+    from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
+
+    if "nbirths" not in stats:
+        return []
+    families: list[Metric] = [
+        CounterMetricFamily(f"{NAMESPACE}_{name}", doc, value=float(stats.get(key, 0)))
+        for key, name, doc in SPARKPLUG_COUNTERS]
+    bd_seq = GaugeMetricFamily(f"{NAMESPACE}_sparkplug_bd_seq",
+                               "bdSeq of the current Sparkplug session (0-255)")
+    if isinstance(stats.get("bdSeq"), int):  # None before the first connection
+        bd_seq.add_metric([], float(stats["bdSeq"]))
+    families.append(bd_seq)
+    families.append(GaugeMetricFamily(
+        f"{NAMESPACE}_sparkplug_born", "1 while the edge node is born (NBIRTH published, "
+        "no NDEATH since)", value=1.0 if stats.get("born") else 0.0))
+    return families
+
+
+def server_metrics(source: ServerStats) -> list[Metric]:
+    """The Modbus TCP server's families; none while there is no server, or (logged) when
+    its ``stats()`` fails."""
+    from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
+
+    try:
+        stats = source.stats()
+    except Exception:  # a source must never break the scrape
+        log.exception("Modbus TCP server stats() failed")
+        return []
+    if stats is None:
+        return []
+    listen = [str(stats.get("listen", ""))]
+    families: list[Metric] = []
+    for key, name, doc in SERVE_COUNTERS:
+        family = CounterMetricFamily(f"{NAMESPACE}_{name}", doc, labels=["listen"])
+        family.add_metric(listen, float(stats.get(key, 0)))
+        families.append(family)
+    exceptions = CounterMetricFamily(
+        f"{NAMESPACE}_serve_exceptions", "Exception replies sent, by exception code",
+        labels=["listen", "code"])
+    for code, n in sorted(dict(stats.get("exceptions", {})).items()):
+        exceptions.add_metric([*listen, str(code)], float(n))
+    families.append(exceptions)
+    gauge = GaugeMetricFamily(f"{NAMESPACE}_serve_connections",
+                              "Connections of Modbus TCP masters open now", labels=["listen"])
+    gauge.add_metric(listen, float(stats.get("connections", 0)))
+    families.append(gauge)
+    return families
+
+
+__all__ = ["ServerStats", "server_metrics", "sparkplug_metrics"]
