@@ -27,6 +27,7 @@ from typing import Any
 
 import pytest
 
+from tests.mosquitto import Mosquitto
 from tests.peers import PtyPair, PymodbusSlave, Transport, free_port
 
 DEFAULT_UNITS: tuple[int, ...] = (1, 2, 3)
@@ -94,6 +95,13 @@ def serial_slave(
     params.setdefault("device", pty_pair.b)
     params.setdefault("master_path", pty_pair.a)
     return slave_factory("serial", **params)
+
+
+@pytest.fixture
+def broker(tmp_path: Path) -> Iterator[Mosquitto]:
+    """A mosquitto of its own on an ephemeral port of 127.0.0.1, stopped at the end."""
+    with Mosquitto(tmp_path / "broker") as peer:
+        yield peer
 
 
 @pytest.fixture

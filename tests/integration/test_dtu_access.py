@@ -72,9 +72,9 @@ def test_a_source_outside_the_allow_list_is_refused(key: str, counter: str) -> N
     assert drv.start_device(cfg.organization, cfg.communication, cfg.address_list)
     try:
         # a plain socket: listenAllowFrom resets the connection at accept, which may
-        # come before the registration is sent
-        with socket.create_connection(("127.0.0.1", port), timeout=5) as client, \
-                contextlib.suppress(ConnectionResetError, BrokenPipeError):
+        # come before the registration is sent, or even before connect() returned
+        with contextlib.suppress(ConnectionResetError, BrokenPipeError), \
+                socket.create_connection(("127.0.0.1", port), timeout=5) as client:
             client.sendall(f"ID:{IMEI};KEY:{KEY}\r\n".encode())
             while client.recv(64):
                 pass  # until the listener closes it

@@ -18,21 +18,13 @@ import edgemodbus as em
 from edgemodbus.datatypes import DeviceDriverStatus
 from edgemodbus.errors import ModbusTimeoutError
 from tests.conftest import SlaveFactory
+from tests.integration.test_forward import packed
 from tests.peers import PymodbusSlave
 from tests.waiting import wait_for
 
 # the device's items: the blocks the line polls (one per area)
 SPANS = {"co": (3, 20), "di": (0, 8), "hr": (10, 40), "ir": (5, 6)}
 FUNCTION = {"co": 1, "di": 2, "hr": 3, "ir": 4}
-
-
-def packed(bits: list[bool]) -> bytes:
-    """Bits LSB first in each byte (Modbus Application Protocol v1.1b3, 6.1)."""
-    out = bytearray((len(bits) + 7) // 8)
-    for i, bit in enumerate(bits):
-        if bit:
-            out[i // 8] |= 1 << (i % 8)
-    return bytes(out)
 
 
 def expected(peer: PymodbusSlave, area: str, address: int, count: int) -> bytes:

@@ -37,12 +37,6 @@ P = "edgemodbus"
 
 
 @pytest.fixture
-def broker(tmp_path: Path) -> Iterator[Mosquitto]:
-    with Mosquitto(tmp_path / "broker") as peer:
-        yield peer
-
-
-@pytest.fixture
 def slave() -> Iterator[PymodbusSlave]:
     with PymodbusSlave("rtu-over-tcp", units=(1,), size=200) as peer:
         yield peer

@@ -23,12 +23,6 @@ NAMES = [f"t{i}" for i in range(8)] + ["sp", "sp2", "ro"]  # device(tags=8): 11 
 
 
 @pytest.fixture
-def broker(tmp_path: Path) -> Iterator[Mosquitto]:
-    with Mosquitto(tmp_path / "broker") as peer:
-        yield peer
-
-
-@pytest.fixture
 def slave() -> Iterator[PymodbusSlave]:
     with PymodbusSlave("rtu-over-tcp", units=(1,), size=200) as peer:
         yield peer

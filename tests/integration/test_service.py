@@ -27,12 +27,6 @@ REPO = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture
-def broker(tmp_path: Path) -> Iterator[Mosquitto]:
-    with Mosquitto(tmp_path / "broker") as peer:
-        yield peer
-
-
-@pytest.fixture
 def slave() -> Iterator[PymodbusSlave]:
     with PymodbusSlave("rtu-over-tcp", units=(1, 2, 3), size=200) as peer:
         yield peer

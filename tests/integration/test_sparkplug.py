@@ -34,12 +34,6 @@ BASE = f"spBv1.0/{G}"
 
 
 @pytest.fixture
-def broker(tmp_path: Path) -> Iterator[Mosquitto]:
-    with Mosquitto(tmp_path / "broker") as peer:
-        yield peer
-
-
-@pytest.fixture
 def slave() -> Iterator[PymodbusSlave]:
     # hr 150..159 answer exception 04 (slave device failure): reads and writes refused
     with PymodbusSlave("rtu-over-tcp", units=(1,), size=200,

@@ -56,7 +56,10 @@ def _traced_bytes(make: Callable[[], object]) -> tuple[object, int]:
 def test_loaded_items_take_under_300_bytes_each() -> None:
     data = [_device(N, s) for s in (1, 2)]  # two devices of one kind: addresses recur
     em.load_device_config(_device(8))  # imports and one-off caches
-    _, held = _traced_bytes(lambda: [em.load_device_config(d) for d in data])
+    # the least of three loads: tracemalloc also counts what other threads allocate
+    # meanwhile (one full run on a loaded machine measured 666 B/item once; never alone)
+    held = min(_traced_bytes(lambda: [em.load_device_config(d) for d in data])[1]
+               for _ in range(3))
     # a BaseModel item took about 800 (its __dict__ and fields-set); a slotted one 168
     # plus its name
     assert held / (2 * N) < 300

@@ -6,13 +6,11 @@ per device in arrival order); the result goes to the device's reply topic."""
 
 from __future__ import annotations
 
-import asyncio
-import contextlib
 import json
 import logging
-import threading
 from typing import Any
 
+from ..loop_thread import LoopThread
 from .devices import AttachedDevice
 from .outbox import Message, Outbox
 from .payload import dumps, now
@@ -117,21 +115,15 @@ class CommandRunner:
 
     def __init__(self, outbox: Outbox) -> None:
         self._outbox = outbox
-        self._loop: asyncio.AbstractEventLoop | None = None
-        self._thread: threading.Thread | None = None
+        self._runner = LoopThread("edgemodbus-mqtt-cmd")
         self.pending = 0  # commands taken and not yet answered (under the outbox's lock)
 
     def start(self) -> None:
-        loop = asyncio.new_event_loop()
-        self._loop = loop
-        self._thread = threading.Thread(target=self._run, args=(loop,),
-                                        name="edgemodbus-mqtt-cmd", daemon=True)
-        self._thread.start()
+        self._runner.start()
 
     def dispatch(self, dev: AttachedDevice, name: str | None, payload: bytes,
                  action: bool = False) -> None:
-        loop = self._loop
-        if loop is None or loop.is_closed():
+        if not self._runner.running:
             return
         with self._outbox.lock:
             self._outbox.counts["commands"] += 1
@@ -142,16 +134,10 @@ class CommandRunner:
             self._reply(dev, request_id_of(payload), False,
                         "too many writes pending; try again later", [])
             return
-        try:
-            loop.call_soon_threadsafe(self._spawn, dev, name, payload, action)
-        except RuntimeError:  # the loop is closing: stop() is under way
-            with self._outbox.lock:
+        if not self._runner.spawn(lambda: self._action(dev, payload) if action
+                                  else self._command(dev, name, payload)):
+            with self._outbox.lock:  # stop() is under way
                 self.pending -= 1
-
-    def _spawn(self, dev: AttachedDevice, name: str | None, payload: bytes,
-               action: bool) -> None:
-        command = self._action(dev, payload) if action else self._command(dev, name, payload)
-        asyncio.get_running_loop().create_task(command)
 
     async def _action(self, dev: AttachedDevice, payload: bytes) -> None:
         request_id: Any = None
@@ -199,23 +185,5 @@ class CommandRunner:
             body["action"] = action
         self._outbox.push_control(Message(dev.code, dev.reply_topic, dumps(body), 1, False))
 
-    def _run(self, loop: asyncio.AbstractEventLoop) -> None:
-        asyncio.set_event_loop(loop)
-        try:
-            loop.run_forever()
-        finally:
-            tasks = asyncio.all_tasks(loop)
-            for task in tasks:
-                task.cancel()
-            if tasks:
-                loop.run_until_complete(asyncio.gather(*tasks, return_exceptions=True))
-            loop.close()
-
     def stop(self) -> None:
-        loop, thread = self._loop, self._thread
-        if loop is None or thread is None:
-            return
-        with contextlib.suppress(RuntimeError):
-            loop.call_soon_threadsafe(loop.stop)
-        thread.join(5.0)
-        self._thread = None
+        self._runner.stop()

@@ -5,8 +5,6 @@ and the new value goes out in DDATA; a refused one is logged and counted."""
 
 from __future__ import annotations
 
-import asyncio
-import contextlib
 import logging
 import threading
 from collections.abc import Callable
@@ -14,6 +12,7 @@ from datetime import datetime, timezone
 from typing import Any
 
 from ...datatypes import DataType
+from ..loop_thread import LoopThread
 from .devices import NodeDevice
 from .payloads import DATETIME, command_value, parse_command
 
@@ -27,17 +26,12 @@ class WriteRunner:
 
     def __init__(self, count: Callable[[str], None]) -> None:
         self._count = count
-        self._loop: asyncio.AbstractEventLoop | None = None
-        self._thread: threading.Thread | None = None
+        self._runner = LoopThread("edgemodbus-sparkplug-cmd")
         self._lock = threading.Lock()
         self.pending = 0
 
     def start(self) -> None:
-        loop = asyncio.new_event_loop()
-        self._loop = loop
-        self._thread = threading.Thread(target=self._run, args=(loop,),
-                                        name="edgemodbus-sparkplug-cmd", daemon=True)
-        self._thread.start()
+        self._runner.start()
 
     def refused(self, code: str, what: str, reason: str) -> None:
         """A write refused before it reached the driver (unknown metric, no value...)."""
@@ -73,9 +67,8 @@ class WriteRunner:
             self.submit(dev, items)
 
     def submit(self, dev: NodeDevice, items: list[tuple[str, Any]]) -> None:
-        loop = self._loop
         what = ", ".join(f"{name}={value!r}" for name, value in items)
-        if loop is None or loop.is_closed():
+        if not self._runner.running:
             self.refused(dev.code, what, "the publisher is stopping")
             return
         with self._lock:
@@ -85,14 +78,9 @@ class WriteRunner:
         if busy:
             self.refused(dev.code, what, f"{MAX_PENDING_WRITES} writes already pending")
             return
-        try:
-            loop.call_soon_threadsafe(self._spawn, dev, items, what)
-        except RuntimeError:  # the loop is closing
-            with self._lock:
+        if not self._runner.spawn(lambda: self._write(dev, items, what)):
+            with self._lock:  # the loop is closing
                 self.pending -= 1
-
-    def _spawn(self, dev: NodeDevice, items: list[tuple[str, Any]], what: str) -> None:
-        asyncio.get_running_loop().create_task(self._write(dev, items, what))
 
     async def _write(self, dev: NodeDevice, items: list[tuple[str, Any]], what: str) -> None:
         try:
@@ -109,23 +97,5 @@ class WriteRunner:
             with self._lock:
                 self.pending -= 1
 
-    def _run(self, loop: asyncio.AbstractEventLoop) -> None:
-        asyncio.set_event_loop(loop)
-        try:
-            loop.run_forever()
-        finally:
-            tasks = asyncio.all_tasks(loop)
-            for task in tasks:
-                task.cancel()
-            if tasks:
-                loop.run_until_complete(asyncio.gather(*tasks, return_exceptions=True))
-            loop.close()
-
     def stop(self) -> None:
-        loop, thread = self._loop, self._thread
-        if loop is None or thread is None:
-            return
-        with contextlib.suppress(RuntimeError):
-            loop.call_soon_threadsafe(loop.stop)
-        thread.join(5.0)
-        self._thread = None
+        self._runner.stop()
