@@ -1,7 +1,8 @@
-"""Store-and-forward in the sender (forward.py), without a broker: the stand-in paho client
-of tests/unit/test_mqtt_sender.py, a real spool file.  An outage goes to the spool; the
-replay is in order with retain off; QoS 1 stays in the spool until acknowledged; a device
-with a backlog queues its live messages behind it while other devices publish directly."""
+"""Store-and-forward in the sender (store_forward.py), without a broker: the stand-in
+paho client of tests/unit/test_mqtt_sender.py, a real spool file.  An outage goes to the
+spool; the replay is in order with retain off; QoS 1 stays in the spool until
+acknowledged; a device with a backlog queues its live messages behind it while other
+devices publish directly."""
 
 from __future__ import annotations
 

@@ -7,9 +7,9 @@ paho's public API), and its completion is observed in one place, :meth:`Sender.s
 (the ``MQTTMessageInfo`` that publish() returned: QoS 0 once written to the socket,
 QoS 1 and 2 once the broker confirmed).  Between the two, a :class:`Message` sits in the
 window (outbox.Message: device, topic, payload, qos, retain) beside its spool id (0: not
-spooled).  With ``mqtt.storeAndForward`` set, a :class:`~.forward.Forwarder` decides
-which data messages go to the spool and replays it (forward.py says when); without it
-nothing of that runs."""
+spooled).  With ``mqtt.storeAndForward`` set, a :class:`~.store_forward.Forwarder`
+decides which data messages go to the spool and replays it (store_forward.py says when);
+without it nothing of that runs."""
 
 from __future__ import annotations
 
@@ -21,10 +21,10 @@ from types import ModuleType
 from typing import TYPE_CHECKING, Any
 
 from .devices import AttachedDevice
-from .forward import Forwarder
 from .outbox import Message, Outbox, Report
 from .payload import batch_payload, dumps, encode_item, now
 from .settings import MqttSettings
+from .store_forward import Forwarder
 
 if TYPE_CHECKING:
     from paho.mqtt.client import Client, MQTTMessageInfo
@@ -244,7 +244,7 @@ class Sender:
             published[dev] = published.get(dev, 0) + len(rows)
         return []
 
-    # -- store-and-forward (forward.py) ------------------------------------------------------
+    # -- store-and-forward (store_forward.py) -------------------------------------------
     def messages(self, reports: list[Report]) -> list[tuple[AttachedDevice, Message, int]]:
         """The messages of ``reports``: (device, message, item updates it carries)."""
         qos, retain = self.settings.qos, self.settings.retain
