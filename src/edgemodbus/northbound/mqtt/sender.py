@@ -200,7 +200,7 @@ class Sender:
                 for dev, count in published.items():
                     dev.published += count
                     outbox.counts["published"] += count
-                if self._batch:
+                if self._batch and self.forwarder is None:  # else: _send_spooled counts
                     outbox.counts["batchesPublished"] += len(reports) - len(left)
                 outbox.counts["snapshotsPublished"] += len(sent_snapshots)
                 for dev in sent_snapshots:
@@ -301,6 +301,7 @@ class Sender:
         claimed = [message for _, message, _ in direct if message.qos > 0]
         ids = iter(forwarder.claim(claimed))
         sids = [next(ids) if message.qos > 0 else 0 for _, message, _ in direct]
+        handed = 0
         for index, (dev, message, n) in enumerate(direct):
             if not self.hand_over(client, message, sids[index]):
                 rest = direct[index:]
@@ -308,8 +309,11 @@ class Sender:
                                    for (_, message, _), sid in zip(rest, sids[index:],
                                                                    strict=True) if sid])
                 forwarder.keep([message for _, message, _ in rest if message.qos == 0])
-                return
+                break
             published[dev] = published.get(dev, 0) + n
+            handed += 1
+        if self._batch:  # live batches handed over; spooled ones count as replayed
+            self._outbox.count("batchesPublished", handed)
 
     def _replay(self, client: Client, forwarder: Forwarder) -> None:
         """Spooled messages to paho with the window's room, at the pacer's rate, oldest
