@@ -61,12 +61,12 @@ def broker(tmp_path: Path) -> Iterator[Mosquitto]:
         yield peer
 
 
-def device_file(port: int, slave: int) -> dict[str, Any]:
+def device_file(port: int, slave: int, cycle_ms: int = CYCLE_MS) -> dict[str, Any]:
     return {
         "organization": {"deviceCode": f"dev{slave}"},
         "communication": {
             "transport": "rtu-over-tcp", "tcpHost": "127.0.0.1", "tcpPort": port,
-            "slaveId": slave, "readCycle": CYCLE_MS, "readTimeout": 1000,
+            "slaveId": slave, "readCycle": cycle_ms, "readTimeout": 1000,
             "byteTimeout": 200, "maxBlockReadRegisterCount": 100,
         },
         "addressList": [{"name": f"t{k}", "address": f"hr:{k}", "deviceDataType": "UInt16"}
@@ -74,26 +74,36 @@ def device_file(port: int, slave: int) -> dict[str, Any]:
     }
 
 
-def received_batches(probe: MqttProbe) -> dict[str, list[dict[str, Any]]]:
-    """Per device, the batch payloads in arrival order, a redelivered one (same payload:
-    it carries its cycle's timestamp) counted once."""
-    seen: set[bytes] = set()
+def received_data(probe: MqttProbe) -> dict[str, list[dict[str, Any]]]:
+    """Per device, the messages in arrival order as ``{"values": {name: value}, "ts"}``
+    (a batch, or in mode "per-item" one item), a redelivered one (same topic and
+    payload: it carries its read's timestamp) counted once."""
+    seen: set[tuple[str, bytes]] = set()
     out: dict[str, list[dict[str, Any]]] = {}
     with probe._cond:
         messages: list[Received] = list(probe.received)
     for m in messages:
-        if not m.topic.endswith("/$batch") or m.payload in seen:
+        if not is_data(m.topic) or (m.topic, m.payload) in seen:
             continue
-        seen.add(m.payload)
+        seen.add((m.topic, m.payload))
         body = json.loads(m.payload)
-        out.setdefault(body["deviceCode"], []).append(body)
+        _, code, leaf = m.topic.split("/")
+        if leaf != "$batch":
+            body = {"values": {leaf: body["value"]}, "ts": body["updateTs"]}
+        out.setdefault(code, []).append(body)
     return out
+
+
+def is_data(topic: str) -> bool:
+    """A batch or an item update (not a status, not the gateway's topic)."""
+    _, code, leaf = topic.split("/")
+    return not code.startswith("$") and (leaf == "$batch" or not leaf.startswith("$"))
 
 
 def duplicates(probe: MqttProbe) -> int:
     with probe._cond:
-        payloads = [m.payload for m in probe.received if m.topic.endswith("/$batch")]
-    return len(payloads) - len(set(payloads))
+        messages = [(m.topic, m.payload) for m in probe.received if is_data(m.topic)]
+    return len(messages) - len(set(messages))
 
 
 def check_in_order(got: list[dict[str, Any]], want: list[dict[str, Any]]) -> list[int]:
@@ -114,24 +124,32 @@ def check_in_order(got: list[dict[str, Any]], want: list[dict[str, Any]]) -> lis
 class Recorder:
     """What a driver reported, chained before the publisher's callback."""
 
-    def __init__(self) -> None:
-        self.reports: list[dict[str, Any]] = []
+    def __init__(self, per_item: bool) -> None:
+        self.per_item = per_item
+        self.reports: list[dict[str, Any]] = []  # one a message
 
     def __call__(self, items: list[DeviceAddressItem]) -> None:
-        self.reports.append({"values": {it.name: it.value for it in items}})
+        if self.per_item:
+            self.reports += [{"values": {it.name: it.value}} for it in items]
+        else:
+            self.reports.append({"values": {it.name: it.value for it in items}})
 
 
-@pytest.mark.parametrize("bound", ["fits", "overflows"])
+@pytest.mark.parametrize(("mode", "bound"), [("batch", "fits"), ("batch", "overflows"),
+                                             ("per-item", "fits")])
 def test_an_outage_is_kept_on_disk_and_replayed_in_order_per_device(
-        sim: int, broker: Mosquitto, tmp_path: Path, bound: str) -> None:
+        sim: int, broker: Mosquitto, tmp_path: Path, mode: str, bound: str) -> None:
     max_bytes = 1_000_000_000 if bound == "fits" else 400_000
-    settings = {"port": broker.port, "mode": "batch", "qos": 1, "reconnectMin": 100,
+    settings = {"port": broker.port, "mode": mode, "qos": 1, "reconnectMin": 100,
                 "reconnectMax": 400, "queueSize": 10,
                 "storeAndForward": {"path": str(tmp_path / "spool.db"), "maxBytes": max_bytes,
-                                    "replayRatePerS": 2000}}
-    configs = [em.load_device_config(device_file(sim, s)) for s in SLAVES]
-    recorders = {str(c.organization.device_code): Recorder() for c in configs}
-    probe = MqttProbe(broker.port, [f"{P}/+/$batch"], client_id="sf-probe",
+                                    "replayRatePerS": 2000 if mode == "batch" else 20_000}}
+    # per item: 100 messages per simulated second instead of 5; compressed 5x, not 50x
+    cycle_ms, cycles = (CYCLE_MS, OUTAGE_CYCLES) if mode == "batch" else (100, 120)
+    configs = [em.load_device_config(device_file(sim, s, cycle_ms)) for s in SLAVES]
+    recorders = {str(c.organization.device_code): Recorder(mode == "per-item")
+                 for c in configs}
+    probe = MqttProbe(broker.port, [f"{P}/+/+"], client_id="sf-probe",
                       clean_session=False).start()
     pub = MqttPublisher(settings, gateway_id="gw1").start()
     drivers: list[em.DriverModbusRtu] = []
@@ -143,7 +161,7 @@ def test_an_outage_is_kept_on_disk_and_replayed_in_order_per_device(
             pub.attach(drv, cfg.organization.device_code)
             assert drv.start_device(cfg.organization, cfg.communication, cfg.address_list)
             drivers.append(drv)
-        wait_for(lambda: len(received_batches(probe)) == len(SLAVES), timeout=30,
+        wait_for(lambda: len(received_data(probe)) == len(SLAVES), timeout=30,
                  what="every device published")
 
         broker.stop()
@@ -152,12 +170,14 @@ def test_an_outage_is_kept_on_disk_and_replayed_in_order_per_device(
         # even if the spool drops their rows meanwhile (counted as dropped all the same)
         held = pub.stats()["spool"]["inflight"]
         start = [d.stats()["cycles"] for d in drivers]
-        wait_for(lambda: all(d.stats()["cycles"] - s >= OUTAGE_CYCLES
+        wait_for(lambda: all(d.stats()["cycles"] - s >= cycles
                              for d, s in zip(drivers, start, strict=True)),
-                 timeout=240, what=f"{OUTAGE_CYCLES} cycles of outage")
+                 timeout=240, what=f"{cycles} cycles of outage")
         during = pub.stats()
         spooled = during["spool"]["stored"]
-        assert spooled >= OUTAGE_CYCLES * len(SLAVES) * 0.9 or bound == "overflows", during
+        per_cycle = 1 if mode == "batch" else TAGS // CHANGING_EVERY
+        assert spooled >= cycles * len(SLAVES) * per_cycle * 0.9 \
+            or bound == "overflows", during
         assert during["dropped"] == 0  # queueSize 10 no longer bounds an outage
 
         broker.restart()
@@ -169,7 +189,7 @@ def test_an_outage_is_kept_on_disk_and_replayed_in_order_per_device(
         total = sum(len(r.reports) for r in recorders.values())
         stats = pub.stats()
         lost = stats["spool"]["droppedSize"]
-        wait_for(lambda: sum(len(v) for v in received_batches(probe).values()) >= total - lost,
+        wait_for(lambda: sum(len(v) for v in received_data(probe).values()) >= total - lost,
                  timeout=60, what="every kept message received")
         wait_for(lambda: pub.stats()["spool"]["stored"] == 0, timeout=10,
                  what="every message acknowledged")
@@ -177,13 +197,13 @@ def test_an_outage_is_kept_on_disk_and_replayed_in_order_per_device(
         while count != len(probe.received):  # acknowledged is not delivered yet: settle
             count = len(probe.received)
             time.sleep(0.3)
-        got = received_batches(probe)
+        got = received_data(probe)
         missing = 0
         for code, rec in recorders.items():
             missing += len(check_in_order(got[code], rec.reports))
         stats = pub.stats()
         spool = stats["spool"]
-        print(f"\n{bound}: {total} reports, {spooled} spooled during the outage, {missing} "
+        print(f"\n{mode} {bound}: {total} reports, {spooled} spooled during the outage, {missing} "
               f"dropped, {duplicates(probe)} redelivered; {stats}")
         # a row dropped while paho held it (in flight at the outage, or replayed when
         # live rows pushed the oldest out) still arrives: at most paho's window more
@@ -193,7 +213,7 @@ def test_an_outage_is_kept_on_disk_and_replayed_in_order_per_device(
         if bound == "fits":
             assert missing == 0
         else:
-            assert missing > OUTAGE_CYCLES  # the bound held: most of the outage dropped
+            assert missing > cycles  # the bound held: most of the outage dropped
         assert spool["replayed"] >= spooled - missing
         text = prometheus_text(pub)
         assert f"edgemodbus_mqtt_spool_dropped_size_total {float(spool['droppedSize'])}" in text
@@ -232,7 +252,7 @@ def test_a_kill_9_in_the_middle_of_an_outage_loses_nothing_sqlite_acknowledged(
                       clean_session=False).start()
     try:
         with Service(conf, tmp_path / "first.log") as first:
-            wait_for(lambda: len(received_batches(probe)) == len(SLAVES), timeout=30,
+            wait_for(lambda: len(received_data(probe)) == len(SLAVES), timeout=30,
                      what="every device published")
             broker.stop()
             before = len(probe.received)  # what arrived before the outage
@@ -268,7 +288,7 @@ def test_a_kill_9_in_the_middle_of_an_outage_loses_nothing_sqlite_acknowledged(
         twice = {p for p, n in counts.items() if n > 1}
         early = {m.payload for m in received[:before]}
         assert twice <= early, f"{len(twice - early)} published twice, not in flight"
-        for code, bodies in received_batches(probe).items():
+        for code, bodies in received_data(probe).items():
             stamps = [b["ts"] for b in bodies]
             assert stamps == sorted(stamps), f"{code}: out of order"
         print(f"\nkill -9: {len(kept)} messages in the spool at the kill, all received; "

@@ -297,7 +297,7 @@ class Sender:
                 behind[dev.code] = forwarder.backlogged(dev.code)
         kept = [message for dev, message, _ in made if behind[dev.code]]
         direct = [(dev, message, n) for dev, message, n in made if not behind[dev.code]]
-        forwarder.keep(kept)
+        forwarder.keep_live(kept)
         claimed = [message for _, message, _ in direct if message.qos > 0]
         ids = iter(forwarder.claim(claimed))
         sids = [next(ids) if message.qos > 0 else 0 for _, message, _ in direct]

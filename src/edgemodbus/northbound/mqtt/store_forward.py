@@ -18,7 +18,10 @@ The rules, per turn of the MQTT thread:
   first (kept until PUBACK), at QoS 0 not spooled at all;
 * after the live messages, the replay: the oldest pending messages, as many as paho's
   window has room for and the :class:`ReplayPacer` allows, published with
-  ``retain=False`` (a replayed retained value would replace a newer one);
+  ``retain=False`` (a replayed retained value would replace a newer one).  Live
+  messages that queued behind a backlog add to the pacer's budget (``credit``): they
+  would have been sent anyway, so a device whose live rate exceeds ``replayRatePerS``
+  still drains its backlog, at ``replayRatePerS`` beyond its live rate;
 * a completion (PUBACK at QoS 1, written out at QoS 0) deletes the message, one
   transaction per turn; a message paho refused goes back to pending;
 * a new connection: what the old one lost (QoS 0 not written) goes back to pending;
@@ -55,6 +58,7 @@ class Forwarder:
         self.done: list[int] = []  # completed ids, acked once per turn
         self.replayed = 0
         self.errors = 0
+        self.credit = 0  # live messages appended behind a backlog, not yet replayed
 
     def backlogged(self, device: str | None) -> bool:
         """True while ``device`` has messages pending in the spool (its live ones must
@@ -66,6 +70,7 @@ class Forwarder:
             return False
         if self.spool.pending_count() == 0:  # acked or dropped meanwhile: nothing ahead
             self.tail.clear()
+            self.credit = 0
             return False
         return True
 
@@ -95,10 +100,15 @@ class Forwarder:
             log.error("store-and-forward: %d messages not kept: %s", len(messages), exc)
             return []
 
+    def keep_live(self, messages: list[Message]) -> None:
+        """Live messages of devices with a backlog, while connected: appended unclaimed,
+        and they add to the replay's budget (see the module docstring)."""
+        self.credit += len(self.keep(messages))
+
     def replay_batch(self, room: int) -> list[Stored]:
         """The next messages to replay (claimed), at most ``room`` and the pacer's
-        budget."""
-        n = min(self.pacer.budget(), room)
+        budget plus the live credit."""
+        n = min(self.pacer.budget() + self.credit, room)
         if n <= 0 or self.spool.pending_count() == 0:
             return []
         try:
@@ -111,15 +121,22 @@ class Forwarder:
         return batch
 
     def replayed_batch(self, messages: int, nbytes: int) -> None:
-        self.pacer.spend(messages, nbytes)
+        """``messages`` of ``nbytes`` were replayed: the live credit first, the rest from
+        the pacer."""
+        free = min(self.credit, messages)
+        self.credit -= free
+        paced = messages - free
+        if paced:
+            self.pacer.spend(paced, nbytes * paced // messages)
         self.replayed += messages
 
     def delay(self) -> float | None:
         """How long the MQTT thread may sleep before the next replay step (None: no
         backlog)."""
         if self.spool.pending_count() == 0:
+            self.credit = 0
             return None
-        return self.pacer.delay()
+        return 0.0 if self.credit else self.pacer.delay()
 
     def settle(self) -> None:
         """Delete what completed this turn (one transaction)."""
