@@ -10,7 +10,11 @@ import json
 from pathlib import Path
 from typing import Any
 
+import pytest
+
 import edgemodbus as em
+from edgemodbus.config import ConfigError
+from edgemodbus.northbound.mqtt import MqttPublisher
 from edgemodbus.northbound.mqtt.devices import AttachedDevice
 from edgemodbus.northbound.mqtt.outbox import Outbox
 from edgemodbus.northbound.mqtt.sender import Sender
@@ -143,3 +147,18 @@ def test_refused_and_lost_messages_go_back_to_the_spool(tmp_path: Path) -> None:
     finally:
         sender.close_spool()
         outbox.close()
+
+
+def test_a_spool_in_use_by_another_publisher_is_a_config_error_naming_the_path(
+        tmp_path: Path) -> None:
+    settings = {"storeAndForward": {"path": str(tmp_path / "s.db")}}
+    first = MqttPublisher(settings, gateway_id="g1")
+    first._sender.open_spool()
+    second = MqttPublisher(settings, gateway_id="g2")
+    try:
+        with pytest.raises(ConfigError, match=r"mqtt.storeAndForward.path '.*s.db': spool "
+                                              r"'.*s.db': in use by another process"):
+            second.start()
+    finally:
+        second.stop()
+        first.stop()

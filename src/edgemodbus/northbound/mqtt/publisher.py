@@ -105,8 +105,8 @@ class MqttPublisher:
             problems = self.settings.tls.problems()
             if problems:
                 raise ConfigError(problems)
+        self._sender.open_spool()  # ConfigError naming the path if it cannot be used
         self._client = self._make_client()
-        self._sender.open_spool()
         if self.settings.writes:
             self._commands.start()
         self._thread = threading.Thread(target=self._run, name="edgemodbus-mqtt", daemon=True)

@@ -20,10 +20,12 @@ from collections.abc import Callable
 from types import ModuleType
 from typing import TYPE_CHECKING, Any
 
+from ...config import ConfigError, Problem
 from .devices import AttachedDevice
 from .outbox import Message, Outbox, Report
 from .payload import batch_payload, dumps, encode_item, now
 from .settings import MqttSettings
+from .spool import SpoolError
 from .store_forward import Forwarder
 
 if TYPE_CHECKING:
@@ -60,7 +62,11 @@ class Sender:
         longer bounds an outage by queueSize: the spool's bounds do)."""
         spool = self.settings.store_and_forward
         if spool is not None and self.forwarder is None:
-            self.forwarder = Forwarder(spool)
+            try:
+                self.forwarder = Forwarder(spool)
+            except SpoolError as exc:  # in use by another process, not a spool file, ...
+                raise ConfigError([Problem("mqtt.storeAndForward.path", spool.path,
+                                           str(exc))]) from None
             self._outbox.spooling = True
 
     def close_spool(self) -> None:
