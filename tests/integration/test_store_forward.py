@@ -8,9 +8,9 @@ every second, and the broker stays away for ``OUTAGE_CYCLES`` cycles of every de
 What the subscriber receives is checked against what the drivers reported (a recorder
 chained to each driver's batch callback): every report arrives once (QoS 1 duplicates
 aside), in order per device, with the values the driver read; beyond ``maxBytes`` the
-oldest are dropped and counted.  Then the same with the gateway service in its own
-process, killed with SIGKILL in the middle of the outage and started again on the same
-spool file."""
+oldest are dropped and counted, and so are those older than ``maxAgeS``.  Then the same
+with the gateway service in its own process, killed with SIGKILL in the middle of the
+outage and started again on the same spool file."""
 
 from __future__ import annotations
 
@@ -136,13 +136,15 @@ class Recorder:
 
 
 @pytest.mark.parametrize(("mode", "bound"), [("batch", "fits"), ("batch", "overflows"),
-                                             ("per-item", "fits")])
+                                             ("batch", "expires"), ("per-item", "fits")])
 def test_an_outage_is_kept_on_disk_and_replayed_in_order_per_device(
         sim: int, broker: Mosquitto, tmp_path: Path, mode: str, bound: str) -> None:
-    max_bytes = 1_000_000_000 if bound == "fits" else 400_000
+    max_bytes = 400_000 if bound == "overflows" else 1_000_000_000
+    max_age_s = 3 if bound == "expires" else 3600  # of a 12 s outage
     settings = {"port": broker.port, "mode": mode, "qos": 1, "reconnectMin": 100,
                 "reconnectMax": 400, "queueSize": 10,
                 "storeAndForward": {"path": str(tmp_path / "spool.db"), "maxBytes": max_bytes,
+                                    "maxAgeS": max_age_s,
                                     "replayRatePerS": 2000 if mode == "batch" else 20_000}}
     # per item: 100 messages per simulated second instead of 5; compressed 5x, not 50x
     cycle_ms, cycles = (CYCLE_MS, OUTAGE_CYCLES) if mode == "batch" else (100, 120)
@@ -176,8 +178,7 @@ def test_an_outage_is_kept_on_disk_and_replayed_in_order_per_device(
         during = pub.stats()
         spooled = during["spool"]["stored"]
         per_cycle = 1 if mode == "batch" else TAGS // CHANGING_EVERY
-        assert spooled >= cycles * len(SLAVES) * per_cycle * 0.9 \
-            or bound == "overflows", during
+        assert spooled >= cycles * len(SLAVES) * per_cycle * 0.9 or bound != "fits", during
         assert during["dropped"] == 0  # queueSize 10 no longer bounds an outage
 
         broker.restart()
@@ -188,7 +189,7 @@ def test_an_outage_is_kept_on_disk_and_replayed_in_order_per_device(
             drv.stop_device()
         total = sum(len(r.reports) for r in recorders.values())
         stats = pub.stats()
-        lost = stats["spool"]["droppedSize"]
+        lost = stats["spool"]["droppedSize"] + stats["spool"]["droppedAge"]
         wait_for(lambda: sum(len(v) for v in received_data(probe).values()) >= total - lost,
                  timeout=60, what="every kept message received")
         wait_for(lambda: pub.stats()["spool"]["stored"] == 0, timeout=10,
@@ -208,15 +209,18 @@ def test_an_outage_is_kept_on_disk_and_replayed_in_order_per_device(
         # a row dropped while paho held it (in flight at the outage, or replayed when
         # live rows pushed the oldest out) still arrives: at most paho's window more
         window = pub.settings.max_inflight * 4
-        assert missing <= spool["droppedSize"] <= missing + held + window, (missing, spool)
-        assert stats["dropped"] == 0 and spool["droppedAge"] == 0 and spool["errors"] == 0
+        dropped = spool["droppedSize"] + spool["droppedAge"]
+        assert missing <= dropped <= missing + held + window, (missing, spool)
+        assert stats["dropped"] == 0 and spool["errors"] == 0
         if bound == "fits":
-            assert missing == 0
-        else:
-            assert missing > cycles  # the bound held: most of the outage dropped
+            assert missing == dropped == 0
+        else:  # the bound held: most of the outage dropped, counted by its bound
+            assert missing > cycles
+            assert spool["droppedAge" if bound == "overflows" else "droppedSize"] == 0
         assert spool["replayed"] >= spooled - missing
         text = prometheus_text(pub)
         assert f"edgemodbus_mqtt_spool_dropped_size_total {float(spool['droppedSize'])}" in text
+        assert f"edgemodbus_mqtt_spool_dropped_age_total {float(spool['droppedAge'])}" in text
         assert "edgemodbus_mqtt_spool_messages 0.0" in text
     finally:
         for drv in drivers:
