@@ -212,6 +212,7 @@ def test_an_outage_is_kept_on_disk_and_replayed_in_order_per_device(
         dropped = spool["droppedSize"] + spool["droppedAge"]
         assert missing <= dropped <= missing + held + window, (missing, spool)
         assert stats["dropped"] == 0 and spool["errors"] == 0
+        assert duplicates(probe) <= held  # only what paho held unacknowledged, sent again
         if bound == "fits":
             assert missing == dropped == 0
         else:  # the bound held: most of the outage dropped, counted by its bound
