@@ -218,7 +218,8 @@ class MqttProbe:
     """A subscriber on 127.0.0.1:`port` that records what arrives (thread-safe)."""
 
     def __init__(self, port: int, topics: Iterable[str] = ("#",), *,
-                 client_id: str | None = None, host: str = "127.0.0.1") -> None:
+                 client_id: str | None = None, host: str = "127.0.0.1",
+                 clean_session: bool = True) -> None:
         import paho.mqtt.client as paho
 
         self._paho = paho
@@ -230,6 +231,7 @@ class MqttProbe:
         self._client = paho.Client(
             callback_api_version=paho.CallbackAPIVersion.VERSION2,
             client_id=client_id or f"probe-{os.getpid()}-{id(self):x}",
+            clean_session=clean_session,  # False: the broker keeps what we miss
         )
         self._client.on_connect = self._on_connect
         self._client.on_message = self._on_message

@@ -110,6 +110,6 @@ def test_the_window_bounds_what_paho_holds_and_a_reconnect_forgets_lost_qos0() -
     client.infos[2].done = True  # t1 written, behind the unconfirmed status message
     sender.reconnected()  # t0 and t2 were never written: lost with the connection
     assert outbox.counts["lostOnDisconnect"] == 2
-    assert [m.topic for _, m in sender.window] == ["p/dev1/$status"]  # paho resends it
+    assert [m.topic for _, m, _ in sender.window] == ["p/dev1/$status"]  # paho resends it
     sender.pump(client)  # type: ignore[arg-type]
     assert [t for t, _, _, _ in client.sent[4:]] == ["p/dev1/t3", "p/dev1/t4", "p/dev1/t5"]

@@ -36,7 +36,7 @@ from pydantic import ValidationError
 
 from ..config import ConfigError, Model, Range
 from ..datatypes import DeviceDriverStatus, enum_value
-from .metrics_extra import ServerStats, server_metrics, sparkplug_metrics
+from .metrics_extra import ServerStats, server_metrics, sparkplug_metrics, spool_metrics
 
 if TYPE_CHECKING:
     from prometheus_client.metrics_core import Metric
@@ -394,6 +394,7 @@ class MetricsExporter:
                 family.add_metric([code], float(dev.get(key, 0)))
             yield family
         yield from sparkplug_metrics(stats)
+        yield from spool_metrics(stats)
 
 
 def _listener_metrics(source: ListenerStats) -> list[Metric]:

@@ -10,6 +10,13 @@ it moves once per MQTT session) and ``edgemodbus_sparkplug_born`` (1 between NBI
 NDEATH).  ``seq`` is not exported: it moves with every message and wraps at 256, so a
 scrape of it says nothing.
 
+MQTT store-and-forward (from the publisher's ``stats()["spool"]``, only when
+``mqtt.storeAndForward`` is set): ``edgemodbus_mqtt_spool_<counter>_total`` for
+appended, acked, replayed, released, dropped by ``maxBytes`` (``_dropped_size_total``)
+and by ``maxAgeS`` (``_dropped_age_total``), and ``_errors_total`` (messages the disk
+refused); gauges ``edgemodbus_mqtt_spool_messages`` (stored), ``_pending`` (waiting for
+the replay), ``_inflight`` and ``_bytes`` (what counts against ``maxBytes``).
+
 Modbus TCP server (label ``listen``, ``host:port``): ``edgemodbus_serve_<counter>_total``
 for its connection and request counters, ``edgemodbus_serve_exceptions_total`` by
 exception ``code``, and the gauge ``edgemodbus_serve_connections``
@@ -39,6 +46,22 @@ SPARKPLUG_COUNTERS: tuple[tuple[str, str, str], ...] = (
     ("writes", "sparkplug_writes", "DCMD writes the slave confirmed"),
     ("writesRefused", "sparkplug_writes_refused",
      "DCMD writes refused (unknown metric, bad value, slave exception or timeout)"),
+)
+SPOOL_COUNTERS: tuple[tuple[str, str, str], ...] = (
+    ("appended", "mqtt_spool_appended", "Messages written to the store-and-forward spool"),
+    ("acked", "mqtt_spool_acked", "Spooled messages the broker acknowledged (deleted)"),
+    ("replayed", "mqtt_spool_replayed", "Spooled messages replayed to the broker"),
+    ("released", "mqtt_spool_released",
+     "Spooled messages in flight put back to pending (refused, or the connection lost)"),
+    ("droppedSize", "mqtt_spool_dropped_size", "Oldest spooled messages dropped (maxBytes)"),
+    ("droppedAge", "mqtt_spool_dropped_age", "Oldest spooled messages dropped (maxAgeS)"),
+    ("errors", "mqtt_spool_errors", "Messages the spool could not keep (disk error)"),
+)
+SPOOL_GAUGES: tuple[tuple[str, str, str], ...] = (
+    ("stored", "mqtt_spool_messages", "Messages in the store-and-forward spool"),
+    ("pending", "mqtt_spool_pending", "Spooled messages waiting for the replay"),
+    ("inflight", "mqtt_spool_inflight", "Spooled messages handed to the broker, not acked"),
+    ("bytes", "mqtt_spool_bytes", "What the spooled messages count against maxBytes"),
 )
 SERVE_COUNTERS: tuple[tuple[str, str, str], ...] = (
     ("accepted", "serve_accepted", "Connections of Modbus TCP masters accepted"),
@@ -83,6 +106,22 @@ def sparkplug_metrics(stats: Mapping[str, Any]) -> list[Metric]:
     return families
 
 
+def spool_metrics(stats: Mapping[str, Any]) -> list[Metric]:
+    """The store-and-forward families from a publisher's ``stats()``; none without a
+    spool."""
+    from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
+
+    spool = stats.get("spool")
+    if not isinstance(spool, Mapping):
+        return []
+    families: list[Metric] = [
+        CounterMetricFamily(f"{NAMESPACE}_{name}", doc, value=float(spool.get(key, 0)))
+        for key, name, doc in SPOOL_COUNTERS]
+    families += [GaugeMetricFamily(f"{NAMESPACE}_{name}", doc, value=float(spool.get(key, 0)))
+                 for key, name, doc in SPOOL_GAUGES]
+    return families
+
+
 def server_metrics(source: ServerStats) -> list[Metric]:
     """The Modbus TCP server's families; none while there is no server, or (logged) when
     its ``stats()`` fails."""
@@ -114,4 +153,4 @@ def server_metrics(source: ServerStats) -> list[Metric]:
     return families
 
 
-__all__ = ["ServerStats", "server_metrics", "sparkplug_metrics"]
+__all__ = ["ServerStats", "server_metrics", "sparkplug_metrics", "spool_metrics"]

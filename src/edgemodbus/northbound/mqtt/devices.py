@@ -1,9 +1,12 @@
-"""What the publisher keeps per attached driver: its topics, chained callbacks, counters."""
+"""What the publisher keeps per attached driver: its topics, chained callbacks, counters;
+and the check that a device's item topics clash with none of its own topics."""
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from typing import TYPE_CHECKING, Any
+
+from .settings import FORBIDDEN, check_name
 
 if TYPE_CHECKING:
     from ...config import DeviceAddressItem
@@ -54,4 +57,50 @@ class AttachedDevice:
         if not self.action_topic.startswith(self.command_prefix):
             filters.append(self.action_topic)
         return filters
+
+
+def check_topics(settings: MqttSettings, topic_of: Callable[..., str],
+                 matches: Callable[[str, str], bool], device_code: str,
+                 names: Iterable[str]) -> None:
+    """Raise ValueError if an item's topic is also a command, status or reply topic
+    of this device (a publish there would be read back as a command)."""
+    check_name("deviceCode", device_code)
+    s = settings
+    reserved = {
+        topic_of(s.status_topic, device_code): "status",
+        topic_of(s.reply_topic, device_code): "reply",
+        topic_of(s.action_topic, device_code): "action",
+        topic_of(s.snapshot_topic, device_code): "snapshot",
+    }
+    command = topic_of(s.command_topic, device_code, "\0").removesuffix("\0") + "#"
+    batch = topic_of(s.batch_command_topic, device_code)
+
+    def clash_of(topic: str) -> str | None:
+        clash = reserved.get(topic)
+        if clash is None and (topic == batch or (s.writes and matches(command, topic))):
+            clash = "command"
+        return clash
+
+    if s.mode == "batch":  # item names are JSON keys, not topics
+        topic = topic_of(s.batch_topic, device_code)
+        clash = clash_of(topic)
+        if clash is not None:
+            raise ValueError(
+                f"device {device_code!r}: its batch topic {topic!r} is the device's "
+                f"{clash} topic; change mqtt.batchTopic"
+            )
+        return
+    for name in names:
+        if any(ch in name for ch in FORBIDDEN):
+            raise ValueError(
+                f"item {name!r} of device {device_code!r}: MQTT topics cannot contain "
+                "'+', '#' or NUL; rename the item"
+            )
+        topic = topic_of(s.item_topic, device_code, name)
+        clash = clash_of(topic)
+        if clash is not None:
+            raise ValueError(
+                f"item {name!r} of device {device_code!r}: its topic {topic!r} is the "
+                f"device's {clash} topic; rename the item or change mqtt.itemTopic"
+            )
 

@@ -56,6 +56,7 @@ class Outbox:
         self.queued = 0  # item updates in self.reports
         self.burst = 0  # the largest report of each attached device, summed
         self.outage = False  # a connect failed or the connection was lost, no CONNACK since
+        self.spooling = False  # store-and-forward: an outage goes to the spool instead
         self.snapshots: dict[str, tuple[AttachedDevice, dict[str, Any]]] = {}
         self.control: deque[Message] = deque()
         self.actions: deque[Callable[[], None]] = deque()
@@ -75,8 +76,11 @@ class Outbox:
         ``queueSize``.  Otherwise also one full report of every attached device (its
         largest so far: at start-up every item's first read), so that a burst is never
         dropped while the broker takes what we send; the bound is still there against a
-        broker too slow for the updates."""
-        return self.queue_size if self.outage else self.queue_size + self.burst
+        broker too slow for the updates.  With store-and-forward (``spooling``) an
+        outage keeps the normal limit: the MQTT thread moves reports to the spool."""
+        if self.outage and not self.spooling:
+            return self.queue_size
+        return self.queue_size + self.burst
 
     def offer_items(self, dev: AttachedDevice, items: list[DeviceAddressItem]) -> None:
         rows = [(it.name, it.value, it.status, it.update_ts, it.error_reason) for it in items]

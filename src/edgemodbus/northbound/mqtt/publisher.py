@@ -19,11 +19,11 @@ from ...config import ConfigError
 from ...driver import DriverModbusRtu
 from .commands import CommandRunner
 from .connection import FailureLog, abandon, error_text, write, write_wanted
-from .devices import AttachedDevice
+from .devices import AttachedDevice, check_topics
 from .outbox import Message, Outbox
 from .payload import gateway_payload, status_payload, status_text
 from .sender import Sender
-from .settings import FORBIDDEN, MqttSettings, check_name
+from .settings import MqttSettings, check_name
 
 if TYPE_CHECKING:
     from paho.mqtt.client import Client, MQTTMessage
@@ -91,46 +91,8 @@ class MqttPublisher:
     def check_item_names(self, device_code: str, names: Iterable[str]) -> None:
         """Raise ValueError if an item's topic is also a command, status or reply topic
         of this device (a publish there would be read back as a command)."""
-        check_name("deviceCode", device_code)
-        s = self.settings
-        matches = self._paho.topic_matches_sub
-        reserved = {
-            self.topic(s.status_topic, device_code): "status",
-            self.topic(s.reply_topic, device_code): "reply",
-            self.topic(s.action_topic, device_code): "action",
-            self.topic(s.snapshot_topic, device_code): "snapshot",
-        }
-        command = self.topic(s.command_topic, device_code, "\0").removesuffix("\0") + "#"
-        batch = self.topic(s.batch_command_topic, device_code)
-
-        def clash_of(topic: str) -> str | None:
-            clash = reserved.get(topic)
-            if clash is None and (topic == batch or (s.writes and matches(command, topic))):
-                clash = "command"
-            return clash
-
-        if s.mode == "batch":  # item names are JSON keys, not topics
-            topic = self.topic(s.batch_topic, device_code)
-            clash = clash_of(topic)
-            if clash is not None:
-                raise ValueError(
-                    f"device {device_code!r}: its batch topic {topic!r} is the device's "
-                    f"{clash} topic; change mqtt.batchTopic"
-                )
-            return
-        for name in names:
-            if any(ch in name for ch in FORBIDDEN):
-                raise ValueError(
-                    f"item {name!r} of device {device_code!r}: MQTT topics cannot contain "
-                    "'+', '#' or NUL; rename the item"
-                )
-            topic = self.item_topic(device_code, name)
-            clash = clash_of(topic)
-            if clash is not None:
-                raise ValueError(
-                    f"item {name!r} of device {device_code!r}: its topic {topic!r} is the "
-                    f"device's {clash} topic; rename the item or change mqtt.itemTopic"
-                )
+        check_topics(self.settings, self.topic, self._paho.topic_matches_sub, device_code,
+                     names)
 
     # -- lifecycle -----------------------------------------------------------------------
     def start(self) -> MqttPublisher:
@@ -143,6 +105,7 @@ class MqttPublisher:
             problems = self.settings.tls.problems()
             if problems:
                 raise ConfigError(problems)
+        self._sender.open_spool()  # ConfigError naming the path if it cannot be used
         self._client = self._make_client()
         if self.settings.writes:
             self._commands.start()
@@ -171,6 +134,7 @@ class MqttPublisher:
         if not self._closed:
             self._closed = True
             self._outbox.close()
+            self._sender.close_spool()
 
     def __enter__(self) -> MqttPublisher:
         return self.start()
@@ -201,6 +165,8 @@ class MqttPublisher:
                 for d in self._devices.values()
             }
             result["pendingCommands"] = self._commands.pending
+        if self._sender.forwarder is not None:
+            result["spool"] = self._sender.forwarder.stats()
         result["connected"] = self.connected
         return result
 
@@ -318,8 +284,12 @@ class MqttPublisher:
                 self._sender.pump(client)
             else:
                 self._run_actions(connected=False)
+                self._sender.spool_outage()
             sock = client.socket()
             timeout = s.status_check_interval / 1000
+            replay = self._sender.replay_delay()
+            if replay is not None:
+                timeout = min(timeout, replay)
             if sock is None:
                 timeout = max(0.0, min(timeout, next_attempt - time.monotonic()))
             elif self._attempt is not None:
@@ -472,6 +442,7 @@ class MqttPublisher:
         except Exception:
             log.exception("MQTT shutdown failed")
         finally:
+            self._sender.spool_outage()  # what was not sent is kept for the next start
             with contextlib.suppress(Exception):
                 sock = client.socket()
                 if sock is not None:

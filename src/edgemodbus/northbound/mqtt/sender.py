@@ -6,8 +6,10 @@ Every message reaches paho in one place, :meth:`Sender.hand_over` (``client.publ
 paho's public API), and its completion is observed in one place, :meth:`Sender.settle`
 (the ``MQTTMessageInfo`` that publish() returned: QoS 0 once written to the socket,
 QoS 1 and 2 once the broker confirmed).  Between the two, a :class:`Message` sits in the
-window (outbox.Message: device, topic, payload, qos, retain); that is where a
-store-and-forward spool would hook in."""
+window (outbox.Message: device, topic, payload, qos, retain) beside its spool id (0: not
+spooled).  With ``mqtt.storeAndForward`` set, a :class:`~.store_forward.Forwarder`
+decides which data messages go to the spool and replays it (store_forward.py says when);
+without it nothing of that runs."""
 
 from __future__ import annotations
 
@@ -18,10 +20,13 @@ from collections.abc import Callable
 from types import ModuleType
 from typing import TYPE_CHECKING, Any
 
+from ...config import ConfigError, Problem
 from .devices import AttachedDevice
 from .outbox import Message, Outbox, Report
 from .payload import batch_payload, dumps, encode_item, now
 from .settings import MqttSettings
+from .spool import SpoolError
+from .store_forward import Forwarder
 
 if TYPE_CHECKING:
     from paho.mqtt.client import Client, MQTTMessageInfo
@@ -49,22 +54,42 @@ class Sender:
         self._connected = connected
         self._batch = settings.mode == "batch"
         self._size = min(settings.max_inflight * 4, _WINDOW_CAP)
-        self.window: deque[tuple[MQTTMessageInfo, Message]] = deque()
+        self.window: deque[tuple[MQTTMessageInfo, Message, int]] = deque()
+        self.forwarder: Forwarder | None = None  # open_spool(): storeAndForward is set
+
+    def open_spool(self) -> None:
+        """Open the spool when ``mqtt.storeAndForward`` is set (at start(); the outbox no
+        longer bounds an outage by queueSize: the spool's bounds do)."""
+        spool = self.settings.store_and_forward
+        if spool is not None and self.forwarder is None:
+            try:
+                self.forwarder = Forwarder(spool)
+            except SpoolError as exc:  # in use by another process, not a spool file, ...
+                raise ConfigError([Problem("mqtt.storeAndForward.path", spool.path,
+                                           str(exc))]) from None
+            self._outbox.spooling = True
+
+    def close_spool(self) -> None:
+        if self.forwarder is not None:
+            self.forwarder.close()
 
     # -- the seam: to paho, and back -------------------------------------------------------
-    def hand_over(self, client: Client, message: Message) -> bool:
+    def hand_over(self, client: Client, message: Message, spool_id: int = 0) -> bool:
         """Hand one message to paho (``client.publish``).  False: not taken (retry
-        later); an invalid topic or payload is refused for good (logged, counted, True)."""
+        later); an invalid topic or payload is refused for good (logged, counted, True;
+        a spooled one is deleted from the spool)."""
         try:
             info = client.publish(message.topic, message.payload, qos=message.qos,
                                   retain=message.retain)
         except ValueError as exc:  # an invalid topic, a payload over 256 MB: never retried
             self._outbox.count("publishErrors")
             log.error("MQTT publish to %r refused: %s", message.topic, exc)
+            if spool_id and self.forwarder is not None:
+                self.forwarder.done.append(spool_id)
             return True
         rc = info.rc
         if rc == 0 or (rc == self._paho.MQTT_ERR_NO_CONN and message.qos > 0):
-            self.window.append((info, message))  # qos>0 without connection: paho resends
+            self.window.append((info, message, spool_id))  # qos>0 without connection: paho resends
             return True
         self._outbox.count("publishErrors")
         return False
@@ -73,18 +98,22 @@ class Sender:
         """Take the messages paho is done with off the window, oldest first: written
         (QoS 0), confirmed by the broker (QoS 1, 2), or failed for good."""
         window = self.window
+        forwarder = self.forwarder
         acknowledged = 0
         while window:
-            info, message = window[0]
+            info, message, spool_id = window[0]
             try:
                 done = info.is_published()
             except (ValueError, RuntimeError):  # paho gave up on it
-                done = True
+                if spool_id and forwarder is not None:  # kept: sent again later
+                    forwarder.release([(spool_id, message.device)])
             else:
                 if not done:
                     break
                 if message.qos > 0:
                     acknowledged += 1
+                if spool_id and forwarder is not None:
+                    forwarder.done.append(spool_id)
             window.popleft()
         if acknowledged:
             self._outbox.count("acknowledged", acknowledged)
@@ -94,14 +123,21 @@ class Sender:
         empties its output queue on reconnect; counted as ``lostOnDisconnect``); QoS 1
         and 2 ones stay in the window, paho sends them again."""
         self.settle()
-        kept: deque[tuple[MQTTMessageInfo, Message]] = deque()
+        kept: deque[tuple[MQTTMessageInfo, Message, int]] = deque()
         lost = 0
-        for info, message in self.window:
+        back: list[tuple[int, str | None]] = []
+        for info, message, spool_id in self.window:
             if message.qos > 0:
-                kept.append((info, message))
+                kept.append((info, message, spool_id))
             elif not info.is_published():  # (written ones may wait behind a QoS 1 one)
                 lost += 1
+                if spool_id:
+                    back.append((spool_id, message.device))
+            elif spool_id and self.forwarder is not None:
+                self.forwarder.done.append(spool_id)
         self.window = kept
+        if back and self.forwarder is not None:
+            self.forwarder.release(back)  # replayed: the spool still had them
         if lost:
             self._outbox.count("lostOnDisconnect", lost)
 
@@ -118,7 +154,16 @@ class Sender:
     def pump(self, client: Client) -> None:
         """Move queued messages into the client while the in-flight window has room:
         control messages first, then item updates, then snapshots.  A message paho does
-        not take goes back to the front of its queue."""
+        not take goes back to the front of its queue (or, spooled, to the spool).  Then,
+        with store-and-forward, the replay with the room left."""
+        self._pump_live(client)
+        forwarder = self.forwarder
+        if forwarder is not None:
+            if self._connected.is_set():
+                self._replay(client, forwarder)
+            forwarder.settle()
+
+    def _pump_live(self, client: Client) -> None:
         s, outbox = self.settings, self._outbox
         room = self.room()
         while room > 0 and self._connected.is_set():
@@ -161,7 +206,7 @@ class Sender:
                 for dev, count in published.items():
                     dev.published += count
                     outbox.counts["published"] += count
-                if self._batch:
+                if self._batch and self.forwarder is None:  # else: _send_spooled counts
                     outbox.counts["batchesPublished"] += len(reports) - len(left)
                 outbox.counts["snapshotsPublished"] += len(sent_snapshots)
                 for dev in sent_snapshots:
@@ -179,6 +224,9 @@ class Sender:
                       published: dict[AttachedDevice, int]) -> list[Report]:
         """Item updates to paho: a message per report (batch) or per row (per-item);
         ``published`` counts what was taken per device.  Returns what was not taken."""
+        if self.forwarder is not None:
+            self._send_spooled(client, self.forwarder, reports, published)
+            return []
         qos, retain = self.settings.qos, self.settings.retain
         for index, report in enumerate(reports):
             dev, rows = report.dev, report.rows
@@ -201,3 +249,90 @@ class Sender:
                     return [Report(dev, rows[sent:]), *reports[index + 1:]]
             published[dev] = published.get(dev, 0) + len(rows)
         return []
+
+    # -- store-and-forward (store_forward.py) -------------------------------------------
+    def messages(self, reports: list[Report]) -> list[tuple[AttachedDevice, Message, int]]:
+        """The messages of ``reports``: (device, message, item updates it carries)."""
+        qos, retain = self.settings.qos, self.settings.retain
+        out: list[tuple[AttachedDevice, Message, int]] = []
+        for report in reports:
+            dev, rows = report.dev, report.rows
+            if self._batch:
+                out.append((dev, Message(dev.code, dev.batch_topic,
+                                         batch_payload(dev.code, rows), qos, retain),
+                            len(rows)))
+                continue
+            topics = dev.item_topics
+            for name, value, status, ts, error in rows:
+                topic = topics.get(name)
+                if topic is None:
+                    topic = topics[name] = self.item_topic(dev.code, name)
+                out.append((dev, Message(dev.code, topic,
+                                         encode_item(value, status, ts, error), qos, retain),
+                            1))
+        return out
+
+    def replay_delay(self) -> float | None:
+        """With a backlog to replay and room in the window: how long the MQTT thread may
+        sleep before the pacer allows the next message (None: no limit from here)."""
+        forwarder = self.forwarder
+        if forwarder is None or not self._connected.is_set() or self.room() <= 0:
+            return None
+        delay = forwarder.delay()
+        return None if delay is None else max(delay, 0.002)
+
+    def spool_outage(self) -> None:
+        """Not connected: every queued report goes to the spool (one transaction)."""
+        forwarder = self.forwarder
+        if forwarder is None:
+            return
+        with self._outbox.lock:
+            reports = self._outbox.take_reports(self._outbox.queued, split=False)
+        if reports:
+            forwarder.keep([message for _, message, _ in self.messages(reports)])
+
+    def _send_spooled(self, client: Client, forwarder: Forwarder, reports: list[Report],
+                      published: dict[AttachedDevice, int]) -> None:
+        """Live messages with store-and-forward: a device with a backlog appends them to
+        the spool behind it; the others publish directly (QoS 1: appended claimed
+        first).  What paho refuses stays in (or goes to) the spool."""
+        made = self.messages(reports)
+        behind: dict[str, bool] = {}
+        for dev, _, _ in made:
+            if dev.code not in behind:
+                behind[dev.code] = forwarder.backlogged(dev.code)
+        kept = [message for dev, message, _ in made if behind[dev.code]]
+        direct = [(dev, message, n) for dev, message, n in made if not behind[dev.code]]
+        forwarder.keep_live(kept)
+        claimed = [message for _, message, _ in direct if message.qos > 0]
+        ids = iter(forwarder.claim(claimed))
+        sids = [next(ids) if message.qos > 0 else 0 for _, message, _ in direct]
+        handed = 0
+        for index, (dev, message, n) in enumerate(direct):
+            if not self.hand_over(client, message, sids[index]):
+                rest = direct[index:]
+                forwarder.release([(sid, message.device)
+                                   for (_, message, _), sid in zip(rest, sids[index:],
+                                                                   strict=True) if sid])
+                forwarder.keep([message for _, message, _ in rest if message.qos == 0])
+                break
+            published[dev] = published.get(dev, 0) + n
+            handed += 1
+        if self._batch:  # live batches handed over; spooled ones count as replayed
+            self._outbox.count("batchesPublished", handed)
+
+    def _replay(self, client: Client, forwarder: Forwarder) -> None:
+        """Spooled messages to paho with the window's room, at the pacer's rate, oldest
+        first, ``retain=False`` (a replayed retained value would replace a newer one)."""
+        batch = forwarder.replay_batch(self.room())
+        sent = nbytes = 0
+        for stored in batch:
+            message = Message(stored.device or None, stored.topic, stored.payload,
+                              stored.qos, False)
+            if not self.hand_over(client, message, stored.id):
+                forwarder.release([(row.id, row.device or None) for row in batch[sent:]])
+                break
+            sent += 1
+            nbytes += len(stored.payload)
+        if batch:
+            forwarder.replayed_batch(sent, nbytes)

@@ -42,7 +42,9 @@ publishes live messages first and replays with what is left of paho's window, at
 at the pacer's rate, so a device's live value may arrive before its older replayed
 ones (each payload carries its own timestamp).  A sender that needs strict per-device
 order can append live messages unclaimed while ``pending_count() > 0``, at the cost of
-live latency.  A retained message replayed after a newer live one would replace the
+live latency; the MQTT sender does that per device (``../store_forward.py``: a device
+with messages pending queues its live ones behind them, the others publish at once).
+A retained message replayed after a newer live one would replace the
 broker's retained value with an older one: publish replayed messages with
 ``retain=False`` (the broker's retained value is the live one) unless that is wanted.
 

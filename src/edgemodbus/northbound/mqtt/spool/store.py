@@ -317,6 +317,17 @@ class Spool:
             self._inflight.clear()
             self._cursor = 0
 
+    def device_tails(self) -> dict[str, int]:
+        """Each device's newest stored id (at start-up: whose live messages must queue
+        behind what was kept from before, to keep its order)."""
+        with self._lock:
+            try:
+                rows = self._live().execute(
+                    "SELECT device, MAX(id) FROM messages GROUP BY device").fetchall()
+            except sqlite3.Error as exc:
+                raise SpoolError(f"spool {self.path!r}: {exc}") from exc
+        return {device: last for device, last in rows}
+
     # -- anyone -------------------------------------------------------------------------
 
     def pending_count(self) -> int:
