@@ -209,6 +209,7 @@ class Received:
     retain: bool
     qos: int
     at: float  # time.monotonic() on arrival
+    dup: bool = False  # the broker sent it again to us (our session's redelivery)
 
     def json(self) -> Any:
         return json.loads(self.payload)
@@ -269,8 +270,13 @@ class MqttProbe:
     def _on_message(self, _c: Any, _u: Any, msg: Any) -> None:
         with self._cond:
             self.received.append(Received(msg.topic, bytes(msg.payload), bool(msg.retain),
-                                          int(msg.qos), time.monotonic()))
+                                          int(msg.qos), time.monotonic(), bool(msg.dup)))
             self._cond.notify_all()
+
+    def messages(self) -> list[Received]:
+        """What arrived so far, in arrival order (a copy)."""
+        with self._cond:
+            return list(self.received)
 
     def publish(self, topic: str, payload: bytes | str, qos: int = 1) -> None:
         info = self._client.publish(topic, payload, qos=qos)
