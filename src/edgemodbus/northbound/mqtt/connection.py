@@ -13,9 +13,22 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:
     from paho.mqtt.client import Client
 
+    from .settings import MqttSettings
+
 log = logging.getLogger("edgemodbus.mqtt")
 
 _CORK: int | None = getattr(socket, "TCP_CORK", None)  # Linux
+
+
+def authenticate(client: Client, s: MqttSettings) -> None:
+    """Give ``client`` the section's credentials and TLS settings (every publisher's)."""
+    if s.username is not None:
+        client.username_pw_set(
+            s.username, s.password.get_secret_value() if s.password is not None else None)
+    if s.tls is not None and s.tls.enabled:
+        client.tls_set(ca_certs=s.tls.ca_file, certfile=s.tls.cert_file,
+                       keyfile=s.tls.key_file)
+        client.tls_insecure_set(s.tls.insecure)
 
 
 class FailureLog:

@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING, Any
 from ...config import ConfigError
 from ...driver import DriverModbusRtu
 from .commands import CommandRunner
-from .connection import FailureLog, abandon, error_text, write, write_wanted
+from .connection import FailureLog, abandon, authenticate, error_text, write, write_wanted
 from .devices import AttachedDevice, check_topics
 from .outbox import Message, Outbox
 from .payload import gateway_payload, status_payload, status_text
@@ -231,13 +231,7 @@ class MqttPublisher:
         client.connect_timeout = s.connect_timeout / 1000
         client.will_set(self.topic(s.gateway_topic),
                         gateway_payload(self.gateway_id, False, "lost"), qos=1, retain=True)
-        if s.username is not None:
-            client.username_pw_set(
-                s.username, s.password.get_secret_value() if s.password is not None else None)
-        if s.tls is not None and s.tls.enabled:
-            client.tls_set(ca_certs=s.tls.ca_file, certfile=s.tls.cert_file,
-                           keyfile=s.tls.key_file)
-            client.tls_insecure_set(s.tls.insecure)
+        authenticate(client, s)
         # paho's external-loop mode: with this callback set, publish() queues a message
         # instead of writing it at once, and one loop_write() (our select loop) sends what
         # a pump handed over; our select() asks want_write() itself

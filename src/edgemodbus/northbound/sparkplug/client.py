@@ -6,6 +6,7 @@ from __future__ import annotations
 from types import ModuleType
 from typing import TYPE_CHECKING
 
+from ..mqtt.connection import authenticate
 from ..mqtt.settings import MqttSettings
 
 if TYPE_CHECKING:
@@ -23,11 +24,5 @@ def make_client(paho: ModuleType, s: MqttSettings, client_id: str) -> Client:
     client.reconnect_delay_set(max(1, round(s.reconnect_min / 1000)),
                                max(1, round(s.reconnect_max / 1000)))
     client.max_queued_messages_set(max(s.queue_size, 1000))
-    if s.username is not None:
-        client.username_pw_set(
-            s.username, s.password.get_secret_value() if s.password is not None else None)
-    if s.tls is not None and s.tls.enabled:
-        client.tls_set(ca_certs=s.tls.ca_file, certfile=s.tls.cert_file,
-                       keyfile=s.tls.key_file)
-        client.tls_insecure_set(s.tls.insecure)
+    authenticate(client, s)
     return client
