@@ -287,12 +287,12 @@ int emb_sv_open_connections(emb_server *s)
 /* the lock is held */
 static void emb_sv_close(emb_sv_conn *c, uint64_t *counter)
 {
+    (*counter)++; /* first: a master that sees the close finds it counted */
     close(c->fd);
     c->fd = -1;
     c->busy = 0;
     c->ready = 0;
     c->have = 0;
-    (*counter)++;
 }
 
 static uint32_t emb_sv_frame_len(const emb_sv_conn *c)
@@ -542,8 +542,8 @@ static void emb_sv_accept(emb_server *s, int64_t now)
         for (i = 0; i < s->max_conns && s->conns[i].fd >= 0; i++)
             ;
         if (i == s->max_conns) {
+            s->c.refused++; /* counted first, as in emb_sv_close */
             close(fd); /* over the cap */
-            s->c.refused++;
             continue;
         }
         setsockopt(fd, IPPROTO_TCP, TCP_NODELAY, &one, sizeof(one));

@@ -354,7 +354,8 @@ def test_connection_cap_and_idle_timeout(gateway: Gateway) -> None:
         socks[0].sendall(mbap(1, 1, b"\x03\x00\x00\x00\x01"))
         assert recv_adu(socks[0])[7:9] == b"\x03\x02"
         assert all(closed(s, timeout=3.0) for s in socks)
-        assert gateway.server.stats()["closedIdle"] == 4
+        wait_for(lambda: gateway.server.stats()["closedIdle"] == 4, timeout=2,
+                 what="4 idle connections closed and counted")
     finally:
         for s in socks:
             s.close()
