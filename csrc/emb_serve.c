@@ -287,12 +287,14 @@ int emb_sv_open_connections(emb_server *s)
 /* the lock is held */
 static void emb_sv_close(emb_sv_conn *c, uint64_t *counter)
 {
-    (*counter)++; /* first: a master that sees the close finds it counted */
-    close(c->fd);
-    c->fd = -1;
-    c->busy = 0;
+    int fd = c->fd;
+
+    c->fd = -1; /* the slot and the counter first: a master that sees the close finds */
+    c->busy = 0; /* both up to date */
     c->ready = 0;
     c->have = 0;
+    (*counter)++;
+    close(fd);
 }
 
 static uint32_t emb_sv_frame_len(const emb_sv_conn *c)

@@ -206,13 +206,15 @@ def test_dcmd_writes_are_confirmed_in_ddata(broker: Mosquitto,
         # by alias (as a host does after the birth), and by name with a negative Int16
         dcmd(probe, "dev1", encode_metric(alias=birth["sp"].alias, datatype="UInt16",
                                           value=777))
-        data = wait_payload(probe, f"{BASE}/DDATA/{N}/dev1",
-                            lambda p: birth["sp"].alias in p.by_alias(), after=mark)
+        data = wait_payload(probe, f"{BASE}/DDATA/{N}/dev1",  # (a poll may report first)
+                            lambda p: p.by_alias().get(birth["sp"].alias) is not None
+                            and p.by_alias()[birth["sp"].alias].value == 777, after=mark)
         assert data.by_alias()[birth["sp"].alias].value == 777
         assert slave.registers(1, "hr", 100) == [777]
         dcmd(probe, "dev1", encode_metric(name="neg", datatype="Int16", value=-1234))
         data = wait_payload(probe, f"{BASE}/DDATA/{N}/dev1",
-                            lambda p: birth["neg"].alias in p.by_alias(), after=mark)
+                            lambda p: p.by_alias().get(birth["neg"].alias) is not None
+                            and p.by_alias()[birth["neg"].alias].value == -1234, after=mark)
         assert data.by_alias()[birth["neg"].alias].value == -1234
         assert slave.registers(1, "hr", 1) == [(-1234) & 0xFFFF]
         wait_for(lambda: node.pub.stats()["writes"] == 2, what="2 writes counted")
