@@ -28,13 +28,19 @@ def is_good(sample: Sample) -> bool:
 class NodeDevice:
     """One Sparkplug device of the edge node: an attached driver."""
 
-    __slots__ = ("bad", "born", "by_alias", "code", "driver", "dropped", "kinds",
-                 "metrics", "prev_batch", "published")
+    __slots__ = ("bad", "born", "born_at", "by_alias", "code", "driver", "dropped", "kinds",
+                 "metrics", "offered", "prev_batch", "published", "reported")
 
     def __init__(self, driver: DriverModbusRtu, code: str) -> None:
         self.driver = driver
         self.code = code
         self.born = False  # DBIRTH published in this node session, no DDEATH since
+        # The driver reported its first cycle (set by its line worker): a device turns
+        # Running on its first reply, in the middle of that cycle, so its DBIRTH waits
+        # for this, else most of its metrics would be born "not read yet".
+        self.reported = False
+        self.offered = 0  # reports queued so far (numbered under the publisher's lock)
+        self.born_at = 0  # the last report the latest DBIRTH's values include
         # replaced whole at each birth (read by the MQTT thread for commands)
         self.metrics: dict[str, MetricDef] = {}
         self.by_alias: dict[int, MetricDef] = {}
