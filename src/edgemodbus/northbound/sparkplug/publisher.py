@@ -189,7 +189,6 @@ class SparkplugPublisher:
         dev.prev_batch = prev = driver.addresses_updated_callback
 
         def on_batch(items: list[DeviceAddressItem]) -> None:
-            dev.reported = True
             self._offer(dev, [sample_of(item) for item in items])
             if prev is not None:
                 prev(items)
@@ -388,8 +387,8 @@ class SparkplugPublisher:
             if dev.born:
                 self._death(dev)
             return
-        if not dev.reported:
-            return  # its first cycle is not over: born by the report that ends it
+        if not dev.first_cycle_done():
+            return  # born by the report that ends it, or by the next status check
         with self._lock:  # the reports queued so far: the birth's values include them
             dev.born_at = dev.offered
         payload = device_birth(self._next_seq(), _now(), dev.birth(self._alias))
