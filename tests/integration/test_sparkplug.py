@@ -281,6 +281,48 @@ def test_refused_writes_are_logged_and_counted(broker: Mosquitto, slave: Pymodbu
         assert "dev1: DCMD write bad=5 refused: bad: slave 1 FC06: exception 0x04" in text
         assert "'nosuch' refused: no such metric" in text
         assert "sp=70000 refused: item 'sp': cannot write 70000: allowed 0..65535" in text
+        # the issue's silent conversions (12.5 was written as 12, true as 1, "99" as 99);
+        # past three refusals in 10 s their log lines are folded into a summary
+        for n, metric in enumerate((encode_metric(name="sp", datatype="Float", value=12.5),
+                                    encode_metric(name="sp", datatype="Boolean", value=True),
+                                    encode_metric(name="sp", datatype="String", value="99")),
+                                   start=4):
+            dcmd(probe, "dev1", metric)
+            wait_for(lambda n=n: node.pub.stats()["writesRefused"] == n, what=f"refusal {n}")
+        assert node.pub.stats()["commandLogsSuppressed"] == 3
+        assert node.pub.stats()["writes"] == 0
+        assert slave.registers(1, "hr", 100) == [default_register(1, "hr", 100)]
+
+
+def test_a_flood_of_rebirth_requests_is_paced(broker: Mosquitto,
+                                             slave: PymodbusSlave) -> None:
+    """The issue's 1,000 Rebirth NCMDs made 1,000 NBIRTH and 2,000 DBIRTH.  Now the first
+    is answered at once and the others within rebirthInterval are folded into one
+    rebirth when it ends: at most one per interval while the flood lasts, plus that one."""
+    interval = 1.5
+    request = encode([encode_metric(name="Node Control/Rebirth", datatype="Boolean",
+                                    value=True)])
+    with MqttProbe(broker.port, [f"{BASE}/#"]) as probe, Node(
+            broker.port, device(slave.port), rebirthInterval=int(interval * 1000)) as node:
+        wait_payload(probe, f"{BASE}/DBIRTH/{N}/dev1")
+        mark = probe.mark()
+        started = time.monotonic()
+        for _ in range(1000):
+            probe.publish(f"{BASE}/NCMD/{N}", request, qos=0)
+        wait_for(lambda: node.pub.stats()["commands"] == 1000, timeout=60,
+                 what="1,000 NCMD taken")
+        flood = time.monotonic() - started
+        stats = node.pub.stats()
+        wait_for(lambda: node.pub.stats()["rebirths"] == stats["rebirths"] + 1
+                 and node.pub.stats()["dbirths"] == stats["dbirths"] + 1,
+                 timeout=interval + 30, what="the folded rebirth")
+        stats = node.pub.stats()
+        # each rebirth answers one request at once or the requests folded before it
+        assert 1000 - stats["rebirths"] <= stats["rebirthsFolded"] <= 999, stats
+        assert 2 <= stats["rebirths"] <= 2 + flood / interval, (stats, flood)
+        nbirths = len([m for m in probe.messages()[mark:] if "/NBIRTH/" in m.topic])
+        assert nbirths == stats["rebirths"]
+        assert stats["commandErrors"] == 0
 
 
 def test_prometheus_exports_the_sparkplug_counters(broker: Mosquitto,
