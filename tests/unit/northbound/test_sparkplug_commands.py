@@ -8,7 +8,7 @@ import logging
 import math
 import struct
 from collections import Counter
-from typing import Any
+from typing import Any, cast
 
 import pytest
 from hypothesis import given
@@ -169,3 +169,18 @@ def test_unsupported_ncmd_metric_is_named_by_a_short_prefix(
     (line,) = [r.getMessage() for r in caplog.records]
     assert line == ("Sparkplug: NCMD: 1 metric(s) ignored, e.g. 'Other/yyyyyyyyyyyyyyyyyyyyy"
                     "yyyyy'... (206 chars) (only Node Control/Rebirth = true is supported)")
+
+
+def test_a_dcmd_with_a_5_mb_name_is_refused_in_one_short_line(
+        caplog: pytest.LogCaptureFixture) -> None:
+    rec = Recorder()
+    dev = NodeDevice(cast(Any, None), "dev1")
+    box = inbox(rec, {"dev1": dev})
+    box.device_command("dev1", encode([encode_metric(name="n" * (5 << 20), datatype="UInt16",
+                                                     value=1)]))
+    box.device_command("dev1", encode([encode_metric(name="sp", datatype="UInt16", value=1)]))
+    assert rec.counts == {"commands": 2, "writesRefused": 1}
+    assert [[m.name for m in ms] for ms in rec.writes] == [["sp"]]
+    (line,) = [r.getMessage() for r in caplog.records]
+    assert line.startswith("dev1: DCMD write (payload) refused: payload of 5242") and len(
+        line) < 120, line
