@@ -447,3 +447,4 @@ class SparkplugPublisher:
         if self._born:
             self._session.goodbye(self._session_bd_seq(), timeout)
         self._born = False
+        self._logs.flush(force=True)  # the summaries of folded command log lines
