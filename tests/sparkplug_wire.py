@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import struct
 from collections.abc import Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 # Sparkplug data types (spec 3.0, 6.4.16)
@@ -83,6 +83,13 @@ class Payload:
 
     def by_alias(self) -> dict[int, Metric]:
         return {m.alias: m for m in self.metrics if m.alias is not None}
+
+    def values(self, birth: Payload) -> dict[int, Any]:
+        """DDATA values by alias, read as a host reads them: with the datatype their
+        DBIRTH gave (DDATA need not repeat it)."""
+        born = birth.by_alias()
+        return {m.alias: replace(m, datatype=m.datatype or born[m.alias].datatype).value
+                for m in self.metrics if m.alias is not None}
 
 
 def _metric_value(number: int, raw: Any) -> Any:

@@ -199,6 +199,46 @@ def test_writes_from_mqtt_reach_the_slave_and_bad_payloads_get_error_replies(
         assert gw.drv.device_driver_status is DeviceDriverStatus.RUNNING
 
 
+def test_hostile_commands_get_short_error_replies_without_tracebacks(
+    broker: Mosquitto, slave: PymodbusSlave, caplog: pytest.LogCaptureFixture
+) -> None:
+    """The issue's cases: nested JSON made a traceback per message; a 5 MB "id" was echoed
+    back in the reply (the payload over the 64 KB cap was parsed for its id anyway).
+    Now: an error reply each, counted, no traceback, no echo of the oversized field."""
+    caplog.set_level(logging.DEBUG, logger="edgemodbus.mqtt")
+    cfg = device(slave.port)
+    with MqttProbe(broker.port) as probe, Gateway(broker.port, cfg) as gw:
+        probe.wait_for(f"{P}/dev1/sp")
+        reply = f"{P}/dev1/$reply"
+        cases: list[tuple[str, bytes, str]] = [
+            (f"{P}/dev1/set/sp", b"[" * 100_000 + b"]" * 100_000, "too large"),
+            (f"{P}/dev1/set/sp", b"[" * 30_000 + b"]" * 30_000, "nested too deeply"),
+            (f"{P}/dev1/set", b'{"items": ' + b"[" * 30_000 + b"]" * 30_000 + b"}",
+             "nested too deeply"),
+            (f"{P}/dev1/$action", b'{"action": ' + b"[" * 30_000 + b"]" * 30_000 + b"}",
+             "nested too deeply"),
+            (f"{P}/dev1/set/sp", json.dumps({"value": 1, "id": "i" * 5_000_000}).encode(),
+             "too large"),
+            (f"{P}/dev1/set/sp", json.dumps({"value": 1, "id": "i" * 1000}).encode(),
+             '"id" is a string of 1000 characters (at most 128)'),
+            (f"{P}/dev1/set", json.dumps({"items": {"sp": 1}, "id": {"a": [1]}}).encode(),
+             '"id" must be a number or a string'),
+            (f"{P}/dev1/set", json.dumps({"items": [["x" * 60_000]]}).encode(),
+             "items[0] \"['" + "x" * 30 + "\"... (60004 chars): use"),
+        ]
+        for topic, payload, reason in cases:
+            mark = probe.mark()
+            probe.publish(topic, payload)
+            msg = probe.wait_for(reply, after=mark, timeout=20)
+            assert len(msg.payload) < 1000, (reason, msg.payload[:200])
+            body = msg.json()
+            assert body["ok"] is False and body["id"] is None, body
+            assert reason in body["error"], (reason, body["error"])
+        assert slave.registers(1, "hr", 100) == [default_register(1, "hr", 100)]
+        assert gw.pub.stats()["commandErrors"] == len(cases)
+    assert not [r for r in caplog.records if r.exc_info], "a traceback was logged"
+
+
 def test_broker_restart_coalesces_snapshots_drops_updates_and_recovers(
     broker: Mosquitto, slave: PymodbusSlave
 ) -> None:

@@ -22,6 +22,7 @@ import pytest
 
 import edgemodbus as em
 from edgemodbus.northbound.metrics import MetricsExporter
+from edgemodbus.northbound.sparkplug.bdseq import MAGIC
 from edgemodbus.northbound.sparkplug.publisher import SparkplugPublisher
 from tests.integration.test_metrics import lbl, scrape
 from tests.mosquitto import Mosquitto, MqttProbe, Received
@@ -156,7 +157,51 @@ def test_births_aliases_types_quality_and_ddata(broker: Mosquitto,
         assert data.seq == 2
         assert [(x.name, x.alias, x.value) for x in data.metrics] == [
             (None, m["t0"].alias, 4242)]
-        assert data.metrics[0].datatype == TYPES["UInt16"]
+        assert data.metrics[0].datatype is None  # DDATA does not repeat it
+
+
+def test_dbirth_waits_for_the_first_complete_cycle(broker: Mosquitto) -> None:
+    """The issue's case: 40 one-register blocks from a slave that takes 15 ms a reply, the
+    first answered with an exception.  The device is Running after that first reply; its
+    DBIRTH went out then, 39 metrics null ("not read yet") and without a timestamp, and
+    the next DDATA repeated values.  Now the DBIRTH carries every value of the first
+    cycle, each metric with a timestamp, and no DDATA repeats a value published."""
+    items = [{"name": f"r{i}", "address": f"hr:{2 * i}", "deviceDataType": "UInt16"}
+             for i in range(40)]
+    with PymodbusSlave("rtu-over-tcp", units=(1,), size=200, response_delay=0.015,
+                       exception_ranges=[ExceptionRange(0, 1, code=4, area="hr")]) as slow:
+        cfg = em.load_device_config({
+            "organization": {"deviceCode": "dev1"},
+            "communication": {"transport": "rtu-over-tcp", "tcpHost": "127.0.0.1",
+                              "tcpPort": slow.port, "slaveId": 1, "readCycle": 200,
+                              "readTimeout": 2000, "maxMergeAddressGap": 0},
+            "addressList": items})
+        before = int(time.time() * 1000)
+        with MqttProbe(broker.port, [f"{BASE}/#"]) as probe, Node(broker.port, cfg) as node:
+            assert len(node.drv.read_plan()) == 40
+            born = wait_payload(probe, f"{BASE}/DBIRTH/{N}/dev1", timeout=30)
+            mark = probe.mark()
+            metrics = born.by_name()
+            assert set(metrics) == {it["name"] for it in items}
+            for m in born.metrics:
+                assert before <= (m.timestamp or 0) <= int(time.time() * 1000), m
+            assert metrics["r0"].is_null and metrics["r0"].properties["Quality"] == 0
+            assert "04" in metrics["r0"].properties["errorReason"]
+            for i in range(1, 40):
+                m = metrics[f"r{i}"]
+                assert not m.is_null and m.value == default_register(1, "hr", 2 * i), m
+                assert m.properties == {"Quality": 192}, m
+            last = {m.alias: m.value for m in born.metrics}
+            slow.set_registers(1, "hr", 2, [default_register(1, "hr", 2) ^ 0x5A5A])
+            wait_payload(probe, f"{BASE}/DDATA/{N}/dev1", after=mark, timeout=30,
+                         match=lambda p: metrics["r1"].alias in p.by_alias())
+            for msg in probe.messages()[mark:]:
+                if msg.topic != f"{BASE}/DDATA/{N}/dev1":
+                    continue
+                for alias, value in decode(msg.payload).values(born).items():
+                    assert value != last[alias], f"alias {alias}: {value} published again"
+                    last[alias] = value
+            assert node.pub.stats()["dbirths"] == 1
 
 
 def test_seq_wraps_after_255(broker: Mosquitto, slave: PymodbusSlave) -> None:
@@ -201,21 +246,18 @@ def test_dcmd_writes_are_confirmed_in_ddata(broker: Mosquitto,
                                            slave: PymodbusSlave) -> None:
     with MqttProbe(broker.port, [f"{BASE}/#"]) as probe, Node(broker.port,
                                                               device(slave.port)) as node:
-        birth = wait_payload(probe, f"{BASE}/DBIRTH/{N}/dev1").by_name()
+        born = wait_payload(probe, f"{BASE}/DBIRTH/{N}/dev1")
+        birth = born.by_name()
         mark = probe.mark()
         # by alias (as a host does after the birth), and by name with a negative Int16
         dcmd(probe, "dev1", encode_metric(alias=birth["sp"].alias, datatype="UInt16",
                                           value=777))
-        data = wait_payload(probe, f"{BASE}/DDATA/{N}/dev1",  # (a poll may report first)
-                            lambda p: p.by_alias().get(birth["sp"].alias) is not None
-                            and p.by_alias()[birth["sp"].alias].value == 777, after=mark)
-        assert data.by_alias()[birth["sp"].alias].value == 777
+        wait_payload(probe, f"{BASE}/DDATA/{N}/dev1",  # (a poll may report first)
+                     lambda p: p.values(born).get(birth["sp"].alias) == 777, after=mark)
         assert slave.registers(1, "hr", 100) == [777]
         dcmd(probe, "dev1", encode_metric(name="neg", datatype="Int16", value=-1234))
-        data = wait_payload(probe, f"{BASE}/DDATA/{N}/dev1",
-                            lambda p: p.by_alias().get(birth["neg"].alias) is not None
-                            and p.by_alias()[birth["neg"].alias].value == -1234, after=mark)
-        assert data.by_alias()[birth["neg"].alias].value == -1234
+        wait_payload(probe, f"{BASE}/DDATA/{N}/dev1",
+                     lambda p: p.values(born).get(birth["neg"].alias) == -1234, after=mark)
         assert slave.registers(1, "hr", 1) == [(-1234) & 0xFFFF]
         wait_for(lambda: node.pub.stats()["writes"] == 2, what="2 writes counted")
         assert node.pub.stats()["writesRefused"] == 0
@@ -239,6 +281,48 @@ def test_refused_writes_are_logged_and_counted(broker: Mosquitto, slave: Pymodbu
         assert "dev1: DCMD write bad=5 refused: bad: slave 1 FC06: exception 0x04" in text
         assert "'nosuch' refused: no such metric" in text
         assert "sp=70000 refused: item 'sp': cannot write 70000: allowed 0..65535" in text
+        # the issue's silent conversions (12.5 was written as 12, true as 1, "99" as 99);
+        # past three refusals in 10 s their log lines are folded into a summary
+        for n, metric in enumerate((encode_metric(name="sp", datatype="Float", value=12.5),
+                                    encode_metric(name="sp", datatype="Boolean", value=True),
+                                    encode_metric(name="sp", datatype="String", value="99")),
+                                   start=4):
+            dcmd(probe, "dev1", metric)
+            wait_for(lambda n=n: node.pub.stats()["writesRefused"] == n, what=f"refusal {n}")
+        assert node.pub.stats()["commandLogsSuppressed"] == 3
+        assert node.pub.stats()["writes"] == 0
+        assert slave.registers(1, "hr", 100) == [default_register(1, "hr", 100)]
+
+
+def test_a_flood_of_rebirth_requests_is_paced(broker: Mosquitto,
+                                             slave: PymodbusSlave) -> None:
+    """The issue's 1,000 Rebirth NCMDs made 1,000 NBIRTH and 2,000 DBIRTH.  Now the first
+    is answered at once and the others within rebirthInterval are folded into one
+    rebirth when it ends: at most one per interval while the flood lasts, plus that one."""
+    interval = 1.5
+    request = encode([encode_metric(name="Node Control/Rebirth", datatype="Boolean",
+                                    value=True)])
+    with MqttProbe(broker.port, [f"{BASE}/#"]) as probe, Node(
+            broker.port, device(slave.port), rebirthInterval=int(interval * 1000)) as node:
+        wait_payload(probe, f"{BASE}/DBIRTH/{N}/dev1")
+        mark = probe.mark()
+        started = time.monotonic()
+        for _ in range(1000):
+            probe.publish(f"{BASE}/NCMD/{N}", request, qos=0)
+        wait_for(lambda: node.pub.stats()["commands"] == 1000, timeout=60,
+                 what="1,000 NCMD taken")
+        flood = time.monotonic() - started
+        stats = node.pub.stats()
+        wait_for(lambda: node.pub.stats()["rebirths"] == stats["rebirths"] + 1
+                 and node.pub.stats()["dbirths"] == stats["dbirths"] + 1,
+                 timeout=interval + 30, what="the folded rebirth")
+        stats = node.pub.stats()
+        # each rebirth answers one request at once or the requests folded before it
+        assert 1000 - stats["rebirths"] <= stats["rebirthsFolded"] <= 999, stats
+        assert 2 <= stats["rebirths"] <= 2 + flood / interval, (stats, flood)
+        nbirths = len([m for m in probe.messages()[mark:] if "/NBIRTH/" in m.topic])
+        assert nbirths == stats["rebirths"]
+        assert stats["commandErrors"] == 0
 
 
 def test_prometheus_exports_the_sparkplug_counters(broker: Mosquitto,
@@ -381,7 +465,7 @@ def test_ndeath_is_the_will_with_the_sessions_bdseq(broker: Mosquitto, slave: Py
             if proc.poll() is None:
                 proc.kill()
             proc.wait()
-        assert (folder / "bdseq").read_text().strip() == str(first + 1)
+        assert (folder / "bdseq").read_text() == f"{MAGIC}\n{first + 1}\n"
         mark = probe.mark()
         proc = gateway()
         try:

@@ -64,7 +64,7 @@ def load_gateway_config(path: str | os.PathLike[str] | dict[str, Any]) -> Gatewa
     sparkplug = mqtt.sparkplug
     if mqtt.mode == "sparkplug" and sparkplug is not None:
         if folder is not None:
-            sparkplug = sparkplug.resolved(folder)
+            sparkplug = sparkplug.resolved(folder, os.environ.get("STATE_DIRECTORY"))
             mqtt = mqtt.model_copy(update={"sparkplug": sparkplug})
             cfg = cfg.model_copy(update={"mqtt": mqtt})
         problems += sparkplug.problems()

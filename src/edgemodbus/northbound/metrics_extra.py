@@ -5,10 +5,12 @@ metrics.py they read ``stats()`` and never raise into a scrape.
 Sparkplug (from the publisher's ``stats()``, only when it is a Sparkplug one): births
 (``edgemodbus_sparkplug_nbirths_total``, ``_dbirths_total``), ``_ddata_total``,
 ``_ddeaths_total``, ``_rebirths_total``, DCMD ``_writes_total`` and
-``_writes_refused_total``; gauges ``edgemodbus_sparkplug_bd_seq`` (the session's bdSeq:
-it moves once per MQTT session) and ``edgemodbus_sparkplug_born`` (1 between NBIRTH and
-NDEATH).  ``seq`` is not exported: it moves with every message and wraps at 256, so a
-scrape of it says nothing.
+``_writes_refused_total``, refused commands (``_command_errors_total``), rebirth requests
+folded by ``rebirthInterval`` (``_rebirths_folded_total``) and command log lines folded
+into summaries (``_command_logs_suppressed_total``); gauges
+``edgemodbus_sparkplug_bd_seq`` (the session's bdSeq: it moves once per MQTT session) and
+``edgemodbus_sparkplug_born`` (1 between NBIRTH and NDEATH).  ``seq`` is not exported: it
+moves with every message and wraps at 256, so a scrape of it says nothing.
 
 MQTT store-and-forward (from the publisher's ``stats()["spool"]``, only when
 ``mqtt.storeAndForward`` is set): ``edgemodbus_mqtt_spool_<counter>_total`` for
@@ -45,7 +47,15 @@ SPARKPLUG_COUNTERS: tuple[tuple[str, str, str], ...] = (
     ("rebirths", "sparkplug_rebirths", "Rebirths requested (NCMD Node Control/Rebirth)"),
     ("writes", "sparkplug_writes", "DCMD writes the slave confirmed"),
     ("writesRefused", "sparkplug_writes_refused",
-     "DCMD writes refused (unknown metric, bad value, slave exception or timeout)"),
+     "DCMD writes refused (over a cap, unknown metric, a value of another type or out of "
+     "range, slave exception or timeout)"),
+    ("commandErrors", "sparkplug_command_errors",
+     "NCMD/DCMD messages refused whole (not Sparkplug, over a cap, unsupported NCMD "
+     "metrics, DCMD for an unknown device)"),
+    ("rebirthsFolded", "sparkplug_rebirths_folded",
+     "Rebirth requests within rebirthInterval of the last rebirth, folded into the next"),
+    ("commandLogsSuppressed", "sparkplug_command_logs_suppressed",
+     "Log lines about commands folded into rate-limited summaries"),
 )
 SPOOL_COUNTERS: tuple[tuple[str, str, str], ...] = (
     ("appended", "mqtt_spool_appended", "Messages written to the store-and-forward spool"),

@@ -7,12 +7,12 @@ from datetime import datetime, timezone
 import pytest
 
 from edgemodbus.datatypes import DataType, ItemStatus
+from edgemodbus.northbound.sparkplug.commands import command_value, parse_command
 from edgemodbus.northbound.sparkplug.payloads import (
     MetricDef,
     Sample,
-    command_value,
     device_birth,
-    parse_command,
+    device_data,
     sparkplug_type,
 )
 from tests.sparkplug_wire import TYPES, decode, encode, encode_metric
@@ -67,3 +67,18 @@ def test_commands_written_by_the_independent_writer_are_read() -> None:
     assert command_value(text, TYPES["String"]) == "hi"
     with pytest.raises(ValueError, match="not a Sparkplug B payload"):
         parse_command(b"\xff\xff\xff")
+
+
+def test_every_birth_metric_has_a_timestamp_and_data_does_not_repeat_the_type() -> None:
+    """An item never read has no updateTs: its DBIRTH metric takes the payload's
+    timestamp (Sparkplug 3.0 wants one on every birth metric); DDATA refers to metrics by
+    alias and leaves their datatype out."""
+    spec = MetricDef("m", 3, TYPES["UInt16"])
+    never = Sample("m", None, ItemStatus.UNKNOWN, None, None)
+    (born,) = decode(device_birth(1, 5000, [(never, spec)])).metrics
+    assert born.timestamp == 5000 and born.datatype == TYPES["UInt16"] and born.is_null
+    assert born.properties == {"Quality": 0, "errorReason": "not read yet"}
+    (data,) = decode(device_data(2, 6000, [(Sample("m", 7, ItemStatus.OK, 5500, None),
+                                            spec, False)])).metrics
+    assert (data.name, data.alias, data.datatype, data.timestamp) == (None, 3, None, 5500)
+    assert data.raw == 7

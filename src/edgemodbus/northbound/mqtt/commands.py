@@ -2,7 +2,13 @@
 
 Commands run on one ``edgemodbus-mqtt-cmd`` thread with an asyncio loop through
 ``write_addresses_async`` or ``run_action_async`` (many devices' writes in flight at once;
-per device in arrival order); the result goes to the device's reply topic."""
+per device in arrival order); the result goes to the device's reply topic.
+
+Commands are untrusted input (any client allowed on the topic sends them): a payload over
+:data:`MAX_COMMAND_BYTES` is refused unread, JSON nested too deep is an error reply (not
+a traceback), a request ``id`` is echoed only when it is a number, a boolean or a string
+of at most :data:`MAX_ID_CHARS` characters, and an error reply quotes at most
+:data:`MAX_ERROR_CHARS` characters."""
 
 from __future__ import annotations
 
@@ -10,6 +16,7 @@ import json
 import logging
 from typing import Any
 
+from ...line.log_limit import short_text
 from ..loop_thread import LoopThread
 from .devices import AttachedDevice
 from .outbox import Message, Outbox
@@ -17,17 +24,51 @@ from .payload import dumps, now
 
 log = logging.getLogger("edgemodbus.mqtt")
 
-_MAX_COMMAND_BYTES = 65536
+MAX_COMMAND_BYTES = 65536
+MAX_ID_CHARS = 128
+MAX_ERROR_CHARS = 300
 _MAX_PENDING_COMMANDS = 256
 
 
-def request_id_of(payload: bytes) -> Any:
-    """The ``id`` of a JSON object payload, if there is one (for error replies)."""
+def _loads(text: str | bytes, what: str) -> Any:
+    """JSON of a command; ValueError for bad JSON and for nesting past Python's recursion
+    limit (json raises RecursionError there)."""
     try:
-        obj = json.loads(payload)
+        return json.loads(text)
+    except RecursionError:
+        raise ValueError(f"{what} is nested too deeply") from None
+
+
+def checked_id(value: Any) -> Any:
+    """A request id as it may be echoed: null, a number, a boolean or a short string;
+    ValueError (without the id) for anything else."""
+    if value is None or isinstance(value, (bool, int, float)):
+        return value
+    if isinstance(value, str):
+        if len(value) <= MAX_ID_CHARS:
+            return value
+        raise ValueError(f'"id" is a string of {len(value)} characters (at most '
+                         f"{MAX_ID_CHARS})")
+    raise ValueError(f'"id" must be a number or a string, not a JSON {type(value).__name__}')
+
+
+def request_id_of(payload: bytes) -> Any:
+    """The ``id`` of a JSON object payload, if there is one and it may be echoed (for
+    error replies); None for an oversized payload (not parsed)."""
+    if len(payload) > MAX_COMMAND_BYTES:
+        return None
+    try:
+        obj = _loads(payload, "payload")
+        return checked_id(obj.get("id")) if isinstance(obj, dict) else None
     except (ValueError, UnicodeDecodeError):
         return None
-    return obj.get("id") if isinstance(obj, dict) else None
+
+
+def short_error(text: str) -> str:
+    """An error for a reply, cut at :data:`MAX_ERROR_CHARS` (it may quote the value)."""
+    if len(text) <= MAX_ERROR_CHARS:
+        return text
+    return f"{text[:MAX_ERROR_CHARS]}... ({len(text)} characters)"
 
 
 def parse_command(name: str | None, payload: bytes) -> tuple[Any, list[tuple[str, Any]]]:
@@ -38,9 +79,9 @@ def parse_command(name: str | None, payload: bytes) -> tuple[Any, list[tuple[str
     text that is not JSON is taken as a string.  Batch: ``{"name": value, ...}``, or
     ``{"items": {...} | [{"name": n, "value": v}, ...] | [[n, v], ...], "id": x}``.
     """
-    if len(payload) > _MAX_COMMAND_BYTES:
+    if len(payload) > MAX_COMMAND_BYTES:
         raise ValueError(f"payload of {len(payload)} bytes is too large "
-                         f"(at most {_MAX_COMMAND_BYTES})")
+                         f"(at most {MAX_COMMAND_BYTES})")
     try:
         text = payload.decode("utf-8")
     except UnicodeDecodeError:
@@ -50,20 +91,22 @@ def parse_command(name: str | None, payload: bytes) -> tuple[Any, list[tuple[str
             raise ValueError("no item name in the command topic")
         try:
             value = json.loads(text)
+        except RecursionError:
+            raise ValueError("payload is nested too deeply") from None
         except ValueError:
             return None, [(name, text)]
         if isinstance(value, dict):
             if "value" not in value:
                 raise ValueError('an object payload needs a "value" key, e.g. {"value": 1}')
-            return value.get("id"), [(name, value["value"])]
+            return checked_id(value.get("id")), [(name, value["value"])]
         return None, [(name, value)]
     try:
-        body = json.loads(text)
+        body = _loads(text, "batch payload")
     except ValueError as exc:
         raise ValueError(f"batch payload is not JSON: {exc}") from None
     request_id: Any = None
     if isinstance(body, dict) and "items" in body:
-        request_id = body.get("id")
+        request_id = checked_id(body.get("id"))
         body = body["items"]
     items: list[tuple[str, Any]] = []
     if isinstance(body, dict):
@@ -77,11 +120,11 @@ def parse_command(name: str | None, payload: bytes) -> tuple[Any, list[tuple[str
             elif isinstance(entry, list) and len(entry) == 2 and isinstance(entry[0], str):
                 items.append((entry[0], entry[1]))
             else:
-                raise ValueError(f'items[{i}] {entry!r}: use {{"name": ..., "value": ...}} '
-                                 "or [name, value]")
+                raise ValueError(f'items[{i}] {short_text(repr(entry))}: use {{"name": ..., '
+                                 '"value": ...} or [name, value]')
     else:
-        raise ValueError(f"batch payload {body!r}: use an object of item names to values, "
-                         'or {"items": ..., "id": ...}')
+        raise ValueError(f"batch payload {short_text(repr(body))}: use an object of item "
+                         'names to values, or {"items": ..., "id": ...}')
     if not items:
         raise ValueError("batch payload names no items")
     return request_id, items
@@ -91,11 +134,11 @@ def parse_action(payload: bytes) -> tuple[Any, str, dict[str, Any]]:
     """(request id, action name, parameters) of an action payload
     ``{"action": "start", "parameters": {"speed": 12.5}, "id": 7}`` (parameters may be
     left out: all take their defaults); ValueError says what is wrong."""
-    if len(payload) > _MAX_COMMAND_BYTES:
+    if len(payload) > MAX_COMMAND_BYTES:
         raise ValueError(f"payload of {len(payload)} bytes is too large "
-                         f"(at most {_MAX_COMMAND_BYTES})")
+                         f"(at most {MAX_COMMAND_BYTES})")
     try:
-        body = json.loads(payload.decode("utf-8"))
+        body = _loads(payload.decode("utf-8"), "action payload")
     except (ValueError, UnicodeDecodeError) as exc:
         raise ValueError(f"action payload is not JSON: {exc}") from None
     if not isinstance(body, dict) or not isinstance(body.get("action"), str):
@@ -105,9 +148,9 @@ def parse_action(payload: bytes) -> tuple[Any, str, dict[str, Any]]:
     if params is None:
         params = {}
     if not isinstance(params, dict):
-        raise ValueError(f"action payload: parameters {params!r} must be an object of "
-                         "parameter names to values")
-    return body.get("id"), body["action"], params
+        raise ValueError(f"action payload: parameters {short_text(repr(params))} must be an "
+                         "object of parameter names to values")
+    return checked_id(body.get("id")), body["action"], params
 
 
 class CommandRunner:
@@ -179,8 +222,10 @@ class CommandRunner:
                names: list[str], action: str | None = None) -> None:
         if not ok:
             self._outbox.count("commandErrors")
-        body: dict[str, Any] = {"id": request_id, "ok": ok, "error": error, "items": names,
-                                "ts": now()}
+        body: dict[str, Any] = {"id": request_id, "ok": ok,
+                                "error": None if error is None else short_error(error),
+                                "items": [n if len(n) <= MAX_ID_CHARS else short_text(n)
+                                          for n in names], "ts": now()}
         if action is not None:
             body["action"] = action
         self._outbox.push_control(Message(dev.code, dev.reply_topic, dumps(body), 1, False))

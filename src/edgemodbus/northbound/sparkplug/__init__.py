@@ -11,18 +11,22 @@ deaths, commands), session.py (the paho client, the will, connecting; a new sess
 the primary host goes offline), client.py (the paho client's options), devices.py (per
 device: metrics as born, aliases), payloads.py (our types and values as Sparkplug
 metrics; sparkplug_b.proto is the specification's schema, sparkplug_b_pb2.py generated
-from it by ``make proto``), state.py (the primary host's STATE), bdseq.py (bdSeq kept
-across restarts), writes.py (DCMD writes).
+from it by ``make proto``), commands.py (the metrics of NCMD/DCMD: caps, lossless
+values), inbox.py (commands as untrusted input: refusals counted, logs rate-limited,
+rebirths paced), state.py (the primary host's STATE), bdseq.py (bdSeq kept across
+restarts in a file that is ours), writes.py (DCMD writes).
 
 Messages (group ``G``, edge node ``N``: ``edgeNodeId``, default the gateway id; device
 ``D``: the device code)::
 
     spBv1.0/G/NBIRTH/N      on connect: bdSeq, Node Control/Rebirth; seq 0     QoS 0
     spBv1.0/G/NDEATH/N      the MQTT will (bdSeq of the session), and on stop  QoS 1
-    spBv1.0/G/DBIRTH/N/D    when the device runs: every item, name + alias    QoS 0
-    spBv1.0/G/DDATA/N/D     what changed in a cycle, by alias                 QoS 0
+    spBv1.0/G/DBIRTH/N/D    after the device's first complete cycle: every    QoS 0
+                            item, name + alias + type + timestamp
+    spBv1.0/G/DDATA/N/D     what changed in a cycle, by alias (no type)       QoS 0
     spBv1.0/G/DDEATH/N/D    the device stopped running (Offline, link down) or was detached
     spBv1.0/G/NCMD/N        in: Node Control/Rebirth = true -> NBIRTH + every DBIRTH
+                            (at most one per rebirthInterval; more are folded)
     spBv1.0/G/DCMD/N/D      in: writes (metrics by name or alias) -> write_addresses
     spBv1.0/STATE/<host>    in: the primary host's {"online", "timestamp"}, when configured
 

@@ -1,49 +1,106 @@
-"""bdSeq, the number that pairs an edge node's NDEATH with its NBIRTH (Sparkplug 3.0,
-6.4.6): 0-255, one more for every MQTT session, kept in ``mqtt.sparkplug.bdSeqFile``
-when given so that a restarted gateway does not reuse the number of the session whose
-will the broker may still deliver; without the file it starts at 0 in each process."""
+"""bdSeq, the number that pairs an edge node's NDEATH with its NBIRTH (Sparkplug 3.0): 0-255,
+one more for every MQTT session, kept in ``mqtt.sparkplug.bdSeqFile`` so that a restarted
+gateway does not reuse the number of the session whose will the broker may still
+deliver.  The gateway keeps it by default (settings.py: ``$STATE_DIRECTORY`` or the
+gateway file's folder); a library caller without a file starts at 0 in each process.
+
+The file is ours and says so: a first line :data:`MAGIC`, then the number.  An existing
+file that is anything else (``gateway.json`` given by mistake) is refused, never
+overwritten; a bare number 0-255 (what earlier versions wrote) and an empty file are
+taken as ours.  Writes are atomic: a temporary file beside it, fsync, rename, fsync of
+the folder, so a crash leaves the old number or the new one."""
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 from pathlib import Path
 
+from ...config import ConfigError, Problem
+
 log = logging.getLogger("edgemodbus.sparkplug")
+
+MAGIC = "# edgemodbus Sparkplug bdSeq"
+FIELD = "mqtt.sparkplug.bdSeqFile"
+
+
+def parse_bd_seq(text: str) -> int | None:
+    """The bdSeq in a file's ``text``; None for an empty file; ValueError saying what was
+    found when it is not one of our bdSeq files."""
+    lines = text.splitlines()
+    if lines and lines[0].strip() == MAGIC:
+        lines = lines[1:]
+        if not lines:
+            raise ValueError("our header without a number")
+    body = "\n".join(lines).strip()
+    if not body:
+        return None
+    if body.isdecimal() and len(body) <= 3 and int(body) <= 255:
+        return int(body)
+    shown = repr(body[:40]) + (f"... ({len(text)} characters)" if len(body) > 40 else "")
+    raise ValueError(f"found {shown}")
+
+
+def file_problem(path: str) -> str | None:
+    """Why ``path`` cannot be our bdSeq file (it exists and holds something else, or
+    cannot be read), or None."""
+    try:
+        text = Path(path).read_text(encoding="utf-8", errors="replace")
+    except FileNotFoundError:
+        return None
+    except OSError as exc:
+        return f"cannot be read: {exc.strerror or exc}"
+    try:
+        parse_bd_seq(text)
+    except ValueError as exc:
+        return (f"exists and is not an edgemodbus bdSeq file ({exc}); give another path, "
+                "or remove it if it is no longer used")
+    return None
 
 
 class BdSeqStore:
-    """The next session's bdSeq, read from and written to an optional file (one decimal
-    number; written to a temporary file, then renamed, so a crash leaves the old one)."""
+    """The next session's bdSeq, read from and written to an optional file."""
 
     def __init__(self, path: str | None) -> None:
         self.path = Path(path) if path is not None else None
 
     def load(self) -> int:
-        """The stored next bdSeq; 0 without a file, or (logged) when it is unreadable."""
+        """The stored next bdSeq, 0 without a file; ConfigError (naming the field, the
+        path and what was found) when the file is not ours or cannot be read."""
         if self.path is None:
             return 0
+        problem = file_problem(str(self.path))
+        if problem is not None:
+            raise ConfigError([Problem(FIELD, str(self.path), problem)])
         try:
-            text = self.path.read_text().strip()
+            value = parse_bd_seq(self.path.read_text(encoding="utf-8"))
         except FileNotFoundError:
             return 0
-        except OSError as exc:
-            log.warning("%s: cannot read bdSeq (%s); starting at 0", self.path,
-                        exc.strerror or exc)
-            return 0
-        if not text.isdigit() or int(text) > 255:
-            log.warning("%s: %r is not a bdSeq (0-255); starting at 0", self.path, text[:20])
-            return 0
-        return int(text)
+        except (OSError, ValueError) as exc:  # changed since the check
+            raise ConfigError([Problem(FIELD, str(self.path), str(exc))]) from None
+        return 0 if value is None else value
 
     def save(self, value: int) -> None:
-        """Keep ``value`` as the next session's bdSeq; a failure is logged, not raised
-        (publishing goes on, the number is then only kept in memory)."""
+        """Keep ``value`` as the next session's bdSeq (atomically); a failure is logged,
+        not raised (publishing goes on, the number is then only kept in memory)."""
         if self.path is None:
             return
-        tmp = self.path.with_name(f".{self.path.name}.tmp")
+        tmp = self.path.with_name(f".{self.path.name}.{os.getpid()}.tmp")
         try:
-            tmp.write_text(f"{value}\n")
+            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_CLOEXEC, 0o644)
+            try:
+                os.write(fd, f"{MAGIC}\n{value}\n".encode())
+                os.fsync(fd)
+            finally:
+                os.close(fd)
             os.replace(tmp, self.path)
+            folder = os.open(self.path.parent, os.O_RDONLY | os.O_DIRECTORY | os.O_CLOEXEC)
+            try:
+                os.fsync(folder)
+            finally:
+                os.close(folder)
         except OSError as exc:
             log.warning("%s: cannot keep bdSeq %d: %s", self.path, value, exc.strerror or exc)
+            with contextlib.suppress(OSError):
+                tmp.unlink()

@@ -28,13 +28,15 @@ def is_good(sample: Sample) -> bool:
 class NodeDevice:
     """One Sparkplug device of the edge node: an attached driver."""
 
-    __slots__ = ("bad", "born", "by_alias", "code", "driver", "dropped", "kinds",
-                 "metrics", "prev_batch", "published")
+    __slots__ = ("bad", "born", "born_at", "by_alias", "code", "driver", "dropped", "kinds",
+                 "metrics", "offered", "prev_batch", "published")
 
     def __init__(self, driver: DriverModbusRtu, code: str) -> None:
         self.driver = driver
         self.code = code
         self.born = False  # DBIRTH published in this node session, no DDEATH since
+        self.offered = 0  # reports queued so far (numbered under the publisher's lock)
+        self.born_at = 0  # the last report the latest DBIRTH's values include
         # replaced whole at each birth (read by the MQTT thread for commands)
         self.metrics: dict[str, MetricDef] = {}
         self.by_alias: dict[int, MetricDef] = {}
@@ -61,6 +63,12 @@ class NodeDevice:
         self.by_alias = {spec.alias: spec for spec in metrics.values()}
         self.bad = {sample.name for sample, _ in samples if not is_good(sample)}
         return samples
+
+    def first_cycle_done(self) -> bool:
+        """The driver ended a cycle.  A device turns Running on its first reply (an
+        exception reply too), in the middle of its first cycle, so its DBIRTH waits for
+        this, else most of its metrics would be born "not read yet"."""
+        return int(self.driver.stats().get("cycles", 0)) > 0
 
     def changed_items(self) -> bool:
         """True when the driver's items are no longer the metrics as born (a hot update

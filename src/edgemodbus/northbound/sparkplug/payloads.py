@@ -1,5 +1,6 @@
 """Sparkplug B payloads (protobuf, the specification's schema in sparkplug_b.proto): our
-data types as Sparkplug's, item values as metrics, and the metrics of a command.
+data types as Sparkplug's and item values as metrics (the metrics of commands are read by
+commands.py).
 
 Values (Sparkplug 3.0, 6.4.16 and Eclipse Tahu's encoders): Int8/Int16/Int32 go in the
 uint32 ``int_value`` as 32-bit two's complement, Int64 in ``long_value`` as 64-bit two's
@@ -131,13 +132,16 @@ def _integer(value: Any, low: int, high: int) -> int:
 
 def _add_metric(payload: Any, sample: Sample, spec: MetricDef, birth: bool,
                 quality: bool) -> None:
+    """One metric; a birth names it and gives its datatype, data refers to it by alias
+    only, without repeating the datatype (Sparkplug 3.0 asks for it in births only).
+    Every metric has a timestamp (required in births): its item's updateTs, else (an
+    item never read) the payload's."""
     metric = payload.metrics.add()
     if birth:
         metric.name = spec.name
+        metric.datatype = spec.datatype
     metric.alias = spec.alias
-    metric.datatype = spec.datatype
-    if sample.ts is not None:
-        metric.timestamp = sample.ts
+    metric.timestamp = sample.ts if sample.ts is not None else payload.timestamp
     good = sample.status is ItemStatus.OK and sample.value is not None
     if good:
         try:
@@ -181,7 +185,8 @@ def node_death(bd_seq: int, now: int) -> bytes:
 
 
 def device_birth(seq: int, now: int, metrics: Iterable[tuple[Sample, MetricDef]]) -> bytes:
-    """DBIRTH: every metric with name, alias, type, value (or null) and quality."""
+    """DBIRTH: every metric with name, alias, type, timestamp, value (or null) and
+    quality."""
     payload = pb.Payload(timestamp=now, seq=seq)
     for sample, spec in metrics:
         _add_metric(payload, sample, spec, birth=True, quality=True)
@@ -190,8 +195,8 @@ def device_birth(seq: int, now: int, metrics: Iterable[tuple[Sample, MetricDef]]
 
 def device_data(seq: int, now: int,
                 metrics: Iterable[tuple[Sample, MetricDef, bool]]) -> bytes:
-    """DDATA: metrics by alias only; the flag asks for the quality property (an item
-    back to good after being bad; bad ones always carry it)."""
+    """DDATA: metrics by alias only, without their datatype; the flag asks for the
+    quality property (an item back to good after being bad; bad ones always carry it)."""
     payload = pb.Payload(timestamp=now, seq=seq)
     for sample, spec, quality in metrics:
         _add_metric(payload, sample, spec, birth=False, quality=quality)
@@ -200,68 +205,3 @@ def device_data(seq: int, now: int,
 
 def device_death(seq: int, now: int) -> bytes:
     return bytes(pb.Payload(timestamp=now, seq=seq).SerializeToString())
-
-
-@dataclass(frozen=True, slots=True)
-class CommandMetric:
-    """One metric of an NCMD or DCMD: named (``name``) or by ``alias``; ``field`` is the
-    value field that was set (``int_value``...), None when it carries no value."""
-
-    name: str | None
-    alias: int | None
-    datatype: int | None
-    field: str | None
-    raw: Any
-
-
-def parse_command(payload: bytes) -> list[CommandMetric]:
-    """The metrics of a command payload; ValueError when it is not a Sparkplug payload."""
-    message = pb.Payload()
-    try:
-        message.ParseFromString(payload)
-    except Exception as exc:  # google.protobuf.message.DecodeError
-        raise ValueError(f"not a Sparkplug B payload: {exc}") from None
-    found: list[CommandMetric] = []
-    for metric in message.metrics:
-        field = metric.WhichOneof("value")
-        found.append(CommandMetric(
-            metric.name if metric.HasField("name") else None,
-            metric.alias if metric.HasField("alias") else None,
-            metric.datatype if metric.HasField("datatype") else None,
-            None if metric.is_null else field,
-            getattr(metric, field) if field is not None else None,
-        ))
-    return found
-
-
-def command_value(command: CommandMetric, datatype: int) -> Any:
-    """The value a command sets, read as ``datatype`` (the metric's as born): signed
-    types from their two's complement (32-bit, or the type's own width as Eclipse
-    Tahu's Python encoder sends it), DateTime as its ms; ValueError when it carries no
-    value or a kind of value that cannot be written."""
-    field, raw = command.field, command.raw
-    if field is None:
-        raise ValueError("the metric carries no value")
-    if field in ("dataset_value", "template_value", "extension_value"):
-        raise ValueError(f"{field} is not supported for writes")
-    if datatype in (INT8, INT16, INT32) and field == "int_value":
-        bits = _SIGNED_BITS[datatype]
-        if raw >= 1 << 31:
-            return int(raw) - (1 << 32)
-        return int(raw) - (1 << bits) if raw >= 1 << (bits - 1) else int(raw)
-    if datatype == INT64 and field == "long_value":
-        return int(raw) - (1 << 64) if raw >= 1 << 63 else int(raw)
-    return raw
-
-
-def node_command(payload: bytes) -> tuple[bool, list[str]]:
-    """(rebirth asked: ``Node Control/Rebirth`` = true, the other metrics of the NCMD in
-    words); ValueError when it is not a Sparkplug payload."""
-    rebirth, others = False, []
-    for metric in parse_command(payload):
-        if metric.name == REBIRTH and metric.field == "boolean_value" and metric.raw:
-            rebirth = True
-        else:
-            label = metric.name if metric.name is not None else f"alias {metric.alias}"
-            others.append(f"metric {label!r}")
-    return rebirth, others

@@ -16,16 +16,8 @@ from ...datatypes import DeviceDriverStatus
 from ...driver import DriverModbusRtu
 from ..mqtt.settings import MqttSettings, check_name
 from .devices import NodeDevice, is_good, sample_of
-from .payloads import (
-    REBIRTH,
-    Sample,
-    device_birth,
-    device_data,
-    device_death,
-    node_birth,
-    node_command,
-    node_death,
-)
+from .inbox import CommandInbox, CommandLog, RebirthPacer
+from .payloads import Sample, device_birth, device_data, device_death, node_birth, node_death
 from .session import NodeSession
 from .settings import check_id
 from .state import HostState
@@ -39,7 +31,7 @@ log = logging.getLogger("edgemodbus.sparkplug")
 NAMESPACE = "spBv1.0"
 _COUNTERS = ("connects", "disconnects", "connectFailures", "published", "publishErrors",
              "dropped", "nbirths", "dbirths", "ddata", "ddeaths", "rebirths", "commands",
-             "commandErrors", "writes", "writesRefused")
+             "commandErrors", "writes", "writesRefused", "rebirthsFolded")
 
 
 def _now() -> int:
@@ -80,7 +72,8 @@ class SparkplugPublisher:
         self._lock = threading.Lock()
         self._wake = threading.Condition(self._lock)
         self._events: deque[tuple[Any, ...]] = deque()  # control: connects, commands...
-        self._samples: deque[tuple[NodeDevice, list[Sample]]] = deque()  # bounded
+        # (device, its report's number, samples), bounded
+        self._samples: deque[tuple[NodeDevice, int, list[Sample]]] = deque()
         self._queued = 0  # samples in self._samples
         self._devices: dict[str, NodeDevice] = {}
         self._counts = dict.fromkeys(_COUNTERS, 0)
@@ -93,7 +86,11 @@ class SparkplugPublisher:
         self._seq = 0
         self._born = False  # NBIRTH published in this session, no NDEATH since
         self._aliases: dict[tuple[str, str], int] = {}
-        self._writes = WriteRunner(self._count)
+        self._logs = CommandLog(log)
+        self._writes = WriteRunner(self._count, self._logs)
+        self._inbox = CommandInbox(self._count, self._push, self._device_named,
+                                   self._writes.command, self._logs)
+        self._rebirths = RebirthPacer(sp.rebirth_interval / 1000)
         self._connected = self._session.connected
         self._thread: threading.Thread | None = None
         self._closed = False
@@ -156,12 +153,14 @@ class SparkplugPublisher:
         return self._connected.wait(timeout)
 
     def rebirth(self) -> None:
-        """NBIRTH and every DBIRTH again (what NCMD ``Node Control/Rebirth`` does)."""
+        """NBIRTH and every DBIRTH again (what NCMD ``Node Control/Rebirth`` does, paced
+        by ``rebirthInterval`` as it is)."""
         self._push(("rebirth",))
 
     def stats(self) -> dict[str, Any]:
         """Counters (camelCase) as MqttPublisher's, plus the Sparkplug ones (births,
-        ddata, ddeaths, rebirths, writes, writesRefused), bdSeq and seq."""
+        ddata, ddeaths, rebirths, rebirthsFolded, writes, writesRefused, commandErrors,
+        commandLogsSuppressed), bdSeq and seq."""
         with self._lock:
             result: dict[str, Any] = dict(self._counts)
             result["queued"] = self._queued
@@ -172,6 +171,7 @@ class SparkplugPublisher:
             result["seq"] = self._seq
             result["born"] = self._born
         result["pendingCommands"] = self._writes.pending
+        result["commandLogsSuppressed"] = self._logs.suppressed
         result["connected"] = self.connected
         return result
 
@@ -210,10 +210,11 @@ class SparkplugPublisher:
         """From a line worker: queue, never block; past ``queueSize`` the oldest are
         dropped and their device is born again (its DBIRTH carries every value)."""
         with self._lock:
-            self._samples.append((dev, samples))
+            dev.offered += 1
+            self._samples.append((dev, dev.offered, samples))
             self._queued += len(samples)
             while self._queued > self.settings.queue_size and len(self._samples) > 1:
-                old, lost = self._samples.popleft()
+                old, _, lost = self._samples.popleft()
                 self._queued -= len(lost)
                 old.dropped += len(lost)
                 self._counts["dropped"] += len(lost)
@@ -243,34 +244,13 @@ class SparkplugPublisher:
         if topic == self._host.topic:
             self._push(("state", payload))
         elif topic == self._ncmd:
-            self._node_command(payload)
+            self._inbox.node(payload)
         elif topic.startswith(self._dcmd):
-            self._device_command(topic[len(self._dcmd):], payload)
+            self._inbox.device_command(topic[len(self._dcmd):], payload)
 
-    # -- commands ------------------------------------------------------------------------
-    def _node_command(self, payload: bytes) -> None:
-        self._count("commands")
-        try:
-            rebirth, unsupported = node_command(payload)
-        except ValueError as exc:
-            unsupported, rebirth = [str(exc)], False
-        if rebirth:
-            log.info("Sparkplug: rebirth requested (NCMD %s)", REBIRTH)
-            self._push(("rebirth",))
-        for what in unsupported:
-            self._count("commandErrors")
-            log.warning("Sparkplug: NCMD %s ignored (only %s = true is supported)", what,
-                        REBIRTH)
-
-    def _device_command(self, code: str, payload: bytes) -> None:
-        self._count("commands")
+    def _device_named(self, code: str) -> NodeDevice | None:
         with self._lock:
-            dev = self._devices.get(code)
-        if dev is None:
-            self._count("commandErrors")
-            log.warning("Sparkplug: DCMD for unknown device %r ignored", code)
-            return
-        self._writes.command(dev, payload)
+            return self._devices.get(code)
 
     # -- the Sparkplug thread ------------------------------------------------------------
     def _run(self) -> None:
@@ -279,7 +259,8 @@ class SparkplugPublisher:
         while True:
             with self._lock:
                 while not self._events and not self._samples:
-                    left = next_check - time.monotonic()
+                    left = min(next_check, self._logs.next_due(),
+                               self._rebirths.due or next_check) - time.monotonic()
                     if left <= 0:
                         break
                     self._wake.wait(left)
@@ -294,8 +275,11 @@ class SparkplugPublisher:
                         self._shutdown(event[1])
                         return
                     self._handle(event)
-                for dev, batch in samples:
-                    self._data(dev, batch)
+                for dev, number, batch in samples:
+                    self._data(dev, number, batch)
+                if self._rebirths.take_due():
+                    self._rebirth()
+                self._logs.flush()
                 if time.monotonic() >= next_check:
                     next_check = time.monotonic() + interval
                     self._check_devices()
@@ -317,8 +301,10 @@ class SparkplugPublisher:
             elif change is False:
                 self._host_offline()
         elif kind == "rebirth":
-            self._count("rebirths")
-            self._birth_all()
+            if self._rebirths.request():
+                self._rebirth()
+            else:
+                self._count("rebirthsFolded")
         elif kind == "attach":
             self._device_birth(event[1])
         elif kind == "detach":
@@ -327,6 +313,11 @@ class SparkplugPublisher:
                 self._death(dev)
         elif kind == "resync" and event[1].born:
             self._device_birth(event[1])
+
+    def _rebirth(self) -> None:
+        log.info("Sparkplug: rebirth: NBIRTH and every DBIRTH again")
+        self._count("rebirths")
+        self._birth_all()
 
     def _session_bd_seq(self) -> int:
         return self.bd_seq if self.bd_seq is not None else 0
@@ -396,6 +387,10 @@ class SparkplugPublisher:
             if dev.born:
                 self._death(dev)
             return
+        if not dev.first_cycle_done():
+            return  # born by the report that ends it, or by the next status check
+        with self._lock:  # the reports queued so far: the birth's values include them
+            dev.born_at = dev.offered
         payload = device_birth(self._next_seq(), _now(), dev.birth(self._alias))
         if self._publish(self.topic("DBIRTH", dev.code), payload):
             dev.born = True
@@ -408,9 +403,11 @@ class SparkplugPublisher:
                                                                       _now())):
             self._count("ddeaths")
 
-    def _data(self, dev: NodeDevice, samples: list[Sample]) -> None:
+    def _data(self, dev: NodeDevice, number: int, samples: list[Sample]) -> None:
         if not self._born:
             return  # the births after (re)connecting carry the current values
+        if dev.born and number <= dev.born_at:
+            return  # queued before its DBIRTH, which carried these values already
         if not dev.born or any(s.name not in dev.metrics for s in samples):
             self._device_birth(dev)  # a new item, or a device that was not born yet
             return
@@ -450,3 +447,4 @@ class SparkplugPublisher:
         if self._born:
             self._session.goodbye(self._session_bd_seq(), timeout)
         self._born = False
+        self._logs.flush(force=True)  # the summaries of folded command log lines

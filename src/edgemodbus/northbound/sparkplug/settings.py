@@ -1,6 +1,6 @@
 """The ``mqtt.sparkplug`` section of the gateway file (used when ``mqtt.mode`` is
-``"sparkplug"``): the Sparkplug group, edge node and primary host ids, and where bdSeq
-is kept between runs.
+``"sparkplug"``): the Sparkplug group, edge node and primary host ids, where bdSeq is
+kept between runs and how often a rebirth may be asked for.
 
 The broker, TLS, credentials, keepalive and reconnect backoff are the ``mqtt`` section's
 own fields (northbound/mqtt/settings.py); the topic templates, QoS and retain flags of
@@ -8,13 +8,21 @@ the per-item mode do not apply: Sparkplug fixes its topics and QoS."""
 
 from __future__ import annotations
 
+import logging
 import os
 from pathlib import Path
-from typing import ClassVar
+from typing import Annotated, ClassVar
 
 from pydantic import field_validator
 
-from ...config import Model, Problem
+from ...config import Model, Problem, Range
+from .bdseq import file_problem
+
+log = logging.getLogger("edgemodbus.sparkplug")
+
+DEFAULT_BD_SEQ_FILE = "sparkplug.bdseq"
+"""The gateway's bdSeq file when ``bdSeqFile`` is not given: in the first folder of
+``$STATE_DIRECTORY`` (systemd's ``StateDirectory=``), else in the gateway file's folder."""
 
 # Sparkplug 3.0, 4.1.1: group_id, edge_node_id and device_id are one topic level each
 # and must not contain the MQTT wildcards or the level separator
@@ -41,7 +49,9 @@ class SparkplugSettings(Model):
     group_id: str
     edge_node_id: str | None = None  # default: the gateway id
     primary_host_id: str | None = None  # wait for spBv1.0/STATE/<id> online before births
-    bd_seq_file: str | None = None  # keeps bdSeq across restarts (else it starts at 0)
+    bd_seq_file: str | None = None  # keeps bdSeq across restarts (the gateway's default:
+    # DEFAULT_BD_SEQ_FILE; a library caller without one starts at 0 in each process)
+    rebirth_interval: Annotated[int, Range(0, 3_600_000)] = 5000  # ms between rebirths
 
     @field_validator("group_id")
     @classmethod
@@ -58,16 +68,29 @@ class SparkplugSettings(Model):
     def _host(cls, value: str | None) -> str | None:
         return None if value is None else check_id("primaryHostId", value)
 
-    def resolved(self, base: str | os.PathLike[str]) -> SparkplugSettings:
-        """A copy whose relative ``bdSeqFile`` is taken from folder ``base``."""
+    def resolved(self, base: str | os.PathLike[str],
+                 state_directory: str | None = None) -> SparkplugSettings:
+        """A copy whose relative ``bdSeqFile`` is taken from folder ``base``; without one,
+        :data:`DEFAULT_BD_SEQ_FILE` in ``state_directory`` (the first of a colon-separated
+        list, as systemd sets ``$STATE_DIRECTORY``) or else in ``base``, when that folder
+        is writable (if not, a warning says so and bdSeq is kept in memory only)."""
         path = self.bd_seq_file
-        if path is None or os.path.isabs(path):
+        if path is None:
+            folder = Path(state_directory.split(":")[0] if state_directory else base)
+            if not (folder.is_dir() and os.access(folder, os.W_OK | os.X_OK)):
+                log.warning("mqtt.sparkplug.bdSeqFile: not given and %s is not a writable "
+                            "folder: bdSeq starts at 0 in each run (set bdSeqFile, or "
+                            "$STATE_DIRECTORY)", folder)
+                return self
+            return self.model_copy(update={"bd_seq_file": str(folder / DEFAULT_BD_SEQ_FILE)})
+        if os.path.isabs(path):
             return self
         return self.model_copy(update={"bd_seq_file": str(Path(base, path))})
 
     def problems(self, where: str = "mqtt.sparkplug") -> list[Problem]:
         """What keeps ``bdSeqFile`` from being kept: its folder missing or not writable,
-        or the path a folder; [] when it can be written."""
+        the path a folder, or an existing file that is not ours (bdseq.py); [] when it
+        can be written."""
         path = self.bd_seq_file
         if path is None:
             return []
@@ -84,4 +107,5 @@ class SparkplugSettings(Model):
         if not os.access(folder, os.W_OK | os.X_OK):
             return [Problem(field, path, f"its directory {folder} is not writable by this "
                                          f"process (uid {os.geteuid()})")]
-        return []
+        problem = file_problem(path)
+        return [] if problem is None else [Problem(field, path, problem)]
