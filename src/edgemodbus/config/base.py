@@ -44,7 +44,7 @@ from pydantic_core import (
     core_schema,
 )
 
-from ..datatypes import DataFormat
+from ..datatypes import DataFormat, DataFormat64
 from .compat import norm_key
 from .problems import NO_VALUE, ConfigError, Problem, WrongType, join_path
 from .secret import SECRETS_CONTEXT, hide_secrets, secret_keys
@@ -205,6 +205,13 @@ def parse_format(value: Any) -> Any:
     """A DataFormat from its text (``"ABCD"`` ...); other input passes through."""
     if isinstance(value, str):
         return DataFormat.parse(value)
+    return value
+
+
+def parse_format64(value: Any) -> Any:
+    """A DataFormat64 from its text (``"EFGHABCD"`` ...); other input passes through."""
+    if isinstance(value, str):
+        return DataFormat64.parse(value)
     return value
 
 
