@@ -201,18 +201,10 @@ def parse_enum_ci(enum_cls: type[_E], value: Any) -> Any:
     return value
 
 
-def parse_format(value: Any) -> Any:
-    """A DataFormat from its text (``"ABCD"`` ...); other input passes through."""
-    if isinstance(value, str):
-        return DataFormat.parse(value)
-    return value
-
-
-def parse_format64(value: Any) -> Any:
-    """A DataFormat64 from its text (``"EFGHABCD"`` ...); other input passes through."""
-    if isinstance(value, str):
-        return DataFormat64.parse(value)
-    return value
+def parse_format(value: Any, kind: type[DataFormat | DataFormat64] = DataFormat) -> Any:
+    """A DataFormat (or ``kind``) from its text (``"ABCD"``, ``"EFGHABCD"`` ...); other
+    input passes through."""
+    return kind.parse(value) if isinstance(value, str) else value
 
 
 # --------------------------------------------------------------------------- the model

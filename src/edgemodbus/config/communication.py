@@ -37,7 +37,6 @@ from .base import (
     check_encoding,
     lower_literal,
     parse_format,
-    parse_format64,
 )
 from .compat import NG_KEYS, ng_aliases, parity_letter
 from .listen import KEY_EXAMPLE, NETWORKS_ALLOWED, allow_list, check_key, listen_problems, network
@@ -376,7 +375,7 @@ class DriverModbusRtuParameter(Model):
     def _format64(cls, value: Any) -> Any:
         if isinstance(value, str) and not value.strip():
             return None
-        return parse_format64(value)
+        return parse_format(value, DataFormat64)
 
     @field_validator("transport", "address_prefix", "report_mode", "rs485", "framing",
                      "registration", "duplicate_id", mode="before")

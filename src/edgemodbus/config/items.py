@@ -31,7 +31,6 @@ from .base import (
     field_checks,
     parse_enum_ci,
     parse_format,
-    parse_format64,
     recheck,
     slot_model,
 )
@@ -157,7 +156,7 @@ class DeviceAddressItem(SlotModel):
     def _format64(cls, value: Any) -> Any:
         if isinstance(value, str) and not value.strip():
             return None
-        return parse_format64(value)
+        return parse_format(value, DataFormat64)
 
     @field_validator("status", mode="before")
     @classmethod
