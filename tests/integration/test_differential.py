@@ -1,8 +1,9 @@
 """Differential test of the whole read path: a value reported Ok is never wrong.
 
 Hypothesis draws an address list (every data type and byte order: dataFormat,
-byteSwap16 and dataFormat64 per device and per item; Smart Cast quantities, multipliers and converted types, register bits, coils and discrete inputs,
-Strings and Binaries longer than a block, gaps, overlapping items, disabled items) and
+byteSwap16 and dataFormat64 per device and per item; Smart Cast quantities, multipliers
+and converted types, register bits, coils and discrete inputs, Strings and Binaries
+longer than a block, gaps, overlapping items, disabled items) and
 planner settings (block sizes, merge gap, continuous blocks, report mode), puts random
 registers and bits into a slave of our simulator (``edgemodbus.sim``: in process,
 so its registers are set directly and at once), and runs a DriverModbusRtu against it

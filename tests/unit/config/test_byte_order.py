@@ -5,6 +5,8 @@ per device and per item.  Values are decoded through the specs the loaded items 
 
 from __future__ import annotations
 
+import re
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -132,3 +134,19 @@ def test_keys_round_trip_through_to_dict() -> None:
     assert (item["byteSwap16"], item["dataFormat64"]) == (False, "GHEFCDAB")
     again = load_device_config({"communication": comm, "addressList": [item]})
     assert again.communication.data_format64 is DataFormat64.EFGHABCD
+
+
+def test_the_readme_table_of_64_bit_orders_is_what_the_codec_does() -> None:
+    """README.md "Byte order": each row's registers, with the letters as the bytes 01..08
+    of 0x0102030405060708, are what the codec writes and reads for that dataFormat64."""
+    readme = (Path(__file__).resolve().parents[3] / "README.md").read_text(encoding="utf-8")
+    section = readme.split("### Byte order", 1)[1].split("\n### ", 1)[0]
+    rows = re.findall(r"^\| ([A-H]{8}) \| ([A-H] [A-H]) \| ([A-H] [A-H]) \| ([A-H] [A-H]) "
+                      r"\| ([A-H] [A-H]) \|", section, re.M)
+    assert sorted(order for order, *_ in rows) == sorted(f.value for f in DataFormat64)
+    for order, *cells in rows:
+        registers = [int("".join(f"0{ord(c) - 64}" for c in cell.split()), 16) for cell in cells]
+        assert "".join(cells).replace(" ", "") == order
+        spec = specs({"dataFormat64": order}, ITEMS)["u64"]
+        assert encode(spec, 0x0102030405060708) == registers, order
+        assert decode(spec, registers) == 0x0102030405060708
