@@ -38,10 +38,18 @@ static unsigned wire_width(unsigned wire)
     }
 }
 
+/* Where register k (0 = most significant) of a w-register value sits among the item's
+ * registers: the word order of emb_codec.h (DWORD_SWAP only for 4 registers). */
+static inline unsigned reg_index(unsigned k, unsigned w, unsigned flags)
+{
+    unsigned at = (flags & EMB_F_WORD_SWAP) ? w - 1 - k : k;
+    return (w == 4 && (flags & EMB_F_DWORD_SWAP)) ? at ^ 2u : at;
+}
+
 /* Register k (0 = most significant) of a w-register value, in value order. */
 static inline uint16_t reg_at(const uint16_t *r, unsigned k, unsigned w, unsigned flags)
 {
-    uint16_t v = r[(flags & EMB_F_WORD_SWAP) ? w - 1 - k : k];
+    uint16_t v = r[reg_index(k, w, flags)];
     return (flags & EMB_F_BYTE_SWAP) ? bswap16(v) : v;
 }
 
@@ -516,8 +524,7 @@ static void scatter(uint64_t v, unsigned w, unsigned flags, uint16_t *regs)
 {
     for (unsigned k = 0; k < w; k++) {
         uint16_t word = (uint16_t)(v >> (16 * (w - 1 - k)));
-        regs[(flags & EMB_F_WORD_SWAP) ? w - 1 - k : k] =
-            (flags & EMB_F_BYTE_SWAP) ? bswap16(word) : word;
+        regs[reg_index(k, w, flags)] = (flags & EMB_F_BYTE_SWAP) ? bswap16(word) : word;
     }
 }
 
@@ -577,8 +584,7 @@ int emb_encode(const emb_item *it, uint64_t raw, double fval, const uint8_t *byt
             unsigned hi = 2 * k < nbytes ? bytes[2 * k] : 0;
             unsigned lo = 2 * k + 1 < nbytes ? bytes[2 * k + 1] : 0;
             uint16_t word = (uint16_t)(hi << 8 | lo);
-            regs[(fl & EMB_F_WORD_SWAP) ? w - 1 - k : k] =
-                (fl & EMB_F_BYTE_SWAP) ? bswap16(word) : word;
+            regs[reg_index(k, w, fl)] = (fl & EMB_F_BYTE_SWAP) ? bswap16(word) : word;
         }
         return (int)w;
     case EMB_W_I24:

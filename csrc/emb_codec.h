@@ -12,8 +12,14 @@
  * Byte order (MODBUS Application Protocol v1.1b3, 4.2: registers are big-endian): a value
  * of w registers is rebuilt from the registers in word order (reversed when
  * EMB_F_WORD_SWAP) with the two bytes of each register swapped when EMB_F_BYTE_SWAP.
- * ABCD = neither, BADC = byte swap, CDAB = word swap, DCBA = both; for 64-bit values
- * ABCD -> ABCDEFGH, CDAB -> GHEFCDAB, BADC -> BADCFEHG, DCBA -> HGFEDCBA.
+ * ABCD = neither, BADC = byte swap, CDAB = word swap, DCBA = both.  A 4-register value
+ * also takes EMB_F_DWORD_SWAP, which swaps its two 2-register halves: register k of the
+ * value (0 = most significant) is register k ^ (WORD_SWAP ? 3 : 0) ^ (DWORD_SWAP ? 2 : 0)
+ * of the item, so (bytes in address order, A most significant) none = ABCDEFGH,
+ * WORD_SWAP = GHEFCDAB, DWORD_SWAP = EFGHABCD ("first DWord low"), both = CDABGHEF,
+ * and BYTE_SWAP swaps the bytes of each register of any of them.  Which flags an item
+ * gets (a one-register value is swapped only when asked) is decided by its compiler,
+ * src/edgemodbus/codec/spec.py; the codec applies them as given.
  */
 #ifndef EMB_CODEC_H
 #define EMB_CODEC_H
@@ -55,6 +61,7 @@
 #define EMB_F_MULTIPLY 0x04 /* value = raw * scale (a double) */
 #define EMB_F_DIVIDE 0x08   /* value = raw / scale: scale is 1/multiplier, exact for 0.1 etc. */
 #define EMB_F_STRIP 0x10    /* BYTES: reported length excludes trailing NULs */
+#define EMB_F_DWORD_SWAP 0x20 /* 4-register values: swap the two halves; else ignored */
 
 /* Conversion targets (convertedDataType); NONE keeps the raw value's kind. */
 #define EMB_C_NONE 0

@@ -109,7 +109,9 @@ def registers(values: list[int]) -> bytes:
 
 def seeds() -> dict[str, bytes]:
     swap = {"ABCD": 0, "BADC": K["F_BYTE_SWAP"], "CDAB": K["F_WORD_SWAP"],
-            "DCBA": K["F_BYTE_SWAP"] | K["F_WORD_SWAP"]}
+            "DCBA": K["F_BYTE_SWAP"] | K["F_WORD_SWAP"],
+            "EFGHABCD": K["F_DWORD_SWAP"],  # 64-bit orders of their own (emb_codec.h)
+            "DCBAHGFE": K["F_BYTE_SWAP"] | K["F_WORD_SWAP"] | K["F_DWORD_SWAP"]}
     fixed = [w for w in WIDTH if w != "COIL"]
     ramp = registers([(0x1111 * k + 0x0102) & 0xFFFF for k in range(64)])
     out: dict[str, bytes] = {}

@@ -326,7 +326,7 @@ static void read_item(reader *r, emb_item *it, int absurd)
     }
     /* Near-valid values, so that most plans pass the check and reach the decode. */
     it->wire = (uint8_t)(wire % (EMB_W_LAST + 2));    /* 0 and LAST+1 are invalid */
-    it->flags = (uint8_t)(flags & 0x3F);              /* 0x20 is no flag */
+    it->flags = (uint8_t)(flags & 0x3F);              /* every flag, 0x01..0x20 */
     it->target = (uint8_t)(target % (EMB_C_LAST + 2));
     it->out = (uint8_t)(out % 6);                     /* 5 is no group */
     it->bit = (uint8_t)(bit % 17);                    /* 16 is invalid */
@@ -617,7 +617,7 @@ static void round_trip(const emb_item *src, const uint16_t *regs, int n, uint64_
     emb_item it;
     memset(&it, 0, sizeof it);
     it.wire = src->wire;
-    it.flags = src->flags & (EMB_F_BYTE_SWAP | EMB_F_WORD_SWAP | EMB_F_STRIP);
+    it.flags = src->flags & (EMB_F_BYTE_SWAP | EMB_F_WORD_SWAP | EMB_F_DWORD_SWAP | EMB_F_STRIP);
     it.nregs = (uint16_t)n;
     it.target = EMB_C_NONE;
     it.out = natural_out(it.wire);

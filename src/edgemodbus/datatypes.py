@@ -161,11 +161,15 @@ _INTEGER_RANGES = {
 
 
 class DataFormat(enum.Enum):
-    """Byte order of multi-byte values: (byte swap inside each register) x (word order).
+    """Byte order of values of two or more registers: (byte swap inside each register) x
+    (word order).
 
     ABCD is big-endian throughout (the Modbus default, Application Protocol 4.2);
     BADC swaps the bytes of each register; CDAB swaps the register order; DCBA both.
-    Applied uniformly to every width (ABCD -> ABCDEFGH for 64-bit values).
+    64-bit values take the same two flags (ABCD -> ABCDEFGH, DCBA -> HGFEDCBA) unless a
+    :class:`DataFormat64` is given.  A one-register value is not reordered by it: it is
+    byte-swapped only by the explicit 16-bit switch (``byteSwap16``, README.md "Byte
+    order").
     """
 
     ABCD = "ABCD"
@@ -201,6 +205,60 @@ class DataFormat(enum.Enum):
     def word_swap(self) -> bool:
         return self in (DataFormat.CDAB, DataFormat.DCBA)
 
+
+class DataFormat64(enum.Enum):
+    """Byte order of 64-bit values (4 registers), apart from :class:`DataFormat`: the
+    value's bytes A (most significant) .. H as they sit in the registers, in address
+    order.  Two word orders (the order of the two 32-bit halves, and of the two registers
+    inside each half) and the byte swap inside each register: ABCDEFGH is big-endian,
+    EFGHABCD is Kepware's "first DWord low" (low half first, its registers high first),
+    GHEFCDAB reverses all four registers (what CDAB means for 64-bit values)."""
+
+    ABCDEFGH = "ABCDEFGH"
+    BADCFEHG = "BADCFEHG"
+    CDABGHEF = "CDABGHEF"
+    DCBAHGFE = "DCBAHGFE"
+    EFGHABCD = "EFGHABCD"
+    FEHGBADC = "FEHGBADC"
+    GHEFCDAB = "GHEFCDAB"
+    HGFEDCBA = "HGFEDCBA"
+
+    @classmethod
+    def parse(cls, name: str) -> DataFormat64:
+        try:
+            return cls(name.strip().upper())
+        except ValueError:
+            allowed = ", ".join(f.value for f in cls)
+            raise ValueError(f"unknown 64-bit data format {name!r} (use {allowed})") from None
+
+    @classmethod
+    def from_format(cls, fmt: DataFormat) -> DataFormat64:
+        """What ``fmt`` means for a 64-bit value (ABCD -> ABCDEFGH, CDAB -> GHEFCDAB)."""
+        return _FORMAT64_OF[fmt]
+
+    @property
+    def byte_swap(self) -> bool:
+        """The two bytes of each register are swapped (B before A)."""
+        return self.value[0] in "BDFH"
+
+    @property
+    def word_swap(self) -> bool:
+        """The registers of the value are reversed (before the halves are swapped back
+        by :attr:`dword_swap`): the codec's two flags, emb_codec.h."""
+        return self.value[0] in "CDGH"
+
+    @property
+    def dword_swap(self) -> bool:
+        """The two 32-bit halves are swapped after :attr:`word_swap`."""
+        return self.value[0] in "CDEF"
+
+
+_FORMAT64_OF = {
+    DataFormat.ABCD: DataFormat64.ABCDEFGH,
+    DataFormat.BADC: DataFormat64.BADCFEHG,
+    DataFormat.CDAB: DataFormat64.GHEFCDAB,
+    DataFormat.DCBA: DataFormat64.HGFEDCBA,
+}
 
 _FORMAT_BY_FLAGS = {
     (False, False): DataFormat.ABCD,

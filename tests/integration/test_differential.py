@@ -1,8 +1,9 @@
 """Differential test of the whole read path: a value reported Ok is never wrong.
 
-Hypothesis draws an address list (every data type and data format, Smart Cast
-quantities, multipliers and converted types, register bits, coils and discrete inputs,
-Strings and Binaries longer than a block, gaps, overlapping items, disabled items) and
+Hypothesis draws an address list (every data type and byte order: dataFormat,
+byteSwap16 and dataFormat64 per device and per item; Smart Cast quantities, multipliers
+and converted types, register bits, coils and discrete inputs, Strings and Binaries
+longer than a block, gaps, overlapping items, disabled items) and
 planner settings (block sizes, merge gap, continuous blocks, report mode), puts random
 registers and bits into a slave of our simulator (``edgemodbus.sim``: in process,
 so its registers are set directly and at once), and runs a DriverModbusRtu against it
@@ -75,6 +76,8 @@ WIDTHS: dict[str, dict[int | None, tuple[str, int]]] = {
     "Int16": {None: ("i16", 1), 1: ("i16", 1)},
     "UInt16": {None: ("u16", 1), 1: ("u16", 1)},
     "BCD16": {None: ("bcd", 1), 1: ("bcd", 1)},
+    "Int24": {None: ("i24", 2), 2: ("i24", 2), 1: ("i16", 1)},
+    "UInt24": {None: ("u24", 2), 2: ("u24", 2), 1: ("u16", 1)},
     "Int32": {None: ("i32", 2), 2: ("i32", 2), 1: ("i16", 1)},
     "UInt32": {None: ("u32", 2), 2: ("u32", 2), 1: ("u16", 1)},
     "Float": {None: ("f32", 2), 2: ("f32", 2), 1: ("i16", 1)},
@@ -87,11 +90,12 @@ WIDTHS: dict[str, dict[int | None, tuple[str, int]]] = {
 }
 STRUCT = {"i16": ">h", "u16": ">H", "i32": ">i", "u32": ">I", "i64": ">q", "u64": ">Q",
           "f32": ">f", "f64": ">d", "sec": ">I", "ms": ">q"}
-NUMERIC = {"Byte", "Sbyte", "Int16", "UInt16", "Int32", "UInt32", "Int64", "UInt64",
-           "BCD16", "BCD32", "Float", "Double"}
+NUMERIC = {"Byte", "Sbyte", "Int16", "UInt16", "Int24", "UInt24", "Int32", "UInt32", "Int64",
+           "UInt64", "BCD16", "BCD32", "Float", "Double"}
 INT_RANGE = {
     "Byte": (0, 0xFF), "Sbyte": (-0x80, 0x7F), "Int16": (-0x8000, 0x7FFF),
-    "UInt16": (0, 0xFFFF), "Int32": (-(1 << 31), (1 << 31) - 1), "UInt32": (0, (1 << 32) - 1),
+    "UInt16": (0, 0xFFFF), "Int24": (-(1 << 23), (1 << 23) - 1), "UInt24": (0, (1 << 24) - 1),
+    "Int32": (-(1 << 31), (1 << 31) - 1), "UInt32": (0, (1 << 32) - 1),
     "Int64": (-(1 << 63), (1 << 63) - 1), "UInt64": (0, (1 << 64) - 1),
     "BCD16": (0, 9999), "BCD32": (0, 99_999_999),
 }
@@ -100,6 +104,10 @@ TARGETS = ["Boolean", *INT_RANGE, "Float", "Double", "String"]
 MULTIPLIERS = [0.1, 0.01, 0.001, 0.5, 0.25, 2.0, 10.0, -1.0, 1.5]
 DECIMAL_STEPS = {0.1: 10, 0.01: 100, 0.001: 1000}  # a multiplier 1/10^k divides by 10^k
 FORMATS = ["ABCD", "BADC", "CDAB", "DCBA"]
+# 64-bit orders: the value's bytes A..H as the registers hold them by address
+FORMATS64 = ["ABCDEFGH", "BADCFEHG", "CDABGHEF", "DCBAHGFE", "EFGHABCD", "FEHGBADC",
+             "GHEFCDAB", "HGFEDCBA"]
+STRETCHED = {"ABCD": "ABCDEFGH", "BADC": "BADCFEHG", "CDAB": "GHEFCDAB", "DCBA": "HGFEDCBA"}
 BAD = object()  # the reference's verdict "invalid": the item must not be Ok
 
 
@@ -114,6 +122,8 @@ class Spec:
     bit: int | None = None
     quantity: int | None = None
     fmt: str | None = None  # the item's override of the device's dataFormat
+    swap16: bool | None = None  # ... of the device's byteSwap16
+    fmt64: str | None = None  # ... of the device's dataFormat64
     multiplier: float = 1.0
     converted: str | None = None
     encoding: str | None = None
@@ -140,6 +150,10 @@ class Spec:
             out["quantity"] = self.quantity
         if self.fmt is not None:
             out["dataFormat"] = self.fmt
+        if self.swap16 is not None:
+            out["byteSwap16"] = self.swap16
+        if self.fmt64 is not None:
+            out["dataFormat64"] = self.fmt64
         if self.multiplier != 1:
             out["dataMultiplier"] = self.multiplier
         if self.converted is not None:
@@ -164,6 +178,35 @@ def _swap(r: int) -> int:
     return ((r & 0xFF) << 8) | (r >> 8)
 
 
+@dataclass(frozen=True)
+class Order:
+    """An item's effective byte order keys (its own, else the device's)."""
+
+    fmt: str
+    swap16: bool
+    fmt64: str | None
+
+
+def _by_letters(regs: list[int], order: str) -> bytes:
+    """The value's bytes, most significant first, from registers whose bytes by address
+    are the value's bytes the letters name (``"CDAB"``: register 0 holds C and D)."""
+    wire = b"".join(r.to_bytes(2, "big") for r in regs)
+    value = bytearray(len(wire))
+    for at, letter in enumerate(order):
+        value[ord(letter) - ord("A")] = wire[at]
+    return bytes(value)
+
+
+def _value_bytes(regs: list[int], order: Order) -> bytes:
+    """README.md "Byte order": one register is the register (BA with byteSwap16), two
+    follow dataFormat, four dataFormat64 (default: dataFormat stretched to 8 letters)."""
+    if len(regs) == 1:
+        return _by_letters(regs, "BA" if order.swap16 else "AB")
+    if len(regs) == 2:
+        return _by_letters(regs, order.fmt)
+    return _by_letters(regs, order.fmt64 or STRETCHED[order.fmt])
+
+
 def _ordered_bytes(regs: list[int], fmt: str) -> bytes:
     """Registers to bytes in the format's order: CDAB/DCBA reverse the registers, BADC/
     DCBA swap the bytes inside each register."""
@@ -174,20 +217,22 @@ def _ordered_bytes(regs: list[int], fmt: str) -> bytes:
     return b"".join(r.to_bytes(2, "big") for r in regs)
 
 
-def _raw(spec: Spec, regs: list[int], fmt: str, encoding: str) -> Any:
+def _raw(spec: Spec, regs: list[int], order: Order, encoding: str) -> Any:
     """The value of the registers before multiplier and conversion (BAD if invalid)."""
     if spec.dtype in ("String", "Binary"):
-        data = _ordered_bytes(regs, fmt)
+        data = _ordered_bytes(regs, order.fmt)
         if spec.dtype == "Binary":
             return data
         return data.rstrip(b"\0").decode(encoding, "replace")
     kind, n = WIDTHS[spec.dtype][spec.quantity]
-    data = _ordered_bytes(regs[:n], fmt)
+    data = _value_bytes(regs[:n], order)
     if kind == "bool":
         return regs[0] != 0  # a whole register: not zero, in any byte order
     if kind in ("u8", "i8", "char"):
         low = data[1]  # the low byte after the byte swap
         return low if kind == "u8" else chr(low) if kind == "char" else low - 256 * (low > 127)
+    if kind in ("i24", "u24"):  # byte A unused: the low three bytes
+        return int.from_bytes(data[1:], "big", signed=kind == "i24")
     if kind == "bcd":
         digits = data.hex()
         return int(digits) if all(c in "0123456789" for c in digits) else BAD
@@ -230,7 +275,8 @@ def _converted(value: Any, target: str) -> Any:
     return int(value) if lo <= value <= hi else BAD
 
 
-def reference(spec: Spec, truth: Truth, device_fmt: str, device_encoding: str) -> Any:
+def reference(spec: Spec, truth: Truth, device_fmt: str, device_encoding: str,
+              device_swap16: bool = False, device_fmt64: str | None = None) -> Any:
     """The value the item must hold when Ok, or BAD when it must not be Ok."""
     end = spec.offset + spec.size
     for area, start, stop in truth.refused:
@@ -240,12 +286,14 @@ def reference(spec: Spec, truth: Truth, device_fmt: str, device_encoding: str) -
         value: Any = truth.bits[spec.area][spec.offset]
     else:
         regs = truth.regs[spec.area][spec.offset:end]
-        fmt = spec.fmt or device_fmt
+        order = Order(spec.fmt or device_fmt,
+                      device_swap16 if spec.swap16 is None else spec.swap16,
+                      spec.fmt64 or device_fmt64)
         if spec.bit is not None:
-            reg = _swap(regs[0]) if fmt in ("BADC", "DCBA") else regs[0]
-            value = (reg >> spec.bit) & 1 == 1  # counted after the byte swap
+            reg = _swap(regs[0]) if order.swap16 else regs[0]
+            value = (reg >> spec.bit) & 1 == 1  # counted after the 16-bit swap
         else:
-            value = _raw(spec, regs, fmt, spec.encoding or device_encoding)
+            value = _raw(spec, regs, order, spec.encoding or device_encoding)
     if value is BAD:
         return BAD
     value = _scaled(value, spec.multiplier)
@@ -329,10 +377,13 @@ def item_specs(draw: st.DrawFn, name: str) -> Spec:
         converted = draw(st.one_of(st.none(), st.sampled_from(TARGETS)))
         return Spec(name, area, offset, "Boolean", converted=converted, enabled=enabled)
     fmt = draw(st.one_of(st.none(), st.sampled_from(FORMATS)))
+    swap16 = draw(st.one_of(st.none(), st.booleans()))
+    fmt64 = draw(st.one_of(st.none(), st.none(), st.sampled_from(FORMATS64)))
     kind = draw(st.sampled_from(["fixed", "fixed", "fixed", "bit", "text"]))
     if kind == "bit":
         offset = draw(st.integers(0, REG_SPAN - 1))
         return Spec(name, area, offset, "Boolean", bit=draw(st.integers(0, 15)), fmt=fmt,
+                    swap16=swap16, fmt64=fmt64,
                     converted=draw(st.one_of(st.none(), st.sampled_from(TARGETS))),
                     enabled=enabled)
     if kind == "text":
@@ -342,8 +393,8 @@ def item_specs(draw: st.DrawFn, name: str) -> Spec:
         if dtype == "String":
             encoding = draw(st.sampled_from([None, "utf-8", "gbk", "latin-1"]))
         offset = draw(st.integers(0, REG_SPAN - length))
-        return Spec(name, area, offset, dtype, quantity=length, fmt=fmt, encoding=encoding,
-                    enabled=enabled)
+        return Spec(name, area, offset, dtype, quantity=length, fmt=fmt, swap16=swap16,
+                    fmt64=fmt64, encoding=encoding, enabled=enabled)
     dtype = draw(st.sampled_from(sorted(WIDTHS)))
     quantity = draw(st.sampled_from(sorted(WIDTHS[dtype], key=lambda q: q or 0)))
     multiplier = 1.0
@@ -352,8 +403,8 @@ def item_specs(draw: st.DrawFn, name: str) -> Spec:
     converted = None
     if dtype not in UNCONVERTED and draw(st.integers(0, 2)) == 0:
         converted = draw(st.sampled_from(TARGETS))
-    spec = Spec(name, area, 0, dtype, quantity=quantity, fmt=fmt, multiplier=multiplier,
-                converted=converted, enabled=enabled)
+    spec = Spec(name, area, 0, dtype, quantity=quantity, fmt=fmt, swap16=swap16, fmt64=fmt64,
+                multiplier=multiplier, converted=converted, enabled=enabled)
     return replace(spec, offset=draw(st.integers(0, REG_SPAN - spec.size)))
 
 
@@ -389,6 +440,8 @@ def setups(draw: st.DrawFn) -> Setup:
         later = kept + draw(address_lists(first=len(specs), rated=rated))
     comm: dict[str, Any] = {
         "dataFormat": draw(st.sampled_from(FORMATS)),
+        "byteSwap16": draw(st.booleans()),
+        "dataFormat64": draw(st.one_of(st.none(), st.sampled_from(FORMATS64))),
         "maxBlockReadRegisterCount": draw(st.one_of(st.integers(1, 16), st.integers(1, 125))),
         "maxBlockReadBitCount": draw(st.one_of(st.integers(1, 16), st.integers(1, 2000))),
         "maxMergeAddressGap": draw(st.integers(0, 20)),
@@ -434,6 +487,8 @@ class Checker:
         self.truth = truth
         self.fmt: str = setup.comm["dataFormat"]
         self.encoding: str = setup.comm["encoding"]
+        self.swap16: bool = setup.comm["byteSwap16"]
+        self.fmt64: str | None = setup.comm["dataFormat64"]
         self.specs: dict[int, Spec] = {}  # id(item) -> its spec, for every list in use
         # with per-item rates: the registers as they were at the end of earlier cycles
         self.rated = any(s.rate is not None for s in setup.specs + (setup.later or []))
@@ -450,7 +505,7 @@ class Checker:
         spec = self.specs[id(item)]
         if item.status is not ItemStatus.OK:
             return
-        want = reference(spec, self.truth, self.fmt, self.encoding)
+        want = self.reference(spec, self.truth)
         if want is not BAD and same(item.value, want):
             return
         if any(same(item.value, self.reference(spec, past)) for past in self.past):
@@ -461,7 +516,7 @@ class Checker:
             self.wrong.append(f"{where}: {spec} holds {item.value!r}, the slave {want!r}")
 
     def reference(self, spec: Spec, truth: Truth) -> Any:
-        return reference(spec, truth, self.fmt, self.encoding)
+        return reference(spec, truth, self.fmt, self.encoding, self.swap16, self.fmt64)
 
     def valid_all_along(self, spec: Spec) -> bool:
         return all(self.reference(spec, t) is not BAD for t in [self.truth, *self.past])
@@ -552,6 +607,10 @@ def _describe(setup: Setup) -> None:
         event("update_addresses")
     if any(s.rate is not None for s in specs):
         event("per-item scan rates")
+    if setup.comm["byteSwap16"] or any(s.swap16 is not None for s in specs):
+        event("byteSwap16 set")
+    if setup.comm["dataFormat64"] or any(s.fmt64 is not None for s in specs):
+        event("dataFormat64 set")
 
 
 @pytest.mark.timeout(max(120, 6 * EXAMPLES))
@@ -586,7 +645,13 @@ def test_reference_decoder_knows_the_documented_cases() -> None:
     assert ref(dtype="Int64", quantity=2, offset=2) == struct.unpack(">i", bytes.fromhex(
         "9ABCDEF0"))[0]  # Smart Cast: two registers of an Int64 are an Int32
     assert ref(dtype="Double", quantity=1) == float(0x1234)  # one register: an Int16
-    assert ref(dtype="Byte") == 0x34 and ref("BADC", dtype="Byte") == 0x12
+    assert ref(dtype="Byte") == 0x34 and ref("BADC", dtype="Byte") == 0x34
+    assert ref(dtype="Byte", swap16=True) == 0x12 and ref(dtype="Int16", swap16=True) == 0x3412
+    assert ref("DCBA", dtype="UInt16") == 0x1234  # one register: dataFormat leaves it
+    assert ref("BADC", dtype="UInt64", fmt64="EFGHABCD") == 0x9ABCDEF012345678
+    assert ref("CDAB", dtype="UInt64", fmt64="CDABGHEF") == 0x56781234DEF09ABC
+    assert ref(dtype="Int24") == 0x345678 and ref("CDAB", dtype="UInt24") == 0x781234
+    assert ref(dtype="Int24", offset=2) == 0xBCDEF0 - (1 << 24)
     assert ref(dtype="Char", offset=4) == "B" and ref(dtype="Sbyte", offset=2) == -0x44
     assert ref(dtype="BCD16") == 1234 and ref(dtype="BCD32") == 12345678
     assert ref(dtype="BCD16", offset=2) is BAD  # 0x9ABC: digits above 9
@@ -598,7 +663,8 @@ def test_reference_decoder_knows_the_documented_cases() -> None:
         milliseconds=0x0123456789AB)
     assert ref(dtype="DateTime", quantity=4) is BAD  # 0x123456789ABCDEF0 ms: past year 9999
     assert ref(dtype="Boolean", bit=4) is True and ref("BADC", dtype="Boolean", bit=4) is True
-    assert ref(dtype="Boolean", bit=0) is False and ref("BADC", dtype="Boolean", bit=1) is True
+    assert ref(dtype="Boolean", bit=0) is False and ref("BADC", dtype="Boolean", bit=1) is False
+    assert ref(dtype="Boolean", bit=1, swap16=True) is True  # bit 1 of 0x3412
     assert ref(dtype="Int16", multiplier=0.1) == 0x1234 / 10
     assert ref(dtype="Int16", multiplier=0.01, converted="Int16") == 47  # 46.6 rounded
     assert ref(dtype="Int16", offset=12, multiplier=0.5, converted="Int16") == 2  # 2.5: even

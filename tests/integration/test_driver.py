@@ -115,8 +115,14 @@ ROUND_TRIP = [
 ]
 
 
-def _expected_registers(dtype: str, value: Any, fmt: str, quantity: int | None) -> list[int]:
-    """A plain struct-based encoder, independent of our C codec."""
+ORDER64 = {"ABCD": "ABCDEFGH", "BADC": "BADCFEHG", "CDAB": "GHEFCDAB", "DCBA": "HGFEDCBA"}
+
+
+def _expected_registers(dtype: str, value: Any, fmt: str, quantity: int | None,
+                        swap16: bool = False, fmt64: str | None = None) -> list[int]:
+    """A plain struct-based encoder, independent of our C codec: the value's bytes A, B,
+    ... (most significant first) put where the order's letters say (README.md "Byte
+    order"): one register AB (BA with byteSwap16), two dataFormat, four dataFormat64."""
     big = {
         "Int16": lambda v: struct.pack(">h", v), "UInt16": lambda v: struct.pack(">H", v),
         "Int32": lambda v: struct.pack(">i", v), "UInt32": lambda v: struct.pack(">I", v),
@@ -133,29 +139,39 @@ def _expected_registers(dtype: str, value: Any, fmt: str, quantity: int | None) 
         raw = raw.ljust(2 * (quantity or 0), b"\0")
     else:
         raw = big[dtype](value)
-    regs = [raw[i] << 8 | raw[i + 1] for i in range(0, len(raw), 2)]
-    if fmt in ("BADC", "DCBA"):
-        regs = [((r & 0xFF) << 8) | (r >> 8) for r in regs]
-    if fmt in ("CDAB", "DCBA") and dtype not in ("String", "Binary"):
-        regs.reverse()
-    if fmt in ("CDAB", "DCBA") and dtype in ("String", "Binary"):
-        regs.reverse()
-    return regs
+    if dtype in ("String", "Binary"):  # bytes in dataFormat's order, any length
+        regs = [raw[i] << 8 | raw[i + 1] for i in range(0, len(raw), 2)]
+        if fmt in ("BADC", "DCBA"):
+            regs = [((r & 0xFF) << 8) | (r >> 8) for r in regs]
+        return regs[::-1] if fmt in ("CDAB", "DCBA") else regs
+    order = {2: "BA" if swap16 else "AB", 4: fmt, 8: fmt64 or ORDER64[fmt]}[len(raw)]
+    wire = bytes(raw[ord(letter) - ord("A")] for letter in order)
+    return [wire[i] << 8 | wire[i + 1] for i in range(0, len(wire), 2)]
 
 
-@pytest.mark.parametrize("fmt", ["ABCD", "BADC", "CDAB", "DCBA"])
-def test_every_type_and_format_round_trips(slave: PymodbusSlave, fmt: str) -> None:
+@pytest.mark.parametrize(("fmt", "swap16", "fmt64"), [
+    ("ABCD", False, None), ("BADC", False, None), ("CDAB", True, None), ("DCBA", True, None),
+    ("BADC", True, "EFGHABCD"), ("CDAB", False, "CDABGHEF"), ("ABCD", True, "FEHGBADC"),
+])
+def test_every_type_and_format_round_trips(
+    slave: PymodbusSlave, fmt: str, swap16: bool, fmt64: str | None
+) -> None:
     items = []
     address = 100
     for dtype, quantity, _ in ROUND_TRIP:
         item: dict[str, Any] = {"name": dtype, "address": f"hr:{address}",
-                                "deviceDataType": dtype, "dataFormat": fmt}
+                                "deviceDataType": dtype, "dataFormat": fmt,
+                                "byteSwap16": swap16}
+        if fmt64 is not None:
+            item["dataFormat64"] = fmt64
         if quantity:
             item["quantity"] = quantity
         items.append(item)
         address += 10
     items.append({"name": "Coil", "address": "coil:7", "deviceDataType": "Boolean"})
     items.append({"name": "Bit", "address": "hr:90.5", "deviceDataType": "Boolean"})
+    items.append({"name": "SwappedBit", "address": "hr:91.5", "deviceDataType": "Boolean",
+                  "byteSwap16": True, "dataFormat": fmt})
     cfg = device(slave.port, items)
     with Running(cfg) as drv:
         # address-derived values are not all valid BCD: wait for a first verdict only
@@ -165,22 +181,23 @@ def test_every_type_and_format_round_trips(slave: PymodbusSlave, fmt: str) -> No
             ok, err = drv.write_address(dtype, value)
             assert ok, (dtype, err)
             offset = int(item.address.split(":")[1])
-            n = len(_expected_registers(dtype, value, fmt, quantity))
+            expected = _expected_registers(dtype, value, fmt, quantity, swap16, fmt64)
             if dtype == "Boolean":  # a whole register, != 0 in any byte order
                 assert slave.registers(1, "hr", offset, 1) == [1]
             elif dtype in ("Byte", "Sbyte"):
-                # one register; Byte/Sbyte live in the low byte after the byte swap
+                # one register; Byte/Sbyte live in the low byte after the 16-bit swap
                 got = slave.registers(1, "hr", offset, 1)[0]
-                if fmt in ("BADC", "DCBA"):
+                if swap16:
                     got = ((got & 0xFF) << 8) | (got >> 8)
                 assert got & 0xFF == value & 0xFF, dtype
             else:
-                assert slave.registers(1, "hr", offset, n) == _expected_registers(
-                    dtype, value, fmt, quantity), dtype
+                assert slave.registers(1, "hr", offset, len(expected)) == expected, dtype
         assert drv.write_address("Coil", True) == (True, None)
         assert drv.write_address("Bit", "true") == (True, None)
         assert slave.bits(1, "co", 7, 1) == [True]
         assert slave.registers(1, "hr", 90, 1)[0] == default_register(1, "hr", 90) | (1 << 5)
+        assert drv.write_address("SwappedBit", True) == (True, None)  # bit 5 of BA: 13 of AB
+        assert slave.registers(1, "hr", 91, 1)[0] == default_register(1, "hr", 91) | (1 << 13)
         # the next cycles read back the same values from the slave
         time.sleep(0.5)
         wait_for(all_ok(cfg), what="read back")
@@ -189,7 +206,7 @@ def test_every_type_and_format_round_trips(slave: PymodbusSlave, fmt: str) -> No
                 assert item.value == pytest.approx(value, rel=1e-6), dtype
             else:
                 assert item.value == value, dtype
-        assert cfg.address_list[-2].value is True and cfg.address_list[-1].value is True
+        assert all(item.value is True for item in cfg.address_list[-3:])
 
 
 def test_two_slaves_share_a_line_and_a_dead_one_costs_one_timeout_per_backoff(

@@ -133,10 +133,11 @@ def _encode_time(spec: ValueSpec, value: object, wire: str) -> int:
 
 def register_bit(spec: ValueSpec) -> int:
     """The position on the wire of a bit item's bit: the item's bit is counted after the
-    format's byte swap (as when it is read), so under BADC/DCBA bit 3 is wire bit 11."""
+    register's 16-bit byte swap (as when it is read), so with ``byte_swap16`` bit 3 is
+    wire bit 11; ``dataFormat`` does not move it (a bit is in one register)."""
     if spec.bit is None:
         raise ValueError(f"item {spec.name!r} is not a bit of a register")
-    return spec.bit ^ 8 if spec.data_format.byte_swap else spec.bit
+    return spec.bit ^ 8 if spec.byte_swap16 else spec.bit
 
 
 def encode(spec: ValueSpec, value: object) -> list[int]:

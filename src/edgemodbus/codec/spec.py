@@ -13,7 +13,7 @@ from typing import Any
 
 from .. import _ffi
 from .._ffi import CodecItem
-from ..datatypes import Area, DataFormat, DataType
+from ..datatypes import Area, DataFormat, DataFormat64, DataType
 
 __all__ = ["MAX_QUANTITY", "SMART_CAST_TYPES", "ValueSpec", "check_spec", "smart_cast"]
 
@@ -30,9 +30,13 @@ _EPOCH = _dt.datetime(1970, 1, 1, tzinfo=_dt.timezone.utc)
 class ValueSpec:
     """How one item's registers (or bit) become a value and back.
 
-    ``data_format`` is the effective one (the item's override or the device's);
-    ``quantity`` is in registers (None = the type's default); ``deadband`` is absolute
-    on the final value (0 = report any change).
+    ``data_format`` is the effective one (the item's override or the device's): the
+    order of values of two or more registers; ``byte_swap16`` swaps the two bytes of a
+    one-register value (and of the register a bit is counted in), which ``data_format``
+    never does; ``data_format64`` orders 64-bit (4-register) values, None: what
+    ``data_format`` means for them (README.md "Byte order").  ``quantity`` is in
+    registers (None = the type's default); ``deadband`` is absolute on the final value
+    (0 = report any change).
     """
 
     name: str
@@ -44,6 +48,15 @@ class ValueSpec:
     converted_type: DataType | None = None
     deadband: float = 0.0
     encoding: str = "utf-8"
+    byte_swap16: bool = False
+    data_format64: DataFormat64 | None = None
+
+    @property
+    def format64(self) -> DataFormat64:
+        """The order of this item's 64-bit values: its own, else ``data_format``'s."""
+        if self.data_format64 is not None:
+            return self.data_format64
+        return DataFormat64.from_format(self.data_format)
 
     @property
     def registers(self) -> int:
@@ -296,11 +309,29 @@ class _Compiled:
     target_range: tuple[int, int] | None
 
 
+def order_flags(spec: ValueSpec, wire: str, nregs: int) -> int:
+    """The codec's byte and word order flags for a value read as ``wire`` in ``nregs``
+    registers (DESIGN: ``dataFormat`` orders values of two or more registers).  One
+    register (16-bit types, a bit, Smart Cast's one-register read): swapped only by
+    ``byte_swap16``.  Four registers (64-bit values): ``format64``.  Two registers, and
+    String/Binary (bytes in ``dataFormat``'s order, README.md "Byte order"):
+    ``data_format``."""
+    if wire == "BYTES" or nregs == 2:
+        fmt = spec.data_format
+        return (_F["BYTE_SWAP"] if fmt.byte_swap else 0) | (
+            _F["WORD_SWAP"] if fmt.word_swap else 0)
+    if nregs == 4:
+        f64 = spec.format64
+        return ((_F["BYTE_SWAP"] if f64.byte_swap else 0)
+                | (_F["WORD_SWAP"] if f64.word_swap else 0)
+                | (_F["DWORD_SWAP"] if f64.dword_swap else 0))
+    return _F["BYTE_SWAP"] if spec.byte_swap16 else 0
+
+
 def _compile(spec: ValueSpec, area: Area, offset: int) -> _Compiled:
     t = spec.data_type
     wire, nregs = _wire(spec, area)
-    fmt = spec.data_format
-    flags = (_F["BYTE_SWAP"] if fmt.byte_swap else 0) | (_F["WORD_SWAP"] if fmt.word_swap else 0)
+    flags = order_flags(spec, wire, nregs)
     scale_flag, scale = _scale(spec.multiplier)
     flags |= scale_flag
     conv = spec.converted_type

@@ -44,7 +44,7 @@ from pydantic_core import (
     core_schema,
 )
 
-from ..datatypes import DataFormat
+from ..datatypes import DataFormat, DataFormat64
 from .compat import norm_key
 from .problems import NO_VALUE, ConfigError, Problem, WrongType, join_path
 from .secret import SECRETS_CONTEXT, hide_secrets, secret_keys
@@ -201,11 +201,10 @@ def parse_enum_ci(enum_cls: type[_E], value: Any) -> Any:
     return value
 
 
-def parse_format(value: Any) -> Any:
-    """A DataFormat from its text (``"ABCD"`` ...); other input passes through."""
-    if isinstance(value, str):
-        return DataFormat.parse(value)
-    return value
+def parse_format(value: Any, kind: type[DataFormat | DataFormat64] = DataFormat) -> Any:
+    """A DataFormat (or ``kind``) from its text (``"ABCD"``, ``"EFGHABCD"`` ...); other
+    input passes through."""
+    return kind.parse(value) if isinstance(value, str) else value
 
 
 # --------------------------------------------------------------------------- the model

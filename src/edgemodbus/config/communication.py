@@ -24,7 +24,7 @@ from pydantic import (
     model_validator,
 )
 
-from ..datatypes import DataFormat
+from ..datatypes import DataFormat, DataFormat64
 from ..poll.planner import BIT_CAP, REGISTER_CAP
 from ..protocol.address import MAX_OFFSET
 from .base import (
@@ -276,7 +276,18 @@ class DriverModbusRtuParameter(Model):
     )
     data_format: DataFormat = Field(
         default=DataFormat.ABCD,
-        description="Default data format for communication (byte order x word order)",
+        description="Default data format for communication (byte order x word order) of "
+        "values of two or more registers; a one-register value is never reordered by it",
+    )
+    byte_swap16: bool = Field(
+        default=False,
+        description="Swap the two bytes of one-register values (16-bit types, register "
+        "bits); NG's byteOrder LittleEndian sets it",
+    )
+    data_format64: DataFormat64 | None = Field(
+        default=None,
+        description="Byte order of 64-bit values: ABCDEFGH, BADCFEHG, CDABGHEF, DCBAHGFE, "
+        "EFGHABCD (first DWord low), FEHGBADC, GHEFCDAB, HGFEDCBA; default: dataFormat's",
     )
     max_block_read_register_count: Annotated[int, Range(1, REGISTER_CAP)] = Field(
         default=120,
@@ -358,6 +369,13 @@ class DriverModbusRtuParameter(Model):
     @classmethod
     def _format(cls, value: Any) -> Any:
         return parse_format(value)
+
+    @field_validator("data_format64", mode="before")
+    @classmethod
+    def _format64(cls, value: Any) -> Any:
+        if isinstance(value, str) and not value.strip():
+            return None
+        return parse_format(value, DataFormat64)
 
     @field_validator("transport", "address_prefix", "report_mode", "rs485", "framing",
                      "registration", "duplicate_id", mode="before")

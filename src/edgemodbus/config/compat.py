@@ -7,7 +7,8 @@ them, parity as numbers and names, timestamps as .NET writes them.
 * NG's communication keys (:data:`NG_KEYS`, :func:`ng_aliases`): ``maxGap`` for
   ``maxMergeAddressGap``, ``maxBatch`` for ``maxBlockReadRegisterCount``,
   ``byteOrder``/``wordOrder`` (names, or NG's numbers 0 = BigEndian, 1 = LittleEndian)
-  for ``dataFormat``, and the nested ``connection{kind, host, port, baudRate, dataBits,
+  for ``dataFormat`` (and ``byteSwap16``: NG's byteOrder swaps one-register values too),
+  and the nested ``connection{kind, host, port, baudRate, dataBits,
   stopBits, parity}`` for ``transport``/``tcpHost``/``tcpPort``/``comPort``/....
 * NG's point keys (:data:`NG_POINT_KEYS`, :func:`ng_point`): ``functionCode`` (1..4 or
   NG's names) with a numeric ``address`` for our ``"hr:100"``, ``dataType`` for
@@ -111,6 +112,16 @@ def ng_aliases(data: dict[str, Any]) -> dict[str, Any]:
                     )
                 )
             data["dataFormat"] = fmt
+            # NG defines byteOrder per register: it swaps one-register values too, which
+            # dataFormat no longer does (DESIGN, "Data types and formats")
+            swap16 = data.get("byteSwap16")
+            if isinstance(swap16, str):  # as pydantic reads a bool from text
+                swap16 = swap16.strip().lower() in ("1", "true", "t", "yes", "y", "on")
+            if swap16 is not None and swap16 != fmt.byte_swap:
+                problems.append(Problem("byteSwap16", swap16,
+                                        f"disagrees with byteOrder {str(byte_order)!r}"))
+            else:
+                data["byteSwap16"] = fmt.byte_swap
     if problems:
         raise ConfigError(problems)
     return data

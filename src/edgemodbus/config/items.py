@@ -19,7 +19,7 @@ from typing import Annotated, Any, ClassVar
 from pydantic import Field, field_serializer, field_validator, model_validator
 
 from ..codec import MAX_QUANTITY, SMART_CAST_TYPES, ValueSpec, check_spec, smart_cast
-from ..datatypes import Area, DataFormat, DataType, ItemStatus
+from ..datatypes import Area, DataFormat, DataFormat64, DataType, ItemStatus
 from ..protocol.address import ENTITY_TABLES, Address, check_span, parse_address
 from .base import (
     MS_RANGE,
@@ -65,6 +65,8 @@ class DeviceAddressItem(SlotModel):
     is_enable: bool = True
     address_changed: bool = False
     data_format: DataFormat | None = None
+    byte_swap16: bool | None = None
+    data_format64: DataFormat64 | None = None
     quantity: Annotated[int | None, Range(1, MAX_QUANTITY)] = None
     deadband: Annotated[float | None, Range(0)] = None
     encoding: str | None = None
@@ -149,6 +151,13 @@ class DeviceAddressItem(SlotModel):
             return None
         return parse_format(value)
 
+    @field_validator("data_format64", mode="before")
+    @classmethod
+    def _format64(cls, value: Any) -> Any:
+        if isinstance(value, str) and not value.strip():
+            return None
+        return parse_format(value, DataFormat64)
+
     @field_validator("status", mode="before")
     @classmethod
     def _status(cls, value: Any) -> Any:
@@ -232,13 +241,16 @@ class ParsedItem:
     """An item checked against the communication options, ready for the planner/codec.
 
     ``registers``: registers (register areas) or bits (1) the item occupies;
-    ``data_format`` and ``encoding`` are the effective ones (item's, else comm's)."""
+    ``data_format``, ``byte_swap16``, ``data_format64`` and ``encoding`` are the
+    effective ones (item's, else comm's, each key on its own)."""
 
     item: DeviceAddressItem
     address: Address
     data_type: DataType
     converted_type: DataType | None
     data_format: DataFormat
+    byte_swap16: bool
+    data_format64: DataFormat64 | None
     registers: int
     quantity: int | None
     multiplier: float
@@ -256,6 +268,8 @@ class ParsedItem:
             name=self.item.name if name is None else name,
             data_type=self.data_type,
             data_format=self.data_format,
+            byte_swap16=self.byte_swap16,
+            data_format64=self.data_format64,
             quantity=self.quantity,
             bit=self.address.bit,
             multiplier=self.multiplier,
@@ -366,6 +380,8 @@ def validate_items(
             data_type=item.device_data_type,
             converted_type=item.converted_data_type,
             data_format=item.data_format or comm.data_format,
+            byte_swap16=comm.byte_swap16 if item.byte_swap16 is None else item.byte_swap16,
+            data_format64=item.data_format64 or comm.data_format64,
             registers=registers,
             quantity=item.quantity,
             multiplier=item.data_multiplier,
@@ -373,8 +389,9 @@ def validate_items(
             encoding=item.encoding or comm.encoding,
         )
         # the codec's check depends on everything but the name: check each shape once
-        shape = (addr.area, addr.bit, one.data_type, one.data_format, one.quantity,
-                 one.multiplier, one.converted_type, one.deadband, one.encoding)
+        shape = (addr.area, addr.bit, one.data_type, one.data_format, one.byte_swap16,
+                 one.data_format64, one.quantity, one.multiplier, one.converted_type,
+                 one.deadband, one.encoding)
         if shape not in checked:
             spec = one.value_spec()
             try:

@@ -12,6 +12,8 @@ from __future__ import annotations
 
 from typing import Any
 
+from ..datatypes import DataFormat64
+
 BAUD_RATES = (1200, 2400, 4800, 9600, 19200, 38400, 57600, 115200, 230400, 460800, 921600)
 """Baud rates offered by the descriptor (any 1200..921600 is accepted)."""
 
@@ -102,6 +104,15 @@ LABELS: dict[str, dict[str, Any]] = {
     "echo": _ui("线路回显", "Connection", "switch"),
     "is_enable": _ui("启用", "Connection", "switch"),
     "data_format": _ui("数据格式", "Advanced", "select", type_="string"),
+    "byte_swap16": _ui("16位值字节交换", "Advanced", "switch"),
+    "data_format64": _ui(
+        "64位数据格式",
+        "Advanced",
+        "select",
+        type_="string",
+        options=[{"label": "同数据格式", "value": None}]
+        + [{"label": f.value, "value": f.value} for f in DataFormat64],
+    ),
     "max_block_read_register_count": _ui("单块最大寄存器数", "Advanced", "number"),
     "is_block_read_require_address_continuous": _ui("块读取地址需连续", "Advanced", "switch"),
     "max_merge_address_gap": _ui("最大合并空洞", "Advanced", "number"),

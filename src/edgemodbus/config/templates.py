@@ -41,7 +41,7 @@ TEMPLATE_PATH_ENV = "EDGEMODBUS_TEMPLATE_PATH"
 SHIPPED_DIR = Path(__file__).resolve().parent.parent / "templates"
 
 TEMPLATE_COMMUNICATION_KEYS: tuple[str, ...] = (
-    "dataFormat", "maxBlockReadRegisterCount", "maxMergeAddressGap",
+    "dataFormat", "byteSwap16", "dataFormat64", "maxBlockReadRegisterCount", "maxMergeAddressGap",
     "isBlockReadRequireAddressContinuous", "maxBlockReadBitCount", "encoding",
     "writeSingleRegisterFunction", "baudRate", "parity", "dataBits", "stopBits",
     "readTimeout", "byteTimeout", "requestInterval", "addressPrefix", "addressBase",
@@ -216,7 +216,7 @@ def template_bytes(device_file: str | os.PathLike[str]) -> bytes:
 _NG_REPLACES = {
     "maxGap": ("maxMergeAddressGap",),
     "maxBatch": ("maxBlockReadRegisterCount",),
-    "byteOrder": ("dataFormat",),
+    "byteOrder": ("dataFormat", "byteSwap16"),
     "wordOrder": ("dataFormat",),
     "connection": ("baudRate", "parity", "dataBits", "stopBits"),
 }

@@ -79,18 +79,16 @@ def test_double_in_every_format(fmt: DataFormat) -> None:
     assert encode(spec, 123456.789) == list(DOUBLE_123456_789[fmt])
 
 
-@pytest.mark.parametrize(
-    ("fmt", "register", "expected"),
-    [
-        (F.ABCD, 0xFF85, -123),
-        (F.CDAB, 0xFF85, -123),
-        (F.BADC, 0x85FF, -123),
-        (F.DCBA, 0x85FF, -123),
-    ],
-)
-def test_int16_honours_the_byte_swap_only(fmt: DataFormat, register: int, expected: int) -> None:
-    assert one(ValueSpec("x", T.INT16, fmt), register) == expected
-    assert encode(ValueSpec("x", T.INT16, fmt), expected) == [register]
+@pytest.mark.parametrize("fmt", list(F))
+def test_int16_is_the_register_whatever_the_format(fmt: DataFormat) -> None:
+    """DESIGN: a one-register value is the register, big-endian, whatever dataFormat says
+    (BADC/DCBA used to swap it); only byte_swap16 swaps it."""
+    assert one(ValueSpec("x", T.INT16, fmt), 0xFF85) == -123
+    assert encode(ValueSpec("x", T.INT16, fmt), -123) == [0xFF85]
+    assert one(ValueSpec("x", T.UINT16, fmt), 0x1234) == 0x1234
+    swapped = ValueSpec("x", T.INT16, fmt, byte_swap16=True)
+    assert one(swapped, 0x85FF) == -123
+    assert encode(swapped, -123) == [0x85FF]
 
 
 def test_64_bit_integers() -> None:
@@ -171,9 +169,13 @@ def test_coils_and_bits_of_registers() -> None:
     items = [(0, ValueSpec(f"b{k}", T.BOOLEAN, bit=k)) for k in (0, 3, 8, 15)]
     decoder = BlockDecoder(HR, 1, items)
     assert decoder.decode_values(regs(0b1000_0000_0000_1000)) == [False, True, False, True]
-    swapped = [(0, ValueSpec(f"b{k}", T.BOOLEAN, F.BADC, bit=k)) for k in (0, 3, 8, 15)]
-    decoder = BlockDecoder(HR, 1, swapped)  # bit of the value after the byte swap
+    swapped = [(0, ValueSpec(f"b{k}", T.BOOLEAN, F.BADC, bit=k, byte_swap16=True))
+               for k in (0, 3, 8, 15)]
+    decoder = BlockDecoder(HR, 1, swapped)  # bit of the value after the 16-bit swap
     assert decoder.decode_values(regs(0x0980)) == [True, True, False, True]
+    plain = [(0, ValueSpec(f"b{k}", T.BOOLEAN, F.DCBA, bit=k)) for k in (0, 3, 8, 15)]
+    decoder = BlockDecoder(HR, 1, plain)  # dataFormat does not move a register's bits
+    assert decoder.decode_values(regs(0b1000_0000_0000_1000)) == [False, True, False, True]
     assert one(ValueSpec("x", T.BOOLEAN), 0x0100) is True
     assert one(ValueSpec("x", T.BOOLEAN), 0) is False
 
@@ -182,8 +184,9 @@ def test_bit_writes_target_the_wire_bit() -> None:
     spec = ValueSpec("b", T.BOOLEAN, bit=3)
     assert encode(spec, True) == [1]
     assert register_bit(spec) == 3
-    assert register_bit(ValueSpec("b", T.BOOLEAN, F.BADC, bit=3)) == 11
-    assert register_bit(ValueSpec("b", T.BOOLEAN, F.DCBA, bit=12)) == 4
+    assert register_bit(ValueSpec("b", T.BOOLEAN, F.BADC, bit=3, byte_swap16=True)) == 11
+    assert register_bit(ValueSpec("b", T.BOOLEAN, bit=12, byte_swap16=True)) == 4
+    assert register_bit(ValueSpec("b", T.BOOLEAN, F.DCBA, bit=12)) == 12
     with pytest.raises(ValueError, match="not a bit"):
         register_bit(ValueSpec("b", T.BOOLEAN))
     assert encode(ValueSpec("c", T.BOOLEAN), "false") == [0]
@@ -192,11 +195,14 @@ def test_bit_writes_target_the_wire_bit() -> None:
 def test_byte_sbyte_char_take_the_low_byte_after_swap() -> None:
     assert one(ValueSpec("x", T.BYTE), 0x12FE) == 0xFE
     assert one(ValueSpec("x", T.SBYTE), 0x12FE) == -2
-    assert one(ValueSpec("x", T.SBYTE, F.BADC), 0xFE12) == -2
+    assert one(ValueSpec("x", T.SBYTE, byte_swap16=True), 0xFE12) == -2
+    assert one(ValueSpec("x", T.SBYTE, F.BADC), 0x12FE) == -2
     assert one(ValueSpec("x", T.CHAR), 0x0041) == "A"
-    assert one(ValueSpec("x", T.CHAR, F.BADC), 0x4100) == "A"
+    assert one(ValueSpec("x", T.CHAR, byte_swap16=True), 0x4100) == "A"
+    assert one(ValueSpec("x", T.CHAR, F.BADC), 0x0041) == "A"
     assert encode(ValueSpec("x", T.CHAR), "A") == [0x41]
-    assert encode(ValueSpec("x", T.CHAR, F.DCBA), "A") == [0x4100]
+    assert encode(ValueSpec("x", T.CHAR, F.DCBA, byte_swap16=True), "A") == [0x4100]
+    assert encode(ValueSpec("x", T.CHAR, F.DCBA), "A") == [0x41]
     assert encode(ValueSpec("x", T.SBYTE), -2) == [0xFE]
 
 
@@ -268,7 +274,8 @@ def test_bcd() -> None:
     assert one(ValueSpec("b", T.BCD32), 0x1234, 0x5678) == 12345678
     assert one(ValueSpec("b", T.BCD32, F.CDAB), 0x5678, 0x1234) == 12345678
     assert encode(ValueSpec("b", T.BCD32), 12345678) == [0x1234, 0x5678]
-    assert encode(ValueSpec("b", T.BCD16, F.BADC), 1234) == [0x3412]
+    assert encode(ValueSpec("b", T.BCD16, F.BADC), 1234) == [0x1234]
+    assert encode(ValueSpec("b", T.BCD16, byte_swap16=True), 1234) == [0x3412]
     why = reason(ValueSpec("b", T.BCD16), 0x12A4)
     assert why is not None and "0x12A4" in why and "BCD" in why
 

@@ -1,5 +1,6 @@
 """Property tests: the C codec agrees with a plain struct decoder, and encode is the
-inverse of decode for every type, format and multiplier within range."""
+inverse of decode for every type, format (dataFormat x byteSwap16 x dataFormat64) and
+multiplier within range."""
 
 from __future__ import annotations
 
@@ -12,11 +13,17 @@ from hypothesis import strategies as st
 
 from edgemodbus._ffi import Block
 from edgemodbus.codec import BlockDecoder, ValueSpec, encode
-from edgemodbus.datatypes import Area, DataFormat, DataType
+from edgemodbus.datatypes import Area, DataFormat, DataFormat64, DataType
 
 T = DataType
 HR = Area.HOLDING_REGISTER
 FORMATS = st.sampled_from(list(DataFormat))
+SWAP16 = st.booleans()
+# the 64-bit orders, spelled here (not taken from the package): the bytes A..H of the
+# value as they sit in the registers by address; None: what dataFormat means
+ORDERS64 = ["ABCDEFGH", "BADCFEHG", "CDABGHEF", "DCBAHGFE",
+            "EFGHABCD", "FEHGBADC", "GHEFCDAB", "HGFEDCBA"]
+FORMATS64 = st.one_of(st.none(), st.sampled_from(ORDERS64).map(DataFormat64))
 REGISTER = st.integers(0, 0xFFFF)
 EPOCH = dt.datetime(1970, 1, 1, tzinfo=dt.timezone.utc)
 
@@ -34,6 +41,38 @@ def ordered_bytes(registers: list[int], fmt: DataFormat) -> bytes:
     register's two bytes swapped for BADC/DCBA."""
     words = registers[::-1] if fmt.word_swap else registers
     return b"".join(struct.pack("<H" if fmt.byte_swap else ">H", w) for w in words)
+
+
+def by_letters(registers: list[int], order: str) -> bytes:
+    """The value's bytes, most significant first, from registers whose bytes (by address)
+    are the value's bytes named by ``order`` (``"CDAB"``: the first register holds C D)."""
+    wire = b"".join(struct.pack(">H", r) for r in registers)
+    value = bytearray(len(wire))
+    for at, letter in enumerate(order):
+        value[ord(letter) - ord("A")] = wire[at]
+    return bytes(value)
+
+
+def value_bytes(spec: ValueSpec, registers: list[int], width: int) -> bytes:
+    """The bytes of a value of ``width`` registers read from the item's registers
+    (README.md "Byte order"): one register is the register, byte-swapped only with
+    byte_swap16; two follow dataFormat; four dataFormat64 (default: dataFormat's
+    letters stretched, ABCD -> ABCDEFGH, CDAB -> GHEFCDAB).  An item with more registers
+    than the value keeps it in the first ones by address, the last under CDAB/DCBA."""
+    fmt = spec.data_format
+    q = len(registers)
+    start = q - width if fmt.word_swap and q > width else 0
+    regs = registers[start : start + width]
+    if width == 1:
+        return by_letters(regs, "BA" if spec.byte_swap16 else "AB")
+    if width == 2:
+        return by_letters(regs, fmt.value)
+    if spec.data_format64 is not None:
+        order = spec.data_format64.value
+    else:
+        order = {"ABCD": "ABCDEFGH", "BADC": "BADCFEHG", "CDAB": "GHEFCDAB",
+                 "DCBA": "HGFEDCBA"}[fmt.value]
+    return by_letters(regs, order)
 
 
 # type -> [(registers, how to read them)] widest first: the Smart Cast table (NG), in
@@ -89,12 +128,12 @@ def reference(spec: ValueSpec, registers: list[int]) -> object:
     t, fmt = spec.data_type, spec.data_format
     quantity = spec.quantity or t.registers
     if t in REFERENCE:
-        # all q registers in value order, most significant first; the value is in the
-        # leading bytes, whatever follows is ignored (NG's Smart Cast)
+        # the widest value that fits in q registers; whatever else is ignored (NG's
+        # Smart Cast)
         width, code = next((w, c) for w, c in REFERENCE[t] if w <= quantity)
-        return smart_value(t, ordered_bytes(registers, fmt)[: 2 * width], code)
+        return smart_value(t, value_bytes(spec, registers, width), code)
     if t is T.CHAR:
-        return chr(ordered_bytes(registers[:1], fmt)[1])
+        return chr(value_bytes(spec, registers[:1], 1)[1])
     if t is T.BOOLEAN:
         return registers[0] != 0
     if t is T.STRING:
@@ -102,11 +141,10 @@ def reference(spec: ValueSpec, registers: list[int]) -> object:
     if t is T.BINARY:
         return ordered_bytes(registers[:quantity], fmt)
     if t in (T.DATETIME, T.TIMESTAMP):
-        lead = ordered_bytes(registers, fmt)
         if quantity >= 4:
-            (ms,) = struct.unpack(">q", lead[:8])
+            (ms,) = struct.unpack(">q", value_bytes(spec, registers, 4))
         else:
-            ms = struct.unpack(">I", lead[:4])[0] * 1000
+            ms = struct.unpack(">I", value_bytes(spec, registers, 2))[0] * 1000
         if t is T.TIMESTAMP:
             return ms
         try:
@@ -114,7 +152,7 @@ def reference(spec: ValueSpec, registers: list[int]) -> object:
         except OverflowError:
             return None
     if t in (T.BCD16, T.BCD32):
-        digits = ordered_bytes(registers, fmt)[: 2 if quantity < 2 else 4].hex()
+        digits = value_bytes(spec, registers, 1 if quantity < 2 else 2).hex()
         if not digits.isdigit():
             return None
         return int(digits) if t is T.BCD32 or int(digits) <= 9999 else None
@@ -127,38 +165,62 @@ def same(a: object, b: object) -> bool:
     return type(a) is type(b) and a == b
 
 
+def _spec(t: DataType, f: DataFormat, q: int | None, s16: bool,
+          f64: DataFormat64 | None) -> ValueSpec:
+    return ValueSpec("x", t, f, quantity=q, byte_swap16=s16, data_format64=f64)
+
+
 SPECS = st.one_of(
     st.builds(
-        lambda t, f, q: ValueSpec("x", t, f, quantity=q),
+        _spec,
         st.sampled_from([*REFERENCE, T.BCD16, T.BCD32]),
         FORMATS,
         st.one_of(st.none(), st.integers(1, 6)),
+        SWAP16,
+        FORMATS64,
     ),
     st.builds(
-        lambda t, f: ValueSpec("x", t, f),
-        st.sampled_from([T.CHAR, T.BOOLEAN]),
-        FORMATS,
+        _spec, st.sampled_from([T.CHAR, T.BOOLEAN]), FORMATS, st.none(), SWAP16, FORMATS64
     ),
     st.builds(
-        lambda t, f, q: ValueSpec("x", t, f, quantity=q),
+        _spec,
         st.sampled_from([T.STRING, T.BINARY]),
         FORMATS,
         st.integers(1, 12),
+        SWAP16,
+        FORMATS64,
     ),
     st.builds(
-        lambda t, f, q: ValueSpec("x", t, f, quantity=q),
+        _spec,
         st.sampled_from([T.DATETIME, T.TIMESTAMP]),
         FORMATS,
         st.one_of(st.none(), st.integers(2, 5)),
+        SWAP16,
+        FORMATS64,
     ),
 )
 
 
-@settings(max_examples=600, deadline=None)
+@settings(max_examples=1000, deadline=None)
 @given(spec=SPECS, data=st.data())
 def test_decode_agrees_with_a_struct_reference(spec: ValueSpec, data: st.DataObject) -> None:
     registers = data.draw(st.lists(REGISTER, min_size=spec.registers, max_size=spec.registers))
     assert same(decode_one(spec, registers), reference(spec, registers))
+
+
+@settings(max_examples=600, deadline=None)
+@given(spec=SPECS, data=st.data())
+def test_encode_agrees_with_the_struct_reference(spec: ValueSpec, data: st.DataObject) -> None:
+    """Writes are the exact inverse: the registers a value is written as read back, by
+    the reference, as that value (every order, 16-bit swap and 64-bit order)."""
+    registers = data.draw(st.lists(REGISTER, min_size=spec.registers, max_size=spec.registers))
+    value = reference(spec, registers)
+    if value is None or spec.data_type in (T.STRING, T.BOOLEAN):
+        return  # not a value (Invalid), or not one-to-one with its registers
+    written = encode(spec, value)
+    assert len(written) == spec.registers
+    assert same(reference(spec, written), value)
+    assert same(decode_one(spec, written), value)
 
 
 # -- encode then decode ------------------------------------------------------------------------
@@ -181,13 +243,15 @@ INTEGER_TYPES = [
 
 
 @settings(max_examples=600, deadline=None)
-@given(t=st.sampled_from(INTEGER_TYPES), fmt=FORMATS, m=MULTIPLIERS, data=st.data())
-def test_integer_round_trip(t: DataType, fmt: DataFormat, m: float, data: st.DataObject) -> None:
+@given(t=st.sampled_from(INTEGER_TYPES), fmt=FORMATS, m=MULTIPLIERS, s16=SWAP16, f64=FORMATS64,
+       data=st.data())
+def test_integer_round_trip(t: DataType, fmt: DataFormat, m: float, s16: bool,
+                            f64: DataFormat64 | None, data: st.DataObject) -> None:
     lo, hi = t.integer_range
     if m != 1:  # a scaled value is a double: keep raw where doubles are exact
         lo, hi = max(lo, -(2**50)), min(hi, 2**50)
     raw = data.draw(st.integers(lo, hi))
-    spec = ValueSpec("x", t, fmt, multiplier=m)
+    spec = ValueSpec("x", t, fmt, multiplier=m, byte_swap16=s16, data_format64=f64)
     # What a reader sees: the raw integer, or raw x multiplier as a float (raw / 10 for 0.1).
     if m == 1:
         value: object = raw
@@ -199,6 +263,7 @@ def test_integer_round_trip(t: DataType, fmt: DataFormat, m: float, data: st.Dat
     decoded = decode_one(spec, registers)
     assert same(decoded, value)
     assert encode(spec, decoded) == registers
+    assert same(reference(spec, registers), raw)  # and what the reference reads
 
 
 @settings(max_examples=400, deadline=None)
@@ -207,9 +272,12 @@ def test_integer_round_trip(t: DataType, fmt: DataFormat, m: float, data: st.Dat
     fmt=FORMATS,
     m=MULTIPLIERS,
     f=st.floats(width=32, allow_nan=False, allow_infinity=True),
+    f64=FORMATS64,
 )
-def test_float_round_trip(t: DataType, fmt: DataFormat, m: float, f: float) -> None:
-    spec = ValueSpec("x", t, fmt, multiplier=m)
+def test_float_round_trip(
+    t: DataType, fmt: DataFormat, m: float, f: float, f64: DataFormat64 | None
+) -> None:
+    spec = ValueSpec("x", t, fmt, multiplier=m, data_format64=f64)
     k = round(1 / m)
     value = f / k if m != 1 and abs(m) < 1 and 1 / k == m else f * m
     decoded = decode_one(spec, encode(spec, value))
@@ -220,10 +288,12 @@ def test_float_round_trip(t: DataType, fmt: DataFormat, m: float, f: float) -> N
 
 
 @settings(max_examples=200, deadline=None)
-@given(fmt=FORMATS, f=st.floats(allow_nan=True))
-def test_double_bits_round_trip(fmt: DataFormat, f: float) -> None:
-    spec = ValueSpec("x", T.DOUBLE, fmt)
-    assert same(decode_one(spec, encode(spec, f)), f)
+@given(fmt=FORMATS, f=st.floats(allow_nan=True), f64=FORMATS64)
+def test_double_bits_round_trip(fmt: DataFormat, f: float, f64: DataFormat64 | None) -> None:
+    spec = ValueSpec("x", T.DOUBLE, fmt, data_format64=f64)
+    registers = encode(spec, f)
+    assert same(decode_one(spec, registers), f)
+    assert same(reference(spec, registers), f)
 
 
 @settings(max_examples=300, deadline=None)
@@ -242,8 +312,8 @@ def test_string_round_trip(fmt: DataFormat, q: int, text: str, encoding: str) ->
 
 
 @settings(max_examples=200, deadline=None)
-@given(fmt=FORMATS, data=st.data())
-def test_binary_char_bool_round_trip(fmt: DataFormat, data: st.DataObject) -> None:
+@given(fmt=FORMATS, s16=SWAP16, data=st.data())
+def test_binary_char_bool_round_trip(fmt: DataFormat, s16: bool, data: st.DataObject) -> None:
     q = data.draw(st.integers(1, 10))
     blob = data.draw(st.binary(min_size=2 * q, max_size=2 * q))
     assert (
@@ -254,21 +324,25 @@ def test_binary_char_bool_round_trip(fmt: DataFormat, data: st.DataObject) -> No
         == blob
     )
     ch = chr(data.draw(st.integers(0, 255)))
-    assert decode_one(ValueSpec("c", T.CHAR, fmt), encode(ValueSpec("c", T.CHAR, fmt), ch)) == ch
+    char = ValueSpec("c", T.CHAR, fmt, byte_swap16=s16)
+    assert decode_one(char, encode(char, ch)) == ch
     flag = data.draw(st.booleans())
     flag_spec = ValueSpec("f", T.BOOLEAN, fmt)
     assert decode_one(flag_spec, encode(flag_spec, flag)) is flag
 
 
 @settings(max_examples=300, deadline=None)
-@given(fmt=FORMATS, q=st.sampled_from([2, 4]), data=st.data())
-def test_time_round_trip(fmt: DataFormat, q: int, data: st.DataObject) -> None:
+@given(fmt=FORMATS, q=st.sampled_from([2, 4]), f64=FORMATS64, data=st.data())
+def test_time_round_trip(
+    fmt: DataFormat, q: int, f64: DataFormat64 | None, data: st.DataObject
+) -> None:
     if q == 2:
         ms = data.draw(st.integers(0, 0xFFFF_FFFF)) * 1000
     else:
         ms = data.draw(st.integers(-62135596800000, 253402300799999))
     when = EPOCH + dt.timedelta(milliseconds=ms)
-    stamp = ValueSpec("t", T.TIMESTAMP, fmt, quantity=q)
+    stamp = ValueSpec("t", T.TIMESTAMP, fmt, quantity=q, data_format64=f64)
     assert decode_one(stamp, encode(stamp, ms)) == ms
-    date = ValueSpec("t", T.DATETIME, fmt, quantity=q)
+    assert reference(stamp, encode(stamp, ms)) == ms
+    date = ValueSpec("t", T.DATETIME, fmt, quantity=q, data_format64=f64)
     assert decode_one(date, encode(date, when)) == when

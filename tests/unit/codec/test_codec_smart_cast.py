@@ -109,7 +109,8 @@ def reference_encode(t: DataType, q: int, fmt: DataFormat, value: int) -> list[i
         data = b"\0" + (value & 0xFFFFFF).to_bytes(3, "big")
     else:
         data = value.to_bytes(2 * width, "big", signed=signed)
-    return registers_of(data + bytes(2 * (q - width)), fmt)
+    # a one-register value is the register whatever the format says (DESIGN)
+    return registers_of(data + bytes(2 * (q - width)), fmt if width > 1 else F.ABCD)
 
 
 @settings(max_examples=600, deadline=None)

@@ -82,9 +82,17 @@ def test_contiguous_registers_merge_into_one_request() -> None:
 
 def test_bit_in_a_byte_swapped_register_targets_the_raw_bit() -> None:
     dev = make_device([{"name": "bit", "address": "hr:5.3", "deviceDataType": "Boolean",
+                        "byteSwap16": True}])
+    (op,) = plan_writes(dev, [("bit", 1)])
+    assert op.bit == 11  # bit 3 of the byte-swapped register is bit 11 on the wire
+
+
+def test_data_format_does_not_move_a_bit_of_a_register() -> None:
+    """A bit is in one register: dataFormat BADC does not swap it (it used to: bit 11)."""
+    dev = make_device([{"name": "bit", "address": "hr:5.3", "deviceDataType": "Boolean",
                         "dataFormat": "BADC"}])
     (op,) = plan_writes(dev, [("bit", 1)])
-    assert op.bit == 11  # bit 3 of the byte-swapped value is bit 11 on the wire
+    assert op.bit == 3
 
 
 def test_merge_respects_the_fc16_limit() -> None:
