@@ -1,0 +1,218 @@
+"""The gateway service through its public CLI (``python -m edgemodbus.gateway``) in a
+child process, with an optional open-files limit, and what it costs as /proc sees it:
+CPU (whole process, or the threads of one name), RSS, fds, threads; its log lines.
+
+Used by tests/integration/test_fd_limit.py and tools/soak_gateway.py (issue #25).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import json
+import os
+import re
+import resource
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+REPO = Path(__file__).resolve().parents[1]
+_TICK = os.sysconf("SC_CLK_TCK")
+
+
+def device_file(port: int, unit: int, code: str, tags: int = 3,
+                read_cycle: int = 100) -> dict[str, Any]:
+    """A device file polling ``tags`` holding registers of ``unit`` behind an
+    RTU-over-TCP peer on 127.0.0.1:``port``."""
+    return {
+        "organization": {"deviceCode": code},
+        "communication": {
+            "transport": "rtu-over-tcp", "tcpHost": "127.0.0.1", "tcpPort": port,
+            "slaveId": unit, "readCycle": read_cycle, "readTimeout": 1000,
+            "byteTimeout": 50, "retries": 0},
+        "addressList": [{"name": f"t{i}", "address": f"hr:{i}", "deviceDataType": "UInt16"}
+                        for i in range(tags)],
+    }
+
+
+def write_json(path: Path, data: Any) -> None:
+    """Write atomically (as a config tool should), so a reload never sees half a file."""
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(data if isinstance(data, str) else json.dumps(data))
+    tmp.replace(path)
+
+
+def nested_json(depth: int = 100_000) -> str:
+    """A JSON document nested ``depth`` deep (a list in a list ...)."""
+    return "[" * depth + "]" * depth
+
+
+@dataclass(frozen=True)
+class Usage:
+    """One look at the child: CPU seconds (user + system) so far, of the process and of
+    the threads whose name starts with the asked prefix; RSS in KiB; fds; threads."""
+
+    at: float
+    cpu: float
+    thread_cpu: float
+    rss_kib: int
+    fds: int
+    threads: int
+
+
+class GatewayProcess:
+    """``python -m edgemodbus.gateway --config-dir DIR`` in a child process, its output
+    in ``log_path``; ``nofile`` > 0 sets its soft RLIMIT_NOFILE.  Always reaped."""
+
+    def __init__(self, config_dir: Path, log_path: Path, *, nofile: int = 0,
+                 extra: tuple[str, ...] = ()) -> None:
+        self.config_dir = config_dir
+        self.log_path = log_path
+        self.nofile = nofile
+        self.extra = extra
+        self.proc: subprocess.Popen[bytes] | None = None
+
+    def __enter__(self) -> GatewayProcess:
+        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        env.pop("JOURNAL_STREAM", None)
+        nofile = self.nofile
+
+        def limit() -> None:  # in the child, before exec
+            if nofile > 0:
+                hard = resource.getrlimit(resource.RLIMIT_NOFILE)[1]
+                resource.setrlimit(resource.RLIMIT_NOFILE, (nofile, hard))
+
+        with open(self.log_path, "ab") as log:
+            self.proc = subprocess.Popen(
+                [sys.executable, "-m", "edgemodbus.gateway", "--config-dir",
+                 str(self.config_dir), *self.extra],
+                stdin=subprocess.DEVNULL, stdout=log, stderr=log, cwd=REPO, env=env,
+                preexec_fn=limit)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        proc = self.proc
+        if proc is not None and proc.poll() is None:
+            proc.kill()
+        if proc is not None:
+            proc.wait()
+
+    @property
+    def pid(self) -> int:
+        assert self.proc is not None
+        return self.proc.pid
+
+    @property
+    def log(self) -> str:
+        return self.log_path.read_text(errors="replace")
+
+    def lines(self, pattern: str) -> list[str]:
+        return [ln for ln in self.log.splitlines() if re.search(pattern, ln)]
+
+    def wait_log(self, pattern: str, timeout: float = 20.0, count: int = 1) -> str:
+        """The ``count``-th line matching ``pattern``, waited for (the child must live)."""
+        deadline = time.monotonic() + timeout
+        while True:
+            found = self.lines(pattern)
+            if len(found) >= count:
+                return found[count - 1]
+            assert self.proc is not None
+            if self.proc.poll() is not None:
+                raise AssertionError(f"gateway exited ({self.proc.returncode}):\n{self.log}")
+            if time.monotonic() > deadline:
+                raise AssertionError(f"no log line /{pattern}/ x{count}; log:\n{self.log}")
+            time.sleep(0.05)
+
+    def alive(self) -> bool:
+        return self.proc is not None and self.proc.poll() is None
+
+    def signal(self, signum: int) -> None:
+        assert self.proc is not None
+        self.proc.send_signal(signum)
+
+    def stop(self, timeout: float = 20.0) -> int:
+        """SIGTERM, then the exit status."""
+        self.signal(signal.SIGTERM)
+        assert self.proc is not None
+        return self.proc.wait(timeout)
+
+    def usage(self, thread_prefix: str = "") -> Usage:
+        """CPU, RSS, fds and threads now (``thread_cpu``: threads named ``thread_prefix``
+        ..., as /proc shows at most 15 characters of a name)."""
+        base = f"/proc/{self.pid}"
+        cpu = _cpu(f"{base}/stat")
+        thread_cpu = 0.0
+        tids = os.listdir(f"{base}/task")
+        if thread_prefix:
+            for tid in tids:
+                with contextlib.suppress(OSError):
+                    with open(f"{base}/task/{tid}/comm") as f:
+                        name = f.read().strip()
+                    if name.startswith(thread_prefix[:15]):
+                        thread_cpu += _cpu(f"{base}/task/{tid}/stat")
+        rss = 0
+        with open(f"{base}/status") as f:
+            for line in f:
+                if line.startswith("VmRSS:"):
+                    rss = int(line.split()[1])
+        return Usage(time.monotonic(), cpu, thread_cpu, rss, len(os.listdir(f"{base}/fd")),
+                     len(tids))
+
+
+def _cpu(stat_path: str) -> float:
+    with open(stat_path) as f:
+        fields = f.read().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / _TICK  # utime, stime (man 5 proc)
+
+
+def cpu_share(first: Usage, last: Usage) -> tuple[float, float]:
+    """CPU seconds per second between two looks: (process, the named threads)."""
+    span = max(last.at - first.at, 1e-6)
+    return (last.cpu - first.cpu) / span, (last.thread_cpu - first.thread_cpu) / span
+
+
+@contextlib.contextmanager
+def idle_connections(port: int, n: int, send: bytes = b"",
+                     patience: float = 10.0) -> Iterator[list[socket.socket]]:
+    """``n`` connections to 127.0.0.1:``port`` that send ``send`` (if anything) and then
+    nothing, made without blocking (a full backlog must not stall the caller); those
+    still connecting after ``patience`` seconds are kept as they are.  All closed after."""
+    socks: list[socket.socket] = []
+    try:
+        for _ in range(n):
+            sock = socket.socket()
+            sock.setblocking(False)
+            rc = sock.connect_ex(("127.0.0.1", port))
+            if rc not in (0, errno.EINPROGRESS):
+                sock.close()
+                continue
+            socks.append(sock)
+        deadline = time.monotonic() + patience
+        pending = list(socks)
+        while pending and time.monotonic() < deadline:
+            still = []
+            for sock in pending:
+                err = sock.getsockopt(socket.SOL_SOCKET, socket.SO_ERROR)
+                try:
+                    sock.getpeername()
+                except OSError:
+                    if err == 0:
+                        still.append(sock)
+                    continue
+                if send:
+                    with contextlib.suppress(OSError):
+                        sock.send(send)
+            pending = still
+            if pending:
+                time.sleep(0.02)
+        yield socks
+    finally:
+        for sock in socks:
+            sock.close()
