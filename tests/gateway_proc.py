@@ -18,6 +18,7 @@ import socket
 import subprocess
 import sys
 import time
+import urllib.request
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -47,6 +48,33 @@ def write_json(path: Path, data: Any) -> None:
     tmp = path.with_suffix(".tmp")
     tmp.write_text(data if isinstance(data, str) else json.dumps(data))
     tmp.replace(path)
+
+
+def served(port: int, unit: int = 1, count: int = 3) -> bool:
+    """A master (pymodbus) reads holding registers 0..count of ``unit`` from the
+    gateway's Modbus TCP server on ``port`` and gets the peer's values (``unit``'s
+    device file polls them from tests/peers.py's default registers)."""
+    from pymodbus.client import ModbusTcpClient
+
+    from tests.peers import default_register
+
+    client = ModbusTcpClient("127.0.0.1", port=port, timeout=1, retries=0)
+    try:
+        if not client.connect():
+            return False
+        reply = client.read_holding_registers(0, count=count, device_id=unit)
+        want = [default_register(unit, "hr", a) for a in range(count)]
+        return not reply.isError() and list(reply.registers) == want
+    except Exception:
+        return False
+    finally:
+        client.close()
+
+
+def scrape(port: int, timeout: float = 10.0) -> str:
+    """The gateway's /metrics text."""
+    with urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=timeout) as resp:
+        return str(resp.read().decode())
 
 
 def nested_json(depth: int = 100_000) -> str:

@@ -16,12 +16,10 @@ import signal
 import subprocess
 import sys
 import time
-import urllib.request
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from pymodbus.client import ModbusTcpClient
 
 from tests.gateway_proc import (
     REPO,
@@ -30,9 +28,11 @@ from tests.gateway_proc import (
     device_file,
     idle_connections,
     nested_json,
+    scrape,
+    served,
     write_json,
 )
-from tests.peers import PymodbusSlave, default_register, free_port
+from tests.peers import PymodbusSlave, free_port
 from tests.waiting import wait_for
 
 SLOW_HEADERS = b"GET /metrics HTTP/1.1\r\nHost: x\r\n"  # and never the blank line
@@ -42,26 +42,6 @@ SLOW_HEADERS = b"GET /metrics HTTP/1.1\r\nHost: x\r\n"  # and never the blank li
 def slave() -> Iterator[PymodbusSlave]:
     with PymodbusSlave("rtu-over-tcp", units=(1, 2), size=200) as peer:
         yield peer
-
-
-def scrape(port: int, timeout: float = 10.0) -> str:
-    with urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=timeout) as resp:
-        return str(resp.read().decode())
-
-
-def served(port: int) -> bool:
-    """A master reads unit 1 (dev1's t0..t2) from the gateway's server."""
-    client = ModbusTcpClient("127.0.0.1", port=port, timeout=1, retries=0)
-    try:
-        if not client.connect():
-            return False
-        reply = client.read_holding_registers(0, count=3, device_id=1)
-        want = [default_register(1, "hr", a) for a in range(3)]
-        return not reply.isError() and list(reply.registers) == want
-    except Exception:
-        return False
-    finally:
-        client.close()
 
 
 def test_the_modbus_tcp_server_backs_off_at_the_fd_limit(
