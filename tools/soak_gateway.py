@@ -9,15 +9,15 @@ and every device is exported on /metrics.  Per case, with a fresh gateway:
 1. a quiet window (--quiet seconds): the bystanders' polling rate (requests the peer
    answered per second) and the gateway's CPU;
 2. the fault for --seconds (the case's ``attack``), sampled every 0.2 s: CPU (process,
-   and the thread the case names), highest RSS, fds and threads, the log lines written
-   and the longest, the bystanders' polling rate relative to the quiet window;
+   and its busiest thread: a spinning loop), highest RSS, fds and threads, the log lines
+   written and the longest, the bystanders' polling rate relative to the quiet window;
 3. the fault ends; the case's ``recover`` check must pass within RECOVER_S (a master
    served, a scrape answered, the process alive), then SIGTERM: exit status 0.
 
 A case is a :class:`Case` in :func:`cases`: a name, the row it stands for, the open-files
-limit, the gateway-file sections it needs, an attack (a context manager factory given
+limit, the server's connection cap, an attack (a context manager factory given
 the :class:`Run`) and a recovery check; add a row by adding one.  Bounds (exit status 1
-when a case breaks one): the case's thread CPU below MAX_THREAD_CPU, log lines at most
+when a case breaks one): the busiest thread's CPU below MAX_THREAD_CPU, log lines at most
 LOG_BASE + LOG_PER_S x seconds and none longer than MAX_LINE characters, bystander rate
 at least MIN_RATE of the quiet one, threads at most MAX_EXTRA_THREADS over the quiet
 window, recovery, no failed read of a bystander (timeouts, CRC or protocol errors
@@ -51,6 +51,7 @@ from tests import gateway_proc  # (the repository's root is on the path first)
 from tests.gateway_proc import (
     GatewayProcess,
     Usage,
+    cpu_share,
     device_file,
     idle_connections,
     nested_json,
@@ -90,7 +91,6 @@ class Case:
     attack: Attack
     recover: Callable[[Run], bool]
     nofile: int = 0  # the gateway's soft RLIMIT_NOFILE (0: unchanged)
-    thread: str = ""  # the thread whose CPU is bounded ("": the process's)
     serve_max_connections: int = 32
     log_per_event: int = 0  # log lines each of the attack's own events may write
 
@@ -173,24 +173,24 @@ def reload_nested(run: Run, seconds: float) -> Iterator[None]:
 def cases() -> list[Case]:
     return [
         Case("serve-emfile", "Modbus TCP server: accept4 EMFILE (ulimit 64)", serve_flood,
-             served, nofile=64, thread="edgemodbus-serve", serve_max_connections=1024),
+             served, nofile=64, serve_max_connections=1024),
         Case("metrics-slowloris", "metrics: 1,024 connections, headers never finished",
-             metrics_slowloris, scraped, nofile=256, thread="edgemodbus-metrics"),
+             metrics_slowloris, scraped, nofile=256),
         Case("reload-nested", "reload: deeply nested device and gateway files, SIGHUP",
              reload_nested, lambda run: run.gw.alive() and served(run) and scraped(run),
              log_per_event=3),  # per SIGHUP: "reloading" and one line per nested file
     ]
 
 
-def sample(gw: GatewayProcess, thread: str, seconds: float) -> tuple[Usage, Usage, Usage]:
+def sample(gw: GatewayProcess, seconds: float) -> tuple[Usage, Usage, Usage]:
     """First, last and the highest (RSS, fds, threads) of looks every 0.2 s."""
-    first = peak = gw.usage(thread)
+    first = peak = gw.usage()
     deadline = time.monotonic() + seconds
     last = first
     while time.monotonic() < deadline and gw.alive():
         time.sleep(0.2)
         try:
-            last = gw.usage(thread)
+            last = gw.usage()
         except OSError:  # it died meanwhile (the case reports its exit status)
             break
         peak = Usage(last.at, last.cpu, last.thread_cpu, max(peak.rss_kib, last.rss_kib),
@@ -238,12 +238,12 @@ def run_case(case: Case, seconds: float, quiet: float, workdir: Path) -> dict[st
                 time.sleep(0.1)
             polled = requests(peer)
             failed_before = failed_reads(run)
-            q_first, q_last, _ = sample(gw, case.thread, quiet)
+            q_first, q_last, _ = sample(gw, quiet)
             quiet_rate = (requests(peer) - polled) / (q_last.at - q_first.at)
             log_at = len(gw.log)
             with case.attack(run, seconds):
                 polled = requests(peer)
-                first, last, peak = sample(gw, case.thread, seconds)
+                first, last, peak = sample(gw, seconds)
                 rate = (requests(peer) - polled) / (last.at - first.at)
             lines = gw.log[log_at:].splitlines()
             started = time.monotonic()
@@ -260,7 +260,7 @@ def run_case(case: Case, seconds: float, quiet: float, workdir: Path) -> dict[st
         "case": case.name, "row": case.row, "nofile": case.nofile,
         "cpuQuiet": round((q_last.cpu - q_first.cpu) / (q_last.at - q_first.at), 3),
         "cpuAttacked": round((last.cpu - first.cpu) / span, 3),
-        "threadCpu": round((last.thread_cpu - first.thread_cpu) / span, 3),
+        "threadCpu": round(cpu_share(first, last)[1], 3),
         "rssKiB": [q_last.rss_kib, peak.rss_kib], "fds": [q_last.fds, peak.fds],
         "threads": [q_last.threads, peak.threads], "logLines": len(lines),
         "longestLine": max((len(ln) for ln in lines), default=0),

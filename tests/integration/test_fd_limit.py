@@ -62,12 +62,13 @@ def test_the_modbus_tcp_server_backs_off_at_the_fd_limit(
         wait_for(lambda: served(port), timeout=20, what="unit 1 served")
         with idle_connections(port, 100):
             gw.wait_log(r"serve :\d+: accept failed \d+ times \(EMFILE")
-            first = gw.usage("edgemodbus-serve")
+            first = gw.usage()
             polled = slave.request_count(1)
             time.sleep(3.0)  # the window measured (a spinning loop burns it all)
-            last = gw.usage("edgemodbus-serve")
-            _, serve_cpu = cpu_share(first, last)
-            assert serve_cpu < 0.05, f"the server thread used {serve_cpu:.0%} of a CPU"
+            last = gw.usage()
+            cpu, busiest = cpu_share(first, last)
+            # (the server's thread spun at 0.8 CPU; polling costs the gateway ~0.005)
+            assert cpu < 0.10 and busiest < 0.05, f"CPU {cpu:.2f}, busiest thread {busiest:.2f}"
             assert len(gw.lines(r"accept failed")) <= 2, gw.log
             assert slave.request_count(1) - polled >= 5  # readCycle 100 ms: ~30
         wait_for(lambda: served(port), timeout=20, what="a master served after the flood")
