@@ -176,6 +176,8 @@ def cases() -> list[Case]:
              served, nofile=64, serve_max_connections=1024),
         Case("metrics-slowloris", "metrics: 1,024 connections, headers never finished",
              metrics_slowloris, scraped, nofile=256),
+        Case("metrics-emfile", "metrics: 1,024 slow connections, ulimit 64 (accept EMFILE)",
+             metrics_slowloris, scraped, nofile=64),
         Case("reload-nested", "reload: deeply nested device and gateway files, SIGHUP",
              reload_nested, lambda run: run.gw.alive() and served(run) and scraped(run),
              log_per_event=3),  # per SIGHUP: "reloading" and one line per nested file

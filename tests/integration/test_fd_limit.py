@@ -38,6 +38,14 @@ from tests.waiting import wait_for
 SLOW_HEADERS = b"GET /metrics HTTP/1.1\r\nHost: x\r\n"  # and never the blank line
 
 
+def has_dev1(port: int) -> bool:
+    """A scrape answered, with dev1's counters (False when it failed: retried)."""
+    try:
+        return 'edgemodbus_requests_total{device="dev1"' in scrape(port)
+    except OSError:
+        return False
+
+
 @pytest.fixture
 def slave() -> Iterator[PymodbusSlave]:
     with PymodbusSlave("rtu-over-tcp", units=(1, 2), size=200) as peer:
@@ -87,7 +95,7 @@ def test_the_metrics_exporter_bounds_slow_header_connections(
     write_json(conf / "gateway.json", {"metrics": {"port": port}})
     with GatewayProcess(conf, tmp_path / "gw.log", nofile=256) as gw:
         gw.wait_log(r"metrics on http://")
-        wait_for(lambda: 'edgemodbus_requests_total{device="dev1"' in scrape(port),
+        wait_for(lambda: has_dev1(port),
                  timeout=20, what="dev1 in a scrape")
         before = gw.usage()
         with idle_connections(port, 1024, send=SLOW_HEADERS):
@@ -103,6 +111,32 @@ def test_the_metrics_exporter_bounds_slow_header_connections(
             wait_for(lambda: gw.usage().fds <= before.fds + 1, timeout=60,
                      what="the exporter's fds released")
         assert 'edgemodbus_requests_total{device="dev1"' in scrape(port)
+        assert gw.stop() == 0, gw.log
+
+
+def test_the_metrics_exporter_backs_off_at_the_fd_limit(
+        tmp_path: Path, slave: PymodbusSlave) -> None:
+    """The exporter's accept at EMFILE (1,024 slow connections, 64 fds: fewer than its
+    connection cap): it pauses instead of spinning, logs a line per 10 s, and answers a
+    scrape once the flood is gone."""
+    port = free_port()
+    conf = tmp_path / "conf"
+    conf.mkdir()
+    write_json(conf / "dev1.json", device_file(slave.port, 1, "dev1"))
+    write_json(conf / "gateway.json", {"metrics": {"port": port}})
+    with GatewayProcess(conf, tmp_path / "gw.log", nofile=64) as gw:
+        gw.wait_log(r"metrics on http://")
+        wait_for(lambda: has_dev1(port),
+                 timeout=20, what="dev1 in a scrape")
+        with idle_connections(port, 1024, send=SLOW_HEADERS, patience=2.0):
+            gw.wait_log(r"metrics: accept failed \(Too many open files\); pausing")
+            first = gw.usage()
+            time.sleep(3.0)  # the window measured
+            cpu, busiest = cpu_share(first, gw.usage())
+            assert cpu < 0.10 and busiest < 0.05, f"CPU {cpu:.2f}, busiest thread {busiest:.2f}"
+            assert len(gw.lines(r"metrics: accept failed")) <= 2, gw.log
+        wait_for(lambda: has_dev1(port),
+                 timeout=20, what="a scrape after the flood")
         assert gw.stop() == 0, gw.log
 
 
