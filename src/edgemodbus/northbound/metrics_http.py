@@ -12,9 +12,11 @@ failed too).  This one serves every connection from one thread with a selector:
   one is the likeliest a slow peer), or is closed when every one is being answered;
 * the answer is written without blocking, within :data:`WRITE_DEADLINE` seconds, then
   the connection is closed (``Connection: close``: one request per connection);
-* accept errors for want of fds or memory (EMFILE, ENFILE, ENOBUFS, ENOMEM) pause
-  accepting, 50 ms doubling to 2 s as the DTU listener does (line/dtu_listener.py),
-  logged through line/log_limit.py (one line per kind and 10 s, then a summary).
+* accept errors for want of fds or memory (EMFILE, ENFILE, ENOBUFS, ENOMEM) are a cap
+  too: the oldest connection still sending its request is closed to make room; when
+  there is none, accepting pauses, 50 ms doubling to 2 s as the DTU listener does
+  (line/dtu_listener.py); logged through line/log_limit.py (one line per kind and
+  10 s, then a summary).
 
 The request is handed to a WSGI application (prometheus_client's ``make_wsgi_app``, so
 the exposition, its content negotiation, gzip and ``name[]`` filtering are the
@@ -188,6 +190,8 @@ class MetricsHttpServer:
                 return
             except OSError as exc:
                 if exc.errno in _ACCEPT_ERRORS:
+                    if self._evict(exc.strerror or str(exc)):  # the fd limit is a cap too
+                        continue
                     self._pause_accepting(exc)
                 else:
                     self._logs.event(logging.WARNING, "accept errors", "accept",
@@ -196,7 +200,8 @@ class MetricsHttpServer:
             self._accept_pause = 0.0
             self.counts["accepted"] += 1
             source = f"{addr[0]}:{addr[1]}" if isinstance(addr, tuple) else str(addr)
-            if len(self._conns) >= self.max_connections and not self._evict():
+            if (len(self._conns) >= self.max_connections
+                    and not self._evict(f"{len(self._conns)} connections open")):
                 self.counts["refused"] += 1
                 sock.close()
                 continue
@@ -205,14 +210,14 @@ class MetricsHttpServer:
             self._conns[sock] = conn
             self._sel.register(sock, selectors.EVENT_READ)
 
-    def _evict(self) -> bool:
+    def _evict(self, why: str) -> bool:
         """Close the oldest connection still sending its request; False if none is."""
         for conn in self._conns.values():
             if conn.out is None:
                 self.counts["evicted"] += 1
                 self._logs.event(logging.WARNING, "evicted", conn.source.rsplit(":", 1)[0],
-                                 "metrics: %d connections open: the oldest waiting for its "
-                                 "request (%s) closed", len(self._conns), conn.source)
+                                 "metrics: no room for a connection (%s): the oldest still "
+                                 "sending its request (%s) closed", why, conn.source)
                 self._close(conn)
                 return True
         return False
