@@ -6,7 +6,10 @@ from __future__ import annotations
 
 import gzip
 import http.client
+import json
 import socket
+import subprocess
+import sys
 import threading
 import time
 from collections.abc import Iterator
@@ -172,3 +175,65 @@ def test_junk_gets_an_answer_or_a_close_and_the_server_goes_on(app: Any, junk: b
         assert data == b"" or data.startswith(b"HTTP/1.1 "), data[:80]
         assert ask(port)[0] == 200
         wait_for(lambda: server.connections() == 0, timeout=5, what="all closed")
+
+
+PAUSE_CHILD = r"""
+import json, os, resource, sys, threading, time
+from edgemodbus.northbound.metrics_http import MetricsHttpServer
+
+def app(environ, start_response):
+    start_response("200 OK", [("Content-Type", "text/plain")])
+    return [b"ok\n"]
+
+resource.setrlimit(resource.RLIMIT_NOFILE, (64, resource.getrlimit(resource.RLIMIT_NOFILE)[1]))
+server = MetricsHttpServer("127.0.0.1", 0, app)
+threading.Thread(target=server.serve_forever, daemon=True).start()
+held = []
+try:
+    while True:
+        held.append(os.open(os.devnull, os.O_RDONLY))
+except OSError:
+    pass
+print(server.server_port, flush=True)
+sys.stdin.readline()                      # the parent connected: accept fails meanwhile
+cpu = time.process_time()
+time.sleep(2.0)
+cpu = time.process_time() - cpu
+counts = dict(server.counts)
+for fd in held:
+    os.close(fd)
+print(json.dumps({"cpu": cpu, **counts}), flush=True)
+sys.stdin.readline()                      # the parent scraped
+server.shutdown()
+server.server_close()
+"""
+
+
+def test_at_the_fd_limit_with_nothing_to_evict_accepting_pauses() -> None:
+    """Every fd of the process taken elsewhere (none of them the exporter's): accept
+    fails with EMFILE and accepting pauses, 50 ms doubling, instead of spinning; once
+    fds are free the waiting scrape is answered."""
+    proc = subprocess.Popen([sys.executable, "-c", PAUSE_CHILD], stdin=subprocess.PIPE,
+                            stdout=subprocess.PIPE, text=True)
+    assert proc.stdin is not None and proc.stdout is not None
+    conn: http.client.HTTPConnection | None = None
+    try:
+        port = int(proc.stdout.readline())
+        conn = http.client.HTTPConnection("127.0.0.1", port, timeout=20)
+        conn.request("GET", "/metrics")  # waits in the backlog
+        proc.stdin.write("connected\n")
+        proc.stdin.flush()
+        figures = json.loads(proc.stdout.readline())
+        assert 1 <= figures["acceptErrors"] <= 8, figures  # 2 s of 50, 100, 200 ... ms
+        assert figures["cpu"] < 0.2, figures
+        resp = conn.getresponse()
+        assert resp.status == 200 and resp.read() == b"ok\n"
+        proc.stdin.write("scraped\n")
+        proc.stdin.flush()
+        assert proc.wait(20) == 0
+    finally:
+        if conn is not None:
+            conn.close()
+        if proc.poll() is None:
+            proc.kill()
+        proc.wait()
