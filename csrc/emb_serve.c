@@ -532,6 +532,25 @@ static void emb_sv_flush_posts(emb_server *s, int64_t now)
     pthread_mutex_unlock(&s->lock);
 }
 
+/* Seconds accepting pauses after accept4 failed for want of fds or memory: from the
+ * first, doubling up to the last (as the DTU listener, src/edgemodbus/line/dtu_listener.py);
+ * the pending connection stays in the backlog, and polling the listening socket
+ * meanwhile would report it at once, again and again: a spin. */
+#define EMB_SV_ACCEPT_PAUSE_MIN_NS 50000000LL
+#define EMB_SV_ACCEPT_PAUSE_MAX_NS 2000000000LL
+
+static void emb_sv_accept_failed(emb_server *s, int err, int64_t now)
+{
+    int64_t pause = s->accept_pause_ns ? 2 * s->accept_pause_ns : EMB_SV_ACCEPT_PAUSE_MIN_NS;
+
+    if (pause > EMB_SV_ACCEPT_PAUSE_MAX_NS)
+        pause = EMB_SV_ACCEPT_PAUSE_MAX_NS;
+    s->accept_pause_ns = pause;
+    s->accept_at_ns = now + pause;
+    __atomic_store_n(&s->c.accept_errno, err, __ATOMIC_RELAXED);
+    __atomic_add_fetch(&s->c.accept_errors, 1, __ATOMIC_RELAXED);
+}
+
 static void emb_sv_accept(emb_server *s, int64_t now)
 {
     for (;;) {
@@ -539,8 +558,14 @@ static void emb_sv_accept(emb_server *s, int64_t now)
         int one = 1;
         uint32_t i;
 
-        if (fd < 0)
+        if (fd < 0) {
+            int err = errno;
+
+            if (err == EMFILE || err == ENFILE || err == ENOBUFS || err == ENOMEM)
+                emb_sv_accept_failed(s, err, now);
             return; /* EAGAIN, or an error of that one connection */
+        }
+        s->accept_pause_ns = 0;
         for (i = 0; i < s->max_conns && s->conns[i].fd >= 0; i++)
             ;
         if (i == s->max_conns) {
@@ -596,8 +621,11 @@ int emb_sv_run(emb_server *s, int64_t until_ns)
             return EMB_SV_EV_DEADLINE;
         pfds[n].fd = s->wake_fd;
         pfds[n++].events = POLLIN;
-        pfds[n].fd = s->listen_fd;
+        /* accepting paused after an accept error: poll() skips a negative fd */
+        pfds[n].fd = now < s->accept_at_ns ? -1 : s->listen_fd;
         pfds[n++].events = POLLIN;
+        if (now < s->accept_at_ns && s->accept_at_ns < wake_at)
+            wake_at = s->accept_at_ns;
         for (i = 0; i < s->max_conns; i++) {
             emb_sv_conn *c = &s->conns[i];
 

@@ -78,6 +78,9 @@ typedef struct {
     uint64_t cached_replies;   /* reads answered from the image */
     uint64_t to_python;
     uint64_t exceptions[12];   /* sent, by code (0..11) */
+    uint64_t accept_errors;    /* accept4 failed for want of fds or memory (EMFILE, ENFILE,
+                                * ENOBUFS, ENOMEM): accepting paused, see emb_sv_accept */
+    int accept_errno;          /* the last of those failures' errno */
 } emb_sv_counters;
 
 typedef struct {
@@ -90,6 +93,8 @@ typedef struct {
     void *pfds;        /* struct pollfd[max_conns + 2] */
     uint32_t *pidx;    /* pfds index -> conn slot */
     int64_t idle_ns;   /* 0: no idle timeout */
+    int64_t accept_pause_ns; /* the last pause after an accept error (0: none) */
+    int64_t accept_at_ns;    /* the listening socket is not polled before then */
     pthread_mutex_t lock; /* the units and the posts */
     emb_sv_unit units[EMB_SV_UNITS];
     emb_sv_counters c;

@@ -24,6 +24,8 @@ typedef struct {
     uint64_t cached_replies;
     uint64_t to_python;
     uint64_t exceptions[12];
+    uint64_t accept_errors;
+    int accept_errno;
 } emb_sv_counters;
 
 typedef struct {

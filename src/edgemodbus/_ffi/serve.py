@@ -64,6 +64,8 @@ class ServerCounters(NamedTuple):
     cached_replies: int
     to_python: int
     exceptions: dict[int, int]
+    accept_errors: int = 0  # accept failed for want of fds or memory: accepting paused
+    accept_errno: int = 0   # the last of those failures' errno
 
 
 class ServerCore:
@@ -136,7 +138,8 @@ class ServerCore:
             c = self._live().c
             return ServerCounters(c.accepted, c.refused, c.closed_idle, c.closed_bad,
                                   c.closed_peer, c.requests, c.cached_replies, c.to_python,
-                                  {k: c.exceptions[k] for k in range(12) if c.exceptions[k]})
+                                  {k: c.exceptions[k] for k in range(12) if c.exceptions[k]},
+                                  c.accept_errors, c.accept_errno)
 
     def open_connections(self) -> int:
         with self._lock:

@@ -18,7 +18,7 @@ from typing import Any
 from ..config import ConfigError
 from ..logs import configure_logging
 from .config import GATEWAY_FILE, GatewayConfig, load_gateway_config
-from .service import Gateway
+from .service import Gateway, one_line
 
 log = logging.getLogger("edgemodbus.service")
 
@@ -45,6 +45,10 @@ def run_service(config_dir: Path, gateway_config: Path | None = None, *,
     except (ConfigError, OSError) as exc:
         print(f"edgemodbus service: {gateway_config}: {exc}", file=sys.stderr)
         return 2
+    except Exception as exc:  # e.g. RecursionError of a deeply nested file: no traceback
+        print(f"edgemodbus service: {gateway_config}: cannot load ({one_line(exc)})",
+              file=sys.stderr)
+        return 2
     wake = threading.Event()
     flags = {"stop": False, "reload": False}
 
@@ -67,6 +71,9 @@ def run_service(config_dir: Path, gateway_config: Path | None = None, *,
             gateway.start()
         except (OSError, ValueError) as exc:
             print(f"edgemodbus service: {exc}", file=sys.stderr)
+            return 2
+        except Exception as exc:
+            print(f"edgemodbus service: cannot start ({one_line(exc)})", file=sys.stderr)
             return 2
         log.info("gateway %s running: %d device files in %s", gateway.gateway_id,
                  len(gateway.devices), config_dir)

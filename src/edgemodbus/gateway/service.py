@@ -108,7 +108,15 @@ class Gateway:
             self.exporter = None
 
     def reload(self) -> None:
-        """SIGHUP: the gateway file, then the device files (see gateway/__init__.py)."""
+        """SIGHUP: the gateway file, then the device files (see gateway/__init__.py).
+        Never raises: whatever fails is logged in one line and the running configuration
+        of what failed is kept (a reload must not end a running gateway)."""
+        try:
+            self._reload()
+        except Exception as exc:  # each step guards itself; this is the last resort
+            log.error("reload failed (%s); keeping what is running", one_line(exc))
+
+    def _reload(self) -> None:
         publisher = self.publisher
         self.reload_gateway()
         self.reload_devices()
@@ -120,6 +128,8 @@ class Gateway:
                 log.info("serve: %s", done)
         except OSError as exc:
             log.error("serve: %s; the Modbus TCP server is off", exc)
+        except Exception as exc:
+            log.error("serve: not applied (%s)", one_line(exc))
 
     def _served(self) -> dict[str, tuple[DriverModbusRtu, DeviceConfig]]:
         """What the ``serve`` units may name: device code -> driver and config."""
@@ -135,6 +145,9 @@ class Gateway:
         except OSError as exc:
             log.error("%s: cannot read: %s; %s", path, exc.strerror or exc, keep)
             return
+        except Exception as exc:
+            log.error("%s: cannot read (%s); %s", path, one_line(exc), keep)
+            return
         if digest == self._gateway_digest:
             return
         if digest is None:
@@ -146,10 +159,16 @@ class Gateway:
         except (ConfigError, OSError) as exc:
             log.error("%s: invalid, %s:\n%s", path, keep, exc)
             return
+        except Exception as exc:  # e.g. RecursionError of a deeply nested file
+            log.error("%s: cannot load (%s); %s", path, one_line(exc), keep)
+            return
         try:
             applied = self.apply_gateway(new)
         except (ValueError, OSError, ImportError) as exc:
             log.error("%s: not applied, %s: %s", path, keep, exc)
+            return
+        except Exception as exc:
+            log.error("%s: not applied (%s); %s", path, one_line(exc), keep)
             return
         self._gateway_digest = gateway_digest(path, new)
         log.info("%s: gateway settings applied: %s", path,
@@ -270,24 +289,30 @@ class Gateway:
             self._stop_device(dev)
             log.info("%s: stopped (%s removed)", dev.code, path.name)
         for path in files:
-            try:
-                digest = _digest(path)
-            except OSError as exc:
-                log.error("%s: cannot read: %s", path, exc)
-                continue
             current = self.devices.get(path)
-            if current is not None and current.digest == digest:
-                continue
+            what = "keeping the running version" if current else "not started"
             try:
-                cfg = load_device_config(path)
-            except (ConfigError, ValueError, OSError) as exc:
-                what = "keeping the running version" if current else "not started"
-                log.error("%s: invalid, %s:\n%s", path, what, exc)
-                continue
-            if current is None:
-                self._start_device(path, digest, cfg)
-            else:
-                self._change_device(current, digest, cfg)
+                self._reload_device(path, current, what)
+            except Exception as exc:  # e.g. RecursionError of a deeply nested file
+                log.error("%s: cannot load (%s); %s", path, one_line(exc), what)
+
+    def _reload_device(self, path: Path, current: ServiceDevice | None, what: str) -> None:
+        try:
+            digest = _digest(path)
+        except OSError as exc:
+            log.error("%s: cannot read: %s", path, exc)
+            return
+        if current is not None and current.digest == digest:
+            return
+        try:
+            cfg = load_device_config(path)
+        except (ConfigError, ValueError, OSError) as exc:
+            log.error("%s: invalid, %s:\n%s", path, what, exc)
+            return
+        if current is None:
+            self._start_device(path, digest, cfg)
+        else:
+            self._change_device(current, digest, cfg)
 
     def _code(self, path: Path, cfg: DeviceConfig) -> str:
         return cfg.organization.device_code or path.stem
@@ -370,6 +395,15 @@ class Gateway:
                 level = logging.WARNING if status in ("Offline", "Reconnecting") else logging.INFO
                 log.log(level, "%s: %s -> %s", dev.code, dev.status, status)
                 dev.status = status
+
+
+def one_line(exc: BaseException, limit: int = 300) -> str:
+    """An unexpected exception as one short line: its type and its first line."""
+    text = str(exc).strip().splitlines()
+    first = text[0] if text else ""
+    if len(first) > limit:
+        first = first[:limit] + "..."
+    return f"{type(exc).__name__}: {first}" if first else type(exc).__name__
 
 
 def make_publisher(mqtt: MqttSettings, gateway_id: str) -> Publisher:

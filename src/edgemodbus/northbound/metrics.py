@@ -25,18 +25,16 @@ metrics_extra.py.
 from __future__ import annotations
 
 import logging
-import socket
 import threading
 from collections.abc import Iterable, Iterator, Mapping
-from socketserver import ThreadingMixIn
 from typing import TYPE_CHECKING, Annotated, Any, ClassVar, Protocol
-from wsgiref.simple_server import WSGIRequestHandler, WSGIServer, make_server
 
 from pydantic import ValidationError
 
 from ..config import ConfigError, Model, Range
 from ..datatypes import DeviceDriverStatus, enum_value
 from .metrics_extra import ServerStats, server_metrics, sparkplug_metrics, spool_metrics
+from .metrics_http import MetricsHttpServer
 
 if TYPE_CHECKING:
     from prometheus_client.metrics_core import Metric
@@ -184,7 +182,7 @@ class MetricsExporter:
         self._serve: ServerStats | None = None  # the Modbus TCP server (gateway)
         self.registry = CollectorRegistry(auto_describe=False)
         self.registry.register(self)  # we are the Collector (collect/describe)
-        self._server: Any = None
+        self._server: MetricsHttpServer | None = None
         self._thread: threading.Thread | None = None
 
     # -- sources -----------------------------------------------------------------------
@@ -222,14 +220,15 @@ class MetricsExporter:
 
     # -- HTTP ----------------------------------------------------------------------------
     def start(self) -> int:
-        """Serve ``http://host:port/metrics``; returns the port."""
+        """Serve ``http://host:port/metrics`` (one thread, bounded: metrics_http.py);
+        returns the port."""
         if self._server is not None:
             return self.port
         from prometheus_client import make_wsgi_app
 
-        server = _make_server(self.settings.host, self.settings.port,
-                              make_wsgi_app(self.registry))
-        thread = threading.Thread(target=server.serve_forever, kwargs={"poll_interval": 0.1},
+        server = MetricsHttpServer(self.settings.host, self.settings.port,
+                                   make_wsgi_app(self.registry))
+        thread = threading.Thread(target=server.serve_forever,
                                   name="edgemodbus-metrics", daemon=True)
         thread.start()
         self._server, self._thread = server, thread
@@ -241,9 +240,9 @@ class MetricsExporter:
         if server is None:
             return
         server.shutdown()
-        server.server_close()
         if thread is not None:
             thread.join(5.0)
+        server.server_close()
         self._server = self._thread = None
 
     def __enter__(self) -> MetricsExporter:
@@ -422,26 +421,6 @@ def _listener_metrics(source: ListenerStats) -> list[Metric]:
         log.exception("DTU listener stats() failed")
         return []
     return [events, *gauges.values()]
-
-
-class _QuietHandler(WSGIRequestHandler):
-    def log_message(self, format: str, *args: Any) -> None:
-        """No line per scrape on stderr."""
-
-
-class _ThreadingServer(ThreadingMixIn, WSGIServer):
-    daemon_threads = True  # a hung scraper never holds up the process
-
-
-def _make_server(host: str, port: int, app: Any) -> WSGIServer:
-    """A threaded WSGI server polled every 0.1 s, so stop() returns quickly (the
-    library's start_http_server polls every 0.5 s)."""
-    family = socket.AF_INET6 if ":" in host else socket.AF_INET
-
-    class Server(_ThreadingServer):
-        address_family = family
-
-    return make_server(host, port, app, server_class=Server, handler_class=_QuietHandler)
 
 
 def _timing(stats: Mapping[str, Any], hist_key: str, avg_key: str, count_key: str,

@@ -18,7 +18,9 @@ block of a slower scan rate than the device's is as old as its own rate makes it
 
 from __future__ import annotations
 
+import errno
 import logging
+import os
 import re
 import threading
 import time
@@ -54,6 +56,10 @@ from .image import ILLEGAL_DATA_VALUE, UnitImage
 log = logging.getLogger("edgemodbus.serve")
 
 _NEVER_STALE = (1 << 63) - 1
+ACCEPT_LOG_INTERVAL = 10.0
+"""Seconds between two log lines about accept failures (out of fds or memory): the C
+loop pauses accepting 0.05 s doubling to 2 s after each (csrc/emb_serve.c), and counts
+them; the server's thread logs what the count grew by at most once per interval."""
 _SLAVE_EXCEPTION = re.compile(r"exception 0x([0-9a-f]{2})")
 BatchCallback = Callable[[list[DeviceAddressItem]], None]
 
@@ -110,6 +116,8 @@ class ModbusTcpServer:
         self.writes = 0
         self.write_errors = 0
         self.forwarded = 0
+        self._accept_errors_logged = 0  # the C loop's accept_errors when last logged
+        self._accept_log_at = 0.0  # the next accept-failure line not before (monotonic)
 
     # -- units -------------------------------------------------------------------------
     def serve_device(self, unit_id: int, driver: DriverModbusRtu, config: DeviceConfig, *,
@@ -193,6 +201,7 @@ class ModbusTcpServer:
             "requests": c.requests, "cachedReplies": c.cached_replies,
             "exceptions": c.exceptions, "writes": self.writes,
             "writeErrors": self.write_errors, "forwarded": self.forwarded,
+            "acceptErrors": c.accept_errors,
         }
 
     # -- the server's thread -----------------------------------------------------------
@@ -209,6 +218,7 @@ class ModbusTcpServer:
                 for unit in units:
                     self._refresh(unit, now)
             event = core.run(next_check)
+            self._log_accept_errors()
             if event == EV_STOP:
                 return
             if event == EV_REQUEST:
@@ -221,6 +231,23 @@ class ModbusTcpServer:
             elif event == EV_ERROR:
                 log.error("serve: poll() failed; retrying in %.1f s", self.tick)
                 time.sleep(self.tick)
+
+    def _log_accept_errors(self) -> None:
+        """One line per :data:`ACCEPT_LOG_INTERVAL` while accept fails (EMFILE...)."""
+        now = time.monotonic()
+        if now < self._accept_log_at:
+            return
+        c = self.core.counters()
+        failed = c.accept_errors - self._accept_errors_logged
+        if failed <= 0:
+            return
+        self._accept_errors_logged = c.accept_errors
+        self._accept_log_at = now + ACCEPT_LOG_INTERVAL
+        name = errno.errorcode.get(c.accept_errno, str(c.accept_errno))
+        log.warning("serve :%d: accept failed %d times (%s: %s); accepting pauses 0.05 s "
+                    "doubling to 2 s, new masters wait in the backlog (next report in "
+                    "%.0f s at most)", self.port, failed, name, os.strerror(c.accept_errno),
+                    ACCEPT_LOG_INTERVAL)
 
     def _refresh(self, unit: _Unit, now: int) -> None:
         """A unit with a max age stays fresh for max_age past each check that saw the
