@@ -332,6 +332,8 @@ def _load_file(file: Path, command: str) -> DeviceConfig:
             raise CliError(*(_in_file(file, str(p)) for p in exc.problems)) from None
         except OSError as exc:
             raise CliError(f"{file}: {exc.strerror or exc}") from None
+        except RecursionError:  # a backstop: config/ bounds the depth it reads
+            raise CliError(f"{file}: JSON nested too deeply to read") from None
 
 
 def _in_file(file: Path, message: str) -> str:
