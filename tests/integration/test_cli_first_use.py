@@ -276,3 +276,22 @@ def test_gateway_without_an_optional_package(tmp_path: Path, section: dict[str, 
     assert lines[0].startswith(f"edgemodbus service: {name}: needs the optional packages of "
                                f"edgemodbus[{extra}], not installed"), lines
     assert f"pip install 'edgemodbus[{extra}]'" in lines[0]
+
+
+@pytest.mark.parametrize(("signum", "code"), [(signal.SIGINT, 130), (signal.SIGTERM, 0)])
+def test_service_exit_codes_of_signals(tmp_path: Path, signum: int, code: int) -> None:
+    """``run --config-dir``: Ctrl-C is 130 as in every command, SIGTERM a clean stop."""
+    proc = subprocess.Popen([*CLI, "run", "--config-dir", str(tmp_path)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert proc.stderr is not None
+        line = proc.stderr.readline()
+        assert "gateway" in line and "running" in line, line  # the signals are handled
+        proc.send_signal(signum)
+        _, err = proc.communicate(timeout=READY)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == code, err
+    assert "Traceback" not in err

@@ -80,7 +80,8 @@ def run(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
     Prints one line per endpoint (``tcp HOST:PORT``, ``pty PATH``) on stdout, flushed,
     so that a script can read where to connect.  Exit codes (README.md, "Exit codes"):
     0 after SIGTERM, 130 after SIGINT (Ctrl-C), 2 for a bad option, a port in use or a
-    refused ``--dial`` (one line naming the option).
+    refused ``--dial`` (one line naming the option), 1 for another OSError (e.g. too few
+    open files for ``--dtus``).
     """
     dial: tuple[str, int] | None = None
     if args.dial is not None:
@@ -116,6 +117,9 @@ def run(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
     except _OptionFailed as exc:
         print(f"edgemodbus simulate: {exc}", file=sys.stderr)
         return 2
+    except OSError as exc:  # the machine's limits (open files): a runtime failure
+        print(f"edgemodbus simulate: {exc}", file=sys.stderr)
+        return 1
     finally:
         for signum, handler in previous.items():
             signal.signal(signum, handler)
