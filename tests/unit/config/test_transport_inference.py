@@ -40,8 +40,8 @@ def test_serial_and_tcp_keys_without_a_choice_are_refused_naming_both() -> None:
         comm_of({"comPort": "COM3", "tcpHost": "10.0.0.5", "tcpPort": 1502})
     [problem] = info.value.problems
     text = str(problem)
-    assert text.startswith("communication.transport: missing: comPort 'COM3' and tcpHost '10.0.0.5' and "
-                           "tcpPort 1502 are both given"), text
+    assert text.startswith("communication.transport: missing: comPort 'COM3' and tcpHost "
+                           "'10.0.0.5' and tcpPort 1502 are both given"), text
     assert "'rtu'" in text and "'rtu-over-tcp'" in text and "useTcp" in text
 
 
@@ -72,7 +72,7 @@ def test_never_a_serial_port_nobody_named(keys: set[str], use_tcp: bool | None,
     try:
         got = comm_of(comm)
     except ConfigError as exc:
-        assert use_tcp is None and transport is None or (
+        assert (use_tcp is None and transport is None) or (
             transport is not None and use_tcp is not None), exc  # ambiguous or contradictory
         return
     if transport is not None:
