@@ -295,3 +295,20 @@ def test_service_exit_codes_of_signals(tmp_path: Path, signum: int, code: int) -
             proc.communicate()
     assert proc.returncode == code, err
     assert "Traceback" not in err
+
+
+@pytest.mark.parametrize(("section", "what"), [
+    (lambda port: {"serve": {"listen": f"127.0.0.1:{port}"}}, "Modbus TCP server"),
+    (lambda port: {"metrics": {"host": "127.0.0.1", "port": port}}, "metrics"),
+])
+def test_service_port_in_use_names_the_port(tmp_path: Path, section: Any, what: str) -> None:
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        (tmp_path / "gateway.json").write_text(json.dumps({"gatewayId": "gw",
+                                                           **section(port)}))
+        out = cli("run", "--config-dir", str(tmp_path), "--seconds", "5")
+    assert out.returncode == 2
+    assert one_line(out) == (f"edgemodbus service: {what}: cannot listen on 127.0.0.1:{port}: "
+                             "Address already in use")

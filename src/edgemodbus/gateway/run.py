@@ -69,7 +69,8 @@ def run_service(config_dir: Path, gateway_config: Path | None = None, *,
         try:
             gateway.start()
         except (OSError, ValueError) as exc:  # a ConfigError too (e.g. mqtt without paho)
-            for line in str(exc).splitlines() or [type(exc).__name__]:
+            text = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+            for line in text.splitlines() or [type(exc).__name__]:
                 print(f"edgemodbus service: {line}", file=sys.stderr)
             return 2
         log.info("gateway %s running: %d device files in %s", gateway.gateway_id,
