@@ -312,3 +312,37 @@ def test_service_port_in_use_names_the_port(tmp_path: Path, section: Any, what: 
     assert out.returncode == 2
     assert one_line(out) == (f"edgemodbus service: {what}: cannot listen on 127.0.0.1:{port}: "
                              "Address already in use")
+
+
+def test_a_modbus_tcp_server_that_resets_rtu_frames_gets_the_hint(
+        sim: tuple[Simulator, int]) -> None:
+    """The issue's case: RTU frames to a Modbus TCP port; this server (the gateway's,
+    serve/server.py) closes a connection whose MBAP protocol id is not 0.  The error
+    says the device answered Modbus TCP; without the flag the read works."""
+    import edgemodbus as em
+    from edgemodbus.serve.server import ModbusTcpServer
+
+    _, port = sim
+    cfg = em.load_device_config({
+        "communication": {"transport": "rtu-over-tcp", "tcpHost": "127.0.0.1",
+                          "tcpPort": port, "readCycle": 1000, "readTimeout": 500},
+        "addressList": [{"name": "r", "address": "hr:7", "deviceDataType": "UInt16"}]})
+    drv = em.DriverModbusRtu()
+    assert drv.start_device(cfg.organization, cfg.communication, cfg.address_list)
+    server = ModbusTcpServer("127.0.0.1", 0)
+    try:
+        server.forward_device(1, drv, timeout=2.0)
+        server.start()
+        where = ["--host", "127.0.0.1", "--port", str(server.port), "--timeout", "500"]
+        out = cli("read", *where, "--rtu-over-tcp", "hr:7")
+        assert out.returncode == 1
+        line = one_line(out)
+        assert line.startswith("edgemodbus read: hr:7: link down: "), line
+        assert line.endswith("; the device answered Modbus TCP: leave out --rtu-over-tcp "
+                             "(--host speaks Modbus TCP)"), line
+        out = cli("read", *where, "hr:7")
+        assert (out.returncode, out.stdout.strip()) == (0, str(default_register(1, 7))), \
+            out.stderr
+    finally:
+        server.stop()
+        drv.stop_device()
