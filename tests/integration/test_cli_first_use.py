@@ -346,3 +346,17 @@ def test_a_modbus_tcp_server_that_resets_rtu_frames_gets_the_hint(
     finally:
         server.stop()
         drv.stop_device()
+
+
+def test_a_deeply_nested_file_is_one_line(tmp_path: Path) -> None:
+    """Past the parser's recursion limit: one line, exit 2, for any command that reads
+    the file (config/ may bound the depth earlier, with its own message)."""
+    path = tmp_path / "deep.json"
+    path.write_text('{"communication": ' + "[" * 100_000 + "]" * 100_000 + "}")
+    for command in ("plan", "run", "action"):
+        out = cli(command, str(path))
+        assert out.returncode == 2, (command, out.stderr)
+        line = one_line(out)
+        assert line.startswith(f"edgemodbus {command}: "), line
+        if command != "action":
+            assert line.startswith(f"edgemodbus {command}: {path}: "), line

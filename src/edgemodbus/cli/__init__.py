@@ -104,6 +104,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         for line in exc.lines:
             print(f"edgemodbus {args.command}: {line}", file=sys.stderr)
         return FAILED
+    except RecursionError:  # a backstop: config/ bounds the JSON depth it reads
+        print(f"edgemodbus {args.command}: input nested too deeply to read", file=sys.stderr)
+        return USAGE
     except KeyboardInterrupt:
         return INTERRUPTED
 
