@@ -50,6 +50,7 @@ from .poll.actions import find_action, plan_action, prefix_errors
 from .poll.items import ItemState
 from .poll.planner import ReadBlock
 from .poll.poller import Poller
+from .poll.schedule import entity_numbers_notice
 from .poll.sink import BatchCallback, ItemCallback
 from .poll.writes import WriteOp, plan_writes
 from .protocol.forward import check_request
@@ -118,6 +119,9 @@ class DriverModbusRtu:
         # builds the items' codec specs, the plan and its decoders: raises here, not
         # after the line's worker is running
         poller = Poller(_Sink(self, code), code, params, parsed, self.logger)
+        notice = entity_numbers_notice(parsed, params)
+        if notice is not None:
+            self.logger.warning("%s: %s", code, notice)
         if params.read_cycle == 0 and params.framing != "wrapped-report":
             self.logger.warning("%s: readCycle 0 means report-only, but framing is %r: "
                                 "nothing will update this device's items",

@@ -30,7 +30,7 @@ def test_plan_of_the_seed_file() -> None:
     out = cli("plan", str(DATA / "seed-device.json"))
     assert out.returncode == 0, out.stderr
     lines = out.stdout.splitlines()
-    assert lines[0] == "14 items, 2 requests per cycle (slave 2)"
+    assert lines[0] == "14 items, 2 requests per cycle (slave 2 on rtu-over-tcp://127.0.0.1:1502)"
     assert lines[1].startswith("  FC03 hr:1-12 (12): tag1, tag2, tag3, tag4, pooled, tag5")
     assert lines[2] == "  FC03 hr:99-99 (1): tag99"
 
@@ -45,7 +45,8 @@ def test_descriptor_is_json() -> None:
 
 def test_read_and_write_one_value() -> None:
     with PymodbusSlave("rtu-over-tcp", units=(2,)) as slave:
-        base = ["--host", "127.0.0.1", "--port", str(slave.port), "--slave", "2"]
+        base = ["--host", "127.0.0.1", "--port", str(slave.port), "--slave", "2",
+                "--rtu-over-tcp"]
         out = cli("read", *base, "hr:10")
         assert out.returncode == 0, out.stderr
         assert out.stdout.strip() == str(default_register(2, "hr", 10))
@@ -59,8 +60,8 @@ def test_read_and_write_one_value() -> None:
 def test_errors_are_one_line_and_non_zero(tmp_path: Path) -> None:
     with PymodbusSlave("rtu-over-tcp", units=(2,)) as slave:
         out = cli("read", "--host", "127.0.0.1", "--port", str(slave.port), "--slave", "9",
-                  "--timeout", "200", "hr:1")
-    assert out.returncode == 2
+                  "--rtu-over-tcp", "--timeout", "200", "hr:1")
+    assert out.returncode == 1  # a runtime failure: the device never answered
     assert out.stderr.count("\n") == 1 and "not responding" in out.stderr
     bad = tmp_path / "bad.json"
     bad.write_text(json.dumps({"communication": {"baudRate": 300}, "addressList": []}))
@@ -120,7 +121,8 @@ def test_simulate_dials_a_listening_driver() -> None:
 def test_bit_addresses_default_to_boolean() -> None:
     """coil:N, di:N and hr:N.b need no --type (the README's `write ... coil:5 true`)."""
     with PymodbusSlave("rtu-over-tcp", units=(3,)) as slave:
-        base = ["--host", "127.0.0.1", "--port", str(slave.port), "--slave", "3"]
+        base = ["--host", "127.0.0.1", "--port", str(slave.port), "--slave", "3",
+                "--transport", "rtu-over-tcp"]
         slave.set_bits(3, "co", 5, [False])
         out = cli("write", *base, "coil:5", "true")
         assert (out.returncode, out.stdout.strip()) == (0, "ok"), out.stderr
@@ -195,7 +197,8 @@ def test_floats_print_so_that_they_read_back_exactly(tmp_path: Path) -> None:
                           for i, r in enumerate(_f32_registers(v, "CDAB"))}}}
     with PymodbusSlave("rtu-over-tcp", units=(2,), initial=initial) as slave:
         base = ["--host", "127.0.0.1", "--port", str(slave.port), "--slave", "2",
-                "--type", "Float", "--format", "CDAB", "--timeout", "5000"]  # a loaded CI
+                "--rtu-over-tcp", "--type", "Float", "--format", "CDAB",
+                "--timeout", "5000"]  # a loaded CI
         for address, value in values.items():
             out = cli("read", *base, f"hr:{address}")
             assert out.returncode == 0, out.stderr
@@ -284,9 +287,9 @@ def test_one_line_per_problem(tmp_path: Path) -> None:
 
     port = free_port()
     out = cli("read", "--host", "127.0.0.1", "--port", str(port), "hr:1")
-    assert out.returncode == 2
+    assert out.returncode == 1  # a runtime failure, one line, no framing hint (no link)
     assert out.stderr.splitlines() == [
-        f"edgemodbus read: hr:1: link down: rtu-over-tcp://127.0.0.1:{port}: "
+        f"edgemodbus read: hr:1: link down: tcp://127.0.0.1:{port}: "
         "connect failed: Connection refused"]
     bad = tmp_path / "bad.json"
     bad.write_text(json.dumps({"communication": {"baudRate": 300, "parity": "X"},
@@ -306,7 +309,8 @@ def test_one_line_per_problem(tmp_path: Path) -> None:
         "edgemodbus run: argument --seconds: invalid float value: 'x' (see edgemodbus run -h)"]
     out = cli("demo", "--slaves", "1,x")
     assert out.returncode == 2 and len(out.stderr.splitlines()) == 1
-    assert out.stderr.startswith("edgemodbus demo: argument --slaves: '1,x': use slave ids")
+    assert out.stderr.startswith("edgemodbus demo: argument --slaves: '1,x': 'x' is not a "
+                                 "number or range (allowed: ids 1..247")
 
 
 def test_device_file_warning_names_the_file(tmp_path: Path) -> None:
@@ -318,7 +322,7 @@ def test_device_file_warning_names_the_file(tmp_path: Path) -> None:
                               "tcpPort": slave.port, "colour": "red"},
             "addressList": [{"name": "r", "address": "hr:1", "deviceDataType": "UInt16"}],
         }))
-        out = cli("run", "--seconds", "0.5", str(device))
+        out = cli("run", "--seconds", "1.5", str(device))  # it must answer (else exit 1)
     assert out.returncode == 0, out.stderr
     assert out.stderr.splitlines() == [
         f"edgemodbus run: warning: {device}: communication: unknown key 'colour' ignored"]
@@ -355,7 +359,7 @@ def test_plan_shows_the_rate_of_blocks_that_have_their_own(tmp_path: Path) -> No
     out = cli("plan", str(device))
     assert out.returncode == 0, out.stderr
     assert out.stdout.splitlines() == [
-        "2 items, 2 requests per cycle (slave 3)",
+        "2 items, 2 requests per cycle (slave 3 on rtu-over-tcp://127.0.0.1:5020)",
         "  FC03 hr:0-0 (1) every 100 ms: fast",
         "  FC03 hr:1-1 (1): slow",
     ]

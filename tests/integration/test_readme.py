@@ -220,6 +220,8 @@ def run_run(argv: tuple[str, ...], tmp: Path) -> None:
 
 
 def run_read(argv: tuple[str, ...], tmp: Path) -> None:
+    """``read --host``: a pymodbus Modbus TCP slave (what --host speaks), or with
+    ``--rtu-over-tcp`` our simulator (raw RTU frames over TCP)."""
     assert "--host" in argv, "a README read that is not over TCP needs its own runner"
     slave = int(argv[argv.index("--slave") + 1]) if "--slave" in argv else 1
     fmt = argv[argv.index("--format") + 1] if "--format" in argv else "ABCD"
@@ -229,11 +231,18 @@ def run_read(argv: tuple[str, ...], tmp: Path) -> None:
     value = struct.unpack(">f", struct.pack(">f", -2.89e-37))[0]  # rounded, it was -0.0
     hi, lo = struct.unpack(">HH", struct.pack(">f", value))
     address = int(argv[-1].partition(":")[2])
-    with Simulator([slave]) as sim:
-        port = sim.serve_tcp("127.0.0.1", 0)
-        sim.slave(slave).set_registers(Area.HOLDING_REGISTER, address,
-                                       [lo, hi] if fmt == "CDAB" else [hi, lo])
-        out = run(rewrite(argv, host="127.0.0.1", port=str(port)))
+    registers = [lo, hi] if fmt == "CDAB" else [hi, lo]
+    rtu = "--rtu-over-tcp" in argv or ("--transport" in argv and
+                                       argv[argv.index("--transport") + 1] == "rtu-over-tcp")
+    if rtu:
+        with Simulator([slave]) as sim:
+            port = sim.serve_tcp("127.0.0.1", 0)
+            sim.slave(slave).set_registers(Area.HOLDING_REGISTER, address, registers)
+            out = run(rewrite(argv, host="127.0.0.1", port=str(port)))
+    else:
+        initial = {slave: {"hr": {address: registers[0], address + 1: registers[1]}}}
+        with PymodbusSlave("tcp", units=(slave,), initial=initial) as peer:
+            out = run(rewrite(argv, host="127.0.0.1", port=str(peer.port)))
     assert out.returncode == 0, out.stderr
     assert float(out.stdout) == value, out.stdout  # exactly
 
@@ -261,7 +270,7 @@ def run_plan(argv: tuple[str, ...], tmp: Path) -> None:
     out = run(rewrite(argv, file=str(path)))
     assert out.returncode == 0, out.stderr
     assert out.stdout.splitlines() == [
-        "4 items, 2 requests per cycle (slave 7)",
+        "4 items, 2 requests per cycle (slave 7 on rtu-over-tcp://127.0.0.1:5020)",
         "  FC01 coil:3-3 (1): Pump",
         "  FC03 hr:0-10 (11): Counter, Level, Running",
     ]
@@ -302,7 +311,7 @@ def run_simulate(argv: tuple[str, ...], tmp: Path) -> None:
         assert endpoint[0] == "tcp", endpoint
         port = endpoint[1].rpartition(":")[2]
         out = run(["edgemodbus", "read", "--host", "127.0.0.1", "--port", port,
-                   "--slave", str(last), "hr:7"])
+                   "--rtu-over-tcp", "--slave", str(last), "hr:7"])
         assert (out.returncode, out.stdout.strip()) == (0, str(default_register(last, 7))), \
             out.stderr
 
@@ -371,6 +380,11 @@ def run_simulate_fleet(argv: tuple[str, ...]) -> None:
     finally:
         for drv in drivers:
             drv.stop_device()
+
+
+def run_version(argv: tuple[str, ...], tmp: Path) -> None:
+    out = run(list(argv))
+    assert (out.returncode, out.stdout.strip()) == (0, f"edgemodbus {em.__version__}"), out
 
 
 def run_descriptor(argv: tuple[str, ...], tmp: Path) -> None:
@@ -463,6 +477,7 @@ RUNNERS: dict[tuple[str, ...], Runner] = {
     ("edgemodbus", "scan"): run_scan,
     ("edgemodbus", "templates"): run_templates,
     ("edgemodbus", "import"): run_import,
+    ("edgemodbus", "--version"): run_version,
     ("python", "-m", "edgemodbus.gateway"): run_service,
 }
 

@@ -90,7 +90,8 @@ def test_json_document_pymodbus_tcp(slave_factory: Callable[..., PymodbusSlave])
 def test_tables_simulator_rtu_over_tcp(sim: Simulator) -> None:
     sim.slave(5).faults.refused_functions = frozenset({3})
     port = sim.serve_tcp("127.0.0.1", 0)
-    r = cli("--host", "127.0.0.1", "--port", str(port), "--ids", "1-6", "--timeout", "200")
+    r = cli("--host", "127.0.0.1", "--port", str(port), "--rtu-over-tcp", "--slaves", "1-6",
+            "--timeout", "200")
     assert r.returncode == 0, r.stderr
     lines = r.stdout.splitlines()
     assert lines[0] == f"scan of 127.0.0.1:{port}: 6 slave id(s) per setting"
@@ -110,7 +111,8 @@ def test_ctrl_c_prints_what_was_found_and_exits_130(sim: Simulator, mode: str) -
     port = sim.serve_tcp("127.0.0.1", 0)
     extra = ["--json"] if mode == "json" else []
     proc = subprocess.Popen([*BASE, "--host", "127.0.0.1", "--port", str(port), "--ids",
-                             "1-247", "--timeout", "200", *extra],
+                             "1-247", "--transport", "rtu-over-tcp", "--timeout", "200",
+                             *extra],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         deadline = time.monotonic() + 30
@@ -150,8 +152,11 @@ def test_ctrl_c_prints_what_was_found_and_exits_130(sim: Simulator, mode: str) -
     (["--serial", "/dev/null", "--parity", "N,X"], "--parity 'N,X': 'X' is not N, E or O"),
     (["--serial", "/dev/null", "--stop-bits", "3"], "--stop-bits '3': must be 1, 2 or 1,2"),
     (["--serial", "/dev/null", "--ids", "1-300"],
-     "--ids '1-300': '1-300' is outside 1..247 or reversed"),
-    (["--serial", "/dev/null", "--ids", "a"], "--ids 'a': 'a' is not a number or range"),
+     "--ids '1-300' is outside 1..247 or reversed"),
+    (["--serial", "/dev/null", "--ids", "a"], "--ids 'a' is not a number or range"),
+    (["--serial", "/dev/null", "--slaves", "1,a"], "--slaves '1,a': 'a' is not a number"),
+    (["--serial", "/dev/null", "--slaves", "1", "--ids", "2"],
+     "--slaves '1' and --ids '2': give one"),
     (["--serial", "/dev/null", "--timeout", "0"], "--timeout '0': must be 1..60000 ms"),
     (["--serial", "/dev/null", "--functions", "3,6"],
      "--functions '3,6': a probe reads with 1, 2, 3 or 4"),
@@ -159,8 +164,9 @@ def test_ctrl_c_prints_what_was_found_and_exits_130(sim: Simulator, mode: str) -
      "--garbage-limit '-1': one number, 0 or more"),
     (["--serial", "/dev/null", "--rs485", "auto"], "--rs485 'auto': must be one of none"),
     (["--host", "127.0.0.1", "--transport", "udp"], "--transport 'udp': 'udp' is not one of"),
-    (["--host", "127.0.0.1", "--transport", "tcp", "--ids", "256"],
-     "--ids '256': '256' is outside 0..255"),
+    (["--host", "127.0.0.1", "--ids", "256"], "--ids '256' is outside 0..255"),
+    (["--host", "127.0.0.1", "--rtu-over-tcp", "--slaves", "0"],
+     "--slaves '0' is outside 1..247"),
 ])
 def test_bad_options_named(args: list[str], message: str) -> None:
     r = cli(*args)
@@ -181,8 +187,8 @@ def test_progress_bar_on_a_terminal(sim: Simulator) -> None:
     port = sim.serve_tcp("127.0.0.1", 0)
     master, slave = pty.openpty()
     try:
-        proc = subprocess.Popen([*BASE, "--host", "127.0.0.1", "--port", str(port), "--ids",
-                                 "1-3", "--timeout", "200"],
+        proc = subprocess.Popen([*BASE, "--host", "127.0.0.1", "--port", str(port),
+                                 "--rtu-over-tcp", "--slaves", "1-3", "--timeout", "200"],
                                 stdout=subprocess.PIPE, stderr=slave, text=True,
                                 env={**os.environ, "COLUMNS": "100", "TERM": "xterm"})
         os.close(slave)

@@ -1,9 +1,11 @@
 """The ``edgemodbus`` command: demo, run, read, write, plan, simulate, descriptor, action,
 scan, templates, import.
 
-Errors are one line per problem on stderr and a non-zero exit code.  Values print so that
-they read back exactly: a float as its shortest round-trip form (``repr``; ``nan``,
-``inf`` and ``-inf`` in text, ``null`` in JSON, which has no such numbers).
+Errors are one line per problem on stderr.  Exit codes, the same in every command: 0 ok,
+1 a runtime failure (a device that never answered, a line that could not be opened, tag
+rows refused), 2 a usage or configuration error, 130 interrupted (Ctrl-C).  Values print
+so that they read back exactly: a float as its shortest round-trip form (``repr``;
+``nan``, ``inf`` and ``-inf`` in text, ``null`` in JSON, which has no such numbers).
 """
 
 from __future__ import annotations
@@ -11,13 +13,12 @@ from __future__ import annotations
 import argparse
 import contextlib
 import logging
-import shlex
 import signal
 import sys
 import threading
 from collections.abc import Iterator, Sequence
 from pathlib import Path
-from typing import Any, NoReturn, cast
+from typing import NoReturn, cast
 
 from ..config import (
     ConfigError,
@@ -31,38 +32,22 @@ from ..datatypes import Area, ItemStatus
 from ..descriptor import driver_descriptor
 from ..driver import DriverModbusRtu
 from ..gateway.run import add_arguments as add_service_arguments
+from ..line.endpoint import endpoint_for
 from ..logs import configure_logging
 from ..poll.poller import build_plan
-from ..protocol.address import parse_address
+from ..poll.schedule import entity_numbers_notice
 from ..sim.cli import DESCRIPTION as SIMULATOR
 from ..sim.cli import add_arguments as add_simulator_arguments
+from ..sim.cli import slave_ids
 from . import action as action_command
 from . import import_tags as import_command
 from . import scan as scan_command
 from . import templates as templates_command
+from .exits import FAILED, INTERRUPTED, OK, USAGE, CommandFailed
+from .oneitem import add_line_options, entity_notice_line, framing_hint, start_one_item
 from .output import CliError, emit, json_line, one_line, print_json, problem_lines, value_text
 
 DEMO_FILE = Path(__file__).resolve().parent.parent / "demo-device.json"  # examples/ links here
-MAX_SLAVE_ID = 247  # the demo's simulator serves unicast addresses only
-
-#: read/write: the option (argparse dest) behind each field of the generated configuration,
-#: so that a message names what the user typed (``--type Float: ...``).
-_OPTION_OF_FIELD = {
-    "communication.slaveId": "slave",
-    "communication.readTimeout": "timeout",
-    "communication.dataFormat": "format",
-    "communication.tcpHost": "host",
-    "communication.tcpPort": "port",
-    "communication.comPort": "serial",
-    "communication.baudRate": "baud",
-    "communication.parity": "parity",
-    "communication.dataBits": "data_bits",
-    "communication.stopBits": "stop_bits",
-    "addressList[0].address": "address",
-    "addressList[0].deviceDataType": "type",
-    "addressList[0].quantity": "quantity",
-    "addressList[0].dataMultiplier": "multiplier",
-}
 
 _JSON_HELP = (
     "JSON lines on stdout instead of text: one object per item update "
@@ -76,6 +61,28 @@ class _Parser(argparse.ArgumentParser):
 
     def error(self, message: str) -> NoReturn:
         self.exit(2, f"{self.prog}: {one_line(message)} (see {self.prog} -h)\n")
+
+
+def _version() -> str:
+    """The installed distribution's version (pyproject.toml), else the package's."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("edgemodbus")
+    except PackageNotFoundError:
+        import edgemodbus
+
+        return str(getattr(edgemodbus, "__version__", "unknown"))
+
+
+class _SubParser(_Parser):
+    """A command's parser: also takes ``-v``/``-vv`` after the command's name (it
+    leaves the value given before it when absent)."""
+
+    def __init__(self, *args: object, **kwargs: object) -> None:
+        super().__init__(*args, **kwargs)  # type: ignore[arg-type]
+        self.add_argument("-v", "--verbose", action="count", default=argparse.SUPPRESS,
+                          help="log more (-vv: frame trace)")
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -92,9 +99,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (CliError, ValueError, OSError) as exc:
         for line in problem_lines(exc):
             print(f"edgemodbus {args.command}: {line}", file=sys.stderr)
-        return 2
+        return USAGE
+    except CommandFailed as exc:
+        for line in exc.lines:
+            print(f"edgemodbus {args.command}: {line}", file=sys.stderr)
+        return FAILED
+    except RecursionError:  # a backstop: config/ bounds the JSON depth it reads
+        print(f"edgemodbus {args.command}: input nested too deeply to read", file=sys.stderr)
+        return USAGE
     except KeyboardInterrupt:
-        return 130
+        return INTERRUPTED
 
 
 def _logging(args: argparse.Namespace) -> None:
@@ -112,13 +126,14 @@ def _logging(args: argparse.Namespace) -> None:
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="edgemodbus", description=__doc__,
                      formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--version", action="version", version=f"edgemodbus {_version()}")
     parser.add_argument("-v", "--verbose", action="count", default=0,
-                        help="log more (-vv: frame trace)")
-    sub = parser.add_subparsers(dest="command", required=True)
+                        help="log more (-vv: frame trace); also after the command")
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=_SubParser)
 
     demo = sub.add_parser("demo", help="poll a simulated line of slaves, print live values")
     demo.add_argument("--seconds", type=float, default=10.0, help="how long (10; 0 = until ^C)")
-    demo.add_argument("--slaves", type=_slave_ids, default=[1, 2, 3],
+    demo.add_argument("--slaves", type=slave_ids, default=[1, 2, 3],
                       help="slave ids on the line (1,2,3)")
     demo.set_defaults(func=_demo)
 
@@ -131,7 +146,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     for name, helptext in (("read", "read one value"), ("write", "write one value")):
         p = sub.add_parser(name, help=helptext)
-        _line_options(p)
+        add_line_options(p)
         p.add_argument("address", help="e.g. hr:100, 3:00005, coil:5, hr:7.3")
         if name == "write":
             p.add_argument("value", help="value to write (number, true/false, text)")
@@ -176,27 +191,6 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _line_options(p: argparse.ArgumentParser) -> None:
-    where = p.add_mutually_exclusive_group(required=True)
-    where.add_argument("--host", help="TCP host (with --port)")
-    where.add_argument("--serial", metavar="DEVICE", help="serial port, e.g. /dev/ttyUSB0")
-    p.add_argument("--port", type=int, default=502, help="TCP port (502)")
-    p.add_argument("--transport", choices=["rtu-over-tcp", "tcp"], default=None,
-                   help="with --host: raw RTU frames (rtu-over-tcp, the default) or Modbus TCP")
-    p.add_argument("--baud", type=int, default=9600)
-    p.add_argument("--parity", default="N", help="N, E or O")
-    p.add_argument("--data-bits", type=int, default=8)
-    p.add_argument("--stop-bits", type=int, default=1)
-    p.add_argument("--slave", type=int, default=1, help="slave / unit id (1)")
-    p.add_argument("--type", default=None,
-                   help="data type (Boolean for coils, discrete inputs and register bits such "
-                   "as hr:7.3, else UInt16)")
-    p.add_argument("--format", default="ABCD", help="ABCD, BADC, CDAB or DCBA")
-    p.add_argument("--quantity", type=int, default=None, help="registers (String/Binary)")
-    p.add_argument("--multiplier", type=float, default=1.0)
-    p.add_argument("--timeout", type=int, default=1000, help="response timeout in ms (1000)")
-
-
 # -- commands ----------------------------------------------------------------------------
 def _demo(args: argparse.Namespace) -> int:
     from ..sim import Simulator, add_demo_movers
@@ -223,8 +217,8 @@ def _demo(args: argparse.Namespace) -> int:
             )
             items = [it.model_copy(deep=True) for it in cfg.address_list]
             drivers.append(_start(org, comm, items, json_lines=False))
-        _poll_until_done(drivers, args.seconds, json_lines=False)
-    return 0
+        interrupted = _poll_until_done(drivers, args.seconds, json_lines=False)
+    return INTERRUPTED if interrupted else OK
 
 
 def _run(args: argparse.Namespace) -> int:
@@ -236,7 +230,7 @@ def _run(args: argparse.Namespace) -> int:
         return run_service(args.config_dir, args.gateway, seconds=args.seconds)
     if not args.files:
         raise CliError("give device files, or --config-dir DIR")
-    drivers = []
+    drivers: list[tuple[Path, DriverModbusRtu]] = []
     try:
         for file in args.files:
             cfg = _load_file(file, "run")
@@ -247,40 +241,68 @@ def _run(args: argparse.Namespace) -> int:
             if not drv.is_enable:
                 print(f"{file}: device is disabled (isEnable false), not polled",
                       file=sys.stderr)
-            drivers.append(drv)
+            drivers.append((file, drv))
     except BaseException:
-        for drv in drivers:
+        for _, drv in drivers:
             drv.stop_device()
         raise
-    _poll_until_done(drivers, args.seconds, args.json)
-    return 0
+    interrupted = _poll_until_done([drv for _, drv in drivers], args.seconds, args.json)
+    if interrupted:
+        return INTERRUPTED
+    silent = [_never_answered(file, drv) for file, drv in drivers
+              if drv.is_enable and not drv.stats().get("responses")]
+    if silent:
+        raise CommandFailed(*silent)
+    return OK
+
+
+def _never_answered(file: Path, drv: DriverModbusRtu) -> str:
+    """``FILE: device D never answered (the reason its items gave)``."""
+    reasons = {it.error_reason for it in drv.address_items if it.error_reason}
+    why = f" ({sorted(reasons)[0]})" if reasons else ""
+    return f"{file}: device {drv.snapshot()['deviceCode']} never answered{why}"
 
 
 def _read(args: argparse.Namespace) -> int:
-    drv, item = _one_item(args)
+    _notice(args)
+    drv, item = start_one_item(args)
     got = threading.Event()
     drv.address_updated_callback = lambda it: got.set()
     try:
         if not got.wait(args.timeout / 1000 * 4 + 5):
-            raise CliError("no answer")
+            raise CommandFailed(f"{item.address}: no answer")
     finally:
         drv.stop_device()
     if item.status is not ItemStatus.OK:
-        raise CliError(f"{item.address}: {item.error_reason}")
+        raise CommandFailed(_with_hint(f"{item.address}: {item.error_reason}", args, drv))
     print(value_text(item.value))
-    return 0
+    return OK
 
 
 def _write(args: argparse.Namespace) -> int:
-    drv, _ = _one_item(args)
+    _notice(args)
+    drv, _ = start_one_item(args)
     try:
         ok, err = drv.write_address("value", args.value)
     finally:
         drv.stop_device()
     if not ok:
-        raise CliError(str(err))
+        if not drv.stats().get("writes"):  # refused before a request went out: the value
+            raise CliError(str(err))
+        raise CommandFailed(_with_hint(str(err), args, drv))
     print("ok")
-    return 0
+    return OK
+
+
+def _notice(args: argparse.Namespace) -> None:
+    line = entity_notice_line(args)
+    if line is not None:
+        print(f"edgemodbus {args.command}: {line}", file=sys.stderr)
+
+
+def _with_hint(message: str, args: argparse.Namespace, drv: DriverModbusRtu) -> str:
+    hint = framing_hint(args, drv)
+    return message if hint is None else f"{message}; {hint}"
 
 
 def _plan(args: argparse.Namespace) -> int:
@@ -288,7 +310,11 @@ def _plan(args: argparse.Namespace) -> int:
     params = cfg.effective_parameters()
     parsed = cfg.parsed_items()
     blocks = build_plan(parsed, params)
-    print(f"{len(parsed)} items, {len(blocks)} requests per cycle (slave {params.slave_id})")
+    notice = entity_numbers_notice(parsed, params)
+    if notice is not None:
+        print(f"edgemodbus plan: notice: {_in_file(args.file, notice)}", file=sys.stderr)
+    print(f"{len(parsed)} items, {len(blocks)} requests per cycle (slave {params.slave_id} "
+          f"on {endpoint_for(params).describe()})")
     for block in blocks:
         names = [parsed[cast(int, p.key)].name for p in block.pieces]
         end = block.start + block.count - 1
@@ -309,6 +335,8 @@ def _load_file(file: Path, command: str) -> DeviceConfig:
             raise CliError(*(_in_file(file, str(p)) for p in exc.problems)) from None
         except OSError as exc:
             raise CliError(f"{file}: {exc.strerror or exc}") from None
+        except RecursionError:  # a backstop: config/ bounds the depth it reads
+            raise CliError(f"{file}: JSON nested too deeply to read") from None
 
 
 def _in_file(file: Path, message: str) -> str:
@@ -358,86 +386,29 @@ def _start(org: DeviceOrganizationParameter, comm: DriverModbusRtuParameter,
     return drv
 
 
-def _one_item(args: argparse.Namespace) -> tuple[DriverModbusRtu, DeviceAddressItem]:
-    comm: dict[str, Any] = {
-        "slaveId": args.slave, "readTimeout": args.timeout, "readCycle": 1000,
-        "dataFormat": args.format, "retries": 0, "offlineAfterFailedCycles": 1000,
-    }
-    if args.host:
-        comm.update(transport=args.transport or "rtu-over-tcp", tcpHost=args.host,
-                    tcpPort=args.port)
-    elif args.transport is not None:
-        raise CliError(f"--transport {args.transport}: applies to --host (a --serial line "
-                       "speaks RTU)")
-    else:
-        comm.update(transport="rtu", comPort=args.serial, baudRate=args.baud,
-                    parity=args.parity, dataBits=args.data_bits, stopBits=args.stop_bits)
-    if args.type is None:
-        args.type = _default_type(args.address)
-    item: dict[str, Any] = {"name": "value", "address": args.address,
-                            "deviceDataType": args.type, "dataMultiplier": args.multiplier}
-    if args.quantity is not None:
-        item["quantity"] = args.quantity
-    try:
-        cfg: DeviceConfig = load_device_config({"communication": comm, "addressList": [item]})
-    except ConfigError as exc:
-        raise CliError(*(_option_problem(args, p.path, p.message) for p in exc.problems)) \
-            from None
-    drv = DriverModbusRtu()
-    drv.start_device(cfg.organization, cfg.communication, cfg.address_list)
-    return drv, cfg.address_list[0]
-
-
-def _default_type(address: str) -> str:
-    """Boolean for a coil, a discrete input or a register bit (hr:7.3), else UInt16."""
-    try:
-        addr = parse_address(address)
-    except ValueError:
-        return "UInt16"  # the address itself is reported by the configuration check
-    return "Boolean" if addr.area.is_bit or addr.bit is not None else "UInt16"
-
-
-def _option_problem(args: argparse.Namespace, path: str, message: str) -> str:
-    """A problem of the generated configuration, told as the option the user typed."""
-    dest = _OPTION_OF_FIELD.get(path)
-    if dest is None:
-        return one_line(f"{path}: {message}")
-    value = shlex.quote(str(getattr(args, dest)))
-    if dest == "address":
-        return one_line(f"{value}: {message}")
-    return one_line(f"--{dest.replace('_', '-')} {value}: {message}")
-
-
-def _slave_ids(text: str) -> list[int]:
-    """``--slaves 1,2,3``."""
-    try:
-        ids = [int(part) for part in text.split(",") if part.strip()]
-    except ValueError:
-        ids = []
-    if not ids or not all(1 <= i <= MAX_SLAVE_ID for i in ids):
-        raise argparse.ArgumentTypeError(
-            f"{text!r}: use slave ids 1..{MAX_SLAVE_ID} separated by commas, e.g. 1,2,3")
-    return ids
-
-
-def _poll_until_done(drivers: list[DriverModbusRtu], seconds: float, json_lines: bool) -> None:
+def _poll_until_done(drivers: list[DriverModbusRtu], seconds: float, json_lines: bool) -> bool:
     """Let the drivers poll for ``seconds`` (0: until Ctrl-C or SIGTERM), stop them,
-    then print one summary line each."""
+    then print one summary line each.  True when Ctrl-C stopped them."""
     try:
-        _wait(seconds)
+        interrupted = _wait(seconds)
     finally:
         for drv in drivers:
             drv.stop_device()
     for drv in drivers:
         _summary(drv, json_lines)
+    return interrupted
 
 
-def _wait(seconds: float) -> None:
+def _wait(seconds: float) -> bool:
+    """Wait ``seconds`` (0: forever) or until SIGTERM; True when Ctrl-C ended it."""
     stop = threading.Event()
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    with contextlib.suppress(KeyboardInterrupt):
+    try:
         stop.wait(seconds if seconds > 0 else None)
+    except KeyboardInterrupt:
+        return True
+    return False
 
 
 def _line(code: str, item: DeviceAddressItem) -> str:

@@ -3,7 +3,8 @@
 
 Values are text and are read by the parameter's type (``12.5``, ``true``, ``"text"``);
 everything is checked before a request is sent.  Prints ``ok`` once the slave confirmed
-every request of the action; a failure is one line naming the action (exit code 2).
+every request of the action; a failure is one line naming the action: exit code 2 for a
+bad file, name or parameter (nothing sent), 1 when the slave did not confirm.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ from typing import Any
 from ..config import ConfigError, DeviceConfig, load_device_config
 from ..driver import DriverModbusRtu
 from ..poll.actions import describe_parameter
+from .exits import CommandFailed
 from .output import CliError, one_line
 
 __all__ = ["add_arguments", "run"]
@@ -77,6 +79,8 @@ def run(args: argparse.Namespace) -> int:
     finally:
         drv.stop_device()
     if not ok:
+        if drv.stats().get("writes", 0) or drv.stats().get("writeErrors", 0):
+            raise CommandFailed(str(err))
         raise CliError(str(err))
     print("ok")
     return 0

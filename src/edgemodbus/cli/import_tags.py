@@ -47,6 +47,11 @@ def run(args: argparse.Namespace) -> int:
         raise CliError(f"{args.file}: {exc}") from None
     for refusal in result.refused:
         print(f"edgemodbus import: {args.file}: {refusal}", file=sys.stderr)
+    if result.notice is not None:
+        more = (f" (and {result.entity_lookalikes - 1} more such rows)"
+                if result.entity_lookalikes > 1 else "")
+        print(f"edgemodbus import: notice: {args.file}: {result.notice}{more}; for Modicon "
+              "numbering use --address-prefix entity", file=sys.stderr)
     comm = {} if args.slave is None else {"slaveId": args.slave}
     org = {} if args.device_code is None else {"deviceCode": args.device_code}
     device = result.device(comm, org)

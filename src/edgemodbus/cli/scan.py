@@ -31,11 +31,12 @@ from ..commission.scan import (
 )
 from ..errors import ModbusConnectionError
 from ..line.endpoint import SerialPort, TcpEndpoint
-from ..protocol.rtu import MAX_SLAVE_ID
+from ..protocol.rtu import MAX_SLAVE_ID, parse_slave_ids
+from .oneitem import add_transport_options
 from .output import CliError, print_json
 
 DEFAULT_BAUDS = "9600,19200,38400,57600,115200"
-TRANSPORTS = ("rtu-over-tcp", "tcp")
+TRANSPORTS = ("tcp", "rtu-over-tcp")
 RS485_MODES = ("none", "kernel", "rts-up", "rts-down")
 
 JSON_HELP = (
@@ -56,9 +57,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     where.add_argument("--serial", metavar="DEVICE", help="serial port, e.g. /dev/ttyUSB0")
     where.add_argument("--host", help="TCP host (with --port)")
     p.add_argument("--port", type=int, default=502, help="TCP port (502)")
-    p.add_argument("--transport", default="rtu-over-tcp",
-                   help="with --host: rtu-over-tcp (raw RTU frames, the default), tcp "
-                   "(Modbus TCP), or both: rtu-over-tcp,tcp")
+    add_transport_options(p, several=True)
     p.add_argument("--baud", default=DEFAULT_BAUDS,
                    help=f"baud rates to try, in order ({DEFAULT_BAUDS})")
     p.add_argument("--parity", default="N,E,O", help="parities to try: N, E, O (N,E,O)")
@@ -66,8 +65,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rs485", default="none", help=f"RS-485 mode: {', '.join(RS485_MODES)}")
     p.add_argument("--echo", action="store_true",
                    help="the adapter echoes requests (2-wire, no echo suppression)")
-    p.add_argument("--ids", default=f"1-{MAX_SLAVE_ID}",
-                   help=f"slave ids: numbers and ranges, e.g. 1-10,17,100-110 (1-{MAX_SLAVE_ID})")
+    p.add_argument("--slaves", default=None, metavar="IDS",
+                   help=f"slave ids: numbers and ranges, e.g. 1-10,17,100-110 (1-{MAX_SLAVE_ID}"
+                   "; 0..255 with --transport tcp)")
+    p.add_argument("--ids", default=None, help="the same as --slaves")
     p.add_argument("--functions", default=",".join(map(str, DEFAULT_PROBES)),
                    help="read functions to probe with, in order (3,4,1: FC04 and FC01 only "
                    "after an exception reply)")
@@ -95,23 +96,12 @@ def _ints(option: str, text: str, allowed: str) -> list[int]:
     return values
 
 
-def parse_ids(text: str, low: int = 1, high: int = MAX_SLAVE_ID) -> list[int]:
-    """"1-10,17" -> [1..10, 17]; a bad part raises CliError naming --ids."""
-    ids: list[int] = []
-    allowed = f"numbers and ranges within {low}..{high}, e.g. 1-10,17"
-    for part in (p.strip() for p in text.split(",")):
-        first, dash, last = part.partition("-")
-        try:
-            a = int(first)
-            b = int(last) if dash else a
-        except ValueError:
-            raise CliError(f"--ids {text!r}: {part!r} is not a number or range "
-                           f"(allowed: {allowed})") from None
-        if not (low <= a <= high and low <= b <= high) or a > b:
-            raise CliError(f"--ids {text!r}: {part!r} is outside {low}..{high} or reversed "
-                           f"(allowed: {allowed})")
-        ids.extend(range(a, b + 1))
-    return list(dict.fromkeys(ids))
+def parse_ids(option: str, text: str, low: int = 1, high: int = MAX_SLAVE_ID) -> list[int]:
+    """"1-10,17" -> [1..10, 17]; a bad part raises CliError naming ``option``."""
+    try:
+        return parse_slave_ids(text, low, high)
+    except ValueError as exc:
+        raise CliError(f"{option} {exc}") from None
 
 
 def _ms(option: str, text: str | None, low: float, high: float) -> float | None:
@@ -238,7 +228,12 @@ def run(args: argparse.Namespace) -> int:
     endpoints = endpoints_of(args)
     tcp_unit = args.host is not None and all(
         isinstance(e, TcpEndpoint) and e.transport == "tcp" for e in endpoints)
-    ids = parse_ids(args.ids, 0 if tcp_unit else 1, 255 if tcp_unit else MAX_SLAVE_ID)
+    if args.slaves is not None and args.ids is not None:
+        raise CliError(f"--slaves {args.slaves!r} and --ids {args.ids!r}: give one (--ids is "
+                       "the old name of --slaves)")
+    option, text = ("--ids", args.ids) if args.ids is not None else (
+        "--slaves", args.slaves or f"1-{MAX_SLAVE_ID}")
+    ids = parse_ids(option, text, 0 if tcp_unit else 1, 255 if tcp_unit else MAX_SLAVE_ID)
     functions = _ints("--functions", args.functions, "1, 2, 3, 4, e.g. 3,4,1")
     if any(fc not in (1, 2, 3, 4) for fc in functions):
         raise CliError(f"--functions {args.functions!r}: a probe reads with 1, 2, 3 or 4")

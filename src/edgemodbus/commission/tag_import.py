@@ -29,7 +29,7 @@ from typing import Any
 
 from ..config import ConfigError, load_device_config
 from ..datatypes import DataType
-from ..protocol.address import format_address, parse_address
+from ..protocol.address import entity_lookalike, entity_notice, format_address, parse_address
 
 KEPWARE_COLUMNS: tuple[str, ...] = (
     "Tag Name", "Address", "Data Type", "Respect Data Type", "Client Access", "Scan Rate",
@@ -75,11 +75,16 @@ class Refusal:
 
 @dataclass(slots=True)
 class ImportResult:
-    """The converted items (device-file dicts, in row order) and the refused rows."""
+    """The converted items (device-file dicts, in row order), the refused rows, and
+    ``notice``: the first generic row whose bare address looks like a Modicon entity
+    number but was read as an offset (``40001`` -> hr:40001), with the count of such
+    rows; None when there is none."""
 
     form: str
     items: list[dict[str, Any]] = field(default_factory=list)
     refused: list[Refusal] = field(default_factory=list)
+    notice: str | None = None
+    entity_lookalikes: int = 0
 
     def device(self, communication: dict[str, Any] | None = None,
                organization: dict[str, Any] | None = None) -> dict[str, Any]:
@@ -263,6 +268,18 @@ def _form(header: Sequence[str]) -> str:
         "the first three required)")
 
 
+def _note_entity_lookalike(result: ImportResult, row: int, text: str, prefix: str) -> None:
+    """Count a generic row whose address reads as an offset but looks like an entity
+    number; the first one is the notice (README.md, "Importing a tag list")."""
+    entity = entity_lookalike(text, prefix)
+    if entity is None:
+        return
+    result.entity_lookalikes += 1
+    if result.notice is None:
+        read_as = parse_address(text.strip(), prefix)
+        result.notice = f"row {row}: {entity_notice(text.strip(), read_as, entity)}"
+
+
 def import_tags(text: str, address_prefix: str = "function-code") -> ImportResult:
     """Convert a CSV tag list (its text); see the module doc.  ``address_prefix`` reads
     the generic form's addresses.  Raises ValueError for a header of neither form."""
@@ -280,6 +297,8 @@ def import_tags(text: str, address_prefix: str = "function-code") -> ImportResul
             continue
         assert result is not None
         row = {h: (cells[i] if i < len(cells) else "") for i, h in enumerate(header)}
+        if result.form == "generic":
+            _note_entity_lookalike(result, number, row.get("address", ""), address_prefix)
         name_column = "Tag Name" if result.form == "kepware" else "name"
         try:
             if result.form == "kepware":

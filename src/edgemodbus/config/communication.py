@@ -40,7 +40,7 @@ from .base import (
 )
 from .compat import NG_KEYS, ng_aliases, parity_letter
 from .listen import KEY_EXAMPLE, NETWORKS_ALLOWED, allow_list, check_key, listen_problems, network
-from .problems import ConfigError, Problem, WrongType
+from .problems import NO_VALUE, ConfigError, Problem, WrongType
 from .secret import Secret
 
 Transport = Literal["rtu-over-tcp-server", "rtu", "rtu-over-tcp", "tcp"]
@@ -53,6 +53,9 @@ DuplicateId = Literal["keep-existing", "replace"]
 AllowFrom = Annotated[tuple[Annotated[str, AfterValidator(network)], ...],
                       BeforeValidator(allow_list)]
 """A source-address allow-list: networks (CIDR) or single addresses, normalised."""
+
+
+_CAMEL = {"tcp_host": "tcpHost", "tcp_port": "tcpPort"}
 
 
 class Parity(str, enum.Enum):
@@ -81,8 +84,10 @@ class DriverModbusRtuParameter(Model):
     """Communication parameters (the seed's ``modbusRtu.json`` plus ours).
 
     Times are int milliseconds.  ``transport`` defaults from ``useTcp`` (true ->
-    ``rtu-over-tcp``); NG's ``maxGap``, ``maxBatch`` and ``byteOrder``/``wordOrder`` are
-    accepted for ``maxMergeAddressGap``, ``maxBlockReadRegisterCount`` and ``dataFormat``.
+    ``rtu-over-tcp``), else from the keys given (``tcpHost``/``tcpPort`` without
+    ``comPort``: ``rtu-over-tcp``; both: refused as ambiguous); NG's ``maxGap``,
+    ``maxBatch`` and ``byteOrder``/``wordOrder`` are accepted for ``maxMergeAddressGap``,
+    ``maxBlockReadRegisterCount`` and ``dataFormat``.
     """
 
     _extra_keys: ClassVar[tuple[str, ...]] = NG_KEYS
@@ -133,7 +138,9 @@ class DriverModbusRtuParameter(Model):
         default="rtu",
         description="rtu: serial RTU; rtu-over-tcp: raw RTU frames over TCP (DTU, serial "
         "server); tcp: Modbus TCP (MBAP); rtu-over-tcp-server: listen for DTUs that dial "
-        "in (RTU frames over TCP). When absent: rtu-over-tcp if useTcp, else rtu",
+        "in (RTU frames over TCP). When absent: rtu-over-tcp if useTcp, else rtu; without "
+        "useTcp either: rtu-over-tcp when tcpHost or tcpPort is given (not comPort), rtu "
+        "otherwise; tcpHost/tcpPort and comPort together are refused as ambiguous",
     )
     listen_host: str = Field(
         default="0.0.0.0",
@@ -406,7 +413,10 @@ class DriverModbusRtuParameter(Model):
         problems: list[Problem] = []
         fields_set = self.model_fields_set
         if "transport" not in fields_set:
-            self.transport = "rtu-over-tcp" if self.use_tcp else "rtu"
+            if "use_tcp" in fields_set:
+                self.transport = "rtu-over-tcp" if self.use_tcp else "rtu"
+            else:
+                problems += self._infer_transport(fields_set)
         elif "use_tcp" not in fields_set:
             self.use_tcp = self.transport != "rtu"
         elif self.use_tcp != (self.transport != "rtu"):
@@ -432,6 +442,29 @@ class DriverModbusRtuParameter(Model):
         if problems:
             raise ConfigError(problems)
         return self
+
+    def _infer_transport(self, fields_set: set[str]) -> list[Problem]:
+        """Neither ``transport`` nor ``useTcp``: the transport the other keys name.
+
+        The seed (driver-modbus-rtu-design.zh.md) calls ``UseTcp``/``TcpHost``/``TcpPort``
+        its "TCP-over-RTU" settings: a ``tcpHost`` or ``tcpPort`` alone means RTU frames
+        over TCP (a DTU, a serial server), never the serial port ``comPort`` defaults to;
+        ``comPort`` alone means the serial line.  Both named: ambiguous, refused (the seed's
+        own ``modbusRtu.json`` names both and says ``UseTcp: false``)."""
+        tcp_keys = [k for k in ("tcp_host", "tcp_port") if k in fields_set]
+        if not tcp_keys:
+            self.transport, self.use_tcp = "rtu", False
+            return []
+        if "com_port" in fields_set:
+            tcp = " and ".join(f"{_CAMEL[k]} {getattr(self, k)!r}" for k in tcp_keys)
+            return [Problem("transport", NO_VALUE,
+                            f"missing: comPort {self.com_port!r} and {tcp} are both "
+                            "given; say which "
+                            "line this is: transport 'rtu' (the serial port), "
+                            "'rtu-over-tcp' (RTU frames over TCP: a DTU, a serial server) "
+                            "or 'tcp' (Modbus TCP), or useTcp true/false")]
+        self.transport, self.use_tcp = "rtu-over-tcp", True
+        return []
 
     @property
     def heartbeat_bytes(self) -> bytes:

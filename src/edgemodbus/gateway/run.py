@@ -26,8 +26,9 @@ log = logging.getLogger("edgemodbus.service")
 def run_service(config_dir: Path, gateway_config: Path | None = None, *,
                 seconds: float = 0.0) -> int:
     """Run the gateway until SIGTERM/SIGINT, or for ``seconds`` (0: until a signal);
-    SIGHUP reloads.  Returns the exit code: 0 after a clean stop, 2 for a configuration
-    error (printed on stderr)."""
+    SIGHUP reloads.  Returns the exit code (README.md, "Exit codes"): 0 after a clean stop
+    (SIGTERM, --seconds), 130 after SIGINT (Ctrl-C), 2 for a configuration error, a
+    missing optional package or a port in use (one line on stderr)."""
     config_dir = Path(config_dir)
     if not seconds >= 0:  # also refuses NaN
         print(f"edgemodbus service: --seconds {seconds}: must be >= 0 (0: run until a "
@@ -43,17 +44,19 @@ def run_service(config_dir: Path, gateway_config: Path | None = None, *,
         config = (load_gateway_config(gateway_config) if gateway_config is not None
                   else GatewayConfig())
     except (ConfigError, OSError) as exc:
-        print(f"edgemodbus service: {gateway_config}: {exc}", file=sys.stderr)
+        for line in str(exc).splitlines() or [type(exc).__name__]:
+            print(f"edgemodbus service: {gateway_config}: {line}", file=sys.stderr)
         return 2
     except Exception as exc:  # e.g. RecursionError of a deeply nested file: no traceback
         print(f"edgemodbus service: {gateway_config}: cannot load ({one_line(exc)})",
               file=sys.stderr)
         return 2
     wake = threading.Event()
-    flags = {"stop": False, "reload": False}
+    flags = {"stop": False, "reload": False, "interrupted": False}
 
     def on_stop(signum: int, _frame: FrameType | None) -> None:
         flags["stop"] = True
+        flags["interrupted"] = flags["interrupted"] or signum == signal.SIGINT
         wake.set()
 
     def on_reload(signum: int, _frame: FrameType | None) -> None:
@@ -69,8 +72,10 @@ def run_service(config_dir: Path, gateway_config: Path | None = None, *,
     try:
         try:
             gateway.start()
-        except (OSError, ValueError) as exc:
-            print(f"edgemodbus service: {exc}", file=sys.stderr)
+        except (OSError, ValueError) as exc:  # a ConfigError too (e.g. mqtt without paho)
+            text = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+            for line in text.splitlines() or [type(exc).__name__]:
+                print(f"edgemodbus service: {line}", file=sys.stderr)
             return 2
         except Exception as exc:
             print(f"edgemodbus service: cannot start ({one_line(exc)})", file=sys.stderr)
@@ -97,7 +102,7 @@ def run_service(config_dir: Path, gateway_config: Path | None = None, *,
         for sig, old in previous.items():
             signal.signal(sig, old)
     log.info("stopped in %.0f ms", (time.monotonic() - started) * 1000)
-    return 0
+    return 130 if flags["interrupted"] else 0
 
 
 def add_arguments(parser: argparse.ArgumentParser, *, config_dir_required: bool) -> None:

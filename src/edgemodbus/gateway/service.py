@@ -10,7 +10,14 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from ..config import ConfigError, DeviceConfig, DriverModbusRtuParameter, load_device_config
+from ..config import (
+    NO_VALUE,
+    ConfigError,
+    DeviceConfig,
+    DriverModbusRtuParameter,
+    Problem,
+    load_device_config,
+)
 from ..config.templates import template_bytes
 from ..driver import DriverModbusRtu
 from .config import (
@@ -407,14 +414,27 @@ def one_line(exc: BaseException, limit: int = 300) -> str:
 
 
 def make_publisher(mqtt: MqttSettings, gateway_id: str) -> Publisher:
-    """The publisher ``mqtt.mode`` asks for (not started): per-item MQTT or Sparkplug B."""
-    if mqtt.mode == "sparkplug":
-        from ..northbound.sparkplug.publisher import SparkplugPublisher
+    """The publisher ``mqtt.mode`` asks for (not started): per-item MQTT or Sparkplug B.
+    A missing optional package (paho-mqtt, protobuf) is a ConfigError naming ``mqtt``
+    and the extra to install."""
+    try:
+        if mqtt.mode == "sparkplug":
+            from ..northbound.sparkplug.publisher import SparkplugPublisher
 
-        return SparkplugPublisher(mqtt, gateway_id=gateway_id)
-    from ..northbound.mqtt import MqttPublisher
+            return SparkplugPublisher(mqtt, gateway_id=gateway_id)
+        from ..northbound.mqtt import MqttPublisher
 
-    return MqttPublisher(mqtt, gateway_id=gateway_id)
+        return MqttPublisher(mqtt, gateway_id=gateway_id)
+    except ImportError as exc:
+        raise missing_extra("mqtt", "sparkplug" if mqtt.mode == "sparkplug" else "mqtt",
+                            exc) from None
+
+
+def missing_extra(section: str, extra: str, exc: ImportError) -> ConfigError:
+    """The gateway file's ``section`` needs a package that is not installed."""
+    return ConfigError([Problem(section, NO_VALUE, f"needs the optional packages of "
+                                f"edgemodbus[{extra}], not installed ({exc}): pip install "
+                                f"'edgemodbus[{extra}]', or remove the {section} section")])
 
 
 def _digest(path: Path) -> str:
@@ -429,9 +449,12 @@ def _start_exporter(config: GatewayConfig, serving: GatewayServer) -> MetricsExp
     metrics = config.metrics
     if metrics is None or not metrics.enabled:
         return None
-    from ..northbound.metrics import MetricsExporter
+    try:
+        from ..northbound.metrics import MetricsExporter
 
-    exporter = MetricsExporter(metrics, gateway_id=config.effective_id)
+        exporter = MetricsExporter(metrics, gateway_id=config.effective_id)
+    except ImportError as exc:
+        raise missing_extra("metrics", "metrics", exc) from None
     exporter.set_listener_stats(DriverModbusRtu.dtu_registry)  # the DTU listen ports
     exporter.set_server_stats(serving)
     try:

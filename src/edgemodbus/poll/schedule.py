@@ -18,6 +18,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 from ..config import DriverModbusRtuParameter, ParsedItem
+from ..protocol.address import entity_lookalike, entity_notice
 from .planner import PlanItem, ReadBlock, plan_reads
 
 
@@ -42,3 +43,18 @@ def build_plan(items: Sequence[ParsedItem], params: DriverModbusRtuParameter) ->
         max_gap=params.max_merge_address_gap,
         continuous=params.is_block_read_require_address_continuous,
     )
+
+
+def entity_numbers_notice(items: Sequence[ParsedItem],
+                          params: DriverModbusRtuParameter) -> str | None:
+    """One notice for a device whose bare addresses look like Modicon entity numbers
+    (``40001`` read as holding register 40001, not 0; README.md, "Entity addresses"), or
+    None.  Logged once per device start and shown by ``edgemodbus plan``."""
+    found = [(p, e) for p in items
+             if (e := entity_lookalike(p.item.address, params.address_prefix)) is not None]
+    if not found:
+        return None
+    first, entity = found[0]
+    more = f" (and {len(found) - 1} more such addresses)" if len(found) > 1 else ""
+    return (f"item {first.item.name!r}: {entity_notice(first.item.address, first.address, entity)}"
+            f"{more}; for Modicon numbering set addressPrefix: entity")

@@ -281,3 +281,37 @@ def _entity_regexes(bit: str) -> list[str]:
     short = "|".join(_nonzero(w) for w in range(1, 5))
     return [f"(?:{short})", f"[01](?:{_nonzero(4)}|{six})",
             f"[34](?:{_nonzero(4)}|{six})(?:\\.{bit})?"]
+
+
+AREA_NAMES: dict[Area, str] = {
+    Area.COIL: "coil",
+    Area.DISCRETE_INPUT: "discrete input",
+    Area.INPUT_REGISTER: "input register",
+    Area.HOLDING_REGISTER: "holding register",
+}
+
+
+def entity_lookalike(text: str, prefix: str) -> Address | None:
+    """A bare 5-digit number that ``prefix`` (not ``entity``) reads as a holding register
+    offset but that reads as a Modicon entity number of the discrete input or register
+    tables (``10001``, ``30001``, ``40001``): the address it is under ``entity``.  None
+    for anything else (a typed address, ``entity``, other numbers).  Valid under both
+    readings (SunSpec's base 40000 is such an offset), so worth a notice, not an error;
+    a zero-padded number (``00005``) is taken for an offset."""
+    if prefix == "entity" or ":" in text:
+        return None
+    body = text.strip().partition(".")[0]
+    if len(body) != 5 or not body.isdecimal() or body[0] not in "134":
+        return None
+    try:
+        return parse_address(text.strip(), "entity")
+    except ValueError:
+        return None
+
+
+def entity_notice(text: str, read_as: Address, entity: Address) -> str:
+    """The notice for an address :func:`entity_lookalike` found (read as ``read_as``),
+    without the way to switch (a device file and the command line say it differently)."""
+    return (f"address {text!r} is read as {AREA_NAMES[read_as.area]} {read_as.offset} "
+            f"({read_as}); as a Modicon entity number it would be "
+            f"{AREA_NAMES[entity.area]} {entity.offset} ({entity})")

@@ -50,6 +50,7 @@ __all__ = [
     "find_known_frame",
     "frame",
     "pack_bits",
+    "parse_slave_ids",
     "reply_length",
     "request_length",
     "split_frames",
@@ -244,3 +245,29 @@ def find_known_frame(buf: bytes | bytearray, start: int) -> int:
         if need > 0 and len(buf) - j >= need and crc_ok(buf[j : j + need]):
             return j
     return -1
+
+
+def parse_slave_ids(text: str, low: int = 1, high: int = MAX_SLAVE_ID) -> list[int]:
+    """Slave ids as people type them on a command line: ``"1-10,17"`` -> [1..10, 17], in
+    order, each once.  Raises ValueError naming the bad part and what is allowed (ids
+    ``low..high``: 1..247 on an RTU line, Modbus Serial Line 2.2; 0..255 as a Modbus TCP
+    unit id)."""
+    allowed = f"ids {low}..{high} and ranges, separated by commas, e.g. 1-10,17"
+    ids: list[int] = []
+    for part in (p.strip() for p in text.split(",")):
+        if not part:
+            continue
+        which = f"{text!r}" if part == text.strip() else f"{text!r}: {part!r}"
+        first, dash, last = part.partition("-")
+        try:
+            a = int(first)
+            b = int(last) if dash else a
+        except ValueError:
+            raise ValueError(f"{which} is not a number or range (allowed: {allowed})") from None
+        if not (low <= a <= high and low <= b <= high) or a > b:
+            raise ValueError(f"{which} is outside {low}..{high} or reversed "
+                             f"(allowed: {allowed})")
+        ids.extend(range(a, b + 1))
+    if not ids:
+        raise ValueError(f"{text!r}: no slave ids (allowed: {allowed})")
+    return list(dict.fromkeys(ids))

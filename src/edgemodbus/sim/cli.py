@@ -10,34 +10,28 @@ from collections.abc import Sequence
 from typing import Any
 
 from ..logs import configure_logging
+from ..protocol.rtu import MAX_SLAVE_ID, parse_slave_ids
 from .fleet import FLEET_SIZE, DtuFleet
 from .movers import add_demo_movers
 from .server import Simulator
 from .slave import DEFAULT_SIZE
 
 
-def _parse_ids(text: str) -> list[int]:
-    """'1,2,5-8' -> [1, 2, 5, 6, 7, 8]."""
-    ids: list[int] = []
-    for part in text.split(","):
-        part = part.strip()
-        if not part:
-            continue
-        if "-" in part:
-            lo, hi = (int(x) for x in part.split("-", 1))
-            ids.extend(range(lo, hi + 1))
-        else:
-            ids.append(int(part))
-    if not ids:
-        raise argparse.ArgumentTypeError("no slave ids")
-    return ids
+def slave_ids(text: str) -> list[int]:
+    """``--slaves 1,2,5-8`` -> [1, 2, 5, 6, 7, 8]; a bad part is an ArgumentTypeError
+    naming it and what is allowed (argparse prints it as one line)."""
+    try:
+        return parse_slave_ids(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The options of ``edgemodbus simulate`` (also ``python -m edgemodbus.sim``)."""
     parser.add_argument("--host", default="127.0.0.1", help="listen address (127.0.0.1)")
     parser.add_argument("--port", type=int, default=5020, help="TCP port, 0 = any (5020)")
-    parser.add_argument("--slaves", type=_parse_ids, default=[1], help="ids, e.g. 1,2,5-8")
+    parser.add_argument("--slaves", type=slave_ids, default=[1],
+                        help=f"ids 1..{MAX_SLAVE_ID}, e.g. 1,2,5-8 (1)")
     parser.add_argument("--size", type=int, default=None,
                         help=f"points per area ({DEFAULT_SIZE}; with --dtus {FLEET_SIZE})")
     parser.add_argument("--pty", action="store_true", help="also serve a pty")
@@ -84,7 +78,10 @@ def run(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
     """Serve slaves until SIGINT/SIGTERM.
 
     Prints one line per endpoint (``tcp HOST:PORT``, ``pty PATH``) on stdout, flushed,
-    so that a script can read where to connect.
+    so that a script can read where to connect.  Exit codes (README.md, "Exit codes"):
+    0 after SIGTERM, 130 after SIGINT (Ctrl-C), 2 for a bad option, a port in use or a
+    refused ``--dial`` (one line naming the option), 1 for another OSError (e.g. too few
+    open files for ``--dtus``).
     """
     dial: tuple[str, int] | None = None
     if args.dial is not None:
@@ -92,49 +89,84 @@ def run(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
         if not host or not port_text.isdigit() or not 1 <= int(port_text) <= 65535:
             parser.error(f"--dial {args.dial!r}: use HOST:PORT with a port of 1..65535")
         dial = (host, int(port_text))
+    if not 0 <= args.port <= 65535:
+        parser.error(f"--port {args.port}: must be 0..65535 (0: any free port)")
+    if args.size is not None and not 1 <= args.size <= 0x10000:
+        parser.error(f"--size {args.size}: must be 1..65536 points per area")
 
     if args.dtus is not None and (dial is None or args.dtus < 1 or args.wrapped or args.pty):
         parser.error("--dtus N: needs --dial HOST:PORT and N >= 1; not with --wrapped or --pty")
     stop = threading.Event()
+    interrupted = threading.Event()
+
+    def on_signal(signum: int, _frame: Any) -> None:
+        if signum == signal.SIGINT:
+            interrupted.set()
+        stop.set()
+
     previous: dict[signal.Signals, Any] = {}
     if threading.current_thread() is threading.main_thread():
         for signum in (signal.SIGINT, signal.SIGTERM):
-            previous[signum] = signal.signal(signum, lambda *_: stop.set())
+            previous[signum] = signal.signal(signum, on_signal)
     try:
         if args.dtus is not None:
             assert dial is not None
-            return _run_fleet(args, parser, dial, stop)
-        size = DEFAULT_SIZE if args.size is None else args.size
-        with Simulator(args.slaves, size, seed=args.seed) as sim:
-            if args.movers:
-                for slave in sim.slaves:
-                    add_demo_movers(slave)
-            if dial is not None:
-                sim.dial(dial[0], dial[1], registration=(args.registration or "").encode(),
-                         heartbeat=args.heartbeat.encode(),
-                         heartbeat_interval=args.heartbeat_interval, wrapped=args.wrapped)
-                print(f"dialled {dial[0]}:{dial[1]}", flush=True)
-            elif not args.no_tcp:
-                port = sim.serve_tcp(args.host, args.port, wrapped=args.wrapped)
-                print(f"tcp {args.host}:{port}", flush=True)
-            if args.pty:
-                print(f"pty {sim.serve_pty()}", flush=True)
-            ids = ",".join(str(s) for s in args.slaves)
-            print(f"serving slaves {ids}; Ctrl-C to stop", file=sys.stderr, flush=True)
-            while not stop.wait(1.0):
-                pass
-    except OSError as e:
-        print(f"edgemodbus simulate: {e}", file=sys.stderr)
+            _run_fleet(args, parser, dial, stop)
+        else:
+            _serve(args, dial, stop)
+    except _OptionFailed as exc:
+        print(f"edgemodbus simulate: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:  # the machine's limits (open files): a runtime failure
+        print(f"edgemodbus simulate: {exc}", file=sys.stderr)
         return 1
     finally:
         for signum, handler in previous.items():
             signal.signal(signum, handler)
-    return 0
+    return 130 if interrupted.is_set() else 0
 
+
+class _OptionFailed(Exception):
+    """What an option asked for failed (a port in use, a refused dial): one line."""
+
+
+def _serve(args: argparse.Namespace, dial: tuple[str, int] | None,
+           stop: threading.Event) -> None:
+    size = DEFAULT_SIZE if args.size is None else args.size
+    with Simulator(args.slaves, size, seed=args.seed) as sim:
+        if args.movers:
+            for slave in sim.slaves:
+                add_demo_movers(slave)
+        if dial is not None:
+            try:
+                sim.dial(dial[0], dial[1], registration=(args.registration or "").encode(),
+                         heartbeat=args.heartbeat.encode(),
+                         heartbeat_interval=args.heartbeat_interval, wrapped=args.wrapped)
+            except OSError as exc:
+                raise _OptionFailed(f"--dial {args.dial}: cannot connect: "
+                                    f"{exc.strerror or exc}") from None
+            print(f"dialled {dial[0]}:{dial[1]}", flush=True)
+        elif not args.no_tcp:
+            try:
+                port = sim.serve_tcp(args.host, args.port, wrapped=args.wrapped)
+            except OSError as exc:
+                raise _OptionFailed(f"--host {args.host} --port {args.port}: cannot listen "
+                                    f"on {args.host}:{args.port}: {exc.strerror or exc}"
+                                    ) from None
+            print(f"tcp {args.host}:{port}", flush=True)
+        if args.pty:
+            try:
+                print(f"pty {sim.serve_pty()}", flush=True)
+            except OSError as exc:
+                raise _OptionFailed(f"--pty: {exc.strerror or exc}") from None
+        ids = ",".join(str(s) for s in args.slaves)
+        print(f"serving slaves {ids}; Ctrl-C to stop", file=sys.stderr, flush=True)
+        while not stop.wait(1.0):
+            pass
 
 
 def _run_fleet(args: argparse.Namespace, parser: argparse.ArgumentParser,
-               dial: tuple[str, int], stop: threading.Event) -> int:
+               dial: tuple[str, int], stop: threading.Event) -> None:
     """``--dial HOST:PORT --dtus N``: a :class:`DtuFleet` until stopped; a status line on
     stderr every 5 s while it changes."""
     try:
@@ -164,4 +196,3 @@ def _run_fleet(args: argparse.Namespace, parser: argparse.ArgumentParser,
             if line != shown:
                 print(line, file=sys.stderr, flush=True)
                 shown = line
-    return 0
