@@ -37,8 +37,11 @@ def values(client: Client, start: int = 0) -> list[Any]:
     return [json.loads(p)["value"] for _, p, _, _ in client.sent[start:]]
 
 
-def test_an_outage_goes_to_the_spool_and_is_replayed_in_order_without_retain(
+def test_an_outage_goes_to_the_spool_and_is_replayed_in_order_with_its_retain_flag(
         tmp_path: Path) -> None:
+    """Replayed with the retain flag it was kept with: the device's live messages queue
+    behind its backlog, so its last replayed message per topic is the newest (before:
+    retain off, and the broker kept the value from before the outage, issue #24)."""
     sender, outbox, dev = spooled(tmp_path, qos=1, retain=True, queueSize=2)
     assert sender.forwarder is not None
     try:
@@ -53,7 +56,7 @@ def test_an_outage_goes_to_the_spool_and_is_replayed_in_order_without_retain(
         client = Client()
         sender.pump(client)  # type: ignore[arg-type]
         assert values(client) == [0, 1, 2, 3] * 3
-        assert {(qos, retain) for _, _, qos, retain in client.sent} == {(1, False)}
+        assert {(qos, retain) for _, _, qos, retain in client.sent} == {(1, True)}
         stats = sender.forwarder.stats()
         assert stats["inflight"] == 12 and stats["replayed"] == 12
         for info in client.infos[:5]:

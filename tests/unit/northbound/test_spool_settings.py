@@ -43,8 +43,9 @@ def test_a_missing_directory_names_the_field_and_the_value(tmp_path: Path) -> No
 
 
 @pytest.mark.parametrize("field, value, allowed", [
-    ("maxBytes", 0, "1 or more"),
-    ("maxBytes", -5, "1 or more"),
+    ("maxBytes", 0, "65536 or more"),
+    ("maxBytes", 65535, "65536 or more"),  # the file's floor: SQLite's own pages
+    ("memoryQueueSize", -1, "0..10000000"),
     ("maxAgeS", 0, "1 or more"),
     ("replayRatePerS", 0, "0.01 or more"),
     ("replayBytesPerS", -1, "1 or more"),

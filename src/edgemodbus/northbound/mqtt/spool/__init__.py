@@ -55,19 +55,19 @@ the last commits (the file stays consistent).  ``"full"`` adds an fsync per comm
 and survives power loss too.  See :class:`Spool`.
 """
 
+from .file import MIN_FILE_BYTES, SpoolError, file_bound, path_problem
 from .pacer import ReplayPacer
 from .store import (
     ROW_OVERHEAD,
     SYNCHRONOUS,
     Message,
     Spool,
-    SpoolError,
     Stored,
     message_size,
-    path_problem,
 )
 
 __all__ = [
+    "MIN_FILE_BYTES",
     "ROW_OVERHEAD",
     "SYNCHRONOUS",
     "Message",
@@ -75,6 +75,7 @@ __all__ = [
     "Spool",
     "SpoolError",
     "Stored",
+    "file_bound",
     "message_size",
     "path_problem",
 ]
