@@ -178,22 +178,24 @@ def fill(folder: Path) -> None:
         os.close(fd)
 
 
-def test_a_spool_larger_than_its_disk_keeps_room_for_acks_and_drops_its_oldest(
-        full_disk: Path) -> None:
+def test_a_spool_larger_than_its_disk_keeps_room_for_acks(full_disk: Path) -> None:
     """maxBytes 100 MB on a 2 MB tmpfs.  Before: the WAL took the whole disk, every
     write failed, acks too, so the spool never shrank.  Now the database stops growing
-    while its disk still has room for a WAL and a checkpoint: appends keep working by
-    dropping the oldest messages (counted), acknowledgements shrink it."""
+    while its disk still has room for a WAL and a checkpoint: appends are refused
+    (SpoolError: the sender keeps them in memory), acknowledgements shrink it, and
+    appends go on in the room they freed."""
     path = full_disk / "spool.db"
     with Spool(path, max_bytes=100_000_000, max_age_s=1e9) as spool:
-        for n in range(0, 20_000, 20):
-            spool.append([msg(n + k, 200) for k in range(20)])  # never raises
+        with pytest.raises(SpoolError, match=r"spool\.db.*full: its disk"):
+            for n in range(0, 20_000, 20):
+                spool.append([msg(n + k, 200) for k in range(20)])
         stats = spool.stats()
-        assert stats["droppedSize"] > 0 and stats["stored"] > 2000, stats
+        assert stats["droppedSize"] == 0 and stats["stored"] > 2000, stats
         assert disk_bytes(path) <= 2 * 1024 * 1024
         batch = spool.next_batch(1000)
         assert spool.ack(m.id for m in batch) == 1000
         assert spool.stats()["stored"] == stats["stored"] - 1000
+        assert len(spool.append([msg(k, 200) for k in range(500)])) == 500
 
 
 def test_a_disk_filled_by_someone_else_refuses_appends_with_a_spool_error(

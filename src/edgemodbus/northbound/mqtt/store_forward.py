@@ -68,7 +68,7 @@ class Forwarder:
                  clock: Callable[[], float] = time.monotonic) -> None:
         self.spool = Spool(settings.path, max_bytes=settings.max_bytes,
                            max_age_s=settings.max_age_s, synchronous=settings.synchronous)
-        self._clock = clock
+        self.clock = clock  # the backoff's (replaceable in tests)
         self.limiter = LogLimiter(log, interval=10.0, burst=3, clock=clock)
         # the spool refused a write: messages wait here (oldest first) until it takes
         # them again; retry_at is when to try next (0.0: the spool is writable)
@@ -147,7 +147,7 @@ class Forwarder:
             self._backoff = RETRY_MIN
         else:
             self._backoff = min(self._backoff * 2, RETRY_MAX)
-        self.retry_at = self._clock() + self._backoff
+        self.retry_at = self.clock() + self._backoff
         self.limiter.event(logging.ERROR, f"store-and-forward {kind}", self.spool.path,
                            "store-and-forward: %s (%s); messages wait in memory (at "
                            "most %d), the spool is tried again in %.0f s", kind, exc,
@@ -156,8 +156,9 @@ class Forwarder:
     def _recovered(self) -> None:
         if self.retry_at != 0.0:
             self.retry_at = 0.0
-            log.warning("store-and-forward: the spool %s takes writes again",
-                        self.spool.path)
+            self.limiter.event(logging.WARNING, "store-and-forward spool recoveries",
+                               self.spool.path, "store-and-forward: the spool %s takes "
+                               "writes again", self.spool.path)
 
     def _to_memory(self, messages: list[Message]) -> None:
         """Keep ``messages`` in memory behind the others; beyond the bound the oldest
@@ -186,7 +187,7 @@ class Forwarder:
         """Unless the backoff is still on: the messages waiting in memory appended to
         the spool (one transaction), and the acknowledgements kept, applied.  True when
         the spool took them (nothing waits in memory any more)."""
-        if self.retry_at and self._clock() < self.retry_at:
+        if self.retry_at and self.clock() < self.retry_at:
             return False
         if self.memory:
             waiting = list(self.memory)
@@ -204,7 +205,7 @@ class Forwarder:
     def tick(self) -> None:
         """Once per turn of the MQTT thread: the retry when it is due, the log
         summaries."""
-        if self.retry_at and self._clock() >= self.retry_at:
+        if self.retry_at and self.clock() >= self.retry_at:
             self.retry()
         self.limiter.flush()
 

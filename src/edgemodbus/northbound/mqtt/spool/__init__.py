@@ -57,14 +57,8 @@ and survives power loss too.  See :class:`Spool`.
 
 from .file import MIN_FILE_BYTES, SpoolError, file_bound, path_problem
 from .pacer import ReplayPacer
-from .store import (
-    ROW_OVERHEAD,
-    SYNCHRONOUS,
-    Message,
-    Spool,
-    Stored,
-    message_size,
-)
+from .rows import ROW_OVERHEAD, SYNCHRONOUS, Message, Stored, message_size
+from .store import Spool
 
 __all__ = [
     "MIN_FILE_BYTES",

@@ -16,7 +16,6 @@ import sqlite3
 import threading
 import time
 from collections.abc import Callable, Iterable, Iterator
-from typing import NamedTuple
 
 from ....line.log_limit import LogLimiter
 from .file import (
@@ -32,48 +31,14 @@ from .file import (
     open_db,
     path_problem,
 )
+from .rows import SYNCHRONOUS, Message, Stored, message_size
 
 log = logging.getLogger("edgemodbus.mqtt.spool")
-
-ROW_OVERHEAD = 32
-"""Bytes a row counts beyond its topic and payload (id, device, qos, retain, time, and
-SQLite's own per-row cost, roughly), so that many empty payloads still fill the bound."""
-
-SYNCHRONOUS = ("normal", "full")
 
 _COLUMNS = "id, device, topic, payload, qos, retain, ts"
 _TRIES = 5  # appends that make room for themselves before giving up
 _SCAN = 512  # rows read per step when looking for the oldest rows to drop or send
 _PARAMS = 500  # ids per DELETE ... IN (...) statement (SQLite allows 32766)
-
-
-class Message(NamedTuple):
-    """One message to keep: the device it belongs to (its per-device order is kept), and
-    what the sender hands paho."""
-
-    device: str
-    topic: str
-    payload: bytes
-    qos: int
-    retain: bool
-
-
-class Stored(NamedTuple):
-    """A message read back from the spool: its id (what :meth:`Spool.ack` takes) and the
-    wall-clock time it was appended (Unix seconds)."""
-
-    id: int
-    device: str
-    topic: str
-    payload: bytes
-    qos: int
-    retain: bool
-    ts: float
-
-
-def message_size(topic: str, payload: bytes) -> int:
-    """What one message counts against ``maxBytes``."""
-    return len(topic.encode()) + len(payload) + ROW_OVERHEAD
 
 
 class Spool:
@@ -177,6 +142,10 @@ class Spool:
                 except SpoolError as exc:
                     if not self._at_bound(exc, rows):
                         raise  # the disk is full or failing: the caller keeps them
+                    if self._max_pages < self.bound.max_pages:  # the disk's bound
+                        raise SpoolError(f"spool {self.path!r}: full: its disk leaves it "
+                                         f"{self._max_pages * PAGE_SIZE} bytes (room "
+                                         "kept for acknowledgements)") from None
                     # the database reached max_page_count: make room as maxBytes does
                     extra = max(4 * extra, sum(r[6] for r in rows) // 4, 2 * PAGE_SIZE)
             else:
@@ -419,9 +388,9 @@ class Spool:
 
     def _fit_disk(self) -> None:
         """The database may grow only as far as its file system leaves room for a WAL
-        and a checkpoint besides it (2 WAL shares free): a spool that fills its disk
-        drops its oldest messages like at maxBytes, and its acknowledgements and
-        checkpoints still find room.  Lowers (or raises again, up to the bound)
+        and a checkpoint besides it (2 WAL shares free): an append that needs more is
+        refused as on a full disk (the sender keeps it in memory), while
+        acknowledgements and checkpoints still find room.  Lowers (or raises again, up to the bound)
         max_page_count; SQLite keeps it at least the current page count."""
         bound = self.bound
         try:
@@ -525,8 +494,7 @@ class Spool:
 
     def _dropped(self, counter: str, n: int, why: str) -> None:
         self.counts[counter] += n
-        bound = (f"maxAgeS {self.max_age_s:g}" if why == "age"
-                 else f"maxBytes {self.max_bytes}" if self._max_pages >= self.bound.max_pages
-                 else "the free space of its disk")
+        bound = (f"maxBytes {self.max_bytes}" if why == "size"
+                 else f"maxAgeS {self.max_age_s:g}")
         self._limiter.event(logging.WARNING, f"drops from the spool ({bound})", self.path,
                             "spool %s: %d oldest messages dropped (%s)", self.path, n, bound)
