@@ -320,3 +320,55 @@ def spool_rows(path: Path) -> set[bytes]:
         return {bytes(row[0]) for row in db.execute("SELECT payload FROM messages")}
     finally:
         db.close()
+
+
+@pytest.mark.parametrize("mode", ["per-item", "batch"])
+def test_after_a_replay_the_retained_value_is_the_current_one(
+        broker: Mosquitto, tmp_path: Path, mode: str) -> None:
+    """Issue #24: values change during an outage, then stop changing (the driver stops
+    before the broker is back, so nothing live follows the replay).  A subscriber that
+    arrives after the replay gets, retained, the last value the driver read.  Before:
+    the replay went out with retain off and the broker kept the value from before the
+    outage."""
+    with Simulator([1], size=10) as peer:
+        mover = CounterMover(Area.HOLDING_REGISTER, 0, 1, interval_ms=30, start=2100)
+        peer.slave(1).add_mover(mover)
+        port = peer.serve_tcp("127.0.0.1", 0)
+        file = device_file(port, 1, cycle_ms=50)
+        file["addressList"] = file["addressList"][:3]
+        cfg = em.load_device_config(file)
+        recorder = Recorder(per_item=True)
+        settings = {"port": broker.port, "mode": mode, "qos": 1, "retain": True,
+                    "reconnectMin": 100, "reconnectMax": 400,
+                    "storeAndForward": {"path": str(tmp_path / "spool.db")}}
+        pub = MqttPublisher(settings, gateway_id="gw-retain").start()
+        drv = em.DriverModbusRtu()
+        try:
+            assert pub.wait_connected(10)
+            drv.addresses_updated_callback = recorder
+            pub.attach(drv, "dev1")
+            assert drv.start_device(cfg.organization, cfg.communication, cfg.address_list)
+            wait_for(lambda: pub.stats()["published"] > 0, timeout=30,
+                     what="the first values published")
+            broker.stop()
+            wait_for(lambda: not pub.connected, what="the publisher sees the broker go")
+            spooled = pub.stats()["spool"]["appended"]
+            wait_for(lambda: pub.stats()["spool"]["appended"] >= spooled + 10, timeout=60,
+                     what="changes spooled during the outage")
+            drv.stop_device()  # the last value read stays the device's value
+            last = {}
+            for report in recorder.reports:
+                last.update(report["values"])
+            broker.restart()
+            assert pub.wait_connected(10)
+            wait_for(lambda: pub.stats()["spool"]["stored"] == 0, timeout=60,
+                     what="the backlog replayed and acknowledged")
+            with MqttProbe(broker.port, [f"{P}/dev1/+"]) as late:
+                leaf = "$batch" if mode == "batch" else "t0"
+                got = late.wait_for(f"{P}/dev1/{leaf}", lambda m: m.retain)
+                body = got.json()
+                value = body["values"]["t0"] if mode == "batch" else body["value"]
+                assert value == last["t0"], (value, last["t0"])
+        finally:
+            drv.stop_device()
+            pub.stop()
