@@ -165,3 +165,29 @@ def test_a_spool_in_use_by_another_publisher_is_a_config_error_naming_the_path(
     finally:
         second.stop()
         first.stop()
+
+
+def test_an_outage_queue_has_the_memory_queue_as_margin_before_it_drops(
+        tmp_path: Path) -> None:
+    """Issue #24's flaky test: during an outage the line workers queue reports faster
+    than a stalled MQTT thread (a slow checkpoint, a loaded machine) moves them to the
+    spool; the outbox then dropped 10 past queueSize + one report per device.  Now
+    memoryQueueSize more may wait (the memory store-and-forward may use anyway)."""
+    sender, outbox, dev = spooled(tmp_path, queueSize=10, qos=1)
+    assert sender.forwarder is not None
+    s = sender.settings.store_and_forward
+    assert s is not None and s.memory_queue_size == 10_000
+    try:
+        sender._connected.clear()
+        outbox.set_outage(True)
+        outbox.offer_items(dev, items(20))  # the largest report: the burst
+        for _ in range(500):  # 10,000 more, the MQTT thread kept from running
+            outbox.offer_items(dev, items(20))
+        assert outbox.counts["dropped"] == 0 and outbox.queued == 10_020
+        outbox.offer_items(dev, items(20))
+        assert outbox.counts["dropped"] == 10  # the bound still holds, counted
+        sender.spool_outage()
+        assert sender.forwarder.stats()["stored"] == 10_030
+    finally:
+        sender.close_spool()
+        outbox.close()
