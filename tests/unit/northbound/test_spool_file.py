@@ -139,8 +139,8 @@ def test_someone_elses_database_is_refused_and_left_untouched(tmp_path: Path) ->
 
 
 def test_a_fifo_or_a_device_is_refused_without_opening_it(tmp_path: Path) -> None:
-    """Before: sqlite3.connect on a FIFO blocked for ever (no writer), a device got
-    a traceback from SQLite.  Now path_problem says what it is."""
+    """Before: a FIFO raised sqlite3's OperationalError "disk I/O error" (a traceback),
+    a device a SpoolError saying the same.  Now path_problem says what it is."""
     fifo = tmp_path / "spool.db"
     os.mkfifo(fifo)
     assert "is a FIFO, not a regular file" in (path_problem(fifo) or "")

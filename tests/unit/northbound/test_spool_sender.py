@@ -191,3 +191,19 @@ def test_an_outage_queue_has_the_memory_queue_as_margin_before_it_drops(
     finally:
         sender.close_spool()
         outbox.close()
+
+
+def test_a_damaged_spool_does_not_stop_the_publisher(tmp_path: Path) -> None:
+    """Before: ConfigError at start(), so the gateway exited 2 (no polling, no server;
+    under systemd a restart loop).  Now the file is moved aside and a new one used."""
+    spool = tmp_path / "s.db"
+    spool.write_bytes(b"\x00garbage" * 1000)
+    pub = MqttPublisher({"port": 1, "storeAndForward": {"path": str(spool)}},
+                        gateway_id="g1")
+    try:
+        pub.start()
+        aside = [p.name for p in tmp_path.iterdir() if ".corrupt-" in p.name]
+        assert len(aside) == 1 and aside[0].startswith("s.db.corrupt-")
+        assert pub.stats()["spool"]["stored"] == 0
+    finally:
+        pub.stop(timeout=0)
