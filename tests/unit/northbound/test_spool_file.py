@@ -8,7 +8,6 @@ from __future__ import annotations
 import os
 import random
 import sqlite3
-import subprocess
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -24,6 +23,7 @@ from edgemodbus.northbound.mqtt.spool import (
     file_bound,
     path_problem,
 )
+from tests.tmpfs import fill, small_tmpfs
 
 
 def msg(n: int, size: int = 100) -> Message:
@@ -152,30 +152,8 @@ def test_a_fifo_or_a_device_is_refused_without_opening_it(tmp_path: Path) -> Non
 @pytest.fixture
 def full_disk(tmp_path: Path) -> Iterator[Path]:
     """A 2 MB tmpfs (skipped where mounting is not permitted), unmounted after."""
-    mount = tmp_path / "tmpfs"
-    mount.mkdir()
-    done = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=2m", "tmpfs", str(mount)],
-                          capture_output=True, text=True, check=False)
-    if done.returncode != 0:
-        pytest.skip(f"cannot mount a tmpfs here ({done.stderr.strip()}): needs root")
-    try:
+    with small_tmpfs(tmp_path) as mount:
         yield mount
-    finally:
-        subprocess.run(["umount", str(mount)], check=True)
-
-
-def fill(folder: Path) -> None:
-    """Fill the file system up to its last byte."""
-    fd = os.open(folder / "filler", os.O_WRONLY | os.O_CREAT, 0o600)
-    try:
-        for chunk in (65536, 1):
-            try:
-                while os.write(fd, b"\0" * chunk):
-                    pass
-            except OSError:
-                pass
-    finally:
-        os.close(fd)
 
 
 def test_a_spool_larger_than_its_disk_keeps_room_for_acks(full_disk: Path) -> None:

@@ -13,7 +13,8 @@ from pathlib import Path
 import pytest
 
 from edgemodbus.northbound.mqtt.sender import Sender
-from tests.unit.northbound.test_spool_file import fill, full_disk
+from tests.tmpfs import fill
+from tests.unit.northbound.test_spool_file import full_disk
 from tests.unit.test_mqtt_sender import Client, items, make
 
 __all__ = ["full_disk"]  # the fixture, used by name

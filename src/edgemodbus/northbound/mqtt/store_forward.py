@@ -77,6 +77,7 @@ class Forwarder:
         self._in_memory: Counter[str] = Counter()  # per device
         self.memory_dropped = 0
         self.retry_at = 0.0
+        self._ack_after = 0.0  # acknowledgements that failed wait until then
         self._backoff = RETRY_MIN
         self.pacer = ReplayPacer(settings.replay_rate_per_s,
                                  bytes_per_s=settings.replay_bytes_per_s)
@@ -184,12 +185,14 @@ class Forwarder:
             del self._in_memory[key]
 
     def retry(self) -> bool:
-        """Unless the backoff is still on: the messages waiting in memory appended to
-        the spool (one transaction), and the acknowledgements kept, applied.  True when
-        the spool took them (nothing waits in memory any more)."""
+        """Unless the backoff is still on: the acknowledgements kept, applied (they make
+        room), then the messages waiting in memory appended to the spool (one
+        transaction).  True when the spool took them (nothing waits in memory)."""
         if self.retry_at and self.clock() < self.retry_at:
             return False
-        if self.memory:
+        self.retry_at = 0.0
+        self._ack()
+        if self.memory and not self.retry_at:
             waiting = list(self.memory)
             ids = self._append(waiting, claimed=False)
             if ids is None:
@@ -198,8 +201,6 @@ class Forwarder:
             self._in_memory.clear()
             for message, i in zip(waiting[len(waiting) - len(ids):], ids, strict=True):
                 self.tail[message.device or ""] = i
-        self.retry_at = 0.0
-        self._ack()
         return self.retry_at == 0.0
 
     def tick(self) -> None:
@@ -270,9 +271,9 @@ class Forwarder:
         return 0.0 if self.credit else self.pacer.delay()
 
     def settle(self) -> None:
-        """Delete what completed this turn (one transaction), unless the spool is in
-        its backoff (then with the retry)."""
-        if self.done and not self.retry_at:
+        """Delete what completed this turn (one transaction; also while writes are
+        refused: deletes make room), unless deletes failed and their backoff is on."""
+        if self.done and self.clock() >= self._ack_after:
             self._ack()
 
     def _ack(self) -> None:
@@ -280,10 +281,12 @@ class Forwarder:
             return
         try:
             self.spool.ack(self.done)
-        except SpoolError as exc:  # kept: tried again with the spool
+        except SpoolError as exc:  # kept: tried again after the backoff
             self._failed("acknowledgements failed", exc)
+            self._ack_after = self.retry_at
         else:
             self.done = []
+            self._ack_after = 0.0
 
     def release(self, taken: list[tuple[int, str | None]]) -> None:
         """Messages paho did not take (or lost), by (id, device): pending again, so

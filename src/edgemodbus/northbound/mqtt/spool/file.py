@@ -97,8 +97,8 @@ _KINDS = ((stat.S_ISFIFO, "a FIFO"), (stat.S_ISCHR, "a character device"),
 
 def path_problem(path: str | os.PathLike[str]) -> str | None:
     """Why a spool cannot be kept at ``path``, or None: its folder must exist and be
-    writable by this process, and the path must be a regular file or not exist yet (a
-    FIFO would block the open for ever, a device is nobody's spool)."""
+    writable by this process, and the path must be a regular file or not exist yet (on
+    a FIFO or a device SQLite fails with a bare "disk I/O error")."""
     target = Path(path)
     folder = target.parent
     if target.is_dir():
