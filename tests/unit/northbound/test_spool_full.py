@@ -126,3 +126,35 @@ def test_memory_waits_behind_the_spool_and_goes_to_it_when_it_takes_writes_again
     finally:
         sender.close_spool()
         outbox.close()
+
+
+def test_a_spool_that_cannot_be_created_on_a_full_disk_is_opened_later(
+        full_disk: Path) -> None:
+    """Before: SpoolError at start (ConfigError: the gateway exited 2, a restart loop
+    under systemd).  Now the messages wait in memory until the disk has room."""
+    fill(full_disk)
+    sender, outbox, dev = make("batch", qos=1, storeAndForward={
+        "path": str(full_disk / "spool.db")})
+    sender.open_spool()  # no ConfigError
+    forwarder = sender.forwarder
+    assert forwarder is not None
+    clock = forwarder.clock = Clock()  # type: ignore[method-assign]
+    try:
+        sender._connected.clear()
+        for n in range(5):
+            outbox.offer_items(dev, numbered(n))
+            sender.spool_outage()
+        assert forwarder.stats()["memory"] == 5
+        (full_disk / "filler").unlink()
+        clock.t = forwarder.retry_at + 60  # (set on the real clock, at open)
+        outbox.offer_items(dev, numbered(5))
+        sender.spool_outage()
+        stats = forwarder.stats()
+        assert stats["memory"] == 0 and stats["stored"] == 6, stats
+        sender._connected.set()
+        client = Client()
+        sender.pump(client)  # type: ignore[arg-type]
+        assert sent_values(client) == list(range(6))
+    finally:
+        sender.close_spool()
+        outbox.close()

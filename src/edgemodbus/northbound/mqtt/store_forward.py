@@ -52,12 +52,46 @@ from ...line.log_limit import LogLimiter
 from .outbox import Message
 from .settings import StoreAndForwardSettings
 from .spool import Message as Row
-from .spool import ReplayPacer, Spool, SpoolError, Stored
+from .spool import ReplayPacer, Spool, SpoolError, SpoolUnavailable, Stored
 
 log = logging.getLogger("edgemodbus.mqtt")
 
 RETRY_MIN = 1.0  # s: the first retry of a spool that refused a write
 RETRY_MAX = 30.0
+
+
+class NoSpool:
+    """Stands in for a spool that could not be opened because its disk is full or
+    failing: it keeps nothing, every append raises :class:`SpoolError` (so messages
+    wait in memory), and :meth:`Forwarder.retry` opens the real one later."""
+
+    def __init__(self, path: str, why: str) -> None:
+        self.path, self.why = path, why
+
+    def device_tails(self) -> dict[str, int]:
+        return {}
+
+    def pending_count(self) -> int:
+        return 0
+
+    def append(self, rows: list[Row], *, claimed: bool = False) -> list[int]:
+        raise SpoolError(self.why)
+
+    def next_batch(self, limit: int) -> list[Stored]:
+        return []
+
+    def ack(self, ids: list[int]) -> int:
+        return 0
+
+    def release(self, ids: list[int]) -> None:
+        pass
+
+    def stats(self) -> dict[str, int]:
+        return dict.fromkeys(("appended", "acked", "released", "droppedSize", "droppedAge",
+                              "stored", "pending", "inflight", "bytes", "fileBytes"), 0)
+
+    def close(self) -> None:
+        pass
 
 
 class Forwarder:
@@ -66,8 +100,7 @@ class Forwarder:
 
     def __init__(self, settings: StoreAndForwardSettings,
                  clock: Callable[[], float] = time.monotonic) -> None:
-        self.spool = Spool(settings.path, max_bytes=settings.max_bytes,
-                           max_age_s=settings.max_age_s, synchronous=settings.synchronous)
+        self.settings = settings
         self.clock = clock  # the backoff's (replaceable in tests)
         self.limiter = LogLimiter(log, interval=10.0, burst=3, clock=clock)
         # the spool refused a write: messages wait here (oldest first) until it takes
@@ -79,6 +112,12 @@ class Forwarder:
         self.retry_at = 0.0
         self._ack_after = 0.0  # acknowledgements that failed wait until then
         self._backoff = RETRY_MIN
+        self.spool: Spool | NoSpool
+        try:
+            self.spool = self._open()
+        except SpoolUnavailable as exc:  # the disk full or failing: polling goes on
+            self.spool = NoSpool(settings.path, str(exc))
+            self._failed("the spool cannot be opened", exc)
         self.pacer = ReplayPacer(settings.replay_rate_per_s,
                                  bytes_per_s=settings.replay_bytes_per_s)
         self.tail: dict[str, int] = self.spool.device_tails()  # kept from before: a backlog
@@ -87,6 +126,11 @@ class Forwarder:
         self.replayed = 0
         self.errors = 0
         self.credit = 0  # live messages appended behind a backlog, not yet replayed
+
+    def _open(self) -> Spool:
+        s = self.settings
+        return Spool(s.path, max_bytes=s.max_bytes, max_age_s=s.max_age_s,
+                     synchronous=s.synchronous)
 
     def backlogged(self, device: str | None) -> bool:
         """True while ``device`` has messages pending in the spool (its live ones must
@@ -190,6 +234,13 @@ class Forwarder:
         transaction).  True when the spool took them (nothing waits in memory)."""
         if self.retry_at and self.clock() < self.retry_at:
             return False
+        if isinstance(self.spool, NoSpool):
+            try:
+                self.spool = self._open()
+            except SpoolError as exc:
+                self._failed("the spool cannot be opened", exc)
+                return False
+            self.tail = self.spool.device_tails()
         self.retry_at = 0.0
         self._ack()
         if self.memory and not self.retry_at:

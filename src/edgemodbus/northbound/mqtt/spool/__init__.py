@@ -69,7 +69,7 @@ the last commits (the file stays consistent).  ``"full"`` adds an fsync per comm
 and survives power loss too.  See :class:`Spool`.
 """
 
-from .file import MIN_FILE_BYTES, SpoolError, file_bound, path_problem
+from .file import MIN_FILE_BYTES, SpoolError, SpoolUnavailable, file_bound, path_problem
 from .pacer import ReplayPacer
 from .rows import ROW_OVERHEAD, SYNCHRONOUS, Message, Stored, message_size
 from .store import Spool
@@ -82,6 +82,7 @@ __all__ = [
     "ReplayPacer",
     "Spool",
     "SpoolError",
+    "SpoolUnavailable",
     "Stored",
     "file_bound",
     "message_size",

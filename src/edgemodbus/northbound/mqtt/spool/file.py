@@ -47,11 +47,16 @@ class SpoolError(RuntimeError):
     process, closed, the disk full or failing); the message names the path."""
 
 
+class SpoolUnavailable(SpoolError):
+    """The spool cannot be opened for now: its disk is full or failing (the sender
+    keeps messages in memory and tries again)."""
+
+
 class Unreadable(Exception):
     """The file is damaged (SQLite says corrupt, or not a database): moved aside."""
 
 
-CORRUPT, FULL, NOTADB = 11, 13, 26  # SQLite's primary result codes
+IOERR, CORRUPT, FULL, NOTADB = 10, 11, 13, 26  # SQLite's primary result codes
 
 
 def error_code(exc: sqlite3.Error) -> int:
@@ -195,6 +200,8 @@ def open_db(path: str, bound: FileBound, synchronous: str
         if "locked" in str(exc):
             raise SpoolError(f"{where}: in use by another process (or another "
                              "spool in this one)") from None
+        if error_code(exc) in (IOERR, FULL):
+            raise SpoolUnavailable(f"{where}: cannot be opened: {exc}") from None
         raise SpoolError(f"{where}: cannot be opened: {exc}") from None
     except BaseException:
         db.close()
