@@ -8,6 +8,7 @@ from __future__ import annotations
 import os
 import random
 import sqlite3
+import subprocess
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -187,3 +188,17 @@ def test_a_disk_filled_by_someone_else_refuses_appends_with_a_spool_error(
                 spool.append([msg(n, 3000) for n in range(20)])
         (full_disk / "filler").unlink()
         assert len(spool.append([msg(1)])) == 1  # works again once there is room
+
+
+def test_a_read_only_file_system_is_named_as_such(full_disk: Path) -> None:
+    """Before: "its directory ... is not writable by this process (uid 0)", which
+    sends a root operator looking for permissions."""
+    path = full_disk / "spool.db"
+    make_spool(path, 3)
+    subprocess.run(["mount", "-o", "remount,ro", str(full_disk)], check=True)
+    try:
+        assert "is on a read-only file system" in (path_problem(path) or "")
+        with pytest.raises(SpoolError, match="read-only file system"):
+            Spool(path, max_bytes=1_000_000, max_age_s=1e9)
+    finally:
+        subprocess.run(["mount", "-o", "remount,rw", str(full_disk)], check=True)

@@ -111,6 +111,9 @@ def path_problem(path: str | os.PathLike[str]) -> str | None:
     if not folder.is_dir():
         return f"its directory {str(folder)!r} does not exist"
     if not os.access(folder, os.W_OK | os.X_OK):
+        with contextlib.suppress(OSError):
+            if os.statvfs(folder).f_flag & os.ST_RDONLY:
+                return f"its directory {str(folder)!r} is on a read-only file system"
         return (f"its directory {str(folder)!r} is not writable by this process "
                 f"(uid {os.geteuid()})")
     try:
