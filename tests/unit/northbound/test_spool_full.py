@@ -158,3 +158,30 @@ def test_a_spool_that_cannot_be_created_on_a_full_disk_is_opened_later(
     finally:
         sender.close_spool()
         outbox.close()
+
+
+def test_the_retries_back_off_doubling_to_30_s(full_disk: Path) -> None:
+    fill(full_disk)
+    sender, outbox, dev = make("batch", qos=1, storeAndForward={
+        "path": str(full_disk / "spool.db")})
+    sender.open_spool()
+    forwarder = sender.forwarder
+    assert forwarder is not None and forwarder.failing
+    clock = forwarder.clock = Clock()  # type: ignore[method-assign]
+    try:
+        sender._connected.clear()
+        clock.t = forwarder.retry_at
+        waits = []
+        for n in range(8):
+            outbox.offer_items(dev, numbered(n))
+            sender.spool_outage()  # due: one more try, failed
+            waits.append(forwarder.retry_at - clock.t)
+            outbox.offer_items(dev, numbered(n))
+            sender.spool_outage()  # not due: no try, straight to memory
+            assert forwarder.retry_at - clock.t == waits[-1]
+            clock.t = forwarder.retry_at
+        assert waits == [2, 4, 8, 16, 30, 30, 30, 30]
+        assert forwarder.stats()["memory"] == 16
+    finally:
+        sender.close_spool()
+        outbox.close()

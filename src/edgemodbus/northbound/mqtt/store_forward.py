@@ -104,12 +104,14 @@ class Forwarder:
         self.clock = clock  # the backoff's (replaceable in tests)
         self.limiter = LogLimiter(log, interval=10.0, burst=3, clock=clock)
         # the spool refused a write: messages wait here (oldest first) until it takes
-        # them again; retry_at is when to try next (0.0: the spool is writable)
+        # them again; while failing, retry_at is when to try next (a doubling backoff)
         self.memory: deque[Message] = deque()
         self.memory_limit = settings.memory_queue_size
         self._in_memory: Counter[str] = Counter()  # per device
         self.memory_dropped = 0
         self.retry_at = 0.0
+        self.failing = False  # the spool refused the last write (or could not be opened)
+        self._failures = 0
         self._ack_after = 0.0  # acknowledgements that failed wait until then
         self._backoff = RETRY_MIN
         self.spool: Spool | NoSpool
@@ -151,7 +153,7 @@ class Forwarder:
     def keep(self, messages: list[Message]) -> list[int]:
         """Append unclaimed (an outage, or a backlogged device).  Their ids (the oldest
         of a batch larger than maxBytes get none: dropped, counted by the spool)."""
-        if (self.memory or self.retry_at) and not self.retry():  # behind those in memory
+        if (self.memory or self.failing) and not self.retry():  # behind those in memory
             self._to_memory(messages)
             return []
         ids = self._append(messages, claimed=False)
@@ -165,7 +167,7 @@ class Forwarder:
     def claim(self, messages: list[Message]) -> list[int]:
         """Append claimed (live QoS 1, handed to paho right away): one id per message,
         0 for a message the spool dropped at once (sent anyway, never acked)."""
-        ids = self._append(messages, claimed=True) if self.retry_at == 0.0 else None
+        ids = None if self.failing else self._append(messages, claimed=True)
         if ids is None:  # the spool is failing: sent all the same, not kept
             return [0] * len(messages)
         return [0] * (len(messages) - len(ids)) + ids
@@ -188,10 +190,12 @@ class Forwarder:
 
     def _failed(self, kind: str, exc: SpoolError) -> None:
         """A write refused: try again after the backoff (doubling to RETRY_MAX)."""
-        if self.retry_at == 0.0:
+        if not self.failing:
             self._backoff = RETRY_MIN
         else:
             self._backoff = min(self._backoff * 2, RETRY_MAX)
+        self.failing = True
+        self._failures += 1
         self.retry_at = self.clock() + self._backoff
         self.limiter.event(logging.ERROR, f"store-and-forward {kind}", self.spool.path,
                            "store-and-forward: %s (%s); messages wait in memory (at "
@@ -199,7 +203,8 @@ class Forwarder:
                            self.memory_limit, self._backoff)
 
     def _recovered(self) -> None:
-        if self.retry_at != 0.0:
+        if self.failing:
+            self.failing = False
             self.retry_at = 0.0
             self.limiter.event(logging.WARNING, "store-and-forward spool recoveries",
                                self.spool.path, "store-and-forward: the spool %s takes "
@@ -232,8 +237,9 @@ class Forwarder:
         """Unless the backoff is still on: the acknowledgements kept, applied (they make
         room), then the messages waiting in memory appended to the spool (one
         transaction).  True when the spool took them (nothing waits in memory)."""
-        if self.retry_at and self.clock() < self.retry_at:
+        if self.failing and self.clock() < self.retry_at:
             return False
+        failures = self._failures
         if isinstance(self.spool, NoSpool):
             try:
                 self.spool = self._open()
@@ -241,9 +247,8 @@ class Forwarder:
                 self._failed("the spool cannot be opened", exc)
                 return False
             self.tail = self.spool.device_tails()
-        self.retry_at = 0.0
         self._ack()
-        if self.memory and not self.retry_at:
+        if self.memory and self._failures == failures:
             waiting = list(self.memory)
             ids = self._append(waiting, claimed=False)
             if ids is None:
@@ -252,12 +257,15 @@ class Forwarder:
             self._in_memory.clear()
             for message, i in zip(waiting[len(waiting) - len(ids):], ids, strict=True):
                 self.tail[message.device or ""] = i
-        return self.retry_at == 0.0
+        if self._failures != failures:
+            return False
+        self._recovered()
+        return True
 
     def tick(self) -> None:
         """Once per turn of the MQTT thread: the retry when it is due, the log
         summaries."""
-        if self.retry_at and self.clock() >= self.retry_at:
+        if self.failing and self.clock() >= self.retry_at:
             self.retry()
         self.limiter.flush()
 
