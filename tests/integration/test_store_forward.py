@@ -450,3 +450,25 @@ def test_an_outage_that_fills_the_spools_disk_loses_nothing_within_the_memory_bo
                 drv.stop_device()
             pub.stop()
             probe.stop()
+
+
+def test_the_gateway_starts_on_a_damaged_spool_and_polls(
+        sim: int, broker: Mosquitto, tmp_path: Path) -> None:
+    """Issue #25: the spool file overwritten with garbage between runs.  Before: the
+    gateway exited 2 at start (no polling, no server; a restart loop under systemd).
+    Now the file is moved aside, reported, and the gateway polls and publishes."""
+    conf = tmp_path / "conf"
+    conf.mkdir()
+    (conf / "spool.db").write_bytes(b"\x13garbage from a bad shutdown" * 500)
+    write_json(conf / "gateway.json", {
+        "gatewayId": "gw-damaged", "statusCheckInterval": 100,
+        "mqtt": {"port": broker.port, "mode": "batch", "qos": 1,
+                 "storeAndForward": {"path": "spool.db"}}})
+    write_json(conf / "dev1.json", device_file(sim, 1, cycle_ms=200))
+    with MqttProbe(broker.port, [f"{P}/dev1/$batch"]) as probe, \
+            Service(conf, tmp_path / "gateway.log") as service:
+        service.wait_log(r"spool .*spool\.db: unreadable, not an SQLite file .* moved "
+                         r"aside to .*spool\.db\.corrupt-\d{8}T\d{6}Z")
+        probe.wait_for(f"{P}/dev1/$batch", timeout=30)
+    aside = [p for p in conf.iterdir() if p.name.startswith("spool.db.corrupt-")]
+    assert len(aside) == 1 and aside[0].read_bytes().startswith(b"\x13garbage")
