@@ -15,6 +15,7 @@ outage and started again on the same spool file."""
 from __future__ import annotations
 
 import json
+import logging
 import signal
 import sqlite3
 import time
@@ -32,6 +33,7 @@ from edgemodbus.northbound.mqtt import MqttPublisher
 from edgemodbus.sim import CounterMover, Simulator
 from tests.integration.test_service import Service, scrape, write_json
 from tests.mosquitto import Mosquitto, MqttProbe
+from tests.tmpfs import small_tmpfs
 from tests.waiting import wait_for
 
 SLAVES = [1, 2, 3, 4, 5]
@@ -320,3 +322,153 @@ def spool_rows(path: Path) -> set[bytes]:
         return {bytes(row[0]) for row in db.execute("SELECT payload FROM messages")}
     finally:
         db.close()
+
+
+@pytest.mark.parametrize("mode", ["per-item", "batch"])
+def test_after_a_replay_the_retained_value_is_the_current_one(
+        broker: Mosquitto, tmp_path: Path, mode: str) -> None:
+    """Issue #24: values change during an outage, then stop changing (the driver stops
+    before the broker is back, so nothing live follows the replay).  A subscriber that
+    arrives after the replay gets, retained, the last value the driver read.  Before:
+    the replay went out with retain off and the broker kept the value from before the
+    outage."""
+    with Simulator([1], size=10) as peer:
+        mover = CounterMover(Area.HOLDING_REGISTER, 0, 1, interval_ms=30, start=2100)
+        peer.slave(1).add_mover(mover)
+        port = peer.serve_tcp("127.0.0.1", 0)
+        file = device_file(port, 1, cycle_ms=50)
+        file["addressList"] = file["addressList"][:3]
+        cfg = em.load_device_config(file)
+        recorder = Recorder(per_item=True)
+        settings = {"port": broker.port, "mode": mode, "qos": 1, "retain": True,
+                    "reconnectMin": 100, "reconnectMax": 400,
+                    "storeAndForward": {"path": str(tmp_path / "spool.db")}}
+        pub = MqttPublisher(settings, gateway_id="gw-retain").start()
+        drv = em.DriverModbusRtu()
+        try:
+            assert pub.wait_connected(10)
+            drv.addresses_updated_callback = recorder
+            pub.attach(drv, "dev1")
+            assert drv.start_device(cfg.organization, cfg.communication, cfg.address_list)
+            wait_for(lambda: pub.stats()["published"] > 0, timeout=30,
+                     what="the first values published")
+            broker.stop()
+            wait_for(lambda: not pub.connected, what="the publisher sees the broker go")
+            spooled = pub.stats()["spool"]["appended"]
+            wait_for(lambda: pub.stats()["spool"]["appended"] >= spooled + 10, timeout=60,
+                     what="changes spooled during the outage")
+            drv.stop_device()  # the last value read stays the device's value
+            last = {}
+            for report in recorder.reports:
+                last.update(report["values"])
+            broker.restart()
+            assert pub.wait_connected(10)
+            wait_for(lambda: pub.stats()["spool"]["stored"] == 0, timeout=60,
+                     what="the backlog replayed and acknowledged")
+            with MqttProbe(broker.port, [f"{P}/dev1/+"]) as late:
+                leaf = "$batch" if mode == "batch" else "t0"
+                got = late.wait_for(f"{P}/dev1/{leaf}", lambda m: m.retain)
+                body = got.json()
+                value = body["values"]["t0"] if mode == "batch" else body["value"]
+                assert value == last["t0"], (value, last["t0"])
+        finally:
+            drv.stop_device()
+            pub.stop()
+
+
+def test_an_outage_that_fills_the_spools_disk_loses_nothing_within_the_memory_bound(
+        sim: int, broker: Mosquitto, tmp_path: Path, caplog: pytest.LogCaptureFixture
+        ) -> None:
+    """Issue #25: the spool on a 2 MB tmpfs (maxBytes 100 MB, the default) and a 15 s
+    outage of 10,000 tags that writes more than the disk holds.  Before: every message
+    after the disk filled was lost (7,439), acks failed so the spool never shrank, live
+    data was lost after the broker came back, ~90 ERROR lines a second.  Now the file
+    stops growing while its disk has room for acknowledgements, the rest waits in
+    memory, and everything arrives in order once the broker is back."""
+    with small_tmpfs(tmp_path) as disk:
+        caplog.set_level(logging.WARNING, "edgemodbus.mqtt")
+        settings = {"port": broker.port, "mode": "batch", "qos": 1, "reconnectMin": 100,
+                    "reconnectMax": 400, "storeAndForward": {
+                        "path": str(disk / "spool.db"), "replayRatePerS": 2000}}
+        configs = [em.load_device_config(device_file(sim, s)) for s in SLAVES]
+        recorders = {str(c.organization.device_code): Recorder(False) for c in configs}
+        probe = MqttProbe(broker.port, [f"{P}/+/$batch"], client_id="sf-full-probe",
+                          clean_session=False).start()
+        pub = MqttPublisher(settings, gateway_id="gw-full").start()
+        drivers: list[em.DriverModbusRtu] = []
+        try:
+            assert pub.wait_connected(10)
+            for cfg in configs:
+                drv = em.DriverModbusRtu()
+                drv.addresses_updated_callback = recorders[str(cfg.organization.device_code)]
+                pub.attach(drv, cfg.organization.device_code)
+                assert drv.start_device(cfg.organization, cfg.communication, cfg.address_list)
+                drivers.append(drv)
+            wait_for(lambda: len(received_data(probe)) == len(SLAVES), timeout=30,
+                     what="every device published")
+            broker.stop()
+            wait_for(lambda: not pub.connected, what="the publisher sees the broker go")
+            started = time.monotonic()
+            largest = 0
+
+            def disk_full_for_a_while() -> bool:
+                nonlocal largest
+                spool = pub.stats()["spool"]
+                largest = max(largest, spool["fileBytes"])
+                return bool(spool["memory"] >= 200)
+            wait_for(disk_full_for_a_while, timeout=120, what="the disk full, memory used")
+            outage = time.monotonic() - started
+            broker.restart()
+            assert pub.wait_connected(10)
+            wait_for(lambda: pub.stats()["spool"]["pending"] == 0
+                     and pub.stats()["spool"]["memory"] == 0, timeout=120,
+                     what="the spool and the memory queue replayed")
+            live = sum(len(r.reports) for r in recorders.values())
+            wait_for(lambda: sum(len(r.reports) for r in recorders.values()) > live + 50,
+                     timeout=30, what="live data after the replay")
+            for drv in drivers:
+                drv.stop_device()
+            total = sum(len(r.reports) for r in recorders.values())
+            wait_for(lambda: sum(len(v) for v in received_data(probe).values()) >= total,
+                     timeout=60, what="every report received")
+            wait_for(lambda: pub.stats()["spool"]["stored"] == 0, timeout=30,
+                     what="every message acknowledged: the spool shrank")
+            got = received_data(probe)
+            missing = sum(len(check_in_order(got[code], rec.reports))
+                          for code, rec in recorders.items())
+            errors = [r for r in caplog.records if r.levelno >= logging.ERROR]
+            stats = pub.stats()
+            print(f"\nfull disk: {total} reports, {missing} lost, outage {outage:.1f} s, "
+                  f"largest file {largest} bytes on a 2 MiB disk, {len(errors)} ERROR "
+                  f"lines ({len(errors) / outage:.1f}/s); spool {stats['spool']}")
+            assert missing == 0 and stats["dropped"] == 0
+            assert stats["spool"]["memoryDropped"] == 0 and stats["spool"]["errors"] > 0
+            assert largest <= 2 * 1024 * 1024
+            assert len(errors) <= 3 * (outage / 10 + 2)  # 3 lines per kind and 10 s
+        finally:
+            for drv in drivers:
+                drv.stop_device()
+            pub.stop()
+            probe.stop()
+
+
+def test_the_gateway_starts_on_a_damaged_spool_and_polls(
+        sim: int, broker: Mosquitto, tmp_path: Path) -> None:
+    """Issue #25: the spool file overwritten with garbage between runs.  Before: the
+    gateway exited 2 at start (no polling, no server; a restart loop under systemd).
+    Now the file is moved aside, reported, and the gateway polls and publishes."""
+    conf = tmp_path / "conf"
+    conf.mkdir()
+    (conf / "spool.db").write_bytes(b"\x13garbage from a bad shutdown" * 500)
+    write_json(conf / "gateway.json", {
+        "gatewayId": "gw-damaged", "statusCheckInterval": 100,
+        "mqtt": {"port": broker.port, "mode": "batch", "qos": 1,
+                 "storeAndForward": {"path": "spool.db"}}})
+    write_json(conf / "dev1.json", device_file(sim, 1, cycle_ms=200))
+    with MqttProbe(broker.port, [f"{P}/dev1/$batch"]) as probe, \
+            Service(conf, tmp_path / "gateway.log") as service:
+        service.wait_log(r"spool .*spool\.db: unreadable, not an SQLite file .* moved "
+                         r"aside to .*spool\.db\.corrupt-\d{8}T\d{6}Z")
+        probe.wait_for(f"{P}/dev1/$batch", timeout=30)
+    aside = [p for p in conf.iterdir() if p.name.startswith("spool.db.corrupt-")]
+    assert len(aside) == 1 and aside[0].read_bytes().startswith(b"\x13garbage")

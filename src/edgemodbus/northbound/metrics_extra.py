@@ -65,13 +65,18 @@ SPOOL_COUNTERS: tuple[tuple[str, str, str], ...] = (
      "Spooled messages in flight put back to pending (refused, or the connection lost)"),
     ("droppedSize", "mqtt_spool_dropped_size", "Oldest spooled messages dropped (maxBytes)"),
     ("droppedAge", "mqtt_spool_dropped_age", "Oldest spooled messages dropped (maxAgeS)"),
-    ("errors", "mqtt_spool_errors", "Messages the spool could not keep (disk error)"),
+    ("errors", "mqtt_spool_errors",
+     "Messages the spool refused (disk full or failing): kept in memory instead"),
+    ("memoryDropped", "mqtt_spool_memory_dropped",
+     "Messages dropped from the memory queue while the spool refused writes"),
 )
 SPOOL_GAUGES: tuple[tuple[str, str, str], ...] = (
     ("stored", "mqtt_spool_messages", "Messages in the store-and-forward spool"),
     ("pending", "mqtt_spool_pending", "Spooled messages waiting for the replay"),
     ("inflight", "mqtt_spool_inflight", "Spooled messages handed to the broker, not acked"),
     ("bytes", "mqtt_spool_bytes", "What the spooled messages count against maxBytes"),
+    ("fileBytes", "mqtt_spool_file_bytes", "The spool's database and WAL on disk"),
+    ("memory", "mqtt_spool_memory", "Messages waiting in memory while the spool refuses writes"),
 )
 SERVE_COUNTERS: tuple[tuple[str, str, str], ...] = (
     ("accepted", "serve_accepted", "Connections of Modbus TCP masters accepted"),

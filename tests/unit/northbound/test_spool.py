@@ -171,15 +171,11 @@ def test_refusals_name_the_path(tmp_path: Path) -> None:
         Spool(tmp_path / "nowhere" / "s.db", max_bytes=1, max_age_s=1)
     with pytest.raises(SpoolError, match="is a directory"):
         Spool(tmp_path, max_bytes=1, max_age_s=1)
-    junk = tmp_path / "junk.db"
-    junk.write_bytes(b"this is not SQLite" * 100)
-    with pytest.raises(SpoolError, match=r"junk\.db"):
-        Spool(junk, max_bytes=1, max_age_s=1)
     other = tmp_path / "other.db"
     db = sqlite3.connect(other)
     db.execute("PRAGMA user_version=7")
     db.close()
-    with pytest.raises(SpoolError, match="schema version 7"):
+    with pytest.raises(SpoolError, match=r"other\.db.*schema version 7"):
         Spool(other, max_bytes=1, max_age_s=1)
     for max_bytes, max_age_s in ((0, 1), (1, -1)):
         with pytest.raises(ValueError, match="must be > 0"):

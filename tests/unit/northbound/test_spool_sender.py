@@ -37,8 +37,11 @@ def values(client: Client, start: int = 0) -> list[Any]:
     return [json.loads(p)["value"] for _, p, _, _ in client.sent[start:]]
 
 
-def test_an_outage_goes_to_the_spool_and_is_replayed_in_order_without_retain(
+def test_an_outage_goes_to_the_spool_and_is_replayed_in_order_with_its_retain_flag(
         tmp_path: Path) -> None:
+    """Replayed with the retain flag it was kept with: the device's live messages queue
+    behind its backlog, so its last replayed message per topic is the newest (before:
+    retain off, and the broker kept the value from before the outage, issue #24)."""
     sender, outbox, dev = spooled(tmp_path, qos=1, retain=True, queueSize=2)
     assert sender.forwarder is not None
     try:
@@ -53,7 +56,7 @@ def test_an_outage_goes_to_the_spool_and_is_replayed_in_order_without_retain(
         client = Client()
         sender.pump(client)  # type: ignore[arg-type]
         assert values(client) == [0, 1, 2, 3] * 3
-        assert {(qos, retain) for _, _, qos, retain in client.sent} == {(1, False)}
+        assert {(qos, retain) for _, _, qos, retain in client.sent} == {(1, True)}
         stats = sender.forwarder.stats()
         assert stats["inflight"] == 12 and stats["replayed"] == 12
         for info in client.infos[:5]:
@@ -162,3 +165,45 @@ def test_a_spool_in_use_by_another_publisher_is_a_config_error_naming_the_path(
     finally:
         second.stop()
         first.stop()
+
+
+def test_an_outage_queue_has_the_memory_queue_as_margin_before_it_drops(
+        tmp_path: Path) -> None:
+    """Issue #24's flaky test: during an outage the line workers queue reports faster
+    than a stalled MQTT thread (a slow checkpoint, a loaded machine) moves them to the
+    spool; the outbox then dropped 10 past queueSize + one report per device.  Now
+    memoryQueueSize more may wait (the memory store-and-forward may use anyway)."""
+    sender, outbox, dev = spooled(tmp_path, queueSize=10, qos=1)
+    assert sender.forwarder is not None
+    s = sender.settings.store_and_forward
+    assert s is not None and s.memory_queue_size == 10_000
+    try:
+        sender._connected.clear()
+        outbox.set_outage(True)
+        outbox.offer_items(dev, items(20))  # the largest report: the burst
+        for _ in range(500):  # 10,000 more, the MQTT thread kept from running
+            outbox.offer_items(dev, items(20))
+        assert outbox.counts["dropped"] == 0 and outbox.queued == 10_020
+        outbox.offer_items(dev, items(20))
+        assert outbox.counts["dropped"] == 10  # the bound still holds, counted
+        sender.spool_outage()
+        assert sender.forwarder.stats()["stored"] == 10_030
+    finally:
+        sender.close_spool()
+        outbox.close()
+
+
+def test_a_damaged_spool_does_not_stop_the_publisher(tmp_path: Path) -> None:
+    """Before: ConfigError at start(), so the gateway exited 2 (no polling, no server;
+    under systemd a restart loop).  Now the file is moved aside and a new one used."""
+    spool = tmp_path / "s.db"
+    spool.write_bytes(b"\x00garbage" * 1000)
+    pub = MqttPublisher({"port": 1, "storeAndForward": {"path": str(spool)}},
+                        gateway_id="g1")
+    try:
+        pub.start()
+        aside = [p.name for p in tmp_path.iterdir() if ".corrupt-" in p.name]
+        assert len(aside) == 1 and aside[0].startswith("s.db.corrupt-")
+        assert pub.stats()["spool"]["stored"] == 0
+    finally:
+        pub.stop(timeout=0)

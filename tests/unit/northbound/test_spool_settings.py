@@ -4,6 +4,7 @@ each refusal naming the field, the value and what is allowed."""
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 from typing import Any
 
@@ -43,8 +44,9 @@ def test_a_missing_directory_names_the_field_and_the_value(tmp_path: Path) -> No
 
 
 @pytest.mark.parametrize("field, value, allowed", [
-    ("maxBytes", 0, "1 or more"),
-    ("maxBytes", -5, "1 or more"),
+    ("maxBytes", 0, "65536 or more"),
+    ("maxBytes", 65535, "65536 or more"),  # the file's floor: SQLite's own pages
+    ("memoryQueueSize", -1, "0..10000000"),
     ("maxAgeS", 0, "1 or more"),
     ("replayRatePerS", 0, "0.01 or more"),
     ("replayBytesPerS", -1, "1 or more"),
@@ -64,3 +66,16 @@ def test_the_path_is_required(tmp_path: Path) -> None:
         load_gateway_config(gateway({"maxBytes": 10}))
     with pytest.raises(ConfigError, match=r"mqtt\.storeAndForward\.path .*must not be empty"):
         load_gateway_config(gateway({"path": " "}))
+
+
+def test_a_fifo_or_a_device_as_the_spool_is_a_field_error(tmp_path: Path) -> None:
+    """Before: both passed the check at load; at start a FIFO raised sqlite3's
+    OperationalError "disk I/O error" (a traceback), /dev/null the same words."""
+    fifo = tmp_path / "spool.db"
+    os.mkfifo(fifo)
+    for path, kind in ((str(fifo), "a FIFO"), ("/dev/null", "a character device")):
+        with pytest.raises(ConfigError) as err:
+            load_gateway_config(gateway({"path": path}))
+        [problem] = err.value.problems
+        assert problem.path == "mqtt.storeAndForward.path" and problem.value == path
+        assert f"is {kind}, not a regular file" in str(err.value)

@@ -57,6 +57,7 @@ class Outbox:
         self.burst = 0  # the largest report of each attached device, summed
         self.outage = False  # a connect failed or the connection was lost, no CONNACK since
         self.spooling = False  # store-and-forward: an outage goes to the spool instead
+        self.spool_memory = 0  # store-and-forward's memoryQueueSize: the outage's margin
         self.snapshots: dict[str, tuple[AttachedDevice, dict[str, Any]]] = {}
         self.control: deque[Message] = deque()
         self.actions: deque[Callable[[], None]] = deque()
@@ -77,8 +78,12 @@ class Outbox:
         largest so far: at start-up every item's first read), so that a burst is never
         dropped while the broker takes what we send; the bound is still there against a
         broker too slow for the updates.  With store-and-forward (``spooling``) an
-        outage keeps the normal limit: the MQTT thread moves reports to the spool."""
-        if self.outage and not self.spooling:
+        outage keeps the normal limit plus ``memoryQueueSize``: the MQTT thread moves
+        reports to the spool, and the margin covers the seconds it may be kept from
+        running (a slow disk, a loaded machine) without dropping any."""
+        if self.spooling:
+            return self.queue_size + self.burst + self.spool_memory
+        if self.outage:
             return self.queue_size
         return self.queue_size + self.burst
 

@@ -67,7 +67,9 @@ class Sender:
             except SpoolError as exc:  # in use by another process, not a spool file, ...
                 raise ConfigError([Problem("mqtt.storeAndForward.path", spool.path,
                                            str(exc))]) from None
-            self._outbox.spooling = True
+            with self._outbox.lock:
+                self._outbox.spooling = True
+                self._outbox.spool_memory = spool.memory_queue_size
 
     def close_spool(self) -> None:
         if self.forwarder is not None:
@@ -162,6 +164,7 @@ class Sender:
             if self._connected.is_set():
                 self._replay(client, forwarder)
             forwarder.settle()
+            forwarder.tick()
 
     def _pump_live(self, client: Client) -> None:
         s, outbox = self.settings, self._outbox
@@ -290,6 +293,7 @@ class Sender:
             reports = self._outbox.take_reports(self._outbox.queued, split=False)
         if reports:
             forwarder.keep([message for _, message, _ in self.messages(reports)])
+        forwarder.tick()
 
     def _send_spooled(self, client: Client, forwarder: Forwarder, reports: list[Report],
                       published: dict[AttachedDevice, int]) -> None:
@@ -310,11 +314,11 @@ class Sender:
         handed = 0
         for index, (dev, message, n) in enumerate(direct):
             if not self.hand_over(client, message, sids[index]):
-                rest = direct[index:]
+                rest = list(zip(direct[index:], sids[index:], strict=True))
                 forwarder.release([(sid, message.device)
-                                   for (_, message, _), sid in zip(rest, sids[index:],
-                                                                   strict=True) if sid])
-                forwarder.keep([message for _, message, _ in rest if message.qos == 0])
+                                   for (_, message, _), sid in rest if sid])
+                # not in the spool (QoS 0, or the spool refused them): kept now
+                forwarder.keep([message for (_, message, _), sid in rest if not sid])
                 break
             published[dev] = published.get(dev, 0) + n
             handed += 1
@@ -323,14 +327,16 @@ class Sender:
 
     def _replay(self, client: Client, forwarder: Forwarder) -> None:
         """Spooled messages to paho with the window's room, at the pacer's rate, oldest
-        first, ``retain=False`` (a replayed retained value would replace a newer one)."""
+        first, with the retain flag they were kept with: a device's live messages queue
+        behind its backlog (store_forward.py), so the last one replayed for a topic is
+        its newest and the broker's retained value ends up the current one."""
         batch = forwarder.replay_batch(self.room())
         sent = nbytes = 0
         for stored in batch:
             message = Message(stored.device or None, stored.topic, stored.payload,
-                              stored.qos, False)
+                              stored.qos, stored.retain)
             if not self.hand_over(client, message, stored.id):
-                forwarder.release([(row.id, row.device or None) for row in batch[sent:]])
+                forwarder.unsent(batch[sent:])
                 break
             sent += 1
             nbytes += len(stored.payload)

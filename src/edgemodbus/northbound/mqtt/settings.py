@@ -17,7 +17,7 @@ from pydantic import ValidationError, field_validator, model_validator
 from ...config import MAX_MS, Choice, ConfigError, Model, Ms, Problem, Range
 from ...config.secret import Secret
 from ..sparkplug.settings import SparkplugSettings
-from .spool import SYNCHRONOUS, path_problem
+from .spool import MIN_FILE_BYTES, SYNCHRONOUS, path_problem
 
 PLACEHOLDERS = ("prefix", "deviceCode", "itemName", "gatewayId")
 # What goes on the wire: per-item, one message per item update on its item topic; batch,
@@ -171,11 +171,14 @@ class StoreAndForwardSettings(Model):
     _where: ClassVar[str] = "mqtt.storeAndForward"
 
     path: str  # relative: from the gateway file's folder
-    max_bytes: Annotated[int, Range(1)] = 100_000_000  # topics + payloads (+32 a row)
+    # the file (database + WAL); rows count topics + payloads (+32 a row) against it too
+    max_bytes: Annotated[int, Range(MIN_FILE_BYTES)] = 100_000_000
     max_age_s: Annotated[int, Range(1)] = 7 * 86_400
     replay_rate_per_s: Annotated[float, Range(0.01)] = 500.0  # messages replayed per second
     replay_bytes_per_s: Annotated[int | None, Range(1)] = None  # no byte limit by default
     synchronous: Annotated[str, Choice(SYNCHRONOUS)] = "normal"  # "full": fsync each commit
+    # messages kept in memory while the spool refuses writes (disk full, I/O error)
+    memory_queue_size: Annotated[int, Range(0, 10_000_000)] = 10_000
 
     @field_validator("path")
     @classmethod

@@ -1,8 +1,9 @@
 """Store-and-forward: MQTT messages kept on disk until the broker acknowledged them.
 
-store.py holds :class:`Spool` (one SQLite file, stdlib ``sqlite3``, WAL mode) and
-pacer.py :class:`ReplayPacer` (the token bucket that paces the replay).  Configured by
-``mqtt.storeAndForward`` (settings.py: :class:`StoreAndForwardSettings`).
+store.py holds :class:`Spool` (one SQLite file, stdlib ``sqlite3``, WAL mode), rows.py
+what it keeps, file.py its file on disk, and pacer.py :class:`ReplayPacer` (the token
+bucket that paces the replay).  Configured by ``mqtt.storeAndForward`` (settings.py:
+:class:`StoreAndForwardSettings`).
 
 When a message goes to the spool
   * the broker is unreachable (not connected): every data message the sender would have
@@ -45,8 +46,21 @@ order can append live messages unclaimed while ``pending_count() > 0``, at the c
 live latency; the MQTT sender does that per device (``../store_forward.py``: a device
 with messages pending queues its live ones behind them, the others publish at once).
 A retained message replayed after a newer live one would replace the
-broker's retained value with an older one: publish replayed messages with
-``retain=False`` (the broker's retained value is the live one) unless that is wanted.
+broker's retained value with an older one; the MQTT sender, whose live messages queue
+behind their device's backlog, replays with the retain flag kept, so the last message
+of a topic is its newest and the retained value ends up current (issue #24).
+
+The file (file.py): database and WAL together stay within ``maxBytes`` (the WAL
+checkpointed every few pages and truncated back to its share, the database capped by
+``max_page_count``; the oldest rows make room), and the database stops growing while its
+disk still has room for a WAL and a checkpoint: an append beyond that raises
+:class:`SpoolError` like a full disk (the sender keeps it in memory) while
+acknowledgements still find room.  A file SQLite cannot read (corrupt, truncated,
+overwritten) is renamed ``<path>.corrupt-<UTC time>`` (never deleted) and a new spool
+started, so polling never stops for the spool; a *readable* SQLite database that is not
+a spool (another program's, or a newer schema) is refused untouched: renaming it could
+break its owner, and the configured path is then the mistake.  FIFOs, devices and
+sockets are refused by :func:`path_problem` before anything opens them.
 
 "Acknowledged by SQLite" means committed: ``append`` returned.  With
 ``synchronous: "normal"`` (the default) the commit is in the kernel's page cache, which
@@ -55,26 +69,22 @@ the last commits (the file stays consistent).  ``"full"`` adds an fsync per comm
 and survives power loss too.  See :class:`Spool`.
 """
 
+from .file import MIN_FILE_BYTES, SpoolError, SpoolUnavailable, file_bound, path_problem
 from .pacer import ReplayPacer
-from .store import (
-    ROW_OVERHEAD,
-    SYNCHRONOUS,
-    Message,
-    Spool,
-    SpoolError,
-    Stored,
-    message_size,
-    path_problem,
-)
+from .rows import ROW_OVERHEAD, SYNCHRONOUS, Message, Stored, message_size
+from .store import Spool
 
 __all__ = [
+    "MIN_FILE_BYTES",
     "ROW_OVERHEAD",
     "SYNCHRONOUS",
     "Message",
     "ReplayPacer",
     "Spool",
     "SpoolError",
+    "SpoolUnavailable",
     "Stored",
+    "file_bound",
     "message_size",
     "path_problem",
 ]

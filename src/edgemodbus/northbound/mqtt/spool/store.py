@@ -16,87 +16,29 @@ import sqlite3
 import threading
 import time
 from collections.abc import Callable, Iterable, Iterator
-from pathlib import Path
-from typing import NamedTuple
 
 from ....line.log_limit import LogLimiter
+from .file import (
+    FULL,
+    PAGE_SIZE,
+    SpoolError,
+    Unreadable,
+    error_code,
+    file_bound,
+    file_bytes,
+    looks_like_sqlite,
+    move_aside,
+    open_db,
+    path_problem,
+)
+from .rows import SYNCHRONOUS, Message, Stored, message_size
 
 log = logging.getLogger("edgemodbus.mqtt.spool")
 
-SCHEMA_VERSION = 1
-ROW_OVERHEAD = 32
-"""Bytes a row counts beyond its topic and payload (id, device, qos, retain, time, and
-SQLite's own per-row cost, roughly), so that many empty payloads still fill the bound."""
-
-SYNCHRONOUS = ("normal", "full")
-
-_SCHEMA = """
-CREATE TABLE IF NOT EXISTS messages (
-    id INTEGER PRIMARY KEY AUTOINCREMENT,
-    device TEXT NOT NULL,
-    topic TEXT NOT NULL,
-    payload BLOB NOT NULL,
-    qos INTEGER NOT NULL,
-    retain INTEGER NOT NULL,
-    ts REAL NOT NULL,
-    size INTEGER NOT NULL
-)"""
 _COLUMNS = "id, device, topic, payload, qos, retain, ts"
-_TOTALS = ("SELECT COUNT(*), COALESCE(SUM(size), 0), "
-           "(SELECT ts FROM messages ORDER BY id LIMIT 1) FROM messages")
+_TRIES = 5  # appends that make room for themselves before giving up
 _SCAN = 512  # rows read per step when looking for the oldest rows to drop or send
 _PARAMS = 500  # ids per DELETE ... IN (...) statement (SQLite allows 32766)
-
-
-class Message(NamedTuple):
-    """One message to keep: the device it belongs to (its per-device order is kept), and
-    what the sender hands paho."""
-
-    device: str
-    topic: str
-    payload: bytes
-    qos: int
-    retain: bool
-
-
-class Stored(NamedTuple):
-    """A message read back from the spool: its id (what :meth:`Spool.ack` takes) and the
-    wall-clock time it was appended (Unix seconds)."""
-
-    id: int
-    device: str
-    topic: str
-    payload: bytes
-    qos: int
-    retain: bool
-    ts: float
-
-
-class SpoolError(RuntimeError):
-    """The spool file cannot be used (missing folder, not a spool, used by another
-    process, closed); the message names the path."""
-
-
-def path_problem(path: str | os.PathLike[str]) -> str | None:
-    """Why a spool cannot be kept at ``path``, or None: its folder must exist and be
-    writable by this process, and the path must not be a folder."""
-    target = Path(path)
-    folder = target.parent
-    if target.is_dir():
-        return "is a directory; give the path of a file in it (e.g. spool.db)"
-    if not folder.is_dir():
-        return f"its directory {str(folder)!r} does not exist"
-    if not os.access(folder, os.W_OK | os.X_OK):
-        return (f"its directory {str(folder)!r} is not writable by this process "
-                f"(uid {os.geteuid()})")
-    if target.exists() and not os.access(target, os.R_OK | os.W_OK):
-        return f"not readable and writable by this process (uid {os.geteuid()})"
-    return None
-
-
-def message_size(topic: str, payload: bytes) -> int:
-    """What one message counts against ``maxBytes``."""
-    return len(topic.encode()) + len(payload) + ROW_OVERHEAD
 
 
 class Spool:
@@ -146,47 +88,33 @@ class Spool:
         self._count: int = 0  # rows stored
         self._bytes: int = 0  # their sizes
         self._oldest_ts: float | None = None  # the oldest row's append time
-        self._db = self._open(synchronous)
+        self.bound = file_bound(max_bytes)
+        self.moved_aside: str | None = None  # where an unreadable file was moved
+        self._max_pages = 0  # max_page_count in force (the bound's, or the disk's)
         try:
-            self._count, self._bytes, self._oldest_ts = self._db.execute(_TOTALS).fetchone()
-        except sqlite3.Error as exc:
-            self._db.close()
-            raise SpoolError(f"spool {self.path!r}: cannot be read: {exc}") from None
+            self._db, totals, self.bound = open_db(self.path, self.bound, synchronous)
+        except Unreadable as exc:  # damaged: keep its bytes aside, start a new one
+            what = "damaged" if looks_like_sqlite(self.path) else "not an SQLite file"
+            try:
+                self.moved_aside = move_aside(self.path)
+            except OSError as err:
+                raise SpoolError(f"spool {self.path!r}: unreadable ({exc}) and cannot be "
+                                 f"moved aside: {err.strerror or err}") from None
+            log.error("spool %s: unreadable, %s (%s): moved aside to %s, a new spool "
+                      "started (what it held is not replayed)", self.path, what, exc,
+                      self.moved_aside)
+            try:
+                self._db, totals, self.bound = open_db(self.path, self.bound, synchronous)
+            except Unreadable as again:  # pragma: no cover - a fresh file is readable
+                raise SpoolError(f"spool {self.path!r}: {again}") from None
+        self._count, self._bytes, self._oldest_ts = totals
+        self._max_pages = self.bound.max_pages
         if self._count:
             log.info("spool %s: %d messages (%d bytes) kept from before, replayed first",
                      self.path, self._count, self._bytes)
-
-    def _open(self, synchronous: str) -> sqlite3.Connection:
-        where = f"spool {self.path!r}"
-        db = sqlite3.connect(self.path, timeout=0, isolation_level=None,
-                             check_same_thread=False)
-        try:
-            db.execute("PRAGMA locking_mode=EXCLUSIVE")
-            version = db.execute("PRAGMA user_version").fetchone()[0]
-            if version not in (0, SCHEMA_VERSION):
-                raise SpoolError(f"{where}: schema version {version}, this edgemodbus "
-                                 f"reads version {SCHEMA_VERSION}")
-            if db.execute("PRAGMA journal_mode=WAL").fetchone()[0] != "wal":
-                raise SpoolError(f"{where}: SQLite refused WAL mode")
-            db.execute(f"PRAGMA synchronous={synchronous.upper()}")
-            db.execute("BEGIN IMMEDIATE")  # takes the exclusive lock now, not later
-            if version == 0:
-                db.execute(_SCHEMA)
-                db.execute(f"PRAGMA user_version={SCHEMA_VERSION}")
-            db.execute("COMMIT")
-        except sqlite3.OperationalError as exc:
-            db.close()
-            if "locked" in str(exc):
-                raise SpoolError(f"{where}: in use by another process (or another "
-                                 "spool in this one)") from None
-            raise SpoolError(f"{where}: cannot be opened: {exc}") from None
-        except sqlite3.DatabaseError as exc:
-            db.close()
-            raise SpoolError(f"{where}: not a spool file: {exc}") from None
-        except BaseException:
-            db.close()
-            raise
-        return db
+        with self._lock:
+            self._shrink()
+            self._fit_file()
 
     # -- the sender's calls (MQTT thread) -----------------------------------------------
 
@@ -204,18 +132,49 @@ class Spool:
                  message_size(m.topic, m.payload)) for m in messages]
         if not rows:
             return []
-        with self._lock, self._transaction() as db:
+        with self._lock:
+            self._fit_disk()
+            extra = 0  # bytes of the oldest rows to drop first: the file is at its bound
+            for _ in range(_TRIES):
+                try:
+                    ids = self._append(rows, now, claimed, extra)
+                    break
+                except SpoolError as exc:
+                    if not self._at_bound(exc, rows):
+                        raise  # the disk is full or failing: the caller keeps them
+                    if self._max_pages < self.bound.max_pages:  # the disk's bound
+                        raise SpoolError(f"spool {self.path!r}: full: its disk leaves it "
+                                         f"{self._max_pages * PAGE_SIZE} bytes (room "
+                                         "kept for acknowledgements)") from None
+                    # the database reached max_page_count: make room as maxBytes does
+                    extra = max(4 * extra, sum(r[6] for r in rows) // 4, 2 * PAGE_SIZE)
+            else:
+                raise SpoolError(f"spool {self.path!r}: full (no room made by dropping "
+                                 "the oldest messages: the disk refuses)")
+            self._fit_file()
+            self._limiter.flush()  # a summary of drops, once its interval is over
+        return ids
+
+    def _append(self, rows: list[tuple[str, str, bytes, int, int, float, int]], now: float,
+                claimed: bool, extra: int) -> list[int]:
+        """One try of :meth:`append` (inside the lock): ``extra`` more bytes of the oldest
+        rows (then of the batch's oldest) dropped first."""
+        with self._transaction() as db:
             self._expire(now)
             incoming = sum(r[6] for r in rows)
+            over = max(0, self._bytes + incoming - self.max_bytes) + extra
             skipped = 0
-            while incoming > self.max_bytes:  # the batch alone is too big: its oldest go
+            # the batch alone is too big (for maxBytes, or for the file): its oldest go
+            while rows[skipped:] and (incoming > self.max_bytes
+                                      or over > self._bytes):
                 incoming -= rows[skipped][6]
+                over -= rows[skipped][6]
                 skipped += 1
             if skipped:
                 self._dropped("droppedSize", skipped, "size")
                 rows = rows[skipped:]
-            if self._bytes + incoming > self.max_bytes:
-                self._drop_oldest(self._bytes + incoming - self.max_bytes)
+            if over > 0:
+                self._drop_oldest(over)
             if not rows:
                 return []
             db.executemany("INSERT INTO messages (device, topic, payload, qos, retain, ts,"
@@ -232,8 +191,6 @@ class Spool:
             if claimed:
                 for i, row in zip(ids, rows, strict=True):
                     self._inflight[i] = row[6]
-        with self._lock:
-            self._limiter.flush()  # a summary of drops, once its interval is over
         return ids
 
     def next_batch(self, limit: int) -> list[Stored]:
@@ -249,6 +206,7 @@ class Spool:
             if self._oldest_ts is not None and self._oldest_ts < now - self.max_age_s:
                 with self._transaction():
                     self._expire(now)
+                self._fit_file()
             taken: list[Stored] = []
             while len(taken) < limit and len(self._inflight) < self._count:
                 try:
@@ -296,6 +254,8 @@ class Spool:
             if not self._count:
                 self._oldest_ts = None
                 self._cursor = 0
+        with self._lock:
+            self._fit_file()
         return deleted
 
     def release(self, ids: Iterable[int]) -> None:
@@ -341,18 +301,25 @@ class Spool:
             return len(self._inflight)
 
     def size_bytes(self) -> int:
-        """What the stored messages count against ``maxBytes``.  The file is larger
-        (SQLite's pages, the WAL) and keeps its largest size until the spool empties."""
+        """What the stored messages count against ``maxBytes`` (their rows).  The file
+        is larger (SQLite's pages, the WAL): :meth:`file_bytes`."""
         with self._lock:
             return self._bytes
 
+    def file_bytes(self) -> int:
+        """The bytes the database and its WAL take on disk: at most
+        ``max(maxBytes, 64 KiB)`` whenever no call is under way (a transaction larger
+        than the WAL's share may pass it until its commit)."""
+        return file_bytes(self.path)
+
     def stats(self) -> dict[str, int]:
         """Counters (appended, acked, released, droppedSize, droppedAge) and gauges
-        (stored, pending, inflight, bytes), camelCase for stats() and Prometheus."""
+        (stored, pending, inflight, bytes, fileBytes), camelCase for stats() and Prometheus."""
         with self._lock:
             out = dict(self.counts)
             out.update(stored=self._count, pending=self._count - len(self._inflight),
-                       inflight=len(self._inflight), bytes=self._bytes)
+                       inflight=len(self._inflight), bytes=self._bytes,
+                       fileBytes=file_bytes(self.path))
         return out
 
     def close(self) -> None:
@@ -390,6 +357,7 @@ class Spool:
         object keeps in memory (counters, claims); sqlite3 errors become SpoolError."""
         db = self._live()
         saved = (dict(self.counts), dict(self._inflight), self._cursor)
+        totals = (self._count, self._bytes, self._oldest_ts)
         try:
             db.execute("BEGIN IMMEDIATE")
             yield db
@@ -399,11 +367,86 @@ class Spool:
                 if db.in_transaction:
                     db.execute("ROLLBACK")
             self.counts, self._inflight, self._cursor = saved
-            with contextlib.suppress(sqlite3.Error):
-                self._count, self._bytes, self._oldest_ts = db.execute(_TOTALS).fetchone()
+            self._count, self._bytes, self._oldest_ts = totals
             if isinstance(exc, sqlite3.Error):
                 raise SpoolError(f"spool {self.path!r}: {exc}") from exc
             raise
+
+    def _at_bound(self, exc: SpoolError, rows: list[tuple[str, str, bytes, int, int,
+                                                          float, int]]) -> bool:
+        """True when ``exc`` is SQLITE_FULL because the database could not grow past
+        max_page_count by the pages ``rows`` need (the file bound, not the disk)."""
+        cause = exc.__cause__
+        if not isinstance(cause, sqlite3.Error) or error_code(cause) != FULL:
+            return False
+        try:
+            pages = self._db.execute("PRAGMA page_count").fetchone()[0]
+        except sqlite3.Error:
+            return False
+        need = 2 * sum(r[6] for r in rows) // self.bound.page_size + 4
+        return bool(pages + need >= self._max_pages)
+
+    def _fit_disk(self) -> None:
+        """The database may grow only as far as its file system leaves room for a WAL
+        and a checkpoint besides it (2 WAL shares free): an append that needs more is
+        refused as on a full disk (the sender keeps it in memory), while
+        acknowledgements and checkpoints still find room.  Lowers (or raises again, up to the bound)
+        max_page_count; SQLite keeps it at least the current page count."""
+        bound = self.bound
+        try:
+            vfs = os.statvfs(os.path.dirname(os.path.abspath(self.path)))
+        except OSError:
+            return
+        capacity = file_bytes(self.path) + vfs.f_bavail * vfs.f_frsize
+        frame = bound.page_size + 24
+        wal_pages = max(4, min(bound.wal_pages, capacity // 8 // frame))
+        room = capacity - 3 * (32 + wal_pages * frame)
+        pages = max(8, min(bound.max_pages, room // bound.page_size))
+        if pages != self._max_pages:
+            try:
+                self._db.execute(f"PRAGMA wal_autocheckpoint={wal_pages}")
+                self._db.execute(f"PRAGMA journal_size_limit={32 + wal_pages * frame}")
+                self._max_pages = self._db.execute(
+                    f"PRAGMA max_page_count={pages}").fetchone()[0]
+            except sqlite3.Error:
+                return
+            if self._max_pages < bound.max_pages:
+                self._limiter.event(logging.WARNING, "spool size limited by the disk",
+                                    self.path, "spool %s: limited to %d bytes by the free "
+                                    "space of its disk (maxBytes %d)", self.path,
+                                    self._max_pages * bound.page_size, self.max_bytes)
+
+    def _shrink(self) -> None:
+        """At open: a database larger than its share of the bound (kept from a run with
+        a larger maxBytes) loses its oldest rows until what is left fits in half of it,
+        then is vacuumed.  SpoolError when the disk refuses."""
+        try:
+            pages = self._db.execute("PRAGMA page_count").fetchone()[0]
+            if pages <= self.bound.max_pages:
+                return
+            keep = self.bound.max_pages * self.bound.page_size // 4  # rows take ~2x
+            if self._bytes > keep:
+                with self._transaction():
+                    self._drop_oldest(self._bytes - keep)
+            self._db.execute("VACUUM")
+        except sqlite3.Error as exc:
+            raise SpoolError(f"spool {self.path!r}: larger than maxBytes "
+                             f"{self.max_bytes} and cannot be shrunk: {exc}") from None
+        log.warning("spool %s: larger than maxBytes %d: shrunk to %d bytes", self.path,
+                    self.max_bytes, file_bytes(self.path))
+
+    def _fit_file(self) -> None:
+        """After a commit: when the database and its WAL together exceed the bound,
+        checkpoint and truncate the WAL (its pages are in the database by then, which
+        max_page_count keeps within its share).  A failure is logged: the WAL is
+        checkpointed again after the next commit."""
+        if file_bytes(self.path) <= self.bound.limit:
+            return
+        try:
+            self._db.execute("PRAGMA wal_checkpoint(TRUNCATE)")
+        except sqlite3.Error as exc:
+            self._limiter.event(logging.WARNING, "WAL checkpoints failed", self.path,
+                                "spool %s: WAL checkpoint failed: %s", self.path, exc)
 
     def _expire(self, now: float) -> None:
         """Drop the oldest rows appended before ``now - maxAgeS`` (in the open
