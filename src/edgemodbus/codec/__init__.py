@@ -36,7 +36,7 @@ from __future__ import annotations
 from .decoder import BlockDecoder, Change
 from .encoder import encode, register_bit
 from .float32 import Float32, float32_short, float32_text
-from .jsonable import json_bytes, json_text, jsonable
+from .jsonable import json_bytes, json_text, json_value, jsonable
 from .normalize import normalize_value
 from .spec import MAX_QUANTITY, SMART_CAST_TYPES, ValueSpec, check_spec, smart_cast
 
@@ -53,6 +53,7 @@ __all__ = [
     "float32_text",
     "json_bytes",
     "json_text",
+    "json_value",
     "jsonable",
     "normalize_value",
     "register_bit",

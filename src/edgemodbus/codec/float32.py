@@ -19,6 +19,10 @@ __all__ = ["Float32", "float32_short", "float32_text"]
 _pack = struct.Struct("<f").pack
 _unpack = struct.Struct("<f").unpack
 _bits = struct.Struct("<I").unpack
+# The texts of recent values: a device's analog values come back to the same float32s
+# (an ADC's steps, a slowly moving level), and one costs ~1 us to find; a hit ~50 ns.
+_MEMO: dict[float, float] = {}
+_MEMO_SIZE = 4096
 
 
 def float32_short(value: float) -> float:
@@ -26,6 +30,9 @@ def float32_short(value: float) -> float:
     ``value`` (the closest such decimal when several are as short): its ``repr`` is that
     decimal.  NaN, infinities and values beyond float32's range come back as they are
     (a plain float)."""
+    known = _MEMO.get(value)  # never holds a zero (-0.0 == 0.0) nor NaN
+    if known is not None:
+        return known
     if value - value != 0.0:  # NaN or an infinity
         return float(value)
     try:
@@ -36,6 +43,16 @@ def float32_short(value: float) -> float:
     bits = _bits(want)[0] & 0x7FFF_FFFF
     if bits & 0x7F_FFFF == 0 or bits < 0x0080_0000:
         return _careful(x, want, bits)
+    short = _shortest_normal(x, want)
+    if len(_MEMO) >= _MEMO_SIZE:  # an economy, not a registry: start over
+        _MEMO.clear()
+    _MEMO[value] = short
+    return short
+
+
+def _shortest_normal(x: float, want: bytes) -> float:
+    """:func:`float32_short` of a normal float32 ``x`` (packed: ``want``) that is not a
+    power of two."""
     # A normal float32's rounding interval (at most 2**-23 of it wide) is narrower than
     # the gap between two decimals of 6 digits, so at most one decimal of 6 digits or
     # fewer reads back to it, and then '%.6g' (the nearest, trailing zeros dropped) is

@@ -15,8 +15,16 @@ import pytest
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
-from edgemodbus.codec import Float32, ValueSpec, encode, float32_short, float32_text
-from edgemodbus.datatypes import DataType
+from edgemodbus._ffi import Block
+from edgemodbus.codec import (
+    BlockDecoder,
+    Float32,
+    ValueSpec,
+    encode,
+    float32_short,
+    float32_text,
+)
+from edgemodbus.datatypes import Area, DataType
 
 _MAX_BITS = 0x7F7F_FFFF  # FLT_MAX
 
@@ -117,7 +125,7 @@ def test_examples() -> None:
     assert float32_text(1.401298464324817e-45) == "1e-45"
     assert float32_text(3.4028234663852886e38) == "3.4028235e+38"
     assert float32_text(16777216.0) == "16777216.0"
-    assert float32_text(-0.0) == "-0.0"
+    assert float32_text(0.0) == "0.0" and float32_text(-0.0) == "-0.0"  # not one memo
     assert [float32_text(v) for v in (math.nan, math.inf, -math.inf)] == ["nan", "inf", "-inf"]
     assert float32_text(1e300) == "1e+300"  # beyond float32: no float32 text, the double's
 
@@ -153,3 +161,50 @@ def test_the_text_of_the_largest_float32_writes_it_back() -> None:
                                                           0xFFFF]
     with pytest.raises(ValueError, match=r"'x': cannot write 3\.5e\+38: allowed -3\.40282e"):
         encode(spec, 3.5e38)
+
+
+def test_recent_texts_are_remembered_without_changing_them() -> None:
+    """float32_short keeps the texts of recent values (a bounded memo, cleared when
+    full): past its size, every value still gets its own text."""
+    values = [_f32(0x4000_0000 + 7919 * k) for k in range(10_000)]
+    first = [float32_short(v) for v in values]
+    assert [float32_short(v) for v in reversed(values)] == first[::-1]
+    assert [_digits(repr(s)) for s in first] == [_shortest(0x4000_0000 + 7919 * k)[0]
+                                                 for k in range(10_000)]
+
+
+def _decode(spec: ValueSpec, *registers: int) -> object:
+    decoder = BlockDecoder(Area.HOLDING_REGISTER, len(registers), [(0, spec)])
+    return decoder.decode_values(Block.from_values(list(registers), bits=False))[0]
+
+
+def test_which_values_are_float32() -> None:
+    """The items Sparkplug sends as Float (northbound/sparkplug/payloads.py): Float
+    without a multiplier, convertedDataType Float; a multiplier makes a double."""
+    hi, lo = struct.unpack(">HH", struct.pack(">f", 69.74495697021484))
+    f = DataType.FLOAT
+    got = _decode(ValueSpec("x", f), hi, lo)
+    assert type(got) is Float32 and got == 69.74495697021484 and str(got) == "69.74496"
+    scaled = _decode(ValueSpec("x", f, multiplier=0.1), hi, lo)
+    assert type(scaled) is float and scaled == 6.974495697021484
+    assert type(_decode(ValueSpec("x", f, multiplier=0.1, converted_type=f), hi, lo)) is Float32
+    tenths = _decode(ValueSpec("x", DataType.INT16, multiplier=0.1, converted_type=f), 3)
+    assert type(tenths) is Float32 and tenths == 0.3 and repr(tenths) == "0.3"
+    assert _decode(ValueSpec("x", DataType.INT16, multiplier=0.1), 3) == 0.3  # raw / 10
+    assert type(_decode(ValueSpec("x", DataType.DOUBLE, quantity=2), hi, lo)) is float
+    assert _decode(ValueSpec("x", f, converted_type=DataType.STRING), hi, lo) == "69.74496"
+
+
+def test_a_float_items_deadband_still_holds() -> None:
+    spec = ValueSpec("x", DataType.FLOAT, deadband=0.5)
+    decoder = BlockDecoder(Area.HOLDING_REGISTER, 2, [(0, spec)])
+
+    def read(value: float) -> list[object]:
+        block = Block.from_values(list(struct.unpack(">HH", struct.pack(">f", value))),
+                                  bits=False)
+        return [v for _, v, _ in decoder.decode(block)]
+
+    assert read(10.0) == [10.0]
+    assert read(10.25) == []  # within the deadband: no news
+    (moved,) = read(10.75)
+    assert type(moved) is Float32 and moved == 10.75
