@@ -23,6 +23,7 @@ from edgemodbus.codec import (
     encode,
     float32_short,
     float32_text,
+    json_text,
 )
 from edgemodbus.datatypes import Area, DataType
 
@@ -102,8 +103,10 @@ def test_text_is_the_shortest_decimal_that_reads_back(bits: int) -> None:
     digits, nearest = _shortest(magnitude)
     assert _digits(text) == digits, (hex(bits), text, digits)
     assert number in nearest, (hex(bits), text, nearest)
-    # JSON writes the same digits: float32_short is the double whose repr is the text
+    # JSON writes the same decimal: float32_short is the double whose repr is the text,
+    # and orjson writes a double's shortest form
     assert repr(float32_short(value)) == text
+    assert Decimal(json_text(Float32(value))) == Decimal(text)
 
 
 def test_every_power_of_two_and_the_edges_of_the_subnormals() -> None:
