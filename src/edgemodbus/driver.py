@@ -235,7 +235,9 @@ class DriverModbusRtu:
         return [_block_dict(b, self._poller.items) for b in self._poller.plan]
 
     def snapshot(self) -> dict[str, Any]:
-        """The runtime snapshot (JSON-able, camelCase keys)."""
+        """The runtime snapshot (camelCase keys) with Python values: each item's value as
+        it holds it (NaN, infinities, bytes, datetime); ``codec.json_bytes`` writes it as
+        JSON."""
         poller = self._poller or self._last_poller
         items = poller.items if poller is not None else []
         params = self._params

@@ -14,6 +14,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from edgemodbus.cli import json_line, value_text
+from edgemodbus.codec import Float32, float32_short, float32_text
 from tests.peers import PtyPair, PymodbusSlave, default_bit, default_register
 
 DATA = Path(__file__).resolve().parents[1] / "data"
@@ -190,9 +191,13 @@ def _same(a: float | None, b: float) -> bool:
 
 
 def test_floats_print_so_that_they_read_back_exactly(tmp_path: Path) -> None:
-    """`read` and `run --json` used to round to 6 decimals: 2.89e-37 and 1.5e-7 read 0.0."""
+    """`read` and `run --json` used to round to 6 decimals: 2.89e-37 and 1.5e-7 read 0.0;
+    then they wrote the widened double (69.74495697021484): a Float is now the shortest
+    decimal that reads back to the same float32 (69.74496), NaN and infinities in JSON
+    the strings "NaN", "Infinity", "-Infinity"."""
     values = {100: 2.89e-37, 102: 1.5e-7, 104: -3.4028234663852886e38, 106: 1e-45,
-              108: 123.456, 110: math.inf, 112: math.nan}
+              108: 123.456, 110: math.inf, 112: math.nan, 114: 69.74495697021484,
+              116: -math.inf}
     initial = {2: {"hr": {a + i: r for a, v in values.items()
                           for i, r in enumerate(_f32_registers(v, "CDAB"))}}}
     with PymodbusSlave("rtu-over-tcp", units=(2,), initial=initial) as slave:
@@ -202,7 +207,8 @@ def test_floats_print_so_that_they_read_back_exactly(tmp_path: Path) -> None:
         for address, value in values.items():
             out = cli("read", *base, f"hr:{address}")
             assert out.returncode == 0, out.stderr
-            assert _same(float(out.stdout), _f32(value)), (value, out.stdout)
+            assert _same(_f32(float(out.stdout)), _f32(value)), (value, out.stdout)
+            assert out.stdout.strip() == float32_text(value), (value, out.stdout)
         out = cli("read", *base, "hr:110")
         assert out.returncode == 0, out.stderr
         assert out.stdout.strip() == "inf"
@@ -223,19 +229,22 @@ def test_floats_print_so_that_they_read_back_exactly(tmp_path: Path) -> None:
         if "name" in record:
             assert record["status"] == "Ok", record
             got[record["name"]] = record["value"]
+    assert got["f114"] == 69.74496 and got["f108"] == 123.456
     for address, value in values.items():
         expected = _f32(value)
         if math.isfinite(expected):
-            assert got[f"f{address}"] == expected, (value, got)
-        else:
-            assert got[f"f{address}"] is None  # strict JSON has no NaN or infinity
+            assert got[f"f{address}"] == float32_short(expected), (value, got)
+        else:  # strict JSON has no NaN or infinity: their names, not null ("no value")
+            assert got[f"f{address}"] == {math.inf: "Infinity", -math.inf: "-Infinity"}.get(
+                expected, "NaN"), (value, got)
 
 
 @settings(max_examples=3000, deadline=None)
 @given(st.integers(0, 2**32 - 1), st.integers(0, 2**64 - 1))
 def test_float_formatting_round_trips(bits32: int, bits64: int) -> None:
     """Every float32 and float64 bit pattern: text reads back to the same float (the
-    same float32 too), JSON to the same number or null for NaN and infinities."""
+    same float32 too), JSON to the same number or the name of NaN or the infinity; a
+    Float item's value (Float32) reads back to the same float32, as its shortest text."""
     for value in (struct.unpack(">f", bits32.to_bytes(4, "big"))[0],
                   struct.unpack(">d", bits64.to_bytes(8, "big"))[0]):
         text = value_text(value)
@@ -245,10 +254,15 @@ def test_float_formatting_round_trips(bits32: int, bits64: int) -> None:
         if math.isfinite(value):
             assert decoded["value"] == value and type(decoded["value"]) is float
         else:
-            assert decoded["value"] is None
+            assert decoded["value"] in ("NaN", "Infinity", "-Infinity")
     f32 = struct.unpack(">f", bits32.to_bytes(4, "big"))[0]
     if math.isfinite(f32):
         assert struct.pack(">f", float(value_text(f32))) == bits32.to_bytes(4, "big")
+        text = value_text(Float32(f32))
+        assert text == float32_text(f32)
+        assert struct.pack(">f", float(text)) == bits32.to_bytes(4, "big")
+        line = json.loads(json_line({"value": Float32(f32)}), parse_constant=lambda c: "bad")
+        assert struct.pack(">f", line["value"]) == bits32.to_bytes(4, "big")
 
 
 def test_run_json_writes_only_json_lines(tmp_path: Path) -> None:

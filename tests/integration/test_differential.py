@@ -47,6 +47,7 @@ from hypothesis import HealthCheck, assume, event, given, settings
 from hypothesis import strategies as st
 
 import edgemodbus as em
+from edgemodbus.codec import Float32
 from edgemodbus.datatypes import ItemStatus
 from edgemodbus.sim import Simulator
 from tests.waiting import wait_for
@@ -245,7 +246,9 @@ def _raw(spec: Spec, regs: list[int], order: Order, encoding: str) -> Any:
             return EPOCH + timedelta(milliseconds=ms)
         except OverflowError:
             return BAD
-    if spec.dtype in ("Float", "Double"):
+    if spec.dtype == "Float":  # a Float item's value: a float whose text is float32's
+        return Float32(number)
+    if spec.dtype == "Double":
         return float(number)
     return number
 
@@ -266,7 +269,7 @@ def _converted(value: Any, target: str) -> Any:
         number = float(value)
         if target == "Float" and math.isfinite(number) and abs(number) > FLT_MAX:
             return BAD
-        return number
+        return Float32(number) if target == "Float" else number
     if isinstance(value, float):
         if not math.isfinite(value):
             return BAD

@@ -101,7 +101,7 @@ def test_batch_payload_carries_every_item_of_the_cycle_by_the_one_conversion() -
     assert body == {
         "deviceCode": "dev1",
         "ts": later.isoformat(),
-        "values": {"f": None, "big": 2**64 - 1, "bin": "01ff", "when": T0.isoformat(),
+        "values": {"f": "NaN", "big": 2**64 - 1, "bin": "01ff", "when": T0.isoformat(),
                    "lost": 7, "never": None},
         "status": {"f": "Ok", "big": "Ok", "bin": "Ok", "when": "Ok", "lost": "Invalid",
                    "never": "Unknown"},
@@ -113,5 +113,5 @@ def test_batch_payload_carries_every_item_of_the_cycle_by_the_one_conversion() -
 
 def test_item_payload_is_the_json_of_its_fields() -> None:
     body = json.loads(encode_item(math.inf, ItemStatus.INVALID, T0, "why"))
-    assert body == {"value": None, "status": "Invalid", "updateTs": T0.isoformat(),
+    assert body == {"value": "Infinity", "status": "Invalid", "updateTs": T0.isoformat(),
                     "errorReason": "why"}

@@ -23,7 +23,9 @@ class CliError(Exception):
 
 def value_text(value: Any) -> str:
     """A value as text that reads back exactly: a float is its shortest round-trip form
-    (``repr``: ``1.5e-07``, ``nan``, ``inf``), bytes are hex, times ISO 8601."""
+    (``repr``: ``1.5e-07``, ``nan``, ``inf``), a Float item's value (codec.Float32) the
+    shortest that reads back to the same float32 (``69.74496``), bytes are hex, times
+    ISO 8601."""
     if isinstance(value, float):
         return repr(value)
     if isinstance(value, (bytes, bytearray)):
@@ -34,7 +36,8 @@ def value_text(value: Any) -> str:
 
 
 def json_line(obj: Any) -> str:
-    """One strict JSON line (the `run --json` output): NaN and infinities are null."""
+    """One strict JSON line (the `run --json` output), values as codec.json_bytes writes
+    them: NaN and infinities as "NaN", "Infinity", "-Infinity" (null is no value)."""
     return json_text(obj)
 
 

@@ -21,6 +21,10 @@ Choices this package makes (where the data type definitions leave them open):
 * A bit of a register (``hr:100.3``) is taken after the byte swap, so it agrees with the
   UInt16 reading of the same register in the same format (bit 0 = least significant).
 * ``convertedDataType`` Float keeps double precision but must fit a float32's range.
+* A Float item's value (deviceDataType Float without a multiplier, or convertedDataType
+  Float) is a :class:`Float32`: the exact float, written as text and JSON as the
+  shortest decimal that reads back to its float32 (float32.py); a Float converted to
+  String holds that text.  A multiplier makes a double (``raw / 10`` for 0.1).
 * Deadband applies to numeric results (int, float); bool, str, bytes and datetime values
   report any change.
 * An item that stays Invalid is reported again when its reason changes (the slave now
@@ -31,7 +35,8 @@ from __future__ import annotations
 
 from .decoder import BlockDecoder, Change
 from .encoder import encode, register_bit
-from .jsonable import json_bytes, json_text, jsonable
+from .float32 import Float32, float32_short, float32_text
+from .jsonable import json_bytes, json_text, json_value, jsonable
 from .normalize import normalize_value
 from .spec import MAX_QUANTITY, SMART_CAST_TYPES, ValueSpec, check_spec, smart_cast
 
@@ -40,11 +45,15 @@ __all__ = [
     "SMART_CAST_TYPES",
     "BlockDecoder",
     "Change",
+    "Float32",
     "ValueSpec",
     "check_spec",
     "encode",
+    "float32_short",
+    "float32_text",
     "json_bytes",
     "json_text",
+    "json_value",
     "jsonable",
     "normalize_value",
     "register_bit",

@@ -81,10 +81,15 @@ def _encode_float(spec: ValueSpec, value: object, wire: str) -> float:
         x = x / k
     if (wire == "F32" or spec.data_type is DataType.FLOAT) and math.isfinite(x):
         try:
-            struct.pack(">f", x)
+            rounded: float = struct.unpack(">f", struct.pack(">f", x))[0]
         except OverflowError:
             limit = _FLT_MAX * abs(spec.multiplier)
             raise _fail(spec, value, f"-{limit:g}..{limit:g} (Float on the device)") from None
+        if wire == "F32":
+            # the float32 the registers will hold, rounded here: a value just past
+            # FLT_MAX that rounds to it (3.4028235e+38, FLT_MAX's shortest text, which
+            # every JSON output writes) is FLT_MAX, which C's range check lets through
+            x = rounded
     return x
 
 

@@ -14,6 +14,7 @@ from typing import Any
 from .. import _ffi
 from .._ffi import CodecItem
 from ..datatypes import Area, DataFormat, DataFormat64, DataType
+from .float32 import Float32, float32_text
 
 __all__ = ["MAX_QUANTITY", "SMART_CAST_TYPES", "ValueSpec", "check_spec", "smart_cast"]
 
@@ -366,8 +367,11 @@ def _compile(spec: ValueSpec, area: Area, offset: int) -> _Compiled:
             target = _TARGET[t]
             if t.is_integer:
                 out, rng = "I64", t.integer_range
+        float32 = t is DataType.FLOAT and not scale_flag
         if conv is DataType.STRING:
-            post = str
+            post = float32_text if float32 else str
+        elif float32:
+            post = Float32
     else:
         target = _TARGET[conv]
         label = conv.value
@@ -375,12 +379,14 @@ def _compile(spec: ValueSpec, area: Area, offset: int) -> _Compiled:
             out = "BOOL"
         elif conv in (DataType.FLOAT, DataType.DOUBLE):
             out = "F64"
+            if conv is DataType.FLOAT:
+                post = Float32
         else:
             out = "U64" if conv is DataType.UINT64 else "I64"
             rng = conv.integer_range
     # a deadband is a distance between numbers: values made by `post` (chr, datetime,
-    # str) are compared for any change, as bool and bytes are
-    deadband = float(spec.deadband) if post is None else 0.0
+    # str) are compared for any change, as bool and bytes are; a Float32 is a number
+    deadband = float(spec.deadband) if post is None or post is Float32 else 0.0
     item = CodecItem(
         offset=offset + _wire_shift(spec, nregs),
         nregs=nregs,

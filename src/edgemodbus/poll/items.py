@@ -13,7 +13,6 @@ from datetime import datetime
 from typing import TYPE_CHECKING, Any
 
 from ..codec import BlockDecoder, ValueSpec
-from ..codec import jsonable as _jsonable
 from ..config import ParsedItem
 from ..datatypes import Area, ItemStatus, enum_value
 from .planner import Piece, ReadBlock
@@ -118,10 +117,12 @@ class ItemState:
         )
 
     def snapshot(self) -> dict[str, Any]:
+        """The item's entry in ``driver.snapshot()``: Python values, as the item holds
+        them (NaN, bytes, a datetime); JSON writers convert (codec/jsonable.py)."""
         item = self.item
         return {
             "address": item.address,
-            "value": _jsonable(item.value),
+            "value": item.value,
             "status": str(enum_value(item.status)),
             "updateTs": item.update_ts.isoformat() if item.update_ts else None,
             "errorReason": item.error_reason,

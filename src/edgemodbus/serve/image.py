@@ -111,7 +111,7 @@ class UnitImage:
         return runs
 
     def seed(self, snapshot_items: dict[str, dict[str, object]]) -> list[ImageRun]:
-        """The runs for a driver's ``snapshot()["items"]`` (values as JSON has them)."""
+        """The runs for a driver's ``snapshot()["items"]`` (the items' Python values)."""
         from ..codec import normalize_value
 
         runs: list[ImageRun] = []

@@ -1,7 +1,8 @@
 """The JSON the publisher sends (item updates, batches, snapshots, statuses, gateway
 state, replies): strict JSON, compact, UTF-8, all through the one value conversion of
-edgemodbus.codec (:func:`~edgemodbus.codec.json_bytes`: NaN and infinities null, bytes
-hex, times ISO 8601)."""
+edgemodbus.codec (:func:`~edgemodbus.codec.json_bytes`: a Float item's value as its
+shortest float32 text, NaN and infinities as the strings "NaN", "Infinity", "-Infinity",
+bytes hex, times ISO 8601; README.md "Values as text and JSON")."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ from collections.abc import Iterable
 from datetime import datetime, timezone
 from typing import Any
 
-from ...codec import json_bytes
+from ...codec import json_bytes, json_value
 from ...datatypes import enum_value
 
 dumps = json_bytes
@@ -22,8 +23,10 @@ def now() -> str:
 def encode_item(value: Any, status: Any, ts: Any, error: Any) -> bytes:
     """The payload of one item update on its item topic (mode "per-item"):
     ``{"value", "status", "updateTs", "errorReason"}``."""
-    return json_bytes({"value": value, "status": status, "updateTs": ts,
-                       "errorReason": error})
+    # the value converted here: its payload has a null (errorReason) nearly always, which
+    # would have json_bytes write it twice to tell a null from NaN
+    return json_bytes({"value": json_value(value), "status": status, "updateTs": ts,
+                       "errorReason": error}, converted=True)
 
 
 def batch_payload(code: str, rows: Iterable[tuple[str, Any, Any, Any, Any]]) -> bytes:
@@ -37,7 +40,8 @@ def batch_payload(code: str, rows: Iterable[tuple[str, Any, Any, Any, Any]]) -> 
     ``values`` and ``status`` have every item reported in the cycle (a changed value or
     status; an Invalid item keeps its last good value, null if it never had one),
     ``errors`` the reason of each item that has one (``{}`` if none), ``ts`` the newest
-    ``updateTs`` of them (null if none has one)."""
+    ``updateTs`` of them (null if none has one).  The values are not converted one by
+    one: json_bytes does it only for a payload with a null in it."""
     values: dict[str, Any] = {}
     statuses: dict[str, Any] = {}
     errors: dict[str, Any] = {}
