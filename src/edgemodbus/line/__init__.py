@@ -31,10 +31,11 @@ from .dtu_registry import registry as dtu_registry
 from .dtu_slot import DtuSlot
 from .endpoint import DtuEndpoint, Endpoint, LineTiming, SerialPort, TcpEndpoint, endpoint_for
 from .link import Link
+from .poller_api import Poller
 from .registration import DtuAccess, PortSettings
 from .registry import LineRegistry
 from .registry import registry as line_registry
-from .worker import LineWorker, Poller
+from .worker import LineWorker
 
 __all__ = [
     "DtuAccess",
