@@ -63,14 +63,14 @@ class Line:
     slave 3 and, with ``dead``, a forward unit for slave 7, which never answers."""
 
     def __init__(self, peer: PymodbusSlave, dead: bool = False, forward_timeout: float = 0.7,
-                 **extra: Any) -> None:
+                 served_cycle: int = 1000, **extra: Any) -> None:
         self.peer = peer
         self.drivers: list[em.DriverModbusRtu] = []
         self.server = ModbusTcpServer("127.0.0.1", 0, max_connections=16, idle_timeout=0)
         try:
             self.bystander = self._start(comm(peer, BYSTANDER, **extra))
             self.target = self._start(comm(peer, TARGET, readCycle=1000, **extra))
-            served_cfg = self._config(comm(peer, SERVED, readCycle=1000, **extra))
+            served_cfg = self._config(comm(peer, SERVED, readCycle=served_cycle, **extra))
             self.served = self._start_cfg(served_cfg)
             self.server.forward_device(FORWARD_UNIT, self.target, timeout=forward_timeout)
             self.server.serve_device(SERVED_UNIT, self.served, served_cfg)
@@ -250,6 +250,26 @@ def test_the_backoff_ends_when_the_slave_answers_again(line: Line) -> None:
     wait_for(lambda: line.target.stats()["responses"] > polled, 15, "a good poll")
     reply = line.target.forward(struct.pack(">BHH", 3, 5, 2), 3.0).result(15)
     assert reply == b"\x03\x04" + struct.pack(">2H", *line.peer.registers(TARGET, "hr", 5, 2))
+
+
+def test_writes_to_a_silent_served_slave_back_off(peer: PymodbusSlave) -> None:
+    # (the served device polls once a minute: only the writes reach the silent slave)
+    gw = Line(peer, served_cycle=60_000)
+    try:
+        quiet = gw.rate()
+        peer.set_offline(SERVED)
+        with Flood(gw.port, SERVED_UNIT, struct.pack(">BHH", 6, 2, 77)) as flood:
+            wait_for(lambda: gw.line_stats()["targetBackoffs"] >= 1, 15,
+                     "a write answered by the silent slave's backoff")
+            flooded = gw.rate()
+        check_fair(quiet, flooded, flood)
+        assert set(flood.answers) == {"exception 0B"}
+        stats = gw.line_stats()
+        assert stats["targetBackoffs"] > 10 * stats["timeouts"], stats
+        why = gw.served.write_address("r2", 5)
+        assert not why[0] and "did not answer" in str(why[1]), why
+    finally:
+        gw.close()
 
 
 # -- the bound: exception 06 ---------------------------------------------------------------

@@ -1,14 +1,14 @@
 """Jobs on a line's queue, and what bounds the line time they take from polling.
 
 * :class:`Job`: a function the worker runs on the link (a write, a forwarded request, a
-  re-plan), its future, and the slave it addresses (forwarded requests);
-* :class:`TargetBackoff`: a slave whose forwarded request timed out is treated like a
-  dead slave: later requests to it fail at once (``TargetBackoffError``, a gateway
-  answers 0B) for a backoff interval instead of costing the line a timeout and a settle
-  each; the interval is four times what the failure cost the line (so a dead target
-  takes at most a fifth of the line), doubling per failure in a row up to the line's
-  maxBackoff, and ends early when the slave answers anything (a poll of a device on
-  that slave counts);
+  re-plan), its future, and the slave it addresses (forwarded requests, writes);
+* :class:`TargetBackoff`: a slave that did not answer a forwarded request or a write is
+  treated like a dead slave: later forwards and writes to it fail at once
+  (``TargetBackoffError``, a gateway answers 0B) for a backoff interval instead of
+  costing the line a timeout and a settle each; the interval is four times what the
+  failure cost the line (so a dead target takes at most a fifth of the line), doubling
+  per failure in a row up to the line's maxBackoff, and ends early when the slave
+  answers anything (a poll of a device on that slave counts);
 * :class:`PollLag`: the counters and the rate-limited WARNING of jobs that run while
   polling is due (the fairness rule itself is in the worker and csrc/emb_engine.c: while
   a block is due, at most one job between two poll transactions).
@@ -23,7 +23,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from .._ffi.engine import EngineDevice
-from ..errors import ModbusTimeoutError, TargetBackoffError
+from ..errors import TargetBackoffError
 from .forward import QueuedTooLongError
 from .log_limit import LogLimiter
 
@@ -82,17 +82,17 @@ class TargetBackoff:
         self._dead[slave] = _Dead(now + backoff, backoff, marker)
         return backoff
 
-    def settled(self, slave: int, exc: BaseException | None, now: float, cost: float,
-                marker: int) -> float | None:
-        """A request to ``slave`` ended with ``exc`` (None: answered) after ``cost``
-        seconds of line time: a timeout on the wire backs off (the interval is
-        returned); any other end (a reply, a bad one, the link lost) ends the backoff;
-        one that never went out (timed out in the queue) changes nothing."""
-        if isinstance(exc, QueuedTooLongError | TargetBackoffError):
-            return None
-        if isinstance(exc, ModbusTimeoutError):
+    def settled(self, slave: int, exc: BaseException | None, timed_out: bool, now: float,
+                cost: float, marker: int) -> float | None:
+        """A job to ``slave`` ended with ``exc`` (None: it succeeded) after ``cost``
+        seconds of line time; ``timed_out``: a request of it got no answer (the link
+        counted a timeout).  A timeout backs off (the interval is returned); any other
+        end (a reply, a bad one, the link lost) ends the backoff; a forward that never
+        went out (its time ran out in the queue) changes nothing."""
+        if timed_out:
             return self.failed(slave, now, cost, marker)
-        self._dead.pop(slave, None)
+        if not isinstance(exc, QueuedTooLongError | TargetBackoffError):
+            self._dead.pop(slave, None)
         return None
 
     def backing_off(self) -> list[int]:

@@ -377,7 +377,7 @@ class LineWorker(LineRequests):
         self.stats.jobs += 1
         devices = [p.device for p in self._pollers]
         self._lag.job_ran(self.stats, late, period_of(devices))
-        start = time.monotonic()
+        start, timeouts = time.monotonic(), link.stats.timeouts
         slave = job.slave
         try:
             if slave is not None:
@@ -385,10 +385,10 @@ class LineWorker(LineRequests):
             self._owed = True
             result = job.fn(link)
         except BaseException as exc:
-            self._after(slave, exc, start, devices)
+            self._after(slave, exc, start, link.stats.timeouts > timeouts, devices)
             job.future.set_exception(exc)
         else:
-            self._after(slave, None, start, devices)
+            self._after(slave, None, start, link.stats.timeouts > timeouts, devices)
             job.future.set_result(result)
         finally:
             if not job.reads:
@@ -396,13 +396,14 @@ class LineWorker(LineRequests):
         link.flush_reports()
 
     def _after(self, slave: int | None, exc: BaseException | None, start: float,
-               devices: list[EngineDevice]) -> None:
-        """A job to ``slave`` ended: count a backoff, or start or end one."""
+               timed_out: bool, devices: list[EngineDevice]) -> None:
+        """A job to ``slave`` ended (``timed_out``: a request of it got no answer):
+        count a backoff, or start or end one."""
         if isinstance(exc, TargetBackoffError):
             self.stats.target_backoffs += 1
         elif slave is not None:
             now = time.monotonic()
-            backoff = self._backoff.settled(slave, exc, now, now - start,
+            backoff = self._backoff.settled(slave, exc, timed_out, now, now - start,
                                             answers_of(devices, slave))
             if backoff is not None:
                 log.info("%s: slave %d did not answer: requests to it fail at once for "
