@@ -9,6 +9,7 @@ quiet rate measured in the same test: a loaded machine slows both alike."""
 
 from __future__ import annotations
 
+import logging
 import socket
 import struct
 import threading
@@ -202,6 +203,24 @@ def test_a_closed_loop_forward_flood_leaves_polling_its_rate(line: Line) -> None
     stats = line.line_stats()
     assert stats["jobs"] >= answered
     assert stats["jobsAheadOfPolls"] >= 1  # the flood did meet due polling
+
+
+def test_the_rule_holds_when_the_line_steps_in_python(peer: PymodbusSlave,
+                                                     caplog: pytest.LogCaptureFixture) -> None:
+    """With the frame trace on, the worker steps each block in Python (poll_step)
+    instead of the engine: the same rule, kept by the worker."""
+    caplog.set_level(logging.DEBUG, logger="edgemodbus.line")
+    gw = Line(peer)
+    try:
+        quiet = gw.rate()
+        with Flood(gw.port, FORWARD_UNIT, struct.pack(">BHH", 3, 0, 4)) as flood:
+            wait_for(lambda: flood.total() >= 10, 15, "the masters' first answers")
+            flooded = gw.rate()
+        check_fair(quiet, flooded, flood)
+        assert set(flood.answers) == {"ok"}
+        assert any(" TX " in r.getMessage() for r in caplog.records)  # (stepped in Python)
+    finally:
+        gw.close()
 
 
 def test_a_write_flood_to_a_served_unit_leaves_polling_its_rate(line: Line) -> None:
