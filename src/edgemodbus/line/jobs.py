@@ -27,7 +27,8 @@ from ..errors import TargetBackoffError
 from .forward import QueuedTooLongError
 from .log_limit import LogLimiter
 
-#: Jobs a line holds at most (queued, not yet taken); one more fails with LineBusyError.
+#: Jobs to a slave (writes, forwards) a line holds at most, queued and not yet taken;
+#: one more fails with LineBusyError.
 MAX_PENDING = 64
 #: A failed target's backoff is this many times what the failure cost the line.
 BACKOFF_FACTOR = 4.0

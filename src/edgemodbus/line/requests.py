@@ -24,8 +24,8 @@ class LineRequests:
     _pollers: list[Poller]
     _changed: float  # monotonic end of the last job that may have written a slave
 
-    def submit(self, fn: Callable[[Link], T], reads: bool = False, slave: int | None = None,
-               future: Future[T] | None = None) -> Future[T]:
+    def submit(self, fn: Callable[[Link], T], reads: bool = False,
+               slave: int | None = None) -> Future[T]:
         raise NotImplementedError
 
     def read(self, slave: int, area: Area, address: int, count: int) -> Future[list[int]]:

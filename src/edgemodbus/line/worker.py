@@ -171,22 +171,21 @@ class LineWorker(LineRequests):
         self._post(None)
 
     # -- requests from any thread ------------------------------------------------------
-    def submit(self, fn: Callable[[Link], T], reads: bool = False, slave: int | None = None,
-               future: Future[T] | None = None) -> Future[T]:
+    def submit(self, fn: Callable[[Link], T], reads: bool = False,
+               slave: int | None = None) -> Future[T]:
         """Run ``fn(link)`` on the worker, before the next poll step (or, while polling
         is due, after the next poll transaction).  ``reads``: the job only reads, so the
         data of blocks polled before it still holds; ``slave``: the slave it addresses,
-        for the target backoff after a timeout.  The future fails with
+        for the target backoff after a timeout; such a job's future fails with
         :class:`LineBusyError` when :attr:`max_pending` jobs are already waiting."""
-        if future is None:
-            future = Future()
+        future: Future[T] = Future()
         if self._stopping.is_set() or self._thread is None:
             future.set_exception(
                 ModbusConnectionError(f"line {self.endpoint.describe()} is not running")
             )
             return future
-        with self._pending_lock:
-            busy = self._pending >= self.max_pending
+        with self._pending_lock:  # (control jobs, with no slave, are never refused)
+            busy = slave is not None and self._pending >= self.max_pending
             if not busy:
                 self._pending += 1
         if busy:
