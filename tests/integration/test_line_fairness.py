@@ -23,6 +23,7 @@ import pytest
 import edgemodbus as em
 from edgemodbus.datatypes import Area
 from edgemodbus.errors import ModbusConnectionError, TargetBackoffError
+from edgemodbus.line.connect import open_link
 from edgemodbus.line.endpoint import LineTiming, TcpEndpoint
 from edgemodbus.line.link import ContextLink
 from edgemodbus.line.worker import LineWorker
@@ -440,3 +441,37 @@ def test_an_unexpected_error_on_the_worker_restarts_the_line(
     assert any("line worker error: RuntimeError: injected" in r for r in reasons), reasons
     assert line_threads() == threads  # the same worker thread, alive
     assert line.target.forward(struct.pack(">BHH", 3, 0, 1), 3.0).result(15)[0] == 3
+
+
+class FlakyConnector:
+    """Opens the line's link, after raising a bug's exception ``fails`` times."""
+
+    def __init__(self, endpoint: TcpEndpoint, fails: int) -> None:
+        self.endpoint, self.fails, self.calls = endpoint, fails, 0
+
+    def open(self, line: LineWorker) -> ContextLink:
+        self.calls += 1
+        if self.calls <= self.fails:
+            raise RuntimeError("injected connect bug")
+        return open_link(self.endpoint, line.timing, line.stats)
+
+
+def test_a_repeated_error_is_logged_once_and_jobs_fail_with_it(
+        peer: PymodbusSlave, caplog: pytest.LogCaptureFixture) -> None:
+    endpoint = TcpEndpoint("127.0.0.1", peer.port)
+    connector = FlakyConnector(endpoint, fails=4)
+    worker = LineWorker(endpoint, FAST, connector)
+    worker.start()
+    try:
+        with pytest.raises(ModbusConnectionError, match="RuntimeError: injected connect bug"):
+            worker.read(BYSTANDER, Area.HOLDING_REGISTER, 0, 2).result(10)
+        # the line restarts (with backoff) until the connector works
+        wait_for(lambda: worker.link_up, 15, "the link up after the injected errors")
+        assert worker.read(BYSTANDER, Area.HOLDING_REGISTER, 0, 2).result(10) == \
+            peer.registers(BYSTANDER, "hr", 0, 2)
+        assert worker.stats.worker_errors == 4
+        errors = [r for r in caplog.records
+                  if r.levelno >= logging.ERROR and "injected connect bug" in r.getMessage()]
+        assert len(errors) == 1, errors  # logged once while it repeats
+    finally:
+        worker.stop()

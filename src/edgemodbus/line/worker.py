@@ -94,7 +94,8 @@ class LineWorker(LineRequests):
         self._backoff = TargetBackoff(self.timing.max_backoff)
         self._lag = PollLag(log, endpoint.describe())
         self._last_crash: str | None = None  # the last unexpected error, logged once
-        self._next_connect = 0.0
+        self._crashes = 0  # unexpected errors without a calm max_backoff between them
+        self._up_since = self._next_connect = 0.0
         self._failures = 0
 
     # -- lifecycle -------------------------------------------------------------------
@@ -197,11 +198,6 @@ class LineWorker(LineRequests):
         self._post(Job(fn, future, reads, slave))
         return future
 
-    @property
-    def pending(self) -> int:
-        """Jobs queued and not yet taken by the worker."""
-        return self._pending
-
     def _post(self, item: Any) -> None:
         self._queue.put(item)
         self._waker.signal()
@@ -239,6 +235,8 @@ class LineWorker(LineRequests):
                 self._next_connect = time.monotonic() + self._reconnect_delay(self._failures)
             self._serve_queue_while_down(self._next_connect)
             return
+        if self._crashes and time.monotonic() - self._up_since > self.timing.max_backoff:
+            self._crashes, self._last_crash = 0, None  # calm again: a new error is news
         self._serve(link)
 
     def _recover(self, exc: Exception) -> None:
@@ -265,8 +263,8 @@ class LineWorker(LineRequests):
         self.last_link_error = reason
         self._notify(False, reason)
         self._fail_queued(f"{self.endpoint.describe()}: {reason}")
-        self._failures += 1
-        self._next_connect = time.monotonic() + self._reconnect_delay(self._failures)
+        self._crashes += 1
+        self._next_connect = time.monotonic() + self._reconnect_delay(self._crashes)
 
     def _reconnect_delay(self, failures: int) -> float:
         """Wait before the next connect: reconnectInterval, doubled per failed connect
@@ -444,7 +442,7 @@ class LineWorker(LineRequests):
         self._link = link
         self.link_up = True
         self.last_link_error = None
-        self._last_crash = None
+        self._up_since = time.monotonic()
         if first:
             self.stats.connects += 1
         else:
