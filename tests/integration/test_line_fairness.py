@@ -28,7 +28,9 @@ from edgemodbus.line.endpoint import LineTiming, TcpEndpoint
 from edgemodbus.line.link import ContextLink
 from edgemodbus.line.worker import LineWorker
 from edgemodbus.serve import ModbusTcpServer
+from edgemodbus.sim import Simulator
 from tests.conftest import SlaveFactory
+from tests.integration.test_driver import Running, all_ok, device
 from tests.peers import PymodbusSlave
 from tests.waiting import wait_for
 
@@ -290,6 +292,39 @@ def test_writes_to_a_silent_served_slave_back_off(peer: PymodbusSlave) -> None:
         assert not why[0] and "did not answer" in str(why[1]), why
     finally:
         gw.close()
+
+
+def test_jobs_and_reads_alternate_while_blocks_are_due(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The rule at the request level (csrc/emb_engine.c): 12 writes queued at once on a
+    line whose 20 blocks are always due go out with a read between each two, and the
+    first one waits for the read in flight only."""
+    with Simulator([1]) as sim:
+        slave = sim.slave(1)
+        slave.faults.delay = 0.005
+        seen: list[int] = []
+        execute = slave._execute
+
+        def recording(pdu: bytes) -> bytes:
+            seen.append(pdu[0])
+            return execute(pdu)
+
+        monkeypatch.setattr(slave, "_execute", recording)
+        port = sim.serve_tcp("127.0.0.1", 0)
+        items = [{"name": f"t{k}", "address": f"hr:{10 * k}", "deviceDataType": "UInt16"}
+                 for k in range(20)]
+        cfg = device(port, items, readCycle=10, maxMergeAddressGap=0, readTimeout=1000)
+        with Running(cfg) as drv:
+            wait_for(all_ok(cfg), 15, "every item read")
+            mark = len(seen)
+            futures = [drv.submit_writes([(f"t{k}", 100 + k)]) for k in range(12)]
+            for future in futures:
+                assert future.result(15) == (True, None)
+        order = seen[mark:]
+        writes = [i for i, fc in enumerate(order) if fc in (6, 16)]
+        assert len(writes) == 12, order
+        assert writes[0] <= 1, order  # after the read in flight
+        gaps = [b - a for a, b in zip(writes, writes[1:], strict=False)]
+        assert min(gaps) >= 2, order  # a read (at least) between two writes
 
 
 # -- the bound: exception 06 ---------------------------------------------------------------
