@@ -133,8 +133,8 @@ static int emb_woken(emb_engine *e)
     return __atomic_load_n(e->wake, __ATOMIC_ACQUIRE) != 0;
 }
 
-/* Sleep until until_ns, watching the wake fd (and watch_fd when idle): an EMB_EV_*
- * event, or -1 when the time came. */
+/* Sleep until until_ns, watching the wake fd (unless a read is owed: see emb_engine_run)
+ * and watch_fd when idle: an EMB_EV_* event, or -1 when the time came. */
 static int emb_sleep(emb_engine *e, int64_t until_ns, int idle)
 {
     struct pollfd pfd[2];
@@ -143,13 +143,13 @@ static int emb_sleep(emb_engine *e, int64_t until_ns, int idle)
     nfds_t n = 0;
     int rc;
 
-    pfd[0].fd = e->wake_fd;
+    pfd[0].fd = e->owed ? -1 : e->wake_fd;
     pfd[0].events = POLLIN;
     pfd[1].fd = idle ? e->watch_fd : -1;
     pfd[1].events = POLLIN;
     n = pfd[1].fd >= 0 ? 2 : 1;
     for (;;) {
-        if (emb_woken(e))
+        if (!e->owed && emb_woken(e))
             return EMB_EV_WAKE;
         left = until_ns - emb_now_ns();
         if (left <= 0)
@@ -226,7 +226,13 @@ static int emb_step(emb_engine *e, emb_device *d)
 }
 
 /* Run the line until something needs Python (an EMB_EV_* code; event_device and
- * event_errno say more) or until until_ns. */
+ * event_errno say more) or until until_ns.
+ *
+ * Fair line scheduling: with owed set (the worker ran a queued job since the last read),
+ * a queued job waits while a block is due until one read was made (good or failed), so
+ * that between two poll transactions at most one job runs and a flood of jobs cannot
+ * starve polling; a job still waits for one transaction at most.  When nothing is due
+ * the wake flag is seen at once, as without owed. */
 int emb_engine_run(emb_engine *e, int64_t until_ns)
 {
     emb_device *d;
@@ -236,12 +242,14 @@ int emb_engine_run(emb_engine *e, int64_t until_ns)
     e->event_device = -1;
     e->event_errno = 0;
     for (;;) {
-        if (emb_woken(e))
-            return EMB_EV_WAKE;
         now = emb_now_ns();
+        d = emb_pick(e, &which);
+        if (e->owed && (d == NULL || d->due_ns > now))
+            e->owed = 0; /* nothing due: the jobs may have the line */
+        if (emb_woken(e) && !e->owed)
+            return EMB_EV_WAKE;
         if (now >= until_ns)
             return EMB_EV_DEADLINE;
-        d = emb_pick(e, &which);
         if (d == NULL || d->due_ns > now) {
             wait = d == NULL || d->due_ns > until_ns ? until_ns : d->due_ns;
             ev = emb_sleep(e, wait, 1);
@@ -255,12 +263,13 @@ int emb_engine_run(emb_engine *e, int64_t until_ns)
             ev = -1;
             if (e->ready_ns > emb_now_ns())
                 ev = emb_sleep(e, e->ready_ns, 0);
-            else if (emb_woken(e))
+            else if (!e->owed && emb_woken(e))
                 ev = EMB_EV_WAKE;
             if (ev >= 0) {
                 e->event_device = which; /* interrupted mid-pass */
                 return ev;
             }
+            e->owed = 0; /* this read pays for the job that ran before it */
             if (emb_step(e, d) == -1) {
                 e->event_device = which;
                 e->event_errno = errno;

@@ -84,7 +84,8 @@ typedef struct emb_device {
 #define EMB_EV_DEADLINE 0 /* the caller's deadline */
 #define EMB_EV_CYCLE 1    /* device event_device ended a pass Python must see */
 #define EMB_EV_FAILED 2   /* a read of device event_device failed: event_errno */
-#define EMB_EV_WAKE 3     /* a job was queued (event_device: a device left mid-pass) */
+#define EMB_EV_WAKE 3     /* a job was queued (event_device: a device left mid-pass);
+                           * with owed set, only once a due block was read */
 #define EMB_EV_INPUT 4    /* watch_fd is readable while idle (unsolicited frames) */
 #define EMB_EV_ERROR 5    /* poll() failed: event_errno */
 
@@ -103,6 +104,8 @@ typedef struct emb_engine {
     int timeout_ms;        /* the response timeout set on ctx (-1: unknown) */
     int64_t pace_ns;       /* silence after a transaction: t3.5 + request interval */
     int64_t ready_ns;      /* no request before this */
+    uint8_t owed;          /* a queued job ran since the last read: while a block is due,
+                            * the wake flag waits for one read (fair line scheduling) */
     const int64_t *bounds_ns; /* cycle-time histogram upper bounds */
     uint32_t n_bounds;     /* < EMB_HIST_MAX */
     int event_device;

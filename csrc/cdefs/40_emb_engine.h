@@ -74,6 +74,7 @@ typedef struct emb_engine {
     int timeout_ms;
     int64_t pace_ns;
     int64_t ready_ns;
+    uint8_t owed;
     const int64_t *bounds_ns;
     uint32_t n_bounds;
     int event_device;

@@ -25,6 +25,16 @@ class ModbusConnectionError(ModbusError, ConnectionError):
     """The link is down: refused, reset, closed, serial I/O error, or not open."""
 
 
+class LineBusyError(ModbusError):
+    """The line has as many jobs waiting as it takes (the line's or one master's
+    bound): nothing was queued; a gateway answers exception 06, server device busy."""
+
+
+class TargetBackoffError(ModbusTimeoutError):
+    """A recent request to this slave timed out, so requests to it fail at once for a
+    backoff interval instead of costing the line a timeout each (a gateway answers 0B)."""
+
+
 class ProtocolError(ModbusError):
     """A reply that is not a valid answer to the request: bad CRC, wrong slave id,
     wrong function, wrong length or byte count, or a write echo that does not match."""

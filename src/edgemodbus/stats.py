@@ -93,6 +93,17 @@ class LineStats(RequestStats):
     forward_exceptions: int = 0
     forward_errors: int = 0
     forward_coalesced: int = 0  # forwarded reads answered from a fresh polled block
+    forward_expired: int = 0  # timed out while queued: not sent (in forwardTimeouts too)
+    # line scheduling (line/jobs.py): queued jobs run, those run while polling was due,
+    # those run when polling was already late by more than its scan rate, jobs refused
+    # (too many waiting), requests failed at once by a target's backoff, and unexpected
+    # errors the worker recovered from
+    jobs: int = 0
+    jobs_ahead_of_polls: int = 0
+    polls_delayed: int = 0
+    jobs_refused: int = 0
+    target_backoffs: int = 0
+    worker_errors: int = 0
 
     def as_dict(self) -> dict[str, Any]:
         native = self.native()
@@ -113,6 +124,13 @@ class LineStats(RequestStats):
             "forwardExceptions": self.forward_exceptions,
             "forwardErrors": self.forward_errors,
             "forwardCoalesced": self.forward_coalesced,
+            "forwardExpired": self.forward_expired,
+            "jobs": self.jobs,
+            "jobsAheadOfPolls": self.jobs_ahead_of_polls,
+            "pollsDelayed": self.polls_delayed,
+            "jobsRefused": self.jobs_refused,
+            "targetBackoffs": self.target_backoffs,
+            "workerErrors": self.worker_errors,
         }
 
 

@@ -16,7 +16,13 @@ import pytest
 
 import edgemodbus as em
 from edgemodbus.datatypes import Area, DeviceDriverStatus, ItemStatus
-from edgemodbus.errors import CrcError, ModbusConnectionError, ModbusTimeoutError, ProtocolError
+from edgemodbus.errors import (
+    CrcError,
+    ModbusConnectionError,
+    ModbusTimeoutError,
+    ProtocolError,
+    TargetBackoffError,
+)
 from edgemodbus.northbound.metrics import MetricsExporter
 from edgemodbus.protocol.forward import (
     InvalidRequestError,
@@ -177,7 +183,7 @@ def test_a_dead_slave_times_out_while_the_line_keeps_polling(peer: PymodbusSlave
     wait_for(lambda: dead.stats().get("timeouts", 0) >= 1, 15, "the dead slave's first poll")
     dead_before = dead.stats()
     timeout = 0.4
-    for _ in range(3):
+    for n in range(3):
         cycles = live.stats()["cycles"]
         start = time.monotonic()
         future = dead.forward(struct.pack(">BHH", 3, 0, 1), timeout)
@@ -185,14 +191,18 @@ def test_a_dead_slave_times_out_while_the_line_keeps_polling(peer: PymodbusSlave
             future.result(15)
         elapsed = time.monotonic() - start
         assert exception_code_for(info.value) == 0x0B
-        # the forward's timeout; the line's settle (1 s) comes after the answer
         print(f"forward to a dead slave: {elapsed:.3f} s")
-        assert timeout - 0.02 <= elapsed < timeout + 0.8, elapsed
+        if n == 0:  # the forward's timeout; the line's settle (1 s) comes after the answer
+            assert timeout - 0.02 <= elapsed < timeout + 0.8, elapsed
+        else:  # then the slave is backing off: 0B at once, nothing sent
+            assert isinstance(info.value, TargetBackoffError), info.value
+            assert elapsed < timeout, elapsed
         wait_for(lambda c=cycles: live.stats()["cycles"] >= c + 3, 10,
                  "the live device polling on after the forward")
     line = live.stats()["line"]
-    assert line["forwarded"] == line["forwardTimeouts"] == 3
-    assert line["timeouts"] >= 3
+    assert line["forwarded"] == line["forwardTimeouts"] == 1
+    assert line["targetBackoffs"] == 2
+    assert line["timeouts"] >= 1
     # not counted against either device: the live one polls on, the dead one's
     # counters and status are its own polling's
     assert live.stats()["failedCycles"] == 0
@@ -283,8 +293,11 @@ def test_forward_counters_are_in_prometheus(started: Started,
     drv = started(comm(peer, 1))
     dead = started(comm(peer, 7, readCycle=3_600_000, offlineAfterFailedCycles=1000), items=1)
     running(drv)
-    forward(drv, struct.pack(">BHH", 3, 0, 2))
-    assert forward(drv, struct.pack(">BHH", 3, 99, 2)) == b"\x83\x02"
+    # (a forward's timeout counts from its arrival: not behind the dead slave's first
+    # poll, its timeout and the settle)
+    wait_for(lambda: dead.stats().get("timeouts", 0) >= 1, 15, "the dead slave's first poll")
+    forward(drv, struct.pack(">BHH", 3, 0, 2), 3.0)
+    assert forward(drv, struct.pack(">BHH", 3, 99, 2), 3.0) == b"\x83\x02"
     with pytest.raises(ModbusTimeoutError):
         forward(dead, struct.pack(">BHH", 3, 0, 1), 0.2)
     line = f"rtu-over-tcp://127.0.0.1:{peer.port}"

@@ -260,8 +260,12 @@ def test_forward_passes_requests_and_replies(gateway: Gateway) -> None:
         assert peer.registers(2, "hr", 600) == [99]
         # the slave's own exception (2000 registers: 2000 is past the end)
         assert client.read_holding_registers(1999, count=2, device_id=9).exception_code == 2
-        # a function forward mode does not send: 01
-        assert client.report_device_id(device_id=9).exception_code == 1
+        # Report Server ID (FC 0x11) is forwarded: the slave's own answer
+        ident = client.report_device_id(device_id=9)
+        assert not ident.isError(), ident
+        assert ident.identifier, ident
+        # a function forward mode does not send (0x2B, device identification): 01
+        assert client.read_device_information(device_id=9).exception_code == 1
         assert gateway.dev2.stats()["line"]["forwarded"] >= 3
         peer.stop()
         client.close()

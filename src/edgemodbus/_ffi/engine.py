@@ -180,6 +180,11 @@ class EngineDevice:
         return _seconds(int(self._dev.due_ns))
 
     @property
+    def period(self) -> float:
+        """The shortest scan rate of its blocks (its cycle when it has none)."""
+        return min((spec.period for spec in self._specs), default=self.cycle)
+
+    @property
     def in_pass(self) -> bool:
         return bool(self._dev.in_pass)
 
@@ -343,17 +348,25 @@ class Engine:
         self._e.n_devices = len(devices)
         self._devices = devices
 
-    def run(self, until: float, ready_at: float) -> int:
+    def run(self, until: float, ready_at: float, owed: bool = False) -> int:
         """Poll until something needs Python (an ``EV_*``) or ``until``; ``ready_at``:
-        no request before then (the pacing of the Python side)."""
+        no request before then (the pacing of the Python side); ``owed``: a queued job
+        ran since the last read, so a job queued meanwhile waits for one read of a due
+        block before ``EV_WAKE`` (fair line scheduling, csrc/emb_engine.c)."""
         e = self._e
         e.ready_ns = _ns(ready_at)
+        e.owed = 1 if owed else 0
         e.timeout_ms = -1  # Python may have set another one
         return int(lib.emb_engine_run(e, _ns(until)))
 
     @property
     def ready_at(self) -> float:
         return _seconds(int(self._e.ready_ns))
+
+    @property
+    def owed(self) -> bool:
+        """The read the last run owed is still owed (it came back before making one)."""
+        return bool(self._e.owed)
 
     @property
     def event_device(self) -> int:

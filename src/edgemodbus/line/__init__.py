@@ -14,7 +14,9 @@ socket or a libmodbus context.
 * connect.py: opening a link (our TCP connection, a ``ContextLink`` with the line's
   settings);
 * worker.py: :class:`LineWorker` (one thread per line, a queue for other threads, the
-  line engine's loop); registry.py: :class:`LineRegistry` (one worker per endpoint,
+  line engine's loop; requests.py: its request helpers; poller_api.py: the
+  :class:`Poller` it runs; jobs.py: queued jobs, the fair share of polling, the backoff
+  from silent slaves); registry.py: :class:`LineRegistry` (one worker per endpoint,
   shared by its users);
 * dtu_registry.py, dtu_listener.py, dtu_slot.py, registration.py, admission.py and
   log_limit.py: listen mode, DTUs that dial in and register.
@@ -31,10 +33,11 @@ from .dtu_registry import registry as dtu_registry
 from .dtu_slot import DtuSlot
 from .endpoint import DtuEndpoint, Endpoint, LineTiming, SerialPort, TcpEndpoint, endpoint_for
 from .link import Link
+from .poller_api import Poller
 from .registration import DtuAccess, PortSettings
 from .registry import LineRegistry
 from .registry import registry as line_registry
-from .worker import LineWorker, Poller
+from .worker import LineWorker
 
 __all__ = [
     "DtuAccess",

@@ -26,6 +26,10 @@ def connect_tcp(ep: TcpEndpoint, timeout: float) -> socket.socket:
     except OSError as exc:
         raise ModbusConnectionError(f"{ep.describe()}: connect failed: {exc.strerror or exc}") \
             from None
+    except UnicodeError as exc:  # the IDNA codec refuses the name before any lookup
+        raise ModbusConnectionError(
+            f"{ep.describe()}: connect failed: host name {ep.host!r} is not a valid DNS "
+            f"name (labels of 1..63 characters, no empty label): {exc}") from None
     sock.settimeout(None)
     sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_KEEPALIVE, 1)

@@ -7,6 +7,13 @@ line's pacing (request interval, t3.5 silence), settle after a timeout and drain
 a bad frame are those of every request.  What the request may be and how a failure
 maps to an exception code is :mod:`edgemodbus.protocol.forward`.
 
+A forward's timeout counts from the moment it was asked for (:func:`forward_future`),
+time in the queue included: the job sends it with what is left of it, or, when nothing
+is left, fails at once without sending (:class:`QueuedTooLongError`); the returned
+future carries its ``deadline``, by which the gateway's server answers 0B even while
+the line is still busy with something else.  After a timeout the worker backs off
+from that slave (:mod:`edgemodbus.line.jobs`).
+
 A forwarded request's failure is the line's (its counters) and the TCP master's (the
 exception it gets), never the device's: no poller sees it, so it does not count towards
 ``offlineAfterFailedCycles`` nor change the device's status; and a device that is
@@ -16,12 +23,30 @@ Offline still gets forwarded requests (the TCP master asked for that slave).
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Callable
 from concurrent.futures import Future, InvalidStateError
 
 from ..errors import ModbusError, ModbusExceptionResponse, ModbusTimeoutError
 from ..protocol.forward import check_reply, check_request, read_reply, read_span
 from .link import Link
+
+#: Less than this left of a forward's timeout: not sent (no slave answers that fast).
+MIN_LEFT = 0.005
+
+
+class QueuedTooLongError(ModbusTimeoutError):
+    """A forward's timeout ran out while it waited on the line's queue: not sent."""
+
+
+class ForwardFuture(Future[bytes]):
+    """A forward's future; ``deadline`` (``time.monotonic()``): when its timeout, counted
+    from the request's arrival, runs out."""
+
+    def __init__(self, deadline: float) -> None:
+        super().__init__()
+        self.deadline = deadline
+
 
 #: ``submit(job, reads)``: the worker's queue; ``reads``: the job changes nothing on a slave
 Submit = Callable[[Callable[[Link], bytes], bool], "Future[bytes]"]
@@ -30,19 +55,20 @@ Cached = Callable[[int, int, int, int], "list[int] | None"]
 
 
 def forward_future(submit: Submit, slave: int, pdu: bytes, timeout: float,
-                   cached: Cached | None = None) -> Future[bytes]:
+                   cached: Cached | None = None) -> ForwardFuture:
     """Queue the forward of ``pdu`` to ``slave`` with ``submit`` (the line worker's) and
     return its future, which fails as soon as the transaction failed: a timeout is
     answered after ``timeout``, not after the settle that follows it on the line.
     Cancelling the future before the worker took the job leaves the line untouched.
     ``cached`` (read coalescing): asked on the worker first for a read's values.
     Raises as :func:`forward_job` does, before anything is queued."""
-    result: Future[bytes] = Future()
+    arrived = time.monotonic()
+    result = ForwardFuture(arrived + timeout)
 
     def early(exc: ModbusError) -> None:
         _resolve(result, None, exc)
 
-    job = submit(forward_job(slave, pdu, timeout, early, cached),
+    job = submit(forward_job(slave, pdu, timeout, early, cached, arrived),
                  read_span(pdu) is not None)
     job.add_done_callback(lambda done: _resolve(
         result, None if done.cancelled() or done.exception() else done.result(),
@@ -68,9 +94,11 @@ def _resolve(future: Future[bytes], value: bytes | None, exc: BaseException | No
 
 def forward_job(slave: int, pdu: bytes, timeout: float,
                 early: Callable[[ModbusError], None] | None = None,
-                cached: Cached | None = None) -> Callable[[Link], bytes]:
+                cached: Cached | None = None,
+                arrived: float | None = None) -> Callable[[Link], bytes]:
     """The worker job forwarding ``pdu`` to ``slave``, whose reply must come within
-    ``timeout`` seconds; ``early`` is told of a failure before the line is cleaned up.
+    ``timeout`` seconds of ``arrived`` (``time.monotonic()``; None: of the job's start);
+    ``early`` is told of a failure before the line is cleaned up.
     A read that ``cached`` answers is replied from those values, with no line traffic.
     Raises here, before anything is queued: a
     :class:`~edgemodbus.protocol.forward.ForwardRequestError` for a PDU that is not
@@ -84,16 +112,22 @@ def forward_job(slave: int, pdu: bytes, timeout: float,
     if not (math.isfinite(timeout) and timeout > 0):
         raise ValueError(f"forward timeout {timeout!r}: must be a positive number of seconds")
     span = read_span(pdu) if cached is not None else None
-    if cached is None or span is None:
-        return lambda link: forward_on(link, slave, pdu, timeout, early)
-    fetch = cached
 
     def job(link: Link) -> bytes:
-        values = fetch(slave, *span)
-        if values is None:
-            return forward_on(link, slave, pdu, timeout, early)
-        link.stats.forward_coalesced += 1
-        return read_reply(span[0], values)
+        if cached is not None and span is not None:
+            values = cached(slave, *span)
+            if values is not None:
+                link.stats.forward_coalesced += 1
+                return read_reply(span[0], values)
+        left = timeout if arrived is None else arrived + timeout - time.monotonic()
+        if left < MIN_LEFT:
+            link.stats.forwarded += 1
+            link.stats.forward_timeouts += 1
+            link.stats.forward_expired += 1
+            raise QueuedTooLongError(
+                f"forward to slave {slave}: its timeout of {timeout * 1000:.0f} ms ran out "
+                "while it waited for the line; not sent")
+        return forward_on(link, slave, pdu, left, early)
 
     return job
 

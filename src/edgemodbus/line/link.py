@@ -57,6 +57,7 @@ class Link:
     idle_fd: int | None = None
     """A link that receives unsolicited frames (wrapped reports) sets this: the worker
     then watches the fd while idle and calls :meth:`pump`."""
+    owed: bool = False  # after run_engine: the read owed to polling is still owed
 
     def __init__(self, endpoint: Endpoint, timing: LineTiming, stats: LineStats, fd: int, *,
                  mbap: bool = False, on_close: Callable[[], None] | None = None) -> None:
@@ -118,12 +119,12 @@ class Link:
     def _fail(self, exc: ModbusError) -> ModbusError:
         raise NotImplementedError
 
-    def run_engine(self, waker: Waker, counters: LineCounters,
-                   devices: Sequence[EngineDevice],
-                   until: float) -> tuple[int, int, int] | None:
+    def run_engine(self, waker: Waker, counters: LineCounters, devices: Sequence[EngineDevice],
+                   until: float, owed: bool = False) -> tuple[int, int, int] | None:
         """Run ``devices``' passes in C until something needs Python or ``until``: the
         event, the index of the device concerned and an errno (see _ffi/engine.py).
-        None: this link steps in Python (the worker calls the pollers' poll_step)."""
+        ``owed``: a job ran since the last read, so the next waits for one read of a
+        due block (:attr:`owed`: still owed).  None: this link steps in Python."""
         return None
 
     def read_failed(self, err: int, slave: int, area: Area, address: int,
@@ -252,9 +253,8 @@ class ContextLink(Link):
         self._engine: Engine | None = None
 
     # -- the engine --------------------------------------------------------------------
-    def run_engine(self, waker: Waker, counters: LineCounters,
-                   devices: Sequence[EngineDevice],
-                   until: float) -> tuple[int, int, int] | None:
+    def run_engine(self, waker: Waker, counters: LineCounters, devices: Sequence[EngineDevice],
+                   until: float, owed: bool = False) -> tuple[int, int, int] | None:
         """See :meth:`Link.run_engine`; with the frame trace on, the line steps in
         Python so that every frame is logged, and so does a DTU stream (the engine does
         not take its wrapped reports out of the link yet: they must reach the pollers
@@ -265,7 +265,8 @@ class ContextLink(Link):
         if engine is None or engine.waker is not waker:
             engine = self._engine = Engine(self._ctx, waker, counters, self._pace, self.idle_fd)
         engine.set_devices(devices)
-        event = engine.run(until, self._ready_at)
+        event = engine.run(until, self._ready_at, owed)
+        self.owed = engine.owed
         if self._pace:
             self._ready_at = engine.ready_at
         self._timeouts = (-1.0, -1.0)  # the engine sets each device's own

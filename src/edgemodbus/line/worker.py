@@ -6,8 +6,12 @@ contexts are not thread-safe.  Other threads reach the line through a queue
 (:meth:`LineWorker.submit` and the request helpers, which return
 ``concurrent.futures.Future`` objects), and pollers (the driver's devices) are called on
 the worker when they are due.  Queued requests (writes) run before the next poll step, so
-they jump ahead of reads.  The link itself (:mod:`edgemodbus.line.link`) settles the line
-after timeouts and drains it after other errors.
+they jump ahead of reads, but while a block is due at most one job runs between two poll
+transactions, so that no flood of jobs starves polling (:mod:`edgemodbus.line.jobs`).
+The link itself (:mod:`edgemodbus.line.link`) settles the line after timeouts and
+drains it after other errors.  An unexpected exception on the worker is logged, the link
+closed, the pollers told, the queued jobs failed, and the line restarts with backoff:
+the worker never dies of it.
 """
 
 from __future__ import annotations
@@ -20,9 +24,8 @@ import random
 import select
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from concurrent.futures import Future
-from dataclasses import dataclass
 from typing import Any, Protocol, TypeVar
 
 from .._ffi.engine import (
@@ -35,16 +38,14 @@ from .._ffi.engine import (
     LineCounters,
     Waker,
 )
-from ..datatypes import Area
-from ..errors import (
-    ModbusConnectionError,
-    ModbusError,
-)
+from ..errors import LineBusyError, ModbusConnectionError, ModbusError, TargetBackoffError
 from ..stats import LineStats
 from .connect import open_link
 from .endpoint import DtuEndpoint, Endpoint, LineTiming
-from .forward import forward_future
+from .jobs import MAX_PENDING, STOP, Job, PollLag, TargetBackoff, answers_of, late_by, period_of
 from .link import Link
+from .poller_api import Poller
+from .requests import LineRequests
 
 log = logging.getLogger("edgemodbus.line")
 T = TypeVar("T")
@@ -52,41 +53,6 @@ T = TypeVar("T")
 _IDLE_SLICE = 0.05  # links with unsolicited frames: longest wait before checking the queue
 _MAX_IDLE = 3600.0  # a poller due "never" (report-only) still gets an idle step per hour
 _DUE = operator.attrgetter("due")
-
-
-class Poller(Protocol):
-    """What the line worker runs: the driver's device polling.  On a link with an
-    engine the engine runs the passes over :attr:`device` and calls the poller only
-    for what needs Python; otherwise the worker calls :meth:`poll_step` when due."""
-
-    device: EngineDevice
-    """The poller's plan and schedule as the engine runs them."""
-
-    @property
-    def due(self) -> float:
-        """``time.monotonic()`` of the next step (read by the worker on every step)."""
-        ...
-
-    def poll_step(self, link: Link) -> None:
-        """Do one request (one block read) on the worker thread."""
-        ...
-
-    def engine_cycle(self) -> None:
-        """The engine ended a pass of this poller that Python must see."""
-        ...
-
-    def engine_failed(self, link: Link, err: int) -> None:
-        """A read of the engine's pass failed with errno ``err``."""
-        ...
-
-    def take_results(self) -> None:
-        """Store the results of the blocks the engine read so far in this pass."""
-        ...
-
-
-    def link_changed(self, up: bool, reason: str | None) -> None:
-        """The line went up or down (called on the worker thread)."""
-        ...
 
 
 class Connector(Protocol):
@@ -98,17 +64,7 @@ class Connector(Protocol):
         ...
 
 
-@dataclass
-class _Job:
-    fn: Callable[[Link], Any]
-    future: Future[Any]
-    reads: bool = False  # changes nothing on a slave (read coalescing keeps its data)
-
-
-_STOP = object()
-
-
-class LineWorker:
+class LineWorker(LineRequests):
     """A line and its worker thread.  Created by :class:`LineRegistry` (shared by every
     user of the same endpoint) or directly; ``start()`` then ``stop()``."""
 
@@ -131,6 +87,16 @@ class LineWorker:
         self.last_link_error: str | None = None
         self._waker = Waker()  # interrupts the engine when a job is queued
         self._changed = 0.0  # monotonic end of the last job that may have written a slave
+        self.max_pending = MAX_PENDING  # jobs queued at most; more: LineBusyError
+        self._pending = 0  # jobs queued, not yet taken
+        self._pending_lock = threading.Lock()
+        self._owed = False  # a job ran since the last poll transaction
+        self._backoff = TargetBackoff(self.timing.max_backoff)
+        self._lag = PollLag(log, endpoint.describe())
+        self._last_crash: str | None = None  # the last unexpected error, logged once
+        self._crashes = 0  # unexpected errors without a calm max_backoff between them
+        self._up_since = self._next_connect = 0.0
+        self._failures = 0
 
     # -- lifecycle -------------------------------------------------------------------
     def start(self) -> None:
@@ -149,7 +115,7 @@ class LineWorker:
         if thread is None:
             return
         self._stopping.set()
-        self._post(_STOP)
+        self._post(STOP)
         if thread is not threading.current_thread():
             wait = timeout if timeout is not None else (
                 self.timing.response_timeout + self.timing.settle + self.timing.connect_timeout
@@ -206,93 +172,99 @@ class LineWorker:
         self._post(None)
 
     # -- requests from any thread ------------------------------------------------------
-    def submit(self, fn: Callable[[Link], T], reads: bool = False) -> Future[T]:
-        """Run ``fn(link)`` on the worker, before the next poll step.  ``reads``: the
-        job only reads, so the data of blocks polled before it still holds."""
+    def submit(self, fn: Callable[[Link], T], reads: bool = False,
+               slave: int | None = None) -> Future[T]:
+        """Run ``fn(link)`` on the worker, before the next poll step (or, while polling
+        is due, after the next poll transaction).  ``reads``: the job only reads, so the
+        data of blocks polled before it still holds; ``slave``: the slave it addresses,
+        for the target backoff after a timeout; such a job's future fails with
+        :class:`LineBusyError` when :attr:`max_pending` jobs are already waiting."""
         future: Future[T] = Future()
         if self._stopping.is_set() or self._thread is None:
             future.set_exception(
                 ModbusConnectionError(f"line {self.endpoint.describe()} is not running")
             )
             return future
-        self._post(_Job(fn, future, reads))
+        with self._pending_lock:  # (control jobs, with no slave, are never refused)
+            busy = slave is not None and self._pending >= self.max_pending
+            if not busy:
+                self._pending += 1
+        if busy:
+            self.stats.jobs_refused += 1
+            future.set_exception(LineBusyError(
+                f"line {self.endpoint.describe()}: {self.max_pending} jobs already waiting "
+                f"(at most {self.max_pending}); try again later"))
+            return future
+        self._post(Job(fn, future, reads, slave))
         return future
 
     def _post(self, item: Any) -> None:
         self._queue.put(item)
         self._waker.signal()
 
-    def read(self, slave: int, area: Area, address: int, count: int) -> Future[list[int]]:
-        """Read registers (ints) or bits (0/1 ints) from one slave."""
-        return self.submit(lambda link: link.read(slave, area, address, count).to_list(),
-                           reads=True)
-
-    def write_coil(self, slave: int, address: int, value: bool) -> Future[None]:
-        return self.submit(lambda link: link.write_coil(slave, address, value))
-
-    def write_register(self, slave: int, address: int, value: int) -> Future[None]:
-        return self.submit(lambda link: link.write_register(slave, address, value))
-
-    def write_coils(self, slave: int, address: int, values: Sequence[bool]) -> Future[None]:
-        values = list(values)
-        return self.submit(lambda link: link.write_coils(slave, address, values))
-
-    def write_registers(self, slave: int, address: int, values: Sequence[int]) -> Future[None]:
-        values = list(values)
-        return self.submit(lambda link: link.write_registers(slave, address, values))
-
-    def mask_write_register(self, slave: int, address: int, and_mask: int,
-                            or_mask: int) -> Future[None]:
-        return self.submit(lambda link: link.mask_write_register(slave, address, and_mask,
-                                                                 or_mask))
-
-    def forward(self, slave: int, pdu: bytes, timeout: float | None = None) -> Future[bytes]:
-        """Forward a request PDU to ``slave`` like a write; the future's result is the
-        reply PDU, its failure comes before the line's settle (see
-        :mod:`edgemodbus.line.forward`, which raises here for a PDU that is not
-        forwarded).  ``timeout``: default the line's response timeout."""
-        wait = self.timing.response_timeout if timeout is None else timeout
-        return forward_future(self.submit, slave, pdu, wait, self._cached)
-
-    def _cached(self, slave: int, function: int, address: int, count: int) -> list[int] | None:
-        """Read coalescing (worker thread): the values a block of a device polling
-        ``slave`` read since the last job that may have written, within that device's
-        ``forwardCoalesce`` age; None if no such block covers the span."""
-        for poller in self._pollers:
-            device = poller.device
-            if device.slave == slave:
-                values = device.cached(function, address, count, self._changed)
-                if values is not None:
-                    return values
-        return None
-
     # -- the worker ------------------------------------------------------------------
     def _run(self) -> None:
-        next_connect = 0.0
-        failures = 0  # failed connects in a row
+        self._next_connect = 0.0
+        self._failures = 0  # failed connects in a row
         try:
             while not self._stopping.is_set():
-                link = self._link
-                if link is not None and link.is_open and self._connect_now:
-                    link.close_reason = "replaced by a new connection"
-                    link.close()
-                if link is None or not link.is_open:
-                    if link is not None:
-                        if self._connect_now and self._connect():
-                            continue  # replaced: the pollers see one "up", no "down"
-                        self._link_lost(link)
-                        next_connect = time.monotonic() + self._reconnect_delay(0)
-                    if self._connect_now or time.monotonic() >= next_connect:
-                        if self._connect():
-                            failures = 0
-                            continue
-                        failures += 1
-                        next_connect = time.monotonic() + self._reconnect_delay(failures)
-                    self._serve_queue_while_down(next_connect)
-                    continue
-                self._serve(link)
+                try:
+                    self._turn()
+                except Exception as exc:  # a bug or an unforeseen error: never die of it
+                    self._recover(exc)
         finally:
             self._shutdown()
+
+    def _turn(self) -> None:
+        """One turn of the worker: (re)connect when due, else serve the link."""
+        link = self._link
+        if link is not None and link.is_open and self._connect_now:
+            link.close_reason = "replaced by a new connection"
+            link.close()
+        if link is None or not link.is_open:
+            if link is not None:
+                if self._connect_now and self._connect():
+                    return  # replaced: the pollers see one "up", no "down"
+                self._link_lost(link)
+                self._next_connect = time.monotonic() + self._reconnect_delay(0)
+            if self._connect_now or time.monotonic() >= self._next_connect:
+                if self._connect():
+                    self._failures = 0
+                    return
+                self._failures += 1
+                self._next_connect = time.monotonic() + self._reconnect_delay(self._failures)
+            self._serve_queue_while_down(self._next_connect)
+            return
+        if self._crashes and time.monotonic() - self._up_since > self.timing.max_backoff:
+            self._crashes, self._last_crash = 0, None  # calm again: a new error is news
+        self._serve(link)
+
+    def _recover(self, exc: Exception) -> None:
+        """An unexpected exception on the worker: log it (once while it repeats), close
+        the link, tell the pollers why, fail the jobs waiting, and try again after the
+        reconnect backoff."""
+        reason = f"line worker error: {type(exc).__name__}: {exc}"
+        self.stats.worker_errors += 1
+        if reason != self._last_crash:
+            log.error("%s: %s; the line restarts", self.endpoint.describe(), reason,
+                      exc_info=exc)
+        else:
+            log.debug("%s: %s again", self.endpoint.describe(), reason)
+        self._last_crash = reason
+        link, self._link = self._link, None
+        if link is not None and link.is_open:
+            link.close_reason = reason
+            try:
+                link.close()
+            except Exception:
+                log.debug("%s: closing the link failed", self.endpoint.describe(),
+                          exc_info=True)
+        self.link_up = False
+        self.last_link_error = reason
+        self._notify(False, reason)
+        self._fail_queued(f"{self.endpoint.describe()}: {reason}")
+        self._crashes += 1
+        self._next_connect = time.monotonic() + self._reconnect_delay(self._crashes)
 
     def _reconnect_delay(self, failures: int) -> float:
         """Wait before the next connect: reconnectInterval, doubled per failed connect
@@ -304,25 +276,32 @@ class LineWorker:
         return base * random.uniform(0.8, 1.2)
 
     def _serve(self, link: Link) -> None:
-        """One step while the link is up: a queued request, else the engine's run until
-        it needs Python, else (a link without one) the most overdue poller's step."""
-        if not self._queue.empty():
-            self._waker.clear()
-            self._handle(self._queue.get_nowait(), link)
-            return
+        """One step while the link is up: a queued request (unless a job already ran
+        since the last poll transaction and a block is due: fairness), else the
+        engine's run until it needs Python, else (a link without one) the most overdue
+        poller's step."""
         pollers = self._pollers
+        if not self._queue.empty():
+            late = late_by([p.device for p in pollers], time.monotonic())
+            if not (self._owed and late is not None):
+                self._waker.clear()
+                self._handle(self._queue.get_nowait(), link, late)
+                return
+            self._waker.signal()  # the engine comes back once it made the owed read
         if not pollers:
             self._handle(self._queue.get(), link)
             return
         until = time.monotonic() + _MAX_IDLE
         event = link.run_engine(self._waker, self._counters, [p.device for p in pollers],
-                                until)
+                                until, self._owed)
         if event is not None:
+            self._owed = link.owed
             self._dispatch(link, event, pollers)
             return
         poller = min(pollers, key=_DUE)
         wait = poller.due - time.monotonic()
         if wait > 0:
+            self._owed = False  # nothing due: jobs may have the line
             if link.idle_fd is not None:
                 self._idle_reads(link, wait)
                 return
@@ -332,6 +311,7 @@ class LineWorker:
                 return
             self._handle(item, link)
             return
+        self._owed = False
         try:
             poller.poll_step(link)
         except Exception:  # a poller bug must not kill the line
@@ -377,10 +357,13 @@ class LineWorker:
         if not self._queue.empty():
             self._handle(self._queue.get_nowait(), link)
 
-    def _handle(self, item: Any, link: Link | None) -> None:
-        if item is None or item is _STOP:
+    def _handle(self, item: Any, link: Link | None, late: float | None = None) -> None:
+        """Run a queued job (``late``: how long polling has been due meanwhile)."""
+        if item is None or item is STOP:
             return
-        job: _Job = item
+        job: Job = item
+        with self._pending_lock:
+            self._pending -= 1
         if not job.future.set_running_or_notify_cancel():
             return
         if link is None or not link.is_open:
@@ -388,16 +371,40 @@ class LineWorker:
                 f"{self.endpoint.describe()}: link is down ({self.last_link_error})"
             ))
             return
+        self.stats.jobs += 1
+        devices = [p.device for p in self._pollers]
+        self._lag.job_ran(self.stats, late, period_of(devices))
+        start, timeouts = time.monotonic(), link.stats.timeouts
+        slave = job.slave
         try:
+            if slave is not None:
+                self._backoff.check(slave, start, answers_of(devices, slave))
+            self._owed = True
             result = job.fn(link)
         except BaseException as exc:
+            self._after(slave, exc, start, link.stats.timeouts > timeouts, devices)
             job.future.set_exception(exc)
         else:
+            self._after(slave, None, start, link.stats.timeouts > timeouts, devices)
             job.future.set_result(result)
         finally:
             if not job.reads:
                 self._changed = time.monotonic()
         link.flush_reports()
+
+    def _after(self, slave: int | None, exc: BaseException | None, start: float,
+               timed_out: bool, devices: list[EngineDevice]) -> None:
+        """A job to ``slave`` ended (``timed_out``: a request of it got no answer):
+        count a backoff, or start or end one."""
+        if isinstance(exc, TargetBackoffError):
+            self.stats.target_backoffs += 1
+        elif slave is not None:
+            now = time.monotonic()
+            backoff = self._backoff.settled(slave, exc, timed_out, now, now - start,
+                                            answers_of(devices, slave))
+            if backoff is not None:
+                log.info("%s: slave %d did not answer: requests to it fail at once for "
+                         "%.1f s", self.endpoint.describe(), slave, backoff)
 
     def _serve_queue_while_down(self, until: float) -> None:
         """While disconnected: fail queued requests at once, sleep until the next try."""
@@ -435,6 +442,7 @@ class LineWorker:
         self._link = link
         self.link_up = True
         self.last_link_error = None
+        self._up_since = time.monotonic()
         if first:
             self.stats.connects += 1
         else:
@@ -470,12 +478,18 @@ class LineWorker:
             self._link.close()
             self._link = None
         self.link_up = False
+        self._fail_queued(f"line {self.endpoint.describe()} stopped")
+
+    def _fail_queued(self, reason: str) -> None:
+        """Fail every job waiting on the queue with ``reason`` (the line stops, or its
+        worker recovers from an error)."""
         while True:
             try:
                 item = self._queue.get_nowait()
             except queue.Empty:
                 break
-            if isinstance(item, _Job) and item.future.set_running_or_notify_cancel():
-                item.future.set_exception(
-                    ModbusConnectionError(f"line {self.endpoint.describe()} stopped")
-                )
+            if isinstance(item, Job):
+                with self._pending_lock:
+                    self._pending -= 1
+                if item.future.set_running_or_notify_cancel():
+                    item.future.set_exception(ModbusConnectionError(reason))

@@ -78,6 +78,16 @@ LINE_COUNTERS: tuple[tuple[str, str, str], ...] = (
      "Forwarded requests that failed otherwise (bad reply, link lost)"),
     ("forwardCoalesced", "line_forward_coalesced",
      "Forwarded reads answered from a fresh polled block (no line traffic)"),
+    ("forwardExpired", "line_forward_expired",
+     "Forwarded requests whose timeout ran out while queued (not sent)"),
+    ("jobs", "line_jobs", "Queued jobs run (writes, forwards, actions, commands)"),
+    ("jobsAheadOfPolls", "line_jobs_ahead_of_polls", "Queued jobs run while polling was due"),
+    ("pollsDelayed", "line_polls_delayed",
+     "Queued jobs run while polling was late by more than its scan rate"),
+    ("jobsRefused", "line_jobs_refused", "Jobs refused: too many waiting (exception 06)"),
+    ("targetBackoffs", "line_target_backoffs",
+     "Requests failed at once: their slave timed out recently (backoff)"),
+    ("workerErrors", "line_worker_errors", "Unexpected errors the line worker recovered from"),
 )
 MQTT_COUNTERS: tuple[tuple[str, str, str], ...] = (
     ("connects", "mqtt_connects", "Connections to the MQTT broker"),

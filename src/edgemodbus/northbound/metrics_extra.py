@@ -90,6 +90,9 @@ SERVE_COUNTERS: tuple[tuple[str, str, str], ...] = (
     ("writes", "serve_writes", "Write requests to a served device"),
     ("writeErrors", "serve_write_errors", "Writes a device refused or failed"),
     ("forwarded", "serve_forwarded", "Requests forwarded to a device's line"),
+    ("forwardExpired", "serve_forward_expired",
+     "Forwarded requests answered 0B when their timeout ran out (counted from arrival)"),
+    ("busy", "serve_busy", "Requests answered 06 (server busy): the line had too many waiting"),
 )
 
 

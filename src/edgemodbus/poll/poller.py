@@ -396,7 +396,8 @@ class Poller(FaultPolicy):
     def submit_writes(self, ops: list[WriteOp],
                       whole: bool = False) -> Future[tuple[bool, str | None]]:
         assert self.line is not None
-        future = self.line.submit(lambda link: self._run_writes(link, ops, whole))
+        future = self.line.submit(lambda link: self._run_writes(link, ops, whole),
+                                  slave=self.slave)  # a silent slave: the line backs off
 
         def count_unsent(done: Future[tuple[bool, str | None]]) -> None:
             # the line failed the job without running it (link down, line stopped): the

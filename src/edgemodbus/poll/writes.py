@@ -19,7 +19,7 @@ from .._ffi import Block
 from ..codec import BlockDecoder, encode, normalize_value, register_bit
 from ..config import DriverModbusRtuParameter
 from ..datatypes import Area
-from ..errors import IllegalFunction, ModbusConnectionError, ModbusError
+from ..errors import IllegalFunction, ModbusConnectionError, ModbusError, ModbusTimeoutError
 from ..line import Link
 from ..stats import DeviceStats
 from .items import ItemState, holds, set_item
@@ -156,6 +156,10 @@ class Writer:
                 errors.append(f"{op.names}: {exc}")
                 if isinstance(exc, ModbusConnectionError):
                     errors.extend(f"{o.names}: not sent (link down)" for o in ops[i + 1:])
+                    break
+                if isinstance(exc, ModbusTimeoutError):  # each would cost another timeout
+                    errors.extend(f"{o.names}: not sent (no answer to the one before)"
+                                  for o in ops[i + 1:])
                     break
                 if whole:
                     errors.extend(f"{o.names}: not sent" for o in ops[i + 1:])

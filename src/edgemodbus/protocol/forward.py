@@ -4,7 +4,8 @@ failure.
 
 A PDU here is the function code and its data, without slave id, CRC or MBAP header
 (Modbus Application Protocol v1.1b3, 4.1).  Only functions whose reply length the line
-can frame (csrc/emb_io.c, emb_reply_length) are forwarded: 01-06, 0F, 10, 16 and 17.
+can frame (csrc/emb_io.c, emb_reply_length) are forwarded: 01-06, 0F, 10, 11, 16 and
+17.
 Pure bytes: no I/O, no state.
 
 The public contract a Modbus TCP server builds on:
@@ -21,20 +22,23 @@ from __future__ import annotations
 import struct
 
 from ..errors import (
+    LineBusyError,
     ModbusConnectionError,
     ModbusExceptionResponse,
     ModbusTimeoutError,
     ProtocolError,
 )
 
-#: The function codes forward mode sends (6.1-6.6, 6.11, 6.12, 6.16, 6.17).
+#: The function codes forward mode sends (6.1-6.6, 6.11-6.13, 6.16, 6.17).
 FORWARD_FUNCTIONS: frozenset[int] = frozenset({0x01, 0x02, 0x03, 0x04, 0x05, 0x06, 0x0F,
-                                               0x10, 0x16, 0x17})
+                                               0x10, 0x11, 0x16, 0x17})
+REPORT_SERVER_ID = 0x11  # 6.13: no data; the reply's byte count says its length
 
 # Exception codes (Modbus Application Protocol v1.1b3, 7)
 ILLEGAL_FUNCTION = 0x01
 ILLEGAL_DATA_VALUE = 0x03
 SERVER_DEVICE_FAILURE = 0x04
+SERVER_DEVICE_BUSY = 0x06
 GATEWAY_PATH_UNAVAILABLE = 0x0A
 GATEWAY_TARGET_FAILED = 0x0B
 
@@ -45,7 +49,7 @@ _MAX_WRITE_REGISTERS = 123  # 0x7B
 _MAX_RW_READ = 125  # 0x7D
 _MAX_RW_WRITE = 121  # 0x79
 # fixed request lengths, function code included
-_FIXED_LENGTH = {0x01: 5, 0x02: 5, 0x03: 5, 0x04: 5, 0x05: 5, 0x06: 5, 0x16: 7}
+_FIXED_LENGTH = {0x01: 5, 0x02: 5, 0x03: 5, 0x04: 5, 0x05: 5, 0x06: 5, 0x11: 1, 0x16: 7}
 
 
 class ForwardRequestError(ValueError):
@@ -131,8 +135,11 @@ def _check_count(name: str, count: int, want: int, data: int) -> None:
 
 
 def expected_reply_length(request: bytes) -> int:
-    """The length of the normal reply PDU to a valid ``request`` (6.1-6.17)."""
+    """The length of the normal reply PDU to a valid ``request`` (6.1-6.17); for Report
+    Server ID (6.13), whose length the slave chooses, the shortest (byte count 1)."""
     fc = request[0]
+    if fc == REPORT_SERVER_ID:
+        return 3
     qty = int.from_bytes(request[3:5], "big")  # the (read) quantity of 6.1-6.4, 6.17
     if fc in (0x01, 0x02):
         return 2 + (qty + 7) // 8
@@ -155,6 +162,11 @@ def check_reply(request: bytes, reply: bytes) -> None:
         return
     if reply[0] != fc:
         raise ProtocolError(f"{what}: reply has function code {reply[0]:#04x}")
+    if fc == REPORT_SERVER_ID:  # 6.13: byte count, server id, run indicator, more data
+        if len(reply) < 3 or reply[1] != len(reply) - 2:
+            raise ProtocolError(f"{what}: reply of {len(reply)} bytes with byte count "
+                                f"{reply[1] if len(reply) > 1 else 'none'}")
+        return
     want = expected_reply_length(request)
     if len(reply) != want:
         raise ProtocolError(f"{what}: reply of {len(reply)} bytes, expected {want}")
@@ -202,6 +214,8 @@ def exception_code_for(exc: BaseException) -> int:
       gateway target device failed to respond;
     * :class:`~edgemodbus.errors.ModbusConnectionError` (the line is down, not running,
       or the device is stopped): 0A, gateway path unavailable;
+    * :class:`~edgemodbus.errors.LineBusyError` (too many jobs waiting on the line): 06,
+      server device busy;
     * :class:`~edgemodbus.errors.ModbusExceptionResponse` (not raised by forward, which
       passes exception replies through as bytes): its code;
     * anything else: 04, server device failure.
@@ -212,6 +226,8 @@ def exception_code_for(exc: BaseException) -> int:
         return GATEWAY_TARGET_FAILED
     if isinstance(exc, ModbusConnectionError):
         return GATEWAY_PATH_UNAVAILABLE
+    if isinstance(exc, LineBusyError):
+        return SERVER_DEVICE_BUSY
     if isinstance(exc, ModbusExceptionResponse):
         return exc.code
     return SERVER_DEVICE_FAILURE

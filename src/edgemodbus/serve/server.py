@@ -9,6 +9,14 @@ the other masters; the answer is posted when the driver's future resolves (on th
 worker), and that master's connection reads nothing more until then.  The images are
 updated from the drivers' batch callbacks, one C call per batch (serve/image.py).
 
+A forwarded request is answered by its timeout counted from its arrival: when it runs
+out while the line is still busy (another request's timeout and settle), this thread
+answers 0B and the request is dropped from the line's queue, or, already sent, its
+reply is dropped (a connection's answer is posted once).  A line with too many jobs
+waiting answers exception 06 (server device busy); one connection has at most one
+request in the line's queue (csrc/emb_serve.c reads nothing more from it until its
+answer was posted).
+
 Freshness (``max_age``): a served device's reads get exception 0B once ``max_age`` has
 passed since the slave last answered a read while the device was Running (checked every
 ``tick``); an item that is Invalid or not read yet gets 0B at any age.  It bounds the
@@ -19,6 +27,8 @@ block of a slower scan rate than the device's is as old as its own rate makes it
 from __future__ import annotations
 
 import errno
+import heapq
+import itertools
 import logging
 import os
 import re
@@ -45,8 +55,11 @@ from .._ffi.serve import (
 from ..config import DeviceAddressItem, DeviceConfig, validate_items
 from ..datatypes import Area, DeviceDriverStatus, ItemStatus
 from ..driver import DriverModbusRtu
+from ..errors import LineBusyError
+from ..line.forward import ForwardFuture
 from ..protocol.forward import (
     GATEWAY_TARGET_FAILED,
+    SERVER_DEVICE_BUSY,
     SERVER_DEVICE_FAILURE,
     ForwardRequestError,
     exception_code_for,
@@ -118,6 +131,11 @@ class ModbusTcpServer:
         self.forwarded = 0
         self._accept_errors_logged = 0  # the C loop's accept_errors when last logged
         self._accept_log_at = 0.0  # the next accept-failure line not before (monotonic)
+        self.forward_expired = 0
+        self.busy = 0
+        # forwards waiting for an answer, by deadline (time.monotonic())
+        self._deadlines: list[tuple[float, int, Future[bytes]]] = []
+        self._seq = itertools.count()
 
     # -- units -------------------------------------------------------------------------
     def serve_device(self, unit_id: int, driver: DriverModbusRtu, config: DeviceConfig, *,
@@ -202,6 +220,7 @@ class ModbusTcpServer:
             "exceptions": c.exceptions, "writes": self.writes,
             "writeErrors": self.write_errors, "forwarded": self.forwarded,
             "acceptErrors": c.accept_errors,
+            "forwardExpired": self.forward_expired, "busy": self.busy,
         }
 
     # -- the server's thread -----------------------------------------------------------
@@ -217,7 +236,7 @@ class ModbusTcpServer:
                     units = [u for u in self._units.values() if u.max_age is not None]
                 for unit in units:
                     self._refresh(unit, now)
-            event = core.run(next_check)
+            event = core.run(min(next_check, self._expire()))
             self._log_accept_errors()
             if event == EV_STOP:
                 return
@@ -248,6 +267,24 @@ class ModbusTcpServer:
                     "doubling to 2 s, new masters wait in the backlog (next report in "
                     "%.0f s at most)", self.port, failed, name, os.strerror(c.accept_errno),
                     ACCEPT_LOG_INTERVAL)
+
+    def _expire(self) -> int:
+        """Answer 0B to the forwards whose timeout ran out (cancelling them: a queued
+        one is not sent); returns the next deadline (``time.monotonic_ns``)."""
+        deadlines = self._deadlines
+        while True:
+            with self._lock:
+                if not deadlines:
+                    return _NEVER_STALE
+                deadline, _, future = deadlines[0]
+                if future.done():
+                    heapq.heappop(deadlines)
+                    continue
+                if deadline > time.monotonic():
+                    return int(deadline * 1e9)
+                heapq.heappop(deadlines)
+            if future.cancel():  # its done-callback answers 0B
+                self.forward_expired += 1
 
     def _refresh(self, unit: _Unit, now: int) -> None:
         """A unit with a max age stays fresh for max_age past each check that saw the
@@ -290,10 +327,14 @@ class ModbusTcpServer:
                 return
             exc = f.exception()
             if exc is not None:
+                self.busy += isinstance(exc, LineBusyError)
                 self._answer(request, exception_code_for(exc))
             else:
                 self.core.post(request.conn, request.gen, POST_PDU, f.result())
 
+        if isinstance(future, ForwardFuture) and not future.done():
+            with self._lock:
+                heapq.heappush(self._deadlines, (future.deadline, next(self._seq), future))
         future.add_done_callback(done)
 
     def _write(self, unit: _Unit, image: UnitImage, request: Request) -> None:
@@ -332,7 +373,9 @@ class ModbusTcpServer:
         def done(f: Future[tuple[bool, str | None]]) -> None:
             if f.cancelled() or f.exception() is not None:
                 self.write_errors += 1
-                self._answer(request, GATEWAY_TARGET_FAILED)
+                busy = not f.cancelled() and isinstance(f.exception(), LineBusyError)
+                self.busy += busy
+                self._answer(request, SERVER_DEVICE_BUSY if busy else GATEWAY_TARGET_FAILED)
                 return
             ok, why = f.result()
             if ok:

@@ -21,6 +21,7 @@ from pymodbus.pdu.bit_message import (
     WriteMultipleCoilsRequest,
     WriteSingleCoilRequest,
 )
+from pymodbus.pdu.other_message import ReportDeviceIdRequest, ReportDeviceIdResponse
 from pymodbus.pdu.register_message import (
     MaskWriteRegisterRequest,
     ReadHoldingRegistersRequest,
@@ -35,9 +36,11 @@ from pymodbus.pdu.register_message import (
 from edgemodbus.errors import (
     CrcError,
     IllegalDataAddress,
+    LineBusyError,
     ModbusConnectionError,
     ModbusTimeoutError,
     ProtocolError,
+    TargetBackoffError,
 )
 from edgemodbus.protocol.forward import (
     FORWARD_FUNCTIONS,
@@ -81,6 +84,8 @@ def valid_requests(draw: st.DrawFn) -> bytes:
     elif fc == 16:
         regs = draw(st.lists(u16, min_size=1, max_size=123))
         request = WriteMultipleRegistersRequest(address=address, registers=regs)
+    elif fc == 0x11:
+        request = ReportDeviceIdRequest()
     elif fc == 22:
         request = MaskWriteRegisterRequest(address=address, and_mask=draw(u16),
                                            or_mask=draw(u16))
@@ -103,8 +108,10 @@ def plain_reading(pdu: bytes) -> int | None:
     if not pdu:
         return 3
     fc, n = pdu[0], len(pdu)
-    if fc not in (1, 2, 3, 4, 5, 6, 15, 16, 22, 23):
+    if fc not in (1, 2, 3, 4, 5, 6, 15, 16, 17, 22, 23):
         return 1
+    if fc == 17:  # Report Server ID: the function code alone (6.13)
+        return None if n == 1 else 3
     if fc in (1, 2, 3, 4, 5, 6):
         if n != 5:
             return 3
@@ -154,13 +161,14 @@ def test_random_bodies_of_supported_functions_get_the_right_code(fc: int, body: 
 @given(valid_requests(), st.data())
 @settings(max_examples=300)
 def test_a_valid_request_cut_or_grown_is_refused_with_03(pdu: bytes, data: st.DataObject) -> None:
-    cut = pdu[:data.draw(st.integers(1, len(pdu) - 1))]
+    if len(pdu) > 1:  # (Report Server ID is the function code alone)
+        cut = pdu[:data.draw(st.integers(1, len(pdu) - 1))]
+        assert verdict(cut) == 3
     grown = pdu + data.draw(st.binary(min_size=1, max_size=4))
-    assert verdict(cut) == 3
     assert verdict(grown) == 3
 
 
-@pytest.mark.parametrize("fc", [0x07, 0x08, 0x0B, 0x0C, 0x11, 0x14, 0x15, 0x18, 0x2B, 0x81])
+@pytest.mark.parametrize("fc", [0x07, 0x08, 0x0B, 0x0C, 0x14, 0x15, 0x18, 0x2B, 0x81])
 def test_functions_we_cannot_frame_are_illegal_function(fc: int) -> None:
     with pytest.raises(UnsupportedFunctionError, match=f"{fc:#04x}") as info:
         check_request(bytes([fc, 0, 0, 0, 1]))
@@ -192,14 +200,14 @@ def test_a_well_formed_reply_passes_and_a_changed_one_does_not(pdu: bytes,
                                                                 data: st.DataObject) -> None:
     fc = pdu[0]
     n = expected_reply_length(pdu)
-    if fc in (1, 2, 3, 4, 23):
+    if fc in (1, 2, 3, 4, 0x11, 23):
         reply = bytes([fc, n - 2]) + data.draw(st.binary(min_size=n - 2, max_size=n - 2))
     else:
         reply = pdu[:n]  # a write's reply echoes the start of its request
     check_reply(pdu, reply)
     check_reply(pdu, bytes([fc | 0x80, data.draw(st.integers(0, 255))]))
     i = data.draw(st.integers(0, n - 1))
-    if fc in (1, 2, 3, 4, 23) and i >= 2:
+    if fc in (1, 2, 3, 4, 0x11, 23) and i >= 2:
         return  # register values and bits are the slave's: any are fine
     changed = bytearray(reply)
     changed[i] ^= data.draw(st.integers(1, 255))
@@ -209,6 +217,17 @@ def test_a_well_formed_reply_passes_and_a_changed_one_does_not(pdu: bytes,
         check_reply(pdu, reply[:-1])
     with pytest.raises(ProtocolError):
         check_reply(pdu, reply + b"\x00")
+
+
+@given(st.binary(max_size=240), st.booleans())
+def test_report_server_id_replies_as_pymodbus_encodes_them_pass(ident: bytes, on: bool) -> None:
+    """FC 0x11 (6.13): byte count, then what the slave chooses to say."""
+    reply = bytes([0x11]) + ReportDeviceIdResponse(identifier=ident, status=on).encode()
+    check_reply(b"\x11", reply)
+    with pytest.raises(ProtocolError):
+        check_reply(b"\x11", reply + b"\x00")
+    with pytest.raises(ProtocolError):
+        check_reply(b"\x11", reply[:-1])
 
 
 def test_reply_lengths_follow_the_spec() -> None:
@@ -228,6 +247,8 @@ def test_failures_map_to_gateway_codes() -> None:
     assert exception_code_for(RuntimeError("bug")) == 0x04
     assert exception_code_for(InvalidRequestError("x")) == 0x03
     assert exception_code_for(UnsupportedFunctionError("x")) == 0x01
+    assert exception_code_for(LineBusyError("too many waiting")) == 0x06
+    assert exception_code_for(TargetBackoffError("backing off")) == 0x0B
 
 
 # -- read coalescing: the span of a read request, and a reply built from values ---------------

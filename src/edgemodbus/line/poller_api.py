@@ -1,0 +1,44 @@
+"""What a line worker runs: the :class:`Poller` protocol, the driver's device polling
+as the worker sees it (poll/poller.py implements it)."""
+
+from __future__ import annotations
+
+from typing import Protocol
+
+from .._ffi.engine import EngineDevice
+from .link import Link
+
+
+class Poller(Protocol):
+    """What the line worker runs: the driver's device polling.  On a link with an
+    engine the engine runs the passes over :attr:`device` and calls the poller only
+    for what needs Python; otherwise the worker calls :meth:`poll_step` when due."""
+
+    device: EngineDevice
+    """The poller's plan and schedule as the engine runs them."""
+
+    @property
+    def due(self) -> float:
+        """``time.monotonic()`` of the next step (read by the worker on every step)."""
+        ...
+
+    def poll_step(self, link: Link) -> None:
+        """Do one request (one block read) on the worker thread."""
+        ...
+
+    def engine_cycle(self) -> None:
+        """The engine ended a pass of this poller that Python must see."""
+        ...
+
+    def engine_failed(self, link: Link, err: int) -> None:
+        """A read of the engine's pass failed with errno ``err``."""
+        ...
+
+    def take_results(self) -> None:
+        """Store the results of the blocks the engine read so far in this pass."""
+        ...
+
+
+    def link_changed(self, up: bool, reason: str | None) -> None:
+        """The line went up or down (called on the worker thread)."""
+        ...
