@@ -17,7 +17,7 @@ from .config import (
     load_communication,
     load_device_config,
 )
-from .datatypes import Area, DataFormat, DataType, DeviceDriverStatus, ItemStatus
+from .datatypes import Area, DataFormat, DataFormat64, DataType, DeviceDriverStatus, ItemStatus
 from .descriptor import driver_descriptor
 from .driver import DriverModbusRtu
 from .errors import (
@@ -36,6 +36,7 @@ __all__ = [
     "Area",
     "ConfigError",
     "DataFormat",
+    "DataFormat64",
     "DataType",
     "DeviceAddressItem",
     "DeviceConfig",

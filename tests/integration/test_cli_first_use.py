@@ -360,3 +360,26 @@ def test_a_deeply_nested_file_is_one_line(tmp_path: Path) -> None:
         assert line.startswith(f"edgemodbus {command}: "), line
         if command != "action":
             assert line.startswith(f"edgemodbus {command}: {path}: "), line
+
+
+# -- byte order on the command line: the device file's keys, as options ------------------
+def test_read_and_write_take_the_byte_order_keys() -> None:
+    """--format orders values of two or more registers only, --byte-swap16 swaps a
+    one-register value, --format64 orders 64-bit values apart (README "Byte order")."""
+    with PymodbusSlave("tcp", units=(1,)) as slave:
+        where = ["--host", "127.0.0.1", "--port", str(slave.port)]
+        slave.set_registers(1, "hr", 0, [0x1234])
+        out = cli("read", *where, "--format", "DCBA", "hr:0")
+        assert (out.returncode, out.stdout.strip()) == (0, str(0x1234)), out.stderr
+        out = cli("read", *where, "--byte-swap16", "hr:0")
+        assert (out.returncode, out.stdout.strip()) == (0, str(0x3412)), out.stderr
+        value = 0x0102030405060708
+        out = cli("write", *where, "--type", "UInt64", "--format64", "EFGHABCD", "hr:10",
+                  str(value))
+        assert out.returncode == 0, out.stderr
+        assert slave.registers(1, "hr", 10, 4) == [0x0506, 0x0708, 0x0102, 0x0304]
+        out = cli("read", *where, "--type", "UInt64", "--format64", "EFGHABCD", "hr:10")
+        assert (out.returncode, out.stdout.strip()) == (0, str(value)), out.stderr
+        out = cli("read", *where, "--format64", "XYZ", "hr:10")
+        assert out.returncode == 2 and one_line(out).startswith("edgemodbus read: --format64"), \
+            out.stderr

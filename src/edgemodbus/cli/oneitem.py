@@ -36,6 +36,8 @@ _OPTION_OF_FIELD = {
     "communication.slaveId": "slave",
     "communication.readTimeout": "timeout",
     "communication.dataFormat": "format",
+    "communication.byteSwap16": "byte_swap16",
+    "communication.dataFormat64": "format64",
     "communication.tcpHost": "host",
     "communication.tcpPort": "port",
     "communication.comPort": "serial",
@@ -89,7 +91,12 @@ def add_line_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--type", default=None,
                    help="data type (Boolean for coils, discrete inputs and register bits such "
                    "as hr:7.3, else UInt16)")
-    p.add_argument("--format", default="ABCD", help="ABCD, BADC, CDAB or DCBA")
+    p.add_argument("--format", default="ABCD", help="byte and word order of values of 2 or "
+                   "more registers: ABCD, BADC, CDAB or DCBA")
+    p.add_argument("--byte-swap16", action="store_true",
+                   help="swap the two bytes of a one-register value (and of a bit's register)")
+    p.add_argument("--format64", default=None, help="order of 64-bit values (ABCDEFGH, "
+                   "EFGHABCD = first DWord low, ...); default: what --format means for them")
     p.add_argument("--quantity", type=int, default=None, help="registers (String/Binary)")
     p.add_argument("--multiplier", type=float, default=1.0)
     p.add_argument("--timeout", type=int, default=1000, help="response timeout in ms (1000)")
@@ -108,9 +115,12 @@ def start_one_item(args: argparse.Namespace) -> tuple[DriverModbusRtu, DeviceAdd
     is a CliError naming the option)."""
     comm: dict[str, Any] = {
         "slaveId": args.slave, "readTimeout": args.timeout, "readCycle": 1000,
-        "dataFormat": args.format, "retries": 0, "offlineAfterFailedCycles": 1000,
+        "dataFormat": args.format, "byteSwap16": args.byte_swap16, "retries": 0,
+        "offlineAfterFailedCycles": 1000,
         "addressPrefix": args.address_prefix,
     }
+    if args.format64 is not None:
+        comm["dataFormat64"] = args.format64
     if args.host:
         comm.update(transport=host_transport(args), tcpHost=args.host, tcpPort=args.port)
     elif args.transport is not None:

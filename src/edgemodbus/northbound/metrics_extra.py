@@ -93,6 +93,9 @@ SERVE_COUNTERS: tuple[tuple[str, str, str], ...] = (
     ("forwardExpired", "serve_forward_expired",
      "Forwarded requests answered 0B when their timeout ran out (counted from arrival)"),
     ("busy", "serve_busy", "Requests answered 06 (server busy): the line had too many waiting"),
+    ("acceptErrors", "serve_accept_errors",
+     "accept() failures (EMFILE, ENFILE, ENOBUFS, ENOMEM): accepting paused, 50 ms doubling "
+     "to 2 s"),
 )
 
 
