@@ -237,3 +237,18 @@ def test_at_the_fd_limit_with_nothing_to_evict_accepting_pauses() -> None:
         if proc.poll() is None:
             proc.kill()
         proc.wait()
+
+
+def test_the_exporter_exports_its_own_http_counters() -> None:
+    """A refused method and an oversize request show in the exporter's own families, read
+    through a real scrape of the exporter (MetricsExporter.start)."""
+    with MetricsExporter({"port": 0, "host": "127.0.0.1"}) as exporter:
+        port = exporter.port
+        assert ask(port, "POST")[0] == 405
+        assert ask(port, headers={"X-Pad": "x" * 20000})[0] == 431
+        status, _, body = ask(port)
+    assert status == 200
+    text = body.decode()
+    assert "edgemodbus_metrics_http_bad_requests_total 1.0" in text, text
+    assert "edgemodbus_metrics_http_too_large_total 1.0" in text, text
+    assert "edgemodbus_metrics_http_accepted_total 3.0" in text, text

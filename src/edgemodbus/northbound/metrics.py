@@ -33,7 +33,13 @@ from pydantic import ValidationError
 
 from ..config import ConfigError, Model, Range
 from ..datatypes import DeviceDriverStatus, enum_value
-from .metrics_extra import ServerStats, server_metrics, sparkplug_metrics, spool_metrics
+from .metrics_extra import (
+    ServerStats,
+    exporter_metrics,
+    server_metrics,
+    sparkplug_metrics,
+    spool_metrics,
+)
 from .metrics_http import MetricsHttpServer
 
 if TYPE_CHECKING:
@@ -375,6 +381,9 @@ class MetricsExporter:
             yield from _listener_metrics(listeners)
         if serve is not None:
             yield from server_metrics(serve)
+        server = self._server
+        if server is not None:
+            yield from exporter_metrics(dict(server.counts))
 
     def _mqtt_metrics(self, publisher: PublisherStats) -> Iterator[Metric]:
         from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily

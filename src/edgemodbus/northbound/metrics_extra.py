@@ -23,6 +23,10 @@ Modbus TCP server (label ``listen``, ``host:port``): ``edgemodbus_serve_<counter
 for its connection and request counters, ``edgemodbus_serve_exceptions_total`` by
 exception ``code``, and the gauge ``edgemodbus_serve_connections``
 (the masters' connections open now).
+
+The exporter's own HTTP server (metrics_http.py): ``edgemodbus_metrics_http_<counter>_total``
+for connections accepted, requests answered, connections evicted, refused, timed out
+(header deadline), too large, bad requests and accept failures.
 """
 
 from __future__ import annotations
@@ -174,4 +178,29 @@ def server_metrics(source: ServerStats) -> list[Metric]:
     return families
 
 
-__all__ = ["ServerStats", "server_metrics", "sparkplug_metrics", "spool_metrics"]
+# the exporter's own HTTP server (metrics_http.py): its counts key -> (name, help)
+EXPORTER_COUNTERS: tuple[tuple[str, str, str], ...] = (
+    ("accepted", "metrics_http_accepted", "Scrape connections accepted"),
+    ("answered", "metrics_http_answered", "Requests answered"),
+    ("evicted", "metrics_http_evicted",
+     "Connections closed to make room (the oldest still sending its request)"),
+    ("refused", "metrics_http_refused", "Connections refused: the connection cap reached"),
+    ("timedOut", "metrics_http_timed_out",
+     "Connections closed for request headers not complete within the deadline"),
+    ("tooLarge", "metrics_http_too_large", "Requests refused for headers over the size cap"),
+    ("badRequests", "metrics_http_bad_requests", "Malformed or unsupported requests"),
+    ("acceptErrors", "metrics_http_accept_errors",
+     "accept() failures (EMFILE, ENFILE, ENOBUFS, ENOMEM): accepting paused"),
+)
+
+
+def exporter_metrics(counts: Mapping[str, int]) -> list[Metric]:
+    """The exporter's own HTTP counters (so a slowloris or the fd limit shows)."""
+    from prometheus_client.core import CounterMetricFamily
+
+    return [CounterMetricFamily(f"{NAMESPACE}_{name}", doc, value=float(counts.get(key, 0)))
+            for key, name, doc in EXPORTER_COUNTERS]
+
+
+__all__ = ["ServerStats", "exporter_metrics", "server_metrics", "sparkplug_metrics",
+           "spool_metrics"]
