@@ -27,6 +27,7 @@ from .compat import (
     ng_action_parameter,
 )
 from .items import ParsedItem
+from .limits import MAX_NAME
 from .problems import NO_VALUE, ConfigError, Problem
 
 ACTION_FUNCTIONS: dict[int, tuple[Area, str]] = {
@@ -55,6 +56,7 @@ class ActionParameter(Model):
     and bounds."""
 
     _where: ClassVar[str] = "actions[].parameters[]"
+    _max_lengths: ClassVar[dict[str, int]] = {"name": MAX_NAME, "item": MAX_NAME}
     _extra_keys: ClassVar[tuple[str, ...]] = NG_PARAMETER_KEYS
 
     name: str
@@ -108,6 +110,7 @@ class DeviceAction(Model):
     """A named group of writes: its function code and parameters."""
 
     _where: ClassVar[str] = "actions[]"
+    _max_lengths: ClassVar[dict[str, int]] = {"name": MAX_NAME}
     _extra_keys: ClassVar[tuple[str, ...]] = NG_ACTION_KEYS
 
     name: str

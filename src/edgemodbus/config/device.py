@@ -15,6 +15,7 @@ from .base import READ_CYCLE_RANGE, Model, OptionalMs, field_checks, load_model,
 from .communication import DriverModbusRtuParameter
 from .compat import NG_DEVICE_KEYS, iso_timestamp, ng_device
 from .items import DeviceAddressItem, ParsedItem, validate_items
+from .limits import MAX_NAME
 from .problems import ConfigError
 from .templates import apply_template, device_loading
 
@@ -23,6 +24,8 @@ class DeviceOrganizationParameter(Model):
     """The device's organisation record; its timing fields override communication's."""
 
     _where: ClassVar[str] = "organization"
+    _max_lengths: ClassVar[dict[str, int]] = {
+        "deviceId": MAX_NAME, "deviceCode": MAX_NAME, "deviceName": MAX_NAME}
 
     device_id: str | None = None
     device_code: str | None = None

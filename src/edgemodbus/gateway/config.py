@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import Any, ClassVar
 
 from ..config import ConfigError, Model, Ms, Problem, load_model
+from ..config.limits import MAX_NAME
 from ..northbound.metrics import MetricsSettings
 from ..northbound.mqtt import MqttSettings, check_name
 from ..serve import ServeSettings
@@ -21,6 +22,7 @@ class GatewayConfig(Model):
     """The gateway file: who this gateway is and where its data goes."""
 
     _where: ClassVar[str] = "gateway"
+    _max_lengths: ClassVar[dict[str, int]] = {"gatewayId": MAX_NAME}
 
     gateway_id: str | None = None  # default: the host name
     mqtt: MqttSettings | None = None
