@@ -6,10 +6,12 @@ from __future__ import annotations
 import hashlib
 import os
 import socket
+import stat
 from pathlib import Path
 from typing import Any, ClassVar
 
 from ..config import ConfigError, Model, Ms, Problem, load_model
+from ..config.jsonfile import MAX_JSON_BYTES
 from ..config.limits import MAX_NAME
 from ..northbound.metrics import MetricsSettings
 from ..northbound.mqtt import MqttSettings, check_name
@@ -86,7 +88,11 @@ def gateway_digest(path: Path, config: GatewayConfig) -> str | None:
     """A digest of the gateway file and of the TLS files ``config`` uses (so SIGHUP after
     a certificate renewal reconnects); None when the gateway file does not exist."""
     try:
-        data = path.read_bytes()
+        info = path.stat()
+        if not stat.S_ISREG(info.st_mode):  # a FIFO would block: loading it says why
+            return f"not a regular file: {info.st_mode:o} {info.st_ino}"
+        with open(path, "rb") as file:
+            data = file.read(MAX_JSON_BYTES + 1)  # a larger one: loading it says so
     except FileNotFoundError:
         return None
     return hashlib.sha256(data + _tls_digest(config).encode()).hexdigest()

@@ -284,3 +284,14 @@ def test_the_cli_says_one_line_and_exits_2_for_a_nested_file(tmp_path: Path) -> 
     assert out.stderr.splitlines() == [
         f"edgemodbus plan: {deep}: nested more than {MAX_JSON_DEPTH} levels deep (objects "
         "and lists): the limit of JSON we read"], out.stderr
+
+
+def test_a_fifo_as_gateway_file_is_reported_on_reload_without_blocking(tmp_path: Path) -> None:
+    """The reload's digest read the file whole: a FIFO blocked the main loop."""
+    from edgemodbus.gateway.config import GatewayConfig, gateway_digest
+
+    fifo = tmp_path / "gateway.json"
+    os.mkfifo(fifo)
+    assert gateway_digest(fifo, GatewayConfig()) is not None  # changed: it is loaded
+    with pytest.raises(ConfigError, match="is a FIFO: give a JSON file"):
+        load_gateway_config(fifo)
