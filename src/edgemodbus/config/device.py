@@ -13,7 +13,7 @@ from pydantic import ConfigDict, Field, field_validator, model_validator
 from .actions import DeviceAction, validate_actions
 from .base import READ_CYCLE_RANGE, Model, OptionalMs, field_checks, load_model, recheck
 from .communication import DriverModbusRtuParameter
-from .compat import NG_DEVICE_KEYS, iso_timestamp, ng_device
+from .compat import NG_DEVICE_KEYS, iso_timestamp, ng_batch_defaults, ng_device
 from .items import DeviceAddressItem, ParsedItem, validate_items
 from .limits import MAX_NAME
 from .problems import ConfigError
@@ -109,7 +109,9 @@ class DeviceConfig(Model):
         """Warn about unknown nested keys with their full paths before pydantic sees them."""
         if not isinstance(data, Mapping):
             return data
-        data = ng_device(cls.normalize_keys(data, ""))
+        data = cls.normalize_keys(data, "")
+        ng_points = "points" in data
+        data = ng_device(data)
         for key, model in (
             ("organization", DeviceOrganizationParameter),
             ("communication", DriverModbusRtuParameter),
@@ -117,6 +119,9 @@ class DeviceConfig(Model):
             if isinstance(data.get(key), Mapping):
                 data[key] = model.normalize_keys(data[key], key, key)
         data = apply_template(data)
+        if ng_points and isinstance(data.setdefault("communication", {}), dict) and \
+                "maxBatch" not in data["communication"]:
+            ng_batch_defaults(data["communication"])  # NG's points: NG's read sizes
         items = data.get("addressList")
         if isinstance(items, list):
             data["addressList"] = [
