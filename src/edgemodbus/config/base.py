@@ -212,6 +212,9 @@ def parse_format(value: Any) -> Any:
 # --------------------------------------------------------------------------- the model
 
 
+_GENERATION = 0  # config model classes defined so far (see _exempt)
+
+
 class KeyRules:
     """The key rules every config model shares: keys in any spelling (case, ``_`` and
     ``-`` ignored), unknown keys logged and dropped, a misspelt key or one given twice in
@@ -228,6 +231,11 @@ class KeyRules:
     if typing.TYPE_CHECKING:  # pydantic sets it on every model class
         model_fields: ClassVar[dict[str, FieldInfo]]
 
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        global _GENERATION
+        _GENERATION += 1  # a new section: the keys _exempt() knows are recounted
+        super().__init_subclass__(**kwargs)
+
     @classmethod
     def key_table(cls) -> dict[str, str]:
         """Normalised key -> canonical camelCase key (fields and accepted aliases)."""
@@ -242,7 +250,7 @@ class KeyRules:
         Secrets are wrapped first (secret.py)."""
         table = cls.key_table()
         out = normalize(table, hide_secrets(data, table, secret_keys(cls), prefix), where,
-                        prefix, _exempt())
+                        prefix, _exempt)
         problems = length_problems(out, cls._max_lengths, prefix)
         if problems:
             raise ConfigError(problems)
@@ -357,22 +365,23 @@ def _key_table(cls: type[KeyRules]) -> dict[str, str]:
 
 def _exempt() -> frozenset[str]:
     """Keys never taken for a misspelling: the UI's, and every config section's own
-    (a key of another section put here is no typo of this one)."""
+    (a key of another section put here is no typo of this one: the device file's
+    sections always, the gateway file's once it is imported).  Recounted when a model
+    class is added."""
     global _EXEMPT
-    if _EXEMPT is None:
+    if _EXEMPT[0] != _GENERATION:
         found = set(UI_KEYS)
         todo: list[type] = [KeyRules]
         while todo:
             cls = todo.pop()
             todo += cls.__subclasses__()
-            if cls.__module__.startswith(__package__ or "edgemodbus.config") and \
-                    hasattr(cls, "model_fields") and cls.model_fields:
+            if getattr(cls, "model_fields", None):
                 found.update(_key_table(cls))
-        _EXEMPT = frozenset(found)
-    return _EXEMPT
+        _EXEMPT = (_GENERATION, frozenset(found))
+    return _EXEMPT[1]
 
 
-_EXEMPT: frozenset[str] | None = None
+_EXEMPT: tuple[int, frozenset[str]] = (-1, frozenset())
 
 
 # --------------------------------------------------------------------------- checks again

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import difflib
 import logging
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from contextvars import ContextVar
 from typing import Any
@@ -42,6 +42,9 @@ UI_KEYS: frozenset[str] = frozenset(norm_key(k) for k in (
     "hasBuiltInAddresses", "protocolCategory", "supportedDataTypes",
     "supportsDynamicBrowse", "supportsPresets", "coil", "discreteInput",
     "holdingRegister", "inputRegister", "id", "remark", "remarks", "comment", "tags",
+    # what tag lists and OPC-style exports carry beside a tag
+    "quality", "timestamp", "group", "access", "readOnly", "writable", "precision",
+    "alias", "notes", "enabled",
 ))
 """Keys real files carry that are no field of ours: never taken for a misspelling."""
 
@@ -87,23 +90,47 @@ def distance(a: str, b: str, limit: int) -> int:
 
 def allowed_distance(known: str) -> int:
     """How far a key may be from ``known`` (normalised) to be taken for its misspelling:
-    1 for keys of up to 5 characters (``hots`` -> ``host``), 2 for longer ones
-    (``datamultipler`` -> ``datamultiplier``).  Two edits in a short key would make most
-    short words typos of one another (``unit``, ``type``)."""
-    return 1 if len(known) <= 5 else 2
+    1 for keys of 3 to 7 characters (``hots`` -> ``host``), 2 for longer ones
+    (``datamultpler`` -> ``datamultiplier``), none for shorter ones.  Two edits in a
+    short key would make many words typos of one another (``unit`` and ``type``,
+    ``metrics`` and ``retries``)."""
+    return 0 if len(known) < 3 else 1 if len(known) <= 7 else 2
+
+
+def _deletions(word: str, most: int) -> set[str]:
+    """``word`` with up to ``most`` characters deleted."""
+    found = {word}
+    edge = {word}
+    for _ in range(most):
+        edge = {w[:i] + w[i + 1:] for w in edge for i in range(len(w))}
+        found |= edge
+    return found
+
+
+_MOST = 2  # the largest allowed_distance
 
 
 class _Index:
-    """The keys of one section, indexed for :func:`misspelt`: the keys of each length
-    (only those within 2 of the unknown key's length can be close)."""
+    """The keys of one section, indexed for :func:`misspelt` by their deletion variants
+    (symmetric deletion: two strings within k edits, a swap of neighbours included,
+    share a string both reach by deleting at most k characters), so that an unknown
+    key is compared with the few keys it may misspell, not with every key."""
 
-    __slots__ = ("by_length", "canonical")
+    __slots__ = ("canonical", "longest", "variants")
 
     def __init__(self, table: Mapping[str, str]) -> None:
         self.canonical = dict(table)
-        self.by_length: dict[int, list[str]] = {}
-        for known in sorted(table):
-            self.by_length.setdefault(len(known), []).append(known)
+        self.longest = max(map(len, table), default=0)
+        self.variants: dict[str, set[str]] = {}
+        for known in table:
+            for variant in _deletions(known, allowed_distance(known)):
+                self.variants.setdefault(variant, set()).add(known)
+
+    def candidates(self, norm: str) -> set[str]:
+        found: set[str] = set()
+        for variant in _deletions(norm, _MOST):
+            found |= self.variants.get(variant, set())
+        return found
 
 
 _indexes: dict[int, tuple[Mapping[str, str], _Index]] = {}
@@ -115,20 +142,21 @@ def misspelt(table: Mapping[str, str], key: str, exempt: frozenset[str]) -> str 
     normalisation, so a case-only difference is no key of ours at all), unless ``key``
     is one of ``exempt`` (a UI key, or a key of another section)."""
     norm = norm_key(key)
-    if norm in exempt or not norm:
+    if norm in exempt or len(norm) < 3:
         return None
     cached = _indexes.get(id(table))
     if cached is None or cached[0] is not table:
         cached = (table, _Index(table))
         _indexes[id(table)] = cached
     index = cached[1]
+    if len(norm) > index.longest + _MOST:
+        return None  # far longer than any key (a 10 MB key is not cut into variants)
     best: tuple[int, str] | None = None
-    for length in range(len(norm) - 2, len(norm) + 3):
-        for known in index.by_length.get(length, ()):
-            limit = allowed_distance(known)
-            found = distance(norm, known, limit)
-            if found <= limit and (best is None or found < best[0]):
-                best = (found, known)
+    for known in sorted(index.candidates(norm)):
+        limit = allowed_distance(known)
+        found = distance(norm, known, limit)
+        if found <= limit and (best is None or found < best[0]):
+            best = (found, known)
     return None if best is None else index.canonical[best[1]]
 
 
@@ -136,17 +164,18 @@ def misspelt(table: Mapping[str, str], key: str, exempt: frozenset[str]) -> str 
 
 
 def normalize(table: Mapping[str, str], data: Mapping[Any, Any], where: str, prefix: str,
-              exempt: frozenset[str]) -> dict[str, Any]:
+              exempt: Callable[[], frozenset[str]]) -> dict[str, Any]:
     """``data`` with canonical keys.  A key given twice in different spellings, or a
     misspelt one, is a ConfigError (paths from ``prefix``); other unknown keys are
-    told (:func:`unknown_key`, ``where`` names the place) and dropped."""
+    told (:func:`unknown_key`, ``where`` names the place) and dropped.  ``exempt()``:
+    the keys never taken for misspellings (asked only when a key is unknown)."""
     out: dict[str, Any] = {}
     spelled: dict[str, str] = {}
     problems: list[Problem] = []
     for key, value in data.items():
         canon = table.get(norm_key(key)) if isinstance(key, str) else None
         if canon is None:
-            meant = misspelt(table, key, exempt) if isinstance(key, str) else None
+            meant = misspelt(table, key, exempt()) if isinstance(key, str) else None
             if meant is None:
                 unknown_key(where, key)
             else:

@@ -27,7 +27,13 @@ from edgemodbus.config import (
 )
 from edgemodbus.config.compat import norm_key
 from edgemodbus.config.jsonfile import MAX_JSON_BYTES, MAX_JSON_DEPTH
-from edgemodbus.config.keys import UI_KEYS, UNKNOWN_KEY_LINES, allowed_distance, distance
+from edgemodbus.config.keys import (
+    UI_KEYS,
+    UNKNOWN_KEY_LINES,
+    allowed_distance,
+    distance,
+    misspelt,
+)
 from edgemodbus.gateway.config import load_gateway_config
 from edgemodbus.northbound.mqtt import MqttSettings
 from edgemodbus.serve import ServeSettings
@@ -146,10 +152,47 @@ def test_distance_agrees_with_the_textbook_table(a: str, b: str, limit: int) -> 
     assert distance(a, b, limit) == min(reference_osa(a, b), limit + 1)
 
 
+@settings(max_examples=400, deadline=None)
+@given(data=st.data())
+def test_the_indexed_lookup_agrees_with_comparing_every_key(data: st.DataObject) -> None:
+    """misspelt() compares an unknown key only with the keys its deletion variants
+    reach; comparing it with every key of the section (the textbook distance) finds
+    the same key."""
+    table = data.draw(st.sampled_from(SECTIONS), label="section").key_table()
+    base = data.draw(st.sampled_from(sorted(table)), label="key")
+    key = data.draw(st.one_of(
+        st.text("abcdefghijklmnopqrstuvwxyz", min_size=3, max_size=12),
+        st.lists(st.sampled_from(["drop", "swap", "change", "add"]), max_size=3).map(
+            lambda edits: _edited(base, edits))), label="unknown")
+    if norm_key(key) in table:
+        return
+    close = sorted((reference_osa(norm_key(key), known), known) for known in table
+                   if len(norm_key(key)) >= 3
+                   and reference_osa(norm_key(key), known) <= allowed_distance(known))
+    expected = table[close[0][1]] if close else None
+    assert misspelt(table, key, frozenset()) == expected
+
+
+def _edited(word: str, edits: list[str]) -> str:
+    for k, edit in enumerate(edits):
+        at = (7 * k + 3) % max(1, len(word) - 1)
+        if edit == "drop":
+            word = word[:at] + word[at + 1:]
+        elif edit == "swap" and len(word) > at + 1:
+            word = word[:at] + word[at + 1] + word[at] + word[at + 2:]
+        elif edit == "change":
+            word = word[:at] + "q" + word[at + 1:]
+        else:
+            word = word[:at] + "x" + word[at:]
+    return word
+
+
 def test_short_keys_allow_one_edit_only() -> None:
     assert allowed_distance("host") == 1 and allowed_distance("datamultiplier") == 2
-    # "unit" and "type" (two edits) are no typos of each other
-    load_device_config({"addressList": [{**ITEM, "typo": 1, "unitxy": "V"}]})
+    assert allowed_distance("id") == 0
+    # "unit" and "type", "metrics" and "retries" (two edits) are no typos of each other
+    load_device_config({"communication": {"metrics": 1},
+                        "addressList": [{**ITEM, "typo": 1, "unitxy": "V", "Quality": 1}]})
 
 
 # --- unknown keys, bounded (#25) -----------------------------------------------------------
