@@ -32,9 +32,10 @@ from socketserver import ThreadingMixIn
 from typing import TYPE_CHECKING, Annotated, Any, ClassVar, Protocol
 from wsgiref.simple_server import WSGIRequestHandler, WSGIServer, make_server
 
-from pydantic import ValidationError
+from pydantic import AfterValidator, ValidationError
 
 from ..config import ConfigError, Model, Range
+from ..config.limits import MAX_HOST, check_host
 from ..datatypes import DeviceDriverStatus, enum_value
 from .metrics_extra import ServerStats, server_metrics, sparkplug_metrics, spool_metrics
 
@@ -117,9 +118,10 @@ class MetricsSettings(Model):
     """The ``metrics`` section of the gateway file."""
 
     _where: ClassVar[str] = "metrics"
+    _max_lengths: ClassVar[dict[str, int]] = {"host": MAX_HOST}
 
     enabled: bool = True
-    host: str = "127.0.0.1"
+    host: Annotated[str, AfterValidator(check_host)] = "127.0.0.1"
     port: Annotated[int, Range(0, 65535)] = 9108  # 0: any free port (logged)
 
     @classmethod

@@ -338,3 +338,8 @@ def test_a_fifo_as_gateway_file_is_reported_on_reload_without_blocking(tmp_path:
     assert gateway_digest(fifo, GatewayConfig()) is not None  # changed: it is loaded
     with pytest.raises(ConfigError, match="is a FIFO: give a JSON file"):
         load_gateway_config(fifo)
+
+
+def test_the_metrics_host_is_checked_at_load() -> None:
+    (line,) = gateway_problems({"metrics": {"host": "plc..local"}})
+    assert line.startswith("metrics.host 'plc..local': is not a host name"), line
