@@ -88,14 +88,22 @@ def gateway_digest(path: Path, config: GatewayConfig) -> str | None:
     """A digest of the gateway file and of the TLS files ``config`` uses (so SIGHUP after
     a certificate renewal reconnects); None when the gateway file does not exist."""
     try:
-        info = path.stat()
-        if not stat.S_ISREG(info.st_mode):  # a FIFO would block: loading it says why
-            return f"not a regular file: {info.st_mode:o} {info.st_ino}"
-        with open(path, "rb") as file:
-            data = file.read(MAX_JSON_BYTES + 1)  # a larger one: loading it says so
+        data = file_bytes(path)
     except FileNotFoundError:
         return None
     return hashlib.sha256(data + _tls_digest(config).encode()).hexdigest()
+
+
+def file_bytes(path: Path) -> bytes:
+    """What a digest of a config file is taken of: its bytes, at most one more than a
+    JSON file we read may have (loading a larger one says so); for a FIFO, a device or a
+    folder a description of it (reading would block: loading it says why).  OSError when
+    it cannot be read."""
+    info = path.stat()
+    if not stat.S_ISREG(info.st_mode):
+        return f"not a regular file: {info.st_mode:o} {info.st_ino}".encode()
+    with open(path, "rb") as file:
+        return file.read(MAX_JSON_BYTES + 1)
 
 
 def _tls_digest(config: GatewayConfig) -> str:
