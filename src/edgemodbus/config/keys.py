@@ -232,7 +232,7 @@ def bounded(unknown: Sequence[Problem]) -> list[Problem]:
     shown = list(unknown[:UNKNOWN_KEY_LINES])
     rest = len(unknown) - len(shown)
     if rest > 0:
-        shown.append(Problem("", NO_VALUE,
+        shown.append(Problem("...", NO_VALUE,
                              f"and {rest:,} more unknown key{'s' if rest > 1 else ''} "
                              "ignored"))
     return shown
