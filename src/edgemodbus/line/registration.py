@@ -219,7 +219,7 @@ def identify(buf: bytes, ids: Collection[str] | IdIndex, settings: PortSettings,
             starts.append(at + 1)
         else:
             break
-    if mode == "regex" or not index.begins(hb):
+    if mode == "regex" or not hb or not index.begins(hb):
         starts = starts[-1:]  # no id begins with the heartbeat: skip them all
     found: Identified | str | None = None
     waiting = False
