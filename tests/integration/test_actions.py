@@ -238,3 +238,93 @@ def test_actions_from_mqtt(tmp_path: Path, slave: PymodbusSlave) -> None:
         finally:
             drv.stop_device()
             pub.stop()
+
+
+# -- NG's form: functionCode, address, quantity; the value at run time (#24) ----------------
+
+NG_ACTIONS: list[dict[str, Any]] = [
+    # as NG writes them (seed ng-gateway-modbus-driver.zh.md, 2.4): no parameters
+    {"name": "coil", "functionCode": "0x05", "address": 20, "quantity": 1},
+    {"name": "coils", "functionCode": "WriteMultipleCoils", "address": 30, "quantity": 3},
+    {"name": "reg", "functionCode": 6, "address": 300, "quantity": 1},
+    {"name": "regs", "functionCode": "0x10", "address": 310, "quantity": 3},
+    {"name": "two_singles", "functionCode": 6, "address": 320, "quantity": 2},
+]
+
+
+def ng_device(port: int) -> em.DeviceConfig:
+    return em.load_device_config({
+        "communication": {"transport": "rtu-over-tcp", "tcpHost": "127.0.0.1",
+                          "tcpPort": port, "slaveId": 1, "readTimeout": 500},
+        "addressList": ITEMS, "actions": NG_ACTIONS})
+
+
+def test_ng_actions_load_and_write_the_value_given_when_they_run(slave: PymodbusSlave) -> None:
+    """They were refused: "an action needs at least one parameter", address refused."""
+    cfg = ng_device(slave.port)
+    assert [(a.function_code, a.address, a.count) for a in cfg.actions] == [
+        (5, 20, 1), (15, 30, 3), (6, 300, 1), (16, 310, 3), (6, 320, 2)]
+    with Running(cfg) as drv:
+        writes = drv.stats()["writes"]
+        assert drv.run_action("coil", {"value": True}) == (True, None)
+        assert slave.bits(1, "co", 20, 1) == [True]
+        assert drv.run_action("coils", {"value": [True, False, True]}) == (True, None)
+        assert slave.bits(1, "co", 30, 3) == [True, False, True]
+        assert drv.run_action("reg", {"value": 1234}) == (True, None)
+        assert slave.registers(1, "hr", 300, 1) == [1234]
+        assert drv.run_action("regs", {"value": "7, -1, 0x10"}) == (True, None)
+        assert slave.registers(1, "hr", 310, 3) == [7, 0xFFFF, 16]
+        assert drv.run_action("two_singles", {"value": [5, 6]}) == (True, None)
+        assert slave.registers(1, "hr", 320, 2) == [5, 6]
+        # one request per action, but FC06 with quantity 2 is one request per register
+        # in the same op: every action counts as one write
+        assert drv.stats()["writes"] == writes + 5
+
+
+@pytest.mark.parametrize(("name", "params", "expected"), [
+    ("reg", {}, "action 'reg': parameter 'value' is missing (it writes 1 register "
+                "(0..65535 or -32768..-1) at hr:300: give value=...)"),
+    ("reg", {"v": 1}, "action 'reg': unknown parameter 'v' (it writes 1 register"),
+    ("reg", {"value": 70000}, "action 'reg': parameter 'value' 70000: 70000 is not a "
+                              "register value"),
+    ("regs", {"value": [1, 2]}, "action 'regs': parameter 'value' [1, 2]: 2 values, but it "
+                                "writes 3 registers"),
+    ("coils", {"value": "1,0,maybe"}, "action 'coils': parameter 'value' '1,0,maybe': "
+                                      "'maybe' is not a coil value"),
+])
+def test_ng_action_values_are_checked_before_anything_is_sent(
+        slave: PymodbusSlave, name: str, params: dict[str, Any], expected: str) -> None:
+    cfg = ng_device(slave.port)
+    with Running(cfg) as drv:
+        writes = drv.stats()["writes"]
+        ok, err = drv.run_action(name, params)
+        assert not ok and err is not None and err.startswith(expected), err
+        assert drv.stats()["writes"] == writes
+
+
+@pytest.mark.parametrize(("action", "expected"), [
+    ({"name": "a", "functionCode": 6, "address": 1, "parameters": [
+        {"name": "p", "item": "Mode"}]}, "give address"),
+    ({"name": "a", "functionCode": 16, "address": 0, "quantity": 124},
+     "quantity 124: functionCode 16 writes at most 123 registers"),
+    ({"name": "a", "functionCode": 15, "address": 65535, "quantity": 2},
+     "address 65535 + quantity 2 runs past 65535"),
+    ({"name": "a", "functionCode": 16, "quantity": 2}, "quantity goes with address"),
+    ({"name": "a", "functionCode": 3, "address": 0}, "use 5 (WriteSingleCoil)"),
+])
+def test_bad_ng_actions_are_config_errors(action: dict[str, Any], expected: str) -> None:
+    with pytest.raises(em.ConfigError, match=r"^actions\[0\]") as info:
+        em.load_device_config({"addressList": ITEMS, "actions": [action]})
+    assert expected in str(info.value), str(info.value)
+
+
+def test_cli_runs_an_ng_action(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    with Simulator([1]) as sim:
+        path = tmp_path / "ng.json"
+        path.write_text(json.dumps({
+            "communication": {"transport": "rtu-over-tcp", "tcpHost": "127.0.0.1",
+                              "tcpPort": sim.serve_tcp("127.0.0.1", 0), "readTimeout": 500},
+            "addressList": ITEMS, "actions": NG_ACTIONS}))
+        assert main(["action", str(path), "regs", "value=1,2,3"]) == 0
+        assert capsys.readouterr().out == "ok\n"
+        assert sim.slave(1).get_registers(em.Area.HOLDING_REGISTER, 310, 3) == [1, 2, 3]

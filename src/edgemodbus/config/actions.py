@@ -4,21 +4,23 @@ An action names a function code (5, 6, 15 or 16, or NG's names) and parameters; 
 parameter sets one item of the address list.  Keys follow NG's (``name``,
 ``functionCode``, ``inputParameters`` with ``key``/``name``, ``dataType``, ``required``,
 ``defaultValue``, ``minValue``, ``maxValue``); ``parameters``, ``type`` and ``default``
-are accepted too (compat.py).  :func:`validate_actions` checks them against the items:
-README.md, "Actions".
+are accepted too (compat.py).  NG's own form, ``functionCode`` with ``address`` and
+``quantity`` and no parameters, writes the value given when it runs (poll/actions.py).
+:func:`validate_actions` checks them against the items: README.md, "Actions".
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from typing import Any, ClassVar
+from typing import Annotated, Any, ClassVar
 
 from pydantic import Field, field_validator, model_validator
 
 from ..codec import normalize_value
 from ..datatypes import Area, DataType
-from .base import Model
+from ..protocol.address import MAX_OFFSET
+from .base import Model, Range
 from .compat import (
     NG_ACTION_KEYS,
     NG_PARAMETER_KEYS,
@@ -27,6 +29,7 @@ from .compat import (
     ng_action_parameter,
 )
 from .items import ParsedItem
+from .limits import MAX_NAME
 from .problems import NO_VALUE, ConfigError, Problem
 
 ACTION_FUNCTIONS: dict[int, tuple[Area, str]] = {
@@ -55,6 +58,7 @@ class ActionParameter(Model):
     and bounds."""
 
     _where: ClassVar[str] = "actions[].parameters[]"
+    _max_lengths: ClassVar[dict[str, int]] = {"name": MAX_NAME, "item": MAX_NAME}
     _extra_keys: ClassVar[tuple[str, ...]] = NG_PARAMETER_KEYS
 
     name: str
@@ -104,15 +108,30 @@ class ActionParameter(Model):
         return self.default_value is None if self.required is None else self.required
 
 
+ACTION_QUANTITY: dict[int, int] = {5: 1968, 15: 1968, 6: 123, 16: 123}
+"""Most coils/registers an address action (NG's ``address`` + ``quantity``) writes: one
+FC15/FC16 request's (MODBUS Application Protocol v1.1b3, 6.11, 6.12); FC05/FC06 send one
+request per coil/register, bounded alike."""
+
+ACTION_VALUE = "value"
+"""The run-time parameter of an address action: the coils or registers to write."""
+
+
 class DeviceAction(Model):
-    """A named group of writes: its function code and parameters."""
+    """A named group of writes: its function code and parameters, or (NG's form) its
+    function code, ``address`` and ``quantity``, the value given when it runs."""
 
     _where: ClassVar[str] = "actions[]"
+    _max_lengths: ClassVar[dict[str, int]] = {"name": MAX_NAME}
     _extra_keys: ClassVar[tuple[str, ...]] = NG_ACTION_KEYS
 
     name: str
     function_code: int = 16
     parameters: list[ActionParameter] = Field(default_factory=list)
+    # NG's form: the first coil/register (protocol, 0-based) and how many; the value is
+    # given when the action runs (parameter "value")
+    address: Annotated[int | None, Range(0, MAX_OFFSET)] = None
+    quantity: Annotated[int | None, Range(1, max(ACTION_QUANTITY.values()))] = None
     command: str = ""
     description: str = ""
 
@@ -138,9 +157,34 @@ class DeviceAction(Model):
             raise ValueError(f"use {_FUNCTION_NAMES}")
         return code
 
+    @model_validator(mode="after")
+    def _address_form(self) -> DeviceAction:
+        if self.address is None:
+            if self.quantity is not None:
+                raise ValueError("quantity goes with address (NG's form: functionCode, "
+                                 "address, quantity; the value is given when it runs)")
+            return self
+        if self.parameters:
+            raise ValueError("give address (NG's form: the value is given when it runs) or "
+                             "parameters (each sets an item), not both")
+        count = self.count
+        most = ACTION_QUANTITY[self.function_code]
+        if count > most:
+            raise ValueError(f"quantity {count}: functionCode {self.function_code} writes at "
+                             f"most {most} {'coils' if self.area.is_bit else 'registers'}")
+        if self.address + count > MAX_OFFSET + 1:
+            raise ValueError(f"address {self.address} + quantity {count} runs past "
+                             f"{MAX_OFFSET}, the last address")
+        return self
+
     @property
     def area(self) -> Area:
         return ACTION_FUNCTIONS[self.function_code][0]
+
+    @property
+    def count(self) -> int:
+        """Coils or registers an address action writes (quantity, default 1)."""
+        return 1 if self.quantity is None else self.quantity
 
 
 def validate_actions(actions: Sequence[DeviceAction], items: Sequence[ParsedItem]) -> None:
@@ -157,9 +201,10 @@ def validate_actions(actions: Sequence[DeviceAction], items: Sequence[ParsedItem
             problems.append(Problem(f"{path}.name", action.name,
                                     f"duplicate action name (also actions[{seen[action.name]}])"))
         seen.setdefault(action.name, i)
-        if not action.parameters:
+        if not action.parameters and action.address is None:
             problems.append(Problem(f"{path}.parameters", NO_VALUE,
-                                    "an action needs at least one parameter"))
+                                    "an action needs at least one parameter, or an address "
+                                    "(NG's form: functionCode, address, quantity)"))
         names: dict[str, int] = {}
         targets: dict[str, int] = {}
         fc = action.function_code

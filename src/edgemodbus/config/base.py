@@ -2,28 +2,26 @@
 
 Keys are accepted in every spelling compat.py matches (camelCase is canonical); Python
 attribute names are the snake_case of the JSON keys.  Unknown keys are ignored and
-logged as warnings on logger ``edgemodbus.config`` (path and key); when the load fails
-anyway they are lines of the error instead, so that each problem is told once
-(:func:`load_model`).  :class:`Range` and :class:`Choice` limit a field; a value outside
-raises :class:`ConfigError` saying what is allowed.  Secrets: secret.py.
+logged as warnings on logger ``edgemodbus.config`` (path and key), misspelt ones refused
+(keys.py); when the load fails anyway they are lines of the error instead, so that each
+problem is told once (:func:`load_model`).  Files are read by jsonfile.py (size and
+depth limits), strings bounded by limits.py.  :class:`Range` and :class:`Choice` limit
+a field; a value outside raises :class:`ConfigError` saying what is allowed.
+Secrets: secret.py.
 """
 
 from __future__ import annotations
 
 import codecs
 import copy
-import difflib
 import enum
-import json
 import logging
 import math
 import os
 import types
 import typing
-from collections.abc import Callable, Mapping, Sequence
-from contextvars import ContextVar
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Annotated, Any, ClassVar, TypeVar, cast
 
 from pydantic import (
@@ -46,6 +44,9 @@ from pydantic_core import (
 
 from ..datatypes import DataFormat, DataFormat64
 from .compat import norm_key
+from .jsonfile import check_depth, parse_json, read_json_file
+from .keys import UI_KEYS, collecting, log_unknown, normalize, with_unknown_keys
+from .limits import length_problems
 from .problems import NO_VALUE, ConfigError, Problem, WrongType, join_path
 from .secret import SECRETS_CONTEXT, hide_secrets, secret_keys
 
@@ -210,18 +211,29 @@ def parse_format(value: Any, kind: type[DataFormat | DataFormat64] = DataFormat)
 # --------------------------------------------------------------------------- the model
 
 
+_GENERATION = 0  # config model classes defined so far (see _exempt)
+
+
 class KeyRules:
     """The key rules every config model shares: keys in any spelling (case, ``_`` and
-    ``-`` ignored), unknown keys logged and dropped, a key given twice in different
-    spellings refused.  A model may set ``_where`` (the place unknown-key warnings name)
-    and ``_extra_keys`` (keys accepted besides the fields, for its own validators)."""
+    ``-`` ignored), unknown keys logged and dropped, a misspelt key or one given twice in
+    different spellings refused (keys.py), strings of bounded length (limits.py).  A
+    model may set ``_where`` (the place unknown-key warnings name), ``_extra_keys``
+    (keys accepted besides the fields, for its own validators) and ``_max_lengths``."""
 
     __slots__ = ()
 
     _extra_keys: ClassVar[tuple[str, ...]] = ()
     _where: ClassVar[str] = ""
+    # canonical key -> most characters its text may have (others: limits.MAX_TEXT)
+    _max_lengths: ClassVar[dict[str, int]] = {}
     if typing.TYPE_CHECKING:  # pydantic sets it on every model class
         model_fields: ClassVar[dict[str, FieldInfo]]
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        global _GENERATION
+        _GENERATION += 1  # a new section: the keys _exempt() knows are recounted
+        super().__init_subclass__(**kwargs)
 
     @classmethod
     def key_table(cls) -> dict[str, str]:
@@ -236,8 +248,12 @@ class KeyRules:
         A key given twice in different spellings is a ConfigError (paths from ``prefix``).
         Secrets are wrapped first (secret.py)."""
         table = cls.key_table()
-        return _normalize_keys(table, hide_secrets(data, table, secret_keys(cls), prefix),
-                               where, prefix)
+        out = normalize(table, hide_secrets(data, table, secret_keys(cls), prefix), where,
+                        prefix, _exempt)
+        problems = length_problems(out, cls._max_lengths, prefix)
+        if problems:
+            raise ConfigError(problems)
+        return out
 
 
 class Model(KeyRules, BaseModel):
@@ -346,68 +362,25 @@ def _key_table(cls: type[KeyRules]) -> dict[str, str]:
     return table
 
 
-def _normalize_keys(
-    table: dict[str, str], data: Mapping[Any, Any], where: str, prefix: str
-) -> dict[str, Any]:
-    out: dict[str, Any] = {}
-    spelled: dict[str, str] = {}
-    problems: list[Problem] = []
-    for key, value in data.items():
-        canon = table.get(norm_key(key)) if isinstance(key, str) else None
-        if canon is None:
-            _unknown_key(where, key)
-            continue
-        if canon in out:
-            problems.append(
-                Problem(
-                    join_path(prefix, canon), value, f"given twice (also as {spelled[canon]!r})"
-                )
-            )
-            continue
-        out[canon] = value
-        spelled[canon] = key
-    if problems:
-        raise ConfigError(problems)
-    return out
+def _exempt() -> frozenset[str]:
+    """Keys never taken for a misspelling: the UI's, and every config section's own
+    (a key of another section put here is no typo of this one: the device file's
+    sections always, the gateway file's once it is imported).  Recounted when a model
+    class is added."""
+    global _EXEMPT
+    if _EXEMPT[0] != _GENERATION:
+        found = set(UI_KEYS)
+        todo: list[type] = [KeyRules]
+        while todo:
+            cls = todo.pop()
+            todo += cls.__subclasses__()
+            if getattr(cls, "model_fields", None):
+                found.update(_key_table(cls))
+        _EXEMPT = (_GENERATION, frozenset(found))
+    return _EXEMPT[1]
 
 
-# --------------------------------------------------------------------------- unknown keys
-
-
-# Unknown keys met while a load is under way (None: log them at once, see load_model).
-_unknown_keys: ContextVar[list[Problem] | None] = ContextVar("edgemodbus_unknown_keys",
-                                                             default=None)
-
-
-def _unknown_key(where: str, key: Any) -> None:
-    problem = Problem(where, NO_VALUE, f"unknown key {key!r} ignored")
-    sink = _unknown_keys.get()
-    if sink is None:
-        logger.warning("%s", problem)
-    else:
-        sink.append(problem)
-
-
-def _with_unknown_keys(error: ConfigError, unknown: Sequence[Problem]) -> ConfigError:
-    """The error's problems plus the unknown keys: a key that looks like a misspelling
-    of a field the error says is missing joins that line; the others get a line each."""
-    problems = list(error.problems)
-    for extra in unknown:
-        key = extra.message.removeprefix("unknown key ").removesuffix(" ignored")
-        for i, problem in enumerate(problems):
-            parent, _, field = problem.path.rpartition(".")
-            if (
-                problem.value is NO_VALUE
-                and parent == extra.path
-                and difflib.get_close_matches(norm_key(key.strip("'\"")), [norm_key(field)],
-                                              cutoff=0.5)
-            ):
-                problems[i] = Problem(problem.path, NO_VALUE,
-                                      f"{problem.message} (the unknown key {key} was ignored)")
-                break
-        else:
-            problems.append(extra)
-    return ConfigError(problems)
+_EXEMPT: tuple[int, frozenset[str]] = (-1, frozenset())
 
 
 # --------------------------------------------------------------------------- checks again
@@ -445,50 +418,34 @@ _M = TypeVar("_M", bound=Model)
 
 
 def _read_json(source: str | os.PathLike[str] | Mapping[str, Any]) -> tuple[Any, str]:
-    """(decoded JSON, name of the source for messages)."""
+    """(decoded JSON, name of the source for messages), within jsonfile.py's limits."""
     if isinstance(source, Mapping):
+        check_depth(source, "<dict>")
         return dict(source), "<dict>"
     if isinstance(source, str) and source.lstrip("\ufeff \t\r\n").startswith(("{", "[")):
-        text, name = source, "<json text>"
-    elif isinstance(source, (str, os.PathLike)):
-        name = os.fspath(source)
-        text = Path(name).read_text(encoding="utf-8-sig")
-    else:
-        raise TypeError(f"config source {source!r}: use a path, a str of JSON or a dict")
-    try:
-        return json.loads(text.lstrip("\ufeff")), name
-    except json.JSONDecodeError as exc:
-        raise ConfigError(
-            [
-                Problem(
-                    name,
-                    NO_VALUE,
-                    f"invalid JSON: {exc.msg} at line {exc.lineno} column {exc.colno}",
-                )
-            ]
-        ) from None
+        return parse_json(source, "<json text>"), "<json text>"
+    if isinstance(source, (str, os.PathLike)):
+        return read_json_file(source), os.fspath(source)
+    raise TypeError(f"config source {source!r}: use a path, a str of JSON or a dict")
 
 
 def load_model(model: type[_M], source: str | os.PathLike[str] | Mapping[str, Any]) -> _M:
     """Load ``model`` from a path, a str of JSON text, or a dict; raises ConfigError.
     Unknown keys are logged once the load succeeded, or else become lines of the
-    ConfigError (one line per problem, not a warning and then an error)."""
+    ConfigError (one line per problem, not a warning and then an error), a bounded
+    number of them and a line counting the rest (keys.py)."""
     data, name = _read_json(source)
     if not isinstance(data, Mapping):
         raise ConfigError([Problem(name, NO_VALUE, "the file must hold a JSON object")])
-    unknown: list[Problem] = []
     error: ConfigError | None
-    token = _unknown_keys.set(unknown)
-    try:
-        loaded = model.model_validate(data)
-    except ValidationError as exc:
-        error = ConfigError.from_validation_error(exc)
-    else:
-        error = None
-    finally:
-        _unknown_keys.reset(token)
+    with collecting() as unknown:
+        try:
+            loaded = model.model_validate(data)
+        except ValidationError as exc:
+            error = ConfigError.from_validation_error(exc)
+        else:
+            error = None
     if error is not None:
-        raise _with_unknown_keys(error, unknown) from None
-    for problem in unknown:
-        logger.warning("%s", problem)
+        raise with_unknown_keys(error, unknown) from None
+    log_unknown(unknown)
     return loaded

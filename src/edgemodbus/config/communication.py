@@ -39,6 +39,7 @@ from .base import (
     parse_format,
 )
 from .compat import NG_KEYS, ng_aliases, parity_letter
+from .limits import MAX_HOST, MAX_NAME, check_host
 from .listen import KEY_EXAMPLE, NETWORKS_ALLOWED, allow_list, check_key, listen_problems, network
 from .problems import NO_VALUE, ConfigError, Problem, WrongType
 from .secret import Secret
@@ -92,6 +93,9 @@ class DriverModbusRtuParameter(Model):
 
     _extra_keys: ClassVar[tuple[str, ...]] = NG_KEYS
     _where: ClassVar[str] = "communication"
+    _max_lengths: ClassVar[dict[str, int]] = {
+        "comPort": MAX_NAME, "tcpHost": MAX_HOST, "listenHost": MAX_HOST, "dtuId": MAX_NAME,
+        "heartbeat": MAX_NAME, "heartbeatHex": MAX_NAME, "encoding": MAX_NAME}
     # registrationKey is a secret: pydantic's own error text must not show the input
     model_config = ConfigDict(hide_input_in_errors=True)  # merged with Model's
 
@@ -394,6 +398,11 @@ class DriverModbusRtuParameter(Model):
     @classmethod
     def _encoding(cls, value: str) -> str:
         return check_encoding(value)
+
+    @field_validator("tcp_host", "listen_host")
+    @classmethod
+    def _host(cls, value: str) -> str:
+        return check_host(value)
 
     @field_validator("registration_key")
     @classmethod

@@ -78,10 +78,25 @@ def _connection(conn: Any, data: dict[str, Any], problems: list[Problem]) -> Non
             _put(data, ours, value, f"connection.{key}", problems)
 
 
+NG_MAX_BATCH = 100
+"""NG's default ``maxBatch`` (seed 2.1.5: registers or coils of one read)."""
+
+
+def ng_batch_defaults(data: dict[str, Any]) -> None:
+    """NG's read sizes in communication ``data`` (canonical keys, changed in place):
+    ``maxBatch`` bounds a read of coils and discrete inputs as well as one of registers
+    (seed 2.1.5: "寄存器数/线圈数"), and defaults to 100 (ours: 120 registers, 2000
+    bits); keys given explicitly stay."""
+    batch = data.setdefault("maxBlockReadRegisterCount", NG_MAX_BATCH)
+    data.setdefault("maxBlockReadBitCount", batch)
+
+
 def ng_aliases(data: dict[str, Any]) -> dict[str, Any]:
     """NG spellings -> ours in ``data`` (keys already normalised, changed in place);
-    disagreements are errors."""
+    disagreements are errors.  With any NG key, NG's read sizes apply
+    (:func:`ng_batch_defaults`)."""
     problems: list[Problem] = []
+    ng_keyed = any(key in data for key in NG_KEYS)
     if "connection" in data:
         _connection(data.pop("connection"), data, problems)
     for ng, ours in (
@@ -124,6 +139,8 @@ def ng_aliases(data: dict[str, Any]) -> dict[str, Any]:
                 data["byteSwap16"] = fmt.byte_swap
     if problems:
         raise ConfigError(problems)
+    if ng_keyed:
+        ng_batch_defaults(data)
     return data
 
 

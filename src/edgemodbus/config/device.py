@@ -13,8 +13,9 @@ from pydantic import ConfigDict, Field, field_validator, model_validator
 from .actions import DeviceAction, validate_actions
 from .base import READ_CYCLE_RANGE, Model, OptionalMs, field_checks, load_model, recheck
 from .communication import DriverModbusRtuParameter
-from .compat import NG_DEVICE_KEYS, iso_timestamp, ng_device
+from .compat import NG_DEVICE_KEYS, iso_timestamp, ng_batch_defaults, ng_device
 from .items import DeviceAddressItem, ParsedItem, validate_items
+from .limits import MAX_NAME
 from .problems import ConfigError
 from .templates import apply_template, device_loading
 
@@ -23,6 +24,8 @@ class DeviceOrganizationParameter(Model):
     """The device's organisation record; its timing fields override communication's."""
 
     _where: ClassVar[str] = "organization"
+    _max_lengths: ClassVar[dict[str, int]] = {
+        "deviceId": MAX_NAME, "deviceCode": MAX_NAME, "deviceName": MAX_NAME}
 
     device_id: str | None = None
     device_code: str | None = None
@@ -106,7 +109,9 @@ class DeviceConfig(Model):
         """Warn about unknown nested keys with their full paths before pydantic sees them."""
         if not isinstance(data, Mapping):
             return data
-        data = ng_device(cls.normalize_keys(data, ""))
+        data = cls.normalize_keys(data, "")
+        ng_points = "points" in data
+        data = ng_device(data)
         for key, model in (
             ("organization", DeviceOrganizationParameter),
             ("communication", DriverModbusRtuParameter),
@@ -114,6 +119,9 @@ class DeviceConfig(Model):
             if isinstance(data.get(key), Mapping):
                 data[key] = model.normalize_keys(data[key], key, key)
         data = apply_template(data)
+        if ng_points and isinstance(data.setdefault("communication", {}), dict) and \
+                "maxBatch" not in data["communication"]:
+            ng_batch_defaults(data["communication"])  # NG's points: NG's read sizes
         items = data.get("addressList")
         if isinstance(items, list):
             data["addressList"] = [

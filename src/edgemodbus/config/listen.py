@@ -168,6 +168,12 @@ def _registration_problems(p: ListenParams) -> list[Problem]:
         except ValueError:
             problems.append(Problem("dtuId", p.dtu_id, "registration hex needs hex "
                                     "bytes, e.g. '38 36 31 30'"))
+    heartbeat = _heartbeat_or_none(p)
+    if heartbeat and p.registration in ("text", "hex") and p.dtu_id and \
+            not _id_bytes(p).replace(heartbeat, b""):
+        problems.append(Problem("dtuId", p.dtu_id, "is nothing but the heartbeat "
+                                f"{p.heartbeat_hex or p.heartbeat!r}, which is skipped "
+                                "wherever it arrives: the DTU could never register"))
     pattern: re.Pattern[str] | None = None
     if p.registration == "regex":
         try:
@@ -199,6 +205,24 @@ def _registration_problems(p: ListenParams) -> list[Problem]:
                                     "besides the group named key, the id needs a group "
                                     f"(named id, or any other), e.g. {KEY_EXAMPLE}"))
     return problems
+
+
+def _heartbeat_or_none(p: ListenParams) -> bytes:
+    """The heartbeat's bytes, b"" when there is none or it is not hex."""
+    try:
+        return p.heartbeat_bytes
+    except ValueError:
+        return b""
+
+
+def _id_bytes(p: ListenParams) -> bytes:
+    """dtuId as it is sent (hex mode: the bytes it spells; b"" if it is not hex)."""
+    if p.registration != "hex":
+        return p.dtu_id.encode()
+    try:
+        return bytes.fromhex(p.dtu_id)
+    except ValueError:
+        return b"?"  # reported as not hex
 
 
 def _heartbeat_problems(p: ListenParams) -> list[Problem]:

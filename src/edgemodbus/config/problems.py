@@ -35,17 +35,21 @@ class Problem:
 
 
 def _show(value: Any) -> str:
-    """The value as given; a long list or object is cut (the path says where it is); a
-    secret masked."""
+    """The value as given; a long text, list or object is cut (the path says where it
+    is); a secret masked."""
     if isinstance(value, SecretStr):
         return repr(str(value))
-    text = repr(value)
+    if isinstance(value, str) and len(value) > _TEXT_MAX:
+        # untrusted text: a 10 MB value is not echoed into every line that names it
+        return f"{value[:_TEXT_MAX - 40]!r}... ({len(value):,} characters)"
+    text = repr(value[:_SHOW_MAX] if isinstance(value, (bytes, bytearray)) else value)
     if _is_scalar(value) or len(text) <= _SHOW_MAX:
         return text
     return text[: _SHOW_MAX - 3] + "..."
 
 
 _SHOW_MAX = 60
+_TEXT_MAX = 200  # a text value (a path, a host) is shown up to this many characters
 
 # pydantic's type errors -> what the field takes (the value given is shown before it)
 _TYPE_MESSAGES = {

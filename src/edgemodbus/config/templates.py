@@ -21,7 +21,6 @@ item of the device file whose name is a template item's overrides that item's ke
 from __future__ import annotations
 
 import difflib
-import json
 import os
 import re
 from collections.abc import Iterator, Mapping, Sequence
@@ -35,6 +34,7 @@ from ..protocol.address import PREFIXES, format_address, parse_address
 from .communication import DriverModbusRtuParameter
 from .compat import ng_aliases, norm_key
 from .items import DeviceAddressItem
+from .jsonfile import read_json_file
 from .problems import NO_VALUE, ConfigError, Problem
 
 TEMPLATE_PATH_ENV = "EDGEMODBUS_TEMPLATE_PATH"
@@ -163,12 +163,12 @@ def template_file(name: str, dirs: Sequence[str | os.PathLike[str]] = ()) -> Pat
 def _read(file: Path, name: str) -> dict[str, Any]:
     where = f"template {name} ({file})"
     try:
-        doc = json.loads(file.read_text(encoding="utf-8-sig"))
+        doc = read_json_file(file)
     except OSError as exc:
         raise ConfigError([Problem(where, NO_VALUE, exc.strerror or str(exc))]) from None
-    except json.JSONDecodeError as exc:
-        raise ConfigError([Problem(where, NO_VALUE, f"invalid JSON: {exc.msg} at line "
-                                   f"{exc.lineno} column {exc.colno}")]) from None
+    except ConfigError as exc:
+        raise ConfigError([Problem(where, NO_VALUE, p.message) for p in exc.problems]) \
+            from None
     if not isinstance(doc, dict):
         raise ConfigError([Problem(where, NO_VALUE, "a template must be a JSON object")])
     problems = [Problem(f"{where}: {key}", NO_VALUE,
@@ -197,7 +197,7 @@ def template_bytes(device_file: str | os.PathLike[str]) -> bytes:
     found: loading the file says why), so that a reload notices a changed template."""
     try:
         path = Path(os.fspath(device_file))
-        data = json.loads(path.read_text(encoding="utf-8-sig"))
+        data = read_json_file(path)
         keys = {norm_key(k): v for k, v in data.items()} if isinstance(data, dict) else {}
         name, dirs = keys.get("template"), keys.get("templatedirs") or []
         if not isinstance(name, str):

@@ -6,10 +6,13 @@ from __future__ import annotations
 import hashlib
 import os
 import socket
+import stat
 from pathlib import Path
 from typing import Any, ClassVar
 
 from ..config import ConfigError, Model, Ms, Problem, load_model
+from ..config.jsonfile import MAX_JSON_BYTES
+from ..config.limits import MAX_NAME
 from ..northbound.metrics import MetricsSettings
 from ..northbound.mqtt import MqttSettings, check_name
 from ..serve import ServeSettings
@@ -21,6 +24,7 @@ class GatewayConfig(Model):
     """The gateway file: who this gateway is and where its data goes."""
 
     _where: ClassVar[str] = "gateway"
+    _max_lengths: ClassVar[dict[str, int]] = {"gatewayId": MAX_NAME}
 
     gateway_id: str | None = None  # default: the host name
     mqtt: MqttSettings | None = None
@@ -84,10 +88,22 @@ def gateway_digest(path: Path, config: GatewayConfig) -> str | None:
     """A digest of the gateway file and of the TLS files ``config`` uses (so SIGHUP after
     a certificate renewal reconnects); None when the gateway file does not exist."""
     try:
-        data = path.read_bytes()
+        data = file_bytes(path)
     except FileNotFoundError:
         return None
     return hashlib.sha256(data + _tls_digest(config).encode()).hexdigest()
+
+
+def file_bytes(path: Path) -> bytes:
+    """What a digest of a config file is taken of: its bytes, at most one more than a
+    JSON file we read may have (loading a larger one says so); for a FIFO, a device or a
+    folder a description of it (reading would block: loading it says why).  OSError when
+    it cannot be read."""
+    info = path.stat()
+    if not stat.S_ISREG(info.st_mode):
+        return f"not a regular file: {info.st_mode:o} {info.st_ino}".encode()
+    with open(path, "rb") as file:
+        return file.read(MAX_JSON_BYTES + 1)
 
 
 def _tls_digest(config: GatewayConfig) -> str:

@@ -23,6 +23,7 @@ from ..driver import DriverModbusRtu
 from .config import (
     GATEWAY_FILE,
     GatewayConfig,
+    file_bytes,
     gateway_digest,
     inherited_snapshot,
     load_gateway_config,
@@ -439,7 +440,7 @@ def missing_extra(section: str, extra: str, exc: ImportError) -> ConfigError:
 
 def _digest(path: Path) -> str:
     """The device file's digest, with the template it names (a changed template reloads)."""
-    return hashlib.sha256(path.read_bytes() + template_bytes(path)).hexdigest()
+    return hashlib.sha256(file_bytes(path) + template_bytes(path)).hexdigest()
 
 
 def _start_exporter(config: GatewayConfig, serving: GatewayServer) -> MetricsExporter | None:

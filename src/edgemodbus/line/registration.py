@@ -25,6 +25,16 @@ and regex mode, CR/LF/NUL).  Then, per mode:
   quiet gap or at the timeout; never in a prefix that could still grow ("ID:1" of
   "ID:10").  Its first group, else its whole match, is the id.
 
+A heartbeat inside a configured id does not end it (``DTU-HB-7`` with heartbeat ``HB``;
+hex id ``0100A3`` with heartbeat ``00``): the configured id the bytes match is taken
+first, the longest when several are (followed by an end, or alone once settled), and
+only then the first end; a registration that may still grow into a configured id
+containing the heartbeat waits as any prefix does.  Heartbeats before it are skipped,
+unless a configured id begins with the heartbeat: then the id is tried where the bytes
+begin first.  In regex mode a match before a heartbeat is held while a later end may
+still name a longer configured id.  An id made of heartbeats alone is refused by the
+configuration (config/listen.py).
+
 The peer is unknown at once when, in text or hex mode, its bytes are no beginning of a
 configured id or what comes before an end is not one, or when, in regex mode, a
 terminated match names no configured id; also after ``registrationMaxBytes``
@@ -123,6 +133,8 @@ class IdIndex:
         self._ids: dict[bytes, str] = {}
         self._names: set[str] = set()
         self._sorted: list[bytes] = []
+        # (heartbeat, how many keys contain it): kept up to date once asked
+        self._holding: tuple[bytes, int] = (b"", 0)
         for dtu_id in ids:
             self.add(dtu_id)
 
@@ -133,6 +145,9 @@ class IdIndex:
         key = self._key(dtu_id)
         if key not in self._ids:
             bisect.insort(self._sorted, key)
+            hb, count = self._holding
+            if hb and hb in key:
+                self._holding = (hb, count + 1)
         self._ids[key] = dtu_id
         self._names.add(dtu_id)
 
@@ -140,7 +155,30 @@ class IdIndex:
         key = self._key(dtu_id)
         if self._ids.pop(key, None) is not None:
             del self._sorted[bisect.bisect_left(self._sorted, key)]
+            hb, count = self._holding
+            if hb and hb in key:
+                self._holding = (hb, count - 1)
         self._names.discard(dtu_id)
+
+    def hold(self, heartbeat: bytes) -> bool:
+        """Whether a configured id contains ``heartbeat`` (counted once, then kept up to
+        date as ids come and go): only then may a heartbeat be inside an id."""
+        if not heartbeat:
+            return False
+        if self._holding[0] != heartbeat:
+            self._holding = (heartbeat, sum(heartbeat in key for key in self._sorted))
+        return self._holding[1] > 0
+
+    def begins(self, packet: bytes) -> bool:
+        """Whether a configured id begins with ``packet`` (or is it)."""
+        return packet in self._ids or self.may_grow(packet)
+
+    def longer(self, head: bytes, tail: bytes) -> bool:
+        """Whether ``head`` + ``tail`` is, begins with, or may still grow into a
+        configured id longer than ``head`` (a heartbeat in ``tail`` may be inside it)."""
+        packet = head + tail
+        return self.may_grow(packet) or any(
+            packet[:n] in self._ids for n in range(len(head) + 1, len(packet) + 1))
 
     def get(self, key: bytes) -> str | None:
         """The id sent as ``key``."""
@@ -172,14 +210,40 @@ def identify(buf: bytes, ids: Collection[str] | IdIndex, settings: PortSettings,
     mode = settings.registration
     index = ids if isinstance(ids, IdIndex) else IdIndex(mode, ids)
     hb = settings.heartbeat
-    start = 0
-    while start < len(buf):
-        if hb and buf.startswith(hb, start):
-            start += len(hb)
-        elif mode != "hex" and buf[start] in _LINE_ENDS:
-            start += 1
+    starts = [0]  # where the registration may begin: after each heartbeat or line end
+    while starts[-1] < len(buf):
+        at = starts[-1]
+        if hb and buf.startswith(hb, at):
+            starts.append(at + len(hb))
+        elif mode != "hex" and buf[at] in _LINE_ENDS:
+            starts.append(at + 1)
         else:
             break
+    if mode == "regex" or not hb or not index.begins(hb):
+        starts = starts[-1:]  # no id begins with the heartbeat: skip them all
+    found: Identified | str | None = None
+    waiting = False
+    for start in starts:
+        # an id that begins with the heartbeat is tried before the heartbeat is skipped
+        found = _from(buf, start, index, settings, settled)
+        if isinstance(found, Identified):
+            return found
+        if found is None:
+            waiting = True
+            if not settled:
+                break  # it may still grow into an id that begins here
+    if waiting:
+        found = None
+    if found is None and len(buf) >= settings.max_bytes:
+        return f"no registration in the first {settings.max_bytes} bytes"
+    return found
+
+
+def _from(buf: bytes, start: int, index: IdIndex, settings: PortSettings,
+          settled: bool) -> Identified | str | None:
+    """:func:`identify` for a registration that begins at ``start``."""
+    mode = settings.registration
+    hb = settings.heartbeat
     packet = buf[start:]
     if not settled and hb and packet and len(packet) < len(hb) and hb.startswith(packet):
         return None  # the first part of a heartbeat
@@ -193,12 +257,8 @@ def identify(buf: bytes, ids: Collection[str] | IdIndex, settings: PortSettings,
         key = packet if mode == "hex" else packet.rstrip(_LINE_ENDS)
         return _lookup(key, index, start + length, mode)
     if mode == "regex":
-        found = _regex_terminated(packet, index, settings, start, settled)
-    else:
-        found = _exact(packet, index, settings, start, settled)
-    if found is None and len(buf) >= settings.max_bytes:
-        return f"no registration in the first {settings.max_bytes} bytes"
-    return found
+        return _regex_terminated(packet, index, settings, start, settled)
+    return _exact(packet, index, settings, start, settled)
 
 
 def _lookup(key: bytes, wanted: IdIndex, end: int, mode: str) -> Identified | str:
@@ -213,63 +273,101 @@ def _text_end(byte: int) -> bool:
     return byte < 0x20 or byte == 0x7F or byte in (0xC0, 0xC1) or byte >= 0xF5
 
 
-def _ends(packet: bytes, settings: PortSettings) -> list[tuple[int, int]]:
-    """(where the content ends, where the registration ends) for every end in ``packet``
-    (text and regex mode: an end byte, CR/LF/NUL consumed; any mode: a heartbeat)."""
+def _ends(packet: bytes, settings: PortSettings) -> list[tuple[int, int, bool]]:
+    """(where the content ends, where the registration ends, whether a heartbeat ends it)
+    for every end in ``packet`` (text and regex mode: an end byte, CR/LF/NUL consumed;
+    any mode: a heartbeat)."""
     hb = settings.heartbeat
     text = settings.registration != "hex"
-    found: list[tuple[int, int]] = []
+    found: list[tuple[int, int, bool]] = []
     i = 0
     while i < len(packet):
         if hb and packet.startswith(hb, i):
-            found.append((i, i))
+            found.append((i, i, True))
             i += len(hb)
         elif text and _text_end(packet[i]):
             j = i
             while j < len(packet) and packet[j] in _LINE_ENDS:
                 j += 1
-            found.append((i, j))
+            found.append((i, j, False))
             i = max(j, i + 1)
         else:
             i += 1
     return found
 
 
+def _end_at(rest: bytes, settings: PortSettings) -> int | None:
+    """How many bytes of ``rest`` an end at its start consumes (0: a heartbeat, which
+    stays data, or an end byte that is no line end), None when no end is there."""
+    if settings.heartbeat and rest.startswith(settings.heartbeat):
+        return 0
+    if settings.registration != "hex" and rest and _text_end(rest[0]):
+        return len(rest) - len(rest.lstrip(_LINE_ENDS))
+    return None
+
+
 def _exact(packet: bytes, wanted: IdIndex, settings: PortSettings, start: int,
            settled: bool) -> Identified | str | None:
-    """Text and hex mode without a fixed length."""
+    """Text and hex mode without a fixed length.  A configured id the bytes begin with,
+    followed by an end, is the registration, the longest first: a heartbeat inside a
+    longer configured id ("DTU-HB-7" with heartbeat "HB") does not end it early."""
     exact = wanted.get(packet)
-    if wanted.may_grow(packet):
-        # it may still grow into a configured id: an exact match is taken once settled
-        if settled and exact is not None:
+    growing = wanted.may_grow(packet)
+    if growing:
+        # it may still grow into a configured id: an exact match is taken once settled,
+        # else a shorter one before a heartbeat ("B" + "HB" of "BHBA")
+        if not settled:
+            return None
+        if exact is not None:
             return Identified(exact, start + len(packet))
-        return None
-    ends = _ends(packet, settings)
-    if ends:
-        content, end = ends[0]
-        return _lookup(packet[:content], wanted, start + end, settings.registration)
-    hb = settings.heartbeat
-    for key in wanted.prefixes(packet) if hb else ():
-        if hb.startswith(packet[len(key):]):
-            # maybe a heartbeat follows the id
-            dtu_id = wanted.get(key)
-            assert dtu_id is not None
-            return Identified(dtu_id, start + len(key)) if settled else None
     if exact is not None:
+        # the whole of a configured id: longer than any before a heartbeat ("AHB" of
+        # "A" + "HB"); taken once settled, it may still grow into an id not configured
         return Identified(exact, start + len(packet)) if settled else None
+    hb = settings.heartbeat
+    for key in sorted(wanted.prefixes(packet), key=len, reverse=True):
+        dtu_id = wanted.get(key)
+        assert dtu_id is not None
+        rest = packet[len(key):]
+        consumed = _end_at(rest, settings)
+        if consumed is not None:
+            return Identified(dtu_id, start + len(key) + consumed)
+        if hb and hb.startswith(rest):
+            # maybe a heartbeat follows the id
+            return Identified(dtu_id, start + len(key)) if settled else None
+    if growing:
+        return None  # the beginning of a configured id, quiet: the timeout decides
+    ends = _ends(packet, settings)
+    content, end = (ends[0][0], ends[0][1]) if ends else (len(packet), len(packet))
     # no configured id begins with these bytes, whatever follows
-    return _lookup(packet, wanted, start + len(packet), settings.registration)
+    return _lookup(packet[:content], wanted, start + end, settings.registration)
 
 
 def _regex_terminated(packet: bytes, ids: IdIndex, settings: PortSettings,
                       start: int, settled: bool) -> Identified | str | None:
-    """Regex mode without a fixed length: search terminated content only."""
-    for _, end in _ends(packet, settings):
+    """Regex mode without a fixed length: search terminated content only.  When a
+    configured id contains the heartbeat, a heartbeat may be inside the id: a match
+    before it is held while a later end may still name a longer configured id."""
+    hb = settings.heartbeat
+    inside = ids.hold(hb)
+    held: Identified | None = None
+    for content, end, beat in _ends(packet, settings):
         found = _search(packet[:end], ids, settings.pattern, start + end, quiet=True)
-        if found is not None:
-            return found
-    if settled:
-        return _search(packet, ids, settings.pattern, start + len(packet), quiet=True)
+        if found is None:
+            continue
+        if beat and inside:
+            name = found.dtu_id if isinstance(found, Identified) else found
+            if ids.longer(name.encode(), packet[content:]):
+                # "7" of "7HB8": the heartbeat may be inside a longer configured id
+                if isinstance(found, Identified) and held is None:
+                    held = found
+                continue
+        return held if held is not None and not isinstance(found, Identified) else found
+    if settled:  # the whole: a longer configured id than the one held, or the held one
+        found = _search(packet, ids, settings.pattern, start + len(packet), quiet=True)
+        return held if held is not None and not isinstance(found, Identified) else found
+    if held is not None and not ids.longer(held.dtu_id.encode(), packet[held.end - start:]):
+        return held
     return None
 
 

@@ -29,9 +29,10 @@ import threading
 from collections.abc import Iterable, Iterator, Mapping
 from typing import TYPE_CHECKING, Annotated, Any, ClassVar, Protocol
 
-from pydantic import ValidationError
+from pydantic import AfterValidator, ValidationError
 
 from ..config import ConfigError, Model, Range
+from ..config.limits import MAX_HOST, check_host
 from ..datatypes import DeviceDriverStatus, enum_value
 from .metrics_extra import (
     ServerStats,
@@ -131,9 +132,10 @@ class MetricsSettings(Model):
     """The ``metrics`` section of the gateway file."""
 
     _where: ClassVar[str] = "metrics"
+    _max_lengths: ClassVar[dict[str, int]] = {"host": MAX_HOST}
 
     enabled: bool = True
-    host: str = "127.0.0.1"
+    host: Annotated[str, AfterValidator(check_host)] = "127.0.0.1"
     port: Annotated[int, Range(0, 65535)] = 9108  # 0: any free port (logged)
 
     @classmethod

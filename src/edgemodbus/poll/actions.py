@@ -9,6 +9,7 @@ the action; the result is one ok or one error for the whole action).
 
 from __future__ import annotations
 
+import json
 import math
 from collections.abc import Mapping, Sequence
 from concurrent.futures import Future
@@ -16,11 +17,13 @@ from typing import Any
 
 from ..codec import normalize_value
 from ..config import DeviceAction
+from ..config.actions import ACTION_VALUE
 from ..datatypes import DataType
 from .items import ItemState
 from .writes import WriteOp, merge_writes, prepare_writes
 
 __all__ = [
+    "address_values",
     "describe_parameter",
     "find_action",
     "plan_action",
@@ -134,7 +137,16 @@ def plan_action(
 ) -> list[WriteOp]:
     """The requests of ``action`` with ``given`` parameters, in its function code: FC15
     and FC16 merge neighbouring coils/registers into one request (up to the protocol's
-    limits), FC05 and FC06 send one request per coil/register."""
+    limits), FC05 and FC06 send one request per coil/register.  An address action (NG's
+    form) writes ``given["value"]`` at its address (:func:`address_values`)."""
+    if action.address is not None:
+        values = address_values(action, given)
+        op = WriteOp(action.area, action.address, function=action.function_code)
+        if action.area.is_bit:
+            op.bits = [bool(v) for v in values]
+        else:
+            op.registers = [int(v) for v in values]
+        return [op]
     pairs = resolve_parameters(action, given, by_name)
     try:
         ops = prepare_writes(by_name, pairs)
@@ -153,6 +165,83 @@ def plan_action(
                              f"which functionCode {action.function_code} writes")
         op.function = action.function_code
     return merge_writes(ops) if action.function_code in (15, 16) else ops
+
+
+def address_values(action: DeviceAction, given: Mapping[str, Any]) -> list[int] | list[bool]:
+    """The coils (bools) or registers (0..65535; -32768..-1 as their two's complement)
+    an address action writes: ``given["value"]``, one value or a list of ``quantity``
+    (text as the CLI passes it: ``1234``, ``true``, ``1,2,3`` or ``[1, 2, 3]``).
+    ValueError names the action and what is allowed."""
+    head = f"action {action.name!r}"
+    if not isinstance(given, Mapping):
+        raise ValueError(f"{head}: parameters must be a mapping of names to values, "
+                         f"not {type(given).__name__}")
+    bits = action.area.is_bit
+    count = action.count
+    what = (f"{count} coil{'s' if count > 1 else ''} (true/false)" if bits else
+            f"{count} register{'s' if count > 1 else ''} (0..65535 or -32768..-1)")
+    unknown = [str(k) for k in given if k != ACTION_VALUE]
+    if unknown or ACTION_VALUE not in given:
+        problem = (f"unknown parameter {', '.join(map(repr, unknown))}" if unknown
+                   else f"parameter {ACTION_VALUE!r} is missing")
+        raise ValueError(f"{head}: {problem} (it writes {what} at "
+                         f"{action.area.short_name}:{action.address}: give "
+                         f"{ACTION_VALUE}=...)")
+    raw = given[ACTION_VALUE]
+    label = f"{head}: parameter {ACTION_VALUE!r} {_shown(raw)}"
+    values = _split(raw, label)
+    if len(values) != count:
+        raise ValueError(f"{label}: {len(values)} value{'s' if len(values) != 1 else ''}, "
+                         f"but it writes {what}")
+    return [_coil(v, label) for v in values] if bits else [_register(v, label)
+                                                          for v in values]
+
+
+def _shown(raw: Any) -> str:
+    text = repr(raw)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def _split(raw: Any, label: str) -> list[Any]:
+    if isinstance(raw, str):
+        text = raw.strip()
+        if text.startswith("["):
+            try:
+                raw = json.loads(text)
+            except ValueError:
+                raise ValueError(f"{label}: not a JSON list") from None
+        else:
+            return [t for t in text.replace(",", " ").split() if t] or [""]
+    return list(raw) if isinstance(raw, (list, tuple)) else [raw]
+
+
+_COIL_TEXT = {"true": True, "on": True, "1": True, "false": False, "off": False, "0": False}
+
+
+def _coil(value: Any, label: str) -> bool:
+    if isinstance(value, bool):
+        return value
+    if isinstance(value, int) and value in (0, 1):
+        return bool(value)
+    if isinstance(value, str) and value.strip().lower() in _COIL_TEXT:
+        return _COIL_TEXT[value.strip().lower()]
+    raise ValueError(f"{label}: {value!r} is not a coil value (true/false, on/off, 1/0)")
+
+
+def _register(value: Any, label: str) -> int:
+    number: Any = value
+    if isinstance(value, str):
+        try:
+            number = int(value.strip(), 0)
+        except ValueError:
+            number = None
+    if isinstance(number, float) and number.is_integer():
+        number = int(number)
+    if isinstance(number, bool) or not isinstance(number, int) or \
+            not -32768 <= number <= 65535:
+        raise ValueError(f"{label}: {value!r} is not a register value (a whole number "
+                         "0..65535, or -32768..-1 as its two's complement)")
+    return number & 0xFFFF
 
 
 def prefix_errors(future: Future[Any], head: str) -> Future[Any]:

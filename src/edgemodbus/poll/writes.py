@@ -46,7 +46,9 @@ class WriteOp:
 
     @property
     def names(self) -> str:
-        return ", ".join(st.item.name for st, _ in self.updates)
+        """The items it writes; an address action's request (no item): its address."""
+        return ", ".join(st.item.name for st, _ in self.updates) or \
+            f"{self.area.short_name}:{self.address}"
 
 
 def plan_writes(by_name: Mapping[str, ItemState], items: list[tuple[str, Any]]) -> list[WriteOp]:

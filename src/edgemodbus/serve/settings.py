@@ -14,9 +14,10 @@ import ipaddress
 from collections.abc import Mapping, Sequence
 from typing import Annotated, Any, ClassVar
 
-from pydantic import Field, ValidationError, field_validator, model_validator
+from pydantic import AfterValidator, Field, ValidationError, field_validator, model_validator
 
 from ..config import ConfigError, Model, OptionalMs, Problem, Range
+from ..config.limits import MAX_NAME, check_seconds
 
 DEFAULT_PORT = 502
 
@@ -27,6 +28,7 @@ class ServeUnit(Model):
     to that device's slave on its line)."""
 
     _where: ClassVar[str] = "serve.units[]"
+    _max_lengths: ClassVar[dict[str, int]] = {"device": MAX_NAME, "forward": MAX_NAME}
 
     unit_id: Annotated[int, Range(0, 255)]
     device: str | None = None
@@ -59,11 +61,13 @@ class ServeSettings(Model):
     """The ``serve`` section of the gateway file."""
 
     _where: ClassVar[str] = "serve"
+    _max_lengths: ClassVar[dict[str, int]] = {"listen": MAX_NAME}
 
     enabled: bool = True
     listen: str = f"127.0.0.1:{DEFAULT_PORT}"
     max_connections: Annotated[int, Range(1, 1024)] = 32
-    idle_timeout_s: Annotated[float, Range(0, 86400)] = 60.0  # 0: never closed for idling
+    # 0: never closed for idling; else at least 1 ms (a shorter one rounded to 0: never)
+    idle_timeout_s: Annotated[float, Range(0, 86400), AfterValidator(check_seconds)] = 60.0
     units: list[ServeUnit] = Field(default_factory=list)
 
     @field_validator("listen")

@@ -46,6 +46,9 @@ def test_listen_port_falls_back_to_tcp_port_and_heartbeat_is_bytes() -> None:
     ({"heartbeat": "H" * 65}, "heartbeat '" + "H" * 65 + "': at most 64 bytes"),
     ({"heartbeatHex": "FE" * 65}, "heartbeatHex '" + "FE" * 65 + "': at most 64 bytes"),
     ({"framing": "wrapped-report", "echo": True}, "echo True: no echo option with framing"),
+    ({"heartbeat": "HB", "dtuId": "HBHB"}, "dtuId 'HBHB': is nothing but the heartbeat 'HB'"),
+    ({"registration": "hex", "heartbeatHex": "00", "dtuId": "0000"},
+     "dtuId '0000': is nothing but the heartbeat '00'"),
 ])
 def test_bad_listen_options_name_field_and_value(extra: dict[str, Any], expected: str) -> None:
     assert expected in error_text(server(**extra))
@@ -59,6 +62,12 @@ def test_heartbeat_and_wrapped_framing_need_rtu_over_tcp() -> None:
     params.framing = "wrapped-report"  # changed after loading: the driver still refuses
     with pytest.raises(ValueError, match="framing 'wrapped-report': needs transport"):
         endpoint_for(params)
+
+
+def test_an_id_that_contains_the_heartbeat_is_accepted() -> None:
+    for extra in ({"heartbeat": "HB", "dtuId": "DTU-HB-7"},
+                  {"registration": "hex", "heartbeatHex": "00", "dtuId": "0100A3"}):
+        assert DriverModbusRtuParameter.model_validate(server(**extra)).dtu_id == extra["dtuId"]
 
 
 def test_report_only_read_cycle_zero_is_accepted() -> None:

@@ -44,7 +44,8 @@ NATIVE_DEVICE: dict[str, Any] = {
     "communication": {
         "transport": "rtu", "comPort": "/dev/ttyUSB0", "baudRate": 9600, "dataBits": 8,
         "stopBits": 1, "parity": "None", "dataFormat": "CDAB",
-        "maxMergeAddressGap": 10, "maxBlockReadRegisterCount": 100, "slaveId": 1,
+        "maxMergeAddressGap": 10, "maxBlockReadRegisterCount": 100,
+        "maxBlockReadBitCount": 100, "slaveId": 1,
     },
     "addressList": [
         {"name": "Temperature", "address": "hr:0", "quantity": 1, "deviceDataType": "Float",
@@ -142,3 +143,36 @@ def test_smart_cast_quantities_load_with_one_warning_per_item(
         "and widened to Float",
     ]
     assert [p.registers for p in cfg.parsed_items()] == [4, 1, 2]
+
+
+# --- NG's maxBatch: default 100, and it bounds coil and discrete-input reads (#24) ----------
+
+@pytest.mark.parametrize("communication", [
+    {"maxGap": 10},  # an NG key, no maxBatch: NG's default
+    {"connection": {"kind": "tcp", "host": "127.0.0.1"}},
+])
+def test_ng_keyed_files_default_max_batch_to_100(communication: dict[str, Any]) -> None:
+    comm = load_device_config({"communication": communication}).communication
+    assert comm.max_block_read_register_count == 100  # it was 120
+    assert comm.max_block_read_bit_count == 100  # it was 2000
+    points = load_device_config({"points": [
+        {"key": "a", "functionCode": 3, "address": 0, "dataType": "UInt16"}]}).communication
+    assert (points.max_block_read_register_count, points.max_block_read_bit_count) == (100, 100)
+    native = load_device_config({"communication": {"maxMergeAddressGap": 10}}).communication
+    assert (native.max_block_read_register_count, native.max_block_read_bit_count) == (120, 2000)
+
+
+def test_max_batch_bounds_coils_and_discrete_inputs_as_registers() -> None:
+    """NG: maxBatch is "寄存器数/线圈数", registers or coils of one read."""
+    points = [{"key": f"c{fc}_{i}", "functionCode": fc, "address": i, "dataType": "Boolean"}
+              for fc in (1, 2) for i in range(0, 150, 10)]
+    cfg = load_device_config({"communication": {"maxBatch": 50, "maxGap": 10},
+                              "points": points})
+    spans = [(area.short_name, count) for area, _, count, _ in blocks(cfg)]
+    assert spans and all(count <= 50 for _, count in spans), spans
+    assert {name for name, _ in spans} == {"coil", "di"} and len(spans) == 6, spans
+    # an explicit bit count stays
+    cfg = load_device_config({"communication": {"maxBatch": 50, "maxBlockReadBitCount": 2000},
+                              "points": points})
+    assert cfg.communication.max_block_read_bit_count == 2000
+    assert len(blocks(cfg)) == 2

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import os
 import ssl
+import stat
 import string
 from collections.abc import Callable, Mapping
 from pathlib import Path
@@ -15,6 +16,7 @@ from typing import Annotated, Any, ClassVar, Literal
 from pydantic import ValidationError, field_validator, model_validator
 
 from ...config import MAX_MS, Choice, ConfigError, Model, Ms, Problem, Range
+from ...config.limits import MAX_HOST, MAX_NAME, check_host
 from ...config.secret import Secret
 from ..sparkplug.settings import SparkplugSettings
 from .spool import MIN_FILE_BYTES, SYNCHRONOUS, path_problem
@@ -88,6 +90,9 @@ _SNAKE = {"caFile": "ca_file", "certFile": "cert_file", "keyFile": "key_file"}
 
 def _file_problem(path: str) -> str | None:
     """Why ``path`` cannot be read as a file by this process, or None."""
+    kind = not_a_file(path)
+    if kind is not None:
+        return kind
     try:
         with open(path, "rb") as file:
             file.read(1)
@@ -100,6 +105,22 @@ def _file_problem(path: str) -> str | None:
     except OSError as exc:
         return f"cannot be read: {exc.strerror or exc}"
     return None
+
+
+def not_a_file(path: str) -> str | None:
+    """Why an existing ``path`` is no regular file (a FIFO would block the load, a
+    device or socket is no file to keep), or None (a regular file, or nothing there)."""
+    try:
+        mode = os.stat(path).st_mode
+    except OSError:
+        return None  # missing or unreadable: the caller's own check says so
+    if stat.S_ISREG(mode):
+        return None
+    if stat.S_ISDIR(mode):
+        return "is a directory, not a file"
+    kind = "a FIFO" if stat.S_ISFIFO(mode) else "a socket" if stat.S_ISSOCK(mode) else \
+        "a device" if stat.S_ISCHR(mode) or stat.S_ISBLK(mode) else "not a regular file"
+    return f"is {kind}: give a regular file"
 
 
 def _no_password() -> bytes:
@@ -197,7 +218,7 @@ class StoreAndForwardSettings(Model):
     def problems(self, where: str = "mqtt.storeAndForward") -> list[Problem]:
         """[] when the spool file can be kept at ``path`` (its folder exists and is
         writable), else the problem named by its field."""
-        message = path_problem(self.path)
+        message = not_a_file(self.path) or path_problem(self.path)
         return [] if message is None else [Problem(f"{where}.path", self.path, message)]
 
 
@@ -205,6 +226,8 @@ class MqttSettings(Model):
     """The ``mqtt`` section of the gateway file.  Times in ms unless named otherwise."""
 
     _where: ClassVar[str] = "mqtt"
+    _max_lengths: ClassVar[dict[str, int]] = {
+        "host": MAX_HOST, "clientId": MAX_NAME, "username": MAX_NAME}
 
     enabled: bool = True
     mode: Mode = "per-item"
@@ -243,6 +266,13 @@ class MqttSettings(Model):
     failure_log_interval: Ms = 60_000  # failed connects: first logged, then one line per this
     status_check_interval: Ms = 500
     store_and_forward: StoreAndForwardSettings | None = None  # off unless set
+
+    @field_validator("host")
+    @classmethod
+    def _host(cls, value: str) -> str:
+        if not value.strip():
+            raise ValueError("must not be empty (the broker's host name or address)")
+        return check_host(value)
 
     @field_validator("topic_prefix")
     @classmethod

@@ -16,6 +16,7 @@ from typing import Annotated, ClassVar
 from pydantic import field_validator
 
 from ...config import Model, Problem, Range
+from ...config.limits import MAX_NAME
 from .bdseq import file_problem
 
 log = logging.getLogger("edgemodbus.sparkplug")
@@ -45,6 +46,8 @@ class SparkplugSettings(Model):
     """``mqtt.sparkplug``: who this edge node is in Sparkplug B (v3.0)."""
 
     _where: ClassVar[str] = "mqtt.sparkplug"
+    _max_lengths: ClassVar[dict[str, int]] = {
+        "groupId": MAX_NAME, "edgeNodeId": MAX_NAME, "primaryHostId": MAX_NAME}
 
     group_id: str
     edge_node_id: str | None = None  # default: the gateway id
@@ -99,6 +102,9 @@ class SparkplugSettings(Model):
             return [Problem(field, path, "must not be empty (leave it out to keep bdSeq "
                                          "in memory only)")]
         folder = Path(path).absolute().parent
+        if os.path.exists(path) and not os.path.isdir(path) and not os.path.isfile(path):
+            return [Problem(field, path, "is not a regular file (a FIFO, socket or device): "
+                                         "give a file path")]
         if os.path.isdir(path):
             return [Problem(field, path, "is a directory; give a file path in it, e.g. "
                                          f"{Path(path, 'bdseq')}")]
