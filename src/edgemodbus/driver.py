@@ -401,7 +401,6 @@ class DriverModbusRtu:
         return _device_code(org, self._params)
 
 
-
 class _Sink:
     """The driver as its poller sees it (a :class:`~edgemodbus.poll.sink.PollSink`): the
     host's callbacks and the subscribers, read at each delivery.  With no batch callback
