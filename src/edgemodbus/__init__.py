@@ -2,7 +2,8 @@
 
 libmodbus does the wire I/O (RTU on serial lines, raw RTU frames over TCP, Modbus TCP),
 a C codec turns register blocks into values, and :class:`DriverModbusRtu` polls,
-writes and reports with per-slave fault isolation.
+writes and reports with per-slave fault isolation, to its callbacks and to the
+:class:`Listener` objects subscribed to it.
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ from .errors import (
     ModbusTimeoutError,
     ProtocolError,
 )
+from .poll.listeners import Listener
 from .protocol.address import Address, parse_address
 
 __version__ = "0.1.0"
@@ -45,6 +47,7 @@ __all__ = [
     "DriverModbusRtu",
     "DriverModbusRtuParameter",
     "ItemStatus",
+    "Listener",
     "ModbusConnectionError",
     "ModbusError",
     "ModbusExceptionResponse",

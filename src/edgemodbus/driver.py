@@ -1,19 +1,19 @@
 """DriverModbusRtu: one Modbus device (slave) polled on a shared line.
 
 The contract (README.md): start, stop, hot update of the address list, writes
-(blocking and asyncio), callbacks, status, snapshot and stats.  This module is a
-facade: it checks the configuration, acquires the line (:mod:`edgemodbus.line`) and
+(blocking and asyncio), callbacks, subscribers, status, snapshot and stats.  This module
+is a facade: it checks the configuration, acquires the line (:mod:`edgemodbus.line`) and
 hands it a :class:`~edgemodbus.poll.poller.Poller`, which plans, decodes, keeps item
 state and isolates faults on the line's worker thread.  The poller reports through a
 sink (:class:`~edgemodbus.poll.sink.PollSink`) the driver gives it, never through the
-driver itself.
+driver itself; subscribers are listeners (poll/listeners.py) behind the batch callback.
 """
 
 from __future__ import annotations
 
 import asyncio
 import logging
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from concurrent.futures import Future
 from typing import Any, ClassVar
 
@@ -48,14 +48,13 @@ from .line import (
 )
 from .poll.actions import find_action, plan_action, prefix_errors
 from .poll.items import ItemState
+from .poll.listeners import BatchCallbackListener, Listener, Subscribers
 from .poll.planner import ReadBlock
 from .poll.poller import Poller
 from .poll.schedule import entity_numbers_notice
-from .poll.sink import BatchCallback, ItemCallback
+from .poll.sink import BatchCallback, ItemCallback, SnapshotPublisher
 from .poll.writes import WriteOp, plan_writes
 from .protocol.forward import check_request
-
-SnapshotPublisher = Callable[[str, dict[str, Any]], None]
 
 
 class DriverModbusRtu:
@@ -73,6 +72,8 @@ class DriverModbusRtu:
         self.address_updated_callback: ItemCallback | None = None
         self.addresses_updated_callback: BatchCallback | None = None
         self.snapshot_publisher: SnapshotPublisher | None = None
+        self._subscribers: Subscribers[DriverModbusRtu] = Subscribers(
+            BatchCallbackListener(lambda: self.addresses_updated_callback))
         self._poller: Poller | None = None
         self._last_poller: Poller | None = None  # keeps stats and snapshot after a stop
         self._line: LineWorker | None = None
@@ -118,7 +119,7 @@ class DriverModbusRtu:
         timing = _timing(params)
         # builds the items' codec specs, the plan and its decoders: raises here, not
         # after the line's worker is running
-        poller = Poller(_Sink(self, code), code, params, parsed, self.logger)
+        poller = Poller(_Sink(self), code, params, parsed, self.logger)
         notice = entity_numbers_notice(parsed, params)
         if notice is not None:
             self.logger.warning("%s: %s", code, notice)
@@ -204,6 +205,19 @@ class DriverModbusRtu:
         # refuses raises here and the running device keeps its items and plan
         Poller(self._poller.sink, self._poller.code, self._params, parsed, self.logger)
         self._poller.replace_items(parsed).result()
+
+    # -- subscribers (poll/listeners.py) --------------------------------------------------
+    def subscribe(self, listener: Listener[DriverModbusRtu]) -> None:
+        """Add ``listener`` (an :class:`edgemodbus.Listener`) after those subscribed: it
+        hears from the next delivery on, across restarts, until :meth:`unsubscribe`;
+        ``addresses_updated_callback`` goes first.  Any thread.  ValueError when it is
+        already subscribed or lacks a method."""
+        self._subscribers.add(listener)
+
+    def unsubscribe(self, listener: Listener[DriverModbusRtu]) -> None:
+        """Remove ``listener`` (the others stay); a delivery under way on the line
+        worker may still reach it.  Any thread.  ValueError when it is not subscribed."""
+        self._subscribers.remove(listener)
 
     # -- status --------------------------------------------------------------------------
     @property
@@ -386,34 +400,31 @@ class DriverModbusRtu:
     def _code(self, org: DeviceOrganizationParameter | None) -> str:
         return _device_code(org, self._params)
 
-    def _publish(self, code: str) -> None:
-        publisher = self.snapshot_publisher
-        if publisher is None:
-            return
-        try:
-            publisher(f"/real/{code}", self.snapshot())
-        except Exception:
-            self.logger.exception("%s: snapshot publisher failed", code)
-
 
 class _Sink:
     """The driver as its poller sees it (a :class:`~edgemodbus.poll.sink.PollSink`): the
-    host's callbacks, read at each delivery, and the snapshot publisher."""
+    host's callbacks and the subscribers, read at each delivery.  With no batch callback
+    the head of the list is left out: no subscriber, no callback, no call at all."""
 
-    __slots__ = ("_code", "_driver")
+    __slots__ = ("source",)
 
-    def __init__(self, driver: DriverModbusRtu, code: str) -> None:
-        self._driver = driver
-        self._code = code
+    def __init__(self, driver: DriverModbusRtu) -> None:
+        self.source = driver
 
     def item_callback(self) -> ItemCallback | None:
-        return self._driver.address_updated_callback
+        return self.source.address_updated_callback
 
-    def batch_callback(self) -> BatchCallback | None:
-        return self._driver.addresses_updated_callback
+    def listeners(self) -> tuple[Listener[DriverModbusRtu], ...]:
+        driver = self.source
+        if driver.addresses_updated_callback is None:
+            return driver._subscribers.listeners
+        return driver._subscribers.with_head
 
-    def snapshot_due(self) -> None:
-        self._driver._publish(self._code)
+    def snapshot_publisher(self) -> SnapshotPublisher | None:
+        return self.source.snapshot_publisher
+
+    def snapshot(self) -> dict[str, Any]:
+        return self.source.snapshot()
 
 
 def _device_code(

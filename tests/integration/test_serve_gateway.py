@@ -79,12 +79,13 @@ def test_gateway_serves_forwards_and_rebinds_on_reload(
         wait_for(lambda: getattr(client.read_holding_registers(200, count=4, device_id=1),
                                  "registers", None) == want4, what="meter1 served at +200")
         assert client.read_holding_registers(100, count=1, device_id=1).exception_code == 2
-        # another subscriber took the batch callback (as an MQTT publisher's detach
-        # leaves it): hooked in again, values keep following the slave
+        # the host's batch callback is not the server's subscription: clearing it (as
+        # a chained subscriber's detach once did) leaves the unit served, with no
+        # re-hook: values keep following the slave
         meter1 = next(d for d in gateway.devices.values() if d.code == "meter1")
         meter1.driver.addresses_updated_callback = None
         gateway.serving.apply(gateway.config.serve, {
-            d.code: (d.driver, d.cfg) for d in gateway.devices.values()}, rehook=True)
+            d.code: (d.driver, d.cfg) for d in gateway.devices.values()})
         _peer.set_registers(1, "hr", 0, [4321])
         wait_for(lambda: getattr(client.read_holding_registers(200, count=1, device_id=1),
                                  "registers", None) == [4321], what="a new value served")

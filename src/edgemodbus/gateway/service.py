@@ -125,14 +125,12 @@ class Gateway:
             log.error("reload failed (%s); keeping what is running", one_line(exc))
 
     def _reload(self) -> None:
-        publisher = self.publisher
         self.reload_gateway()
         self.reload_devices()
         try:
-            # a new publisher took the drivers' batch callbacks (its detach restored what
-            # was under it): every unit hooks in again on top of it
-            for done in self.serving.apply(self.config.serve, self._served(),
-                                           rehook=self.publisher is not publisher):
+            # the server and the publisher are separate subscribers of each driver: a
+            # publisher swapped above left the units' listeners as they were
+            for done in self.serving.apply(self.config.serve, self._served()):
                 log.info("serve: %s", done)
         except OSError as exc:
             log.error("serve: %s; the Modbus TCP server is off", exc)

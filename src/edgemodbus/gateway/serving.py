@@ -26,11 +26,10 @@ class GatewayServer:
         self._bound: dict[int, tuple[DriverModbusRtu, DeviceConfig, ServeUnit]] = {}
 
     def apply(self, settings: ServeSettings | None,
-              devices: Mapping[str, tuple[DriverModbusRtu, DeviceConfig]],
-              rehook: bool = False) -> list[str]:
+              devices: Mapping[str, tuple[DriverModbusRtu, DeviceConfig]]) -> list[str]:
         """Bring the server in line with ``settings`` and ``devices`` (device code ->
-        its driver and config); what was done, in words.  ``rehook``: bind every unit
-        again (another subscriber replaced the drivers' batch callbacks).  Raises OSError
+        its driver and config); what was done, in words.  A unit is bound again only
+        when its driver, config or settings changed.  Raises OSError
         when the server cannot listen (the old one is stopped: serving is off)."""
         done: list[str] = []
         key = None
@@ -60,7 +59,7 @@ class GatewayServer:
             # a restarted device is a new driver, a changed address list a new config
             wanted[unit.unit_id] = (driver, cfg, unit)
             bound = self._bound.get(unit.unit_id)
-            if (not rehook and bound is not None and bound[0] is driver and bound[1] is cfg
+            if (bound is not None and bound[0] is driver and bound[1] is cfg
                     and bound[2] == unit):
                 continue
             try:

@@ -67,6 +67,12 @@ class FaultPolicy:
     def _pass(self) -> list[Slot]:
         raise NotImplementedError
 
+    def _set_status(self, status: DeviceDriverStatus, reason: str | None) -> None:
+        """Set the device's status; a change is told to the listeners.  Worker thread."""
+        if status is not self.status:
+            self.status = status
+            self.delivery.status(status, reason)
+
     def _read_slot(self, link: Link, slot: Slot) -> tuple[Block, list[Change]]:
         raise NotImplementedError
 
@@ -151,7 +157,7 @@ class FaultPolicy:
     def _back_online(self) -> None:
         if self.offline:
             self.log.info("%s: slave %d answers again", self.code, self.slave)
-        self.status = DeviceDriverStatus.RUNNING
+        self._set_status(DeviceDriverStatus.RUNNING, None)
         self.offline = False
         self.failed_cycles = 0
         self.backoff = self.cycle
@@ -179,7 +185,8 @@ class FaultPolicy:
                 self.backoff = min(self.backoff * 2, self.max_backoff)
             else:
                 self.offline = True
-                self.status = DeviceDriverStatus.OFFLINE
+                self._set_status(DeviceDriverStatus.OFFLINE,
+                                 f"offline after {self.failed_cycles} failed cycles")
                 self.backoff = min(self.cycle, self.max_backoff)
                 self.log.warning("%s: slave %d offline after %d failed cycles; probing every "
                                  "%.3g s and backing off", self.code, self.slave,
@@ -197,4 +204,4 @@ class FaultPolicy:
         """Publish the snapshot; the engine hands over the first pass that ends after
         the next one is due."""
         self.next_snapshot = self.device.notify_at = now + self.snapshot_interval
-        self.sink.snapshot_due()
+        self.delivery.snapshot_due()

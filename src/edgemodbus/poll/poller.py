@@ -194,12 +194,12 @@ class Poller(FaultPolicy):
             return
         self._all_due_now()
         if self.report_only and up:
-            self.status = DeviceDriverStatus.RUNNING  # ready for reports
+            self._set_status(DeviceDriverStatus.RUNNING, None)  # ready for reports
             self._update_notify()
             return
         if up:
             return
-        self.status = DeviceDriverStatus.RECONNECTING
+        self._set_status(DeviceDriverStatus.RECONNECTING, f"link down: {reason}")
         self._update_notify()
         for slot in self.slots:
             self._invalidate(slot, f"link down: {reason}")

@@ -2,8 +2,10 @@
 
 The poller never holds or imports its owner (the driver): the owner hands it a
 :class:`PollSink`, the way a protocol stack is given the callbacks of its user.
-:class:`Delivery` calls the host's callbacks the sink names: each updated item as it is
-stored, and the items of a cycle (or of one write or report) in one batch.
+:class:`Delivery` calls what the sink names: the host's per-item callback as each item
+is stored, and the owner's listeners (poll/listeners.py, the seed's batch callback at
+their head) with the items of a cycle (or of one write or report) in one batch, with
+status changes and with the snapshot.
 """
 
 from __future__ import annotations
@@ -11,35 +13,48 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 from ..stats import DeviceStats
+from .listeners import BatchCallback, Listener, listener_name
 
 if TYPE_CHECKING:
     from ..config import DeviceAddressItem
+    from ..datatypes import DeviceDriverStatus
 
 ItemCallback = Callable[["DeviceAddressItem"], None]
-BatchCallback = Callable[[list["DeviceAddressItem"]], None]
+SnapshotPublisher = Callable[[str, dict[str, Any]], None]
+__all__ = ["BatchCallback", "Delivery", "ItemCallback", "PollSink", "SnapshotPublisher"]
 
 
 class PollSink(Protocol):
-    """The poller's owner, as the poller sees it.  The callbacks are asked for at each
-    delivery: the host may set or replace them while the device is polled."""
+    """The poller's owner, as the poller sees it.  Its callbacks and listeners are asked
+    for at each delivery: the host may set, replace, subscribe and unsubscribe them
+    while the device is polled."""
+
+    @property
+    def source(self) -> object:
+        """What the listeners are told they hear from (the driver)."""
 
     def item_callback(self) -> ItemCallback | None:
         """The callback for each updated item, or None."""
 
-    def batch_callback(self) -> BatchCallback | None:
-        """The callback for the items updated together (a cycle, a write, a report)."""
+    def listeners(self) -> tuple[Listener[Any], ...]:
+        """Who gets the batches, status changes and snapshots, in order (a snapshot
+        tuple: the sink replaces it, never changes it); () when nobody does."""
 
-    def snapshot_due(self) -> None:
-        """A cycle ended and the snapshot interval elapsed: publish the snapshot."""
+    def snapshot_publisher(self) -> SnapshotPublisher | None:
+        """The seed's snapshot publisher, or None."""
+
+    def snapshot(self) -> dict[str, Any]:
+        """The owner's snapshot (``driver.snapshot()``)."""
 
 
 class Delivery:
-    """Hands updated items to the sink's callbacks.  A callback's exception is logged
-    and counted (``callback_errors``), never raised into the poller; the time spent in
-    the callbacks is counted too (``callback_time``).  Worker thread only."""
+    """Hands updated items to the sink's callback and listeners.  An exception of a
+    callback or listener is logged and counted (``callback_errors``), never raised into
+    the poller, and the next listener still runs; the time spent in them is counted too
+    (``callback_time``).  Worker thread only."""
 
     __slots__ = ("batch", "code", "counters", "log", "sink")
 
@@ -72,16 +87,58 @@ class Delivery:
         self.counters.callback_time += time.perf_counter() - started
 
     def flush(self) -> None:
-        """Hand the batch to the batch callback and start a new one."""
+        """Hand the batch to each listener and start a new one."""
         batch, self.batch = self.batch, []
-        callback = self.sink.batch_callback()
-        if not batch or callback is None:
+        if not batch:
             return
+        listeners = self.sink.listeners()
+        if not listeners:
+            return
+        source = self.sink.source
         started = time.perf_counter()
-        try:
-            callback(batch)
-        except Exception:
-            self.counters.callback_errors += 1
-            self.log.exception("%s: addresses_updated_callback failed (%d items)",
-                               self.code, len(batch))
+        for listener in listeners:
+            try:
+                listener.on_changes(source, batch)
+            except Exception:
+                self.counters.callback_errors += 1
+                self.log.exception("%s: %s failed (%d items)", self.code,
+                                   listener_name(listener), len(batch))
         self.counters.callback_time += time.perf_counter() - started
+
+    def status(self, status: DeviceDriverStatus, reason: str | None) -> None:
+        """Tell each listener the device's status changed."""
+        listeners = self.sink.listeners()
+        if not listeners:
+            return
+        source = self.sink.source
+        started = time.perf_counter()
+        for listener in listeners:
+            try:
+                listener.on_status(source, status, reason)
+            except Exception:
+                self.counters.callback_errors += 1
+                self.log.exception("%s: %s failed on status %s", self.code,
+                                   listener_name(listener), status.value)
+        self.counters.callback_time += time.perf_counter() - started
+
+    def snapshot_due(self) -> None:
+        """Hand the owner's snapshot to the snapshot publisher (a failure logged, as
+        ever) and then to each listener (a failure logged and counted)."""
+        publisher = self.sink.snapshot_publisher()
+        listeners = self.sink.listeners()
+        if publisher is None and not listeners:
+            return
+        snapshot = self.sink.snapshot()
+        if publisher is not None:
+            try:
+                publisher(f"/real/{self.code}", snapshot)
+            except Exception:
+                self.log.exception("%s: snapshot publisher failed", self.code)
+        source = self.sink.source
+        for listener in listeners:
+            try:
+                listener.on_snapshot(source, snapshot)
+            except Exception:
+                self.counters.callback_errors += 1
+                self.log.exception("%s: %s failed on the snapshot", self.code,
+                                   listener_name(listener))

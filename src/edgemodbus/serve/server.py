@@ -7,7 +7,8 @@ from the register image, without Python.  It comes back to Python only for a wri
 served device or a request to a forward unit, which it hands over and goes on serving
 the other masters; the answer is posted when the driver's future resolves (on the line's
 worker), and that master's connection reads nothing more until then.  The images are
-updated from the drivers' batch callbacks, one C call per batch (serve/image.py).
+updated by the server's listener on each driver (``driver.subscribe``), one C call per
+batch (serve/image.py).
 
 A forwarded request is answered by its timeout counted from its arrival: when it runs
 out while the line is still busy (another request's timeout and settle), this thread
@@ -34,7 +35,6 @@ import os
 import re
 import threading
 import time
-from collections.abc import Callable
 from concurrent.futures import Future
 from dataclasses import dataclass
 from typing import Any
@@ -57,6 +57,7 @@ from ..datatypes import Area, DeviceDriverStatus, ItemStatus
 from ..driver import DriverModbusRtu
 from ..errors import LineBusyError
 from ..line.forward import ForwardFuture
+from ..poll.listeners import Listener
 from ..protocol.forward import (
     GATEWAY_TARGET_FAILED,
     SERVER_DEVICE_BUSY,
@@ -74,28 +75,26 @@ ACCEPT_LOG_INTERVAL = 10.0
 loop pauses accepting 0.05 s doubling to 2 s after each (csrc/emb_serve.c), and counts
 them; the server's thread logs what the count grew by at most once per interval."""
 _SLAVE_EXCEPTION = re.compile(r"exception 0x([0-9a-f]{2})")
-BatchCallback = Callable[[list[DeviceAddressItem]], None]
 
 
-@dataclass(eq=False)
-class _Hook:
-    """Our link in a driver's batch-callback chain (the MQTT publisher chains the same
-    way); inactive once the unit is removed, when a later link keeps it in the chain."""
+class _Hook(Listener[DriverModbusRtu]):
+    """A served unit's subscription to its driver: each batch re-encoded into the unit's
+    image.  Inactive once the unit is removed (a delivery under way while it is
+    unsubscribed writes nothing)."""
 
-    image: UnitImage
-    core: ServerCore
-    prev: BatchCallback | None
-    max_age_ns: int | None = None
-    active: bool = True
+    def __init__(self, image: UnitImage, core: ServerCore, max_age_ns: int | None) -> None:
+        self.image = image
+        self.core = core
+        self.max_age_ns = max_age_ns
+        self.active = True
 
-    def __call__(self, items: list[DeviceAddressItem]) -> None:
-        if self.active:
-            self.core.update(self.image.runs(items))
-            if self.max_age_ns is not None and any(it.status is ItemStatus.OK for it in items):
-                # the slave just answered: fresh from now (between the server's checks)
-                self.core.set_fresh(self.image.unit, time.monotonic_ns() + self.max_age_ns)
-        if self.prev is not None:
-            self.prev(items)
+    def on_changes(self, source: DriverModbusRtu, items: list[DeviceAddressItem]) -> None:
+        if not self.active:
+            return
+        self.core.update(self.image.runs(items))
+        if self.max_age_ns is not None and any(it.status is ItemStatus.OK for it in items):
+            # the slave just answered: fresh from now (between the server's checks)
+            self.core.set_fresh(self.image.unit, time.monotonic_ns() + self.max_age_ns)
 
 
 @dataclass(eq=False)
@@ -113,7 +112,7 @@ class ModbusTcpServer:
     """A Modbus TCP server on ``host:port`` (port 0: any free one, see :attr:`port`)
     with at most ``max_connections`` masters at once (one more is closed at once) and
     an idle timeout (seconds; 0: none).  Add units, then :meth:`start`; :meth:`stop`
-    closes every socket and restores the drivers' callbacks."""
+    closes every socket and unsubscribes from the drivers."""
 
     def __init__(self, host: str = "127.0.0.1", port: int = 502, *,
                  max_connections: int = 32, idle_timeout: float = 60.0,
@@ -152,9 +151,8 @@ class ModbusTcpServer:
         core.set_unit(unit_id, MODE_CACHED, image.spans())
         core.update(image.mapping())
         core.set_fresh(unit_id, 0 if max_age is not None else _NEVER_STALE)
-        hook = _Hook(image, core, driver.addresses_updated_callback,
-                     None if max_age is None else int(max_age * 1e9))
-        driver.addresses_updated_callback = hook
+        hook = _Hook(image, core, None if max_age is None else int(max_age * 1e9))
+        driver.subscribe(hook)
         core.update(image.seed(driver.snapshot()["items"]))
         unit = _Unit(unit_id, driver, image, hook, max_age)
         with self._lock:
@@ -197,7 +195,7 @@ class ModbusTcpServer:
 
     def stop(self) -> None:
         """Stop the thread, close every connection and the listening socket, and take
-        the units out of their drivers' callbacks.  Answers still pending are dropped."""
+        the units' listeners off their drivers.  Answers still pending are dropped."""
         self.core.stop()
         if self._thread is not None:
             self._thread.join()
@@ -409,5 +407,4 @@ def _unhook(unit: _Unit) -> None:
     if hook is None:
         return
     hook.active = False
-    if unit.driver.addresses_updated_callback is hook:
-        unit.driver.addresses_updated_callback = hook.prev
+    unit.driver.unsubscribe(hook)

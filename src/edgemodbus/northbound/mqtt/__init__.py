@@ -11,11 +11,12 @@ MQTT), connection.py (failed connects in the log).
 
 Threads and queues (why polling is never blocked):
 
-* the driver's batch callback and snapshot publisher run on the line worker thread; here
-  they only copy the reported fields into a bounded queue (oldest updates are dropped
-  and counted when it is full: ``queueSize`` during an outage, ``queueSize`` plus one
-  full report of every device while the broker is connected, so that the start-up burst
-  of first reads is kept) or replace the device's pending snapshot (latest wins);
+* the publisher's listener on each driver (``driver.subscribe``: its batches and
+  snapshots) runs on the line worker thread; it only copies the reported fields into a
+  bounded queue (oldest updates are dropped and counted when it is full: ``queueSize``
+  during an outage, ``queueSize`` plus one full report of every device while the broker
+  is connected, so that the start-up burst of first reads is kept) or replaces the
+  device's pending snapshot (latest wins);
 * one ``edgemodbus-mqtt`` thread owns the paho client (external-loop mode: our own
   ``select``), connects and reconnects with exponential backoff and jitter, serialises
   to JSON and publishes; nothing else touches the client;

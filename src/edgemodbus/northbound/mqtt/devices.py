@@ -1,4 +1,4 @@
-"""What the publisher keeps per attached driver: its topics, chained callbacks, counters;
+"""What the publisher keeps per attached driver: its topics, its listener, counters;
 and the check that a device's item topics clash with none of its own topics."""
 
 from __future__ import annotations
@@ -9,8 +9,8 @@ from typing import TYPE_CHECKING, Any
 from .settings import FORBIDDEN, check_name
 
 if TYPE_CHECKING:
-    from ...config import DeviceAddressItem
     from ...driver import DriverModbusRtu
+    from ...poll.listeners import Listener
     from .settings import MqttSettings
 
 
@@ -19,8 +19,8 @@ class AttachedDevice:
 
     __slots__ = (
         "action_topic", "attached", "batch_command_topic", "batch_topic", "code",
-        "command_prefix", "driver", "dropped", "item_topics", "largest",
-        "prev_batch", "prev_snapshot", "published", "published_status", "reply_topic",
+        "command_prefix", "driver", "dropped", "item_topics", "largest", "listener",
+        "published", "published_status", "reply_topic",
         "seen_status", "snapshot_topic", "snapshots", "snapshots_coalesced", "status_topic",
     )
 
@@ -39,8 +39,7 @@ class AttachedDevice:
         self.item_topics: dict[str, str] = {}
         self.attached = True
         self.largest = 0  # the most items one of its reports held (outbox.Outbox.limit)
-        self.prev_batch: Callable[[list[DeviceAddressItem]], None] | None = None
-        self.prev_snapshot: Callable[[str, dict[str, Any]], None] | None = None
+        self.listener: Listener[DriverModbusRtu] | None = None  # its subscription
         self.published = 0
         self.dropped = 0
         self.snapshots = 0

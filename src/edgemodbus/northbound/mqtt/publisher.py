@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING, Any
 
 from ...config import ConfigError
 from ...driver import DriverModbusRtu
+from ...poll.listeners import Listener
 from .commands import CommandRunner
 from .connection import FailureLog, abandon, authenticate, error_text, write, write_wanted
 from .devices import AttachedDevice, check_topics
@@ -36,8 +37,8 @@ log = logging.getLogger("edgemodbus.mqtt")
 class MqttPublisher:
     """Publishes what attached drivers report to an MQTT broker and accepts writes.
 
-    ``publisher.attach(driver, "dev1")`` (before or after ``start_device``) hooks the
-    driver's batch callback and snapshot publisher; ``start()`` connects in the
+    ``publisher.attach(driver, "dev1")`` (before or after ``start_device``) subscribes
+    to the driver (its batches and snapshots); ``start()`` connects in the
     background and returns at once; ``stop()`` publishes the gateway offline, flushes
     briefly and disconnects, never waiting for an unreachable broker.
     """
@@ -173,7 +174,8 @@ class MqttPublisher:
     # -- drivers -------------------------------------------------------------------------
     def attach(self, driver: DriverModbusRtu, device_code: str | None = None) -> None:
         """Publish what ``driver`` reports.  ``device_code`` defaults to the driver's
-        (known once it was started).  Chains callbacks that were already set."""
+        (known once it was started).  Subscribes to it: other subscribers and the
+        driver's callbacks are left as they are."""
         code = device_code or str(driver.snapshot()["deviceCode"])
         check_name("deviceCode", code)
         self.check_item_names(code, driver.snapshot()["items"].keys())
@@ -182,35 +184,27 @@ class MqttPublisher:
             if code in self._devices:
                 raise ValueError(f"deviceCode {code!r} is already attached to this publisher")
             self._devices[code] = dev
-        dev.prev_batch = driver.addresses_updated_callback
-        dev.prev_snapshot = driver.snapshot_publisher
-        prev_batch, prev_snapshot = dev.prev_batch, dev.prev_snapshot
-
-        def on_batch(items: list[DeviceAddressItem]) -> None:
-            self._outbox.offer_items(dev, items)
-            if prev_batch is not None:
-                prev_batch(items)
-
-        def on_snapshot(topic: str, snapshot: dict[str, Any]) -> None:
-            self._outbox.offer_snapshot(dev, snapshot)
-            if prev_snapshot is not None:
-                prev_snapshot(topic, snapshot)
-
-        driver.addresses_updated_callback = on_batch
-        driver.snapshot_publisher = on_snapshot
+        dev.listener = listener = _DeviceListener(self._outbox, dev)
+        try:
+            driver.subscribe(listener)
+        except BaseException:
+            with self._lock:
+                del self._devices[code]
+            raise
         self._outbox.act(lambda: self._subscribe(dev))
 
     def detach(self, driver: DriverModbusRtu) -> None:
         """Stop publishing ``driver``: its last status is published (retained), its
-        command topics unsubscribed and its callbacks restored."""
+        command topics unsubscribed and its listener unsubscribed (only ours: other
+        subscribers of the driver stay)."""
         with self._lock:
             devs = [d for d in self._devices.values() if d.driver is driver]
             for dev in devs:
                 del self._devices[dev.code]
                 self._outbox.forget(dev)
         for dev in devs:
-            driver.addresses_updated_callback = dev.prev_batch
-            driver.snapshot_publisher = dev.prev_snapshot
+            if dev.listener is not None:
+                driver.unsubscribe(dev.listener)
             payload = status_payload(self.gateway_id, dev.code,
                                      status_text(driver.device_driver_status))
             self._outbox.push_control(Message(dev.code, dev.status_topic, payload, 1, True))
@@ -459,3 +453,19 @@ class MqttPublisher:
             if topic.startswith(dev.command_prefix):
                 self._commands.dispatch(dev, topic[len(dev.command_prefix):], payload)
                 return
+
+
+class _DeviceListener(Listener[DriverModbusRtu]):
+    """The publisher's subscription to one driver: its batches and snapshots go to the
+    outbox (bounded, never blocking the line worker); statuses are polled by the MQTT
+    thread (``statusCheckInterval``)."""
+
+    def __init__(self, outbox: Outbox, dev: AttachedDevice) -> None:
+        self.outbox = outbox
+        self.dev = dev
+
+    def on_changes(self, source: DriverModbusRtu, items: list[DeviceAddressItem]) -> None:
+        self.outbox.offer_items(self.dev, items)
+
+    def on_snapshot(self, source: DriverModbusRtu, snapshot: dict[str, Any]) -> None:
+        self.outbox.offer_snapshot(self.dev, snapshot)

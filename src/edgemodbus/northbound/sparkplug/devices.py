@@ -13,6 +13,7 @@ from .payloads import MetricDef, Sample, epoch_ms, sparkplug_type
 if TYPE_CHECKING:
     from ...config import DeviceAddressItem
     from ...driver import DriverModbusRtu
+    from ...poll.listeners import Listener
 
 
 def sample_of(item: DeviceAddressItem) -> Sample:
@@ -29,7 +30,7 @@ class NodeDevice:
     """One Sparkplug device of the edge node: an attached driver."""
 
     __slots__ = ("bad", "born", "born_at", "by_alias", "code", "driver", "dropped", "kinds",
-                 "metrics", "offered", "prev_batch", "published")
+                 "listener", "metrics", "offered", "published")
 
     def __init__(self, driver: DriverModbusRtu, code: str) -> None:
         self.driver = driver
@@ -42,7 +43,7 @@ class NodeDevice:
         self.by_alias: dict[int, MetricDef] = {}
         self.kinds: dict[str, DataType] = {}  # the type of the values written to an item
         self.bad: set[str] = set()  # metrics last published null
-        self.prev_batch: Callable[[list[DeviceAddressItem]], None] | None = None
+        self.listener: Listener[DriverModbusRtu] | None = None  # its subscription
         self.published = 0
         self.dropped = 0
 

@@ -8,12 +8,13 @@ import logging
 import threading
 import time
 from collections import deque
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from typing import TYPE_CHECKING, Any
 
 from ...config import ConfigError, DeviceAddressItem
 from ...datatypes import DeviceDriverStatus
 from ...driver import DriverModbusRtu
+from ...poll.listeners import Listener
 from ..mqtt.settings import MqttSettings, check_name
 from .devices import NodeDevice, is_good, sample_of
 from .inbox import CommandInbox, CommandLog, RebirthPacer
@@ -177,8 +178,8 @@ class SparkplugPublisher:
 
     # -- drivers -------------------------------------------------------------------------
     def attach(self, driver: DriverModbusRtu, device_code: str | None = None) -> None:
-        """Publish ``driver`` as Sparkplug device ``device_code`` (default the driver's);
-        chains a batch callback that was already set."""
+        """Publish ``driver`` as Sparkplug device ``device_code`` (default the driver's):
+        subscribes to it, leaving its other subscribers and callbacks as they are."""
         code = device_code or str(driver.snapshot()["deviceCode"])
         self.check_item_names(code, [])
         dev = NodeDevice(driver, code)
@@ -186,24 +187,25 @@ class SparkplugPublisher:
             if code in self._devices:
                 raise ValueError(f"deviceCode {code!r} is already attached to this publisher")
             self._devices[code] = dev
-        dev.prev_batch = prev = driver.addresses_updated_callback
-
-        def on_batch(items: list[DeviceAddressItem]) -> None:
-            self._offer(dev, [sample_of(item) for item in items])
-            if prev is not None:
-                prev(items)
-
-        driver.addresses_updated_callback = on_batch
+        dev.listener = listener = _DeviceListener(self._offer, dev)
+        try:
+            driver.subscribe(listener)
+        except BaseException:
+            with self._lock:
+                del self._devices[code]
+            raise
         self._push(("attach", dev))
 
     def detach(self, driver: DriverModbusRtu) -> None:
-        """Stop publishing ``driver``: DDEATH (if it was born), its callback restored."""
+        """Stop publishing ``driver``: DDEATH (if it was born), our listener unsubscribed
+        (only ours: the driver's other subscribers stay)."""
         with self._lock:
             devs = [d for d in self._devices.values() if d.driver is driver]
             for dev in devs:
                 del self._devices[dev.code]
         for dev in devs:
-            driver.addresses_updated_callback = dev.prev_batch
+            if dev.listener is not None:
+                driver.unsubscribe(dev.listener)
             self._push(("detach", dev))
 
     def _offer(self, dev: NodeDevice, samples: list[Sample]) -> None:
@@ -448,3 +450,17 @@ class SparkplugPublisher:
             self._session.goodbye(self._session_bd_seq(), timeout)
         self._born = False
         self._logs.flush(force=True)  # the summaries of folded command log lines
+
+
+class _DeviceListener(Listener[DriverModbusRtu]):
+    """The edge node's subscription to one driver: each batch, as samples copied on the
+    line worker, goes to the node's bounded queue (``offer``, never blocking); statuses
+    are polled by the node's thread (``statusCheckInterval``)."""
+
+    def __init__(self, offer: Callable[[NodeDevice, list[Sample]], None],
+                 dev: NodeDevice) -> None:
+        self.offer = offer
+        self.dev = dev
+
+    def on_changes(self, source: DriverModbusRtu, items: list[DeviceAddressItem]) -> None:
+        self.offer(self.dev, [sample_of(item) for item in items])
