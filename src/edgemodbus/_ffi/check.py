@@ -37,8 +37,9 @@ def check_reply_pdu(request: bytes, reply: bytes) -> Verdict:
     function or an exception response to it, a read's byte count, the length, a write's
     echo (Modbus Application Protocol v1.1b3, 6 and 7)."""
     if not request or len(request) >= MAX_ADU_LENGTH or len(reply) >= MAX_ADU_LENGTH:
-        raise ValueError(f"reply check: a request of {len(request)} bytes and a reply of "
-                         f"{len(reply)}; each must be 1..{MAX_ADU_LENGTH - 1}")
+        raise ValueError(f"reply check: a request of {len(request)} bytes: must be "
+                         f"1..{MAX_ADU_LENGTH - 1}; a reply of {len(reply)} bytes: must be "
+                         f"0..{MAX_ADU_LENGTH - 1}")
     exc = ffi.new("int *")
     err = lib.emb_check_reply(b"\0" + request, len(request) + 1, b"\0" + reply,
                               len(reply) + 1, exc)
