@@ -204,21 +204,22 @@ class Link:
             raise exception_for_code(verdict.exception, what)
         if verdict.ok:
             return
-        reply = adu[_MBAP_LEN:] if self._mbap else adu[1:-2]
-        err = verdict.error
-        if err == check.E_PROTOCOL_ID:
-            why = f"MBAP protocol id {struct.unpack_from('>H', adu, 2)[0]}, expected 0"
-        elif err == check.E_MBAP_LENGTH:
-            why = f"MBAP length {struct.unpack_from('>H', adu, 4)[0]}, frame has {len(adu) - 6}"
-        elif err == check.E_SLAVE:
-            why = f"reply from unit {adu[_MBAP_LEN - 1 if self._mbap else 0]}"
-        elif err == check.E_COUNT:
+        body = adu[_MBAP_LEN - 1:] if self._mbap else adu[:-2]  # unit id and reply PDU
+        if self._mbap and len(adu) < _MBAP_LEN + 2:
             why = f"reply of {len(adu)} bytes is too short"
-        elif err in (check.E_FUNCTION, check.E_OTHER_EXCEPTION):
-            why = f"reply has function code {reply[0]:#04x}"
+        elif verdict.error == check.E_PROTOCOL_ID:
+            why = f"MBAP protocol id {struct.unpack_from('>H', adu, 2)[0]}, expected 0"
+        elif verdict.error == check.E_MBAP_LENGTH:
+            why = f"MBAP length {struct.unpack_from('>H', adu, 4)[0]}, frame has {len(adu) - 6}"
+        elif not body or body[0] != slave:
+            why = f"reply from unit {body[0] if body else -1}"
+        elif len(body) < 2:
+            why = "empty reply"
+        elif body[1] != pdu[0]:
+            why = f"reply has function code {body[1]:#04x}"
         else:  # the echo (or its length)
             echo = pdu[1:7] if pdu[0] == 22 else pdu[1:5]
-            why = f"echo {reply[1:].hex(' ')} does not match the request {echo.hex(' ')}"
+            why = f"echo {body[2:].hex(' ')} does not match the request {echo.hex(' ')}"
         raise ProtocolError(f"{what}: {why}")
 
 

@@ -159,19 +159,18 @@ def check_reply(request: bytes, reply: bytes) -> None:
     verdict = check.check_reply_pdu(request, reply)
     if verdict.ok:
         return
-    err = verdict.error
     if not reply:
         why = "empty reply"
     elif reply[0] == fc | 0x80:
         why = f"exception reply of {len(reply)} bytes, not 2"
-    elif err in (check.E_FUNCTION, check.E_OTHER_EXCEPTION):
+    elif reply[0] != fc:
         why = f"reply has function code {reply[0]:#04x}"
     elif fc == REPORT_SERVER_ID:  # 6.13: byte count, server id, run indicator, more data
         why = (f"reply of {len(reply)} bytes with byte count "
                f"{reply[1] if len(reply) > 1 else 'none'}")
     elif len(reply) != expected_reply_length(request):
         why = f"reply of {len(reply)} bytes, expected {expected_reply_length(request)}"
-    elif err == check.E_COUNT:
+    elif verdict.error == check.E_COUNT:
         why = f"byte count {reply[1]}, expected {expected_reply_length(request) - 2}"
     else:
         echo = request[1:expected_reply_length(request)]
