@@ -13,14 +13,6 @@
 #include <poll.h>
 #include <time.h>
 
-int64_t emb_now_ns(void)
-{
-    struct timespec ts;
-
-    clock_gettime(CLOCK_MONOTONIC, &ts);
-    return (int64_t)ts.tv_sec * 1000000000LL + ts.tv_nsec;
-}
-
 /* A block due this soon (at most a tenth of its period, and EMB_JOIN_NS) is read in the
  * pass that begins now: blocks whose rates are multiples of each other stay in step. */
 static int emb_is_due(const emb_eblock *b, int64_t now_ns)

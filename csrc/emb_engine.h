@@ -16,7 +16,7 @@
 #include <stdint.h>
 
 #include "emb_codec.h"
-#include "emb_io.h"
+#include "emb_io.h" /* emb_now_ns too (csrc/emb_util.h) */
 
 #define EMB_HIST_MAX 16 /* cycle-time histogram buckets, the +Inf one included */
 #define EMB_JOIN_NS 5000000LL /* a block due this soon joins the pass that begins now */
@@ -113,7 +113,6 @@ typedef struct emb_engine {
     emb_line_counters *lc; /* the line's counters, kept across its links */
 } emb_engine;
 
-int64_t emb_now_ns(void);
 int emb_engine_run(emb_engine *e, int64_t until_ns);
 uint32_t emb_dev_begin_pass(emb_device *d, int64_t now_ns);
 int emb_dev_end_pass(emb_device *d, int64_t now_ns, const int64_t *bounds_ns,

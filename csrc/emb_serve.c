@@ -9,7 +9,7 @@
  * the socket, which would lose a master's pipelined requests. */
 #define _GNU_SOURCE /* accept4, POLLRDHUP */
 #include "emb_serve.h"
-#include "emb_engine.h" /* emb_now_ns */
+#include "emb_util.h" /* emb_now_ns */
 
 #include <errno.h>
 #include <fcntl.h>

@@ -1,7 +1,8 @@
 /* edgemodbus: DTU streams, framed byte for byte in C.
  *
  * A stream link is RTU over a socket on which a DTU (or an edge MCU behind one) sends
- * more than replies (emb_is_stream):
+ * more than replies; two link kinds (csrc/emb_backend.h): emb_stream_backend (plain RTU
+ * with heartbeats) and emb_wrapped_backend:
  *
  * - heartbeats (lk->hb, e.g. "HB" or FE) on an idle link, which can also arrive between a
  *   request and its reply: skipped wherever a frame could begin, and counted;
@@ -17,20 +18,20 @@
  * Bytes are read into lk->sb->rx, as many as are readable, and framed from there; what is
  * left (a frame not complete yet) waits there for the next read.  No globals, no
  * allocation: the buffers are in the link. */
-#include "emb_wire.h"
+#include "emb_stream.h"
 
 #include <errno.h>
 #include <string.h>
 #include <unistd.h>
 
+#include "emb_check.h"
+#include "emb_rtu.h" /* emb_rtu_frame, emb_rtu_send: a stream's requests are RTU frames */
+#include "emb_util.h"
+
 #define EMB_WRAP_PREFIX 4 /* FF AA and the register address */
 #define EMB_WRAP_TAIL 0x0D
-#define EMB_PUMP_READS 64 /* emb_pump: at most this many reads (a flooding peer) */
-
-int emb_is_stream(const emb_link *lk)
-{
-    return lk->wrapped || lk->hb_len > 0;
-}
+#define EMB_PUMP_READS 64
+#define EMB_WRAPPED_REQ_MAX (4 + EMB_MAX_RTU + 1) /* FF AA, address, RTU frame, 0D */ /* emb_pump: at most this many reads (a flooding peer) */
 
 /* A stream link needs its buffers (lk->sb): 0 with errno EINVAL if they are missing. */
 static int emb_has_buffers(const emb_link *lk)
@@ -246,12 +247,6 @@ static void emb_noise(emb_link *lk, uint32_t n)
     emb_rx_consume(lk, n);
 }
 
-/* The request a wrapped reply answers: slave, function, register address and, for a
- * read, the byte count (-1: any). */
-typedef struct {
-    int slave, function, address, count;
-} emb_want;
-
 static int emb_wrapped_answers(const emb_want *w, const uint8_t *frame)
 {
     const uint8_t *rtu = frame + EMB_WRAP_PREFIX;
@@ -338,7 +333,7 @@ static long emb_stream_idle(emb_link *lk)
     return emb_plain_idle(lk);
 }
 
-/* -- transaction steps (called by csrc/emb_io.c for a stream link) -------------------- */
+/* -- the backend functions (csrc/emb_backend.h) ---------------------------------------- */
 
 /* Take in and frame what is readable on fd now, without waiting (at most
  * EMB_PUMP_READS reads: a peer that floods the link does not hold the worker).
@@ -361,7 +356,7 @@ static long emb_pump_fd(emb_link *lk, int fd)
 /* Before a request: take in what is readable now (reports are queued, heartbeats
  * counted, stale bytes dropped and counted in lk->discarded).  -1 with errno when the
  * link is found closed. */
-int emb_stream_drop_pending(emb_link *lk, int fd)
+static int emb_stream_prepare(emb_link *lk, int fd)
 {
     if (!emb_has_buffers(lk)) /* every transaction begins here */
         return -1;
@@ -380,10 +375,10 @@ static int64_t emb_stream_deadline(const emb_link *lk, int64_t response, int64_t
 }
 
 /* Plain RTU stream with the echo option: the request's own bytes come back first. */
-int emb_stream_skip_echo(emb_link *lk, int fd, const uint8_t *sent, int sent_len,
-                         int first_ms, int byte_ms)
+static int emb_stream_skip_echo(emb_link *lk, int fd, const uint8_t *sent, int sent_len,
+                                int first_ms, int byte_ms)
 {
-    int64_t response = emb_clock_ns() + (int64_t)first_ms * 1000000, last = 0;
+    int64_t response = emb_now_ns() + (int64_t)first_ms * 1000000, last = 0;
     int rc;
 
     for (;;) {
@@ -405,16 +400,17 @@ int emb_stream_skip_echo(emb_link *lk, int fd, const uint8_t *sent, int sent_len
             errno = lk->rx_len ? EMB_EPARTIAL : ETIMEDOUT;
             return -1;
         }
-        last = emb_clock_ns();
+        last = emb_now_ns();
     }
 }
 
 /* Plain RTU stream: receive one reply frame into rsp, heartbeats skipped before it; the
- * contract of emb_recv_frame (csrc/emb_io.c).  Bytes behind the frame stay in rx. */
-int emb_stream_recv_frame(emb_link *lk, int fd, int slave, int first_ms, int byte_ms,
-                          uint8_t *rsp, int *got)
+ * contract of emb_backend.recv.  Bytes behind the frame stay in rx. */
+static int emb_stream_recv(emb_link *lk, int fd, const emb_want *want, int first_ms,
+                           int byte_ms, uint8_t *rsp, int *got)
 {
-    int64_t response = emb_clock_ns() + (int64_t)first_ms * 1000000, last = 0;
+    int slave = want->slave;
+    int64_t response = emb_now_ns() + (int64_t)first_ms * 1000000, last = 0;
     int partial_hb, need = 0, have, rc;
     uint16_t crc;
 
@@ -447,9 +443,9 @@ int emb_stream_recv_frame(emb_link *lk, int fd, int slave, int first_ms, int byt
             errno = lk->rx_len ? EMB_EPARTIAL : ETIMEDOUT;
             return -1;
         }
-        last = emb_clock_ns();
+        last = emb_now_ns();
     }
-    if (rsp[0] != slave && rsp[0] != 0) /* as emb_recv_frame: another slave's frame */
+    if (rsp[0] != slave && rsp[0] != 0) /* as on plain RTU: another slave's frame */
         return 0;
     crc = emb_crc16(rsp, need - 2);
     if (rsp[need - 2] != (crc & 0xFF) || rsp[need - 1] != (crc >> 8)) {
@@ -460,34 +456,33 @@ int emb_stream_recv_frame(emb_link *lk, int fd, int slave, int first_ms, int byt
 }
 
 /* Plain RTU stream: bytes received and not framed yet, heartbeats aside. */
-int emb_stream_pending(emb_link *lk, int fd)
+static int emb_stream_pending(emb_link *lk, int fd)
 {
     emb_hb_strip(lk);
     return (int)lk->rx_len + emb_pending(fd);
 }
 
-/* Wrapped: wait up to first_ms for the frame that answers the request (slave, pdu's
- * function and register address, and for a read the byte count `count`; -1 for a
- * write), queueing every other frame as a report, also one of our slave, function and
- * address with another count (the MCU reporting a range that starts where we read).
- * The frames behind the reply are queued too.  Returns the reply's RTU frame length in
- * rsp, or -1 with errno: ETIMEDOUT (no reply, also when a frame stopped short: a late
- * wrapped frame is still a valid report), or the link's errno. */
-int emb_stream_recv_wrapped(emb_link *lk, int fd, int slave, const uint8_t *pdu, int count,
-                            int first_ms, uint8_t *rsp)
+/* Wrapped: wait up to first_ms for the frame that answers the request (want: slave,
+ * function, register address, and for a read the byte count; -1 for a write), queueing
+ * every other frame as a report, also one of our slave, function and address with
+ * another count (the MCU reporting a range that starts where we read).  The frames
+ * behind the reply are queued too.  Returns the reply's RTU frame length in rsp, or -1
+ * with errno: ETIMEDOUT (no reply, also when a frame stopped short: a late wrapped frame
+ * is still a valid report), or the link's errno. */
+static int emb_wrapped_recv(emb_link *lk, int fd, const emb_want *want, int first_ms,
+                            int byte_ms, uint8_t *rsp, int *got)
 {
-    int64_t deadline = emb_clock_ns() + (int64_t)first_ms * 1000000;
-    emb_want want;
+    int64_t deadline = emb_now_ns() + (int64_t)first_ms * 1000000;
     int len, rc;
 
-    want.slave = slave;
-    want.function = pdu[0];
-    want.address = (pdu[1] << 8) | pdu[2];
-    want.count = count;
+    (void)byte_ms;
+    *got = 0;
     for (;;) {
-        len = emb_wrapped_frame(lk, &want, rsp);
-        if (len > 0)
+        len = emb_wrapped_frame(lk, want, rsp);
+        if (len > 0) {
+            *got = len;
             return len;
+        }
         rc = emb_rx_fill(lk, fd, deadline);
         if (rc == -1)
             return -1;
@@ -498,12 +493,36 @@ int emb_stream_recv_wrapped(emb_link *lk, int fd, int slave, const uint8_t *pdu,
     }
 }
 
+/* Wrapped (an edge MCU): FF AA | the request's register address | the RTU frame | 0D
+ * (sent holds the RTU frame). */
+static int emb_wrapped_send(modbus_t *ctx, emb_link *lk, int slave, const uint8_t *pdu,
+                            int pdu_len, uint8_t *sent, int *sent_len)
+{
+    uint8_t wrapped[EMB_WRAPPED_REQ_MAX];
+
+    (void)lk;
+    if (emb_rtu_frame(slave, pdu, pdu_len, sent, sent_len) == -1)
+        return -1;
+    if (pdu_len < 3) { /* no register address to wrap it with */
+        errno = EINVAL;
+        return -1;
+    }
+    wrapped[0] = 0xFF;
+    wrapped[1] = 0xAA;
+    wrapped[2] = pdu[1];
+    wrapped[3] = pdu[2];
+    memcpy(wrapped + 4, sent, (size_t)*sent_len);
+    wrapped[4 + *sent_len] = EMB_WRAP_TAIL;
+    return emb_write_all(modbus_get_socket(ctx), wrapped, *sent_len + 5);
+}
+
 /* emb_discard_input for a stream link: what comes is framed (reports queued: a late
  * wrapped frame carries its address, so it is a valid report; heartbeats counted) and
  * the rest dropped.  Returns the stale bytes dropped (plain RTU streams). */
-long emb_stream_discard(emb_link *lk, int fd, int total_ms, int quiet_ms, int limit_ms)
+static long emb_stream_discard(emb_link *lk, int fd, int total_ms, int quiet_ms,
+                               int limit_ms)
 {
-    int64_t start = emb_clock_ns(), last = 0, until;
+    int64_t start = emb_now_ns(), last = 0, until;
     long dropped = 0;
     int rc;
 
@@ -524,47 +543,24 @@ long emb_stream_discard(emb_link *lk, int fd, int total_ms, int quiet_ms, int li
         if (rc == 0)
             return dropped;
         dropped += emb_stream_idle(lk);
-        last = emb_clock_ns();
+        last = emb_now_ns();
     }
 }
 
-/* -- the caller's entry points -------------------------------------------------------- */
-
-/* Read what is readable now, without waiting, and frame it (a stream link: reports
- * queued, heartbeats counted; any other link: stale input dropped, counted in
- * lk->discarded).  The line worker calls it while idle.  Returns the reports waiting in
- * the ring, or -1 with errno when the link failed or the peer closed it. */
-long emb_pump(modbus_t *ctx, emb_link *lk)
+/* Idle: read what is readable now, without waiting, and frame it (reports queued,
+ * heartbeats counted). */
+static long emb_stream_pump(emb_link *lk, int fd)
 {
-    int fd = modbus_get_socket(ctx);
-    long n;
-
-    if (!emb_is_stream(lk)) {
-        n = emb_discard_input(fd, 0, 0, 0);
-        if (n == -1)
-            return -1;
-        lk->discarded += n;
-        return lk->n_reports;
-    }
     if (!emb_has_buffers(lk))
         return -1;
     return emb_pump_fd(lk, fd);
 }
 
-/* Bytes that came on the link's socket before the link was made (what a DTU sent after
- * its registration), taken as if received now, nothing having been asked: framed on a
- * stream link, dropped (counted in lk->discarded) on any other.  Returns the reports
- * waiting (-1, EINVAL: a stream link without its buffers). */
-long emb_feed(emb_link *lk, const uint8_t *data, int n)
+/* Bytes that came before the link, framed as if received now, nothing asked. */
+static long emb_stream_feed(emb_link *lk, const uint8_t *data, int n)
 {
     uint32_t take;
 
-    if (n < 0)
-        n = 0;
-    if (!emb_is_stream(lk)) {
-        lk->discarded += n;
-        return lk->n_reports;
-    }
     if (!emb_has_buffers(lk))
         return -1;
     do { /* also with no bytes: what rx holds is framed again, as on any read */
@@ -581,15 +577,19 @@ long emb_feed(emb_link *lk, const uint8_t *data, int n)
     return lk->n_reports;
 }
 
-/* Settle or drain a link (emb_discard_input's timing): a stream link frames what comes
- * (emb_stream_discard), any other drops it.  Returns the bytes dropped, or -1 with
- * errno. */
-long emb_link_discard(modbus_t *ctx, emb_link *lk, int total_ms, int quiet_ms, int limit_ms)
+static long emb_stream_settle(emb_link *lk, int fd, int total_ms, int quiet_ms, int limit_ms)
 {
-    int fd = modbus_get_socket(ctx);
-
-    if (emb_is_stream(lk))
-        return emb_has_buffers(lk) ? emb_stream_discard(lk, fd, total_ms, quiet_ms, limit_ms)
-                                   : -1;
-    return emb_discard_input(fd, total_ms, quiet_ms, limit_ms);
+    return emb_has_buffers(lk) ? emb_stream_discard(lk, fd, total_ms, quiet_ms, limit_ms) : -1;
 }
+
+const emb_backend emb_stream_backend = {
+    "stream", 1, 2, 5, emb_stream_prepare, emb_rtu_send, emb_stream_skip_echo,
+    emb_stream_recv, NULL, emb_stream_pending, emb_stream_settle, emb_stream_pump,
+    emb_stream_feed,
+};
+
+/* Wrapped: the first answer is taken (the frames behind it are reports), no echo. */
+const emb_backend emb_wrapped_backend = {
+    "wrapped", 1, 2, 0, emb_stream_prepare, emb_wrapped_send, NULL, emb_wrapped_recv, NULL,
+    emb_stream_pending, emb_stream_settle, emb_stream_pump, emb_stream_feed,
+};

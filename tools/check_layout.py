@@ -7,7 +7,10 @@ The rules of docs/architecture.md, checked on the source text (nothing is import
 * a name starting with ``_`` is imported only from a module of the same package
   (private modules such as ``_ffi`` may be imported: their names are what they export);
 * no module is longer than MAX_LINES lines;
-* tests, benchmarks and tools use only public names of the package.
+* tests, benchmarks and tools use only public names of the package;
+* our C (csrc/, not csrc/fuzz/) has no include cycle between its modules (emb_x.c and
+  emb_x.h are one module; ``#include "emb_*.h"`` is an edge), and its leaves (C_LEAVES:
+  CRC, clock and fd waits; the reply check; the link state) include nothing of ours.
 
 Exit status 1 with one line per violation, 0 when the tree is clean.
 """
@@ -15,6 +18,7 @@ Exit status 1 with one line per violation, 0 when the tree is clean.
 from __future__ import annotations
 
 import ast
+import re
 import sys
 from pathlib import Path
 
@@ -22,6 +26,8 @@ TOP = Path(__file__).resolve().parents[1]
 CLIENTS = ("tests", "bench", "tools")
 PACKAGE = "edgemodbus"
 MAX_LINES = 500
+C_LEAVES = ("emb_util", "emb_check", "emb_link")
+C_INCLUDE = re.compile(r'^\s*#\s*include\s+"(emb_\w+)\.h"', re.MULTILINE)
 
 
 def module_name(path: Path, root: Path) -> str:
@@ -130,8 +136,26 @@ def check(top: Path) -> list[str]:
     return problems
 
 
+def c_problems(top: Path) -> list[str]:
+    """Include cycles between the C modules of csrc/, and leaves that include ours."""
+    csrc = top / "csrc"
+    graph: dict[str, set[str]] = {}
+    problems: list[str] = []
+    for path in sorted([*csrc.glob("emb_*.c"), *csrc.glob("emb_*.h")]):
+        module = path.stem
+        included = set(C_INCLUDE.findall(path.read_text())) - {module}
+        graph.setdefault(module, set()).update(included)
+        if module in C_LEAVES and included:
+            problems.append(f"{path.relative_to(top)}: a leaf of our C includes "
+                            f"{', '.join(sorted(i + '.h' for i in included))}")
+    cycle = find_cycle(graph)
+    if cycle:
+        problems.append("C include cycle: " + " -> ".join(cycle))
+    return problems
+
+
 def main() -> int:
-    problems = check(TOP)
+    problems = check(TOP) + c_problems(TOP)
     for problem in problems:
         print(problem)
     return 1 if problems else 0

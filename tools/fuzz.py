@@ -3,10 +3,11 @@
 Four libFuzzer harnesses in csrc/fuzz/, each built with Debian's clang and
 -fsanitize=fuzzer,address,undefined (no UB recovery) into build/fuzz/:
   codec   fuzz_codec.c + csrc/emb_codec.c: plans, register blocks, decode and encode;
-  frames  fuzz_frames.c (includes csrc/emb_io.c), linked with libmodbus: scripted replies
-          to reads and writes through the real transaction code and reply reader;
-  stream  fuzz_stream.c (includes csrc/emb_io.c and csrc/emb_stream.c): DTU streams,
-          heartbeats and wrapped report frames, fed, answered or pumped;
+  frames  fuzz_frames.c (includes csrc/emb_io.c, the link kinds and the reply check,
+          csrc/fuzz/fuzz_io_hooks.h), linked with libmodbus: scripted replies to reads and
+          writes through the real transaction code, reply reader and reply check;
+  stream  fuzz_stream.c (the same files): DTU streams, heartbeats and wrapped report
+          frames, fed, answered or pumped;
   serve   fuzz_serve.c (includes csrc/emb_serve.c), linked with libmodbus: a master's
           byte stream into the Modbus TCP server's connection: MBAP framing, the request
           checks, libmodbus's replies, the answers Python posts.
@@ -19,7 +20,7 @@ Four libFuzzer harnesses in csrc/fuzz/, each built with Debian's clang and
    sanitizer report, leak, timeout or contract violation fails the run and leaves the
    input in build/fuzz/artifacts/.
 3. Replays each corpus through a coverage build and reports the line and branch coverage
-   of the C file under test (llvm-cov, from Debian's clang).
+   of the C files under test (llvm-cov, from Debian's clang).
 4. Runs the hypothesis fuzz tests of the write-reply check and the simulator's framing
    (tests/unit/ffi/test_fuzz_reply.py) and of the C wrapped framing against the Python
    parser (tests/unit/ffi/test_stream_framing.py) with --examples examples each.
@@ -66,19 +67,20 @@ from fuzz_seeds import write_seeds  # noqa: E402
 class Harness:
     name: str
     sources: tuple[Path, ...]  # compiled together
-    covered: Path  # the file whose coverage is reported
+    covered: tuple[Path, ...]  # the files whose coverage is reported
     share: float  # of --seconds
     libmodbus: bool = False
 
 
 HARNESSES = (
     Harness("codec", (CSRC / "fuzz" / "fuzz_codec.c", CSRC / "emb_codec.c"),
-            CSRC / "emb_codec.c", 0.25),
-    Harness("frames", (CSRC / "fuzz" / "fuzz_frames.c",), CSRC / "emb_io.c", 0.3,
+            (CSRC / "emb_codec.c",), 0.25),
+    Harness("frames", (CSRC / "fuzz" / "fuzz_frames.c",),
+            (CSRC / "emb_io.c", CSRC / "emb_rtu.c", CSRC / "emb_check.c"), 0.3,
             libmodbus=True),
-    Harness("stream", (CSRC / "fuzz" / "fuzz_stream.c",), CSRC / "emb_stream.c", 0.25,
+    Harness("stream", (CSRC / "fuzz" / "fuzz_stream.c",), (CSRC / "emb_stream.c",), 0.25,
             libmodbus=True),
-    Harness("serve", (CSRC / "fuzz" / "fuzz_serve.c",), CSRC / "emb_serve.c", 0.2,
+    Harness("serve", (CSRC / "fuzz" / "fuzz_serve.c",), (CSRC / "emb_serve.c",), 0.2,
             libmodbus=True),
 )
 
@@ -201,7 +203,7 @@ def coverage(cc: str, h: Harness, corpus: Path, seeds: Path) -> str:
                    capture_output=True, check=False, timeout=600)
     subprocess.run([profdata, "merge", "-sparse", str(raw), "-o", str(merged)], check=True)
     report = subprocess.run(
-        [llvm_cov, "report", str(binary), f"-instr-profile={merged}", str(h.covered)],
+        [llvm_cov, "report", str(binary), f"-instr-profile={merged}", *map(str, h.covered)],
         capture_output=True, text=True, check=True,
     ).stdout
     for line in report.splitlines():
@@ -209,7 +211,8 @@ def coverage(cc: str, h: Harness, corpus: Path, seeds: Path) -> str:
             # Regions Missed Cover Functions Missed Executed Lines Missed Cover Branches ...
             f = line.split()
             covered = int(f[7]) - int(f[8])
-            return (f"coverage of {h.covered.relative_to(ROOT)}: lines {f[9]} "
+            names = ", ".join(str(p.relative_to(ROOT)) for p in h.covered)
+            return (f"coverage of {names}: lines {f[9]} "
                     f"({covered}/{f[7]}), branches {f[12]}, functions {f[6]}")
     return "coverage: no report"
 

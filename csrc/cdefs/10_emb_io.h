@@ -1,4 +1,5 @@
-/* csrc/emb_io.h, for cffi.  All return -1 with errno set on failure. */
+/* csrc/emb_io.h (with csrc/emb_link.h, csrc/emb_stream.h, csrc/emb_util.h), for cffi.
+ * All return -1 with errno set on failure. */
 typedef struct {
     ...;
 } emb_stream_buf;
@@ -39,6 +40,8 @@ typedef struct {
 #define EMB_ETID ...
 #define EMB_EPROTOID ...
 #define EMB_EMBAPLEN ...
+#define EMB_EWECHO ...
+#define EMB_ELENGTH ...
 
 int emb_read(modbus_t *ctx, emb_link *lk, int slave, int function, int addr, int nb,
              void *dest, uint8_t *rsp);
@@ -50,3 +53,10 @@ long emb_link_discard(modbus_t *ctx, emb_link *lk, int total_ms, int quiet_ms, i
 long emb_pump(modbus_t *ctx, emb_link *lk);
 long emb_feed(emb_link *lk, const uint8_t *data, int n);
 int emb_report_take(emb_link *lk, uint8_t *out);
+int64_t emb_now_ns(void);
+
+/* csrc/emb_check.h: the one reply check */
+int emb_check_reply(const uint8_t *req, int req_len, const uint8_t *rsp, int rsp_len,
+                    int *exc);
+int emb_check_adu(int mbap, long tid, int slave, const uint8_t *pdu, int pdu_len,
+                  const uint8_t *adu, int adu_len, int *exc);

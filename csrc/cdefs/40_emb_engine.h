@@ -82,7 +82,6 @@ typedef struct emb_engine {
     emb_line_counters *lc;
 } emb_engine;
 
-int64_t emb_now_ns(void);
 int emb_engine_run(emb_engine *e, int64_t until_ns);
 uint32_t emb_dev_begin_pass(emb_device *d, int64_t now_ns);
 int emb_dev_end_pass(emb_device *d, int64_t now_ns, const int64_t *bounds_ns,

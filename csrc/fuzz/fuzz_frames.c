@@ -1,13 +1,14 @@
 /* libFuzzer harness for our reply handling in csrc/emb_io.c (emb_read, emb_transact,
  * emb_send: stale-input drop, echo skip, reply checks, "last answer wins", data
- * extraction), built by tools/fuzz.py with clang -fsanitize=fuzzer,address,undefined and
+ * extraction) over the plain RTU and Modbus TCP link kinds of csrc/emb_rtu.c and the one
+ * reply check of csrc/emb_check.c, built by tools/fuzz.py with clang -fsanitize=fuzzer,address,undefined and
  * linked with Debian's libmodbus, which sends the RTU requests as in production.
  *
  * Each input scripts what a slave (or a DTU, or noise) sends back: the bytes are written
  * into the other end of a socketpair the moment the request has been sent, so the real
- * code path runs: our reader (emb_recv_frame) frames them, our checks decide.  emb_io.c is
- * included here so that the send hooks below see each request (and so that its static
- * checks are in reach); nothing else of it changes.  The reply buffer is malloc'ed at the
+ * code path runs: our reader (the backend's recv) frames them, our checks decide.  The C
+ * files are included here (fuzz_io_hooks.h) so that the send hooks below see each
+ * request; nothing else of them changes.  The reply buffer is malloc'ed at the
  * 260 bytes the API requires and the destination at exactly nb elements, so any access
  * past them is an ASan report.  On success the harness checks that the reply really
  * answers the request (slave or unit id, MBAP transaction id, protocol id and length,
@@ -141,10 +142,29 @@ static void check_read(const emb_link *lk, int slave, int function, int nb,
     }
 }
 
+/* A normal reply PDU (n bytes) taken for the request PDU: what Modbus Application
+ * Protocol v1.1b3 ch. 6 says it must hold, written here apart from csrc/emb_check.c. */
+static void check_answer(const uint8_t *pdu, int pdu_len, const uint8_t *reply, int n)
+{
+    int fc = pdu[0];
+    int qty = pdu_len >= 5 ? pdu[3] << 8 | pdu[4] : 0;
+
+    if (pdu_len < 5)
+        return;
+    if (fc == 1 || fc == 2)
+        CHECK(n == 2 + (qty + 7) / 8 && reply[1] == (qty + 7) / 8);
+    else if (fc == 3 || fc == 4 || fc == 0x17)
+        CHECK(n == 2 + 2 * qty && reply[1] == 2 * qty);
+    else if (fc == 5 || fc == 6 || fc == 0x0F || fc == 0x10)
+        CHECK(n == 5 && memcmp(reply, pdu, 5) == 0);
+    else if (fc == 0x16 && pdu_len >= 7)
+        CHECK(n == 7 && memcmp(reply, pdu, 7) == 0);
+}
+
 /* A transaction's outcome: a normal reply to the request's function, or an exception
  * response to it (errno EMB_EEXCEPTION + code), each with the right header. */
-static void check_transact(const emb_link *lk, int slave, const uint8_t *pdu, int rc,
-                           int err, const uint8_t *rsp)
+static void check_transact(const emb_link *lk, int slave, const uint8_t *pdu, int pdu_len,
+                           int rc, int err, const uint8_t *rsp)
 {
     int h = lk->mbap ? EMB_MBAP : 1;
     int exception = rc == -1 && err >= EMB_EEXCEPTION && err < EMB_EEXCEPTION + 256;
@@ -158,10 +178,12 @@ static void check_transact(const emb_link *lk, int slave, const uint8_t *pdu, in
         CHECK(rsp[2] == 0 && rsp[3] == 0 && (rsp[4] << 8 | rsp[5]) == len - 6);
     }
     CHECK(rsp[h - 1] == slave);
-    if (exception)
+    if (exception) {
         CHECK(rsp[h] == (pdu[0] | 0x80) && rsp[h + 1] == err - EMB_EEXCEPTION);
-    else
-        CHECK(rsp[h] == pdu[0]);
+        return;
+    }
+    CHECK(rsp[h] == pdu[0]);
+    check_answer(pdu, pdu_len, rsp + h, len - h - (lk->mbap ? 0 : 2));
 }
 
 int LLVMFuzzerTestOneInput(const uint8_t *input, size_t size)
@@ -233,7 +255,7 @@ int LLVMFuzzerTestOneInput(const uint8_t *input, size_t size)
         rc = emb_transact(ctx, &lk, slave, pdu, pdu_len, rsp);
         err = errno;
         CHECK(rc == -1 ? err != 0 : rc > 0);
-        check_transact(&lk, slave, pdu, rc, err, rsp);
+        check_transact(&lk, slave, pdu, pdu_len, rc, err, rsp);
     } else {
         rc = emb_send(ctx, &lk, slave, pdu, pdu_len);
         CHECK(rc == 0 || rc == -1);

@@ -5,14 +5,14 @@
  * Each input scripts a DTU (or an edge MCU) on a stream link: bytes that came before the
  * link (emb_feed), bytes the peer sends once a request went out (the other end of a
  * socketpair, written the moment the request is sent, as in fuzz_frames.c), or bytes
- * that arrive while the link is idle (emb_pump, then a short emb_link_discard).  emb_io.c
- * and emb_stream.c are included so that the send hooks below see each request.  The
+ * that arrive while the link is idle (emb_pump, then a short emb_link_discard).  The C
+ * files are included (fuzz_io_hooks.h) so that the send hooks below see each request.  The
  * reply and report buffers are malloc'ed at exactly the sizes the API requires, so any
  * access past them is an ASan report.  Contracts checked: every report taken is a whole
  * wrapped frame (header, a length its function code allows, 0D tail, CRC); a successful
  * read or write answers its request (slave, function, byte count, register address for
- * wrapped frames) and the values are the reply's; the ring and the receive buffer never
- * hold more than they can.
+ * wrapped frames, a write's echo) and the values are the reply's; the ring and the
+ * receive buffer never hold more than they can.
  *
  * Input layout (missing bytes read as 0):
  *   ctl   bit0 wrapped frames, else plain RTU with a heartbeat; bit1 echo option (plain
@@ -249,8 +249,13 @@ int LLVMFuzzerTestOneInput(const uint8_t *input, size_t size)
         rc = emb_transact(ctx, lk, slave, pdu, pdu_len, rsp);
         err = errno;
         CHECK(rc == -1 ? err != 0 : rc > 0);
-        if (rc > 0)
+        if (rc > 0) { /* a write's reply repeats the request (6.5, 6.6, 6.11, 6.12, 6.16) */
+            int echo = pdu[0] == 0x16 ? 7 : 5;
             CHECK(rsp[0] == slave && rsp[1] == pdu[0] && rc == lk->rsp_len);
+            if (pdu_len >= echo && (pdu[0] == 5 || pdu[0] == 6 || pdu[0] == 0x0F ||
+                                    pdu[0] == 0x10 || pdu[0] == 0x16))
+                CHECK(rc == 1 + echo + 2 && memcmp(rsp + 1, pdu, (size_t)echo) == 0);
+        }
         if (rc == -1 && err >= EMB_EEXCEPTION && err < EMB_EEXCEPTION + 256)
             CHECK(rsp[0] == slave && rsp[1] == (pdu[0] | 0x80) &&
                   rsp[2] == err - EMB_EEXCEPTION);

@@ -59,3 +59,23 @@ def test_cycles_private_names_in_tests_and_long_modules_are_found(tmp_path: Path
 
 def test_the_repository_follows_its_layout_rules() -> None:
     assert _tool().check(TOOL.parents[1]) == []
+
+
+def test_c_include_cycles_and_leaves_that_include_ours_are_found(tmp_path: Path) -> None:
+    top = _tree(tmp_path, {
+        "csrc/emb_io.c": '#include "emb_io.h"\n#include "emb_stream.h"\n',
+        "csrc/emb_io.h": '#include <modbus.h>\n#include "emb_link.h"\n',
+        "csrc/emb_stream.c": '#include "emb_stream.h"\n# include "emb_io.h" /* back */\n',
+        "csrc/emb_stream.h": "",
+        "csrc/emb_util.c": '#include "emb_util.h"\n#include "emb_check.h"\n',
+        "csrc/emb_link.h": "#include <stdint.h>\n",
+        "csrc/fuzz/fuzz_x.c": '#include "../emb_io.c"\n',
+    })
+    assert _tool().c_problems(top) == [
+        "csrc/emb_util.c: a leaf of our C includes emb_check.h",
+        "C include cycle: emb_io -> emb_stream -> emb_io",
+    ]
+
+
+def test_our_c_has_no_include_cycle() -> None:
+    assert _tool().c_problems(TOOL.parents[1]) == []

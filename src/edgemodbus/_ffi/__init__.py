@@ -8,6 +8,7 @@ exception hierarchy of :mod:`edgemodbus.errors`.
 * errors.py: errno -> exception;
 * block.py, context.py: the read buffers, a libmodbus context and the csrc/emb_io.c and
   csrc/emb_stream.c calls;
+* check.py: the one reply check (csrc/emb_check.c) for bytes held in Python;
 * codec.py: the C value codec (csrc/emb_codec.c);
 * sourcehash.py: the fingerprint of the C sources (build_ffi.py loads it by path).
 
@@ -16,6 +17,7 @@ Objects here hold cdata; the other packages hold these objects, never raw cdata.
 
 from __future__ import annotations
 
+from . import check
 from .block import Block
 from .codec import (
     CODEC_MODE_ALL,
@@ -56,6 +58,7 @@ __all__ = [
     "CodecPlan",
     "Context",
     "StreamCounters",
+    "check",
     "check_fingerprint",
     "codec_constants",
     "codec_encode",

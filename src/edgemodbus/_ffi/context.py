@@ -8,7 +8,7 @@ import os
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
-from ..errors import ModbusConnectionError, ModbusError
+from ..errors import ModbusConnectionError, ModbusError, ProtocolError
 from .block import Block
 from .errors import error_from_errno
 from .native import (
@@ -294,16 +294,31 @@ class Context:
     def transact(self, slave: int, pdu: bytes) -> bytes:
         """Send ``pdu`` (function code first) to ``slave`` and return the reply ADU.
 
-        The C side checks the header (slave id, or MBAP transaction id, protocol id,
-        length and unit id) and the function code, and raises exception responses; the
-        caller checks the rest (a write's echo).
+        The C side checks the reply as every reply (csrc/emb_check.c: slave id, or MBAP
+        transaction id, protocol id, length and unit id; the function code, a read's byte
+        count, a write's echo, the length) and raises exception responses.
         """
         n = len(pdu)
         ffi.memmove(self._req, pdu, n)
         rc = lib.emb_transact(self._ptr, self._link, slave, self._req, n, self._rsp)
         if rc == -1:
-            raise self._error(ffi.errno, f"slave {slave} FC{pdu[0]:02d}", pdu[0], -1)
+            err = ffi.errno
+            if err == lib.EMB_EWECHO:  # worded as before the check moved into C
+                raise self._echo_error(slave, pdu)
+            qty = int.from_bytes(pdu[3:5], "big")  # a read's quantity (6.1-6.4, 6.17)
+            count = (qty + 7) // 8 if pdu[0] in (1, 2) else 2 * qty
+            raise self._error(err, f"slave {slave} FC{pdu[0]:02d}", pdu[0], count)
         return bytes(ffi.buffer(self._rsp, rc))
+
+    def _echo_error(self, slave: int, pdu: bytes) -> ProtocolError:
+        """The error of a write whose reply does not echo the request (6.5, 6.6, 6.11,
+        6.12, 6.16): what came, and what the request holds."""
+        adu = self.last_reply()
+        reply = adu[self._header:] if self._header > 1 else adu[1:-2]
+        echo = pdu[1:7] if pdu[0] == 0x16 else pdu[1:5]
+        return ProtocolError(
+            f"slave {slave} FC{pdu[0]:02d} @{int.from_bytes(pdu[1:3], 'big')}: echo "
+            f"{reply[1:].hex(' ')} does not match the request {echo.hex(' ')}")
 
     def send(self, slave: int, pdu: bytes) -> None:
         """Send without waiting for a reply (broadcast)."""
@@ -333,6 +348,8 @@ class Context:
             detail = f"{rsp[2] << 8 | rsp[3]:#06x}"
         elif err == lib.EMB_EMBAPLEN:
             detail = f"{rsp[4] << 8 | rsp[5]}, frame has {len(rsp) - 6}"
+        elif err == lib.EMB_ELENGTH:
+            detail = f"{len(rsp) - h - (0 if h > 1 else 2)} bytes of PDU"
         if detail:
             return type(exc)(f"{exc} ({detail})")
         return exc

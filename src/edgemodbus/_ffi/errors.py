@@ -42,7 +42,8 @@ _CONNECTION_ERRNOS = {
 }
 
 
-# errnos of our own reply checks (csrc/emb_io.c): what each says about the reply
+# errnos of our own reply checks (csrc/emb_check.c, csrc/emb_io.c): what each says about
+# the reply
 _EMB_EXCEPTION: int = lib.EMB_EEXCEPTION
 _EMB_PARTIAL: int = lib.EMB_EPARTIAL
 _EMB_PROTOCOL_ERRNOS = {
@@ -57,6 +58,8 @@ _EMB_PROTOCOL_ERRNOS = {
     lib.EMB_ETID: "only replies with another MBAP transaction id came (skipped as stale)",
     lib.EMB_EPROTOID: "MBAP protocol id is not 0",
     lib.EMB_EMBAPLEN: "MBAP length does not match the frame",
+    lib.EMB_EWECHO: "the reply does not echo the request",
+    lib.EMB_ELENGTH: "reply length does not match the request",
 }
 
 

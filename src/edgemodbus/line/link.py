@@ -4,9 +4,10 @@ Used only by the worker thread that opened it, a link keeps the inter-frame sile
 settles the line after a timeout (RTU has no transaction id) and drains it after other
 errors, and counts all in :class:`~edgemodbus.stats.LineStats`.  :class:`Link`, the
 interface, holds what does not depend on the I/O (timing, pacing, counters, frame trace,
-writes and the check of their echoes); :class:`ContextLink` does the I/O through the
-libmodbus context and our C (csrc/emb_io.c; csrc/emb_stream.c for DTU streams: heartbeats
-skipped, wrapped reports queued for :meth:`Link.flush_reports` and :meth:`Link.pump`).
+writes); :class:`ContextLink` does the I/O through the libmodbus context and our C
+(csrc/emb_io.c, which checks every reply with csrc/emb_check.c; csrc/emb_stream.c for DTU
+streams: heartbeats skipped, wrapped reports queued for :meth:`Link.flush_reports` and
+:meth:`Link.pump`).
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ import time
 from collections.abc import Callable, Sequence
 
 from .. import _ffi
-from .._ffi import Block, CodecPlan, Context, StreamCounters
+from .._ffi import Block, CodecPlan, Context, StreamCounters, check
 from .._ffi.engine import Engine, EngineDevice, LineCounters, Waker
 from ..codec import BlockDecoder, Change
 from ..datatypes import Area
@@ -104,12 +105,12 @@ class Link:
     def _write(self, slave: int, pdu: bytes) -> None:
         raise NotImplementedError
 
-    def transact(self, slave: int, pdu: bytes, check: Callable[[int, bytes, bytes], None],
+    def transact(self, slave: int, pdu: bytes,
                  timeout: float | None = None, early: Callable[[ModbusError], None] | None = None
                  ) -> bytes:
-        """A request to ``slave`` (not 0) and its reply ADU, which ``check(slave, pdu,
-        adu)`` vets; ``timeout``: the response timeout of this request only; ``early``:
-        called with a failure before the line is settled or drained."""
+        """A request to ``slave`` (not 0) and its reply ADU, checked in C as every reply
+        (csrc/emb_check.c); ``timeout``: the response timeout of this request only;
+        ``early``: called with a failure before the line is settled or drained."""
         raise NotImplementedError
 
     def reply_pdu(self, adu: bytes) -> bytes:
@@ -193,39 +194,33 @@ class Link:
         log.debug("%s %s %s", self.endpoint.describe(), direction, text)
 
     def _check_write_reply(self, slave: int, pdu: bytes, adu: bytes) -> None:
-        """Check a write's reply: unit, function, and the echo that libmodbus 3.1.6 does
-        not check (address/value for FC05/06, address/quantity for FC15/16, the whole
-        request for FC22).  The C side has checked the header and function code already;
-        this check stands on its own (it is what the reply fuzzer exercises)."""
+        """Check a write's reply ADU held in Python (the reply fuzzer's entry,
+        tests/unit/ffi/test_fuzz_reply.py) with the C check every transaction makes
+        (csrc/emb_check.c: unit, MBAP protocol id and length, function, exception, the
+        echo that libmodbus 3.1.6 does not check); raises what it found."""
         what = f"slave {slave} FC{pdu[0]:02d} @{struct.unpack_from('>H', pdu, 1)[0]}"
-        if self._mbap:
-            if len(adu) < _MBAP_LEN + 2:
-                raise ProtocolError(f"{what}: reply of {len(adu)} bytes is too short")
-            _tid, proto, length, unit = struct.unpack_from(">HHHB", adu)
-            if proto != 0:
-                raise ProtocolError(f"{what}: MBAP protocol id {proto}, expected 0")
-            if length != len(adu) - 6:
-                raise ProtocolError(f"{what}: MBAP length {length}, frame has {len(adu) - 6}")
-            body = adu[_MBAP_LEN - 1:]
-        else:
-            body = adu[:-2]  # strip the CRC, checked by libmodbus
-            unit = body[0] if body else -1
-        if unit != slave:
-            raise ProtocolError(f"{what}: reply from unit {unit}")
-        reply = body[1:]
-        if not reply:
-            raise ProtocolError(f"{what}: empty reply")
-        function = pdu[0]
-        if reply[0] == function | 0x80 and len(reply) == 2:
-            raise exception_for_code(reply[1], what)
-        if reply[0] != function:
-            raise ProtocolError(f"{what}: reply has function code {reply[0]:#04x}")
-        echo_len = 6 if function == 22 else 4
-        if reply[1:] != pdu[1:1 + echo_len]:
-            raise ProtocolError(
-                f"{what}: echo {reply[1:].hex(' ')} does not match the request "
-                f"{pdu[1:1 + echo_len].hex(' ')}"
-            )
+        verdict = check.check_reply_adu(self._mbap, slave, pdu, adu)
+        if verdict.exception >= 0:
+            raise exception_for_code(verdict.exception, what)
+        if verdict.ok:
+            return
+        body = adu[_MBAP_LEN - 1:] if self._mbap else adu[:-2]  # unit id and reply PDU
+        if self._mbap and len(adu) < _MBAP_LEN + 2:
+            why = f"reply of {len(adu)} bytes is too short"
+        elif verdict.error == check.E_PROTOCOL_ID:
+            why = f"MBAP protocol id {struct.unpack_from('>H', adu, 2)[0]}, expected 0"
+        elif verdict.error == check.E_MBAP_LENGTH:
+            why = f"MBAP length {struct.unpack_from('>H', adu, 4)[0]}, frame has {len(adu) - 6}"
+        elif not body or body[0] != slave:
+            why = f"reply from unit {body[0] if body else -1}"
+        elif len(body) < 2:
+            why = "empty reply"
+        elif body[1] != pdu[0]:
+            why = f"reply has function code {body[1]:#04x}"
+        else:  # the echo (or its length)
+            echo = pdu[1:7] if pdu[0] == 22 else pdu[1:5]
+            why = f"echo {body[2:].hex(' ')} does not match the request {echo.hex(' ')}"
+        raise ProtocolError(f"{what}: {why}")
 
 
 class ContextLink(Link):
@@ -448,7 +443,7 @@ class ContextLink(Link):
     # -- writes ----------------------------------------------------------------------
     def _write(self, slave: int, pdu: bytes) -> None:
         if slave:
-            self.transact(slave, pdu, self._check_write_reply)
+            self.transact(slave, pdu)
             return
         self._begin(slave, pdu)  # broadcast: no reply (Modbus over Serial Line v1.02, 2.1)
         try:
@@ -459,7 +454,7 @@ class ContextLink(Link):
             self._collect()
             self._done(self.timing.turnaround_delay)
 
-    def transact(self, slave: int, pdu: bytes, check: Callable[[int, bytes, bytes], None],
+    def transact(self, slave: int, pdu: bytes,
                  timeout: float | None = None, early: Callable[[ModbusError], None] | None = None
                  ) -> bytes:
         self._begin(slave, pdu)
@@ -469,7 +464,6 @@ class ContextLink(Link):
         start = time.monotonic()
         try:
             adu = self._ctx.transact(slave, pdu)
-            check(slave, pdu, adu)
         except ModbusError as exc:
             if early is not None:
                 early(exc)

@@ -6,7 +6,7 @@ A PDU here is the function code and its data, without slave id, CRC or MBAP head
 (Modbus Application Protocol v1.1b3, 4.1).  Only functions whose reply length the line
 can frame (csrc/emb_io.c, emb_reply_length) are forwarded: 01-06, 0F, 10, 11, 16 and
 17.
-Pure bytes: no I/O, no state.
+Pure bytes: no I/O, no state (the reply check is csrc/emb_check.c's, through _ffi).
 
 The public contract a Modbus TCP server builds on:
 
@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import struct
 
+from .._ffi import check
 from ..errors import (
     LineBusyError,
     ModbusConnectionError,
@@ -151,32 +152,30 @@ def expected_reply_length(request: bytes) -> int:
 def check_reply(request: bytes, reply: bytes) -> None:
     """Raise :class:`ProtocolError` unless ``reply`` is the normal reply to ``request``
     or an exception reply (``function | 0x80``, one code, chapter 7): the function, the
-    byte count of a read, the echo of a write (6.5, 6.6, 6.11, 6.12, 6.16)."""
+    byte count of a read, the echo of a write (6.5, 6.6, 6.11, 6.12, 6.16).  The check is
+    the one every transaction makes in C (csrc/emb_check.c); this words what it found."""
     fc = request[0]
     what = f"forwarded FC{fc:#04x}"
+    verdict = check.check_reply_pdu(request, reply)
+    if verdict.ok:
+        return
     if not reply:
-        raise ProtocolError(f"{what}: empty reply")
-    if reply[0] == fc | 0x80:
-        if len(reply) != 2:
-            raise ProtocolError(f"{what}: exception reply of {len(reply)} bytes, not 2")
-        return
-    if reply[0] != fc:
-        raise ProtocolError(f"{what}: reply has function code {reply[0]:#04x}")
-    if fc == REPORT_SERVER_ID:  # 6.13: byte count, server id, run indicator, more data
-        if len(reply) < 3 or reply[1] != len(reply) - 2:
-            raise ProtocolError(f"{what}: reply of {len(reply)} bytes with byte count "
-                                f"{reply[1] if len(reply) > 1 else 'none'}")
-        return
-    want = expected_reply_length(request)
-    if len(reply) != want:
-        raise ProtocolError(f"{what}: reply of {len(reply)} bytes, expected {want}")
-    if fc in (0x01, 0x02, 0x03, 0x04, 0x17):
-        if reply[1] != want - 2:
-            raise ProtocolError(f"{what}: byte count {reply[1]}, expected {want - 2}")
-        return
-    if reply[1:] != request[1:want]:
-        raise ProtocolError(f"{what}: echo {reply[1:].hex(' ')} does not match the "
-                            f"request {request[1:want].hex(' ')}")
+        why = "empty reply"
+    elif reply[0] == fc | 0x80:
+        why = f"exception reply of {len(reply)} bytes, not 2"
+    elif reply[0] != fc:
+        why = f"reply has function code {reply[0]:#04x}"
+    elif fc == REPORT_SERVER_ID:  # 6.13: byte count, server id, run indicator, more data
+        why = (f"reply of {len(reply)} bytes with byte count "
+               f"{reply[1] if len(reply) > 1 else 'none'}")
+    elif len(reply) != expected_reply_length(request):
+        why = f"reply of {len(reply)} bytes, expected {expected_reply_length(request)}"
+    elif verdict.error == check.E_COUNT:
+        why = f"byte count {reply[1]}, expected {expected_reply_length(request) - 2}"
+    else:
+        echo = request[1:expected_reply_length(request)]
+        why = f"echo {reply[1:].hex(' ')} does not match the request {echo.hex(' ')}"
+    raise ProtocolError(f"{what}: {why}")
 
 
 def read_span(request: bytes) -> tuple[int, int, int] | None:

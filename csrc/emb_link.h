@@ -1,0 +1,58 @@
+/* edgemodbus: the state of one open link (emb_link), which Python allocates zeroed with
+ * its context and every link kind (csrc/emb_rtu.c, csrc/emb_stream.c) reads and writes;
+ * includes nothing of ours. */
+#ifndef EMB_LINK_H
+#define EMB_LINK_H
+
+#include <stdint.h>
+
+#define EMB_HB_MAX 64       /* longest heartbeat pattern */
+#define EMB_RX_SIZE 512     /* stream links: bytes received and not framed yet */
+#define EMB_RING_SIZE 4096  /* stream links: reports waiting (a 2-byte length each) */
+#define EMB_REPORT_MAX 261  /* a wrapped frame: FF AA, address, RTU frame (<= 256), 0D */
+#define EMB_DROP_SHOW 32    /* bytes of the last dropped wrapped frame kept for the log */
+
+/* The buffers of a DTU stream link (emb_link.sb): bytes received and not framed yet, and
+ * the reports waiting.  The caller allocates them, for stream links only. */
+typedef struct {
+    uint8_t rx[EMB_RX_SIZE];
+    uint8_t ring[EMB_RING_SIZE];
+} emb_stream_buf;
+
+/* State of one line kept between transactions; the caller allocates it zeroed with the
+ * context and sets mbap, echo, char_ns, and for a DTU stream wrapped, the heartbeat and
+ * sb, once. */
+typedef struct {
+    int mbap;       /* Modbus TCP: MBAP header (we send it ourselves, with our own tid) */
+    int echo;       /* RTU: the line echoes every request; read it back before the reply */
+    unsigned tid;   /* Modbus TCP: transaction id of the last request sent */
+    long discarded; /* bytes thrown away (stale input, echoes, superseded frames); the
+                     * caller reads and resets it */
+    int rsp_len;    /* length of the reply ADU left in rsp by the last call, else 0 */
+    uint32_t char_ns; /* serial lines: nanoseconds per character on the wire (start, data,
+                       * parity and stop bits at the baud rate); 0 on sockets.  The
+                       * reader then sleeps while the rest of a frame is on its way
+                       * instead of waking for every byte. */
+    /* DTU streams (RTU over a socket; csrc/emb_stream.c frames them byte for byte) */
+    int wrapped;            /* edge-MCU frames: FF AA | register address | RTU frame | 0D;
+                             * frames other than the reply are unsolicited reports */
+    uint32_t hb_len;        /* the heartbeat a DTU sends on an idle link (0: none), */
+    uint8_t hb[EMB_HB_MAX]; /* skipped wherever a frame could begin, and counted */
+    long heartbeats;        /* heartbeats skipped; the caller reads and resets */
+    long dropped;           /* wrapped frames dropped (bad header, length, tail, CRC, noise) */
+    long reports_lost;      /* reports the full ring could not take */
+    uint8_t last_drop[EMB_DROP_SHOW]; /* the first bytes of the last frame dropped */
+    int last_drop_len;
+    uint32_t n_reports;     /* reports waiting in the ring (emb_report_take) */
+    uint32_t n_before;      /* the first n_before of them came before the last reply: the
+                             * caller applies them first, the others after the reply */
+    emb_stream_buf *sb;     /* a stream link's buffers (required with wrapped or hb_len) */
+    /* private to csrc/emb_stream.c */
+    int32_t absorb;         /* bytes of the last dropped frame still to skip, -1: up to the
+                             * next header */
+    uint32_t rx_len;
+    uint32_t ring_head;
+    uint32_t ring_used;
+} emb_link;
+
+#endif

@@ -1,0 +1,19 @@
+/* edgemodbus: the leaf of our C (includes nothing of ours): CRC-16, the monotonic clock,
+ * and the waits and reads on a file descriptor that every link kind shares.  Internal:
+ * only emb_now_ns is in the cdefs. */
+#ifndef EMB_UTIL_H
+#define EMB_UTIL_H
+
+#include <stdint.h>
+
+uint16_t emb_crc16(const uint8_t *p, int n);
+int64_t emb_now_ns(void);
+void emb_sleep_until(int64_t t_ns);
+int emb_wait_readable(int fd, int ms);
+int emb_wait_until(int fd, int64_t deadline_ns);
+int emb_eof_errno(int fd);
+int emb_pending(int fd);
+int emb_write_all(int fd, const uint8_t *p, int n);
+long emb_discard_input(int fd, int total_ms, int quiet_ms, int limit_ms);
+
+#endif
