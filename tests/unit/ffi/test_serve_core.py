@@ -28,6 +28,7 @@ from edgemodbus._ffi.serve import (
     Request,
     ServerCore,
 )
+from tests.waiting import wait_for
 
 NEVER = (1 << 63) - 1
 
@@ -148,8 +149,8 @@ def test_forwarded_requests_and_their_answers(loop: Loop) -> None:
         assert recv_adu(sock) == mbap(7, 9, b"\x86\x0b")
         sock.sendall(mbap(8, 9, b"\x03\x00\x00\x00\x01"))
         request = loop.requests.get(timeout=3)
-    # the master left before its answer: the answer is dropped
-    time.sleep(0.1)
+    # the master left before its answer: the answer is dropped (once the loop saw it go)
+    wait_for(lambda: loop.core.open_connections() == 0, timeout=10, what="the close seen")
     assert not loop.core.post(request.conn, request.gen, POST_PDU, b"\x03\x02\x00\x00")
 
 
