@@ -197,6 +197,8 @@ def test_a_deeply_nested_device_file_at_start_is_reported_and_the_others_run(
          "--seconds", "1"], capture_output=True, text=True, timeout=60, cwd=REPO)
     assert result.returncode == 0, result.stderr
     assert "Traceback" not in result.stderr
+    # one ERROR record: the file "invalid, not started", then its one problem (the depth)
     bad = [ln for ln in result.stderr.splitlines() if "bad.json" in ln]
-    assert len(bad) == 1 and "not started" in bad[0], result.stderr
+    assert len(bad) == 2 and "not started" in bad[0], result.stderr
+    assert "nested more than 32 levels" in bad[1], result.stderr
     assert "dev1: started from dev1.json" in result.stderr

@@ -13,6 +13,7 @@ from typing import Any
 import pytest
 
 import edgemodbus as em
+from edgemodbus.config import ConfigError
 from edgemodbus.datatypes import Area
 from edgemodbus.errors import ModbusConnectionError
 from edgemodbus.line.connect import open_link
@@ -63,12 +64,20 @@ def test_a_host_name_idna_refuses_fails_the_connect_not_the_worker(host: str) ->
 
 
 def test_a_device_on_a_bad_host_name_is_told_why_and_forwards_are_answered() -> None:
-    cfg = em.load_device_config({
+    """A device file is refused at load with the field named; a host name that reaches
+    the line anyway (set on the model after validation, as a library caller may) costs
+    the line its link, never its worker."""
+    data: dict[str, Any] = {
         "organization": {"deviceCode": "badhost"},
         "communication": {"transport": "rtu-over-tcp", "tcpHost": "plc..local",
                           "tcpPort": 502, "slaveId": 1, "reconnectInterval": 200},
         "addressList": [{"name": "a", "address": "hr:0", "deviceDataType": "UInt16"}],
-    })
+    }
+    with pytest.raises(ConfigError, match=r"communication\.tcpHost 'plc\.\.local'"):
+        em.load_device_config(data)
+    data["communication"]["tcpHost"] = "plc.local"
+    cfg = em.load_device_config(data)
+    cfg.communication.tcp_host = "plc..local"  # not validated on assignment
     drv = em.DriverModbusRtu()
     assert drv.start_device(cfg.organization, cfg.communication, cfg.address_list)
     try:

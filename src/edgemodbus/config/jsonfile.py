@@ -8,10 +8,10 @@ from __future__ import annotations
 
 import json
 import os
-import stat
 from collections.abc import Iterable, Mapping
 from typing import Any
 
+from .files import mode_kind
 from .keys import quote_key
 from .problems import NO_VALUE, ConfigError, Problem
 
@@ -32,9 +32,8 @@ def read_json_file(path: str | os.PathLike[str]) -> Any:
     OSError when it cannot be opened (missing, permission)."""
     name = os.fspath(path)
     info = os.stat(name)
-    if not stat.S_ISREG(info.st_mode):
-        kind = ("a directory" if stat.S_ISDIR(info.st_mode) else
-                "a FIFO" if stat.S_ISFIFO(info.st_mode) else "not a regular file")
+    kind = mode_kind(info.st_mode)
+    if kind is not None:
         raise _error(name, f"is {kind}: give a JSON file")
     if info.st_size > MAX_JSON_BYTES:
         raise _error(name, f"{info.st_size:,} bytes: a JSON file we read has at most "

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import os
 import ssl
-import stat
 import string
 from collections.abc import Callable, Mapping
 from pathlib import Path
@@ -16,6 +15,7 @@ from typing import Annotated, Any, ClassVar, Literal
 from pydantic import ValidationError, field_validator, model_validator
 
 from ...config import MAX_MS, Choice, ConfigError, Model, Ms, Problem, Range
+from ...config.files import path_kind
 from ...config.limits import MAX_HOST, MAX_NAME, check_host
 from ...config.secret import Secret
 from ..sparkplug.settings import SparkplugSettings
@@ -110,17 +110,11 @@ def _file_problem(path: str) -> str | None:
 def not_a_file(path: str) -> str | None:
     """Why an existing ``path`` is no regular file (a FIFO would block the load, a
     device or socket is no file to keep), or None (a regular file, or nothing there)."""
-    try:
-        mode = os.stat(path).st_mode
-    except OSError:
-        return None  # missing or unreadable: the caller's own check says so
-    if stat.S_ISREG(mode):
+    kind = path_kind(path)
+    if kind is None:
         return None
-    if stat.S_ISDIR(mode):
-        return "is a directory, not a file"
-    kind = "a FIFO" if stat.S_ISFIFO(mode) else "a socket" if stat.S_ISSOCK(mode) else \
-        "a device" if stat.S_ISCHR(mode) or stat.S_ISBLK(mode) else "not a regular file"
-    return f"is {kind}: give a regular file"
+    return "is a directory, not a file" if kind == "a directory" else \
+        f"is {kind}, not a regular file"
 
 
 def _no_password() -> bytes:
@@ -218,7 +212,7 @@ class StoreAndForwardSettings(Model):
     def problems(self, where: str = "mqtt.storeAndForward") -> list[Problem]:
         """[] when the spool file can be kept at ``path`` (its folder exists and is
         writable), else the problem named by its field."""
-        message = not_a_file(self.path) or path_problem(self.path)
+        message = path_problem(self.path)
         return [] if message is None else [Problem(f"{where}.path", self.path, message)]
 
 

@@ -16,6 +16,7 @@ from typing import Annotated, ClassVar
 from pydantic import field_validator
 
 from ...config import Model, Problem, Range
+from ...config.files import path_kind
 from ...config.limits import MAX_NAME
 from .bdseq import file_problem
 
@@ -102,12 +103,12 @@ class SparkplugSettings(Model):
             return [Problem(field, path, "must not be empty (leave it out to keep bdSeq "
                                          "in memory only)")]
         folder = Path(path).absolute().parent
-        if os.path.exists(path) and not os.path.isdir(path) and not os.path.isfile(path):
-            return [Problem(field, path, "is not a regular file (a FIFO, socket or device): "
-                                         "give a file path")]
-        if os.path.isdir(path):
+        kind = path_kind(path)
+        if kind == "a directory":
             return [Problem(field, path, "is a directory; give a file path in it, e.g. "
                                          f"{Path(path, 'bdseq')}")]
+        if kind is not None:
+            return [Problem(field, path, f"is {kind}, not a regular file: give a file path")]
         if not folder.is_dir():
             return [Problem(field, path, f"its directory {folder} does not exist")]
         if not os.access(folder, os.W_OK | os.X_OK):

@@ -14,10 +14,11 @@ from __future__ import annotations
 import contextlib
 import os
 import sqlite3
-import stat
 import time
 from pathlib import Path
 from typing import NamedTuple
+
+from ....config.files import mode_kind
 
 PAGE_SIZE = 4096
 WAL_FRAME = PAGE_SIZE + 24  # a WAL frame: the page and its 24-byte header
@@ -96,8 +97,6 @@ def file_bytes(path: str) -> int:
     return total
 
 
-_KINDS = ((stat.S_ISFIFO, "a FIFO"), (stat.S_ISCHR, "a character device"),
-          (stat.S_ISBLK, "a block device"), (stat.S_ISSOCK, "a socket"))
 
 
 def path_problem(path: str | os.PathLike[str]) -> str | None:
@@ -117,14 +116,13 @@ def path_problem(path: str | os.PathLike[str]) -> str | None:
         return (f"its directory {str(folder)!r} is not writable by this process "
                 f"(uid {os.geteuid()})")
     try:
-        mode = os.stat(target).st_mode
+        kind = mode_kind(os.stat(target).st_mode)
     except FileNotFoundError:
         return None
     except OSError as exc:
         return f"cannot be examined: {exc.strerror or exc}"
-    for test, kind in _KINDS:
-        if test(mode):
-            return f"is {kind}, not a regular file; give the path of a file (e.g. spool.db)"
+    if kind is not None:
+        return f"is {kind}, not a regular file; give the path of a file (e.g. spool.db)"
     if not os.access(target, os.R_OK | os.W_OK):
         return f"not readable and writable by this process (uid {os.geteuid()})"
     return None
