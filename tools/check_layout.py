@@ -1,7 +1,16 @@
-"""Check the package layout: no import cycles, no private names across packages, small modules.
+"""Check the package layout: the layer order, no import cycles, no private names across
+packages, small modules.
 
 The rules of docs/architecture.md, checked on the source text (nothing is imported):
 
+* a module imports only from its own layer and the layers below it, in the order of the
+  "Layers, bottom up" diagram of docs/architecture.md, read from the doc itself so that
+  the doc and the check cannot drift apart: each line of the diagram that starts in its
+  first column is one layer, top first, named by its leading ``folder/`` and
+  ``module.py`` words; every name must exist and every module of src/edgemodbus must be
+  placed (``__init__.py`` is the package's own).  Imports under ``if TYPE_CHECKING:``
+  count too (the doc allows no exception); ALLOWED_UPWARD lists the few upward imports
+  kept for now, each with its reason;
 * the graph of imports between edgemodbus modules has no cycle (imports under
   ``if TYPE_CHECKING:`` count too: a cycle for the type checker is a cycle for a reader);
 * a name starting with ``_`` is imported only from a module of the same package
@@ -28,6 +37,17 @@ PACKAGE = "edgemodbus"
 MAX_LINES = 500
 C_LEAVES = ("emb_util", "emb_check", "emb_link")
 C_INCLUDE = re.compile(r'^\s*#\s*include\s+"(emb_\w+)\.h"', re.MULTILINE)
+LAYER_DOC = Path("docs") / "architecture.md"
+LAYER_HEADING = "## Layers, bottom up"
+LAYER_NAME = re.compile(r"[A-Za-z_]\w*(/|\.py)")
+
+# Upward imports kept for now: (importing module, imported module) -> why.  An entry that
+# no longer matches an import is reported, so the list only shrinks.
+ALLOWED_UPWARD: dict[tuple[str, str], str] = {
+    ("edgemodbus.cli", "edgemodbus"):
+        "--version without an installed distribution reads the package's __version__ "
+        "(cli/__init__.py _version); the package's __init__ imports no cli/",
+}
 
 
 def module_name(path: Path, root: Path) -> str:
@@ -54,14 +74,34 @@ def package_of(module: str, modules: dict[str, Path]) -> str:
     return module if path.name == "__init__.py" else module.rpartition(".")[0]
 
 
+def _typing_only(tree: ast.Module) -> set[int]:
+    """The ids of the import nodes under ``if TYPE_CHECKING:`` (or typing.TYPE_CHECKING)."""
+    found: set[int] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.If) and ast.unparse(node.test) in (
+                "TYPE_CHECKING", "typing.TYPE_CHECKING"):
+            found.update(id(n) for stmt in node.body for n in ast.walk(stmt))
+    return found
+
+
 def imports(module: str, path: Path, modules: dict[str, Path]) -> list[tuple[str, str, int]]:
     """(imported module, imported name or "", line) for every edgemodbus import in ``path``."""
+    return [(target, name, line) for target, name, line, _ in typed_imports(module, path, modules)]
+
+
+def typed_imports(
+    module: str, path: Path, modules: dict[str, Path]
+) -> list[tuple[str, str, int, bool]]:
+    """imports(), each with whether it is under ``if TYPE_CHECKING:`` only."""
     tree = ast.parse(path.read_text(), str(path))
+    typing_only = _typing_only(tree)
     is_package = path.name == "__init__.py"
-    found: list[tuple[str, str, int]] = []
+    found: list[tuple[str, str, int, bool]] = []
     for node in ast.walk(tree):
+        typed = id(node) in typing_only
         if isinstance(node, ast.Import):
-            found += [(a.name, "", node.lineno) for a in node.names if a.name.startswith(PACKAGE)]
+            found += [(a.name, "", node.lineno, typed) for a in node.names
+                      if a.name.startswith(PACKAGE)]
         elif isinstance(node, ast.ImportFrom):
             source = resolve(module, is_package, node.level, node.module)
             if not source.startswith(PACKAGE):
@@ -69,9 +109,9 @@ def imports(module: str, path: Path, modules: dict[str, Path]) -> list[tuple[str
             for alias in node.names:
                 sub = f"{source}.{alias.name}"
                 if sub in modules:  # ``from . import codec`` names a module
-                    found.append((sub, "", node.lineno))
+                    found.append((sub, "", node.lineno, typed))
                 else:
-                    found.append((source, alias.name, node.lineno))
+                    found.append((source, alias.name, node.lineno, typed))
     return found
 
 
@@ -154,8 +194,90 @@ def c_problems(top: Path) -> list[str]:
     return problems
 
 
+def layers_of(doc: str) -> list[tuple[str, ...]] | None:
+    """The layers of the "Layers, bottom up" diagram, top first, each as the names that
+    open its line (``cli/``, ``driver.py  descriptor.py``: the words before the first gap
+    of three spaces or more, where the description column starts); None without that
+    diagram.  A word there that is no ``folder/`` or ``module.py`` is kept as it is, for
+    layer_problems to report."""
+    lines = doc.splitlines()
+    if LAYER_HEADING not in lines:
+        return None
+    fences = [i for i in range(lines.index(LAYER_HEADING), len(lines))
+              if lines[i].startswith("```")][:2]
+    if len(fences) < 2:
+        return None
+    layers: list[tuple[str, ...]] = []
+    for line in lines[fences[0] + 1:fences[1]]:
+        if not line.startswith(" ") or line.startswith("  "):
+            continue  # a description going on under its layer's line
+        layers.append(tuple(re.split(r" {3,}", line.strip(), maxsplit=1)[0].split()))
+    return layers
+
+
+def layer_key(path: Path, package: Path) -> str:
+    """The diagram's name of the layer of the module at ``path``: ``poll/`` for
+    poll/planner.py and poll/__init__.py, ``driver.py``, ``__init__.py`` for the
+    package's own."""
+    first = path.relative_to(package).parts[0]
+    return first if first.endswith(".py") else f"{first}/"
+
+
+def layer_problems(
+    top: Path, allowed: dict[tuple[str, str], str] = ALLOWED_UPWARD
+) -> list[str]:
+    """Imports from a higher layer than the importer's, in the order of the diagram of
+    docs/architecture.md, but for those ``allowed``; names of the diagram that name
+    nothing; modules it misses; ``allowed`` entries that match no import."""
+    doc_path = top / LAYER_DOC
+    layers = layers_of(doc_path.read_text()) if doc_path.is_file() else None
+    if not layers:
+        return [f"{LAYER_DOC}: no {LAYER_HEADING!r} diagram to check the layer order against"]
+    root = top / "src"
+    package = root / PACKAGE
+    modules = {module_name(p, root): p for p in package.rglob("*.py")}
+    rank: dict[str, int] = {}
+    problems: list[str] = []
+    for index, names in enumerate(layers):
+        for name in names:
+            if not LAYER_NAME.fullmatch(name):
+                problems.append(f"{LAYER_DOC}: {name!r} opens line {index + 1} of the layer "
+                                "diagram: a layer is named by folder/ and module.py words")
+                continue
+            if name in rank:
+                problems.append(f"{LAYER_DOC}: {name} is in two layers of the diagram")
+            rank[name] = index
+            if not ((package / name).exists() or (top / name).exists()):
+                problems.append(f"{LAYER_DOC}: {name} in the layer diagram names nothing in "
+                                f"src/{PACKAGE}/ (nor at the top)")
+    unplaced = sorted({layer_key(p, package) for p in modules.values()} - set(rank))
+    problems += [f"src/{PACKAGE}/{key}: not in the layer diagram of {LAYER_DOC} (place it "
+                 "there)" for key in unplaced]
+    found = {m: typed_imports(m, p, modules) for m, p in modules.items()}
+    for module, path in sorted(modules.items()):
+        key = layer_key(path, package)
+        where = path.relative_to(top)
+        seen: set[tuple[str, int]] = set()
+        for target, _name, line, typed in found[module]:
+            if target not in modules or (target, line) in seen:
+                continue
+            seen.add((target, line))
+            other = layer_key(modules[target], package)
+            if key not in rank or other not in rank or rank[other] >= rank[key]:
+                continue
+            if (module, target) in allowed:
+                continue
+            how = " (under TYPE_CHECKING, which counts too)" if typed else ""
+            problems.append(f"{where}:{line}: {module} (layer {key}) imports {target} of "
+                            f"layer {other}, above it in {LAYER_DOC}{how}")
+    used = {(m, i[0]) for m, imported in found.items() for i in imported}
+    problems += [f"tools/check_layout.py: ALLOWED_UPWARD lists {m} -> {t}, an import that "
+                 "is no longer there" for m, t in sorted(set(allowed) - used)]
+    return problems
+
+
 def main() -> int:
-    problems = check(TOP) + c_problems(TOP)
+    problems = check(TOP) + layer_problems(TOP) + c_problems(TOP)
     for problem in problems:
         print(problem)
     return 1 if problems else 0

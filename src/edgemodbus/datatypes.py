@@ -29,11 +29,6 @@ class Area(enum.Enum):
         return self in (Area.COIL, Area.HOLDING_REGISTER)
 
     @property
-    def max_read(self) -> int:
-        """Largest quantity one request may read (2000 bits, 125 registers)."""
-        return 2000 if self.is_bit else 125
-
-    @property
     def short_name(self) -> str:
         return _AREA_SHORT[self]
 

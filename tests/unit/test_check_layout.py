@@ -79,3 +79,115 @@ def test_c_include_cycles_and_leaves_that_include_ours_are_found(tmp_path: Path)
 
 def test_our_c_has_no_include_cycle() -> None:
     assert _tool().c_problems(TOOL.parents[1]) == []
+
+
+# ----------------------------------------------------------------------------- layer order
+
+_DOC = """# arch
+
+## Layers, bottom up
+
+```
+ __init__.py  app/  tool.py   the top: its description may name mqtt/ or x.py
+                   and go on under it (cli/ here is no layer)
+ mid/              the middle
+ low.py  base.py
+```
+
+- prose after the diagram: `sim/` here is no layer either
+"""
+
+
+def test_the_layer_order_is_read_from_the_diagram_of_the_doc() -> None:
+    assert _tool().layers_of(_DOC) == [
+        ("__init__.py", "app/", "tool.py"), ("mid/",), ("low.py", "base.py")]
+    assert _tool().layers_of("# arch\n\n## Layers\n\n```\n a/\n```\n") is None
+
+
+def _layered(tmp_path: Path, files: dict[str, str], doc: str = _DOC) -> Path:
+    return _tree(tmp_path, {
+        "docs/architecture.md": doc,
+        "src/edgemodbus/__init__.py": "",
+        "src/edgemodbus/app/__init__.py": "",
+        "src/edgemodbus/tool.py": "",
+        "src/edgemodbus/mid/__init__.py": "",
+        "src/edgemodbus/mid/core.py": "",
+        "src/edgemodbus/low.py": "",
+        "src/edgemodbus/base.py": "",
+        **files,
+    })
+
+
+def test_imports_down_the_layers_and_within_one_pass(tmp_path: Path) -> None:
+    top = _layered(tmp_path, {
+        "src/edgemodbus/app/run.py": "from ..mid.core import go\nfrom .. import tool, low\n",
+        "src/edgemodbus/tool.py": "import edgemodbus.app.run\n",  # its own layer
+        "src/edgemodbus/mid/core.py": "from edgemodbus.base import b\nfrom . import x\n",
+        "src/edgemodbus/low.py": "from .base import b\n",
+        "src/edgemodbus/base.py": "from .low import c\n",  # one layer: no order between them
+    })
+    assert _tool().layer_problems(top, allowed={}) == []
+
+
+def test_an_upward_import_is_found_with_the_module_the_import_and_both_layers(
+    tmp_path: Path,
+) -> None:
+    top = _layered(tmp_path, {
+        "src/edgemodbus/mid/core.py": "from ..app import helper\n",
+        "src/edgemodbus/base.py": (
+            "from typing import TYPE_CHECKING\n"
+            "if TYPE_CHECKING:\n"
+            "    from edgemodbus.mid.core import Thing\n"
+            "def f() -> None:\n"
+            "    import edgemodbus.tool\n"
+        ),
+    })
+    assert _tool().layer_problems(top, allowed={}) == [
+        "src/edgemodbus/base.py:3: edgemodbus.base (layer base.py) imports edgemodbus.mid.core "
+        "of layer mid/, above it in docs/architecture.md (under TYPE_CHECKING, which counts "
+        "too)",
+        "src/edgemodbus/base.py:5: edgemodbus.base (layer base.py) imports edgemodbus.tool of "
+        "layer tool.py, above it in docs/architecture.md",
+        "src/edgemodbus/mid/core.py:1: edgemodbus.mid.core (layer mid/) imports edgemodbus.app "
+        "of layer app/, above it in docs/architecture.md",
+    ]
+
+
+def test_the_allow_list_keeps_an_upward_import_and_reports_a_stale_entry(
+    tmp_path: Path,
+) -> None:
+    top = _layered(tmp_path, {"src/edgemodbus/low.py": "from .mid import core\n"})
+    allowed = {
+        ("edgemodbus.low", "edgemodbus.mid.core"): "kept for a test",
+        ("edgemodbus.base", "edgemodbus.app"): "an import that is gone",
+    }
+    assert _tool().layer_problems(top, allowed) == [
+        "tools/check_layout.py: ALLOWED_UPWARD lists edgemodbus.base -> edgemodbus.app, an "
+        "import that is no longer there"
+    ]
+
+
+def test_a_diagram_that_misses_a_module_or_names_nothing_is_reported(tmp_path: Path) -> None:
+    doc = _DOC.replace(" mid/              the middle\n",
+                       " mid/              the middle\n gone/  Oops     no such folder\n")
+    top = _layered(tmp_path, {"src/edgemodbus/extra/__init__.py": "",
+                              "src/edgemodbus/loose.py": ""}, doc)
+    assert _tool().layer_problems(top, allowed={}) == [
+        "docs/architecture.md: gone/ in the layer diagram names nothing in src/edgemodbus/ "
+        "(nor at the top)",
+        "docs/architecture.md: 'Oops' opens line 3 of the layer diagram: a layer is named by "
+        "folder/ and module.py words",
+        "src/edgemodbus/extra/: not in the layer diagram of docs/architecture.md (place it "
+        "there)",
+        "src/edgemodbus/loose.py: not in the layer diagram of docs/architecture.md (place it "
+        "there)",
+    ]
+    (top / "docs/architecture.md").write_text("# arch\n")
+    assert _tool().layer_problems(top, allowed={}) == [
+        "docs/architecture.md: no '## Layers, bottom up' diagram to check the layer order "
+        "against"
+    ]
+
+
+def test_the_repository_follows_the_layer_order_of_its_doc() -> None:
+    assert _tool().layer_problems(TOOL.parents[1]) == []

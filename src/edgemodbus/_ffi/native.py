@@ -68,6 +68,9 @@ def _check_build() -> None:
 
 _check_build()
 
+# libmodbus's own limits, as compiled: the sizes of the buffers it fills.  Above _ffi/ the
+# protocol's limits come from protocol/limits.py, which tests/unit/protocol/test_limits.py
+# checks against these (and against our C's, lib.EMB_*).
 MAX_READ_REGISTERS: int = lib.MODBUS_MAX_READ_REGISTERS
 MAX_READ_BITS: int = lib.MODBUS_MAX_READ_BITS
 MAX_WRITE_REGISTERS: int = lib.MODBUS_MAX_WRITE_REGISTERS

@@ -14,6 +14,7 @@ from typing import Any
 from .. import _ffi
 from .._ffi import CodecItem
 from ..datatypes import Area, DataFormat, DataFormat64, DataType
+from ..protocol.limits import MAX_READ_REGISTERS
 from .float32 import Float32, float32_text
 
 __all__ = ["MAX_QUANTITY", "SMART_CAST_TYPES", "ValueSpec", "check_spec", "smart_cast"]
@@ -23,7 +24,8 @@ _F = _ffi.codec_constants("F")
 _C = _ffi.codec_constants("C")
 _O = _ffi.codec_constants("O")
 
-MAX_QUANTITY = 125  # registers one read may return (Application Protocol 6.3)
+MAX_QUANTITY = MAX_READ_REGISTERS
+"""An item's quantity of registers: at most one read's (protocol/limits.py)."""
 _EPOCH = _dt.datetime(1970, 1, 1, tzinfo=_dt.timezone.utc)
 
 
@@ -106,7 +108,8 @@ def check_spec(spec: ValueSpec, area: Area) -> None:
         if q not in (None, 1):
             raise _bad(spec, "quantity", q, "a bit item is in 1 register")
     if t.needs_quantity and q is None:
-        raise _bad(spec, "quantity", q, f"{t.value} needs a quantity of registers, 1..125")
+        raise _bad(spec, "quantity", q,
+                   f"{t.value} needs a quantity of registers, 1..{MAX_QUANTITY}")
     if t in (DataType.DATETIME, DataType.TIMESTAMP) and q is not None and q < 2:
         raise _bad(spec, "quantity", q, f"{t.value} takes 2 (seconds) or 4 (ms) registers")
     m = spec.multiplier
@@ -162,7 +165,7 @@ _WIDTHS: dict[DataType, tuple[tuple[str, int], ...]] = {
 SMART_CAST_TYPES: frozenset[DataType] = frozenset(
     t for t, widths in _WIDTHS.items() if len(widths) > 1 and t.is_numeric
 )
-"""Types that take any quantity 1..125 (Smart Cast); the others keep their own."""
+"""Types that take any quantity 1..MAX_QUANTITY (Smart Cast); the others keep their own."""
 
 # Integer range of each integer wire (what the registers can hold).
 _WIRE_RANGE: dict[str, tuple[int, int]] = {

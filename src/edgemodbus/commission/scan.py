@@ -65,7 +65,7 @@ from ..errors import (
 from ..line.connect import open_link
 from ..line.endpoint import LineTiming, SerialPort, TcpEndpoint
 from ..line.link import Link
-from ..protocol.rtu import MAX_SLAVE_ID
+from ..protocol.limits import MAX_SLAVE_ID, MAX_UNIT_ID
 from ..stats import LineStats
 
 ScanEndpoint = SerialPort | TcpEndpoint
@@ -77,7 +77,6 @@ STOP_BITS = (1, 2)
 DEFAULT_GARBAGE_LIMIT = 3
 SERIAL_TIMEOUT = 0.1  # seconds per probe at 9600 baud and above
 TCP_TIMEOUT = 0.5  # a DTU's serial side behind a mobile network adds some 100 ms
-MAX_UNIT_ID = 255  # Modbus TCP unit ids (Messaging on TCP/IP v1.0b, 4.4.2: 255 = the device)
 GATEWAY_CODES = frozenset({0x0A, 0x0B})  # the gateway speaks for an absent device
 
 

@@ -20,6 +20,7 @@ from pydantic import Field, field_validator, model_validator
 from ..codec import normalize_value
 from ..datatypes import Area, DataType
 from ..protocol.address import MAX_OFFSET
+from ..protocol.limits import MAX_WRITE_BITS, MAX_WRITE_REGISTERS
 from .base import Model, Range
 from .compat import (
     NG_ACTION_KEYS,
@@ -108,7 +109,8 @@ class ActionParameter(Model):
         return self.default_value is None if self.required is None else self.required
 
 
-ACTION_QUANTITY: dict[int, int] = {5: 1968, 15: 1968, 6: 123, 16: 123}
+ACTION_QUANTITY: dict[int, int] = {5: MAX_WRITE_BITS, 15: MAX_WRITE_BITS, 6: MAX_WRITE_REGISTERS,
+                                   16: MAX_WRITE_REGISTERS}
 """Most coils/registers an address action (NG's ``address`` + ``quantity``) writes: one
 FC15/FC16 request's (MODBUS Application Protocol v1.1b3, 6.11, 6.12); FC05/FC06 send one
 request per coil/register, bounded alike."""

@@ -25,8 +25,14 @@ from pydantic import (
 )
 
 from ..datatypes import DataFormat, DataFormat64
-from ..poll.planner import BIT_CAP, REGISTER_CAP
 from ..protocol.address import MAX_OFFSET
+from ..protocol.limits import (
+    MAX_READ_BITS,
+    MAX_READ_REGISTERS,
+    MAX_SLAVE_ID,
+    MAX_UNIT_ID,
+    MIN_SLAVE_ID,
+)
 from .base import (
     MAX_MS,
     READ_CYCLE_RANGE,
@@ -120,10 +126,10 @@ class DriverModbusRtuParameter(Model):
         default=1,
         description="Number of stop bits",
     )
-    slave_id: Annotated[int, Range(0, 255)] = Field(
+    slave_id: Annotated[int, Range(0, MAX_UNIT_ID)] = Field(
         default=1,
-        description="Modbus slave id of the device: 1..247 on RTU lines (rtu, rtu-over-tcp), "
-        "0..255 as a Modbus TCP unit id",
+        description=f"Modbus slave id of the device: {MIN_SLAVE_ID}..{MAX_SLAVE_ID} on RTU "
+        f"lines (rtu, rtu-over-tcp), 0..{MAX_UNIT_ID} as a Modbus TCP unit id",
     )
     use_tcp: bool = Field(
         default=False,
@@ -300,7 +306,7 @@ class DriverModbusRtuParameter(Model):
         description="Byte order of 64-bit values: ABCDEFGH, BADCFEHG, CDABGHEF, DCBAHGFE, "
         "EFGHABCD (first DWord low), FEHGBADC, GHEFCDAB, HGFEDCBA; default: dataFormat's",
     )
-    max_block_read_register_count: Annotated[int, Range(1, REGISTER_CAP)] = Field(
+    max_block_read_register_count: Annotated[int, Range(1, MAX_READ_REGISTERS)] = Field(
         default=120,
         description="Maximum number of registers to read in a single block",
     )
@@ -312,8 +318,8 @@ class DriverModbusRtuParameter(Model):
         default=10,
         description="Maximum merge address gap when combining non-contiguous blocks",
     )
-    max_block_read_bit_count: Annotated[int, Range(1, BIT_CAP)] = Field(
-        default=BIT_CAP,
+    max_block_read_bit_count: Annotated[int, Range(1, MAX_READ_BITS)] = Field(
+        default=MAX_READ_BITS,
         description="Maximum number of coils/discrete inputs to read in a single block",
     )
     address_prefix: AddressPrefixOption = Field(
@@ -434,13 +440,13 @@ class DriverModbusRtuParameter(Model):
             )
         if self.transport == "tcp":
             pass  # a Modbus TCP unit id may be 0..255
-        elif not 1 <= self.slave_id <= 247:
+        elif not MIN_SLAVE_ID <= self.slave_id <= MAX_SLAVE_ID:
             problems.append(
                 Problem(
                     "slaveId",
                     self.slave_id,
-                    f"must be 1..247 on an RTU line (transport {self.transport!r}); "
-                    "0..255 only as a Modbus TCP unit id",
+                    f"must be {MIN_SLAVE_ID}..{MAX_SLAVE_ID} on an RTU line (transport "
+                    f"{self.transport!r}); 0..{MAX_UNIT_ID} only as a Modbus TCP unit id",
                 )
             )
         if self.transport == "rtu" and not self.com_port.strip():

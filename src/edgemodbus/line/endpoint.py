@@ -9,6 +9,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from ..datatypes import enum_value
+from ..protocol.limits import MAX_RTU_ADU
 
 if TYPE_CHECKING:
     from ..config import DriverModbusRtuParameter
@@ -51,7 +52,7 @@ class SerialPort:
     @property
     def max_frame_time(self) -> float:
         """Seconds to transmit the largest RTU frame (256 bytes, Serial Line 2.5.1)."""
-        return 256 * self.char_time
+        return MAX_RTU_ADU * self.char_time
 
 
 @dataclass(frozen=True)

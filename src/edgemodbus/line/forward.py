@@ -29,6 +29,7 @@ from concurrent.futures import Future, InvalidStateError
 
 from ..errors import ModbusError, ModbusExceptionResponse, ModbusTimeoutError
 from ..protocol.forward import check_request, read_reply, read_span
+from ..protocol.limits import MAX_UNIT_ID
 from .link import Link
 
 #: Less than this left of a forward's timeout: not sent (no slave answers that fast).
@@ -106,9 +107,9 @@ def forward_job(slave: int, pdu: bytes, timeout: float,
     an id above 255, or a timeout that is not a positive number of seconds."""
     pdu = bytes(pdu)
     check_request(pdu)
-    if not 1 <= slave <= 255:
-        raise ValueError(f"forward to slave {slave}: must be 1..255 (0, broadcast, gets no "
-                         "reply and is not forwarded)")
+    if not 1 <= slave <= MAX_UNIT_ID:
+        raise ValueError(f"forward to slave {slave}: must be 1..{MAX_UNIT_ID} (0, broadcast, "
+                         "gets no reply and is not forwarded)")
     if not (math.isfinite(timeout) and timeout > 0):
         raise ValueError(f"forward timeout {timeout!r}: must be a positive number of seconds")
     span = read_span(pdu) if cached is not None else None

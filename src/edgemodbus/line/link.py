@@ -18,7 +18,6 @@ import struct
 import time
 from collections.abc import Callable, Sequence
 
-from .. import _ffi
 from .._ffi import Block, CodecPlan, Context, StreamCounters, check
 from .._ffi.engine import Engine, EngineDevice, LineCounters, Waker
 from ..codec import BlockDecoder, Change
@@ -32,6 +31,7 @@ from ..errors import (
     exception_for_code,
 )
 from ..protocol import rtu
+from ..protocol.limits import MAX_WRITE_BITS, MAX_WRITE_REGISTERS
 from ..protocol.wrapped import Report, report_of
 from ..stats import LineStats
 from .endpoint import Endpoint, LineTiming, SerialPort, TcpEndpoint
@@ -164,16 +164,16 @@ class Link:
 
     def write_coils(self, slave: int, address: int, values: Sequence[bool]) -> None:
         n = len(values)
-        if not 1 <= n <= _ffi.MAX_WRITE_BITS:
-            raise ValueError(f"write of {n} coils: must be 1..{_ffi.MAX_WRITE_BITS}")
+        if not 1 <= n <= MAX_WRITE_BITS:
+            raise ValueError(f"write of {n} coils: must be 1..{MAX_WRITE_BITS}")
         packed = rtu.pack_bits(values)
         self._write(slave, struct.pack(">BHHB", 15, address, n, len(packed)) + packed)
 
     def write_registers(self, slave: int, address: int, values: Sequence[int]) -> None:
         n = len(values)
-        if not 1 <= n <= _ffi.MAX_WRITE_REGISTERS:
+        if not 1 <= n <= MAX_WRITE_REGISTERS:
             raise ValueError(
-                f"write of {n} registers: must be 1..{_ffi.MAX_WRITE_REGISTERS}"
+                f"write of {n} registers: must be 1..{MAX_WRITE_REGISTERS}"
             )
         pdu = struct.pack(f">BHHB{n}H", 16, address, n, 2 * n, *values)
         self._write(slave, pdu)

@@ -7,8 +7,8 @@ and sizes.
 Rules: per area and scan rate, items sorted by offset (ties keep input order); a block grows while
 ``next.offset - block.end <= max_gap`` (end exclusive, so contiguous items have gap 0
 and overlapping items share registers) and its span stays within the limit
-(``max_registers`` capped at 125, ``max_bits`` capped at 2000).  ``continuous`` forces
-gap 0.  Areas never merge (FC03 and FC04 are different areas), nor do items of
+(``max_registers`` capped at 125, ``max_bits`` capped at 2000: protocol/limits.py).
+``continuous`` forces gap 0.  Areas never merge (FC03 and FC04 are different areas), nor do items of
 different scan rates (``rate``, the item's readCycle in ms): each block carries its
 rate, and the poller keeps a due time per block.  An item larger than the limit gets
 blocks of its own and is read in pieces; its :class:`Piece` entries say how to
@@ -24,10 +24,9 @@ from operator import itemgetter
 from typing import cast
 
 from ..datatypes import Area
+from ..protocol.limits import MAX_ADDRESS, MAX_READ_BITS, MAX_READ_REGISTERS
 
-REGISTER_CAP = 125
-BIT_CAP = 2000
-_ADDRESS_SPACE = 0x10000
+_ADDRESS_SPACE = MAX_ADDRESS + 1
 
 
 @dataclass(frozen=True, slots=True)
@@ -162,7 +161,10 @@ class Limits:
 
 
 def make_limits(
-    max_registers: int = 120, max_bits: int = 2000, max_gap: int = 10, continuous: bool = False
+    max_registers: int = 120,
+    max_bits: int = MAX_READ_BITS,
+    max_gap: int = 10,
+    continuous: bool = False,
 ) -> Limits:
     """Validate the settings and apply the protocol caps (125 registers, 2000 bits)."""
     if max_registers < 1:
@@ -172,7 +174,9 @@ def make_limits(
     if max_gap < 0:
         raise ValueError(f"max_gap {max_gap}: must be 0 or more")
     return Limits(
-        min(max_registers, REGISTER_CAP), min(max_bits, BIT_CAP), 0 if continuous else max_gap
+        min(max_registers, MAX_READ_REGISTERS),
+        min(max_bits, MAX_READ_BITS),
+        0 if continuous else max_gap,
     )
 
 
@@ -218,7 +222,7 @@ def plan_reads(
     items: Iterable[PlanItem],
     *,
     max_registers: int = 120,
-    max_bits: int = 2000,
+    max_bits: int = MAX_READ_BITS,
     max_gap: int = 10,
     continuous: bool = False,
 ) -> list[ReadBlock]:
@@ -268,7 +272,7 @@ def split_block(
     bad_keys: Collection[Hashable],
     *,
     max_registers: int = 120,
-    max_bits: int = 2000,
+    max_bits: int = MAX_READ_BITS,
     max_gap: int = 10,
     continuous: bool = False,
 ) -> list[ReadBlock]:

@@ -21,6 +21,7 @@ from ..config import DriverModbusRtuParameter
 from ..datatypes import Area
 from ..errors import IllegalFunction, ModbusConnectionError, ModbusError, ModbusTimeoutError
 from ..line import Link
+from ..protocol.limits import MAX_WRITE_BITS, MAX_WRITE_REGISTERS
 from ..stats import DeviceStats
 from .items import ItemState, holds, set_item
 from .sink import Delivery
@@ -28,8 +29,6 @@ from .sink import Delivery
 if TYPE_CHECKING:
     from ..config import DeviceAddressItem
 
-_MAX_WRITE_REGISTERS = 123  # FC16 (Modbus Application Protocol v1.1b3, 6.12)
-_MAX_WRITE_COILS = 1968  # FC15 (6.11)
 
 
 @dataclass
@@ -110,13 +109,13 @@ def merge_writes(ops: list[WriteOp]) -> list[WriteOp]:
         if last is not None and last.area is op.area and last.bit is None and op.bit is None:
             if op.area is Area.COIL and last.address + len(last.bits) == op.address and len(
                 last.bits
-            ) < _MAX_WRITE_COILS:
+            ) < MAX_WRITE_BITS:
                 last.bits.extend(op.bits)
                 last.updates.extend(op.updates)
                 continue
             if op.area is Area.HOLDING_REGISTER and (
                 last.address + len(last.registers) == op.address
-                and len(last.registers) + len(op.registers) <= _MAX_WRITE_REGISTERS
+                and len(last.registers) + len(op.registers) <= MAX_WRITE_REGISTERS
             ):
                 last.registers.extend(op.registers)
                 last.updates.extend(op.updates)

@@ -22,11 +22,12 @@ from dataclasses import dataclass
 from typing import Literal
 
 from ..datatypes import Area
+from .limits import MAX_ADDRESS
 
 AddressPrefix = Literal["function-code", "modicon", "entity"]
 
 PREFIXES: tuple[AddressPrefix, ...] = ("function-code", "modicon", "entity")
-MAX_OFFSET = 0xFFFF
+MAX_OFFSET = MAX_ADDRESS  # the highest protocol offset (protocol/limits.py)
 MAX_BIT = 15
 
 # Whitespace stripped around the whole text (ASCII only, so the regex is portable).

@@ -29,6 +29,14 @@ from ..errors import (
     ModbusTimeoutError,
     ProtocolError,
 )
+from .limits import (
+    MAX_READ_BITS,
+    MAX_READ_REGISTERS,
+    MAX_RW_READ_REGISTERS,
+    MAX_RW_WRITE_REGISTERS,
+    MAX_WRITE_BITS,
+    MAX_WRITE_REGISTERS,
+)
 
 #: The function codes forward mode sends (6.1-6.6, 6.11-6.13, 6.16, 6.17).
 FORWARD_FUNCTIONS: frozenset[int] = frozenset({0x01, 0x02, 0x03, 0x04, 0x05, 0x06, 0x0F,
@@ -43,12 +51,9 @@ SERVER_DEVICE_BUSY = 0x06
 GATEWAY_PATH_UNAVAILABLE = 0x0A
 GATEWAY_TARGET_FAILED = 0x0B
 
-# quantity limits of the request (6.1-6.4, 6.11, 6.12, 6.17)
-_READ_LIMITS = {0x01: 2000, 0x02: 2000, 0x03: 125, 0x04: 125}
-_MAX_WRITE_COILS = 1968  # 0x7B0
-_MAX_WRITE_REGISTERS = 123  # 0x7B
-_MAX_RW_READ = 125  # 0x7D
-_MAX_RW_WRITE = 121  # 0x79
+# quantity limits of the request (6.1-6.4, 6.11, 6.12, 6.17: protocol/limits.py)
+_READ_LIMITS = {0x01: MAX_READ_BITS, 0x02: MAX_READ_BITS, 0x03: MAX_READ_REGISTERS,
+                0x04: MAX_READ_REGISTERS}
 # fixed request lengths, function code included
 _FIXED_LENGTH = {0x01: 5, 0x02: 5, 0x03: 5, 0x04: 5, 0x05: 5, 0x06: 5, 0x11: 1, 0x16: 7}
 
@@ -106,10 +111,10 @@ def check_request(pdu: bytes) -> None:
                                       "address, quantity and byte count")
         _addr, qty, count = struct.unpack_from(">HHB", pdu, 1)
         if fc == 0x0F:
-            _check_quantity(name, "quantity of coils", qty, _MAX_WRITE_COILS)
+            _check_quantity(name, "quantity of coils", qty, MAX_WRITE_BITS)
             want = (qty + 7) // 8
         else:
-            _check_quantity(name, "quantity of registers", qty, _MAX_WRITE_REGISTERS)
+            _check_quantity(name, "quantity of registers", qty, MAX_WRITE_REGISTERS)
             want = 2 * qty
         _check_count(name, count, want, n - 6)
         return
@@ -118,8 +123,8 @@ def check_request(pdu: bytes) -> None:
         raise InvalidRequestError(f"{name} request of {n} bytes: at least 10 with its "
                                   "addresses, quantities and byte count")
     _ra, read_qty, _wa, write_qty, count = struct.unpack_from(">HHHHB", pdu, 1)
-    _check_quantity(name, "quantity to read", read_qty, _MAX_RW_READ)
-    _check_quantity(name, "quantity to write", write_qty, _MAX_RW_WRITE)
+    _check_quantity(name, "quantity to read", read_qty, MAX_RW_READ_REGISTERS)
+    _check_quantity(name, "quantity to write", write_qty, MAX_RW_WRITE_REGISTERS)
     _check_count(name, count, 2 * write_qty, n - 10)
 
 

@@ -29,6 +29,8 @@ from __future__ import annotations
 import struct
 from collections.abc import Sequence
 
+from .limits import MAX_RTU_ADU, MAX_SLAVE_ID
+
 __all__ = [
     "MASK_WRITE_REGISTER",
     "MAX_FRAME",
@@ -56,10 +58,9 @@ __all__ = [
     "split_frames",
 ]
 
-#: Highest unicast slave address (Serial Line 2.2: 1..247; 0 = broadcast, 248..255 reserved).
-MAX_SLAVE_ID = 247
-#: Longest RTU frame, slave address and CRC included (Serial Line 2.5.1).
-MAX_FRAME = 256
+#: Longest RTU frame, slave address and CRC included (Serial Line 2.5.1).  MAX_SLAVE_ID,
+#: the highest unicast slave address, is protocol/limits.py's, exported here too.
+MAX_FRAME = MAX_RTU_ADU
 
 # Function codes (Application Protocol v1.1b3, 6.1-6.16).
 READ_COILS = 0x01

@@ -24,6 +24,7 @@ import logging
 import struct
 from dataclasses import dataclass
 
+from .limits import MAX_RTU_ADU
 from .rtu import crc16
 from .rtu import frame as rtu_frame
 
@@ -32,7 +33,6 @@ log = logging.getLogger("edgemodbus.wrapped")
 HEADER = b"\xff\xaa"
 TAIL = 0x0D
 _PREFIX = 4  # header + register address
-_MAX_RTU = 256  # Modbus over Serial Line v1.02, 2.5.1: an RTU frame is at most 256 bytes
 
 
 @dataclass(frozen=True, slots=True)
@@ -140,7 +140,7 @@ class ReportParser:
             length = _rtu_length(buf, _PREFIX)
             if length is None:
                 break
-            if length == 0 or length > _MAX_RTU:
+            if length == 0 or length > MAX_RTU_ADU:
                 self._bad(bytes(buf[:_PREFIX + 2]), "not a Modbus reply", None)
                 continue
             end = _PREFIX + length + 1

@@ -18,6 +18,7 @@ from pydantic import AfterValidator, Field, ValidationError, field_validator, mo
 
 from ..config import ConfigError, Model, OptionalMs, Problem, Range
 from ..config.limits import MAX_NAME, check_seconds
+from ..protocol.limits import MAX_UNIT_ID
 
 DEFAULT_PORT = 502
 
@@ -30,7 +31,7 @@ class ServeUnit(Model):
     _where: ClassVar[str] = "serve.units[]"
     _max_lengths: ClassVar[dict[str, int]] = {"device": MAX_NAME, "forward": MAX_NAME}
 
-    unit_id: Annotated[int, Range(0, 255)]
+    unit_id: Annotated[int, Range(0, MAX_UNIT_ID)]
     device: str | None = None
     forward: str | None = None
     offset: Annotated[int, Range(-65535, 65535)] = 0

@@ -17,6 +17,7 @@ from typing import Any
 
 from ..datatypes import Area
 from ..protocol import rtu
+from ..protocol.limits import max_read
 from .actions import _RESET, _Action, _spread
 from .faults import Faults
 from .movers import Mover
@@ -344,7 +345,7 @@ class Slave:
         # 6.1-6.4: quantity 1..2000 bits / 1..125 registers, else 03; range, else 02.
         area = _READ_AREA[fc]
         address, count = struct.unpack_from(">HH", pdu, 1)
-        if not 1 <= count <= area.max_read:
+        if not 1 <= count <= max_read(area):
             raise _Exc(_ILLEGAL_VALUE)
         self._validate(area, address, count)
         if area.is_bit:

@@ -32,7 +32,7 @@ from edgemodbus.poll import planner
 from edgemodbus.poll.items import ItemState
 from edgemodbus.poll.poller import Poller
 from edgemodbus.poll.sink import BatchCallback, ItemCallback
-from edgemodbus.protocol import address
+from edgemodbus.protocol import address, limits
 
 
 def errors_of(source: Any) -> list[str]:
@@ -65,13 +65,15 @@ class NoHost:
 def test_limits_are_the_limits_of_the_layers_that_use_them() -> None:
     assert field_range(DeviceAddressItem, "quantity").hi == codec.MAX_QUANTITY
     comm = DriverModbusRtuParameter
-    assert field_range(comm, "max_block_read_register_count").hi == planner.REGISTER_CAP
-    assert field_range(comm, "max_block_read_bit_count").hi == planner.BIT_CAP
-    assert comm.model_fields["max_block_read_bit_count"].default == planner.BIT_CAP
+    assert field_range(comm, "max_block_read_register_count").hi == limits.MAX_READ_REGISTERS
+    assert field_range(comm, "max_block_read_bit_count").hi == limits.MAX_READ_BITS
+    assert comm.model_fields["max_block_read_bit_count"].default == limits.MAX_READ_BITS
     assert field_range(comm, "max_merge_address_gap").hi == address.MAX_OFFSET
-    # the layers agree among themselves on the protocol's limits
-    assert planner.REGISTER_CAP == codec.MAX_QUANTITY == Area.HOLDING_REGISTER.max_read
-    assert Area.COIL.max_read == planner.BIT_CAP
+    # the layers agree among themselves on the protocol's limits (protocol/limits.py)
+    capped = planner.make_limits(max_registers=10**6, max_bits=10**6)
+    assert (capped.registers, capped.bits) == (limits.MAX_READ_REGISTERS, limits.MAX_READ_BITS)
+    assert limits.max_read(Area.HOLDING_REGISTER) == codec.MAX_QUANTITY
+    assert address.MAX_OFFSET == limits.MAX_ADDRESS
 
 
 def test_quantity_above_what_one_read_holds_is_refused_at_load() -> None:
