@@ -166,11 +166,15 @@ class GatewayProcess:
         assert self.proc is not None
         self.proc.send_signal(signum)
 
+    def wait(self, timeout: float = 20.0) -> int:
+        """The exit status, once the child ended."""
+        assert self.proc is not None
+        return self.proc.wait(timeout)
+
     def stop(self, timeout: float = 20.0) -> int:
         """SIGTERM, then the exit status."""
         self.signal(signal.SIGTERM)
-        assert self.proc is not None
-        return self.proc.wait(timeout)
+        return self.wait(timeout)
 
     def usage(self) -> Usage:
         """CPU (of the process and per thread), RSS, fds and threads now."""

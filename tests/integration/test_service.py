@@ -4,14 +4,12 @@ a config folder, a real mosquitto, a pymodbus slave, signals."""
 from __future__ import annotations
 
 import json
-import os
 import re
 import signal
 import socket
 import subprocess
 import sys
 import time
-import urllib.request
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -19,6 +17,7 @@ from typing import Any
 import pytest
 
 from edgemodbus.gateway import load_gateway_config
+from tests.gateway_proc import GatewayProcess, scrape, write_json
 from tests.mosquitto import Mosquitto, MqttProbe
 from tests.peers import PymodbusSlave, default_register, free_port
 
@@ -49,70 +48,7 @@ def device_file(port: int, unit: int, tags: int = 3, code: str | None = None,
     }
 
 
-def write_json(path: Path, data: Any) -> None:
-    tmp = path.with_suffix(".tmp")
-    tmp.write_text(json.dumps(data))
-    tmp.replace(path)  # atomic, as an editor or config tool should do it
-
-
-class Service:
-    """``python -m edgemodbus.gateway`` in a child process; always reaped."""
-
-    def __init__(self, config_dir: Path, log_path: Path) -> None:
-        self.config_dir = config_dir
-        self.log_path = log_path
-        self.proc: subprocess.Popen[bytes] | None = None
-
-    def __enter__(self) -> Service:
-        env = dict(os.environ, PYTHONUNBUFFERED="1")
-        env.pop("JOURNAL_STREAM", None)
-        with open(self.log_path, "ab") as log:
-            self.proc = subprocess.Popen(
-                [sys.executable, "-m", "edgemodbus.gateway", "--config-dir",
-                 str(self.config_dir)],
-                stdin=subprocess.DEVNULL, stdout=log, stderr=log, cwd=REPO, env=env,
-            )
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        proc = self.proc
-        if proc is not None and proc.poll() is None:
-            proc.kill()
-        if proc is not None:
-            proc.wait()
-
-    @property
-    def log(self) -> str:
-        return self.log_path.read_text(errors="replace")
-
-    def lines(self, pattern: str) -> list[str]:
-        return [ln for ln in self.log.splitlines() if re.search(pattern, ln)]
-
-    def wait_log(self, pattern: str, timeout: float = 15.0, count: int = 1) -> str:
-        deadline = time.monotonic() + timeout
-        while True:
-            found = self.lines(pattern)
-            if len(found) >= count:
-                return found[count - 1]
-            assert self.proc is not None
-            if self.proc.poll() is not None:
-                raise AssertionError(f"service exited ({self.proc.returncode}):\n{self.log}")
-            if time.monotonic() > deadline:
-                raise AssertionError(f"no log line /{pattern}/ x{count}; log:\n{self.log}")
-            time.sleep(0.05)
-
-    def signal(self, signum: int) -> None:
-        assert self.proc is not None
-        self.proc.send_signal(signum)
-
-    def wait(self, timeout: float = 15.0) -> int:
-        assert self.proc is not None
-        return self.proc.wait(timeout)
-
-
-def scrape(port: int) -> str:
-    with urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=5) as resp:
-        return str(resp.read().decode())
+Service = GatewayProcess  # python -m edgemodbus.gateway in a child process, reaped
 
 
 def gateway_file(conf: Path, broker: Mosquitto, **mqtt: Any) -> None:

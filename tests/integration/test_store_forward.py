@@ -31,7 +31,8 @@ from edgemodbus.datatypes import Area
 from edgemodbus.northbound.metrics import MetricsExporter
 from edgemodbus.northbound.mqtt import MqttPublisher
 from edgemodbus.sim import CounterMover, Simulator
-from tests.integration.test_service import Service, scrape, write_json
+from tests.gateway_proc import GatewayProcess as Service
+from tests.gateway_proc import scrape, write_json
 from tests.mosquitto import Mosquitto, MqttProbe
 from tests.tmpfs import small_tmpfs
 from tests.waiting import wait_for

@@ -434,10 +434,10 @@ class LineWorker(LineRequests):
             repeated = self.connector is not None and str(exc) == self.last_link_error
             self.last_link_error = str(exc)
             self.stats.connect_failures += 1
+            self._notify(False, str(exc))  # the devices know why before anyone reads it
             # exc names the line; a connector's same failure again (a DTU that has not
             # dialled in yet) is not repeated at WARNING on every try
             log.log(logging.DEBUG if repeated else logging.WARNING, "connect failed: %s", exc)
-            self._notify(False, str(exc))
             return False
         self._link = link
         self.link_up = True
