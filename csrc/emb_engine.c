@@ -257,6 +257,8 @@ int emb_engine_run(emb_engine *e, int64_t until_ns)
                 ev = emb_sleep(e, e->ready_ns, 0);
             else if (!e->owed && emb_woken(e))
                 ev = EMB_EV_WAKE;
+            else if (e->lk->trace && e->lk->trace->used > EMB_TRACE_SIZE / 2)
+                ev = EMB_EV_TRACE; /* a long pass: Python logs what the ring holds */
             if (ev >= 0) {
                 e->event_device = which; /* interrupted mid-pass */
                 return ev;
@@ -274,5 +276,7 @@ int emb_engine_run(emb_engine *e, int64_t until_ns)
             e->event_device = which;
             return EMB_EV_CYCLE;
         }
+        if (e->lk->trace && e->lk->trace->n > 0)
+            return EMB_EV_TRACE; /* (the pass ended: no device concerned) */
     }
 }

@@ -88,6 +88,8 @@ typedef struct emb_device {
                            * with owed set, only once a due block was read */
 #define EMB_EV_INPUT 4    /* watch_fd is readable while idle (unsolicited frames) */
 #define EMB_EV_ERROR 5    /* poll() failed: event_errno */
+#define EMB_EV_TRACE 6    /* the link's frame trace holds frames for Python to log: at the
+                           * end of a pass, or mid-pass (event_device) when half full */
 
 /* One line's engine: its link, its devices, its counters. */
 typedef struct emb_engine {

@@ -88,3 +88,34 @@ def test_a_write_waits_only_for_the_transaction_in_flight(sim: Simulator) -> Non
         assert cfg.address_list[5].value == 7 and cfg.address_list[5].status is ItemStatus.OK
     # the read in flight (<= 20 ms), then the write itself (20 ms), with slack
     assert max(took) < 0.02 + 0.02 + 0.05, took
+
+
+def test_the_frame_trace_does_not_change_the_path(sim: Simulator,
+                                                  caplog: pytest.LogCaptureFixture,
+                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+    """DEBUG on edgemodbus.line (``-vv``): the engine still reads the line (no block is
+    stepped or read in Python), and every frame it sent and received is logged, in
+    order, from the trace ring."""
+    from edgemodbus.line.link import ContextLink
+    from edgemodbus.poll.poller import Poller
+
+    python_reads: list[str] = []
+    monkeypatch.setattr(Poller, "poll_step", lambda *a: python_reads.append("poll_step"))
+    monkeypatch.setattr(ContextLink, "_read", lambda *a: python_reads.append("_read"))
+    caplog.set_level("DEBUG", logger="edgemodbus.line")
+    port = sim.serve_tcp("127.0.0.1", 0)
+    cfg = device(port, _uint16s(60, step=3), readCycle=5, maxBlockReadRegisterCount=30,
+                 maxMergeAddressGap=2)
+    with Running(cfg) as drv:
+        wait_for(all_ok(cfg))
+        before = drv.stats()["cycles"]
+        wait_for(lambda: drv.stats()["cycles"] >= before + 20, what="20 more cycles")
+        blocks = drv.stats()["requests"] // max(1, drv.stats()["cycles"])
+    assert not python_reads
+    assert blocks >= 6
+    lines = [r.getMessage() for r in caplog.records if r.name == "edgemodbus.line"]
+    tx = [line for line in lines if " TX 01 03 " in line]
+    rx = [line for line in lines if " RX 01 03 " in line]
+    assert len(tx) >= 20 * blocks and len(rx) >= 20 * blocks
+    first = lines.index(tx[0])
+    assert " RX 01 03 " in lines[first + 1]  # a request, then its reply

@@ -24,6 +24,7 @@ EV_FAILED: int = lib.EMB_EV_FAILED
 EV_WAKE: int = lib.EMB_EV_WAKE
 EV_INPUT: int = lib.EMB_EV_INPUT
 EV_ERROR: int = lib.EMB_EV_ERROR
+EV_TRACE: int = lib.EMB_EV_TRACE  # the frame trace has frames to log (Link.run_engine did)
 
 _NEVER = (1 << 63) - 1
 _BOUNDS = ffi.new("int64_t[]", [round(b * 1e9) for b in CYCLE_BUCKETS])

@@ -319,7 +319,8 @@ class LineWorker(LineRequests):
         link.flush_reports()
 
     def _dispatch(self, link: Link, event: tuple[int, int, int], pollers: list[Poller]) -> None:
-        """Hand what the engine came back for to whom it concerns."""
+        """Hand what the engine came back for to whom it concerns (EV_TRACE: nothing
+        more, the link logged the frames traced when the engine came back)."""
         kind, which, err = event
         try:
             if kind == EV_CYCLE:
