@@ -5,7 +5,9 @@
  * costs no Python at all between the caller's deadlines.  What is rare stays in Python
  * (poll/poller.py): a failed read ends the engine's run at once, with the link as the
  * failure left it, and Python settles or drains the line, retries, splits the block or
- * takes the slave offline, then hands the device back. */
+ * takes the slave offline, then hands the device back.  Every link kind runs here, DTU
+ * streams too (their heartbeats are skipped in C and counted live; a read that took
+ * wrapped reports comes back to Python with them, EMB_EV_REPORTS). */
 #define _GNU_SOURCE /* ppoll */
 #include "emb_engine.h"
 
@@ -120,6 +122,13 @@ void emb_dev_all_due(emb_device *d, int64_t at_ns)
     d->due_ns = (d->n_blocks || d->cycle_ns) ? at_ns : EMB_NEVER;
 }
 
+/* A DTU stream's read left what only Python handles: wrapped reports (applied in the
+ * order they came around the reply), dropped frames or lost reports (logged). */
+static int emb_has_reports(const emb_link *lk)
+{
+    return lk->n_reports > 0 || lk->dropped > 0 || lk->reports_lost > 0;
+}
+
 static int emb_woken(emb_engine *e)
 {
     return __atomic_load_n(e->wake, __ATOMIC_ACQUIRE) != 0;
@@ -202,6 +211,8 @@ static int emb_step(emb_engine *e, emb_device *d)
     rc = emb_read(e->ctx, e->lk, d->slave, b->function, b->start, b->count, data, e->rsp);
     e->lc->discarded += e->lk->discarded;
     e->lk->discarded = 0;
+    e->lc->heartbeats += e->lk->heartbeats; /* a DTU stream's: live, no Python */
+    e->lk->heartbeats = 0;
     if (e->pace_ns)
         e->ready_ns = emb_now_ns() + e->pace_ns;
     if (rc == -1)
@@ -268,6 +279,10 @@ int emb_engine_run(emb_engine *e, int64_t until_ns)
                 e->event_device = which;
                 e->event_errno = errno;
                 return EMB_EV_FAILED;
+            }
+            if (emb_has_reports(e->lk)) {
+                e->event_device = which; /* the pass goes on when Python hands it back */
+                return EMB_EV_REPORTS;
             }
         }
         now = emb_now_ns();

@@ -240,11 +240,11 @@ class ContextLink(Link):
     # -- the engine --------------------------------------------------------------------
     def run_engine(self, waker: Waker, counters: LineCounters, devices: Sequence[EngineDevice],
                    until: float, owed: bool = False) -> tuple[int, int, int] | None:
-        """See :meth:`Link.run_engine`; the frames it traced are logged when it comes
-        back.  A DTU stream steps in Python (the engine does not take its wrapped
-        reports out of the link yet: they must reach the pollers before the reply they
-        came before, the others after it)."""
-        if self._stream or not self.is_open:
+        """See :meth:`Link.run_engine`; when it comes back the frames it traced are
+        logged, a DTU stream's counters taken and the wrapped reports that came before
+        the last reply dispatched (they are older than it; the worker dispatches the rest
+        once the reply was applied: :meth:`flush_reports`)."""
+        if not self.is_open:
             return None
         engine = self._engine
         if engine is None or engine.waker is not waker:
@@ -255,8 +255,7 @@ class ContextLink(Link):
         if self._pace:
             self._ready_at = engine.ready_at
         self._timeouts = (-1.0, -1.0)  # the engine sets each device's own
-        if self._trace:
-            self._log_trace()
+        self._collect()
         return event, engine.event_device, engine.event_errno
 
     def _log_trace(self) -> None:

@@ -33,6 +33,7 @@ from .._ffi.engine import (
     EV_ERROR,
     EV_FAILED,
     EV_INPUT,
+    EV_REPORTS,
     EV_WAKE,
     EngineDevice,
     LineCounters,
@@ -331,6 +332,8 @@ class LineWorker(LineRequests):
                 self._waker.clear()
                 if which >= 0:  # a job may set items of the pass under way: results first
                     pollers[which].take_results()
+            elif kind == EV_REPORTS:  # the reports before the reply went out already
+                pollers[which].take_results()  # the reply, then the rest (below)
             elif kind == EV_INPUT:
                 link.pump()
             elif kind == EV_ERROR:
