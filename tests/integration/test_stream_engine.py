@@ -6,6 +6,7 @@ path."""
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Iterator
 from typing import Any
 
@@ -94,7 +95,7 @@ def test_wrapped_reports_around_the_reply_in_the_engine(python_reads: list[str],
     r1 = [v for n, v, _ in seen if n == "r1"]
     polled, reported = EagerMcu.polled(1), [v for v in r1 if v >= 9000]
     assert len(reported) >= 5 and polled in r1
-    for before, after in zip(r1, r1[1:]):
+    for before, after in itertools.pairwise(r1):
         if report_after:  # the reply, then its report: a report never follows a report
             assert before != polled or after >= 9000, r1
         else:  # the report, then the reply
