@@ -129,6 +129,15 @@ static int emb_has_reports(const emb_link *lk)
     return lk->n_reports > 0 || lk->dropped > 0 || lk->reports_lost > 0;
 }
 
+/* The frame trace is due for Python: a quarter of the ring used, or its oldest frame
+ * EMB_TRACE_FLUSH_NS old (a frame reaches the log that soon, and a line with the trace
+ * on comes back to Python once per several passes, not after each). */
+static int emb_trace_due(const emb_trace *t, int64_t now_ns)
+{
+    return t && t->n > 0 &&
+           (t->used >= EMB_TRACE_SIZE / 4 || now_ns - t->first_ns >= EMB_TRACE_FLUSH_NS);
+}
+
 static int emb_woken(emb_engine *e)
 {
     return __atomic_load_n(e->wake, __ATOMIC_ACQUIRE) != 0;
@@ -253,8 +262,13 @@ int emb_engine_run(emb_engine *e, int64_t until_ns)
             return EMB_EV_WAKE;
         if (now >= until_ns)
             return EMB_EV_DEADLINE;
+        if (emb_trace_due(e->lk->trace, now))
+            return EMB_EV_TRACE; /* between passes: no device concerned */
         if (d == NULL || d->due_ns > now) {
             wait = d == NULL || d->due_ns > until_ns ? until_ns : d->due_ns;
+            if (e->lk->trace && e->lk->trace->n > 0 &&
+                e->lk->trace->first_ns + EMB_TRACE_FLUSH_NS < wait)
+                wait = e->lk->trace->first_ns + EMB_TRACE_FLUSH_NS;
             ev = emb_sleep(e, wait, 1);
             if (ev >= 0)
                 return ev;
@@ -291,7 +305,5 @@ int emb_engine_run(emb_engine *e, int64_t until_ns)
             e->event_device = which;
             return EMB_EV_CYCLE;
         }
-        if (e->lk->trace && e->lk->trace->n > 0)
-            return EMB_EV_TRACE; /* (the pass ended: no device concerned) */
     }
 }

@@ -92,8 +92,9 @@ typedef struct emb_device {
 #define EMB_EV_REPORTS 7  /* a read of device event_device took wrapped reports or dropped
                            * frames besides its reply (a DTU stream): Python applies those
                            * before the reply (emb_link.n_before), the reply, the rest */
-#define EMB_EV_TRACE 6    /* the link's frame trace holds frames for Python to log: at the
-                           * end of a pass, or mid-pass (event_device) when half full */
+#define EMB_EV_TRACE 6    /* the link's frame trace holds frames for Python to log: between
+                           * passes once a quarter full or a frame is EMB_TRACE_FLUSH_NS
+                           * old, mid-pass (event_device) when half full */
 
 /* One line's engine: its link, its devices, its counters. */
 typedef struct emb_engine {

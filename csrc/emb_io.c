@@ -55,6 +55,8 @@ void emb_trace_put(emb_link *lk, int direction, const uint8_t *frame, int n)
         return;
     }
     now = emb_now_ns();
+    if (t->n == 0)
+        t->first_ns = now;
     head[0] = (uint8_t)direction;
     head[1] = (uint8_t)(n >> 8);
     head[2] = (uint8_t)(n & 0xFF);

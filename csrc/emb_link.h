@@ -15,6 +15,7 @@
 #define EMB_TRACE_HEAD 11   /* per traced frame: direction (1), length (2), time (8) */
 #define EMB_TRACE_TX 1      /* a frame we sent */
 #define EMB_TRACE_RX 2      /* a frame we received (a reply, also one refused) */
+#define EMB_TRACE_FLUSH_NS 1000000000LL /* the engine hands frames to Python this soon */
 
 /* The buffers of a DTU stream link (emb_link.sb): bytes received and not framed yet, and
  * the reports waiting.  The caller allocates them, for stream links only. */
@@ -33,6 +34,7 @@ typedef struct {
     uint32_t head;  /* the oldest record's first byte */
     uint32_t used;  /* bytes of the records waiting */
     uint32_t n;     /* records waiting */
+    int64_t first_ns; /* when the oldest of them was traced */
     long lost;      /* frames the full ring could not take; the caller reads and resets */
 } emb_trace;
 

@@ -97,10 +97,8 @@ def test_the_frame_trace_does_not_change_the_path(sim: Simulator,
     stepped or read in Python), and every frame it sent and received is logged, in
     order, from the trace ring."""
     from edgemodbus.line.link import ContextLink
-    from edgemodbus.poll.poller import Poller
 
     python_reads: list[str] = []
-    monkeypatch.setattr(Poller, "poll_step", lambda *a: python_reads.append("poll_step"))
     monkeypatch.setattr(ContextLink, "_read", lambda *a: python_reads.append("_read"))
     caplog.set_level("DEBUG", logger="edgemodbus.line")
     port = sim.serve_tcp("127.0.0.1", 0)

@@ -15,7 +15,6 @@ import pytest
 import edgemodbus as em
 from edgemodbus.datatypes import ItemStatus
 from edgemodbus.line.link import ContextLink
-from edgemodbus.poll.poller import Poller
 from edgemodbus.sim import Simulator, default_register
 from tests.integration.test_dtu import dtu_device, free_port, ok, running, values
 from tests.integration.test_engine import MasterCalls
@@ -28,7 +27,6 @@ from tests.waiting import wait_for
 def python_reads(monkeypatch: pytest.MonkeyPatch) -> Iterator[list[str]]:
     """The reads made in Python instead of the engine (the old step path), recorded."""
     calls: list[str] = []
-    monkeypatch.setattr(Poller, "poll_step", lambda *a: calls.append("poll_step"))
     monkeypatch.setattr(ContextLink, "_read", lambda *a: calls.append("_read"))
     yield calls
 

@@ -19,6 +19,7 @@ from .codec import CODEC_MODE_ALL, CODEC_MODE_TRACK, CodecPlan
 from .context import Context
 from .native import ffi, lib
 
+EV_DEADLINE: int = lib.EMB_EV_DEADLINE
 EV_CYCLE: int = lib.EMB_EV_CYCLE
 EV_FAILED: int = lib.EMB_EV_FAILED
 EV_WAKE: int = lib.EMB_EV_WAKE

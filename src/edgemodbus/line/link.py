@@ -20,7 +20,7 @@ from collections.abc import Callable, Sequence
 
 from .. import _ffi
 from .._ffi import Block, CodecPlan, Context, StreamCounters, check
-from .._ffi.engine import Engine, EngineDevice, LineCounters, Waker
+from .._ffi.engine import EV_DEADLINE, Engine, EngineDevice, LineCounters, Waker
 from ..codec import BlockDecoder, Change
 from ..datatypes import Area
 from ..errors import (
@@ -121,12 +121,12 @@ class Link:
         raise NotImplementedError
 
     def run_engine(self, waker: Waker, counters: LineCounters, devices: Sequence[EngineDevice],
-                   until: float, owed: bool = False) -> tuple[int, int, int] | None:
+                   until: float, owed: bool = False) -> tuple[int, int, int]:
         """Run ``devices``' passes in C until something needs Python or ``until``: the
         event, the index of the device concerned and an errno (see _ffi/engine.py).
         ``owed``: a job ran since the last read, so the next waits for one read of a
-        due block (:attr:`owed`: still owed).  None: this link steps in Python."""
-        return None
+        due block (:attr:`owed`: still owed)."""
+        raise NotImplementedError
 
     def read_failed(self, err: int, slave: int, area: Area, address: int,
                     count: int) -> ModbusError:
@@ -239,13 +239,14 @@ class ContextLink(Link):
 
     # -- the engine --------------------------------------------------------------------
     def run_engine(self, waker: Waker, counters: LineCounters, devices: Sequence[EngineDevice],
-                   until: float, owed: bool = False) -> tuple[int, int, int] | None:
+                   until: float, owed: bool = False) -> tuple[int, int, int]:
         """See :meth:`Link.run_engine`; when it comes back the frames it traced are
         logged, a DTU stream's counters taken and the wrapped reports that came before
         the last reply dispatched (they are older than it; the worker dispatches the rest
-        once the reply was applied: :meth:`flush_reports`)."""
+        once the reply was applied: :meth:`flush_reports`).  A closed link: EV_DEADLINE
+        at once (the worker reconnects)."""
         if not self.is_open:
-            return None
+            return EV_DEADLINE, -1, 0
         engine = self._engine
         if engine is None or engine.waker is not waker:
             engine = self._engine = Engine(self._ctx, waker, counters, self._pace, self.idle_fd)
@@ -267,11 +268,14 @@ class ContextLink(Link):
             return
         where = self.endpoint.describe()
         offset = time.time() - time.monotonic()  # the frames' times, as wall-clock times
+        second, clock = -1, ""
         for frame in frames:
-            clock = time.strftime("%H:%M:%S", time.localtime(frame.at + offset))
-            micros = int((frame.at + offset) % 1 * 1e6)
-            log.debug("%s %s.%06d %s %s", where, clock, micros, "TX" if frame.tx else "RX",
-                      frame.frame.hex(" ").upper())
+            at = frame.at + offset
+            if int(at) != second:  # frames come in bursts: one strftime per second
+                second = int(at)
+                clock = time.strftime("%H:%M:%S", time.localtime(second))
+            log.debug("%s %s.%06d %s %s", where, clock, int(at % 1 * 1e6),
+                      "TX" if frame.tx else "RX", frame.frame.hex(" ").upper())
         if lost:
             log.debug("%s: %d frames not traced (the trace ring was full)", where, lost)
 
