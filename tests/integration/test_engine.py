@@ -117,3 +117,24 @@ def test_the_frame_trace_does_not_change_the_path(sim: Simulator,
     assert len(tx) >= 20 * blocks and len(rx) >= 20 * blocks
     first = lines.index(tx[0])
     assert " RX 01 03 " in lines[first + 1]  # a request, then its reply
+
+
+def test_a_traced_frame_is_logged_while_the_engine_idles(sim: Simulator,
+                                                          caplog: pytest.LogCaptureFixture) -> None:
+    """A slow line whose values do not change (a pass every 4 s, nothing for Python): the
+    second pass's frames reach the log within about a second (EMB_TRACE_FLUSH_NS) while
+    the engine idles, not with the third pass or at the end."""
+    caplog.set_level("DEBUG", logger="edgemodbus.line")
+    port = sim.serve_tcp("127.0.0.1", 0)
+    cfg = device(port, _uint16s(3), readCycle=4000)
+
+    def traced() -> int:
+        return sum(1 for r in list(caplog.records)
+                   if r.name == "edgemodbus.line" and " RX 01 03 " in r.getMessage())
+
+    with Running(cfg) as drv:
+        wait_for(all_ok(cfg))
+        wait_for(lambda: traced() >= 1, what="the first pass's reply logged")
+        wait_for(lambda: drv.stats()["cycles"] >= 2, timeout=15, what="the second pass")
+        wait_for(lambda: traced() >= 2, timeout=15, what="the second pass's reply logged")
+        assert drv.stats()["cycles"] == 2  # logged before the third pass, not with it
