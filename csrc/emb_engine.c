@@ -5,7 +5,9 @@
  * costs no Python at all between the caller's deadlines.  What is rare stays in Python
  * (poll/poller.py): a failed read ends the engine's run at once, with the link as the
  * failure left it, and Python settles or drains the line, retries, splits the block or
- * takes the slave offline, then hands the device back. */
+ * takes the slave offline, then hands the device back.  Every link kind runs here, DTU
+ * streams too (their heartbeats are skipped in C and counted live; a read that took
+ * wrapped reports comes back to Python with them, EMB_EV_REPORTS). */
 #define _GNU_SOURCE /* ppoll */
 #include "emb_engine.h"
 
@@ -120,6 +122,22 @@ void emb_dev_all_due(emb_device *d, int64_t at_ns)
     d->due_ns = (d->n_blocks || d->cycle_ns) ? at_ns : EMB_NEVER;
 }
 
+/* A DTU stream's read left what only Python handles: wrapped reports (applied in the
+ * order they came around the reply), dropped frames or lost reports (logged). */
+static int emb_has_reports(const emb_link *lk)
+{
+    return lk->n_reports > 0 || lk->dropped > 0 || lk->reports_lost > 0;
+}
+
+/* The frame trace is due for Python: a quarter of the ring used, or its oldest frame
+ * EMB_TRACE_FLUSH_NS old (a frame reaches the log that soon, and a line with the trace
+ * on comes back to Python once per several passes, not after each). */
+static int emb_trace_due(const emb_trace *t, int64_t now_ns)
+{
+    return t && t->n > 0 &&
+           (t->used >= EMB_TRACE_SIZE / 4 || now_ns - t->first_ns >= EMB_TRACE_FLUSH_NS);
+}
+
 static int emb_woken(emb_engine *e)
 {
     return __atomic_load_n(e->wake, __ATOMIC_ACQUIRE) != 0;
@@ -202,6 +220,8 @@ static int emb_step(emb_engine *e, emb_device *d)
     rc = emb_read(e->ctx, e->lk, d->slave, b->function, b->start, b->count, data, e->rsp);
     e->lc->discarded += e->lk->discarded;
     e->lk->discarded = 0;
+    e->lc->heartbeats += e->lk->heartbeats; /* a DTU stream's: live, no Python */
+    e->lk->heartbeats = 0;
     if (e->pace_ns)
         e->ready_ns = emb_now_ns() + e->pace_ns;
     if (rc == -1)
@@ -242,8 +262,13 @@ int emb_engine_run(emb_engine *e, int64_t until_ns)
             return EMB_EV_WAKE;
         if (now >= until_ns)
             return EMB_EV_DEADLINE;
+        if (emb_trace_due(e->lk->trace, now))
+            return EMB_EV_TRACE; /* between passes: no device concerned */
         if (d == NULL || d->due_ns > now) {
             wait = d == NULL || d->due_ns > until_ns ? until_ns : d->due_ns;
+            if (e->lk->trace && e->lk->trace->n > 0 &&
+                e->lk->trace->first_ns + EMB_TRACE_FLUSH_NS < wait)
+                wait = e->lk->trace->first_ns + EMB_TRACE_FLUSH_NS;
             ev = emb_sleep(e, wait, 1);
             if (ev >= 0)
                 return ev;
@@ -257,6 +282,8 @@ int emb_engine_run(emb_engine *e, int64_t until_ns)
                 ev = emb_sleep(e, e->ready_ns, 0);
             else if (!e->owed && emb_woken(e))
                 ev = EMB_EV_WAKE;
+            else if (e->lk->trace && e->lk->trace->used > EMB_TRACE_SIZE / 2)
+                ev = EMB_EV_TRACE; /* a long pass: Python logs what the ring holds */
             if (ev >= 0) {
                 e->event_device = which; /* interrupted mid-pass */
                 return ev;
@@ -266,6 +293,10 @@ int emb_engine_run(emb_engine *e, int64_t until_ns)
                 e->event_device = which;
                 e->event_errno = errno;
                 return EMB_EV_FAILED;
+            }
+            if (emb_has_reports(e->lk)) {
+                e->event_device = which; /* the pass goes on when Python hands it back */
+                return EMB_EV_REPORTS;
             }
         }
         now = emb_now_ns();

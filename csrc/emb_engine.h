@@ -55,6 +55,7 @@ typedef struct emb_line_counters {
     uint64_t responses;
     int64_t rtt_ns;       /* round-trip times, summed */
     int64_t discarded;    /* bytes thrown away (emb_link.discarded, moved here) */
+    int64_t heartbeats;   /* DTU heartbeats skipped (emb_link.heartbeats, moved here) */
 } emb_line_counters;
 
 /* One polled slave: its blocks, its pass under way and its schedule. */
@@ -88,6 +89,12 @@ typedef struct emb_device {
                            * with owed set, only once a due block was read */
 #define EMB_EV_INPUT 4    /* watch_fd is readable while idle (unsolicited frames) */
 #define EMB_EV_ERROR 5    /* poll() failed: event_errno */
+#define EMB_EV_REPORTS 7  /* a read of device event_device took wrapped reports or dropped
+                           * frames besides its reply (a DTU stream): Python applies those
+                           * before the reply (emb_link.n_before), the reply, the rest */
+#define EMB_EV_TRACE 6    /* the link's frame trace holds frames for Python to log: between
+                           * passes once a quarter full or a frame is EMB_TRACE_FLUSH_NS
+                           * old, mid-pass (event_device) when half full */
 
 /* One line's engine: its link, its devices, its counters. */
 typedef struct emb_engine {

@@ -16,6 +16,74 @@
 #include "emb_rtu.h"
 #include "emb_stream.h"
 
+/* -- the frame trace (emb_link.h emb_trace) ------------------------------------------ */
+
+static void emb_trace_copy_in(emb_trace *t, const uint8_t *p, uint32_t n)
+{
+    uint32_t at = (t->head + t->used) % EMB_TRACE_SIZE;
+    uint32_t first = n < EMB_TRACE_SIZE - at ? n : EMB_TRACE_SIZE - at;
+
+    memcpy(t->buf + at, p, first);
+    memcpy(t->buf, p + first, n - first);
+    t->used += n;
+}
+
+static void emb_trace_copy_out(emb_trace *t, uint8_t *p, uint32_t n)
+{
+    uint32_t first = n < EMB_TRACE_SIZE - t->head ? n : EMB_TRACE_SIZE - t->head;
+
+    memcpy(p, t->buf + t->head, first);
+    memcpy(p + first, t->buf, n - first);
+    t->head = (t->head + n) % EMB_TRACE_SIZE;
+    t->used -= n;
+}
+
+/* Trace a frame of n bytes (at most EMB_MAX_ADU) sent (EMB_TRACE_TX) or received
+ * (EMB_TRACE_RX) now, when the link is traced; a full ring loses it, counted. */
+void emb_trace_put(emb_link *lk, int direction, const uint8_t *frame, int n)
+{
+    emb_trace *t = lk->trace;
+    uint8_t head[EMB_TRACE_HEAD];
+    int64_t now;
+
+    if (t == NULL || n <= 0)
+        return;
+    if (n > EMB_MAX_ADU)
+        n = EMB_MAX_ADU;
+    if (EMB_TRACE_SIZE - t->used < (uint32_t)n + EMB_TRACE_HEAD) {
+        t->lost++;
+        return;
+    }
+    now = emb_now_ns();
+    if (t->n == 0)
+        t->first_ns = now;
+    head[0] = (uint8_t)direction;
+    head[1] = (uint8_t)(n >> 8);
+    head[2] = (uint8_t)(n & 0xFF);
+    memcpy(head + 3, &now, sizeof now);
+    emb_trace_copy_in(t, head, EMB_TRACE_HEAD);
+    emb_trace_copy_in(t, frame, (uint32_t)n);
+    t->n++;
+}
+
+/* Take the oldest traced frame into out (at least EMB_MAX_ADU bytes), its direction and
+ * time: its length, 0 when none waits. */
+int emb_trace_take(emb_trace *t, uint8_t *out, int *direction, int64_t *t_ns)
+{
+    uint8_t head[EMB_TRACE_HEAD];
+    uint32_t n;
+
+    if (t->n == 0)
+        return 0;
+    emb_trace_copy_out(t, head, EMB_TRACE_HEAD);
+    n = (uint32_t)(head[1] << 8 | head[2]);
+    *direction = head[0];
+    memcpy(t_ns, head + 3, sizeof *t_ns);
+    emb_trace_copy_out(t, out, n);
+    t->n--;
+    return (int)n;
+}
+
 /* The link kind of lk, from the fields Python set on it (emb_link.h). */
 static const emb_backend *emb_backend_of(const emb_link *lk)
 {
@@ -124,6 +192,7 @@ static int emb_exchange(modbus_t *ctx, emb_link *lk, int slave, const uint8_t *p
         return -1;
     if (emb_send_adu(ctx, lk, be, slave, pdu, pdu_len, sent, &sent_len) == -1)
         return -1;
+    emb_trace_put(lk, EMB_TRACE_TX, sent, sent_len);
     if (be->skip_echo && lk->echo &&
         be->skip_echo(lk, fd, sent, sent_len, emb_timeout_ms(ctx, 0), byte_ms) == -1)
         return -1;
@@ -139,6 +208,7 @@ static int emb_exchange(modbus_t *ctx, emb_link *lk, int slave, const uint8_t *p
         len = be->recv(lk, fd, &want, wait, byte_ms, rsp, &got);
         if (len <= 0) {
             err = len == 0 ? EMB_ESLAVE : errno;
+            emb_trace_put(lk, EMB_TRACE_RX, rsp, got); /* what came, if anything */
             if (err == ETIMEDOUT && skipped)
                 err = EMB_ETID; /* only replies to other requests came */
             if (echo_seen && err != ETIMEDOUT)
@@ -146,6 +216,7 @@ static int emb_exchange(modbus_t *ctx, emb_link *lk, int slave, const uint8_t *p
             errno = err;
             return -1;
         }
+        emb_trace_put(lk, EMB_TRACE_RX, rsp, len);
         err = emb_check(lk, be, req, pdu_len + 1, rsp, len, &exc);
         if (err != EMB_ETID)
             break;
@@ -164,6 +235,7 @@ static int emb_exchange(modbus_t *ctx, emb_link *lk, int slave, const uint8_t *p
      * so a stale reply to an earlier request is never taken for this one. */
     if (be->min_next > 0 && be->pending(lk, fd) >= be->min_next) {
         len2 = be->recv(lk, fd, &want, 0, byte_ms, next, &got2);
+        emb_trace_put(lk, EMB_TRACE_RX, next, len2 > 0 ? len2 : got2);
         if (len2 > 0) {
             err2 = emb_check(lk, be, req, pdu_len + 1, next, len2, &exc2);
             if (err2 == 0) {
@@ -248,6 +320,7 @@ int emb_send(modbus_t *ctx, emb_link *lk, int slave, const uint8_t *pdu, int pdu
         return -1;
     if (emb_send_adu(ctx, lk, be, slave, pdu, pdu_len, sent, &sent_len) == -1)
         return -1;
+    emb_trace_put(lk, EMB_TRACE_TX, sent, sent_len);
     if (be->skip_echo && lk->echo &&
         be->skip_echo(lk, fd, sent, sent_len, emb_timeout_ms(ctx, 0),
                       emb_timeout_ms(ctx, 1)) == -1)

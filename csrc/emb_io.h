@@ -19,5 +19,7 @@ int emb_send(modbus_t *ctx, emb_link *lk, int slave, const uint8_t *pdu, int pdu
 long emb_link_discard(modbus_t *ctx, emb_link *lk, int total_ms, int quiet_ms, int limit_ms);
 long emb_pump(modbus_t *ctx, emb_link *lk);
 long emb_feed(emb_link *lk, const uint8_t *data, int n);
+void emb_trace_put(emb_link *lk, int direction, const uint8_t *frame, int n);
+int emb_trace_take(emb_trace *t, uint8_t *out, int *direction, int64_t *t_ns);
 
 #endif

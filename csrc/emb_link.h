@@ -11,6 +11,11 @@
 #define EMB_RING_SIZE 4096  /* stream links: reports waiting (a 2-byte length each) */
 #define EMB_REPORT_MAX 261  /* a wrapped frame: FF AA, address, RTU frame (<= 256), 0D */
 #define EMB_DROP_SHOW 32    /* bytes of the last dropped wrapped frame kept for the log */
+#define EMB_TRACE_SIZE 8192 /* the frame trace ring (emb_trace) */
+#define EMB_TRACE_HEAD 11   /* per traced frame: direction (1), length (2), time (8) */
+#define EMB_TRACE_TX 1      /* a frame we sent */
+#define EMB_TRACE_RX 2      /* a frame we received (a reply, also one refused) */
+#define EMB_TRACE_FLUSH_NS 1000000000LL /* the engine hands frames to Python this soon */
 
 /* The buffers of a DTU stream link (emb_link.sb): bytes received and not framed yet, and
  * the reports waiting.  The caller allocates them, for stream links only. */
@@ -18,6 +23,20 @@ typedef struct {
     uint8_t rx[EMB_RX_SIZE];
     uint8_t ring[EMB_RING_SIZE];
 } emb_stream_buf;
+
+/* The frame trace of a link (on while the line's logger is at DEBUG): every frame the
+ * transactions send and receive, with its direction and CLOCK_MONOTONIC time, written by
+ * csrc/emb_io.c (also inside the line engine, without the GIL) and taken by the worker
+ * (emb_trace_take), which formats and logs them.  A full ring loses the newest frames,
+ * counted.  The caller allocates it zeroed, for traced links only. */
+typedef struct {
+    uint8_t buf[EMB_TRACE_SIZE];
+    uint32_t head;  /* the oldest record's first byte */
+    uint32_t used;  /* bytes of the records waiting */
+    uint32_t n;     /* records waiting */
+    int64_t first_ns; /* when the oldest of them was traced */
+    long lost;      /* frames the full ring could not take; the caller reads and resets */
+} emb_trace;
 
 /* State of one line kept between transactions; the caller allocates it zeroed with the
  * context and sets mbap, echo, char_ns, and for a DTU stream wrapped, the heartbeat and
@@ -47,6 +66,7 @@ typedef struct {
     uint32_t n_before;      /* the first n_before of them came before the last reply: the
                              * caller applies them first, the others after the reply */
     emb_stream_buf *sb;     /* a stream link's buffers (required with wrapped or hb_len) */
+    emb_trace *trace;       /* the frame trace, NULL: off */
     /* private to csrc/emb_stream.c */
     int32_t absorb;         /* bytes of the last dropped frame still to skip, -1: up to the
                              * next header */

@@ -8,6 +8,13 @@ typedef struct {
 } emb_stream_buf;
 
 typedef struct {
+    uint32_t used;
+    uint32_t n;
+    long lost;
+    ...;
+} emb_trace;
+
+typedef struct {
     int mbap;
     int echo;
     unsigned tid;
@@ -25,11 +32,15 @@ typedef struct {
     uint32_t n_reports;
     uint32_t n_before;
     emb_stream_buf *sb;
+    emb_trace *trace;
     ...;
 } emb_link;
 
 #define EMB_HB_MAX ...
 #define EMB_REPORT_MAX ...
+#define EMB_TRACE_SIZE ...
+#define EMB_TRACE_TX ...
+#define EMB_TRACE_RX ...
 
 #define EMB_EBASE ...
 #define EMB_EEXCEPTION ...
@@ -56,6 +67,7 @@ long emb_link_discard(modbus_t *ctx, emb_link *lk, int total_ms, int quiet_ms, i
 long emb_pump(modbus_t *ctx, emb_link *lk);
 long emb_feed(emb_link *lk, const uint8_t *data, int n);
 int emb_report_take(emb_link *lk, uint8_t *out);
+int emb_trace_take(emb_trace *t, uint8_t *out, int *direction, int64_t *t_ns);
 int64_t emb_now_ns(void);
 
 /* csrc/emb_check.h: the one reply check */

@@ -6,6 +6,8 @@
 #define EMB_EV_WAKE ...
 #define EMB_EV_INPUT ...
 #define EMB_EV_ERROR ...
+#define EMB_EV_TRACE ...
+#define EMB_EV_REPORTS ...
 
 typedef struct emb_eblock {
     emb_plan *plan;
@@ -36,6 +38,7 @@ typedef struct emb_line_counters {
     uint64_t responses;
     int64_t rtt_ns;
     int64_t discarded;
+    int64_t heartbeats;
 } emb_line_counters;
 
 typedef struct emb_device {

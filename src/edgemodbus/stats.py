@@ -30,6 +30,7 @@ class NativeCounts(NamedTuple):
     responses: int = 0
     rtt_total: float = 0.0  # lines
     discarded_bytes: int = 0  # lines
+    heartbeats: int = 0  # lines (DTU streams)
     cycles: int = 0  # devices, from here on
     overruns: int = 0
     last_cycle_time: float = 0.0
@@ -116,7 +117,7 @@ class LineStats(RequestStats):
             "reconnects": self.reconnects,
             "connectFailures": self.connect_failures,
             "discardedBytes": self.discarded_bytes + native.discarded_bytes,
-            "heartbeats": self.heartbeats,
+            "heartbeats": self.heartbeats + native.heartbeats,
             "droppedFrames": self.dropped_frames,
             "avgRoundTrip": rtt / responses if responses else 0.0,
             "forwarded": self.forwarded,

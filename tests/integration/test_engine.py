@@ -88,3 +88,53 @@ def test_a_write_waits_only_for_the_transaction_in_flight(sim: Simulator) -> Non
         assert cfg.address_list[5].value == 7 and cfg.address_list[5].status is ItemStatus.OK
     # the read in flight (<= 20 ms), then the write itself (20 ms), with slack
     assert max(took) < 0.02 + 0.02 + 0.05, took
+
+
+def test_the_frame_trace_does_not_change_the_path(sim: Simulator,
+                                                  caplog: pytest.LogCaptureFixture,
+                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+    """DEBUG on edgemodbus.line (``-vv``): the engine still reads the line (no block is
+    stepped or read in Python), and every frame it sent and received is logged, in
+    order, from the trace ring."""
+    from edgemodbus.line.link import ContextLink
+
+    python_reads: list[str] = []
+    monkeypatch.setattr(ContextLink, "_read", lambda *a: python_reads.append("_read"))
+    caplog.set_level("DEBUG", logger="edgemodbus.line")
+    port = sim.serve_tcp("127.0.0.1", 0)
+    cfg = device(port, _uint16s(60, step=3), readCycle=5, maxBlockReadRegisterCount=30,
+                 maxMergeAddressGap=2)
+    with Running(cfg) as drv:
+        wait_for(all_ok(cfg))
+        before = drv.stats()["cycles"]
+        wait_for(lambda: drv.stats()["cycles"] >= before + 20, what="20 more cycles")
+        blocks = drv.stats()["requests"] // max(1, drv.stats()["cycles"])
+    assert not python_reads
+    assert blocks >= 6
+    lines = [r.getMessage() for r in caplog.records if r.name == "edgemodbus.line"]
+    tx = [line for line in lines if " TX 01 03 " in line]
+    rx = [line for line in lines if " RX 01 03 " in line]
+    assert len(tx) >= 20 * blocks and len(rx) >= 20 * blocks
+    first = lines.index(tx[0])
+    assert " RX 01 03 " in lines[first + 1]  # a request, then its reply
+
+
+def test_a_traced_frame_is_logged_while_the_engine_idles(sim: Simulator,
+                                                          caplog: pytest.LogCaptureFixture) -> None:
+    """A slow line whose values do not change (a pass every 4 s, nothing for Python): the
+    second pass's frames reach the log within about a second (EMB_TRACE_FLUSH_NS) while
+    the engine idles, not with the third pass or at the end."""
+    caplog.set_level("DEBUG", logger="edgemodbus.line")
+    port = sim.serve_tcp("127.0.0.1", 0)
+    cfg = device(port, _uint16s(3), readCycle=4000)
+
+    def traced() -> int:
+        return sum(1 for r in list(caplog.records)
+                   if r.name == "edgemodbus.line" and " RX 01 03 " in r.getMessage())
+
+    with Running(cfg) as drv:
+        wait_for(all_ok(cfg))
+        wait_for(lambda: traced() >= 1, what="the first pass's reply logged")
+        wait_for(lambda: drv.stats()["cycles"] >= 2, timeout=15, what="the second pass")
+        wait_for(lambda: traced() >= 2, timeout=15, what="the second pass's reply logged")
+        assert drv.stats()["cycles"] == 2  # logged before the third pass, not with it

@@ -206,8 +206,8 @@ def test_a_closed_loop_forward_flood_leaves_polling_its_rate(line: Line) -> None
 
 def test_the_rule_holds_when_the_line_steps_in_python(peer: PymodbusSlave,
                                                      caplog: pytest.LogCaptureFixture) -> None:
-    """With the frame trace on, the worker steps each block in Python (poll_step)
-    instead of the engine: the same rule, kept by the worker."""
+    """With the frame trace on (the engine writes every frame into the link's trace
+    ring, the worker logs them): the same rule."""
     caplog.set_level(logging.DEBUG, logger="edgemodbus.line")
     gw = Line(peer)
     try:
@@ -217,7 +217,7 @@ def test_the_rule_holds_when_the_line_steps_in_python(peer: PymodbusSlave,
             flooded = gw.rate()
         check_fair(quiet, flooded, flood)
         assert set(flood.answers) == {"ok"}
-        assert any(" TX " in r.getMessage() for r in caplog.records)  # (stepped in Python)
+        assert any(" TX " in r.getMessage() for r in caplog.records)
     finally:
         gw.close()
 

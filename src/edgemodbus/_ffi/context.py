@@ -6,7 +6,7 @@ from __future__ import annotations
 import errno as _errno
 import os
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 from ..errors import ModbusConnectionError, ModbusError, ProtocolError
 from .block import Block
@@ -34,6 +34,15 @@ class StreamCounters:
     last_drop: bytes = b""  # the first bytes of the last frame dropped, for the log
 
 
+class TracedFrame(NamedTuple):
+    """A frame of the trace: sent (``tx``) or received, when (``time.monotonic()``
+    seconds, the clock of csrc/emb_util.c), its bytes on the wire (for a wrapped link, the
+    RTU frame inside)."""
+
+    tx: bool
+    at: float
+    frame: bytes
+
 
 class Context:
     """One libmodbus context (``modbus_t``), used by exactly one thread.
@@ -59,6 +68,10 @@ class Context:
         self._report = ffi.new("uint8_t[]", lib.EMB_REPORT_MAX)
         self._stream_buf: Any = None  # a DTU stream's buffers, which _link.sb points at
         self._header = 1  # bytes before the PDU in a reply: slave id, or the MBAP header
+        self._trace: Any = None  # the frame trace ring, which _link.trace points at when on
+        self._trace_out = ffi.new("uint8_t[]", MAX_ADU_LENGTH)
+        self._trace_dir = ffi.new("int *")
+        self._trace_ns = ffi.new("int64_t *")
 
     # -- construction ----------------------------------------------------------------
     @classmethod
@@ -185,6 +198,37 @@ class Context:
         if n == -1:
             raise error_from_errno(ffi.errno, f"{self.label}: discarding input")
         return int(n)
+
+    # -- the frame trace (csrc/emb_link.h emb_trace) -----------------------------------
+    def set_trace(self, on: bool) -> None:
+        """Trace every frame sent and received into the link's ring (csrc/emb_io.c
+        writes it, in the line engine too); :meth:`take_trace` empties it."""
+        if on and self._trace is None:
+            self._trace = ffi.new("emb_trace *")
+        self._link.trace = self._trace if on else ffi.NULL
+
+    @property
+    def traced(self) -> int:
+        """Frames waiting in the trace ring (0 when the trace is off)."""
+        return int(self._trace.n) if self._link.trace != ffi.NULL else 0
+
+    def take_trace(self) -> tuple[list[TracedFrame], int]:
+        """The frames traced since the last call, oldest first, and how many the full
+        ring lost meanwhile."""
+        t = self._trace
+        if t is None:
+            return [], 0
+        frames: list[TracedFrame] = []
+        direction, at = self._trace_dir, self._trace_ns
+        for _ in range(int(t.n)):
+            size = lib.emb_trace_take(t, self._trace_out, direction, at)
+            if not size:
+                break
+            frames.append(TracedFrame(direction[0] == lib.EMB_TRACE_TX, int(at[0]) / 1e9,
+                                      bytes(ffi.buffer(self._trace_out, size))))
+        lost = int(t.lost)
+        t.lost = 0
+        return frames, lost
 
     def last_reply(self) -> bytes:
         """The reply ADU of the last transaction (for frame traces and error details);

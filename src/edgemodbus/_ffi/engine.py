@@ -19,11 +19,14 @@ from .codec import CODEC_MODE_ALL, CODEC_MODE_TRACK, CodecPlan
 from .context import Context
 from .native import ffi, lib
 
+EV_DEADLINE: int = lib.EMB_EV_DEADLINE
 EV_CYCLE: int = lib.EMB_EV_CYCLE
 EV_FAILED: int = lib.EMB_EV_FAILED
 EV_WAKE: int = lib.EMB_EV_WAKE
 EV_INPUT: int = lib.EMB_EV_INPUT
 EV_ERROR: int = lib.EMB_EV_ERROR
+EV_REPORTS: int = lib.EMB_EV_REPORTS  # a read took wrapped reports besides its reply
+EV_TRACE: int = lib.EMB_EV_TRACE  # the frame trace has frames to log (Link.run_engine did)
 
 _NEVER = (1 << 63) - 1
 _BOUNDS = ffi.new("int64_t[]", [round(b * 1e9) for b in CYCLE_BUCKETS])
@@ -281,7 +284,8 @@ class LineCounters:
         """Read live (any thread)."""
         lc = self._lc
         return NativeCounts(requests=lc.requests, responses=lc.responses,
-                            rtt_total=lc.rtt_ns / 1e9, discarded_bytes=lc.discarded)
+                            rtt_total=lc.rtt_ns / 1e9, discarded_bytes=lc.discarded,
+                            heartbeats=lc.heartbeats)
 
 
 class Waker:

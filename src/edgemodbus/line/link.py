@@ -19,7 +19,7 @@ import time
 from collections.abc import Callable, Sequence
 
 from .._ffi import Block, CodecPlan, Context, StreamCounters, check
-from .._ffi.engine import Engine, EngineDevice, LineCounters, Waker
+from .._ffi.engine import EV_DEADLINE, Engine, EngineDevice, LineCounters, Waker
 from ..codec import BlockDecoder, Change
 from ..datatypes import Area
 from ..errors import (
@@ -121,12 +121,12 @@ class Link:
         raise NotImplementedError
 
     def run_engine(self, waker: Waker, counters: LineCounters, devices: Sequence[EngineDevice],
-                   until: float, owed: bool = False) -> tuple[int, int, int] | None:
+                   until: float, owed: bool = False) -> tuple[int, int, int]:
         """Run ``devices``' passes in C until something needs Python or ``until``: the
         event, the index of the device concerned and an errno (see _ffi/engine.py).
         ``owed``: a job ran since the last read, so the next waits for one read of a
-        due block (:attr:`owed`: still owed).  None: this link steps in Python."""
-        return None
+        due block (:attr:`owed`: still owed)."""
+        raise NotImplementedError
 
     def read_failed(self, err: int, slave: int, area: Area, address: int,
                     count: int) -> ModbusError:
@@ -181,18 +181,7 @@ class Link:
     def mask_write_register(self, slave: int, address: int, and_mask: int, or_mask: int) -> None:
         self._write(slave, struct.pack(">BHHH", 22, address, and_mask, or_mask))
 
-    # -- frame trace and reply check -----------------------------------------------------
-    def _log_frame(self, direction: str, slave: int, pdu: bytes) -> None:
-        """Frame trace at DEBUG: the bytes on the wire, e.g. "TX 01 03 00 00 00 0A C5 CD".
-        MBAP headers of requests, whose transaction id the C side picks, are shown as
-        the unit id only."""
-        frame = rtu.frame(slave, pdu)
-        if self._mbap:
-            text = f"[MBAP unit {slave}] {pdu.hex(' ').upper()}"
-        else:
-            text = frame.hex(" ").upper()
-        log.debug("%s %s %s", self.endpoint.describe(), direction, text)
-
+    # -- reply check -------------------------------------------------------------------
     def _check_write_reply(self, slave: int, pdu: bytes, adu: bytes) -> None:
         """Check a write's reply ADU held in Python (the reply fuzzer's entry,
         tests/unit/ffi/test_fuzz_reply.py) with the C check every transaction makes
@@ -246,16 +235,18 @@ class ContextLink(Link):
         if ctx.wrapped:
             self.idle_fd = ctx.fd  # reports come while idle too: the worker pumps
         self._engine: Engine | None = None
+        ctx.set_trace(self._trace)  # the frames go into a ring in C; _log_trace logs them
 
     # -- the engine --------------------------------------------------------------------
     def run_engine(self, waker: Waker, counters: LineCounters, devices: Sequence[EngineDevice],
-                   until: float, owed: bool = False) -> tuple[int, int, int] | None:
-        """See :meth:`Link.run_engine`; with the frame trace on, the line steps in
-        Python so that every frame is logged, and so does a DTU stream (the engine does
-        not take its wrapped reports out of the link yet: they must reach the pollers
-        before the reply they came before, the others after it)."""
-        if self._trace or self._stream or not self.is_open:
-            return None
+                   until: float, owed: bool = False) -> tuple[int, int, int]:
+        """See :meth:`Link.run_engine`; when it comes back the frames it traced are
+        logged, a DTU stream's counters taken and the wrapped reports that came before
+        the last reply dispatched (they are older than it; the worker dispatches the rest
+        once the reply was applied: :meth:`flush_reports`).  A closed link: EV_DEADLINE
+        at once (the worker reconnects)."""
+        if not self.is_open:
+            return EV_DEADLINE, -1, 0
         engine = self._engine
         if engine is None or engine.waker is not waker:
             engine = self._engine = Engine(self._ctx, waker, counters, self._pace, self.idle_fd)
@@ -265,7 +256,28 @@ class ContextLink(Link):
         if self._pace:
             self._ready_at = engine.ready_at
         self._timeouts = (-1.0, -1.0)  # the engine sets each device's own
+        self._collect()
         return event, engine.event_device, engine.event_errno
+
+    def _log_trace(self) -> None:
+        """Log the frames our C traced (csrc/emb_io.c, in the line engine too) at DEBUG:
+        the time each was sent or received, then its bytes on the wire, e.g.
+        "TX 01 03 00 00 00 0A C5 CD" (Modbus TCP: the whole ADU, MBAP header included)."""
+        frames, lost = self._ctx.take_trace()
+        if not (frames or lost):
+            return
+        where = self.endpoint.describe()
+        offset = time.time() - time.monotonic()  # the frames' times, as wall-clock times
+        second, clock = -1, ""
+        for frame in frames:
+            at = frame.at + offset
+            if int(at) != second:  # frames come in bursts: one strftime per second
+                second = int(at)
+                clock = time.strftime("%H:%M:%S", time.localtime(second))
+            log.debug("%s %s.%06d %s %s", where, clock, int(at % 1 * 1e6),
+                      "TX" if frame.tx else "RX", frame.frame.hex(" ").upper())
+        if lost:
+            log.debug("%s: %d frames not traced (the trace ring was full)", where, lost)
 
     def read_failed(self, err: int, slave: int, area: Area, address: int,
                     count: int) -> ModbusError:
@@ -315,6 +327,8 @@ class ContextLink(Link):
         came before the last reply (older than it)."""
         ctx = self._ctx
         self.stats.discarded_bytes += ctx.take_discarded()
+        if self._trace:
+            self._log_trace()
         if not self._stream:
             return
         counts = ctx.take_counters()
@@ -417,8 +431,6 @@ class ContextLink(Link):
         stats = self.stats
         stats.requests += 1
         function = READ_FC[area]
-        if self._trace:
-            self._log_frame("TX", slave, struct.pack(">BHH", function, address, count))
         start = time.monotonic()
         ctx = self._ctx
         n = 0
@@ -432,8 +444,6 @@ class ContextLink(Link):
             raise self._fail(exc) from None
         finally:
             self._collect()
-            if self._trace:
-                self._log_reply()
             if self._pace:
                 self._done()
         stats.responses += 1
@@ -472,8 +482,6 @@ class ContextLink(Link):
             if timeout is not None and before[0] >= 0 and self.is_open:
                 self.set_response_timeout(before[0])  # (the engine sets its own anyway)
             self._collect()
-            if self._trace:
-                self._log_reply()
             self._done()
         self.stats.responses += 1
         self.stats.rtt_total += time.monotonic() - start
@@ -484,11 +492,4 @@ class ContextLink(Link):
             raise ModbusConnectionError(f"{self.endpoint.describe()}: link is down")
         self._wait_turn()
         self.stats.requests += 1
-        if self._trace:
-            self._log_frame("TX", slave, pdu)
-
-    def _log_reply(self) -> None:
-        reply = self._ctx.last_reply()
-        if reply:
-            log.debug("%s RX %s", self.endpoint.describe(), reply.hex(" ").upper())
 

@@ -10,9 +10,9 @@ from .link import Link
 
 
 class Poller(Protocol):
-    """What the line worker runs: the driver's device polling.  On a link with an
-    engine the engine runs the passes over :attr:`device` and calls the poller only
-    for what needs Python; otherwise the worker calls :meth:`poll_step` when due."""
+    """What the line worker runs: the driver's device polling.  The link's engine runs
+    the passes over :attr:`device` and the worker calls the poller only for what needs
+    Python."""
 
     device: EngineDevice
     """The poller's plan and schedule as the engine runs them."""
@@ -20,10 +20,6 @@ class Poller(Protocol):
     @property
     def due(self) -> float:
         """``time.monotonic()`` of the next step (read by the worker on every step)."""
-        ...
-
-    def poll_step(self, link: Link) -> None:
-        """Do one request (one block read) on the worker thread."""
         ...
 
     def engine_cycle(self) -> None:

@@ -17,11 +17,9 @@ the worker never dies of it.
 from __future__ import annotations
 
 import logging
-import operator
 import os
 import queue
 import random
-import select
 import threading
 import time
 from collections.abc import Callable
@@ -33,6 +31,7 @@ from .._ffi.engine import (
     EV_ERROR,
     EV_FAILED,
     EV_INPUT,
+    EV_REPORTS,
     EV_WAKE,
     EngineDevice,
     LineCounters,
@@ -50,9 +49,8 @@ from .requests import LineRequests
 log = logging.getLogger("edgemodbus.line")
 T = TypeVar("T")
 
-_IDLE_SLICE = 0.05  # links with unsolicited frames: longest wait before checking the queue
-_MAX_IDLE = 3600.0  # a poller due "never" (report-only) still gets an idle step per hour
-_DUE = operator.attrgetter("due")
+_IDLE_SLICE = 0.05  # the pause after a failed engine wait (poll() failing) before the next
+_MAX_IDLE = 3600.0  # the engine comes back at least once an hour
 
 
 class Connector(Protocol):
@@ -278,8 +276,8 @@ class LineWorker(LineRequests):
     def _serve(self, link: Link) -> None:
         """One step while the link is up: a queued request (unless a job already ran
         since the last poll transaction and a block is due: fairness), else the
-        engine's run until it needs Python, else (a link without one) the most overdue
-        poller's step."""
+        engine's run until it needs Python (EV_DEADLINE: an hour went by, or the link
+        is closed)."""
         pollers = self._pollers
         if not self._queue.empty():
             late = late_by([p.device for p in pollers], time.monotonic())
@@ -291,35 +289,14 @@ class LineWorker(LineRequests):
         if not pollers:
             self._handle(self._queue.get(), link)
             return
-        until = time.monotonic() + _MAX_IDLE
         event = link.run_engine(self._waker, self._counters, [p.device for p in pollers],
-                                until, self._owed)
-        if event is not None:
-            self._owed = link.owed
-            self._dispatch(link, event, pollers)
-            return
-        poller = min(pollers, key=_DUE)
-        wait = poller.due - time.monotonic()
-        if wait > 0:
-            self._owed = False  # nothing due: jobs may have the line
-            if link.idle_fd is not None:
-                self._idle_reads(link, wait)
-                return
-            try:
-                item = self._queue.get(timeout=min(wait, _MAX_IDLE))
-            except queue.Empty:
-                return
-            self._handle(item, link)
-            return
-        self._owed = False
-        try:
-            poller.poll_step(link)
-        except Exception:  # a poller bug must not kill the line
-            log.exception("%s: poller failed", self.endpoint.describe())
-        link.flush_reports()
+                                time.monotonic() + _MAX_IDLE, self._owed)
+        self._owed = link.owed
+        self._dispatch(link, event, pollers)
 
     def _dispatch(self, link: Link, event: tuple[int, int, int], pollers: list[Poller]) -> None:
-        """Hand what the engine came back for to whom it concerns."""
+        """Hand what the engine came back for to whom it concerns (EV_TRACE: nothing
+        more, the link logged the frames traced when the engine came back)."""
         kind, which, err = event
         try:
             if kind == EV_CYCLE:
@@ -330,6 +307,8 @@ class LineWorker(LineRequests):
                 self._waker.clear()
                 if which >= 0:  # a job may set items of the pass under way: results first
                     pollers[which].take_results()
+            elif kind == EV_REPORTS:  # the reports before the reply went out already
+                pollers[which].take_results()  # the reply, then the rest (below)
             elif kind == EV_INPUT:
                 link.pump()
             elif kind == EV_ERROR:
@@ -339,23 +318,6 @@ class LineWorker(LineRequests):
         except Exception:  # a poller bug must not kill the line
             log.exception("%s: poller failed", self.endpoint.describe())
         link.flush_reports()
-
-    def _idle_reads(self, link: Link, wait: float) -> None:
-        """Idle on a link that receives unsolicited frames: watch its socket in slices
-        of at most 50 ms, checking the queue between them (near zero CPU when quiet)."""
-        fd = link.idle_fd
-        assert fd is not None
-        poller = select.poll()
-        poller.register(fd, select.POLLIN | select.POLLERR | select.POLLHUP)
-        deadline = time.monotonic() + min(wait, _MAX_IDLE)
-        while link.is_open and self._queue.empty() and not self._connect_now:
-            left = deadline - time.monotonic()
-            if left <= 0:
-                return
-            if poller.poll(1000 * min(left, _IDLE_SLICE)):
-                link.pump()
-        if not self._queue.empty():
-            self._handle(self._queue.get_nowait(), link)
 
     def _handle(self, item: Any, link: Link | None, late: float | None = None) -> None:
         """Run a queued job (``late``: how long polling has been due meanwhile)."""

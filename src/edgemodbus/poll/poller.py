@@ -3,11 +3,12 @@
 A :class:`Poller` is attached to its line.  Its plan lives in C as well
 (:class:`~edgemodbus._ffi.engine.EngineDevice`: every block with its own due time, its
 items' scan rate, see schedule.py); a cycle is one pass over the blocks due when it
-begins.  The line's engine runs whole passes in C and hands the poller only what needs
-Python (:meth:`Poller.engine_cycle` for a pass with news, :meth:`Poller.engine_failed`
-for a failed read); a line that steps in Python (the frame trace) calls
-:meth:`Poller.poll_step` per block.  Either way writes queued by other threads run
-between two blocks.  What it reads goes to its owner through a :class:`PollSink`.
+begins.  The line's engine runs whole passes in C, on every link kind and with the frame
+trace on too, and hands the poller only what needs Python (:meth:`Poller.engine_cycle`
+for a pass with news, :meth:`Poller.take_results` before wrapped reports or a job,
+:meth:`Poller.engine_failed` for a failed read, whose retries are read in Python).
+Writes queued by other threads run between two blocks.  What it reads goes to its owner
+through a :class:`PollSink`.
 Faults are handled per slave: see faults.py.
 """
 
@@ -25,9 +26,6 @@ from .._ffi.engine import BlockSpec, EngineDevice
 from ..codec import BlockDecoder, Change, ValueSpec
 from ..config import DriverModbusRtuParameter, ParsedItem
 from ..datatypes import DeviceDriverStatus, ItemStatus
-from ..errors import (
-    ModbusError,
-)
 from ..line import LineWorker, Link
 from ..line.link import READ_FC
 from ..stats import DeviceStats
@@ -271,28 +269,7 @@ class Poller(FaultPolicy):
         if self.slots is slots:  # not re-planned by a callback meanwhile
             self._read_failed(link, slot, error)
 
-    # -- stepping in Python (a line with a frame trace) ---------------------------------
-    def poll_step(self, link: Link) -> None:
-        """Read the next block of this cycle (a cycle begins with the blocks due then)."""
-        if not self.active:
-            return
-        device = self.device
-        if not device.in_pass:
-            if not device.begin_pass(time.monotonic()) and self.slots:
-                return  # woken early: nothing due yet
-            if not self.slots:  # nothing to read: an empty cycle per readCycle
-                self._end_cycle(failed=False)
-                return
-        slot = self.slots[device.pass_blocks()[device.index]]
-        link.set_response_timeout(self.timeout)
-        self.counters.requests += 1
-        try:
-            data, changes = self._read_slot(link, slot)
-        except ModbusError as exc:
-            self._read_failed(link, slot, exc)
-            return
-        self._good_read(slot, data, changes)
-
+    # -- retries (poll/faults.py): a block read again in Python ---------------------------
     def _read_slot(self, link: Link, slot: Slot) -> tuple[Block, list[Change]]:
         """Read a block and decode its whole items (one C call on the libmodbus path)."""
         block = slot.block

@@ -1,0 +1,100 @@
+"""DTU streams in the line engine (csrc/emb_engine.c over csrc/emb_stream.c): a DTU with
+heartbeats is read by the engine like a plain RTU-over-TCP line (its heartbeats counted
+live, no Python per block or per heartbeat), and a wrapped-report link's reports reach
+the items around the reply in the order they came on the wire, without the Python step
+path."""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Iterator
+from typing import Any
+
+import pytest
+
+import edgemodbus as em
+from edgemodbus.datatypes import ItemStatus
+from edgemodbus.line.link import ContextLink
+from edgemodbus.sim import Simulator, default_register
+from tests.integration.test_dtu import dtu_device, free_port, ok, running, values
+from tests.integration.test_engine import MasterCalls
+from tests.integration.test_wrapped_link import EagerMcu
+from tests.integration.test_wrapped_link import running as running_one
+from tests.waiting import wait_for
+
+
+@pytest.fixture
+def python_reads(monkeypatch: pytest.MonkeyPatch) -> Iterator[list[str]]:
+    """The reads made in Python instead of the engine (the old step path), recorded."""
+    calls: list[str] = []
+    monkeypatch.setattr(ContextLink, "_read", lambda *a: calls.append("_read"))
+    yield calls
+
+
+def test_a_dtu_with_heartbeats_runs_in_the_engine(python_reads: list[str]) -> None:
+    """Heartbeats between and before the replies, values that do not change: the worker
+    runs less Python than one call per pass, and the heartbeats are counted live."""
+    port = free_port()
+    cfg = dtu_device(port, "DTU8", heartbeat="HB", readCycle=20, addresses=(0, 1, 7, 40, 90),
+                     maxMergeAddressGap=0)
+    with Simulator(slaves=[1]) as sim, running(cfg) as (drv,):
+        client = sim.dial("127.0.0.1", port, registration=b"HBDTU8", heartbeat=b"HB",
+                          heartbeat_interval=0.01, heartbeat_before_reply=True)
+        wait_for(ok(cfg))
+        with MasterCalls() as watch:
+            before = drv.stats()
+            watch.counting = True
+            wait_for(lambda: drv.stats()["cycles"] >= before["cycles"] + 20
+                     and drv.stats()["line"]["heartbeats"] >= before["line"]["heartbeats"] + 5,
+                     what="20 passes and 5 heartbeats")
+            watch.counting = False
+            stats = drv.stats()
+        cycles = stats["cycles"] - before["cycles"]
+        assert values(cfg) == [default_register(1, a) for a in (0, 1, 7, 40, 90)]
+    assert not python_reads
+    assert stats["timeouts"] == 0 and stats["protocolErrors"] == 0
+    assert stats["requests"] - before["requests"] >= 4 * cycles - 4  # [0, 1] 7 40 90
+    assert watch.calls < cycles, (watch.calls, cycles)
+    assert client.heartbeats_sent >= stats["line"]["heartbeats"] - 1
+
+
+def _eager_config(port: int, **extra: Any) -> em.DeviceConfig:
+    comm: dict[str, Any] = {"framing": "wrapped-report", "transport": "rtu-over-tcp",
+                            "tcpHost": "127.0.0.1", "tcpPort": port, "slaveId": 1,
+                            "readTimeout": 500, "byteTimeout": 50, "reportMode": "cycle"}
+    comm.update(extra)
+    return em.load_device_config({
+        "organization": {"deviceCode": "eager"},
+        "communication": comm,
+        "addressList": [{"name": f"r{a}", "address": f"3:{a}", "deviceDataType": "UInt16"}
+                        for a in (1, 2, 3)],
+    })
+
+
+@pytest.mark.parametrize("report_after", [False, True])
+def test_wrapped_reports_around_the_reply_in_the_engine(python_reads: list[str],
+                                                        report_after: bool) -> None:
+    """Every read of [1, 2] brings a report of 1..4 before its reply (or right behind it,
+    in the same segment): each item sees the frames in the order they came, the engine
+    made every read."""
+    mcu = EagerMcu(report_after=report_after)
+    seen: list[tuple[str, Any, ItemStatus]] = []
+    try:
+        cfg = _eager_config(mcu.port, readCycle=30, maxBlockReadRegisterCount=2)
+        with running_one(cfg, address_updated_callback=lambda it: seen.append(
+                (it.name, it.value, it.status))) as drv:
+            wait_for(lambda: mcu.reports >= 6, what="six reads answered with a report")
+            stats = drv.stats()
+    finally:
+        mcu.close()
+    assert not python_reads
+    assert stats["reports"] >= 5 and stats["timeouts"] == stats["protocolErrors"] == 0
+    assert all(status is ItemStatus.OK for _, _, status in seen)
+    r1 = [v for n, v, _ in seen if n == "r1"]
+    polled, reported = EagerMcu.polled(1), [v for v in r1 if v >= 9000]
+    assert len(reported) >= 5 and polled in r1
+    for before, after in itertools.pairwise(r1):
+        if report_after:  # the reply, then its report: a report never follows a report
+            assert before != polled or after >= 9000, r1
+        else:  # the report, then the reply
+            assert before < 9000 or after == polled, r1
