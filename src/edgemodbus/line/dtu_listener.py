@@ -15,7 +15,7 @@ than a bound (:mod:`.admission`):
   When the port is full, the oldest connection held as refused, or silent for the quiet
   gap, is evicted first, so that idle connections cannot keep DTUs out.
   Accept errors (EMFILE, ENFILE, ENOBUFS, ENOMEM) pause accepting, doubling up to
-  :data:`MAX_ACCEPT_PAUSE`, instead of spinning;
+  2 s (line/accept_pause.py), instead of spinning;
 * before registering: at most ``registrationMaxBytes`` bytes (then closed at once),
   read at ``registrationByteRate`` at most (reading pauses; TCP slows the sender), within
   the registration timeout;
@@ -32,7 +32,6 @@ short hex prefix of untrusted bytes, and none of a registration that carries a k
 from __future__ import annotations
 
 import contextlib
-import errno
 import logging
 import math
 import selectors
@@ -42,6 +41,7 @@ import threading
 import time
 from dataclasses import dataclass, field
 
+from .accept_pause import ACCEPT_ERRORS, AcceptPause
 from .admission import ByteBudget, Networks, Unregistered, key_matches
 from .dtu_slot import DtuSlot
 from .log_limit import LogLimiter, hex_prefix, short_text
@@ -53,17 +53,12 @@ ACCEPT_BATCH = 64
 """Connections accepted per turn of the loop, so that registrations are read between
 accepts when thousands of DTUs dial in at once (the caps count waiting connections)."""
 
-MIN_ACCEPT_PAUSE = 0.05
-MAX_ACCEPT_PAUSE = 2.0
-"""Seconds accepting pauses after an accept error (doubling from the first)."""
-
 EVICT_SCAN = 32
 """Oldest waiting connections looked at for one to evict when the port is full."""
 
 BUDGET_BURST = 64
 """Bytes a newcomer may send at once before ``registrationByteRate`` applies."""
 
-_ACCEPT_ERRORS = (errno.EMFILE, errno.ENFILE, errno.ENOBUFS, errno.ENOMEM)
 _RESET = struct.pack("ii", 1, 0)  # SO_LINGER on, 0 s: close with RST, no TIME_WAIT here
 
 COUNTERS = ("accepted", "registered", "unknown", "silent", "oversize", "evicted",
@@ -125,8 +120,7 @@ class DtuListener:
         self._sel.register(self._wake_r, selectors.EVENT_READ, None)
         self._newcomers: dict[_Newcomer, None] = {}  # in accept order, oldest first
         self._challenged: set[str] = set()  # ids with a connection held as challenger
-        self._accept_pause = 0.0  # the last pause after an accept error (0: none)
-        self._accept_at = math.inf  # accepting paused until then
+        self._paused = AcceptPause()  # accepting after an accept error (EMFILE...)
         self._stopping = False
         self._thread = threading.Thread(target=self._run, daemon=True,
                                         name=f"edgemodbus-dtu-listener :{self.port}")
@@ -185,7 +179,7 @@ class DtuListener:
     def _turn(self) -> None:
         """One turn of the loop: wait for sockets or the next timer, then serve them."""
         first = min((n.wake() for n in self._newcomers), default=math.inf)
-        first = min(first, self._accept_at, self._logs.next_due())
+        first = min(first, self._paused.until, self._logs.next_due())
         timeout = None if first == math.inf else max(0.0, first - time.monotonic())
         accept = False
         for key, _ in self._sel.select(timeout):
@@ -218,12 +212,12 @@ class DtuListener:
             except (BlockingIOError, InterruptedError):
                 return
             except OSError as exc:
-                if exc.errno in _ACCEPT_ERRORS:
+                if exc.errno in ACCEPT_ERRORS:
                     self._pause_accepting(exc)
                 else:
                     log.warning("DTU listener :%d: accept failed: %s", self.port, exc)
                 return
-            self._accept_pause = 0.0
+            self._paused.accepted()
             self.counts["accepted"] += 1
             self._admit(conn, str(addr[0]), f"{addr[0]}:{addr[1]}")
 
@@ -231,14 +225,12 @@ class DtuListener:
         """Out of fds or buffers: stop accepting for a while (the backlog waits)."""
         self.counts["acceptErrors"] += 1
         self.counts["acceptPauses"] += 1
-        self._accept_pause = min(MAX_ACCEPT_PAUSE, max(MIN_ACCEPT_PAUSE,
-                                                       self._accept_pause * 2))
-        self._accept_at = time.monotonic() + self._accept_pause
+        pause = self._paused.failed(time.monotonic())
         with contextlib.suppress(KeyError, ValueError):
             self._sel.unregister(self._sock)
         self._logs.event(logging.WARNING, "accept pauses", "accept",
                          "DTU listener :%d: accept failed (%s); pausing accepting for %.2g s",
-                         self.port, exc.strerror or exc, self._accept_pause)
+                         self.port, exc.strerror or exc, pause)
 
     def _admit(self, conn: socket.socket, source: str, peer: str) -> None:
         if not self._allowed.allows(source):
@@ -435,8 +427,7 @@ class DtuListener:
         return None
 
     def _timers(self, now: float) -> None:
-        if now >= self._accept_at:
-            self._accept_at = math.inf
+        if self._paused.over(now):
             self._sel.register(self._sock, selectors.EVENT_READ, None)
         for newcomer in [n for n in self._newcomers if n.wake() <= now]:
             if newcomer.challenge is not None:

@@ -26,7 +26,6 @@ library's) on the server's thread: a scrape reads counters only.  Only GET and H
 from __future__ import annotations
 
 import contextlib
-import errno
 import io
 import logging
 import selectors
@@ -39,7 +38,7 @@ from dataclasses import dataclass, field
 from typing import Any
 from urllib.parse import unquote
 
-from ..line.dtu_listener import MAX_ACCEPT_PAUSE, MIN_ACCEPT_PAUSE
+from ..line.accept_pause import ACCEPT_ERRORS, AcceptPause
 from ..line.log_limit import LogLimiter
 
 log = logging.getLogger("edgemodbus.metrics")
@@ -55,7 +54,6 @@ MAX_REQUEST_BYTES = 8192
 ACCEPT_BATCH = 64
 """Connections accepted per turn of the loop."""
 
-_ACCEPT_ERRORS = (errno.EMFILE, errno.ENFILE, errno.ENOBUFS, errno.ENOMEM)
 _REASONS = {400: "Bad Request", 405: "Method Not Allowed",
             431: "Request Header Fields Too Large", 500: "Internal Server Error"}
 
@@ -111,8 +109,7 @@ class MetricsHttpServer:
         self._done = threading.Event()
         self._done.set()
         self._logs = LogLimiter(log, interval=10.0, burst=1)
-        self._accept_pause = 0.0
-        self._accept_at = 0.0  # accepting paused until then (monotonic; 0: not paused)
+        self._paused = AcceptPause()  # accepting after an accept error (EMFILE...)
         self.counts = {"accepted": 0, "answered": 0, "evicted": 0, "refused": 0,
                        "timedOut": 0, "tooLarge": 0, "badRequests": 0, "acceptErrors": 0}
 
@@ -152,13 +149,10 @@ class MetricsHttpServer:
     # -- the loop --------------------------------------------------------------------
     def _turn(self) -> None:
         now = time.monotonic()
-        if self._accept_at and now >= self._accept_at:
-            self._accept_at = 0.0
+        if self._paused.over(now):
             self._sel.register(self._sock, selectors.EVENT_READ)
         first = min((c.deadline for c in self._conns.values()), default=now + 60.0)
-        first = min(first, self._logs.next_due())
-        if self._accept_at:
-            first = min(first, self._accept_at)
+        first = min(first, self._logs.next_due(), self._paused.until)
         accept = False
         for key, events in self._sel.select(max(0.0, first - now)):
             if key.fileobj is self._sock:
@@ -189,7 +183,7 @@ class MetricsHttpServer:
             except (BlockingIOError, InterruptedError):
                 return
             except OSError as exc:
-                if exc.errno in _ACCEPT_ERRORS:
+                if exc.errno in ACCEPT_ERRORS:
                     if self._evict(exc.strerror or str(exc)):  # the fd limit is a cap too
                         continue
                     self._pause_accepting(exc)
@@ -197,7 +191,7 @@ class MetricsHttpServer:
                     self._logs.event(logging.WARNING, "accept errors", "accept",
                                      "metrics: accept failed: %s", exc)
                 return
-            self._accept_pause = 0.0
+            self._paused.accepted()
             self.counts["accepted"] += 1
             source = f"{addr[0]}:{addr[1]}" if isinstance(addr, tuple) else str(addr)
             if (len(self._conns) >= self.max_connections
@@ -225,14 +219,12 @@ class MetricsHttpServer:
     def _pause_accepting(self, exc: OSError) -> None:
         """Out of fds or memory: the pending connections wait in the backlog a while."""
         self.counts["acceptErrors"] += 1
-        self._accept_pause = min(MAX_ACCEPT_PAUSE, max(MIN_ACCEPT_PAUSE,
-                                                       self._accept_pause * 2))
-        self._accept_at = time.monotonic() + self._accept_pause
+        pause = self._paused.failed(time.monotonic())
         with contextlib.suppress(KeyError, ValueError):
             self._sel.unregister(self._sock)
         self._logs.event(logging.WARNING, "accept pauses", "accept",
                          "metrics: accept failed (%s); pausing accepting for %.2g s",
-                         exc.strerror or exc, self._accept_pause)
+                         exc.strerror or exc, pause)
 
     def _read(self, conn: _Conn) -> None:
         try:
