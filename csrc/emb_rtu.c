@@ -120,16 +120,11 @@ static int emb_rtu_skip_echo(emb_link *lk, int fd, const uint8_t *sent, int sent
             errno = got ? EMB_EPARTIAL : ETIMEDOUT;
             return -1;
         }
-        n = read(fd, echo + got, (size_t)(sent_len - got));
-        if (n == 0) {
-            errno = emb_eof_errno(fd);
+        n = emb_read_some(fd, echo + got, (size_t)(sent_len - got));
+        if (n < 0)
             return -1;
-        }
-        if (n < 0) {
-            if (errno == EINTR || errno == EAGAIN)
-                continue;
-            return -1;
-        }
+        if (n == 0)
+            continue;
         got += (int)n;
         if (got < sent_len)
             emb_pace(lk, &pace, (int)n, sent_len - got, byte_ms);
@@ -169,16 +164,11 @@ static int emb_fd_recv(emb_link *lk, int fd, int mbap, int slave, int first_ms,
             errno = n_got ? EMB_EPARTIAL : ETIMEDOUT;
             return -1;
         }
-        n = read(fd, rsp + n_got, (size_t)(need - n_got));
-        if (n == 0) {
-            errno = emb_eof_errno(fd);
+        n = emb_read_some(fd, rsp + n_got, (size_t)(need - n_got));
+        if (n < 0)
             return -1;
-        }
-        if (n < 0) {
-            if (errno == EINTR || errno == EAGAIN)
-                continue;
-            return -1;
-        }
+        if (n == 0)
+            continue;
         n_got += (int)n;
         *got = n_got;
         need = emb_reply_length(rsp, n_got, mbap);

@@ -122,17 +122,13 @@ static int emb_rx_fill(emb_link *lk, int fd, int64_t deadline_ns)
         rc = emb_wait_until(fd, deadline_ns);
         if (rc <= 0)
             return rc;
-        n = read(fd, lk->sb->rx + lk->rx_len, space);
+        n = emb_read_some(fd, lk->sb->rx + lk->rx_len, space);
+        if (n < 0)
+            return -1;
         if (n > 0) {
             lk->rx_len += (uint32_t)n;
             return (int)n;
         }
-        if (n == 0) {
-            errno = emb_eof_errno(fd);
-            return -1;
-        }
-        if (errno != EINTR && errno != EAGAIN)
-            return -1;
     }
 }
 

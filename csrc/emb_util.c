@@ -96,6 +96,22 @@ int emb_eof_errno(int fd)
     return ECONNRESET;
 }
 
+/* One read(2) of at most len bytes: the bytes read (> 0); 0 when nothing was read and
+ * the caller may wait and try again (EINTR, EAGAIN); -1 with errno on an error, end of
+ * file as emb_eof_errno. */
+ssize_t emb_read_some(int fd, uint8_t *p, size_t len)
+{
+    ssize_t n = read(fd, p, len);
+
+    if (n > 0)
+        return n;
+    if (n == 0) {
+        errno = emb_eof_errno(fd);
+        return -1;
+    }
+    return (errno == EINTR || errno == EAGAIN) ? 0 : -1;
+}
+
 /* Bytes already received on fd and not read yet (0 if the driver cannot tell). */
 int emb_pending(int fd)
 {
@@ -158,16 +174,9 @@ long emb_discard_input(int fd, int total_ms, int quiet_ms, int limit_ms)
             return -1;
         if (rc == 0)
             return discarded;
-        n = read(fd, sink, sizeof(sink));
-        if (n == 0) {
-            errno = emb_eof_errno(fd);
+        n = emb_read_some(fd, sink, sizeof(sink));
+        if (n < 0)
             return -1;
-        }
-        if (n < 0) {
-            if (errno == EINTR || errno == EAGAIN)
-                continue;
-            return -1;
-        }
         discarded += n;
     }
 }
