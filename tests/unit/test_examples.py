@@ -53,6 +53,14 @@ def test_each_device_file_loads(path: Path) -> None:
     assert cfg.address_list, f"{path.name}: no items"
 
 
+@pytest.mark.parametrize("page", ["README.md", "docs/device-files.md"])
+def test_the_worked_device_file_is_the_example(page: str) -> None:
+    """The device file a page shows is examples/rtu-over-tcp.json, key for key."""
+    text = (TOP / page).read_text(encoding="utf-8")
+    shown = json.loads(text.split("```json\n", 1)[1].split("```", 1)[0])
+    assert shown == json.loads((EXAMPLES / "rtu-over-tcp.json").read_text(encoding="utf-8"))
+
+
 def test_every_transport_has_its_device_file() -> None:
     transports = {em.load_device_config(p).communication.transport for p in DEVICE_FILES}
     assert transports >= {"rtu", "rtu-over-tcp", "tcp", "rtu-over-tcp-server"}
