@@ -42,7 +42,8 @@ def unit_settings(text: str) -> dict[str, list[str]]:
 
 
 UNIT_SETTINGS = unit_settings(UNIT.read_text(encoding="utf-8"))
-STATE_DIR = Path("/var/lib") / UNIT_SETTINGS["StateDirectory"][0]
+#: /var/lib/<StateDirectory=> ("StateDirectory=" missing: a path no example uses)
+STATE_DIR = Path("/var/lib") / UNIT_SETTINGS.get("StateDirectory", ["(no StateDirectory=)"])[0]
 EXEC = shlex.split(UNIT_SETTINGS["ExecStart"][0])
 CONFIG_DIR = EXEC[EXEC.index("--config-dir") + 1]
 
@@ -116,8 +117,8 @@ def test_the_files_the_gateway_writes_are_in_the_units_state_folder() -> None:
     found = {p for path in [EXAMPLES / "gateway.json", *EXAMPLES.glob("*/gateway.json")]
              for p in written_paths(json.loads(path.read_text(encoding="utf-8")))}
     assert found == {f"{STATE_DIR}/spool.db", f"{STATE_DIR}/sparkplug.bdseq"}
+    assert UNIT_SETTINGS.get("StateDirectory") == ["edgemodbus"], "the unit needs a state folder"
     assert UNIT_SETTINGS["ProtectSystem"] == ["strict"]
-    assert Path("/var/lib/edgemodbus") == STATE_DIR
 
 
 def test_the_unit_runs_the_gateway_from_the_readmes_paths() -> None:
