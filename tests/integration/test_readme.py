@@ -1,12 +1,12 @@
 """Every command shown in README.md and in docs/**/*.md runs as written, against peers
 this test starts; so does the README's library quick start (its Python block).
 
-The commands are the lines of the pages' fenced ``sh`` blocks (every line) and of its
+The commands are the lines of the pages' fenced ``sh`` blocks (every line) and of the
 README's unlabelled fenced blocks (lines that start with a command word such as
 ``edgemodbus``; in docs/ an unlabelled block is a diagram or output, never run);
 a trailing ``\\`` continues a line and ``#`` starts a comment.  Each command is either run,
 or on the small SKIP list with a reason; a command that is neither fails
-``test_readme_command``, so a new README command fails until it is covered.
+``test_readme_command``, so a new command on any page fails until it is covered.
 
 A command is rewritten only where it names the outside world: ``--host``/``--port``,
 ``--serial``, ``--dial``, ``--config-dir``, device file paths (``*.json``) point at a
@@ -609,14 +609,14 @@ def test_the_library_quick_start_runs(tmp_path: Path) -> None:
 
 
 def test_the_readme_commands_are_found() -> None:
-    """The extraction sees the README's command lines (joined continuation lines too)
-    and every skip is still in the README."""
+    """The extraction sees the pages' command lines (joined continuation lines too)
+    and every skip is still on a page."""
     argvs = [c.argv for c in COMMANDS]
     assert ("make", "demo") in argvs and ("make", "test") in argvs
     assert sum(a[0] == "edgemodbus" for a in argvs) >= 10
     dial = next(a for a in argvs if "--dial" in a)
     assert dial[-2:] == ("--heartbeat-interval", "30")  # the continued line
-    assert all(skip in argvs for skip in SKIP), "a skipped command left the README"
+    assert all(skip in argvs for skip in SKIP), "a skipped command left the pages"
     assert all(how_to_run(a) is not None for a in argvs)
 
 
