@@ -40,6 +40,7 @@ lint: build
 	$(BIN)/ruff check src tests bench tools
 	$(BIN)/mypy
 	$(BIN)/python tools/check_layout.py
+	$(BIN)/python tools/check_docs.py
 
 test: build lint
 	$(PYTEST) tests

@@ -29,7 +29,7 @@ Bounds (exit status 1 when a case breaks one):
   MAX_LINE characters, no more than MAX_HEX untrusted bytes hex-dumped in one line;
 * no fd or thread left once the drivers have stopped.
 
-Prints a markdown table (for the README's security section) and --json writes every
+Prints a markdown table (for docs/dtu.md's security section) and --json writes every
 figure.  ``--cases`` picks cases (default all), ``--quick`` shortens everything.
 
     python tools/soak_listener.py --seconds 20

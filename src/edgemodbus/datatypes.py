@@ -163,7 +163,7 @@ class DataFormat(enum.Enum):
     BADC swaps the bytes of each register; CDAB swaps the register order; DCBA both.
     64-bit values take the same two flags (ABCD -> ABCDEFGH, DCBA -> HGFEDCBA) unless a
     :class:`DataFormat64` is given.  A one-register value is not reordered by it: it is
-    byte-swapped only by the explicit 16-bit switch (``byteSwap16``, README.md "Byte
+    byte-swapped only by the explicit 16-bit switch (``byteSwap16``, docs/device-files.md "Byte
     order").
     """
 
@@ -281,7 +281,7 @@ class ItemStatus(str, enum.Enum):
 
 
 class DeviceDriverStatus(str, enum.Enum):
-    """Lifecycle state of a driver (README.md, "device_driver_status")."""
+    """Lifecycle state of a driver (docs/library.md, "The driver")."""
 
     STOPPED = "Stopped"
     DISABLED = "Disabled"

@@ -1,6 +1,6 @@
 """DriverModbusRtu: one Modbus device (slave) polled on a shared line.
 
-The contract (README.md): start, stop, hot update of the address list, writes
+The contract (docs/library.md): start, stop, hot update of the address list, writes
 (blocking and asyncio), callbacks, subscribers, status, snapshot and stats.  This module
 is a facade: it checks the configuration, acquires the line (:mod:`edgemodbus.line`) and
 hands it a :class:`~edgemodbus.poll.poller.Poller`, which plans, decodes, keeps item

@@ -120,7 +120,7 @@ def test_simulate_dials_a_listening_driver() -> None:
 
 # -- read/write: the type follows the address; messages name the options -------------------
 def test_bit_addresses_default_to_boolean() -> None:
-    """coil:N, di:N and hr:N.b need no --type (the README's `write ... coil:5 true`)."""
+    """coil:N, di:N and hr:N.b need no --type (docs/command-line.md's `write ... coil:5 true`)."""
     with PymodbusSlave("rtu-over-tcp", units=(3,)) as slave:
         base = ["--host", "127.0.0.1", "--port", str(slave.port), "--slave", "3",
                 "--transport", "rtu-over-tcp"]

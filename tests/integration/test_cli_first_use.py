@@ -52,8 +52,8 @@ def one_line(out: subprocess.CompletedProcess[str]) -> str:
 
 # -- --host speaks Modbus TCP; the wrong framing is named --------------------------------
 def test_host_speaks_modbus_tcp() -> None:
-    """The README's `read --host H --port 502 hr:0` against a Modbus TCP slave (it framed
-    RTU over TCP and failed)."""
+    """The `read --host H --port 502 hr:0` of docs/command-line.md against a Modbus TCP
+    slave (it framed RTU over TCP and failed)."""
     with PymodbusSlave("tcp", units=(1,)) as slave:
         out = cli("read", "--host", "127.0.0.1", "--port", str(slave.port), "hr:0")
     assert (out.returncode, out.stdout.strip()) == (0, str(1000)), out.stderr  # unit*1000+0
@@ -365,7 +365,8 @@ def test_a_deeply_nested_file_is_one_line(tmp_path: Path) -> None:
 # -- byte order on the command line: the device file's keys, as options ------------------
 def test_read_and_write_take_the_byte_order_keys() -> None:
     """--format orders values of two or more registers only, --byte-swap16 swaps a
-    one-register value, --format64 orders 64-bit values apart (README "Byte order")."""
+    one-register value, --format64 orders 64-bit values apart (docs/device-files.md "Byte
+    order")."""
     with PymodbusSlave("tcp", units=(1,)) as slave:
         where = ["--host", "127.0.0.1", "--port", str(slave.port)]
         slave.set_registers(1, "hr", 0, [0x1234])

@@ -17,7 +17,7 @@ Every item that is Ok - at the end of every cycle (snapshot publisher with a 1 m
 interval, called by the worker when a cycle ends), in every ``address_updated_callback``
 and every ``addresses_updated_callback`` - must hold exactly the value that
 :func:`reference` gives for the slave's registers.  ``reference`` is written here from
-the documented semantics (README.md "Data types", the codec module's notes) with
+the documented semantics (docs/device-files.md "Data types", the codec module's notes) with
 ``struct``; it does not use our codec.  Items it calls invalid (bad BCD, a conversion
 out of range, an address the slave refuses) must not be Ok.  Without faults, every
 valid item must be Ok at the end of each cycle, and a batch holds an item at most once.
@@ -199,7 +199,7 @@ def _by_letters(regs: list[int], order: str) -> bytes:
 
 
 def _value_bytes(regs: list[int], order: Order) -> bytes:
-    """README.md "Byte order": one register is the register (BA with byteSwap16), two
+    """docs/device-files.md "Byte order": one register is the register (BA with byteSwap16), two
     follow dataFormat, four dataFormat64 (default: dataFormat stretched to 8 letters)."""
     if len(regs) == 1:
         return _by_letters(regs, "BA" if order.swap16 else "AB")

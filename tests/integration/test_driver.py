@@ -121,7 +121,7 @@ ORDER64 = {"ABCD": "ABCDEFGH", "BADC": "BADCFEHG", "CDAB": "GHEFCDAB", "DCBA": "
 def _expected_registers(dtype: str, value: Any, fmt: str, quantity: int | None,
                         swap16: bool = False, fmt64: str | None = None) -> list[int]:
     """A plain struct-based encoder, independent of our C codec: the value's bytes A, B,
-    ... (most significant first) put where the order's letters say (README.md "Byte
+    ... (most significant first) put where the order's letters say (docs/device-files.md "Byte
     order"): one register AB (BA with byteSwap16), two dataFormat, four dataFormat64."""
     big = {
         "Int16": lambda v: struct.pack(">h", v), "UInt16": lambda v: struct.pack(">H", v),

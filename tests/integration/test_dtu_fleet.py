@@ -186,7 +186,7 @@ def test_simulate_dial_dtus_plays_a_fleet_from_the_command_line() -> None:
         finally:
             proc.send_signal(signal.SIGINT)
             out, err = proc.communicate(timeout=10)
-    assert proc.returncode == 130, err  # Ctrl-C (README.md, "Exit codes")
+    assert proc.returncode == 130, err  # Ctrl-C (docs/command-line.md, "Exit codes")
     assert out.splitlines()[0] == f"dialling 127.0.0.1:{port} with 3 DTUs (C5..C7)"
 
 

@@ -18,7 +18,7 @@ from tests.mosquitto import Mosquitto, MqttProbe, Received
 from tests.peers import PymodbusSlave, default_register
 from tests.waiting import wait_for
 
-README = Path(__file__).resolve().parents[2] / "README.md"
+GATEWAY_DOC = Path(__file__).resolve().parents[2] / "docs" / "gateway.md"
 NAMES = [f"t{i}" for i in range(8)] + ["sp", "sp2", "ro"]  # device(tags=8): 11 items
 
 
@@ -41,10 +41,10 @@ def expected(name: str) -> Any:
 
 
 def readme_batch_example() -> dict[str, Any]:
-    """The batch message the README shows (the json block after 'is published on')."""
-    text = README.read_text()
+    """The batch message docs/gateway.md shows (the json block after 'is published on')."""
+    text = GATEWAY_DOC.read_text()
     found = re.search(r"is published on `[^`]+` as:\n\n```json\n(.*?)```", text, re.S)
-    assert found, "README: the batch mode example is missing"
+    assert found, "docs/gateway.md: the batch mode example is missing"
     example: dict[str, Any] = json.loads(found.group(1))
     return example
 
@@ -114,7 +114,7 @@ def test_batch_mode_sends_one_message_per_device_and_cycle_as_the_readme_shows(
         first: Received = probe.wait_for(f"{P}/dev1/$batch")
         body = first.json()
         assert first.qos == 1 and not first.retain
-        # the README's schema: the same keys, each of the same JSON type
+        # docs/gateway.md's schema: the same keys, each of the same JSON type
         assert list(body) == list(example)
         for key in ("values", "status", "errors"):
             assert isinstance(body[key], dict) and isinstance(example[key], dict), key

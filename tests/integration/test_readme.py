@@ -1,15 +1,18 @@
-"""Every command shown in README.md runs as written, against peers this test starts.
+"""Every command shown in README.md and in docs/**/*.md runs as written, against peers
+this test starts; so does the README's library quick start (its Python block).
 
-The commands are the lines of the README's fenced ``sh`` blocks (every line) and of its
-unlabelled fenced blocks (lines that start with a command word such as ``edgemodbus``);
+The commands are the lines of the pages' fenced ``sh`` blocks (every line) and of the
+README's unlabelled fenced blocks (lines that start with a command word such as
+``edgemodbus``; in docs/ an unlabelled block is a diagram or output, never run);
 a trailing ``\\`` continues a line and ``#`` starts a comment.  Each command is either run,
 or on the small SKIP list with a reason; a command that is neither fails
-``test_readme_command``, so a new README command fails until it is covered.
+``test_readme_command``, so a new command on any page fails until it is covered.
 
 A command is rewritten only where it names the outside world: ``--host``/``--port``,
 ``--serial``, ``--dial``, ``--config-dir``, device file paths (``*.json``) point at a
 simulator (or a listening driver) on 127.0.0.1 with an ephemeral port or at a pty, and
-``--seconds`` is short.  Every other word runs as the README shows it.
+``--seconds`` is short; ``--config-dir`` of one of the example folders is a copy of it
+with the broker and the slave started here.  Every other word runs as the page shows it.
 """
 
 from __future__ import annotations
@@ -18,6 +21,7 @@ import json
 import re
 import select
 import shlex
+import shutil
 import signal
 import struct
 import subprocess
@@ -33,12 +37,15 @@ import pytest
 import edgemodbus as em
 from edgemodbus.datatypes import Area
 from edgemodbus.sim import Simulator, default_register
+from tests.mosquitto import Mosquitto, MqttProbe
 from tests.peers import PymodbusSlave, free_port
 from tests.uart_line import UartLine, UartSettings
 from tests.waiting import wait_for
 
 ROOT = Path(__file__).resolve().parents[2]
 README = ROOT / "README.md"
+#: The pages whose commands are run: the README, then every page under docs/.
+PAGES = (README, *sorted((ROOT / "docs").rglob("*.md")))
 SHELL_BLOCKS = frozenset({"sh", "shell", "bash", "console"})
 #: In an unlabelled block, a line starting with one of these is a command, not output.
 COMMAND_WORDS = frozenset({"edgemodbus", "make", "python", "python3", "pip", "pip3"})
@@ -48,8 +55,21 @@ SKIP: dict[tuple[str, ...], str] = {
     ("make", "demo"): "sets the machine up (apt-get, pip) and then runs `edgemodbus demo`, "
                       "whose README line is run here",
     ("make", "test"): "runs the whole test suite, this test included",
-    ("pip", "install", "edgemodbus[mqtt,metrics]"): "installs from a package index; the test "
-                                                     "environment has the package and extras",
+    ("make", "build"): "sets the machine up (apt-get, pip): the environment this test runs in",
+    ("make", "bench"): "runs every benchmark (minutes; `make bench-quick` is CI's)",
+    ("make", "bench-quick"): "runs every benchmark (CI runs it apart from the tests)",
+    (".venv/bin/python", "-m", "pytest", "bench/test_bench_codec.py", "--benchmark-only"):
+        "a benchmark: run by `make bench`",
+    ("sudo", "apt-get", "install", "libmodbus-dev", "pkg-config", "python3-venv", "python3-dev",
+     "gcc"): "installs Debian packages (as `make build` does)",
+    ("python3", "-m", "venv", "/opt/edgemodbus/venv"): "makes a venv in /opt: the install of a "
+                                                      "machine, not of a test",
+    ("/opt/edgemodbus/venv/bin/pip", "install", ".[mqtt,metrics]"): "installs the package into "
+        "that venv; the test environment has the package and its extras",
+    ("pip", "install", ".[mqtt,metrics]"): "installs the package; the test environment has the "
+                                           "package and its extras",
+    ("mosquitto_sub", "-h", "127.0.0.1", "-t", "plant1/#", "-v"): "a subscriber that runs "
+        "until Ctrl-C; what it shows is checked by the runner of `run --config-dir examples/...`",
 }
 
 SHORT_SECONDS = "1.5"
@@ -58,18 +78,19 @@ SLAVE_READY = 15.0  # s for a started process to poll, dial or listen
 
 @dataclass(frozen=True)
 class Command:
-    """One README command: where it is, its text and its words (comment removed)."""
+    """One command of a page: where it is, its text and its words (comment removed)."""
 
     line: int
     text: str
     argv: tuple[str, ...]
+    page: str = "README.md"
 
     def __str__(self) -> str:
-        return f"README.md:{self.line}: {self.text}"
+        return f"{self.page}:{self.line}: {self.text}"
 
 
-def readme_commands(text: str) -> list[Command]:
-    """The commands of the fenced blocks of a README text (see the module doc)."""
+def readme_commands(text: str, page: str = "README.md") -> list[Command]:
+    """The commands of the fenced blocks of a page's text (see the module doc)."""
     commands: list[Command] = []
     fence: str | None = None
     pending: tuple[int, str] | None = None  # a line continued with a backslash
@@ -89,14 +110,16 @@ def readme_commands(text: str) -> list[Command]:
         words = line.split()
         if not words or words[0].startswith("#"):
             continue
-        if not fence and words[0] not in COMMAND_WORDS:
+        if not fence and (page != "README.md" or words[0] not in COMMAND_WORDS):
             continue  # output or a diagram in an unlabelled block
         argv = tuple(shlex.split(line, comments=True))
-        commands.append(Command(start, " ".join(shlex.quote(w) for w in argv), argv))
+        commands.append(Command(start, " ".join(shlex.quote(w) for w in argv), argv, page))
     return commands
 
 
-COMMANDS = readme_commands(README.read_text(encoding="utf-8"))
+COMMANDS = [command for page in PAGES
+            for command in readme_commands(page.read_text(encoding="utf-8"),
+                                           str(page.relative_to(ROOT)))]
 
 
 # -- running processes ---------------------------------------------------------------------
@@ -224,6 +247,15 @@ def run_read(argv: tuple[str, ...], tmp: Path) -> None:
     ``--rtu-over-tcp`` our simulator (raw RTU frames over TCP)."""
     assert "--host" in argv, "a README read that is not over TCP needs its own runner"
     slave = int(argv[argv.index("--slave") + 1]) if "--slave" in argv else 1
+    if "--type" not in argv:  # one UInt16 register of the simulator (raw RTU over TCP)
+        assert "--rtu-over-tcp" in argv and argv[-1].startswith("hr:"), \
+            "a README read without --type of another kind needs its check here"
+        with Simulator([slave]) as sim:
+            port = sim.serve_tcp("127.0.0.1", 0)
+            out = run(rewrite(argv, host="127.0.0.1", port=str(port)))
+        expected = default_register(slave, int(argv[-1].partition(":")[2]))
+        assert (out.returncode, out.stdout.strip()) == (0, str(expected)), out.stderr
+        return
     fmt = argv[argv.index("--format") + 1] if "--format" in argv else "ABCD"
     assert "--type" in argv and argv[argv.index("--type") + 1] == "Float" \
         and argv[-1].startswith("hr:") and fmt in ("ABCD", "CDAB"), \
@@ -402,6 +434,10 @@ def run_descriptor(argv: tuple[str, ...], tmp: Path) -> None:
 def run_service(argv: tuple[str, ...], tmp: Path) -> None:
     """``run --config-dir`` / ``python -m edgemodbus.gateway``: polls every device file
     of the folder until SIGTERM, then exits 0."""
+    given = argv[argv.index("--config-dir") + 1]
+    if (ROOT / given).is_dir():
+        run_example_service(argv, ROOT / given, tmp)
+        return
     config_dir = tmp / "etc-edgemodbus"
     config_dir.mkdir()
     (config_dir / "gateway.json").write_text(json.dumps({"gatewayId": "readme"}))
@@ -412,6 +448,37 @@ def run_service(argv: tuple[str, ...], tmp: Path) -> None:
         with started(rewrite(argv, config_dir=str(config_dir))):
             wait_for(lambda: all(s["requests"] >= 3 for s in sim.stats()["slaves"].values()),
                      timeout=SLAVE_READY, what="the service polling both devices")
+
+
+def run_example_service(argv: tuple[str, ...], folder: Path, tmp: Path) -> None:
+    """``run --config-dir examples/gateway-mqtt-per-item``: a copy of the example folder
+    whose device files point at a simulator and whose gateway file points at a mosquitto
+    started here (ports changed, nothing else); the items and the device's status arrive
+    on the topics the README names."""
+    config_dir = tmp / folder.name
+    shutil.copytree(folder, config_dir, symlinks=False)
+    gateway = json.loads((config_dir / "gateway.json").read_text())
+    devices = {path: json.loads(path.read_text()) for path in config_dir.glob("*.json")
+               if path.name != "gateway.json"}
+    slaves = sorted({d["communication"]["slaveId"] for d in devices.values()})
+    with Simulator(slaves) as sim, Mosquitto(tmp / "broker") as broker:
+        port = sim.serve_tcp("127.0.0.1", 0)
+        for path, device in devices.items():
+            device["communication"]["tcpPort"] = port
+            path.write_text(json.dumps(device))
+        gateway["mqtt"]["port"] = broker.port
+        (config_dir / "gateway.json").write_text(json.dumps(gateway))
+        prefix = gateway["mqtt"]["topicPrefix"]
+        with MqttProbe(broker.port) as probe, \
+                started(rewrite(argv, config_dir=str(config_dir))):
+            for device in devices.values():
+                code = device["organization"]["deviceCode"]
+                probe.wait_for(f"{prefix}/{code}/$status", timeout=SLAVE_READY,
+                               match=lambda m: m.json()["status"] == "Running")
+                for item in device["addressList"]:
+                    probe.wait_for(f"{prefix}/{code}/{item['name']}", timeout=SLAVE_READY)
+            counter = probe.wait_for(f"{prefix}/Pump1/Counter", timeout=SLAVE_READY)
+            assert counter.json()["value"] == default_register(1, 0)
 
 
 def run_scan(argv: tuple[str, ...], tmp: Path) -> None:
@@ -496,7 +563,8 @@ def how_to_run(argv: tuple[str, ...]) -> Runner | str | None:
 
 
 # -- the tests -----------------------------------------------------------------------------
-@pytest.mark.parametrize("command", COMMANDS, ids=lambda c: f"L{c.line}:{' '.join(c.argv[:2])}")
+@pytest.mark.parametrize("command", COMMANDS,
+                         ids=lambda c: f"{c.page}:L{c.line}:{' '.join(c.argv[:2])}")
 def test_readme_command(command: Command, tmp_path: Path) -> None:
     how = how_to_run(command.argv)
     if how is None:
@@ -507,15 +575,48 @@ def test_readme_command(command: Command, tmp_path: Path) -> None:
     how(command.argv, tmp_path)
 
 
+def quick_start_code() -> str:
+    """The Python block of the README's library quick start."""
+    text = README.read_text(encoding="utf-8")
+    section = text[text.index("## Library quick start"):]
+    section = section[:section.index("\n## ", 1)]
+    found = re.search(r"```python\n(.*?)```", section, re.S)
+    assert found, "README: the library quick start has no Python block"
+    return found.group(1)
+
+
+def test_the_library_quick_start_runs(tmp_path: Path) -> None:
+    """The quick start's code, as written, against the simulator the README starts
+    (``simulate --port 5020 --slaves 1``; here on an ephemeral port: the device file is a
+    copy of examples/rtu-over-tcp.json with its port changed): it prints the values and
+    both writes reach the slave."""
+    code = quick_start_code()
+    example = "examples/rtu-over-tcp.json"
+    assert f'load_device_config("{example}")' in code
+    device = json.loads((ROOT / example).read_text())
+    with Simulator([1]) as sim:
+        device["communication"]["tcpPort"] = sim.serve_tcp("127.0.0.1", 0)
+        copy = tmp_path / "rtu-over-tcp.json"
+        copy.write_text(json.dumps(device))
+        out = subprocess.run([sys.executable, "-c", code.replace(example, str(copy))],
+                             capture_output=True, text=True, timeout=60, check=False, cwd=ROOT)
+        assert out.returncode == 0, out.stderr
+        assert sim.slave(1).get_registers(Area.HOLDING_REGISTER, 30, 1) == [42]
+        assert sim.slave(1).get_bits(Area.COIL, 0, 1) == [True]
+    lines = out.stdout.splitlines()
+    assert f"Counter {default_register(1, 0)} Ok" in lines, out.stdout
+    assert "write Setpoint: True None" in lines and "write PumpOn: True None" in lines, lines
+
+
 def test_the_readme_commands_are_found() -> None:
-    """The extraction sees the README's command lines (joined continuation lines too)
-    and every skip is still in the README."""
+    """The extraction sees the pages' command lines (joined continuation lines too)
+    and every skip is still on a page."""
     argvs = [c.argv for c in COMMANDS]
     assert ("make", "demo") in argvs and ("make", "test") in argvs
     assert sum(a[0] == "edgemodbus" for a in argvs) >= 10
     dial = next(a for a in argvs if "--dial" in a)
     assert dial[-2:] == ("--heartbeat-interval", "30")  # the continued line
-    assert all(skip in argvs for skip in SKIP), "a skipped command left the README"
+    assert all(skip in argvs for skip in SKIP), "a skipped command left the pages"
     assert all(how_to_run(a) is not None for a in argvs)
 
 

@@ -42,7 +42,7 @@ ANSWER_RESULTS = {"ok", "exception", "timeout", "garbage", "closed"}
 
 
 def check_schema(doc: dict[str, Any]) -> None:
-    """The document of --json (cli/scan.py JSON_HELP, README), key by key."""
+    """The document of --json (cli/scan.py JSON_HELP, docs/command-line.md), key by key."""
     assert set(doc) == {"line", "complete", "interrupted", "error", "slaveIds", "settings",
                         "found"}
     assert isinstance(doc["line"], str) and isinstance(doc["slaveIds"], int)

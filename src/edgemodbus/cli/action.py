@@ -1,5 +1,5 @@
 """``edgemodbus action FILE [NAME [param=value ...]]``: run an action of a device file
-(README.md, "Actions"); without NAME, list the file's actions and their parameters.
+(docs/device-files.md, "Actions"); without NAME, list the file's actions and their parameters.
 
 Values are text and are read by the parameter's type (``12.5``, ``true``, ``"text"``);
 everything is checked before a request is sent.  Prints ``ok`` once the slave confirmed

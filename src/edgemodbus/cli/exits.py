@@ -1,4 +1,4 @@
-"""The exit codes of every ``edgemodbus`` command (README.md, "Exit codes").
+"""The exit codes of every ``edgemodbus`` command (docs/command-line.md, "Exit codes").
 
 ``python -m edgemodbus.gateway`` and ``python -m edgemodbus.sim`` use the same numbers
 (their layers sit below this one and spell them out)."""

@@ -1,5 +1,5 @@
 """``edgemodbus templates [NAME]``: list the device templates on the search path (name,
-description, source document, file), or print one template's items (README.md, "Device
+description, source document, file), or print one template's items (docs/device-files.md, "Device
 templates").
 
 The search path: ``--dir`` folders, then ``$EDGEMODBUS_TEMPLATE_PATH``, then the

@@ -3,7 +3,7 @@ and encoding of writes; normalizing what a host hands to a write; values as JSON
 
 Choices this package makes (where the data type definitions leave them open):
 
-* Smart Cast (NG; README.md "Smart Cast"): a numeric item of ``quantity`` registers is
+* Smart Cast (NG; docs/device-files.md "Smart Cast"): a numeric item of ``quantity`` registers is
   read with the widest of 4, 2 (Int24/UInt24: their own 24-bit value), 1 registers that
   fits in it.  Fewer registers than the type needs hold a smaller value that is widened
   (Int64/UInt64/Double from 2 registers read Int32/UInt32/Float32, from 1

@@ -3,7 +3,7 @@ values as JSON (the CLI's JSON lines, every MQTT payload, snapshots sent as JSON
 Python API (``item.value``, ``driver.snapshot()``) keeps Python values; only the JSON
 writers convert.
 
-The rules (README.md "Values as text and JSON"):
+The rules (docs/library.md "Values as text and JSON"):
 
 * a finite float is a number, in its shortest form that reads back to it; a
   :class:`~edgemodbus.codec.float32.Float32` (a Float item's value) in the shortest

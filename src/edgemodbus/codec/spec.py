@@ -37,7 +37,7 @@ class ValueSpec:
     order of values of two or more registers; ``byte_swap16`` swaps the two bytes of a
     one-register value (and of the register a bit is counted in), which ``data_format``
     never does; ``data_format64`` orders 64-bit (4-register) values, None: what
-    ``data_format`` means for them (README.md "Byte order").  ``quantity`` is in
+    ``data_format`` means for them (docs/device-files.md "Byte order").  ``quantity`` is in
     registers (None = the type's default); ``deadband`` is absolute on the final value
     (0 = report any change).
     """
@@ -137,7 +137,7 @@ def check_spec(spec: ValueSpec, area: Area) -> None:
 # -- compiling a spec into a C item ------------------------------------------------------
 
 # (wire, registers) for each width a fixed-size type may be read with, widest first.
-# Smart Cast (NG, README.md "Smart Cast"): an item of `quantity` registers is read with
+# Smart Cast (NG, docs/device-files.md "Smart Cast"): an item of `quantity` registers is read with
 # the widest of these that fits in it: fewer registers than the type needs hold a smaller
 # value that is widened; more registers hold a wider integer (or Float64) that is
 # narrowed to the type, range-checked (out of range -> Invalid, never a silent wrap).
@@ -318,7 +318,7 @@ def order_flags(spec: ValueSpec, wire: str, nregs: int) -> int:
     registers (DESIGN: ``dataFormat`` orders values of two or more registers).  One
     register (16-bit types, a bit, Smart Cast's one-register read): swapped only by
     ``byte_swap16``.  Four registers (64-bit values): ``format64``.  Two registers, and
-    String/Binary (bytes in ``dataFormat``'s order, README.md "Byte order"):
+    String/Binary (bytes in ``dataFormat``'s order, docs/device-files.md "Byte order"):
     ``data_format``."""
     if wire == "BYTES" or nregs == 2:
         fmt = spec.data_format

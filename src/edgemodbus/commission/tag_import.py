@@ -1,4 +1,4 @@
-"""Tag lists from other tools -> our device file (README.md, "Importing a tag list").
+"""Tag lists from other tools -> our device file (docs/command-line.md, "Importing a tag list").
 
 Two CSV forms, told apart by the header row:
 
@@ -270,7 +270,7 @@ def _form(header: Sequence[str]) -> str:
 
 def _note_entity_lookalike(result: ImportResult, row: int, text: str, prefix: str) -> None:
     """Count a generic row whose address reads as an offset but looks like an entity
-    number; the first one is the notice (README.md, "Importing a tag list")."""
+    number; the first one is the notice (docs/command-line.md, "Importing a tag list")."""
     entity = entity_lookalike(text, prefix)
     if entity is None:
         return

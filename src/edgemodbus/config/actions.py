@@ -6,7 +6,7 @@ parameter sets one item of the address list.  Keys follow NG's (``name``,
 ``defaultValue``, ``minValue``, ``maxValue``); ``parameters``, ``type`` and ``default``
 are accepted too (compat.py).  NG's own form, ``functionCode`` with ``address`` and
 ``quantity`` and no parameters, writes the value given when it runs (poll/actions.py).
-:func:`validate_actions` checks them against the items: README.md, "Actions".
+:func:`validate_actions` checks them against the items: docs/device-files.md, "Actions".
 """
 
 from __future__ import annotations

@@ -207,7 +207,7 @@ ALLOWED_QUANTITIES: dict[DataType, tuple[int, ...]] = {
 }
 """Register counts an item of these types may read.  The numeric types
 (:data:`SMART_CAST_TYPES`) take any quantity 1..125 (Smart Cast: fewer registers hold a
-smaller value that is widened, more hold a wider one that is narrowed, see README.md
+smaller value that is widened, more hold a wider one that is narrowed, see docs/device-files.md
 "Smart Cast"); String and Binary take any quantity >= 1."""
 
 _SMART_CAST_WARNED: set[tuple[Any, ...]] = set()

@@ -1,5 +1,5 @@
 """Device templates: ``"template": "<name>"`` in a device file pulls in a template's
-address list and device defaults (README.md, "Device templates").
+address list and device defaults (docs/device-files.md, "Device templates").
 
 A template is a JSON file ``<name>.json`` found on the search path, first match wins:
 the device file's ``templateDirs`` (relative to the device file's folder), then the

@@ -26,9 +26,9 @@ log = logging.getLogger("edgemodbus.service")
 def run_service(config_dir: Path, gateway_config: Path | None = None, *,
                 seconds: float = 0.0) -> int:
     """Run the gateway until SIGTERM/SIGINT, or for ``seconds`` (0: until a signal);
-    SIGHUP reloads.  Returns the exit code (README.md, "Exit codes"): 0 after a clean stop
-    (SIGTERM, --seconds), 130 after SIGINT (Ctrl-C), 2 for a configuration error, a
-    missing optional package or a port in use (one line on stderr)."""
+    SIGHUP reloads.  Returns the exit code (docs/command-line.md, "Exit codes"): 0 after a
+    clean stop (SIGTERM, --seconds), 130 after SIGINT (Ctrl-C), 2 for a configuration
+    error, a missing optional package or a port in use (one line on stderr)."""
     config_dir = Path(config_dir)
     if not seconds >= 0:  # also refuses NaN
         print(f"edgemodbus service: --seconds {seconds}: must be >= 0 (0: run until a "

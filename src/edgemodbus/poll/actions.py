@@ -65,7 +65,8 @@ def _kind(declared: DataType | None, item: str,
     if spec.converted_type is not None:
         return spec.converted_type
     if spec.multiplier != 1 and spec.data_type.is_numeric:
-        return DataType.DOUBLE  # a scaled value is a float (README.md, "dataMultiplier")
+        # a scaled value is a float (docs/library.md, "Values as text and JSON")
+        return DataType.DOUBLE
     return spec.data_type
 
 

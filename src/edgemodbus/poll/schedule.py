@@ -48,7 +48,7 @@ def build_plan(items: Sequence[ParsedItem], params: DriverModbusRtuParameter) ->
 def entity_numbers_notice(items: Sequence[ParsedItem],
                           params: DriverModbusRtuParameter) -> str | None:
     """One notice for a device whose bare addresses look like Modicon entity numbers
-    (``40001`` read as holding register 40001, not 0; README.md, "Entity addresses"), or
+    (``40001`` read as holding register 40001, not 0; docs/device-files.md, "Entity addresses"), or
     None.  Logged once per device start and shown by ``edgemodbus plan``."""
     found = [(p, e) for p in items
              if (e := entity_lookalike(p.item.address, params.address_prefix)) is not None]

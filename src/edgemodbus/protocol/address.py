@@ -5,7 +5,7 @@ The numeric type prefix is the Modbus read function code by default (3 = holding
 numbering of the seed's descriptor note (3 = input, 4 = holding).  Offsets are decimal
 (leading zeros allowed) and 0-based protocol addresses unless ``base=1``.
 
-``prefix="entity"`` also takes Modicon entity numbers as people type them (README.md,
+``prefix="entity"`` also takes Modicon entity numbers as people type them (docs/device-files.md,
 "Entity addresses"): the first digit is the table (0 coil, 1 discrete input, 3 input
 register, 4 holding register) and the rest the 1-based entity, in the 5-digit form
 (``40001`` = holding register 0, up to ``49999``; fewer digits are coils: ``1`` =

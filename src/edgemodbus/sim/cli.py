@@ -78,7 +78,7 @@ def run(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
     """Serve slaves until SIGINT/SIGTERM.
 
     Prints one line per endpoint (``tcp HOST:PORT``, ``pty PATH``) on stdout, flushed,
-    so that a script can read where to connect.  Exit codes (README.md, "Exit codes"):
+    so that a script can read where to connect.  Exit codes (docs/command-line.md, "Exit codes"):
     0 after SIGTERM, 130 after SIGINT (Ctrl-C), 2 for a bad option, a port in use or a
     refused ``--dial`` (one line naming the option), 1 for another OSError (e.g. too few
     open files for ``--dtus``).

@@ -55,7 +55,7 @@ def by_letters(registers: list[int], order: str) -> bytes:
 
 def value_bytes(spec: ValueSpec, registers: list[int], width: int) -> bytes:
     """The bytes of a value of ``width`` registers read from the item's registers
-    (README.md "Byte order"): one register is the register, byte-swapped only with
+    (docs/device-files.md "Byte order"): one register is the register, byte-swapped only with
     byte_swap16; two follow dataFormat; four dataFormat64 (default: dataFormat's
     letters stretched, ABCD -> ABCDEFGH, CDAB -> GHEFCDAB).  An item with more registers
     than the value keeps it in the first ones by address, the last under CDAB/DCBA."""

@@ -1,4 +1,4 @@
-"""The byte order keys of a device file (README.md "Byte order"): ``dataFormat`` orders
+"""The byte order keys of a device file (docs/device-files.md "Byte order"): ``dataFormat`` orders
 values of two or more registers, ``byteSwap16`` swaps one-register values (NG's
 ``byteOrder: LittleEndian`` sets it), ``dataFormat64`` orders 64-bit values apart; each
 per device and per item.  Values are decoded through the specs the loaded items give."""
@@ -137,10 +137,10 @@ def test_keys_round_trip_through_to_dict() -> None:
 
 
 def test_the_readme_table_of_64_bit_orders_is_what_the_codec_does() -> None:
-    """README.md "Byte order": each row's registers, with the letters as the bytes 01..08
+    """docs/device-files.md "Byte order": each row's registers, with the letters as the bytes 01..08
     of 0x0102030405060708, are what the codec writes and reads for that dataFormat64."""
-    readme = (Path(__file__).resolve().parents[3] / "README.md").read_text(encoding="utf-8")
-    section = readme.split("### Byte order", 1)[1].split("\n### ", 1)[0]
+    doc = (Path(__file__).resolve().parents[3] / "docs" / "device-files.md").read_text("utf-8")
+    section = doc.split("## Byte order", 1)[1].split("\n## ", 1)[0]
     rows = re.findall(r"^\| ([A-H]{8}) \| ([A-H] [A-H]) \| ([A-H] [A-H]) \| ([A-H] [A-H]) "
                       r"\| ([A-H] [A-H]) \|", section, re.M)
     assert sorted(order for order, *_ in rows) == sorted(f.value for f in DataFormat64)

@@ -1,4 +1,4 @@
-"""Sparkplug settings in the gateway file: the README's example loads, and every mistake
+"""Sparkplug settings in the gateway file: docs/gateway.md's example loads, and every mistake
 is an error that names the field, the value and what is allowed."""
 
 from __future__ import annotations
@@ -19,8 +19,8 @@ ROOT = Path(__file__).resolve().parents[3]
 
 
 def readme_example() -> dict[str, object]:
-    text = (ROOT / "README.md").read_text()
-    section = text[text.index("### Sparkplug B"):]
+    text = (ROOT / "docs" / "gateway.md").read_text()
+    section = text[text.index("## Sparkplug B"):]
     block = re.search(r"```json\n(.*?)```", section, re.S)
     assert block is not None
     data: dict[str, object] = json.loads(block.group(1))

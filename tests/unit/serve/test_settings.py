@@ -45,14 +45,15 @@ def test_units_naming_no_device() -> None:
 
 
 def test_the_readme_gateway_file_loads() -> None:
-    """The worked gateway file of README.md's gateway mode section is a valid one."""
+    """The worked gateway file of docs/gateway.md's Modbus TCP server section is a valid
+    one."""
     import json
     from pathlib import Path
 
     from edgemodbus.gateway import load_gateway_config
 
-    text = (Path(__file__).resolve().parents[3] / "README.md").read_text()
-    section = text[text.index("## Gateway mode: a Modbus TCP server for SCADA"):]
+    text = (Path(__file__).resolve().parents[3] / "docs" / "gateway.md").read_text()
+    section = text[text.index("## A Modbus TCP server for SCADA"):]
     block = section[section.index("```json\n") + 8:]
     cfg = load_gateway_config(json.loads(block[:block.index("```")]))
     assert cfg.serve is not None

@@ -833,7 +833,7 @@ def test_main_reports_a_busy_port(capsys: pytest.CaptureFixture[str]) -> None:
         taken.bind(("127.0.0.1", 0))
         taken.listen(1)
         port = taken.getsockname()[1]
-        assert main(["--port", str(port)]) == 2  # README.md, "Exit codes"
+        assert main(["--port", str(port)]) == 2  # docs/command-line.md, "Exit codes"
     assert capsys.readouterr().err == (f"edgemodbus simulate: --host 127.0.0.1 --port {port}: "
                                        f"cannot listen on 127.0.0.1:{port}: Address already "
                                        "in use\n")

@@ -2,7 +2,7 @@
 state, replies): strict JSON, compact, UTF-8, all through the one value conversion of
 edgemodbus.codec (:func:`~edgemodbus.codec.json_bytes`: a Float item's value as its
 shortest float32 text, NaN and infinities as the strings "NaN", "Infinity", "-Infinity",
-bytes hex, times ISO 8601; README.md "Values as text and JSON")."""
+bytes hex, times ISO 8601; docs/library.md "Values as text and JSON")."""
 
 from __future__ import annotations
 
