@@ -1,5 +1,5 @@
 """Communication parameters: :class:`DriverModbusRtuParameter` (the seed's
-``modbusRtu.json`` plus ours) and :class:`Parity`.
+``modbusRtu.json`` plus ours; :class:`Parity` is compat.py's).
 
 Limits are those of the layers that use the values (one source of truth): block sizes
 come from the planner, offsets from the address parser.  Parity is stored as
@@ -9,7 +9,6 @@ compat.py lists are accepted.
 
 from __future__ import annotations
 
-import enum
 from collections.abc import Mapping
 from typing import Annotated, Any, ClassVar, Literal
 
@@ -44,10 +43,11 @@ from .base import (
     lower_literal,
     parse_format,
 )
-from .compat import NG_KEYS, ng_aliases, parity_letter
+from .compat import NG_KEYS, Parity, ng_aliases
 from .limits import MAX_HOST, MAX_NAME, check_host
+from .links import LinkFields, link_problems
 from .listen import KEY_EXAMPLE, NETWORKS_ALLOWED, allow_list, check_key, listen_problems, network
-from .problems import NO_VALUE, ConfigError, Problem, WrongType
+from .problems import NO_VALUE, ConfigError, Problem
 from .secret import Secret
 
 Transport = Literal["rtu-over-tcp-server", "rtu", "rtu-over-tcp", "tcp"]
@@ -65,37 +65,8 @@ AllowFrom = Annotated[tuple[Annotated[str, AfterValidator(network)], ...],
 _CAMEL = {"tcp_host": "tcpHost", "tcp_port": "tcpPort"}
 
 
-class Parity(str, enum.Enum):
-    """Serial parity, as libmodbus spells it."""
-
-    NONE = "N"
-    ODD = "O"
-    EVEN = "E"
-
-    @classmethod
-    def parse(cls, value: Any) -> Parity:
-        if isinstance(value, Parity):
-            return value
-        letter = parity_letter(value)
-        if letter is None:
-            raise WrongType("use None|Odd|Even, 0|1|2 or N|O|E")
-        return cls(letter)
-
-    @property
-    def number(self) -> int:
-        """The seed descriptor's numbering: 0 = None, 1 = Odd, 2 = Even."""
-        return {Parity.NONE: 0, Parity.ODD: 1, Parity.EVEN: 2}[self]
-
-
-class DriverModbusRtuParameter(Model):
-    """Communication parameters (the seed's ``modbusRtu.json`` plus ours).
-
-    Times are int milliseconds.  ``transport`` defaults from ``useTcp`` (true ->
-    ``rtu-over-tcp``), else from the keys given (``tcpHost``/``tcpPort`` without
-    ``comPort``: ``rtu-over-tcp``; both: refused as ambiguous); NG's ``maxGap``,
-    ``maxBatch`` and ``byteOrder``/``wordOrder`` are accepted for ``maxMergeAddressGap``,
-    ``maxBlockReadRegisterCount`` and ``dataFormat``.
-    """
+class _CommunicationFields(Model):
+    """The fields of :class:`DriverModbusRtuParameter` but the link keys (links.py)."""
 
     _extra_keys: ClassVar[tuple[str, ...]] = NG_KEYS
     _where: ClassVar[str] = "communication"
@@ -423,8 +394,8 @@ class DriverModbusRtuParameter(Model):
             return data
         return ng_aliases(cls.normalize_keys(data, cls._where))
 
-    @model_validator(mode="after")
-    def _cross_checks(self) -> DriverModbusRtuParameter:
+    def _problems(self) -> list[Problem]:
+        """The cross-field checks of these fields (transport, ids, listen mode)."""
         problems: list[Problem] = []
         fields_set = self.model_fields_set
         if "transport" not in fields_set:
@@ -453,10 +424,7 @@ class DriverModbusRtuParameter(Model):
             problems.append(Problem("comPort", self.com_port, "a serial port is required"))
         if self.transport in ("rtu-over-tcp", "tcp") and not self.tcp_host.strip():
             problems.append(Problem("tcpHost", self.tcp_host, "a host is required"))
-        problems += listen_problems(self)
-        if problems:
-            raise ConfigError(problems)
-        return self
+        return problems + listen_problems(self)
 
     def _infer_transport(self, fields_set: set[str]) -> list[Problem]:
         """Neither ``transport`` nor ``useTcp``: the transport the other keys name.
@@ -496,3 +464,22 @@ class DriverModbusRtuParameter(Model):
     @field_serializer("parity")
     def _ser_parity(self, value: Parity) -> str:
         return value.value
+
+
+class DriverModbusRtuParameter(LinkFields, _CommunicationFields):
+    """Communication parameters (the seed's ``modbusRtu.json`` plus ours).
+
+    Times are int milliseconds.  ``transport`` defaults from ``useTcp`` (true ->
+    ``rtu-over-tcp``), else from the keys given (``tcpHost``/``tcpPort`` without
+    ``comPort``: ``rtu-over-tcp``; both: refused as ambiguous); NG's ``maxGap``,
+    ``maxBatch`` and ``byteOrder``/``wordOrder`` are accepted for ``maxMergeAddressGap``,
+    ``maxBlockReadRegisterCount`` and ``dataFormat``.  The link keys (alternates,
+    connections, flowControl) come last (config/links.py).
+    """
+
+    @model_validator(mode="after")
+    def _cross_checks(self) -> DriverModbusRtuParameter:
+        problems = self._problems() + link_problems(self)
+        if problems:
+            raise ConfigError(problems)
+        return self

@@ -129,6 +129,12 @@ LABELS: dict[str, dict[str, Any]] = {
     "encoding": _ui("字符串编码", "Advanced", "text"),
     "write_single_register_function": _ui("单寄存器写功能码", "Advanced", "select"),
     "snapshot_interval": _ui("快照间隔(ms)", "Advanced", "number"),
+    "alternates": _ui("备用端点", "Connection", "text"),
+    "failover_after": _ui("切换前失败次数", "Connection", "number"),
+    "failback_interval": _ui("主端点探测间隔(ms)", "Connection", "number"),
+    "connections": _ui("并行连接数", "Connection", "number", tcp=True),
+    "channel": _ui("连接通道", "Connection", "number", tcp=True),
+    "flow_control": _ui("硬件流控", "Connection", "select", serial=True),
 }
 
 ITEM_LABELS: dict[str, dict[str, Any]] = {

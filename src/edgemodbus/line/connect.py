@@ -4,7 +4,9 @@ time, a DTU stream's heartbeat and wrapped framing)."""
 
 from __future__ import annotations
 
+import errno
 import socket
+import termios
 from collections.abc import Callable
 
 from .._ffi import Context
@@ -34,6 +36,22 @@ def connect_tcp(ep: TcpEndpoint, timeout: float) -> socket.socket:
     sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_KEEPALIVE, 1)
     return sock
+
+
+def set_rtscts(fd: int, port: str) -> None:
+    """Hardware flow control on an open serial port: CRTSCTS (termios(3)), which
+    libmodbus's connect clears with the rest of c_cflag.  A driver that drops the flag
+    (no RTS/CTS lines) is a connection error that says so."""
+    try:
+        attrs = termios.tcgetattr(fd)
+        attrs[2] |= termios.CRTSCTS
+        termios.tcsetattr(fd, termios.TCSANOW, attrs)
+        if not termios.tcgetattr(fd)[2] & termios.CRTSCTS:
+            raise OSError(errno.ENOTSUP, "the driver did not keep CRTSCTS")
+    except (OSError, termios.error) as exc:
+        raise ModbusConnectionError(
+            f"serial port {port}: cannot set RTS/CTS flow control ({exc}); use "
+            "flowControl 'none'") from None
 
 
 def context_link(ctx: Context, endpoint: Endpoint, timing: LineTiming, stats: LineStats,
@@ -79,6 +97,8 @@ def open_link(ep: SerialPort | TcpEndpoint, timing: LineTiming, stats: LineStats
         ctx = Context.rtu(ep.port, ep.baudrate, ep.parity, ep.data_bits, ep.stop_bits)
         try:
             ctx.connect(ep.rs485)
+            if ep.flow_control == "rtscts":
+                set_rtscts(ctx.fd, ep.port)
         except ModbusError:
             ctx.close()
             raise

@@ -5,9 +5,10 @@ of a device's communication parameters."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any
 
+from ..config.links import split_host_port
 from ..datatypes import enum_value
 from ..protocol.limits import MAX_RTU_ADU
 
@@ -26,10 +27,19 @@ class SerialPort:
     stop_bits: int = 1
     rs485: str = "none"  # none | kernel (TIOCSRS485) | rts-up | rts-down
     echo: bool = False  # the adapter echoes every request (2-wire, no echo suppression)
+    flow_control: str = "none"  # none | rtscts (CRTSCTS set after libmodbus's termios)
+    alternates: tuple[str, ...] = ()  # backup serial ports, same settings (failover.py)
+    failover_after: int = 3  # with alternates: failed connects/cycles before moving on
+    failback_interval: float = 30.0  # on an alternate: probe the primary this often (0: no)
 
     @property
     def key(self) -> tuple[str, ...]:
         return ("rtu", self.port)
+
+    def targets(self) -> tuple[SerialPort, ...]:
+        """The primary, then each alternate: the ports a failover line opens in turn."""
+        return (replace(self, alternates=()),
+                *(replace(self, port=port, alternates=()) for port in self.alternates))
 
     @property
     def char_time(self) -> float:
@@ -47,6 +57,7 @@ class SerialPort:
         return (
             f"{self.port} {self.baudrate} {self.data_bits}{self.parity}{self.stop_bits}"
             f" rs485={self.rs485}" + (" echo" if self.echo else "")
+            + (" rtscts" if self.flow_control == "rtscts" else "")
         )
 
     @property
@@ -65,6 +76,11 @@ class TcpEndpoint:
     echo: bool = False  # RTU over TCP: the serial side echoes every request
     framing: str = "rtu"  # rtu | wrapped-report (RTU over TCP only)
     heartbeat: bytes = b""  # a DTU's idle heartbeat packet, skipped (RTU over TCP only)
+    alternates: tuple[tuple[str, int], ...] = ()  # backup host:port pairs (failover.py)
+    failover_after: int = 3  # with alternates: failed connects/cycles before moving on
+    failback_interval: float = 30.0  # on an alternate: probe the primary this often (0: no)
+    connections: int = 1  # Modbus TCP: parallel connections to this host:port
+    channel: int = 0  # which of them this line is (0..connections-1)
 
     def __post_init__(self) -> None:
         if self.transport not in ("rtu-over-tcp", "tcp"):
@@ -79,15 +95,30 @@ class TcpEndpoint:
         if self.transport == "tcp" and (self.framing != "rtu" or self.heartbeat):
             raise ValueError(f"framing {self.framing!r}/heartbeat: Modbus TCP (MBAP) has its "
                              "own framing; use transport rtu-over-tcp or rtu-over-tcp-server")
+        if not 0 <= self.channel < self.connections or (
+                self.connections > 1 and self.transport != "tcp"):
+            raise ValueError(f"channel {self.channel} of {self.connections} connections: "
+                             "connections > 1 is for Modbus TCP, channel 0..connections-1")
 
     @property
     def key(self) -> tuple[str, ...]:
-        return (self.transport, self.host, str(self.port))
+        """The line's identity: the primary host:port, and the channel when the
+        endpoint has several connections (each its own line)."""
+        base = (self.transport, self.host, str(self.port))
+        return base if self.connections == 1 else (*base, f"#{self.channel}")
+
+    def targets(self) -> tuple[TcpEndpoint, ...]:
+        """The primary, then each alternate: the peers a failover line connects to in
+        turn."""
+        return (replace(self, alternates=()), *(
+            replace(self, host=host, port=port, alternates=()) for host, port in self.alternates))
 
     def describe(self) -> str:
-        return f"{self.transport}://{self.host}:{self.port}" + (
+        host = f"[{self.host}]" if ":" in self.host else self.host
+        return f"{self.transport}://{host}:{self.port}" + (
             " echo" if self.echo else "") + (
-            " wrapped" if self.framing == "wrapped-report" else "")
+            " wrapped" if self.framing == "wrapped-report" else "") + (
+            f" channel {self.channel}/{self.connections}" if self.connections > 1 else "")
 
     @property
     def max_frame_time(self) -> float:
@@ -163,9 +194,19 @@ def endpoint_for(params: DriverModbusRtuParameter) -> Endpoint:
             stop_bits=params.stop_bits,
             rs485=params.rs485,
             echo=params.echo,
+            flow_control=params.flow_control,
+            alternates=params.alternates,
+            failover_after=params.failover_after,
+            failback_interval=params.failback_interval / 1000,
         )
+    connections = params.connections if params.transport == "tcp" else 1
+    channel = params.slave_id if params.channel is None else params.channel
     return TcpEndpoint(params.tcp_host, params.tcp_port, params.transport, echo=params.echo,
-                       framing=params.framing, heartbeat=params.heartbeat_bytes)
+                       framing=params.framing, heartbeat=params.heartbeat_bytes,
+                       alternates=tuple(split_host_port(a) for a in params.alternates),
+                       connections=connections, channel=channel % connections,
+                       failover_after=params.failover_after,
+                       failback_interval=params.failback_interval / 1000)
 
 
 def _parity_letter(parity: Any) -> str:
