@@ -47,10 +47,11 @@ from .compat import NG_KEYS, Parity, ng_aliases
 from .limits import MAX_HOST, MAX_NAME, check_host
 from .links import LinkFields, link_problems
 from .listen import KEY_EXAMPLE, NETWORKS_ALLOWED, allow_list, check_key, listen_problems, network
+from .mqtt_dtu import MqttDtuFields, mqtt_dtu_problems
 from .problems import NO_VALUE, ConfigError, Problem
 from .secret import Secret
 
-Transport = Literal["rtu-over-tcp-server", "rtu", "rtu-over-tcp", "tcp"]
+Transport = Literal["rtu-over-tcp-server", "rtu", "rtu-over-tcp", "tcp", "mqtt-dtu"]
 Framing = Literal["rtu", "wrapped-report"]
 Registration = Literal["none", "text", "hex", "regex"]
 AddressPrefixOption = Literal["function-code", "modicon", "entity"]
@@ -119,9 +120,11 @@ class _CommunicationFields(Model):
         default="rtu",
         description="rtu: serial RTU; rtu-over-tcp: raw RTU frames over TCP (DTU, serial "
         "server); tcp: Modbus TCP (MBAP); rtu-over-tcp-server: listen for DTUs that dial "
-        "in (RTU frames over TCP). When absent: rtu-over-tcp if useTcp, else rtu; without "
-        "useTcp either: rtu-over-tcp when tcpHost or tcpPort is given (not comPort), rtu "
-        "otherwise; tcpHost/tcpPort and comPort together are refused as ambiguous",
+        "in (RTU frames over TCP); mqtt-dtu: a DTU that bridges RS-485 to topics on an MQTT "
+        "broker (mqttHost, uplinkTopic, downlinkTopic, statusTopic). When absent: "
+        "rtu-over-tcp if useTcp, else rtu; without useTcp either: rtu-over-tcp when "
+        "tcpHost or tcpPort is given (not comPort), rtu otherwise; tcpHost/tcpPort and "
+        "comPort together are refused as ambiguous",
     )
     listen_host: str = Field(
         default="0.0.0.0",
@@ -136,7 +139,7 @@ class _CommunicationFields(Model):
         default="",
         description="rtu-over-tcp-server: the registration id of the DTU this device is "
         "behind (text, hex bytes, or what registrationPattern extracts); empty only "
-        "with registration none",
+        "with registration none; mqtt-dtu: the {dtuId} of its topics",
     )
     registration: Registration = Field(
         default="none",
@@ -466,7 +469,7 @@ class _CommunicationFields(Model):
         return value.value
 
 
-class DriverModbusRtuParameter(LinkFields, _CommunicationFields):
+class DriverModbusRtuParameter(MqttDtuFields, LinkFields, _CommunicationFields):
     """Communication parameters (the seed's ``modbusRtu.json`` plus ours).
 
     Times are int milliseconds.  ``transport`` defaults from ``useTcp`` (true ->
@@ -474,12 +477,17 @@ class DriverModbusRtuParameter(LinkFields, _CommunicationFields):
     ``comPort``: ``rtu-over-tcp``; both: refused as ambiguous); NG's ``maxGap``,
     ``maxBatch`` and ``byteOrder``/``wordOrder`` are accepted for ``maxMergeAddressGap``,
     ``maxBlockReadRegisterCount`` and ``dataFormat``.  The link keys (alternates,
-    connections, flowControl) come last (config/links.py).
+    connections, flowControl: config/links.py) and the MQTT DTU keys (mqtt_dtu.py) come
+    last.
     """
+
+    _max_lengths: ClassVar[dict[str, int]] = {
+        **_CommunicationFields._max_lengths, "mqttHost": MAX_HOST, "mqttUsername": MAX_NAME,
+        "mqttClientId": MAX_NAME}
 
     @model_validator(mode="after")
     def _cross_checks(self) -> DriverModbusRtuParameter:
-        problems = self._problems() + link_problems(self)
+        problems = self._problems() + link_problems(self) + mqtt_dtu_problems(self)
         if problems:
             raise ConfigError(problems)
         return self

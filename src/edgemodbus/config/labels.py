@@ -135,6 +135,23 @@ LABELS: dict[str, dict[str, Any]] = {
     "connections": _ui("并行连接数", "Connection", "number", tcp=True),
     "channel": _ui("连接通道", "Connection", "number", tcp=True),
     "flow_control": _ui("硬件流控", "Connection", "select", serial=True),
+    "mqtt_host": _ui("MQTT DTU 代理地址", "Connection", "text", tcp=True),
+    "mqtt_port": _ui("MQTT DTU 代理端口", "Connection", "number", tcp=True),
+    "mqtt_username": _ui("MQTT 用户名", "Connection", "text", tcp=True),
+    "mqtt_password": _ui("MQTT 密码", "Connection", "password", tcp=True),
+    "mqtt_client_id": _ui("MQTT 客户端ID", "Connection", "text", tcp=True),
+    "mqtt_keepalive": _ui("MQTT 心跳(s)", "Connection", "number", tcp=True),
+    "mqtt_qos": _ui("MQTT QoS", "Connection", "select", tcp=True),
+    "mqtt_tls": _ui("MQTT TLS", "Connection", "switch", tcp=True),
+    "mqtt_ca_file": _ui("MQTT CA 证书", "Connection", "text", tcp=True),
+    "mqtt_cert_file": _ui("MQTT 客户端证书", "Connection", "text", tcp=True),
+    "mqtt_key_file": _ui("MQTT 客户端私钥", "Connection", "text", tcp=True),
+    "mqtt_tls_insecure": _ui("MQTT TLS 不校验主机名", "Connection", "switch", tcp=True),
+    "uplink_topic": _ui("DTU 上行主题", "Connection", "text", tcp=True),
+    "downlink_topic": _ui("DTU 下行主题", "Connection", "text", tcp=True),
+    "status_topic": _ui("DTU 状态主题", "Connection", "text", tcp=True),
+    "online_payload": _ui("DTU 在线消息", "Connection", "text", tcp=True),
+    "offline_payload": _ui("DTU 离线消息", "Connection", "text", tcp=True),
 }
 
 ITEM_LABELS: dict[str, dict[str, Any]] = {

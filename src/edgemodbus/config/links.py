@@ -146,9 +146,9 @@ def link_problems(p: LinkParams) -> list[Problem]:
 def _alternate_problems(p: LinkParams) -> list[Problem]:
     if not p.alternates:
         return []
-    if p.transport == "rtu-over-tcp-server":
+    if p.transport in ("rtu-over-tcp-server", "mqtt-dtu"):
         return [Problem("alternates", list(p.alternates), "a DTU that dials in "
-                        "(rtu-over-tcp-server) picks its own path; alternates are for "
+                        f"({p.transport}) picks its own path; alternates are for "
                         "lines we open (rtu, rtu-over-tcp, tcp)")]
     problems: list[Problem] = []
     if len(p.alternates) > MAX_ALTERNATES:

@@ -13,7 +13,14 @@ from .._ffi import Context
 from ..errors import ModbusConnectionError, ModbusError
 from ..protocol.wrapped import Report
 from ..stats import LineStats
-from .endpoint import DtuEndpoint, Endpoint, LineTiming, SerialPort, TcpEndpoint
+from .endpoint import (
+    DtuEndpoint,
+    Endpoint,
+    LineTiming,
+    MqttDtuEndpoint,
+    SerialPort,
+    TcpEndpoint,
+)
 from .link import ContextLink
 
 
@@ -66,7 +73,8 @@ def context_link(ctx: Context, endpoint: Endpoint, timing: LineTiming, stats: Li
         ctx.set_echo(endpoint.echo)
         if isinstance(endpoint, SerialPort):
             ctx.set_char_time(endpoint.char_time)
-        elif isinstance(endpoint, DtuEndpoint) or endpoint.transport == "rtu-over-tcp":
+        elif isinstance(endpoint, (DtuEndpoint, MqttDtuEndpoint)) or \
+                endpoint.transport == "rtu-over-tcp":
             ctx.set_stream(endpoint.heartbeat, endpoint.framing == "wrapped-report")
     except ValueError:
         ctx.close()

@@ -5,10 +5,12 @@ of a device's communication parameters."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any
 
 from ..config.links import split_host_port
+from ..config.listen import STREAMS
+from ..config.mqtt_dtu import topic_for
 from ..datatypes import enum_value
 from ..protocol.limits import MAX_RTU_ADU
 
@@ -152,7 +154,60 @@ class DtuEndpoint:
         return 0.0
 
 
-Endpoint = SerialPort | TcpEndpoint | DtuEndpoint
+@dataclass(frozen=True)
+class MqttBroker:
+    """Where MQTT DTUs are reached: one MQTT connection per distinct value, shared by
+    every DTU on it (line/mqtt_dtu.py)."""
+
+    host: str
+    port: int = 1883
+    username: str = ""
+    password: str = field(default="", repr=False)  # never shown
+    client_id: str = ""
+    keepalive: int = 30
+    qos: int = 0
+    tls: bool = False
+    ca_file: str = ""
+    cert_file: str = ""
+    key_file: str = ""
+    tls_insecure: bool = False
+
+    def describe(self) -> str:
+        return f"mqtt{'s' if self.tls else ''}://{self.host}:{self.port}"
+
+
+@dataclass(frozen=True)
+class MqttDtuEndpoint:
+    """A DTU that bridges its RS-485 side to MQTT topics (``mqtt-dtu``): requests are
+    published to ``downlink``, replies arrive on ``uplink``; ``status`` (may be empty)
+    carries ``online``/``offline`` (its will).  Framed like a DTU stream."""
+
+    broker: MqttBroker
+    dtu_id: str
+    uplink: str
+    downlink: str
+    status: str = ""
+    online: bytes = b"online"
+    offline: bytes = b"offline"
+    echo: bool = False
+    framing: str = "rtu"  # rtu | wrapped-report
+    heartbeat: bytes = b""
+
+    @property
+    def key(self) -> tuple[str, ...]:
+        return ("mqtt-dtu", self.broker.host, str(self.broker.port), self.dtu_id)
+
+    def describe(self) -> str:
+        return f"mqtt-dtu {self.dtu_id}@{self.broker.host}:{self.broker.port}" + (
+            " echo" if self.echo else "") + (
+            " wrapped" if self.framing == "wrapped-report" else "")
+
+    @property
+    def max_frame_time(self) -> float:
+        return 0.0
+
+
+Endpoint = SerialPort | TcpEndpoint | DtuEndpoint | MqttDtuEndpoint
 
 
 @dataclass(frozen=True)
@@ -176,15 +231,15 @@ class LineTiming:
 def endpoint_for(params: DriverModbusRtuParameter) -> Endpoint:
     """The endpoint of a device's communication parameters (the config refuses these
     combinations too; parameters may have been changed after they were loaded)."""
-    if params.framing == "wrapped-report" and params.transport not in (
-        "rtu-over-tcp", "rtu-over-tcp-server"
-    ):
-        raise ValueError(f"framing 'wrapped-report': needs transport rtu-over-tcp or "
-                         f"rtu-over-tcp-server, not {params.transport!r}")
+    if params.framing == "wrapped-report" and params.transport not in STREAMS:
+        raise ValueError(f"framing 'wrapped-report': needs transport rtu-over-tcp, "
+                         f"rtu-over-tcp-server or mqtt-dtu, not {params.transport!r}")
     if params.transport == "rtu-over-tcp-server":
         return DtuEndpoint(params.listen_host, params.effective_listen_port, params.dtu_id,
                            echo=params.echo, framing=params.framing,
                            heartbeat=params.heartbeat_bytes)
+    if params.transport == "mqtt-dtu":
+        return mqtt_dtu_endpoint(params)
     if params.transport == "rtu":
         return SerialPort(
             port=params.com_port,
@@ -207,6 +262,21 @@ def endpoint_for(params: DriverModbusRtuParameter) -> Endpoint:
                        connections=connections, channel=channel % connections,
                        failover_after=params.failover_after,
                        failback_interval=params.failback_interval / 1000)
+
+
+def mqtt_dtu_endpoint(params: DriverModbusRtuParameter) -> MqttDtuEndpoint:
+    """The endpoint of an ``mqtt-dtu`` device: its broker and its topics."""
+    broker = MqttBroker(
+        params.mqtt_host, params.mqtt_port, params.mqtt_username,
+        params.mqtt_password.get_secret_value(), params.mqtt_client_id,
+        params.mqtt_keepalive, params.mqtt_qos, params.mqtt_tls, params.mqtt_ca_file,
+        params.mqtt_cert_file, params.mqtt_key_file, params.mqtt_tls_insecure)
+    dtu = params.dtu_id
+    return MqttDtuEndpoint(
+        broker, dtu, topic_for(params.uplink_topic, dtu), topic_for(params.downlink_topic, dtu),
+        topic_for(params.status_topic, dtu), params.online_payload.encode(),
+        params.offline_payload.encode(), echo=params.echo, framing=params.framing,
+        heartbeat=params.heartbeat_bytes)
 
 
 def _parity_letter(parity: Any) -> str:

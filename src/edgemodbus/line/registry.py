@@ -7,8 +7,9 @@ import threading
 from collections.abc import Callable
 from dataclasses import fields
 
-from .endpoint import DtuEndpoint, Endpoint, LineTiming, TcpEndpoint
+from .endpoint import DtuEndpoint, Endpoint, LineTiming, MqttDtuEndpoint, TcpEndpoint
 from .failover import Failover
+from .mqtt_dtu import MqttDtuSlot, hubs
 from .worker import Connector, LineWorker
 
 
@@ -41,12 +42,16 @@ class LineRegistry:
                 self._lines[endpoint.key] = (line, users + 1)
                 return line
             self._claim_peer(endpoint)
-            failover = None
-            if connector is None and not isinstance(endpoint, DtuEndpoint) and \
+            failover = slot = None
+            if isinstance(endpoint, MqttDtuEndpoint):
+                slot = hubs.acquire(endpoint)  # the DTU on its broker's connection
+            elif connector is None and not isinstance(endpoint, DtuEndpoint) and \
                     endpoint.alternates:
                 failover = Failover(endpoint)
-            line = LineWorker(endpoint, timing,
-                              failover or (connector() if connector is not None else None))
+            line = LineWorker(endpoint, timing, failover or slot or (
+                connector() if connector is not None else None))
+            if slot is not None:
+                slot.line = line
             line.start()
             if failover is not None:
                 failover.start(line)
@@ -90,6 +95,9 @@ class LineRegistry:
         if isinstance(line.connector, Failover):
             line.connector.stop()
         line.stop()
+        if isinstance(line.connector, MqttDtuSlot):
+            hubs.release(line.connector)
+            line.connector = None  # the hub's client (and its wake-up sockets) can go
 
     def lines(self) -> list[LineWorker]:
         with self._lock:
