@@ -6,6 +6,7 @@ loopback range only), a pymodbus slave (own process) the device behind the gatew
 
 from __future__ import annotations
 
+import ipaddress
 import json
 import socket
 import struct
@@ -13,6 +14,8 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 from pymodbus.client import ModbusTcpClient
 
 from edgemodbus.gateway import Gateway as GatewayService
@@ -122,3 +125,25 @@ def test_a_bad_allow_list_names_the_entry() -> None:
     with pytest.raises(ValueError, match=r"allowFrom\[1\] '::1': the server listens on "
                                          r"IPv4 only"):
         ModbusTcpServer("127.0.0.1", 0, allow_from=["10.0.0.0/8", "::1"])
+
+
+@settings(max_examples=40, deadline=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(nets=st.lists(st.tuples(st.integers(0, 2**24 - 1), st.integers(8, 32)), max_size=3),
+       source=st.integers(1, 2**24 - 2))
+def test_the_c_allow_list_matches_ipaddress(nets: list[tuple[int, int]], source: int) -> None:
+    """Differential: the server's C match (csrc/emb_serve.c) against Python's ipaddress
+    for networks and sources in 127.0.0.0/8 (every one of them is bindable locally)."""
+    allow = [str(ipaddress.IPv4Network(((127 << 24) | host, prefix), strict=False))
+             for host, prefix in nets]
+    src = str(ipaddress.IPv4Address((127 << 24) | source))
+    want = not allow or any(ipaddress.IPv4Address(src) in ipaddress.IPv4Network(n)
+                            for n in allow)
+    server = ModbusTcpServer("127.0.0.1", 0, allow_from=allow).start()
+    try:
+        reply = read_from(src, server.port, unit=5)  # no unit 5: 0A when let in
+        assert (reply[7:] == bytes([0x83, 0x0A])) == want, (allow, src, reply)
+        if want:
+            assert server.stats()["refusedSource"] == 0
+    finally:
+        server.stop()
