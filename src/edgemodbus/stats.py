@@ -110,6 +110,10 @@ class LineStats(RequestStats):
     failovers: int = 0
     failbacks: int = 0
     active_endpoint: str = ""
+    # MQTT DTUs (line/mqtt_dtu.py): uplink messages taken, and bytes of them lost (the
+    # link's stream full, or no link: the DTU sent while its line was down)
+    uplink_messages: int = 0
+    uplink_dropped_bytes: int = 0
 
     def as_dict(self) -> dict[str, Any]:
         native = self.native()
@@ -140,6 +144,8 @@ class LineStats(RequestStats):
             "failovers": self.failovers,
             "failbacks": self.failbacks,
             "activeEndpoint": self.active_endpoint,
+            "uplinkMessages": self.uplink_messages,
+            "uplinkDroppedBytes": self.uplink_dropped_bytes,
         }
 
 

@@ -112,3 +112,24 @@ def test_the_broker_going_away_takes_the_dtus_down_until_it_returns(
         with MqttDtu("d9", broker.port, slave.port):
             wait_for(lambda: drv.device_driver_status is em.DeviceDriverStatus.RUNNING,
                      30, "running again once the broker and the DTU are back")
+
+
+def test_a_flood_on_the_uplink_topic_is_dropped_counted_and_polling_recovers(
+        broker: Mosquitto, slave_factory: SlaveFactory) -> None:
+    """The uplink topic is untrusted input: a 4 MB message (more than the link's stream
+    holds) is cut to what fits, counted, logged once; the garbage is discarded by the
+    stream framing and the device reads its values again."""
+    from paho.mqtt import publish
+
+    slave = slave_factory("rtu-over-tcp", units=(1,))
+    with MqttDtu("d3", broker.port, slave.port), \
+            Running(config(broker, "d3", 1, readTimeout=500)) as drv:
+        wait_for(lambda: values(drv) == expected(1), 15, "values")
+        publish.single("dtu/d3/up", b"\x01" * (4 << 20), hostname="127.0.0.1",
+                       port=broker.port)
+        wait_for(lambda: drv.stats()["line"]["uplinkDroppedBytes"] > 0, 15, "the drop")
+        line = drv.stats()["line"]
+        assert line["uplinkMessages"] >= 2
+        cycles = drv.stats()["cycles"]
+        wait_for(lambda: drv.stats()["cycles"] >= cycles + 3 and values(drv) == expected(1),
+                 20, "polling again after the flood")

@@ -35,6 +35,7 @@ from ..errors import ModbusConnectionError
 from .connect import open_socket_link
 from .endpoint import MqttBroker, MqttDtuEndpoint
 from .link import Link
+from .log_limit import LogLimiter, hex_prefix
 
 if TYPE_CHECKING:
     from paho.mqtt.client import Client, MQTTMessage
@@ -60,8 +61,6 @@ class MqttDtuSlot:
         self.online = False
         self.reason = f"waiting for the broker {endpoint.broker.describe()}"
         self.status: bytes | None = None  # the last status message (None: none yet)
-        self.uplink_messages = 0
-        self.dropped = 0  # uplink bytes lost: the DTU's end was full or closed
         self._lock = threading.Lock()  # the end, the link, the state
         self._end: socket.socket | None = None
         self._link: Link | None = None
@@ -108,18 +107,26 @@ class MqttDtuSlot:
 
     # -- from the broker (paho's thread) ------------------------------------------------------
     def uplink(self, payload: bytes) -> None:
-        """What the DTU read from RS-485: into the link's stream."""
+        """What the DTU read from RS-485: into the link's stream (the hub's thread)."""
         with self._lock:
             end = self._end
-            self.uplink_messages += 1
-            if end is None:
-                self.dropped += len(payload)
-                return
-            try:
-                sent = end.send(payload)
-            except OSError:
-                sent = 0
-            self.dropped += len(payload) - sent
+            sent = 0
+            if end is not None:
+                try:
+                    sent = end.send(payload)
+                except OSError:  # full (a flood: the engine reads at its pace), shut down
+                    sent = 0
+            line = self.line
+        if line is not None:  # (the line's counters; only this thread writes these)
+            line.stats.uplink_messages += 1
+            line.stats.uplink_dropped_bytes += len(payload) - sent
+        if sent < len(payload):
+            self.hub.limiter.event(
+                logging.WARNING, "uplink messages dropped", self.endpoint.dtu_id,
+                "%s: %d of %d bytes of an uplink message dropped (%s): %s",
+                self.endpoint.describe(), len(payload) - sent, len(payload),
+                "no link" if end is None else "the link's stream is full",
+                hex_prefix(payload))
 
     def set_online(self, online: bool, reason: str) -> None:
         """The DTU (or the broker) came or went: close its end when it went, reconnect
@@ -174,6 +181,7 @@ class MqttDtuHub:
         self._wake_w.setblocking(False)
         self._stop = threading.Event()
         self._failures = 0  # failed connects in a row (the backoff, the log)
+        self.limiter = LogLimiter(log)  # untrusted uplink traffic: bounded log lines
         client_id = broker.client_id or \
             f"edgemodbus-dtu-{socket.gethostname()}-{os.getpid()}-{next(_HUB_IDS)}"
         client: Client = paho.Client(callback_api_version=CallbackAPIVersion.VERSION2,
@@ -313,6 +321,7 @@ class MqttDtuHub:
                              if self.client.socket() is None else _TICK)
                 if self.client.socket() is not None:
                     self.client.loop_misc()  # keepalive pings, a silent broker
+                self.limiter.flush()
         except Exception:
             log.exception("MQTT DTUs: the hub of %s failed", self.broker.describe())
         finally:
