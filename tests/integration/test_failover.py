@@ -6,11 +6,13 @@ pymodbus slaves in their own processes as the primary and the alternate."""
 from __future__ import annotations
 
 import threading
+from pathlib import Path
 from typing import Any
 
 import edgemodbus as em
 from tests.conftest import SlaveFactory
 from tests.integration.test_driver import Running
+from tests.peers import PtyPair
 from tests.waiting import wait_for
 
 PRIMARY, ALTERNATE = 1111, 2222  # what hr:0 holds on each peer: who answered
@@ -88,3 +90,26 @@ def test_a_dead_alternate_wraps_around_to_the_primary(slave_factory: SlaveFactor
         assert line_stats(drv)["failovers"] >= 1
         primary.restart()
         wait_for(lambda: value(drv) == PRIMARY, 15, "a value from the primary")
+
+
+def test_a_serial_line_fails_over_to_its_second_port(tmp_path: Path,
+                                                     slave_factory: SlaveFactory) -> None:
+    """The primary serial port is gone (an unplugged adapter): after failoverAfter failed
+    opens the line takes the second port (a socat pty pair, a pymodbus slave on its
+    other end) with the same settings."""
+    with PtyPair(tmp_path / "pty") as pair:
+        slave_factory("serial", units=(1,), device=pair.b,
+                      initial={1: {"hr": {0: ALTERNATE}}})
+        cfg = em.load_device_config({
+            "organization": {"deviceCode": "serial-failover"},
+            "communication": {"transport": "rtu", "comPort": str(tmp_path / "unplugged"),
+                              "baudRate": 19200, "slaveId": 1,
+                              "alternates": [str(pair.a)], "failoverAfter": 2,
+                              "readCycle": 100, "readTimeout": 500,
+                              "reconnectInterval": 100, "maxBackoff": 200},
+            "addressList": [{"name": "who", "address": "hr:0", "deviceDataType": "UInt16"}],
+        })
+        with Running(cfg) as drv:
+            wait_for(lambda: value(drv) == ALTERNATE, 15, "a value over the second port")
+            stats = line_stats(drv)
+            assert stats["failovers"] == 1 and stats["activeEndpoint"].startswith(str(pair.a))

@@ -42,21 +42,33 @@ class LineRegistry:
                 self._lines[endpoint.key] = (line, users + 1)
                 return line
             self._claim_peer(endpoint)
-            failover = slot = None
-            if isinstance(endpoint, MqttDtuEndpoint):
-                slot = hubs.acquire(endpoint)  # the DTU on its broker's connection
-            elif connector is None and not isinstance(endpoint, DtuEndpoint) and \
-                    endpoint.alternates:
-                failover = Failover(endpoint)
-            line = LineWorker(endpoint, timing, failover or slot or (
-                connector() if connector is not None else None))
-            if slot is not None:
-                slot.line = line
-            line.start()
-            if failover is not None:
-                failover.start(line)
+            try:
+                line = self._new_line(endpoint, timing, connector)
+            except BaseException:
+                self._release_peer(endpoint)
+                raise
             self._lines[endpoint.key] = (line, 1)
             return line
+
+    @staticmethod
+    def _new_line(endpoint: Endpoint, timing: LineTiming | None,
+                  connector: Callable[[], Connector] | None) -> LineWorker:
+        """A started line worker with its connector: ``connector``'s, a DTU's on its
+        broker (mqtt-dtu), or a :class:`Failover` for a line with alternates."""
+        failover = slot = None
+        if isinstance(endpoint, MqttDtuEndpoint):
+            slot = hubs.acquire(endpoint)  # the DTU on its broker's connection
+        elif connector is None and not isinstance(endpoint, DtuEndpoint) and \
+                endpoint.alternates:
+            failover = Failover(endpoint)
+        line = LineWorker(endpoint, timing, failover or slot or (
+            connector() if connector is not None else None))
+        if slot is not None:
+            slot.line = line
+        line.start()
+        if failover is not None:
+            failover.start(line)
+        return line
 
     def _claim_peer(self, endpoint: Endpoint) -> None:
         """A new line to a Modbus TCP peer: every line to it must name the same number
