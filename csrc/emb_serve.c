@@ -112,6 +112,50 @@ int emb_sv_port(const emb_server *s)
     return ntohs(addr.sin_port);
 }
 
+/* Set the allow-list of the server (unit -1) or of a unit: n networks (0: every
+ * source) as addr, mask pairs in host byte order, each addr within its mask.  The
+ * server's applies to connections accepted from now on; a unit's to every request. */
+int emb_sv_allow(emb_server *s, int unit, const uint32_t *nets, uint32_t n)
+{
+    emb_sv_allow_list list;
+    uint32_t i;
+
+    if (unit < -1 || unit >= EMB_SV_UNITS || n > EMB_SV_NETS) {
+        errno = EINVAL;
+        return -1;
+    }
+    memset(&list, 0, sizeof(list));
+    for (i = 0; i < n; i++) {
+        if ((nets[2 * i] & ~nets[2 * i + 1]) != 0) {
+            errno = EINVAL;
+            return -1;
+        }
+        list.nets[i].addr = nets[2 * i];
+        list.nets[i].mask = nets[2 * i + 1];
+    }
+    list.n = n;
+    pthread_mutex_lock(&s->lock);
+    if (unit < 0)
+        s->allow = list;
+    else
+        s->unit_allow[unit] = list;
+    pthread_mutex_unlock(&s->lock);
+    return 0;
+}
+
+/* the lock is held: whether src is in the list (an empty list allows every source) */
+static int emb_sv_allowed(const emb_sv_allow_list *list, uint32_t src)
+{
+    uint32_t i;
+
+    if (list->n == 0)
+        return 1;
+    for (i = 0; i < list->n; i++)
+        if ((src & list->nets[i].mask) == list->nets[i].addr)
+            return 1;
+    return 0;
+}
+
 static void emb_sv_unit_clear(emb_sv_unit *u)
 {
     int a;
@@ -408,6 +452,9 @@ static int emb_sv_request(emb_server *s, emb_sv_conn *c, uint32_t conn, uint32_t
     pthread_mutex_lock(&s->lock);
     if (u->mode == EMB_SV_NONE) {
         rc = emb_sv_exception(s, c, MODBUS_EXCEPTION_GATEWAY_PATH);
+    } else if (!emb_sv_allowed(&s->unit_allow[c->buf[6]], c->src)) {
+        s->c.refused_unit++; /* answered as a unit not served: nothing more is told */
+        rc = emb_sv_exception(s, c, MODBUS_EXCEPTION_GATEWAY_PATH);
     } else if (u->mode == EMB_SV_FORWARD) {
         rc = -2;
     } else {
@@ -554,9 +601,12 @@ static void emb_sv_accept_failed(emb_server *s, int err, int64_t now)
 static void emb_sv_accept(emb_server *s, int64_t now)
 {
     for (;;) {
-        int fd = accept4(s->listen_fd, NULL, NULL, SOCK_NONBLOCK | SOCK_CLOEXEC);
-        int one = 1;
-        uint32_t i;
+        struct sockaddr_in peer;
+        socklen_t peer_len = sizeof(peer);
+        int fd = accept4(s->listen_fd, (struct sockaddr *)&peer, &peer_len,
+                         SOCK_NONBLOCK | SOCK_CLOEXEC);
+        int one = 1, allowed;
+        uint32_t i, src;
 
         if (fd < 0) {
             int err = errno;
@@ -566,6 +616,19 @@ static void emb_sv_accept(emb_server *s, int64_t now)
             return; /* EAGAIN, or an error of that one connection */
         }
         s->accept_pause_ns = 0;
+        /* the listening socket is IPv4 (modbus_tcp_listen) */
+        src = peer.sin_family == AF_INET ? ntohl(peer.sin_addr.s_addr) : 0;
+        pthread_mutex_lock(&s->lock);
+        allowed = emb_sv_allowed(&s->allow, src);
+        pthread_mutex_unlock(&s->lock);
+        if (!allowed) {
+            struct linger reset = {1, 0};
+
+            s->c.refused_source++;
+            setsockopt(fd, SOL_SOCKET, SO_LINGER, &reset, sizeof(reset)); /* RST */
+            close(fd);
+            continue;
+        }
         for (i = 0; i < s->max_conns && s->conns[i].fd >= 0; i++)
             ;
         if (i == s->max_conns) {
@@ -576,6 +639,7 @@ static void emb_sv_accept(emb_server *s, int64_t now)
         setsockopt(fd, IPPROTO_TCP, TCP_NODELAY, &one, sizeof(one));
         pthread_mutex_lock(&s->lock);
         s->conns[i].fd = fd;
+        s->conns[i].src = src;
         s->conns[i].gen++;
         s->conns[i].busy = 0;
         s->conns[i].ready = 0;

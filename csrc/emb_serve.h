@@ -18,6 +18,7 @@
 
 #define EMB_SV_ADU 260   /* MODBUS_TCP_MAX_ADU_LENGTH */
 #define EMB_SV_UNITS 256 /* unit ids 0..255 */
+#define EMB_SV_NETS 32   /* networks of one allow-list (the server's, a unit's) */
 
 /* emb_sv_run's events */
 #define EMB_SV_EV_DEADLINE 0 /* until_ns reached */
@@ -55,8 +56,21 @@ typedef struct {
     int mode;
 } emb_sv_unit;
 
+/* an IPv4 network of an allow-list, host byte order: a source is in it when
+ * (source & mask) == addr */
+typedef struct {
+    uint32_t addr;
+    uint32_t mask;
+} emb_sv_net;
+
+typedef struct {
+    uint32_t n;      /* 0: every source */
+    emb_sv_net nets[EMB_SV_NETS];
+} emb_sv_allow_list;
+
 typedef struct {
     int fd;          /* -1: the slot is free */
+    uint32_t src;    /* the master's IPv4 address, host byte order */
     uint32_t gen;    /* bumped per connection the slot holds: posts for another are dropped */
     int busy;        /* a request is with Python: nothing more is read meanwhile */
     int ready;       /* Python posted the answer (under the mutex) */
@@ -81,6 +95,10 @@ typedef struct {
     uint64_t accept_errors;    /* accept4 failed for want of fds or memory (EMFILE, ENFILE,
                                 * ENOBUFS, ENOMEM): accepting paused, see emb_sv_accept */
     int accept_errno;          /* the last of those failures' errno */
+    uint64_t refused_source;   /* connections from a source outside the server's
+                                * allow-list: reset at once */
+    uint64_t refused_unit;     /* requests from a source outside their unit's allow-list:
+                                * exception 0A, as for a unit not served */
 } emb_sv_counters;
 
 typedef struct {
@@ -97,6 +115,8 @@ typedef struct {
     int64_t accept_at_ns;    /* the listening socket is not polled before then */
     pthread_mutex_t lock; /* the units and the posts */
     emb_sv_unit units[EMB_SV_UNITS];
+    emb_sv_allow_list allow;              /* the server's (under the lock) */
+    emb_sv_allow_list unit_allow[EMB_SV_UNITS]; /* each unit's (under the lock) */
     emb_sv_counters c;
     /* the event handed to Python */
     int ev_conn;
@@ -119,6 +139,7 @@ typedef struct {
 emb_server *emb_sv_new(const char *ip, int port, int backlog, uint32_t max_conns,
                        int64_t idle_ns);
 int emb_sv_port(const emb_server *s);
+int emb_sv_allow(emb_server *s, int unit, const uint32_t *nets, uint32_t n);
 void emb_sv_free(emb_server *s);
 int emb_sv_unit_set(emb_server *s, int unit, int mode, const int *spans);
 void emb_sv_unit_fresh(emb_server *s, int unit, int64_t until_ns);

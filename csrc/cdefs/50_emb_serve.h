@@ -1,6 +1,7 @@
 /* csrc/emb_serve.h, for cffi. */
 #define EMB_SV_ADU ...
 #define EMB_SV_UNITS ...
+#define EMB_SV_NETS ...
 #define EMB_SV_EV_DEADLINE ...
 #define EMB_SV_EV_REQUEST ...
 #define EMB_SV_EV_STOP ...
@@ -28,6 +29,8 @@ typedef struct {
     uint64_t exceptions[12];
     uint64_t accept_errors;
     int accept_errno;
+    uint64_t refused_source;
+    uint64_t refused_unit;
 } emb_sv_counters;
 
 typedef struct {
@@ -51,6 +54,7 @@ typedef struct {
 emb_server *emb_sv_new(const char *ip, int port, int backlog, uint32_t max_conns,
                        int64_t idle_ns);
 int emb_sv_port(const emb_server *s);
+int emb_sv_allow(emb_server *s, int unit, const uint32_t *nets, uint32_t n);
 void emb_sv_free(emb_server *s);
 int emb_sv_unit_set(emb_server *s, int unit, int mode, const int *spans);
 void emb_sv_unit_fresh(emb_server *s, int unit, int64_t until_ns);

@@ -36,12 +36,11 @@ from .line import (
     DtuEndpoint,
     DtuRegistry,
     DtuSlot,
+    Endpoint,
     LineRegistry,
     LineTiming,
     LineWorker,
     PortSettings,
-    SerialPort,
-    TcpEndpoint,
     dtu_registry,
     endpoint_for,
     line_registry,
@@ -146,7 +145,7 @@ class DriverModbusRtu:
         return True
 
     def _acquire(
-        self, params: DriverModbusRtuParameter, endpoint: SerialPort | TcpEndpoint | DtuEndpoint,
+        self, params: DriverModbusRtuParameter, endpoint: Endpoint,
         timing: LineTiming, poller: Poller,
     ) -> tuple[LineWorker, DtuSlot | None]:
         """Acquire the line (and the DTU slot in listen mode) and attach ``poller``;

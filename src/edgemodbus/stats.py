@@ -105,6 +105,15 @@ class LineStats(RequestStats):
     jobs_refused: int = 0
     target_backoffs: int = 0
     worker_errors: int = 0
+    # backup endpoints (line/failover.py): moves to the next endpoint, moves back to the
+    # primary, and the endpoint in use ("" on a line without alternates)
+    failovers: int = 0
+    failbacks: int = 0
+    active_endpoint: str = ""
+    # MQTT DTUs (line/mqtt_dtu.py): uplink messages taken, and bytes of them lost (the
+    # link's stream full, or no link: the DTU sent while its line was down)
+    uplink_messages: int = 0
+    uplink_dropped_bytes: int = 0
 
     def as_dict(self) -> dict[str, Any]:
         native = self.native()
@@ -132,6 +141,11 @@ class LineStats(RequestStats):
             "jobsRefused": self.jobs_refused,
             "targetBackoffs": self.target_backoffs,
             "workerErrors": self.worker_errors,
+            "failovers": self.failovers,
+            "failbacks": self.failbacks,
+            "activeEndpoint": self.active_endpoint,
+            "uplinkMessages": self.uplink_messages,
+            "uplinkDroppedBytes": self.uplink_dropped_bytes,
         }
 
 

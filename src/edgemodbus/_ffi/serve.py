@@ -29,6 +29,8 @@ STATE_VALID: int = lib.EMB_SV_VALID
 STATE_INVALID: int = lib.EMB_SV_INVALID
 STATE_WRITABLE: int = lib.EMB_SV_WRITABLE
 
+MAX_NETS: int = lib.EMB_SV_NETS
+
 POST_PDU: int = lib.EMB_SV_POST_PDU
 POST_EXCEPTION: int = lib.EMB_SV_POST_EXCEPTION
 POST_WRITTEN: int = lib.EMB_SV_POST_WRITTEN
@@ -66,6 +68,8 @@ class ServerCounters(NamedTuple):
     exceptions: dict[int, int]
     accept_errors: int = 0  # accept failed for want of fds or memory: accepting paused
     accept_errno: int = 0   # the last of those failures' errno
+    refused_source: int = 0  # connections from outside the server's allow-list (reset)
+    refused_unit: int = 0    # requests from outside their unit's allow-list (0A)
 
 
 class ServerCore:
@@ -91,6 +95,18 @@ class ServerCore:
             if lib.emb_sv_unit_set(self._live(), unit, mode, ffi.new("int[8]", flat)) < 0:
                 err = ffi.errno
                 raise OSError(err, f"serve: unit {unit}: no image ({os.strerror(err)})")
+
+    def allow(self, unit: int | None, nets: Sequence[tuple[int, int]]) -> None:
+        """The allow-list of the server (``unit`` None: connections accepted from now
+        on) or of ``unit`` (every request): IPv4 (address, netmask) pairs as ints;
+        empty: every source."""
+        if len(nets) > MAX_NETS:
+            raise ValueError(f"at most {MAX_NETS} networks per allow-list, not {len(nets)}")
+        flat = [x for net in nets for x in net] or [0]
+        with self._lock:
+            if lib.emb_sv_allow(self._live(), -1 if unit is None else unit,
+                                ffi.new("uint32_t[]", flat), len(nets)) < 0:
+                raise ValueError(f"serve: allow-list of {unit}: {os.strerror(ffi.errno)}")
 
     def set_fresh(self, unit: int, until_ns: int) -> None:
         """Reads of ``unit`` after ``until_ns`` (``time.monotonic_ns``) get exception 0B."""
@@ -139,7 +155,8 @@ class ServerCore:
             return ServerCounters(c.accepted, c.refused, c.closed_idle, c.closed_bad,
                                   c.closed_peer, c.requests, c.cached_replies, c.to_python,
                                   {k: c.exceptions[k] for k in range(12) if c.exceptions[k]},
-                                  c.accept_errors, c.accept_errno)
+                                  c.accept_errors, c.accept_errno, c.refused_source,
+                                  c.refused_unit)
 
     def open_connections(self) -> int:
         with self._lock:

@@ -40,12 +40,12 @@ from .communication import (
     AddressPrefixOption,
     DriverModbusRtuParameter,
     Framing,
-    Parity,
     Registration,
     ReportMode,
     Rs485Mode,
     Transport,
 )
+from .compat import Parity
 from .device import (
     DeviceConfig,
     DeviceOrganizationParameter,

@@ -1,5 +1,5 @@
 """Communication parameters: :class:`DriverModbusRtuParameter` (the seed's
-``modbusRtu.json`` plus ours) and :class:`Parity`.
+``modbusRtu.json`` plus ours; :class:`Parity` is compat.py's).
 
 Limits are those of the layers that use the values (one source of truth): block sizes
 come from the planner, offsets from the address parser.  Parity is stored as
@@ -9,7 +9,6 @@ compat.py lists are accepted.
 
 from __future__ import annotations
 
-import enum
 from collections.abc import Mapping
 from typing import Annotated, Any, ClassVar, Literal
 
@@ -44,13 +43,15 @@ from .base import (
     lower_literal,
     parse_format,
 )
-from .compat import NG_KEYS, ng_aliases, parity_letter
+from .compat import NG_KEYS, Parity, ng_aliases
 from .limits import MAX_HOST, MAX_NAME, check_host
+from .links import LinkFields, link_problems
 from .listen import KEY_EXAMPLE, NETWORKS_ALLOWED, allow_list, check_key, listen_problems, network
-from .problems import NO_VALUE, ConfigError, Problem, WrongType
+from .mqtt_dtu import MqttDtuFields, mqtt_dtu_problems
+from .problems import NO_VALUE, ConfigError, Problem
 from .secret import Secret
 
-Transport = Literal["rtu-over-tcp-server", "rtu", "rtu-over-tcp", "tcp"]
+Transport = Literal["rtu-over-tcp-server", "rtu", "rtu-over-tcp", "tcp", "mqtt-dtu"]
 Framing = Literal["rtu", "wrapped-report"]
 Registration = Literal["none", "text", "hex", "regex"]
 AddressPrefixOption = Literal["function-code", "modicon", "entity"]
@@ -65,37 +66,8 @@ AllowFrom = Annotated[tuple[Annotated[str, AfterValidator(network)], ...],
 _CAMEL = {"tcp_host": "tcpHost", "tcp_port": "tcpPort"}
 
 
-class Parity(str, enum.Enum):
-    """Serial parity, as libmodbus spells it."""
-
-    NONE = "N"
-    ODD = "O"
-    EVEN = "E"
-
-    @classmethod
-    def parse(cls, value: Any) -> Parity:
-        if isinstance(value, Parity):
-            return value
-        letter = parity_letter(value)
-        if letter is None:
-            raise WrongType("use None|Odd|Even, 0|1|2 or N|O|E")
-        return cls(letter)
-
-    @property
-    def number(self) -> int:
-        """The seed descriptor's numbering: 0 = None, 1 = Odd, 2 = Even."""
-        return {Parity.NONE: 0, Parity.ODD: 1, Parity.EVEN: 2}[self]
-
-
-class DriverModbusRtuParameter(Model):
-    """Communication parameters (the seed's ``modbusRtu.json`` plus ours).
-
-    Times are int milliseconds.  ``transport`` defaults from ``useTcp`` (true ->
-    ``rtu-over-tcp``), else from the keys given (``tcpHost``/``tcpPort`` without
-    ``comPort``: ``rtu-over-tcp``; both: refused as ambiguous); NG's ``maxGap``,
-    ``maxBatch`` and ``byteOrder``/``wordOrder`` are accepted for ``maxMergeAddressGap``,
-    ``maxBlockReadRegisterCount`` and ``dataFormat``.
-    """
+class _CommunicationFields(Model):
+    """The fields of :class:`DriverModbusRtuParameter` but the link keys (links.py)."""
 
     _extra_keys: ClassVar[tuple[str, ...]] = NG_KEYS
     _where: ClassVar[str] = "communication"
@@ -148,9 +120,11 @@ class DriverModbusRtuParameter(Model):
         default="rtu",
         description="rtu: serial RTU; rtu-over-tcp: raw RTU frames over TCP (DTU, serial "
         "server); tcp: Modbus TCP (MBAP); rtu-over-tcp-server: listen for DTUs that dial "
-        "in (RTU frames over TCP). When absent: rtu-over-tcp if useTcp, else rtu; without "
-        "useTcp either: rtu-over-tcp when tcpHost or tcpPort is given (not comPort), rtu "
-        "otherwise; tcpHost/tcpPort and comPort together are refused as ambiguous",
+        "in (RTU frames over TCP); mqtt-dtu: a DTU that bridges RS-485 to topics on an MQTT "
+        "broker (mqttHost, uplinkTopic, downlinkTopic, statusTopic). When absent: "
+        "rtu-over-tcp if useTcp, else rtu; without useTcp either: rtu-over-tcp when "
+        "tcpHost or tcpPort is given (not comPort), rtu otherwise; tcpHost/tcpPort and "
+        "comPort together are refused as ambiguous",
     )
     listen_host: str = Field(
         default="0.0.0.0",
@@ -165,7 +139,7 @@ class DriverModbusRtuParameter(Model):
         default="",
         description="rtu-over-tcp-server: the registration id of the DTU this device is "
         "behind (text, hex bytes, or what registrationPattern extracts); empty only "
-        "with registration none",
+        "with registration none; mqtt-dtu: the {dtuId} of its topics",
     )
     registration: Registration = Field(
         default="none",
@@ -423,8 +397,8 @@ class DriverModbusRtuParameter(Model):
             return data
         return ng_aliases(cls.normalize_keys(data, cls._where))
 
-    @model_validator(mode="after")
-    def _cross_checks(self) -> DriverModbusRtuParameter:
+    def _problems(self) -> list[Problem]:
+        """The cross-field checks of these fields (transport, ids, listen mode)."""
         problems: list[Problem] = []
         fields_set = self.model_fields_set
         if "transport" not in fields_set:
@@ -453,10 +427,7 @@ class DriverModbusRtuParameter(Model):
             problems.append(Problem("comPort", self.com_port, "a serial port is required"))
         if self.transport in ("rtu-over-tcp", "tcp") and not self.tcp_host.strip():
             problems.append(Problem("tcpHost", self.tcp_host, "a host is required"))
-        problems += listen_problems(self)
-        if problems:
-            raise ConfigError(problems)
-        return self
+        return problems + listen_problems(self)
 
     def _infer_transport(self, fields_set: set[str]) -> list[Problem]:
         """Neither ``transport`` nor ``useTcp``: the transport the other keys name.
@@ -496,3 +467,27 @@ class DriverModbusRtuParameter(Model):
     @field_serializer("parity")
     def _ser_parity(self, value: Parity) -> str:
         return value.value
+
+
+class DriverModbusRtuParameter(MqttDtuFields, LinkFields, _CommunicationFields):
+    """Communication parameters (the seed's ``modbusRtu.json`` plus ours).
+
+    Times are int milliseconds.  ``transport`` defaults from ``useTcp`` (true ->
+    ``rtu-over-tcp``), else from the keys given (``tcpHost``/``tcpPort`` without
+    ``comPort``: ``rtu-over-tcp``; both: refused as ambiguous); NG's ``maxGap``,
+    ``maxBatch`` and ``byteOrder``/``wordOrder`` are accepted for ``maxMergeAddressGap``,
+    ``maxBlockReadRegisterCount`` and ``dataFormat``.  The link keys (alternates,
+    connections, flowControl: config/links.py) and the MQTT DTU keys (mqtt_dtu.py) come
+    last.
+    """
+
+    _max_lengths: ClassVar[dict[str, int]] = {
+        **_CommunicationFields._max_lengths, "mqttHost": MAX_HOST, "mqttUsername": MAX_NAME,
+        "mqttClientId": MAX_NAME}
+
+    @model_validator(mode="after")
+    def _cross_checks(self) -> DriverModbusRtuParameter:
+        problems = self._problems() + link_problems(self) + mqtt_dtu_problems(self)
+        if problems:
+            raise ConfigError(problems)
+        return self

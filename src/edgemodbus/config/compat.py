@@ -20,10 +20,11 @@ them, parity as numbers and names, timestamps as .NET writes them.
 
 from __future__ import annotations
 
+import enum
 from typing import Any
 
 from ..datatypes import DataFormat
-from .problems import NO_VALUE, ConfigError, Problem
+from .problems import NO_VALUE, ConfigError, Problem, WrongType
 
 
 def norm_key(key: str) -> str:
@@ -314,3 +315,25 @@ def iso_timestamp(value: Any) -> Any:
         if digits > 6:
             value = f"{head}.{tail[:6]}{tail[digits:]}"
     return value
+
+
+class Parity(str, enum.Enum):
+    """Serial parity, as libmodbus spells it."""
+
+    NONE = "N"
+    ODD = "O"
+    EVEN = "E"
+
+    @classmethod
+    def parse(cls, value: Any) -> Parity:
+        if isinstance(value, Parity):
+            return value
+        letter = parity_letter(value)
+        if letter is None:
+            raise WrongType("use None|Odd|Even, 0|1|2 or N|O|E")
+        return cls(letter)
+
+    @property
+    def number(self) -> int:
+        """The seed descriptor's numbering: 0 = None, 1 = Odd, 2 = Even."""
+        return {Parity.NONE: 0, Parity.ODD: 1, Parity.EVEN: 2}[self]

@@ -25,6 +25,8 @@ from .problems import ConfigError, Problem, WrongType
 NETWORKS_ALLOWED = ("an IPv4 or IPv6 network in CIDR notation or a single address, e.g. "
                     "10.0.0.0/8, 192.168.1.7, 2001:db8::/32")
 KEY_EXAMPLE = r"ID:(\d+);KEY:(?P<key>\w+)"
+STREAMS = ("rtu-over-tcp", "rtu-over-tcp-server", "mqtt-dtu")
+"""The transports whose link is a DTU stream: heartbeats and wrapped frames apply."""
 
 
 class ListenParams(Protocol):
@@ -139,11 +141,9 @@ def listen_problems(p: ListenParams) -> list[Problem]:
     if p.transport == "rtu-over-tcp-server":
         problems += _registration_problems(p)
     problems += _heartbeat_problems(p)
-    if p.framing == "wrapped-report" and p.transport not in (
-        "rtu-over-tcp", "rtu-over-tcp-server"
-    ):
-        problems.append(Problem("framing", p.framing, "needs transport rtu-over-tcp or "
-                                f"rtu-over-tcp-server, not {p.transport!r}"))
+    if p.framing == "wrapped-report" and p.transport not in STREAMS:
+        problems.append(Problem("framing", p.framing, "needs transport rtu-over-tcp, "
+                                f"rtu-over-tcp-server or mqtt-dtu, not {p.transport!r}"))
     if p.framing == "wrapped-report" and p.echo:
         problems.append(Problem("echo", p.echo, "no echo option with framing "
                                 "wrapped-report"))
@@ -242,12 +242,10 @@ def _heartbeat_problems(p: ListenParams) -> list[Problem]:
         problems.append(Problem("heartbeatHex" if p.heartbeat_hex else "heartbeat",
                                 p.heartbeat_hex or p.heartbeat,
                                 f"at most {MAX_HEARTBEAT} bytes"))
-    if (p.heartbeat or p.heartbeat_hex) and p.transport not in (
-        "rtu-over-tcp", "rtu-over-tcp-server"
-    ):
+    if (p.heartbeat or p.heartbeat_hex) and p.transport not in STREAMS:
         problems.append(Problem("heartbeat", p.heartbeat or p.heartbeat_hex,
-                                "heartbeats apply to RTU over TCP (rtu-over-tcp, "
-                                "rtu-over-tcp-server)"))
+                                "heartbeats apply to DTU streams (rtu-over-tcp, "
+                                "rtu-over-tcp-server, mqtt-dtu)"))
     return problems
 
 

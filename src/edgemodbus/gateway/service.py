@@ -44,13 +44,15 @@ log = logging.getLogger("edgemodbus.service")
 
 def line_label(params: DriverModbusRtuParameter) -> str:
     """A name for the line a device is on (metrics label): the serial port,
-    transport://host:port, or for a DTU that dials in dtu://listenHost:port/dtuId (its
-    tcpHost and tcpPort say nothing of it)."""
+    transport://host:port, for a DTU that dials in dtu://listenHost:port/dtuId (its
+    tcpHost and tcpPort say nothing of it), for an MQTT DTU mqtt-dtu://broker:port/dtuId."""
     if params.transport == "rtu":
         return str(params.com_port)
     if params.transport == "rtu-over-tcp-server":
         return (f"dtu://{params.listen_host}:{params.effective_listen_port}/"
                 f"{params.dtu_id or '(single)'}")
+    if params.transport == "mqtt-dtu":  # the DTU on its broker
+        return f"mqtt-dtu://{params.mqtt_host}:{params.mqtt_port}/{params.dtu_id}"
     return f"{params.transport}://{params.tcp_host}:{params.tcp_port}"
 
 

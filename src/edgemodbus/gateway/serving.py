@@ -40,7 +40,8 @@ class GatewayServer:
             if settings is not None and key is not None:
                 self.server = ModbusTcpServer(settings.host, settings.port,
                                               max_connections=settings.max_connections,
-                                              idle_timeout=settings.idle_timeout_s).start()
+                                              idle_timeout=settings.idle_timeout_s,
+                                              allow_from=settings.allow_from).start()
                 self._key = key
                 done.append(f"Modbus TCP server on {settings.host}:{self.server.port}")
             else:
@@ -66,11 +67,13 @@ class GatewayServer:
                 if unit.device is not None:
                     server.serve_device(unit.unit_id, driver, cfg, offset=unit.offset,
                                         max_age=None if unit.max_age_ms is None
-                                        else unit.max_age_ms / 1000)
+                                        else unit.max_age_ms / 1000,
+                                        allow_from=unit.allow_from)
                     done.append(f"unit {unit.unit_id} serves {unit.target}")
                 else:
                     server.forward_device(unit.unit_id, driver, None if unit.timeout_ms
-                                          is None else unit.timeout_ms / 1000)
+                                          is None else unit.timeout_ms / 1000,
+                                          allow_from=unit.allow_from)
                     done.append(f"unit {unit.unit_id} forwards to {unit.target}")
             except (ValueError, OSError) as exc:
                 log.error("serve: unit %d (%s) not served: %s", unit.unit_id, unit.target,

@@ -4,14 +4,23 @@ time, a DTU stream's heartbeat and wrapped framing)."""
 
 from __future__ import annotations
 
+import errno
 import socket
+import termios
 from collections.abc import Callable
 
 from .._ffi import Context
 from ..errors import ModbusConnectionError, ModbusError
 from ..protocol.wrapped import Report
 from ..stats import LineStats
-from .endpoint import DtuEndpoint, Endpoint, LineTiming, SerialPort, TcpEndpoint
+from .endpoint import (
+    DtuEndpoint,
+    Endpoint,
+    LineTiming,
+    MqttDtuEndpoint,
+    SerialPort,
+    TcpEndpoint,
+)
 from .link import ContextLink
 
 
@@ -36,6 +45,22 @@ def connect_tcp(ep: TcpEndpoint, timeout: float) -> socket.socket:
     return sock
 
 
+def set_rtscts(fd: int, port: str) -> None:
+    """Hardware flow control on an open serial port: CRTSCTS (termios(3)), which
+    libmodbus's connect clears with the rest of c_cflag.  A driver that drops the flag
+    (no RTS/CTS lines) is a connection error that says so."""
+    try:
+        attrs = termios.tcgetattr(fd)
+        attrs[2] |= termios.CRTSCTS
+        termios.tcsetattr(fd, termios.TCSANOW, attrs)
+        if not termios.tcgetattr(fd)[2] & termios.CRTSCTS:
+            raise OSError(errno.ENOTSUP, "the driver did not keep CRTSCTS")
+    except (OSError, termios.error) as exc:
+        raise ModbusConnectionError(
+            f"serial port {port}: cannot set RTS/CTS flow control ({exc}); use "
+            "flowControl 'none'") from None
+
+
 def context_link(ctx: Context, endpoint: Endpoint, timing: LineTiming, stats: LineStats,
                  sock: socket.socket | None,
                  on_close: Callable[[], None] | None = None,
@@ -48,7 +73,8 @@ def context_link(ctx: Context, endpoint: Endpoint, timing: LineTiming, stats: Li
         ctx.set_echo(endpoint.echo)
         if isinstance(endpoint, SerialPort):
             ctx.set_char_time(endpoint.char_time)
-        elif isinstance(endpoint, DtuEndpoint) or endpoint.transport == "rtu-over-tcp":
+        elif isinstance(endpoint, (DtuEndpoint, MqttDtuEndpoint)) or \
+                endpoint.transport == "rtu-over-tcp":
             ctx.set_stream(endpoint.heartbeat, endpoint.framing == "wrapped-report")
     except ValueError:
         ctx.close()
@@ -79,6 +105,8 @@ def open_link(ep: SerialPort | TcpEndpoint, timing: LineTiming, stats: LineStats
         ctx = Context.rtu(ep.port, ep.baudrate, ep.parity, ep.data_bits, ep.stop_bits)
         try:
             ctx.connect(ep.rs485)
+            if ep.flow_control == "rtscts":
+                set_rtscts(ctx.fd, ep.port)
         except ModbusError:
             ctx.close()
             raise

@@ -5,8 +5,11 @@ from __future__ import annotations
 
 import threading
 from collections.abc import Callable
+from dataclasses import fields
 
-from .endpoint import Endpoint, LineTiming
+from .endpoint import DtuEndpoint, Endpoint, LineTiming, MqttDtuEndpoint, TcpEndpoint
+from .failover import Failover
+from .mqtt_dtu import MqttDtuSlot, hubs
 from .worker import Connector, LineWorker
 
 
@@ -17,11 +20,14 @@ class LineRegistry:
     def __init__(self) -> None:
         self._lock = threading.Lock()
         self._lines: dict[tuple[str, ...], tuple[LineWorker, int]] = {}
+        # Modbus TCP host:port -> (its connections, lines open on it): one number per peer
+        self._peers: dict[tuple[str, ...], tuple[int, int]] = {}
 
     def acquire(self, endpoint: Endpoint, timing: LineTiming | None = None,
                 connector: Callable[[], Connector] | None = None) -> LineWorker:
         """The line worker of ``endpoint``, started on first use; ``connector`` makes the
-        connector of a new one (DTU links)."""
+        connector of a new one (DTU links; a line with alternates gets a
+        :class:`Failover`)."""
         with self._lock:
             entry = self._lines.get(endpoint.key)
             if entry is not None:
@@ -30,14 +36,62 @@ class LineRegistry:
                     raise ValueError(
                         f"line {endpoint.key[-1]} is already open as "
                         f"'{line.endpoint.describe()}'; this device asks for "
-                        f"'{endpoint.describe()}': devices on one line must agree"
+                        f"'{endpoint.describe()}'{_differences(line.endpoint, endpoint)}: "
+                        "devices on one line must agree"
                     )
                 self._lines[endpoint.key] = (line, users + 1)
                 return line
-            line = LineWorker(endpoint, timing, connector() if connector is not None else None)
-            line.start()
+            self._claim_peer(endpoint)
+            try:
+                line = self._new_line(endpoint, timing, connector)
+            except BaseException:
+                self._release_peer(endpoint)
+                raise
             self._lines[endpoint.key] = (line, 1)
             return line
+
+    @staticmethod
+    def _new_line(endpoint: Endpoint, timing: LineTiming | None,
+                  connector: Callable[[], Connector] | None) -> LineWorker:
+        """A started line worker with its connector: ``connector``'s, a DTU's on its
+        broker (mqtt-dtu), or a :class:`Failover` for a line with alternates."""
+        failover = slot = None
+        if isinstance(endpoint, MqttDtuEndpoint):
+            slot = hubs.acquire(endpoint)  # the DTU on its broker's connection
+        elif connector is None and not isinstance(endpoint, DtuEndpoint) and \
+                endpoint.alternates:
+            failover = Failover(endpoint)
+        line = LineWorker(endpoint, timing, failover or slot or (
+            connector() if connector is not None else None))
+        if slot is not None:
+            slot.line = line
+        line.start()
+        if failover is not None:
+            failover.start(line)
+        return line
+
+    def _claim_peer(self, endpoint: Endpoint) -> None:
+        """A new line to a Modbus TCP peer: every line to it must name the same number
+        of connections (under the lock)."""
+        if not isinstance(endpoint, TcpEndpoint):
+            return
+        peer = endpoint.key[:3]
+        connections, lines = self._peers.get(peer, (endpoint.connections, 0))
+        if connections != endpoint.connections:
+            raise ValueError(
+                f"{endpoint.transport}://{endpoint.host}:{endpoint.port} is polled over "
+                f"{connections} connection(s); this device asks for "
+                f"{endpoint.connections}: devices of one endpoint must agree on connections")
+        self._peers[peer] = (connections, lines + 1)
+
+    def _release_peer(self, endpoint: Endpoint) -> None:
+        if isinstance(endpoint, TcpEndpoint):
+            peer = endpoint.key[:3]
+            connections, lines = self._peers[peer]
+            if lines > 1:
+                self._peers[peer] = (connections, lines - 1)
+            else:
+                del self._peers[peer]
 
     def release(self, line: LineWorker) -> None:
         with self._lock:
@@ -49,11 +103,25 @@ class LineRegistry:
                 self._lines[line.endpoint.key] = (line, users - 1)
                 return
             del self._lines[line.endpoint.key]
+            self._release_peer(line.endpoint)
+        if isinstance(line.connector, Failover):
+            line.connector.stop()
         line.stop()
+        if isinstance(line.connector, MqttDtuSlot):
+            hubs.release(line.connector)
+            line.connector = None  # the hub's client (and its wake-up sockets) can go
 
     def lines(self) -> list[LineWorker]:
         with self._lock:
             return [line for line, _ in self._lines.values()]
+
+
+def _differences(old: Endpoint, new: Endpoint) -> str:
+    """The settings two endpoints of one line disagree on, for the error."""
+    if type(old) is not type(new):
+        return ""
+    names = [f.name for f in fields(old) if getattr(old, f.name) != getattr(new, f.name)]
+    return f" (they differ in {', '.join(names)})" if names else ""
 
 
 registry = LineRegistry()

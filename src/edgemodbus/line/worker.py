@@ -40,7 +40,7 @@ from .._ffi.engine import (
 from ..errors import LineBusyError, ModbusConnectionError, ModbusError, TargetBackoffError
 from ..stats import LineStats
 from .connect import open_link
-from .endpoint import DtuEndpoint, Endpoint, LineTiming
+from .endpoint import DtuEndpoint, Endpoint, LineTiming, MqttDtuEndpoint
 from .jobs import MAX_PENDING, STOP, Job, PollLag, TargetBackoff, answers_of, late_by, period_of
 from .link import Link
 from .poller_api import Poller
@@ -415,7 +415,7 @@ class LineWorker(LineRequests):
 
     def _open(self) -> Link:
         ep = self.endpoint
-        if isinstance(ep, DtuEndpoint):
+        if isinstance(ep, (DtuEndpoint, MqttDtuEndpoint)):
             raise ModbusConnectionError(f"{ep.describe()}: a DTU link needs a connector")
         return open_link(ep, self.timing, self.stats, on_report=self.dispatch_report)
 

@@ -94,6 +94,8 @@ LINE_COUNTERS: tuple[tuple[str, str, str], ...] = (
     ("jobsRefused", "line_jobs_refused", "Jobs refused: too many waiting (exception 06)"),
     ("targetBackoffs", "line_target_backoffs",
      "Requests failed at once: their slave timed out recently (backoff)"),
+    ("failovers", "line_failovers", "Moves to the next backup endpoint (alternates)"),
+    ("failbacks", "line_failbacks", "Moves back to the primary endpoint after a probe"),
     ("workerErrors", "line_worker_errors", "Unexpected errors the line worker recovered from"),
 )
 MQTT_COUNTERS: tuple[tuple[str, str, str], ...] = (

@@ -85,6 +85,10 @@ SPOOL_GAUGES: tuple[tuple[str, str, str], ...] = (
 SERVE_COUNTERS: tuple[tuple[str, str, str], ...] = (
     ("accepted", "serve_accepted", "Connections of Modbus TCP masters accepted"),
     ("refused", "serve_refused", "Connections refused (maxConnections reached)"),
+    ("refusedSource", "serve_refused_source",
+     "Connections reset at once: their source is outside the server's allowFrom"),
+    ("refusedUnit", "serve_refused_unit",
+     "Requests answered 0A: their source is outside the unit's allowFrom"),
     ("closedIdle", "serve_closed_idle", "Connections closed after the idle timeout"),
     ("closedBad", "serve_closed_bad",
      "Connections closed for a malformed MBAP header (protocol id, length) or a failed send"),

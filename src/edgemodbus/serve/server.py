@@ -35,6 +35,7 @@ import os
 import re
 import threading
 import time
+from collections.abc import Sequence
 from concurrent.futures import Future
 from dataclasses import dataclass
 from typing import Any
@@ -66,6 +67,7 @@ from ..protocol.forward import (
     exception_code_for,
 )
 from .image import ILLEGAL_DATA_VALUE, UnitImage
+from .settings import ipv4_masks
 
 log = logging.getLogger("edgemodbus.serve")
 
@@ -116,9 +118,14 @@ class ModbusTcpServer:
 
     def __init__(self, host: str = "127.0.0.1", port: int = 502, *,
                  max_connections: int = 32, idle_timeout: float = 60.0,
-                 tick: float = 0.1) -> None:
+                 tick: float = 0.1, allow_from: Sequence[str] = ()) -> None:
         self.core = ServerCore(host, port, max_connections=max_connections,
                                idle_timeout=idle_timeout)
+        try:  # connections from other sources are reset at once (settings.py allowFrom)
+            self.core.allow(None, ipv4_masks(allow_from))
+        except BaseException:
+            self.core.close()
+            raise
         self.host = host
         self.port = self.core.port
         self.tick = tick
@@ -138,16 +145,19 @@ class ModbusTcpServer:
 
     # -- units -------------------------------------------------------------------------
     def serve_device(self, unit_id: int, driver: DriverModbusRtu, config: DeviceConfig, *,
-                     offset: int = 0, max_age: float | None = None) -> None:
+                     offset: int = 0, max_age: float | None = None,
+                     allow_from: Sequence[str] = ()) -> None:
         """Serve ``driver``'s items (as ``config`` defines them) as ``unit_id``, each at
         its own address plus ``offset``; reads after ``max_age`` seconds without a good
-        cycle get exception 0B.  Raises ConfigError for an item outside 0..65535."""
+        cycle get exception 0B; requests from outside ``allow_from`` (IPv4 networks;
+        empty: any) get 0A.  Raises ConfigError for an item outside 0..65535."""
         params = config.effective_parameters()
         parsed = validate_items(list(config.address_list), params)
         code = config.organization.device_code or f"slave{params.slave_id}"
         image = UnitImage(unit_id, code, parsed, offset)
         self.remove_unit(unit_id)
         core = self.core
+        core.allow(unit_id, ipv4_masks(allow_from))
         core.set_unit(unit_id, MODE_CACHED, image.spans())
         core.update(image.mapping())
         core.set_fresh(unit_id, 0 if max_age is not None else _NEVER_STALE)
@@ -160,10 +170,13 @@ class ModbusTcpServer:
         self._refresh(unit, time.monotonic_ns())
 
     def forward_device(self, unit_id: int, driver: DriverModbusRtu,
-                       timeout: float | None = None) -> None:
+                       timeout: float | None = None, *,
+                       allow_from: Sequence[str] = ()) -> None:
         """Pass every request to ``unit_id`` to ``driver``'s slave (``driver.forward``)
-        with ``timeout`` seconds for its reply (None: the device's readTimeout)."""
+        with ``timeout`` seconds for its reply (None: the device's readTimeout); those
+        from outside ``allow_from`` (IPv4 networks; empty: any) get 0A."""
         self.remove_unit(unit_id)
+        self.core.allow(unit_id, ipv4_masks(allow_from))
         self.core.set_unit(unit_id, MODE_FORWARD)
         with self._lock:
             self._units[unit_id] = _Unit(unit_id, driver, timeout=timeout)
@@ -175,6 +188,7 @@ class ModbusTcpServer:
         if unit is None:
             return
         self.core.set_unit(unit_id, MODE_NONE)
+        self.core.allow(unit_id, ())
         _unhook(unit)
 
     def units(self) -> dict[int, str]:
@@ -218,6 +232,7 @@ class ModbusTcpServer:
             "exceptions": c.exceptions, "writes": self.writes,
             "writeErrors": self.write_errors, "forwarded": self.forwarded,
             "acceptErrors": c.accept_errors,
+            "refusedSource": c.refused_source, "refusedUnit": c.refused_unit,
             "forwardExpired": self.forward_expired, "busy": self.busy,
         }
 

@@ -3,9 +3,15 @@ limits, and its units (a device served from the cache, or a device forwarded to)
 
 ```json
 "serve": {"listen": "127.0.0.1:1502", "maxConnections": 16, "idleTimeoutS": 60,
+          "allowFrom": ["10.0.0.0/8", "127.0.0.1"],
           "units": [{"unitId": 1, "device": "meter1", "offset": 0, "maxAgeMs": 5000},
-                    {"unitId": 9, "forward": "meter2", "timeoutMs": 1000}]}
+                    {"unitId": 9, "forward": "meter2", "timeoutMs": 1000,
+                     "allowFrom": ["10.1.2.0/24"]}]}
 ```
+
+``allowFrom`` (docs/links.md): the source networks (IPv4 CIDR or single addresses) a
+connection may come from (others are reset at once) and, per unit, those whose requests
+it answers (others get exception 0A, as for a unit not served); empty: any.
 """
 
 from __future__ import annotations
@@ -14,13 +20,56 @@ import ipaddress
 from collections.abc import Mapping, Sequence
 from typing import Annotated, Any, ClassVar
 
-from pydantic import AfterValidator, Field, ValidationError, field_validator, model_validator
+from pydantic import (
+    AfterValidator,
+    BeforeValidator,
+    Field,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 
+from .._ffi.serve import MAX_NETS
 from ..config import ConfigError, Model, OptionalMs, Problem, Range
 from ..config.limits import MAX_NAME, check_seconds
+from ..config.listen import allow_list, network
 from ..protocol.limits import MAX_UNIT_ID
 
 DEFAULT_PORT = 502
+
+
+def ipv4_network(text: str) -> str:
+    """One entry of a server allow-list, normalised: an IPv4 network or address (the
+    server listens on IPv4 only)."""
+    normal = network(text)
+    if ipaddress.ip_network(normal).version != 4:
+        raise ValueError("the server listens on IPv4 only: use IPv4 networks or "
+                         "addresses, e.g. 10.0.0.0/8, 192.168.1.7")
+    return normal
+
+
+def _bounded(nets: tuple[str, ...]) -> tuple[str, ...]:
+    if len(nets) > MAX_NETS:
+        raise ValueError(f"at most {MAX_NETS} networks, not {len(nets)}")
+    return nets
+
+
+AllowFrom = Annotated[tuple[Annotated[str, AfterValidator(ipv4_network)], ...],
+                      BeforeValidator(allow_list), AfterValidator(_bounded)]
+"""A server allow-list: IPv4 networks (CIDR) or single addresses, normalised."""
+
+
+def ipv4_masks(nets: Sequence[str]) -> list[tuple[int, int]]:
+    """An allow-list as the C server takes it: (address, netmask) ints.  ValueError
+    names an entry that is not an IPv4 network or address."""
+    masks = []
+    for i, text in enumerate(nets):
+        try:
+            net = ipaddress.IPv4Network(ipv4_network(text))
+        except ValueError as exc:
+            raise ValueError(f"allowFrom[{i}] {text!r}: {exc}") from None
+        masks.append((int(net.network_address), int(net.netmask)))
+    return masks
 
 
 class ServeUnit(Model):
@@ -37,6 +86,7 @@ class ServeUnit(Model):
     offset: Annotated[int, Range(-65535, 65535)] = 0
     max_age_ms: OptionalMs = None  # None: no age limit (Invalid items still get 0B)
     timeout_ms: OptionalMs = None  # forward: None is the device's readTimeout
+    allow_from: AllowFrom = ()  # sources whose requests this unit answers (empty: any)
 
     @model_validator(mode="after")
     def _one_target(self) -> ServeUnit:
@@ -69,6 +119,7 @@ class ServeSettings(Model):
     max_connections: Annotated[int, Range(1, 1024)] = 32
     # 0: never closed for idling; else at least 1 ms (a shorter one rounded to 0: never)
     idle_timeout_s: Annotated[float, Range(0, 86400), AfterValidator(check_seconds)] = 60.0
+    allow_from: AllowFrom = ()  # sources that may connect (empty: any)
     units: list[ServeUnit] = Field(default_factory=list)
 
     @field_validator("listen")

@@ -231,7 +231,7 @@ def test_choices() -> None:
     assert DriverModbusRtuParameter(stop_bits=2, write_single_register_function=16).stop_bits == 2
     problems = errors_of({"communication": {"transport": "udp", "rs485": "RTS-UP"}})
     assert len(problems) == 1 and problems[0].startswith("communication.transport 'udp': ")
-    assert "'rtu', 'rtu-over-tcp' or 'tcp'" in problems[0]
+    assert "'rtu', 'rtu-over-tcp', 'tcp' or 'mqtt-dtu'" in problems[0]
     assert DriverModbusRtuParameter.model_validate({"rs485": "RTS-UP"}).rs485 == "rts-up"
 
 

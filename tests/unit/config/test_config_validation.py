@@ -114,8 +114,8 @@ def test_bytes_codecs_are_not_text_encodings() -> None:
 
 @pytest.mark.parametrize(("comm", "expected"), [
     ({"transport": "rtu", "framing": "wrapped-report"},
-     "communication.framing 'wrapped-report': needs transport rtu-over-tcp or "
-     "rtu-over-tcp-server, not 'rtu'"),
+     "communication.framing 'wrapped-report': needs transport rtu-over-tcp, "
+     "rtu-over-tcp-server or mqtt-dtu, not 'rtu'"),
     ({"transport": "tcp", "echo": True},
      "communication.echo True: a Modbus TCP (MBAP) link has no request echo; the option is "
      "for RTU lines"),

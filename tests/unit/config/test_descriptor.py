@@ -88,8 +88,9 @@ def test_options_and_ranges_are_accepted_and_hold_the_default() -> None:
         if values:
             assert p["defaultValue"] in values, p["name"]
         for value in values:
+            # (an MQTT DTU's topics need its id)
             DriverModbusRtuParameter.model_validate({"transport": "rtu-over-tcp",
-                                                     p["name"]: value})
+                                                     "dtuId": "d1", p["name"]: value})
         if "min" in p and p["defaultValue"] is not None:
             assert p["min"] <= p["defaultValue"] <= p.get("max", p["defaultValue"])
 

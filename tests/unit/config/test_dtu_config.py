@@ -55,9 +55,9 @@ def test_bad_listen_options_name_field_and_value(extra: dict[str, Any], expected
 
 
 def test_heartbeat_and_wrapped_framing_need_rtu_over_tcp() -> None:
-    assert "heartbeats apply to RTU over TCP" in error_text({"transport": "tcp", "heartbeat": "x"})
-    assert "framing 'wrapped-report': needs transport rtu-over-tcp or rtu-over-tcp-server, " \
-        "not 'tcp'" in error_text({"transport": "tcp", "framing": "wrapped-report"})
+    assert "heartbeats apply to DTU streams" in error_text({"transport": "tcp", "heartbeat": "x"})
+    assert "framing 'wrapped-report': needs transport rtu-over-tcp, rtu-over-tcp-server or " \
+        "mqtt-dtu, not 'tcp'" in error_text({"transport": "tcp", "framing": "wrapped-report"})
     params = DriverModbusRtuParameter.model_validate({"transport": "tcp"})
     params.framing = "wrapped-report"  # changed after loading: the driver still refuses
     with pytest.raises(ValueError, match="framing 'wrapped-report': needs transport"):
