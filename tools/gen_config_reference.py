@@ -236,11 +236,14 @@ DESCRIPTIONS: dict[str, str] = {
     "serve.listen": "IPv4 address and port to listen on",
     "serve.maxConnections": "Masters connected at once; one more is closed at once",
     "serve.idleTimeoutS": "A master silent this long is closed (seconds; 0: never)",
+    "serve.allowFrom": "IPv4 networks (CIDR) masters may connect from; empty: any",
     "serve.units": "The units (section `serve.units[]`)",
     "serve.units[].unitId": "The unit id masters address",
     "serve.units[].device": "Serve mode: reads answered from this device's latest values "
                             "(its `deviceCode`)",
     "serve.units[].forward": "Forward mode: every request goes to this device's slave",
+    "serve.units[].allowFrom": "IPv4 networks (CIDR) whose masters may address this unit; "
+    "others get exception 0A; empty: any source",
     "serve.units[].offset": "Added to the device's addresses (serve mode)",
     "serve.units[].maxAgeMs": "Values older than this are answered with exception 0B; left "
                               "out: no age limit",
