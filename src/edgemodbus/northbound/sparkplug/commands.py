@@ -193,3 +193,17 @@ def node_command(metrics: list[CommandMetric]) -> tuple[bool, list[CommandMetric
         else:
             others.append(metric)
     return rebirth, others
+
+
+def split_reads(metrics: list[CommandMetric], name: str) -> tuple[int, list[CommandMetric]]:
+    """(how many ``name`` metrics the command has, the other metrics); ValueError for a
+    ``name`` metric that is not the boolean true (nothing is read or written then)."""
+    reads, others = 0, []
+    for metric in metrics:
+        if metric.name != name:
+            others.append(metric)
+        elif metric.field == "boolean_value" and metric.raw:
+            reads += 1
+        else:
+            raise ValueError(f"{name} takes the Boolean true (got {metric.field or 'null'})")
+    return reads, others
