@@ -153,6 +153,23 @@ def test_read_now_of_a_polled_item_reports_it_unchanged(slave: PymodbusSlave) ->
         assert [v for _, v, _ in log.of("v")] == [5, 5]
 
 
+def test_a_read_on_demand_does_not_hide_a_drift_past_the_deadband(
+        slave: PymodbusSlave) -> None:
+    """A read of ``other`` decodes its neighbour ``v`` too: ``v`` moved within its
+    deadband (not news, not reported).  The next polls must still compare with what
+    ``v`` holds: its drift past the deadband is reported."""
+    slave.set_registers(1, "hr", 0, [10, 0])
+    log = Reports()
+    cfg = device(slave.port, [uint16("v", "hr:0", deadband=5), uint16("other", "hr:1")],
+                 readCycle=100)
+    with Running(cfg, address_updated_callback=log.item) as drv:
+        wait_for(lambda: log.of("v"), what="the first read")
+        slave.set_registers(1, "hr", 0, [14])
+        drv.read_now(["other"]).result(timeout=10)
+        slave.set_registers(1, "hr", 0, [18])  # 8 from 10 (reported), 4 from 14 (read)
+        wait_for(lambda: [v for _, v, _ in log.of("v")] == [10, 18], what="the drift")
+
+
 def test_read_now_of_a_silent_slave_answers_invalid(slave: PymodbusSlave) -> None:
     cfg = device(slave.port, [uint16("d", "hr:0", readCycle="demand")], slave=3,
                  readTimeout=200)

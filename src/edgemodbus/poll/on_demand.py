@@ -75,7 +75,20 @@ def read_slots(link: Link, slave: int, slots: Sequence[Slot], wanted: set[ItemSt
             for piece, asm in slot.partial:
                 if asm.add(piece, values, token):
                     _assembled(asm, wanted, now, reported)
+        _forget(slot)
     return reported
+
+
+def _forget(slot: Slot) -> None:
+    """The decoders of ``slot`` remember this read, also the values of items it did not
+    set (within their deadband of what they hold): make the next poll compare with what
+    the items hold instead, as after a write (the poller's ``_recheck``), so a slow drift
+    past a deadband is not hidden by a read on demand."""
+    if slot.decoder is not None:
+        slot.decoder.reset()
+        slot.recheck = True
+    for _, asm in slot.partial:
+        asm.decoder.reset()
 
 
 def _assembled(asm: Assembly, wanted: set[ItemState], now: datetime,
