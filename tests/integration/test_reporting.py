@@ -120,6 +120,10 @@ def test_demand_items_are_never_polled_and_read_when_asked(slave: PymodbusSlave)
                                  uint16("d2", "hr:41", readCycle=-1)], slave=2)
     with Running(polled) as drv1, Running(demand, address_updated_callback=log.item) as drv2:
         assert drv2.read_plan() == []
+        # only demand items: Running once the link is up, items Unknown until asked
+        wait_for(lambda: drv2.device_driver_status is em.DeviceDriverStatus.RUNNING,
+                 what="Running")
+        assert drv2.snapshot()["items"]["d"]["status"] == "Unknown"
         wait_for(lambda: drv1.stats()["cycles"] >= 10, what="10 cycles on the line")
         assert slave.request_count(2) == 0
         assert log.of("d") == []
