@@ -142,3 +142,19 @@ def test_parse_read_forms() -> None:
     assert parse_read(b'{"items": ["a"], "id": "x"}') == ("x", ["a"])
     with pytest.raises(ValueError, match="list of item names"):
         parse_read(b"[1]")
+
+
+def test_an_item_named_like_the_read_topic_is_refused_and_the_topic_is_checked() -> None:
+    from edgemodbus.config import ConfigError
+    from edgemodbus.northbound.mqtt import MqttPublisher, MqttSettings
+
+    pub = MqttPublisher({"port": 1}, gateway_id="gw1")
+    try:
+        with pytest.raises(ValueError, match=r"item '\$read' of device 'dev1'.*read topic"):
+            pub.check_item_names("dev1", ["ok", "$read"])
+    finally:
+        pub.stop()
+    with pytest.raises(ConfigError, match=r"readTopic"):
+        MqttSettings.load({"readTopic": "{prefix}/#/read"})
+    assert MqttSettings.load({"readTopic": "{prefix}/{deviceCode}/get"}).read_topic == (
+        "{prefix}/{deviceCode}/get")

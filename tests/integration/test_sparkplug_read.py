@@ -63,12 +63,20 @@ def test_device_control_read_reads_the_device_into_ddata(broker: Mosquitto,
             [encode_metric(name="Node Control/Read", datatype="Boolean", value=True)]))
         wait_payload(probe, f"{BASE}/DDATA/{N}/dev1",
                      lambda p: p.values(born).get(alias) == 4040, after=mark)
+        # one item, named by a String value
+        slave.set_registers(1, "hr", 40, [4141])
+        mark = probe.mark()
+        dcmd(probe, "dev1", encode_metric(name="Device Control/Read", datatype="String",
+                                          value="d"))
+        ddata = wait_payload(probe, f"{BASE}/DDATA/{N}/dev1",
+                             lambda p: p.values(born).get(alias) == 4141, after=mark)
+        assert set(ddata.values(born)) == {alias}  # p unchanged: not in it
         # a read metric that is not true: refused, counted, nothing read
         dcmd(probe, "dev1", encode_metric(name="Device Control/Read", datatype="Boolean",
                                           value=False))
         wait_for(lambda: node.pub.stats()["readsRefused"] == 1, what="the refusal")
         stats = node.pub.stats()
-        assert stats["reads"] == 2 and stats["commandErrors"] == 0
+        assert stats["reads"] == 3 and stats["commandErrors"] == 0
 
 
 def test_report_every_goes_out_in_ddata(broker: Mosquitto, slave: PymodbusSlave) -> None:

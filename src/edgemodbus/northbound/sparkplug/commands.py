@@ -195,15 +195,21 @@ def node_command(metrics: list[CommandMetric]) -> tuple[bool, list[CommandMetric
     return rebirth, others
 
 
-def split_reads(metrics: list[CommandMetric], name: str) -> tuple[int, list[CommandMetric]]:
-    """(how many ``name`` metrics the command has, the other metrics); ValueError for a
-    ``name`` metric that is not the boolean true (nothing is read or written then)."""
-    reads, others = 0, []
+def split_reads(metrics: list[CommandMetric], name: str, items: bool = False
+                ) -> tuple[bool, list[str], list[CommandMetric]]:
+    """(whole: a ``name`` metric is the Boolean true, the items named by ``name``
+    metrics with a String value (``items``: allowed), the other metrics); ValueError for
+    a ``name`` metric of another value (nothing is read or written then)."""
+    whole, names, others = False, [], []
     for metric in metrics:
         if metric.name != name:
             others.append(metric)
         elif metric.field == "boolean_value" and metric.raw:
-            reads += 1
+            whole = True
+        elif items and metric.field == "string_value" and metric.raw:
+            names.append(str(metric.raw))
         else:
-            raise ValueError(f"{name} takes the Boolean true (got {metric.field or 'null'})")
-    return reads, others
+            allowed = "the Boolean true, or a String: an item's name" if items else (
+                "the Boolean true")
+            raise ValueError(f"{name} takes {allowed} (got {metric.field or 'null'})")
+    return whole, names, others

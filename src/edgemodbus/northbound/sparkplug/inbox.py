@@ -97,8 +97,10 @@ class CommandInbox:
                  device: Callable[[str], NodeDevice | None],
                  write: Callable[[NodeDevice, list[CommandMetric]], None],
                  logs: CommandLog,
-                 read: Callable[[NodeDevice | None], None] = lambda _dev: None) -> None:
-        """``read(dev)`` starts a read on demand of ``dev`` (None: every device)."""
+                 read: Callable[[NodeDevice | None, list[str] | None], None]
+                 = lambda _dev, _names: None) -> None:
+        """``read(dev, names)`` starts a read on demand of ``dev`` (None: every device),
+        of these items (None: every item)."""
         self._count = count
         self._push = push
         self._device = device
@@ -117,7 +119,7 @@ class CommandInbox:
         self._count("commands")
         try:
             rebirth, others = node_command(parse_command(payload))
-            reads, others = split_reads(others, NODE_READ)
+            reads, _, others = split_reads(others, NODE_READ)
         except ValueError as exc:
             self.refuse("commandErrors", "NCMD refused", "NCMD",
                         "Sparkplug: NCMD refused: %s", exc)
@@ -125,7 +127,7 @@ class CommandInbox:
         if rebirth:
             self._push(("rebirth", "NCMD"))
         if reads:
-            self._read(None)
+            self._read(None, None)
         if others:
             self.refuse("commandErrors", "NCMD metrics ignored", "NCMD",
                         "Sparkplug: NCMD: %d metric(s) ignored, e.g. %s (only %s or %s = "
@@ -146,7 +148,11 @@ class CommandInbox:
                         "%s: DCMD write (payload) refused: %s", dev.code, exc)
             return
         try:
-            reads, metrics = split_reads(metrics, DEVICE_READ)
+            whole, names, metrics = split_reads(metrics, DEVICE_READ, items=True)
+            unknown = [n for n in names if n not in dev.metrics]  # as born
+            if unknown:
+                raise ValueError(f"{DEVICE_READ}: no metric {short_text(unknown[0])} in "
+                                 "the device's DBIRTH")
         except ValueError as exc:
             # the text, not the exception: a log record holding its traceback would
             # keep paho's frames (and the client's sockets) alive
@@ -155,6 +161,6 @@ class CommandInbox:
             return
         if metrics:
             self._write(dev, metrics)
-        if reads:  # after the writes it came with: they are queued first
-            self._read(dev)
+        if whole or names:  # after the writes it came with: they are queued first
+            self._read(dev, None if whole else list(dict.fromkeys(names)))
 

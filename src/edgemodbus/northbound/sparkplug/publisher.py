@@ -253,15 +253,16 @@ class SparkplugPublisher:
         elif topic.startswith(self._dcmd):
             self._inbox.device_command(topic[len(self._dcmd):], payload)
 
-    def _read_now(self, dev: NodeDevice | None) -> None:
-        """A read on demand of ``dev``, or of every attached device (paho's thread)."""
+    def _read_now(self, dev: NodeDevice | None, names: list[str] | None) -> None:
+        """A read on demand of ``dev`` (``names``: these items), or of every attached
+        device (paho's thread)."""
         if dev is None:
             with self._lock:
                 devices = list(self._devices.values())
             for one in devices:
                 self._reads.read(one)
         else:
-            self._reads.read(dev)
+            self._reads.read(dev, names)
 
     def _device_named(self, code: str) -> NodeDevice | None:
         with self._lock:

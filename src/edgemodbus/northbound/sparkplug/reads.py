@@ -1,5 +1,6 @@
 """Reads on demand from Sparkplug commands (docs/reporting.md): a DCMD with
-``Device Control/Read`` = true reads every item of that device now, an NCMD with
+``Device Control/Read`` = true reads every item of that device now (a String value: the
+item it names, as born), an NCMD with
 ``Node Control/Read`` = true every attached device (Sparkplug B 3.0 leaves custom
 control metrics to the edge node; the node declares ``Node Control/Read`` in its NBIRTH
 beside ``Node Control/Rebirth``).  Each read is ``driver.read_now()``: a job on the
@@ -27,10 +28,11 @@ class ReadRunner:
         self._count = count
         self._logs = logs
 
-    def read(self, dev: NodeDevice) -> None:
+    def read(self, dev: NodeDevice, names: list[str] | None = None) -> None:
+        """Read ``names`` of ``dev`` (None: every item) now."""
         try:
-            future = dev.driver.read_now(None)
-        except ModbusError as exc:  # not running
+            future = dev.driver.read_now(names)
+        except (ModbusError, KeyError) as exc:  # not running; an item gone since the birth
             self._refused(dev.code, str(exc))
             return
         self._count("reads")
