@@ -198,3 +198,18 @@ def test_publish_snapshot_goes_through_the_periodic_path(slave: PymodbusSlave) -
         drv.stop_device()
     assert [topic for topic, _ in got] == ["/real/dev1"]
     assert got[0][1]["items"]["v"]["status"] == "Ok"
+
+
+def test_a_hot_update_switches_a_cycle_device_to_per_item_modes(slave: PymodbusSlave) -> None:
+    log = Reports()
+    cfg = device(slave.port, [uint16("a", "hr:0")], readCycle=100, reportMode="cycle")
+    with Running(cfg, address_updated_callback=log.item) as drv:
+        wait_for(lambda: len(log.of("a")) >= 3, what="a at every read")
+        drv.update_addresses([em.DeviceAddressItem.model_validate(uint16("a", "hr:0")),
+                              em.DeviceAddressItem.model_validate(
+                                  uint16("b", "hr:1", reportMode="change"))])
+        seen = len(log.of("a"))
+        wait_for(lambda: len(log.of("a")) >= seen + 4, what="a still at every read")
+        cycles = drv.stats()["cycles"]
+        wait_for(lambda: drv.stats()["cycles"] >= cycles + 3, what="3 more cycles")
+    assert len(log.of("b")) == 1  # its first read only
