@@ -46,11 +46,9 @@ from .line import (
     line_registry,
 )
 from .poll.actions import find_action, plan_action, prefix_errors
-from .poll.items import ItemState
 from .poll.listeners import BatchCallbackListener, Listener, Subscribers
-from .poll.planner import ReadBlock
 from .poll.poller import Poller
-from .poll.schedule import entity_numbers_notice
+from .poll.schedule import block_dict, entity_numbers_notice
 from .poll.sink import BatchCallback, ItemCallback, SnapshotPublisher
 from .poll.writes import WriteOp, plan_writes
 from .protocol.forward import check_request
@@ -245,7 +243,7 @@ class DriverModbusRtu:
         """The read blocks in force: area, start, count and the names of their items."""
         if self._poller is None:
             return []
-        return [_block_dict(b, self._poller.items) for b in self._poller.plan]
+        return [block_dict(b, self._poller.items) for b in self._poller.plan]
 
     def snapshot(self) -> dict[str, Any]:
         """The runtime snapshot (camelCase keys) with Python values: each item's value as
@@ -300,10 +298,24 @@ class DriverModbusRtu:
         ``ValueError`` for an unknown item or a value its codec refuses, and
         ``ModbusConnectionError`` when the device is not running.  Done-callbacks run on
         the line's worker: keep them short."""
-        poller = self._poller
-        if poller is None:
-            raise ModbusConnectionError(f"{self._code(self._org)}: device is not running")
+        poller = self._running()
         return poller.submit_writes(plan_writes(poller.by_name, list(items)))
+
+    def read_now(self, names: Sequence[str] | None = None) -> Future[dict[str, dict[str, Any]]]:
+        """Read these items (None: all, on-demand ones too) now through the line's queue
+        and report them (docs/reporting.md); the future: their snapshot entries by name.
+        KeyError: an unknown item; ModbusConnectionError: the device is not running."""
+        return self._running().submit_read(names)
+
+    def publish_snapshot(self) -> Future[None]:
+        """Publish the snapshot now (Pascal.Edge's ``PublishDeviceSnapshot()``) on the
+        line worker, by the periodic snapshot's path (docs/reporting.md)."""
+        return self._running().submit_snapshot()
+
+    def _running(self) -> Poller:
+        if self._poller is None:
+            raise ModbusConnectionError(f"{self._code(self._org)}: device is not running")
+        return self._poller
 
     async def write_address_async(self, name: str, value: Any) -> tuple[bool, str | None]:
         return await self.write_addresses_async([(name, value)])
@@ -482,16 +494,3 @@ def dtu_access(params: DriverModbusRtuParameter) -> DtuAccess:
     agree): its source allow-list and registration key (bytes, as the packet is read)."""
     return DtuAccess(allow_from=networks(params.dtu_allow_from, "dtuAllowFrom"),
                      key=key_bytes(params.registration_key))
-
-
-def _block_dict(block: ReadBlock, items: Sequence[ItemState]) -> dict[str, Any]:
-    names = [items[p.key].item.name for p in block.pieces if isinstance(p.key, int)]
-    return {
-        "area": block.area.short_name,
-        "function": block.area.read_function,
-        "start": block.start,
-        "count": block.count,
-        "readCycle": block.rate,
-        "items": names,
-    }
-

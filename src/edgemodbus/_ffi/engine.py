@@ -152,6 +152,15 @@ class EngineDevice:
         self._dev.cycle_ns = _ns(seconds)
 
     @property
+    def report_all(self) -> bool:
+        """Every item of every block is reported at each read (EMB_MODE_ALL)."""
+        return bool(self._dev.mode == CODEC_MODE_ALL)
+
+    @report_all.setter
+    def report_all(self, on: bool) -> None:
+        self._dev.mode = CODEC_MODE_ALL if on else CODEC_MODE_TRACK
+
+    @property
     def notify_at(self) -> float:
         """The first pass ending after this time is handed to Python (inf: none)."""
         return _seconds(int(self._dev.notify_ns))

@@ -55,7 +55,7 @@ from .device import (
     load_device_config,
     validate_parameters,
 )
-from .items import ALLOWED_QUANTITIES, DeviceAddressItem, ParsedItem, validate_items
+from .items import ALLOWED_QUANTITIES, ON_DEMAND, DeviceAddressItem, ParsedItem, validate_items
 from .labels import BAUD_RATES
 from .problems import NO_VALUE, ConfigError, Problem, WrongType, join_path
 
@@ -66,6 +66,7 @@ __all__ = [
     "MAX_MS",
     "MS_RANGE",
     "NO_VALUE",
+    "ON_DEMAND",
     "PARAMETER_TYPES",
     "READ_CYCLE_RANGE",
     "ActionParameter",

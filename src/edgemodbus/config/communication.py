@@ -38,6 +38,7 @@ from .base import (
     Choice,
     Model,
     Ms,
+    OptionalMs,
     Range,
     check_encoding,
     lower_literal,
@@ -334,10 +335,10 @@ class _CommunicationFields(Model):
         default=60000,
         description="Longest wait between attempts on an offline device or lost link (ms)",
     )
-    report_mode: ReportMode = Field(
-        default="change",
-        description="change: report items whose value or status changed; cycle: every read",
-    )
+    report_mode: ReportMode = Field(default="change", description="change: report items "
+                                    "whose value or status changed; cycle: every read")
+    report_every: OptionalMs = Field(default=None, description="reportMode change: report an "
+                                     "unchanged item again once its last report is this old (ms)")
     encoding: str = Field(
         default="utf-8",
         description="Text encoding of String items (a Python codec, e.g. utf-8, gbk)",

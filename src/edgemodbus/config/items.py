@@ -22,23 +22,26 @@ from ..codec import MAX_QUANTITY, SMART_CAST_TYPES, ValueSpec, check_spec, smart
 from ..datatypes import Area, DataFormat, DataFormat64, DataType, ItemStatus
 from ..protocol.address import ENTITY_TABLES, Address, check_span, parse_address
 from .base import (
+    MAX_MS,
     MS_RANGE,
-    READ_CYCLE_RANGE,
+    OptionalMs,
     Range,
     SlotModel,
     as_number,
     check_encoding,
     field_checks,
+    lower_literal,
     parse_enum_ci,
     parse_format,
     recheck,
     slot_model,
 )
-from .communication import DriverModbusRtuParameter
+from .communication import DriverModbusRtuParameter, ReportMode
 from .compat import NG_POINT_KEYS, iso_timestamp, ng_point
 from .problems import NO_VALUE, ConfigError, Problem, WrongType
 
 _log = logging.getLogger("edgemodbus.config")
+ON_DEMAND = -1  # an item's readCycle -1: never polled, read when asked (docs/reporting.md)
 
 
 @slot_model
@@ -70,12 +73,18 @@ class DeviceAddressItem(SlotModel):
     quantity: Annotated[int | None, Range(1, MAX_QUANTITY)] = None
     deadband: Annotated[float | None, Range(0)] = None
     encoding: str | None = None
-    read_cycle: Annotated[int | None, READ_CYCLE_RANGE] = Field(
+    read_cycle: Annotated[int | None, Range(ON_DEMAND, MAX_MS)] = Field(
         default=None,
         description="This item's scan rate (ms), default the device's readCycle; items of "
         "different rates are never read in one request; 0 = not polled, updated by "
-        "wrapped reports only (framing wrapped-report)",
+        "wrapped reports only (framing wrapped-report); -1 or \"demand\" = never polled, "
+        "read only when asked (docs/reporting.md)",
     )
+    report_mode: ReportMode | None = Field(
+        default=None, description="change or cycle; default the device's reportMode")
+    report_every: OptionalMs = Field(
+        default=None, description="Report an unchanged item again once its last report is "
+        "this old (ms, at least its scan rate); default the device's reportEvery")
     value: Any = None
     error_reason: str | None = None
 
@@ -87,6 +96,21 @@ class DeviceAddressItem(SlotModel):
         # by name: pydantic binds ``cls`` to the class before slots=True remade it
         data = DeviceAddressItem.accept_keys(data)
         return ng_point(data) if isinstance(data, dict) else data
+
+    @field_validator("read_cycle", mode="before")
+    @classmethod
+    def _read_cycle(cls, value: Any) -> Any:
+        if isinstance(value, str) and value.strip().lower().replace("-", "") in _DEMAND_WORDS:
+            return ON_DEMAND
+        if isinstance(value, int) and not isinstance(value, bool) and value < ON_DEMAND:
+            raise ValueError(f"must be -1 (\"demand\": read only when asked), 0 (wrapped "
+                             f"reports only) or {MS_RANGE.describe()} ms")
+        return value
+
+    @field_validator("report_mode", mode="before")
+    @classmethod
+    def _report_mode(cls, value: Any) -> Any:
+        return lower_literal(value)
 
     @field_validator("address", "description", "unit")
     @classmethod
@@ -337,6 +361,7 @@ def validate_items(
     parsed: list[ParsedItem] = []
     first_index: dict[str, int] = {}
     checked: set[tuple[Any, ...]] = set()
+    inherited_checked: set[str] = set()  # communication.reportEvery: one problem at most
     for i, item in enumerate(items):
         path = f"addressList[{i}]"
         before = len(problems)
@@ -372,6 +397,7 @@ def validate_items(
                 "0 means not polled, updated by wrapped reports only, which needs framing "
                 f"'wrapped-report' (framing is {comm.framing!r}): use {MS_RANGE.describe()} ms, "
                 "or leave it out for the device's readCycle"))
+        problems += _report_problems(item, comm, path, inherited_checked)
         if len(problems) > before:
             continue
         one = ParsedItem(
@@ -408,6 +434,34 @@ def validate_items(
 
 
 _ITEM_CHECKS = field_checks(DeviceAddressItem)
+_DEMAND_WORDS = ("demand", "ondemand")
+
+
+def _report_problems(item: DeviceAddressItem, comm: DriverModbusRtuParameter, path: str,
+                     inherited_checked: set[str]) -> list[Problem]:
+    """reportMode/reportEvery against the item's scan rate (docs/reporting.md): a period
+    report repeats the last read, so it needs reads at least as often as the period."""
+    rate = comm.read_cycle if item.read_cycle is None else item.read_cycle
+    own = item.report_every
+    if own is not None and item.report_mode == "cycle":
+        return [Problem(f"{path}.reportEvery", own, "reportMode 'cycle' reports every read "
+                        "already: leave reportEvery out, or use reportMode 'change'")]
+    if own is not None and rate <= 0:
+        what = "on demand" if rate == ON_DEMAND else "updated by wrapped reports only"
+        return [Problem(f"{path}.reportEvery", own, f"the item is not polled (readCycle "
+                        f"{rate}: {what}), so there is no read to report again: leave "
+                        "reportEvery out")]
+    every = own if own is not None else comm.report_every
+    mode = item.report_mode or ("change" if own is not None else comm.report_mode)
+    if every is None or rate <= 0 or every >= rate or mode == "cycle":
+        return []
+    where = f"{path}.reportEvery" if own is not None else "communication.reportEvery"
+    if where in inherited_checked:
+        return []
+    inherited_checked.add(where)
+    return [Problem(where, every, f"shorter than the scan rate of item {item.name!r} "
+                    f"({rate} ms): a period report repeats the last read, so use {rate} or "
+                    "more, or reportMode 'cycle' to report every read")]
 
 
 def _entity_hint(item: DeviceAddressItem, comm: DriverModbusRtuParameter) -> str:

@@ -126,6 +126,7 @@ LABELS: dict[str, dict[str, Any]] = {
     "offline_after_failed_cycles": _ui("离线判定周期数", "Advanced", "number"),
     "max_backoff": _ui("最大退避(ms)", "Advanced", "number"),
     "report_mode": _ui("上报方式", "Advanced", "select"),
+    "report_every": _ui("定期上报(ms)", "Advanced", "number"),
     "encoding": _ui("字符串编码", "Advanced", "text"),
     "write_single_register_function": _ui("单寄存器写功能码", "Advanced", "select"),
     "snapshot_interval": _ui("快照间隔(ms)", "Advanced", "number"),
@@ -156,6 +157,8 @@ LABELS: dict[str, dict[str, Any]] = {
 
 ITEM_LABELS: dict[str, dict[str, Any]] = {
     "read_cycle": _ui("扫描周期(ms)", "Address", "number"),
+    "report_mode": _ui("上报方式", "Address", "select"),
+    "report_every": _ui("定期上报(ms)", "Address", "number"),
 }
 """UI labels of the optional address item fields the descriptor lists
 (``addressParameter``), keyed by DeviceAddressItem's field names."""

@@ -32,7 +32,8 @@ class Listener(Protocol[Source]):
 
     def on_changes(self, source: Source, items: list[DeviceAddressItem]) -> None:
         """The items reported together: a cycle's changes (every item read, in
-        ``reportMode: "cycle"``), one confirmed write, one wrapped report.  Never empty.
+        ``reportMode: "cycle"``) with its period reports (``reportEvery``), one confirmed
+        write, one wrapped report, one read on demand (docs/reporting.md).  Never empty.
         The list is shared by every listener of the driver: do not change it."""
         ...
 

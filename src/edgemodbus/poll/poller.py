@@ -19,21 +19,25 @@ import time
 from collections.abc import Sequence
 from concurrent.futures import Future
 from datetime import datetime, timezone
-from typing import TYPE_CHECKING, cast
+from typing import TYPE_CHECKING, Any, cast
 
 from .._ffi import Block
 from .._ffi.engine import BlockSpec, EngineDevice
 from ..codec import BlockDecoder, Change, ValueSpec
 from ..config import DriverModbusRtuParameter, ParsedItem
 from ..datatypes import DeviceDriverStatus, ItemStatus
+from ..errors import ModbusConnectionError
 from ..line import LineWorker, Link
 from ..line.link import READ_FC
 from ..stats import DeviceStats
 from .faults import FaultPolicy
 from .items import Assembly, ItemState, Slot, copy_runtime, is_news, set_item
+from .on_demand import answer, read_slots, slots_holding
+from .periodic import PeriodicReports, reports_all
 from .planner import Piece, ReadBlock
 from .reports import ReportDecoders
 from .schedule import build_plan as build_plan  # the CLI's plan command uses it
+from .schedule import item_rate
 from .sink import Delivery, PollSink
 from .writes import WriteOp, Writer
 
@@ -76,6 +80,9 @@ class Poller(FaultPolicy):
         self.slots: list[Slot] = []  # in plan order: slot k is the device's block k
         self._assemblies: dict[ItemState, Assembly] = {}
         self._owner: dict[ItemState, Slot | Assembly] = {}  # what decodes each item
+        self.demand_slots: list[Slot] = []  # on-demand items' blocks (poll/on_demand.py)
+        self.periodic: PeriodicReports | None = None  # poll/periodic.py
+        self._demand_reads = 0
         self.device = EngineDevice(self.slave, self.timeout, self.report_all, 0.0,
                                    coalesce=params.forward_coalesce / 1000)
         self.counters.native = self.device.counts  # the engine counts requests and cycles
@@ -134,10 +141,22 @@ class Poller(FaultPolicy):
         self.slots = [self._make_slot(b) for b in blocks]
         # report-only: nothing polled (readCycle 0 and no item with a rate of its own);
         # cycle: what offline probing backs off from (readCycle, else the fastest rate)
-        self.report_only = self.params.read_cycle == 0 and not blocks
+        self.demand_slots = [self._make_slot(b)
+                             for b in build_plan(enabled, self.params, demand=True)]
+        self.report_only = not blocks and (self.params.read_cycle == 0
+                                           or bool(self.demand_slots))
         self.cycle = (self.params.read_cycle or min((b.rate for b in blocks), default=0)) / 1000
         self.device.cycle = self.cycle
+        # reportMode/reportEvery per item (poll/periodic.py): the engine reports every
+        # item only when all of them report by cycle
+        self.report_all = self.writer.report_all = self.device.report_all = reports_all(
+            items, self.params)
         self.device.set_blocks([self._spec(slot) for slot in self.slots])
+        now = time.monotonic()
+        self.periodic = PeriodicReports.build(
+            items, [item_rate(p, self.params) for p in enabled], self.params, now)
+        if self.periodic is not None:
+            self.device.notify_at = min(self.device.notify_at, self.periodic.next_due)
 
     def _spec(self, slot: Slot) -> BlockSpec:
         """What the engine reads for ``slot``, and the plan it decodes it with."""
@@ -185,6 +204,53 @@ class Poller(FaultPolicy):
             done.set_result(None)
             return done
         return self.line.submit(swap)
+
+    def _cycle_done(self, now: float) -> None:
+        """A pass ended: the items due for a period report join its batch first."""
+        periodic = self.periodic
+        if periodic is None:
+            super()._cycle_done(now)
+            return
+        if now >= periodic.next_due:
+            self.delivery.report(periodic.due(now))
+        super()._cycle_done(now)
+        snapshot = self.next_snapshot if self.snapshot_interval else float("inf")
+        self.device.notify_at = min(snapshot, periodic.next_due)
+
+    def submit_read(self, names: Sequence[str] | None) -> Future[dict[str, dict[str, Any]]]:
+        """Read these items (None: every item) now, as a job on the line's queue:
+        the future's result is each item's snapshot entry by name (poll/on_demand.py).
+        KeyError names an item the device does not have."""
+        assert self.line is not None
+        if names is not None:
+            missing = [n for n in names if n not in self.by_name]
+            if missing:
+                raise KeyError(f"no item named {missing[0]!r} on device {self.code} "
+                               f"({len(self.by_name)} items)")
+
+        def run(link: Link) -> dict[str, dict[str, Any]]:
+            if not self.active:
+                raise ModbusConnectionError(f"{self.code}: device stopped before the read")
+            self.take_results()  # what the pass under way read first
+            states = self.items if names is None else [
+                self.by_name[n] for n in dict.fromkeys(names) if n in self.by_name]
+            wanted = set(states)
+            self._demand_reads -= 1  # the assemblies' "cycle" of this read: never a pass's
+            link.set_response_timeout(self.timeout)
+            reported = read_slots(link, self.slave,
+                                  slots_holding(self.slots + self.demand_slots, wanted),
+                                  wanted, self.counters, self._demand_reads)
+            if reported:
+                self.delivery.report(reported)
+                self.delivery.flush()
+            return answer(states)
+
+        return self.line.submit(run, reads=True, slave=self.slave)
+
+    def submit_snapshot(self) -> Future[None]:
+        """Publish the snapshot now, on the worker (Delivery.snapshot_due)."""
+        assert self.line is not None
+        return self.line.submit(lambda _link: self.delivery.snapshot_due())
 
     # -- the Poller protocol -----------------------------------------------------------
     def link_changed(self, up: bool, reason: str | None) -> None:

@@ -10,16 +10,22 @@ count and the backoff count) is one pass over the blocks due when it begins.  Wi
 item at the device's rate every pass reads every block, as a cycle always did.
 
 An item at rate 0 is not polled (updated by wrapped reports only), like a device at
-readCycle 0.
+readCycle 0.  An item at rate -1 (``readCycle: "demand"``) is not polled either: it is
+planned into blocks of its own (:func:`build_plan` with ``demand=True``), which are read
+only when asked (poll/on_demand.py).
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import TYPE_CHECKING, Any
 
-from ..config import DriverModbusRtuParameter, ParsedItem
+from ..config import ON_DEMAND, DriverModbusRtuParameter, ParsedItem
 from ..protocol.address import entity_lookalike, entity_notice
 from .planner import PlanItem, ReadBlock, plan_reads
+
+if TYPE_CHECKING:
+    from .items import ItemState
 
 
 def item_rate(parsed: ParsedItem, params: DriverModbusRtuParameter) -> int:
@@ -28,12 +34,14 @@ def item_rate(parsed: ParsedItem, params: DriverModbusRtuParameter) -> int:
     return params.read_cycle if own is None else own
 
 
-def build_plan(items: Sequence[ParsedItem], params: DriverModbusRtuParameter) -> list[ReadBlock]:
-    """The read blocks of a device's enabled, polled items; piece keys index ``items``."""
+def build_plan(items: Sequence[ParsedItem], params: DriverModbusRtuParameter,
+               demand: bool = False) -> list[ReadBlock]:
+    """The read blocks of a device's enabled, polled items (``demand``: of its on-demand
+    items instead, readCycle -1); piece keys index ``items``."""
     plan_items = []
     for i, p in enumerate(items):
         rate = item_rate(p, params)
-        if p.item.is_enable and rate > 0:
+        if p.item.is_enable and (rate == ON_DEMAND if demand else rate > 0):
             size = 1 if p.address.area.is_bit else p.registers
             plan_items.append(PlanItem(i, p.address.area, p.address.offset, size, rate))
     return plan_reads(
@@ -58,3 +66,16 @@ def entity_numbers_notice(items: Sequence[ParsedItem],
     more = f" (and {len(found) - 1} more such addresses)" if len(found) > 1 else ""
     return (f"item {first.item.name!r}: {entity_notice(first.item.address, first.address, entity)}"
             f"{more}; for Modicon numbering set addressPrefix: entity")
+
+
+def block_dict(block: ReadBlock, items: Sequence[ItemState]) -> dict[str, Any]:
+    """A block as ``driver.read_plan()`` lists it (piece keys index ``items``)."""
+    names = [items[p.key].item.name for p in block.pieces if isinstance(p.key, int)]
+    return {
+        "area": block.area.short_name,
+        "function": block.area.read_function,
+        "start": block.start,
+        "count": block.count,
+        "readCycle": block.rate,
+        "items": names,
+    }

@@ -112,20 +112,26 @@ def test_seed_parameters_keep_their_label_type_category_control() -> None:
 def test_address_parameters_are_the_seed_file_s_item_fields() -> None:
     # the item's scan rate, in full (tests/data/seed-descriptor.json pins it)
     assert driver_descriptor()["addressParameter"] == SEED["addressParameter"]
-    assert [p["name"] for p in SEED["addressParameter"]] == ["readCycle"]
+    assert [p["name"] for p in SEED["addressParameter"]] == [
+        "readCycle", "reportMode", "reportEvery"]
 
 
-def test_item_read_cycle_has_the_device_s_range_and_loads_its_limits() -> None:
-    item_meta = DeviceAddressItem.model_fields["read_cycle"].metadata
-    device_meta = DriverModbusRtuParameter.model_fields["read_cycle"].metadata
-    assert item_meta == device_meta  # one source: config.base.READ_CYCLE_RANGE
-    (entry,) = driver_descriptor()["addressParameter"]
+def test_item_read_cycle_has_the_device_s_range_and_demand_and_loads_its_limits() -> None:
+    (item_range,) = DeviceAddressItem.model_fields["read_cycle"].metadata
+    (device_range,) = DriverModbusRtuParameter.model_fields["read_cycle"].metadata
+    # the device's range, and -1: on demand (docs/reporting.md)
+    assert (item_range.lo, item_range.hi) == (-1, device_range.hi)
+    assert device_range.lo == 0
+    entry = driver_descriptor()["addressParameter"][0]
+    assert entry["name"] == "readCycle"
     base = {"name": "x", "address": "hr:1", "deviceDataType": "UInt16"}
     for ok in (entry["min"], entry["max"], entry["defaultValue"]):
         assert DeviceAddressItem.model_validate({**base, "readCycle": ok}).read_cycle == ok
-    for bad in (entry["min"] - 1, entry["max"] + 1):
-        with pytest.raises(ConfigError, match=rf"readCycle {bad}: must be 0\.\.86400000"):
-            load_model(DeviceAddressItem, {**base, "readCycle": bad})
+    with pytest.raises(ConfigError, match=r'readCycle -2: must be -1 \("demand": read only '
+                       r"when asked\), 0 \(wrapped reports only\) or 1\.\.86400000 ms"):
+        load_model(DeviceAddressItem, {**base, "readCycle": -2})
+    with pytest.raises(ConfigError, match=r"readCycle 86400001: must be -1\.\.86400000"):
+        load_model(DeviceAddressItem, {**base, "readCycle": 86400001})
 
 
 def test_item_labels_name_item_fields(monkeypatch: pytest.MonkeyPatch) -> None:

@@ -168,7 +168,45 @@ def test_unsupported_ncmd_metric_is_named_by_a_short_prefix(
                                           value=1)]))
     (line,) = [r.getMessage() for r in caplog.records]
     assert line == ("Sparkplug: NCMD: 1 metric(s) ignored, e.g. 'Other/yyyyyyyyyyyyyyyyyyyyy"
-                    "yyyyy'... (206 chars) (only Node Control/Rebirth = true is supported)")
+                    "yyyyy'... (206 chars) (only Node Control/Rebirth or Node Control/Read "
+                    "= true is supported)")
+
+
+def test_read_metrics_start_reads_and_bad_ones_are_refused_whole() -> None:
+    """docs/reporting.md: Device Control/Read = true in a DCMD reads that device (after
+    the writes it came with), Node Control/Read = true in an NCMD every device; any
+    other value refuses the message, nothing written or read."""
+    rec = Recorder()
+    reads: list[tuple[str | None, list[str] | None]] = []
+    dev = NodeDevice(cast(Any, None), "dev1")
+    dev.metrics = {"sp": cast(Any, None), "t0": cast(Any, None)}  # as born
+    box = CommandInbox(lambda key: rec.counts.update([key]), rec.events.append,
+                       {"dev1": dev}.get, lambda d, ms: rec.writes.append(ms),
+                       CommandLog(logging.getLogger("edgemodbus.sparkplug")),
+                       lambda d, names: reads.append((None if d is None else d.code, names)))
+    read = encode_metric(name="Device Control/Read", datatype="Boolean", value=True)
+
+    def read_item(name: str) -> bytes:
+        return encode_metric(name="Device Control/Read", datatype="String", value=name)
+
+    box.device_command("dev1", encode([read]))
+    box.device_command("dev1", encode([encode_metric(name="sp", datatype="UInt16", value=1),
+                                       read]))
+    box.node(encode([encode_metric(name="Node Control/Read", datatype="Boolean",
+                                   value=True)]))
+    box.device_command("dev1", encode([read_item("t0"), read_item("sp"), read_item("t0")]))
+    box.device_command("dev1", encode([read_item("t0"), read]))  # true: the whole device
+    assert reads == [("dev1", None), ("dev1", None), (None, None), ("dev1", ["t0", "sp"]),
+                     ("dev1", None)]
+    assert [[m.name for m in ms] for ms in rec.writes] == [["sp"]]
+    for bad in (encode_metric(name="Device Control/Read", datatype="Boolean", value=False),
+                encode_metric(name="Device Control/Read", datatype="UInt16", value=1),
+                read_item("nosuch")):
+        box.device_command("dev1", encode([encode_metric(name="sp", datatype="UInt16",
+                                                         value=2), bad]))
+    box.node(encode([encode_metric(name="Node Control/Read", datatype="String", value="x")]))
+    assert len(reads) == 5 and len(rec.writes) == 1  # nothing read or written
+    assert rec.counts == {"commands": 9, "readsRefused": 3, "commandErrors": 1}
 
 
 def test_a_dcmd_with_a_5_mb_name_is_refused_in_one_short_line(

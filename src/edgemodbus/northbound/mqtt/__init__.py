@@ -44,7 +44,7 @@ Topic layout (every template configurable; placeholders ``{prefix}``, ``{deviceC
 """
 
 from ...codec import jsonable
-from .commands import parse_command
+from .commands import parse_command, parse_read
 from .payload import batch_payload, encode_item
 from .publisher import MqttPublisher
 from .settings import MqttSettings, TlsSettings, check_name
@@ -58,4 +58,5 @@ __all__ = [
     "encode_item",
     "jsonable",
     "parse_command",
+    "parse_read",
 ]

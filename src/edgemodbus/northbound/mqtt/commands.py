@@ -1,8 +1,8 @@
-"""Writes and actions from MQTT: the command payloads, and the thread that runs them.
+"""Writes, actions and reads from MQTT: the command payloads, and the thread that runs them.
 
 Commands run on one ``edgemodbus-mqtt-cmd`` thread with an asyncio loop through
-``write_addresses_async`` or ``run_action_async`` (many devices' writes in flight at once;
-per device in arrival order); the result goes to the device's reply topic.
+``write_addresses_async``, ``run_action_async`` or ``read_now`` (many devices' commands in
+flight at once; per device in arrival order); the result goes to the device's reply topic.
 
 Commands are untrusted input (any client allowed on the topic sends them): a payload over
 :data:`MAX_COMMAND_BYTES` is refused unread, JSON nested too deep is an error reply (not
@@ -12,10 +12,12 @@ of at most :data:`MAX_ID_CHARS` characters, and an error reply quotes at most
 
 from __future__ import annotations
 
+import asyncio
 import json
 import logging
 from typing import Any
 
+from ...errors import ModbusError
 from ...line.log_limit import short_text
 from ..loop_thread import LoopThread
 from .devices import AttachedDevice
@@ -153,6 +155,37 @@ def parse_action(payload: bytes) -> tuple[Any, str, dict[str, Any]]:
     return checked_id(body.get("id")), body["action"], params
 
 
+def parse_read(payload: bytes) -> tuple[Any, list[str] | None]:
+    """(request id, item names or None: every item) of a read payload: empty or ``{}``
+    (the whole device), ``"name"``, ``["a", "b"]``, or ``{"items": [...], "id": 7}``
+    (docs/reporting.md); ValueError says what is wrong."""
+    if len(payload) > MAX_COMMAND_BYTES:
+        raise ValueError(f"payload of {len(payload)} bytes is too large "
+                         f"(at most {MAX_COMMAND_BYTES})")
+    if not payload.strip():
+        return None, None
+    try:
+        body = _loads(payload.decode("utf-8"), "read payload")
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise ValueError(f"read payload is not JSON: {exc}") from None
+    request_id: Any = None
+    if isinstance(body, dict):
+        unknown = sorted(set(body) - {"items", "id"})
+        if unknown:
+            raise ValueError(f"read payload: unknown key {short_text(unknown[0])} "
+                             '(use {"items": [names], "id": ...})')
+        request_id = checked_id(body.get("id"))
+        body = body.get("items")
+    if body is None:
+        return request_id, None
+    if isinstance(body, str):
+        body = [body]
+    if not isinstance(body, list) or not body or not all(isinstance(n, str) for n in body):
+        raise ValueError(f"read payload: items {short_text(repr(body))} must be a non-empty "
+                         "list of item names (or leave it out: every item)")
+    return request_id, body
+
+
 class CommandRunner:
     """The command thread: a write per command, replies through the outbox."""
 
@@ -165,7 +198,7 @@ class CommandRunner:
         self._runner.start()
 
     def dispatch(self, dev: AttachedDevice, name: str | None, payload: bytes,
-                 action: bool = False) -> None:
+                 action: bool = False, read: bool = False) -> None:
         if not self._runner.running:
             return
         with self._outbox.lock:
@@ -178,6 +211,7 @@ class CommandRunner:
                         "too many writes pending; try again later", [])
             return
         if not self._runner.spawn(lambda: self._action(dev, payload) if action
+                                  else self._read(dev, payload) if read
                                   else self._command(dev, name, payload)):
             with self._outbox.lock:  # stop() is under way
                 self.pending -= 1
@@ -195,6 +229,34 @@ class CommandRunner:
         except Exception as exc:  # never let a command kill the loop
             log.exception("%s: MQTT action failed", dev.code)
             self._reply(dev, request_id, False, f"internal error: {exc}", [])
+        finally:
+            with self._outbox.lock:
+                self.pending -= 1
+
+    async def _read(self, dev: AttachedDevice, payload: bytes) -> None:
+        """A read on demand (driver.read_now): the values are published as any report
+        (item or batch topics); the reply has them too."""
+        request_id: Any = None
+        names: list[str] = []
+        try:
+            try:
+                request_id, asked = parse_read(payload)
+                names = list(asked or [])
+                future = dev.driver.read_now(asked)
+            except (ValueError, KeyError, ModbusError) as exc:
+                text = exc.args[0] if isinstance(exc, KeyError) and exc.args else str(exc)
+                self._reply(dev, request_id if request_id is not None
+                            else request_id_of(payload), False, str(text), names, read={})
+                return
+            try:
+                values = await asyncio.wrap_future(future)
+            except ModbusError as exc:
+                self._reply(dev, request_id, False, str(exc), names, read={})
+                return
+            self._reply(dev, request_id, True, None, list(values), read=values)
+        except Exception as exc:  # never let a command kill the loop
+            log.exception("%s: MQTT read failed", dev.code)
+            self._reply(dev, request_id, False, f"internal error: {exc}", names, read={})
         finally:
             with self._outbox.lock:
                 self.pending -= 1
@@ -219,7 +281,8 @@ class CommandRunner:
                 self.pending -= 1
 
     def _reply(self, dev: AttachedDevice, request_id: Any, ok: bool, error: str | None,
-               names: list[str], action: str | None = None) -> None:
+               names: list[str], action: str | None = None,
+               read: dict[str, Any] | None = None) -> None:
         if not ok:
             self._outbox.count("commandErrors")
         body: dict[str, Any] = {"id": request_id, "ok": ok,
@@ -228,6 +291,8 @@ class CommandRunner:
                                           for n in names], "ts": now()}
         if action is not None:
             body["action"] = action
+        if read is not None:  # a read's reply: each item's value, status, updateTs, error
+            body["read"] = read
         self._outbox.push_control(Message(dev.code, dev.reply_topic, dumps(body), 1, False))
 
     def stop(self) -> None:

@@ -20,7 +20,7 @@ class AttachedDevice:
     __slots__ = (
         "action_topic", "attached", "batch_command_topic", "batch_topic", "code",
         "command_prefix", "driver", "dropped", "item_topics", "largest", "listener",
-        "published", "published_status", "reply_topic",
+        "published", "published_status", "read_topic", "reply_topic",
         "seen_status", "snapshot_topic", "snapshots", "snapshots_coalesced", "status_topic",
     )
 
@@ -35,6 +35,7 @@ class AttachedDevice:
         self.batch_command_topic = topic(settings.batch_command_topic, code)
         self.batch_topic = topic(settings.batch_topic, code)  # mode "batch": the values
         self.action_topic = topic(settings.action_topic, code)
+        self.read_topic = topic(settings.read_topic, code)  # reads on demand
         self.command_prefix = topic(settings.command_topic, code, "\0").removesuffix("\0")
         self.item_topics: dict[str, str] = {}
         self.attached = True
@@ -53,8 +54,9 @@ class AttachedDevice:
         filters = [self.command_prefix + "#"]
         if self.batch_command_topic + "/" != self.command_prefix:
             filters.append(self.batch_command_topic)
-        if not self.action_topic.startswith(self.command_prefix):
-            filters.append(self.action_topic)
+        for own in (self.action_topic, self.read_topic):
+            if not own.startswith(self.command_prefix):
+                filters.append(own)
         return filters
 
 
@@ -69,6 +71,7 @@ def check_topics(settings: MqttSettings, topic_of: Callable[..., str],
         topic_of(s.status_topic, device_code): "status",
         topic_of(s.reply_topic, device_code): "reply",
         topic_of(s.action_topic, device_code): "action",
+        topic_of(s.read_topic, device_code): "read",
         topic_of(s.snapshot_topic, device_code): "snapshot",
     }
     command = topic_of(s.command_topic, device_code, "\0").removesuffix("\0") + "#"

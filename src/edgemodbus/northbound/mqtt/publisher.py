@@ -447,6 +447,9 @@ class MqttPublisher:
             if topic == dev.action_topic:
                 self._commands.dispatch(dev, None, payload, action=True)
                 return
+            if topic == dev.read_topic:
+                self._commands.dispatch(dev, None, payload, read=True)
+                return
             if topic == dev.batch_command_topic:
                 self._commands.dispatch(dev, None, payload)
                 return

@@ -244,6 +244,7 @@ class MqttSettings(Model):
     batch_command_topic: str = "{prefix}/{deviceCode}/set"
     reply_topic: str = "{prefix}/{deviceCode}/$reply"
     action_topic: str = "{prefix}/{deviceCode}/$action"  # {"action": n, "parameters": {...}}
+    read_topic: str = "{prefix}/{deviceCode}/$read"  # {"items": [...], "id": x}; {}: all
     qos: Annotated[int, Choice((0, 1, 2))] = 0  # item updates (either mode): a stream
     retain: bool = False
     snapshot_qos: Annotated[int, Choice((0, 1, 2))] = 1
@@ -287,7 +288,7 @@ class MqttSettings(Model):
 
     @field_validator(
         "snapshot_topic", "status_topic", "batch_command_topic", "reply_topic", "action_topic",
-        "batch_topic",
+        "batch_topic", "read_topic",
     )
     @classmethod
     def _device_topics(cls, value: str) -> str:

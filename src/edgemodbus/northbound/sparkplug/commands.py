@@ -193,3 +193,23 @@ def node_command(metrics: list[CommandMetric]) -> tuple[bool, list[CommandMetric
         else:
             others.append(metric)
     return rebirth, others
+
+
+def split_reads(metrics: list[CommandMetric], name: str, items: bool = False
+                ) -> tuple[bool, list[str], list[CommandMetric]]:
+    """(whole: a ``name`` metric is the Boolean true, the items named by ``name``
+    metrics with a String value (``items``: allowed), the other metrics); ValueError for
+    a ``name`` metric of another value (nothing is read or written then)."""
+    whole, names, others = False, [], []
+    for metric in metrics:
+        if metric.name != name:
+            others.append(metric)
+        elif metric.field == "boolean_value" and metric.raw:
+            whole = True
+        elif items and metric.field == "string_value" and metric.raw:
+            names.append(str(metric.raw))
+        else:
+            allowed = "the Boolean true, or a String: an item's name" if items else (
+                "the Boolean true")
+            raise ValueError(f"{name} takes {allowed} (got {metric.field or 'null'})")
+    return whole, names, others

@@ -14,9 +14,9 @@ from collections.abc import Callable
 from typing import Any
 
 from ...line.log_limit import LogLimiter, short_text
-from .commands import CommandMetric, node_command, parse_command
+from .commands import CommandMetric, node_command, parse_command, split_reads
 from .devices import NodeDevice
-from .payloads import REBIRTH
+from .payloads import DEVICE_READ, NODE_READ, REBIRTH
 
 log = logging.getLogger("edgemodbus.sparkplug")
 
@@ -96,11 +96,16 @@ class CommandInbox:
     def __init__(self, count: Callable[[str], None], push: Callable[[tuple[Any, ...]], None],
                  device: Callable[[str], NodeDevice | None],
                  write: Callable[[NodeDevice, list[CommandMetric]], None],
-                 logs: CommandLog) -> None:
+                 logs: CommandLog,
+                 read: Callable[[NodeDevice | None, list[str] | None], None]
+                 = lambda _dev, _names: None) -> None:
+        """``read(dev, names)`` starts a read on demand of ``dev`` (None: every device),
+        of these items (None: every item)."""
         self._count = count
         self._push = push
         self._device = device
         self._write = write
+        self._read = read
         self.logs = logs
 
     def refuse(self, counter: str, kind: str, source: str, msg: str, *args: object) -> None:
@@ -114,16 +119,19 @@ class CommandInbox:
         self._count("commands")
         try:
             rebirth, others = node_command(parse_command(payload))
+            reads, _, others = split_reads(others, NODE_READ)
         except ValueError as exc:
             self.refuse("commandErrors", "NCMD refused", "NCMD",
                         "Sparkplug: NCMD refused: %s", exc)
             return
         if rebirth:
             self._push(("rebirth", "NCMD"))
+        if reads:
+            self._read(None, None)
         if others:
             self.refuse("commandErrors", "NCMD metrics ignored", "NCMD",
-                        "Sparkplug: NCMD: %d metric(s) ignored, e.g. %s (only %s = true "
-                        "is supported)", len(others), others[0].label, REBIRTH)
+                        "Sparkplug: NCMD: %d metric(s) ignored, e.g. %s (only %s or %s = "
+                        "true is supported)", len(others), others[0].label, REBIRTH, NODE_READ)
 
     def device_command(self, code: str, payload: bytes) -> None:
         """A DCMD for device ``code`` (the topic's last level)."""
@@ -139,5 +147,20 @@ class CommandInbox:
             self.refuse("writesRefused", "DCMD writes refused", dev.code,
                         "%s: DCMD write (payload) refused: %s", dev.code, exc)
             return
-        self._write(dev, metrics)
+        try:
+            whole, names, metrics = split_reads(metrics, DEVICE_READ, items=True)
+            unknown = [n for n in names if n not in dev.metrics]  # as born
+            if unknown:
+                raise ValueError(f"{DEVICE_READ}: no metric {short_text(unknown[0])} in "
+                                 "the device's DBIRTH")
+        except ValueError as exc:
+            # the text, not the exception: a log record holding its traceback would
+            # keep paho's frames (and the client's sockets) alive
+            self.refuse("readsRefused", "reads refused", dev.code,
+                        "%s: DCMD refused: %s", dev.code, str(exc))
+            return
+        if metrics:
+            self._write(dev, metrics)
+        if whole or names:  # after the writes it came with: they are queued first
+            self._read(dev, None if whole else list(dict.fromkeys(names)))
 

@@ -52,6 +52,8 @@ _SIGNED_BITS = {INT8: 8, INT16: 16, INT32: 32, INT64: 64}
 _UNSIGNED_MAX = {UINT8: 0xFF, UINT16: 0xFFFF, UINT32: 0xFFFF_FFFF}
 
 REBIRTH = "Node Control/Rebirth"
+NODE_READ = "Node Control/Read"  # reads on demand (northbound/sparkplug/reads.py)
+DEVICE_READ = "Device Control/Read"
 QUALITY_GOOD = 192
 QUALITY_BAD = 0
 
@@ -169,10 +171,13 @@ def _add_metric(payload: Any, sample: Sample, spec: MetricDef, birth: bool,
 
 
 def node_birth(bd_seq: int, now: int) -> bytes:
-    """NBIRTH: seq 0, the session's bdSeq and ``Node Control/Rebirth`` (false)."""
+    """NBIRTH: seq 0, the session's bdSeq, ``Node Control/Rebirth`` and ``Node
+    Control/Read`` (false)."""
     payload = pb.Payload(timestamp=now, seq=0)
     payload.metrics.add(name="bdSeq", timestamp=now, datatype=INT64, long_value=bd_seq)
     payload.metrics.add(name=REBIRTH, timestamp=now, datatype=BOOLEAN,
+                        boolean_value=False)
+    payload.metrics.add(name=NODE_READ, timestamp=now, datatype=BOOLEAN,
                         boolean_value=False)
     return bytes(payload.SerializeToString())
 

@@ -19,6 +19,7 @@ from ..mqtt.settings import MqttSettings, check_name
 from .devices import NodeDevice, is_good, sample_of
 from .inbox import CommandInbox, CommandLog, RebirthPacer
 from .payloads import Sample, device_birth, device_data, device_death, node_birth, node_death
+from .reads import ReadRunner
 from .session import NodeSession
 from .settings import check_id
 from .state import HostState
@@ -32,7 +33,8 @@ log = logging.getLogger("edgemodbus.sparkplug")
 NAMESPACE = "spBv1.0"
 _COUNTERS = ("connects", "disconnects", "connectFailures", "published", "publishErrors",
              "dropped", "nbirths", "dbirths", "ddata", "ddeaths", "rebirths", "commands",
-             "commandErrors", "writes", "writesRefused", "rebirthsFolded")
+             "commandErrors", "writes", "writesRefused", "rebirthsFolded", "reads",
+             "readsRefused")
 
 
 def _now() -> int:
@@ -89,8 +91,9 @@ class SparkplugPublisher:
         self._aliases: dict[tuple[str, str], int] = {}
         self._logs = CommandLog(log)
         self._writes = WriteRunner(self._count, self._logs)
+        self._reads = ReadRunner(self._count, self._logs)
         self._inbox = CommandInbox(self._count, self._push, self._device_named,
-                                   self._writes.command, self._logs)
+                                   self._writes.command, self._logs, self._read_now)
         self._rebirths = RebirthPacer(sp.rebirth_interval / 1000)
         self._connected = self._session.connected
         self._thread: threading.Thread | None = None
@@ -249,6 +252,17 @@ class SparkplugPublisher:
             self._inbox.node(payload)
         elif topic.startswith(self._dcmd):
             self._inbox.device_command(topic[len(self._dcmd):], payload)
+
+    def _read_now(self, dev: NodeDevice | None, names: list[str] | None) -> None:
+        """A read on demand of ``dev`` (``names``: these items), or of every attached
+        device (paho's thread)."""
+        if dev is None:
+            with self._lock:
+                devices = list(self._devices.values())
+            for one in devices:
+                self._reads.read(one)
+        else:
+            self._reads.read(dev, names)
 
     def _device_named(self, code: str) -> NodeDevice | None:
         with self._lock:

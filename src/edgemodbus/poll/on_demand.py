@@ -1,0 +1,121 @@
+"""Reads on demand: items (or a whole device) read now, as a job on the line's queue.
+
+A read job (``driver.read_now``, the MQTT and Sparkplug read commands) runs on the line
+worker like a write (line/jobs.py; ``reads=True``: it changes nothing on the slave, so
+forwarded-read coalescing keeps its data).  It reads the blocks that hold the items
+asked for: their polled blocks, or for on-demand items (``readCycle: "demand"``) the
+blocks planned for them (schedule.build_plan ``demand=True``), which nothing else reads.
+Each block goes through its own decoder, reporting every item (a fresh value is
+reported even when unchanged: it answers a request); the decoder remembers what it
+reported, so the next poll of that block reports only what changed since.  The items
+asked for are reported in one batch through the normal delivery (poll/sink.py), so
+callbacks, MQTT and Sparkplug publish them; other items of the same blocks are
+reported only when they changed.  A failed read sets the items Invalid with the reason,
+as a failed poll does, and the job still answers with them.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from datetime import datetime, timezone
+from typing import TYPE_CHECKING, Any
+
+from .._ffi import Block
+from ..codec import Change
+from ..datatypes import ItemStatus
+from ..errors import ModbusConnectionError, ModbusError
+from .items import Assembly, ItemState, Slot, is_news, set_item
+
+if TYPE_CHECKING:
+    from ..config import DeviceAddressItem
+    from ..line import Link
+    from ..stats import DeviceStats
+
+_INVALID = ItemStatus.INVALID
+
+
+def slots_holding(slots: Sequence[Slot], wanted: set[ItemState]) -> list[Slot]:
+    """The slots that read any of ``wanted`` (whole, or a piece of it), in plan order."""
+    return [slot for slot in slots
+            if any(s in wanted for s in slot.whole)
+            or any(asm.state in wanted for _, asm in slot.partial)]
+
+
+def read_slots(link: Link, slave: int, slots: Sequence[Slot], wanted: set[ItemState],
+               counters: DeviceStats, token: int) -> list[DeviceAddressItem]:
+    """Read ``slots`` now and store what they hold: the items of ``wanted`` always,
+    the others when they changed; returns the items set, for one report.  ``token``
+    numbers this read for the assemblies of large items (pieces of one read only).
+    A link that is down raises ModbusConnectionError; other failures make the items
+    of the failed block Invalid."""
+    now = datetime.now(timezone.utc)
+    reported: list[DeviceAddressItem] = []
+    for slot in slots:
+        block = slot.block
+        counters.requests += 1
+        changes: list[Change] = []
+        try:
+            if slot.decoder is None:
+                data = link.read(slave, block.area, block.start, block.count)
+            else:
+                data, changes = link.read_decode(slave, block.area, block.start, block.count,
+                                                 slot.decoder, True)
+        except ModbusConnectionError:
+            raise
+        except ModbusError as exc:
+            _failed(slot, str(exc), wanted, now, token, reported)
+            continue
+        counters.responses += 1
+        for index, value, error in changes:
+            state = slot.whole[index]
+            if state in wanted or is_news(state, value, error):
+                reported.append(set_item(state.item, value, error, now))
+        if slot.partial:
+            values = data.to_list()
+            for piece, asm in slot.partial:
+                if asm.add(piece, values, token):
+                    _assembled(asm, wanted, now, reported)
+        _forget(slot)
+    return reported
+
+
+def _forget(slot: Slot) -> None:
+    """The decoders of ``slot`` remember this read, also the values of items it did not
+    set (within their deadband of what they hold): make the next poll compare with what
+    the items hold instead, as after a write (the poller's ``_recheck``), so a slow drift
+    past a deadband is not hidden by a read on demand."""
+    if slot.decoder is not None:
+        slot.decoder.reset()
+        slot.recheck = True
+    for _, asm in slot.partial:
+        asm.decoder.reset()
+
+
+def _assembled(asm: Assembly, wanted: set[ItemState], now: datetime,
+               reported: list[DeviceAddressItem]) -> None:
+    state = asm.state
+    block = Block.from_values(asm.registers, bits=False)
+    for _, value, error in asm.decoder.decode(block, True):
+        if state in wanted or is_news(state, value, error):
+            reported.append(set_item(state.item, value, error, now))
+
+
+def _failed(slot: Slot, reason: str, wanted: set[ItemState], now: datetime, token: int,
+            reported: list[DeviceAddressItem]) -> None:
+    """A block of the read failed: its items Invalid with ``reason`` (reported when
+    asked for or when that is news), its decoder told to report them again."""
+    states = slot.whole + [asm.state for _, asm in slot.partial if asm.fail(token)]
+    for state in states:
+        item = state.item
+        news = item.status is not _INVALID or item.error_reason != reason
+        if state in wanted or news:
+            reported.append(set_item(item, None, reason, now))
+    if slot.decoder is not None:
+        slot.decoder.reset()
+
+
+def answer(states: Sequence[ItemState]) -> dict[str, dict[str, Any]]:
+    """What a read job answers: each item's snapshot entry (value, status, updateTs,
+    errorReason), by name."""
+    return {state.item.name: state.snapshot() for state in states}
+
