@@ -186,6 +186,7 @@ DESCRIPTIONS: dict[str, str] = {
     "mqtt.batchCommandTopic": "Writes to several items of a device (in)",
     "mqtt.replyTopic": "Replies to commands",
     "mqtt.actionTopic": "Runs an action (in)",
+    "mqtt.readTopic": "Reads items or the whole device now and publishes them (in)",
     "mqtt.qos": "QoS of item updates and batches",
     "mqtt.retain": "Retain item updates and batches",
     "mqtt.snapshotQos": "QoS of snapshots",
