@@ -1,0 +1,138 @@
+"""The ``console`` section of the gateway file: where the web console listens, who may
+use it (a token, users with password hashes), TLS; checked like every section (the
+field, the value, what is allowed).  No import of the server: a gateway file with a
+console section loads without the optional packages (edgemodbus[console])."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Annotated, Any, ClassVar
+
+from pydantic import AfterValidator, Field, field_validator, model_validator
+
+from ..config import Model, Problem, Range
+from ..config.limits import MAX_HOST, MAX_NAME, check_host
+from ..config.secret import Secret
+from ..northbound.mqtt import TlsSettings
+from .auth import PasswordHash, is_loopback
+
+DEFAULT_PORT = 8099
+MIN_TOKEN = 16  # characters: a token is a password nobody types; guessable ones refused
+
+
+class ConsoleUser(Model):
+    """One user: name and the scrypt hash of the password (auth.py)."""
+
+    _where: ClassVar[str] = "console.users[]"
+    _max_lengths: ClassVar[dict[str, int]] = {"name": MAX_NAME}
+
+    name: str
+    password_hash: str
+
+    @field_validator("name")
+    @classmethod
+    def _name(cls, value: str) -> str:
+        if not value.strip():
+            raise ValueError("empty: give the user's login name")
+        return value
+
+    @field_validator("password_hash")
+    @classmethod
+    def _hash(cls, value: str) -> str:
+        PasswordHash.parse(value)
+        return value
+
+
+class ConsoleTls(Model):
+    """HTTPS: the server's certificate and key, checked as ``mqtt.tls``'s files are."""
+
+    _where: ClassVar[str] = "console.tls"
+
+    enabled: bool = True
+    cert_file: str
+    key_file: str | None = None  # None: the key is in certFile
+
+    def resolved(self, base: str | os.PathLike[str]) -> ConsoleTls:
+        """A copy whose relative file paths are taken from folder ``base``."""
+        update = {name: str(Path(base, path)) for name, path in
+                  (("cert_file", self.cert_file), ("key_file", self.key_file))
+                  if path is not None and not os.path.isabs(path)}
+        return self.model_copy(update=update) if update else self
+
+    def problems(self) -> list[Problem]:
+        """What is wrong with the files (northbound/mqtt/settings.py TlsSettings.problems:
+        missing, unreadable, not PEM, a key that does not fit the certificate)."""
+        if not self.enabled:
+            return []
+        return TlsSettings(cert_file=self.cert_file,
+                           key_file=self.key_file).problems("console.tls")
+
+
+class ConsoleSettings(Model):
+    """The ``console`` section (docs/console.md)."""
+
+    _where: ClassVar[str] = "console"
+    _max_lengths: ClassVar[dict[str, int]] = {"host": MAX_HOST}
+
+    enabled: bool = True
+    host: Annotated[str, AfterValidator(check_host)] = "127.0.0.1"
+    port: Annotated[int, Range(0, 65535)] = DEFAULT_PORT  # 0: any free port (logged)
+    token: Secret | None = None
+    users: list[ConsoleUser] = Field(default_factory=list)
+    tls: ConsoleTls | None = None
+    # the live tag streams (server-sent events) open at once; more are answered 503
+    max_streams: Annotated[int, Range(1, 1000)] = 16
+    # connections open at once (pages, API calls, streams); more are closed at accept
+    max_connections: Annotated[int, Range(2, 4096)] = 64
+
+    @model_validator(mode="after")
+    def _checks(self) -> ConsoleSettings:
+        token = self.token.get_secret_value() if self.token is not None else None
+        if token is not None and len(token) < MIN_TOKEN:
+            raise ValueError(f"token: {len(token)} characters: at least {MIN_TOKEN} (a "
+                             "random one: python -c 'import secrets; "
+                             "print(secrets.token_urlsafe(24))')")
+        names = [user.name for user in self.users]
+        twice = sorted({name for name in names if names.count(name) > 1})
+        if twice:
+            raise ValueError(f"users: {', '.join(map(repr, twice))} given twice: one entry "
+                             "per user name")
+        if self.host and not is_loopback(self.host) and not self.has_credentials:
+            raise ValueError(f"host {self.host!r} is reachable from other machines: give "
+                             "a token or users (with password hashes), or listen on "
+                             "127.0.0.1")
+        if self.max_streams >= self.max_connections:
+            raise ValueError(f"maxStreams {self.max_streams} must be less than "
+                             f"maxConnections {self.max_connections} (streams are "
+                             "connections too; the pages need some)")
+        return self
+
+    @property
+    def has_credentials(self) -> bool:
+        """Whether logging in is required (a token or a user is configured)."""
+        return self.token is not None or bool(self.users)
+
+    @property
+    def scheme(self) -> str:
+        return "https" if self.tls is not None and self.tls.enabled else "http"
+
+    def resolved(self, base: str | os.PathLike[str]) -> ConsoleSettings:
+        """A copy with the TLS files' relative paths taken from folder ``base``."""
+        if self.tls is None:
+            return self
+        return self.model_copy(update={"tls": self.tls.resolved(base)})
+
+    def problems(self) -> list[Problem]:
+        return self.tls.problems() if self.tls is not None else []
+
+
+def console_key(settings: ConsoleSettings | None) -> dict[str, Any] | None:
+    """What the console is made from (secrets and TLS paths included): a change of it
+    restarts the console on reload."""
+    if settings is None or not settings.enabled:
+        return None
+    return settings.to_dict(secrets=True)
+
+
+__all__ = ["ConsoleSettings", "ConsoleTls", "ConsoleUser", "console_key"]
