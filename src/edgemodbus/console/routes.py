@@ -31,7 +31,6 @@ from aiohttp import web
 
 from ..codec import json_bytes
 from ..config import DeviceConfig
-from ..config.jsonfile import MAX_JSON_BYTES
 from ..descriptor import driver_descriptor
 from ..driver import DriverModbusRtu
 from .auth import (
@@ -63,6 +62,7 @@ KEEPALIVE = 15.0  # seconds between two comments on an idle stream (proxies, dea
 WRITE_SECONDS = 10.0  # a stream's write must go out by then, else the reader is dropped
 LOGIN_FAILURE_DELAY = 1.0  # seconds a failed login waits before it is answered
 OPEN = frozenset({"/api/session", "/api/login"})
+MAX_BODY = 4 << 20  # bytes of a request body: a device file of 10,000 tags is ~1.5 MB
 
 
 def _json(data: Any, status: int = 200) -> web.Response:
@@ -149,7 +149,7 @@ class Routes:
         try:
             response = await handler(request)
         except web.HTTPRequestEntityTooLarge:
-            return _error(413, f"request body over {MAX_JSON_BYTES:,} bytes")
+            return _error(413, f"request body over {MAX_BODY:,} bytes")
         response.headers.setdefault("X-Content-Type-Options", "nosniff")
         response.headers.setdefault("X-Frame-Options", "DENY")
         response.headers.setdefault("Referrer-Policy", "no-referrer")

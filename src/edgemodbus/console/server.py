@@ -9,7 +9,7 @@ cost (docs/fault-checklist.md, "console"):
 * a connection must send a complete request head within :data:`HEAD_SECONDS` (slow
   headers), idle keep-alive connections close after :data:`KEEPALIVE_SECONDS`;
 * request heads are bounded by aiohttp's line and field limits, bodies by
-  config/jsonfile.py's MAX_JSON_BYTES (a device file) -> 413;
+  routes.py's MAX_BODY (a large device file) -> 413;
 * live streams are capped (``maxStreams``, 503 past it), each writes with a deadline
   (a reader that stalls is dropped) and holds only the latest row of each tag;
 * accept failing for want of fds (EMFILE) pauses accepting (asyncio's own back-off:
@@ -31,11 +31,10 @@ from typing import Any
 
 from aiohttp import web
 
-from ..config.jsonfile import MAX_JSON_BYTES
 from .auth import Sessions
 from .feed import Feeds
 from .host import ConsoleHost
-from .routes import Routes
+from .routes import MAX_BODY, Routes
 from .settings import ConsoleSettings
 
 log = logging.getLogger("edgemodbus.console")
@@ -197,6 +196,7 @@ class ConsoleServer:
                 task.cancel()
             if tasks:
                 loop.run_until_complete(asyncio.gather(*tasks, return_exceptions=True))
+            loop.run_until_complete(loop.shutdown_default_executor())  # login's scrypt
             loop.close()
 
     async def _serve(self, loop: asyncio.AbstractEventLoop, sock: socket.socket,
@@ -204,12 +204,14 @@ class ConsoleServer:
         routes = Routes(self.settings, self.host, Feeds(loop), Sessions(), self.guard,
                         lambda: self.port)
         self.routes = routes
-        app = web.Application(client_max_size=MAX_JSON_BYTES,
+        app = web.Application(client_max_size=MAX_BODY,
                               middlewares=[routes.middleware])
         routes.install(app)
         runner = web.AppRunner(app, handle_signals=False, access_log=None,
                                keepalive_timeout=KEEPALIVE_SECONDS, max_line_size=MAX_LINE,
-                               max_field_size=MAX_LINE, shutdown_timeout=1.0)
+                               max_field_size=MAX_LINE, shutdown_timeout=1.0,
+                               handler_cancellation=True)  # a browser that left ends
+        # its stream at once (the feed unsubscribed), not at the next keep-alive write
         await runner.setup()
         inner = runner.server
         if inner is None:
