@@ -202,11 +202,11 @@ def test_commission_check_save_and_poll(tmp_path: Path, slave_factory: SlaveFact
         doc = json.loads((folder / "dev1.json").read_text())
         doc["organization"]["deviceCode"] = "Dev9"
         doc["communication"]["slaveId"] = 300
-        status, out = client.post("/api/commission/check", {"document": doc})
+        _, out = client.post("/api/commission/check", {"document": doc})
         assert out["ok"] is False
         assert [p["path"] for p in out["problems"]] == ["communication.slaveId"]
         doc["communication"]["slaveId"] = 2
-        status, out = client.post("/api/commission/check", {"document": doc})
+        _, out = client.post("/api/commission/check", {"document": doc})
         assert out["ok"] is True and out["plan"]["requests"][0]["count"] == 5
         for bad in ("../x.json", "gateway.json", "x.txt"):
             _, out = client.post("/api/commission/save",
@@ -237,9 +237,8 @@ def test_connection_cap_and_slow_heads(tmp_path: Path, slave_factory: SlaveFacto
         try:
             wait_for(lambda: console.stats()["connections"] == 4, what="4 connections")
             extra = socket.create_connection(("127.0.0.1", console.port), timeout=10)
-            with extra:
-                with contextlib.suppress(ConnectionResetError):
-                    assert extra.recv(10) == b""
+            with extra, contextlib.suppress(ConnectionResetError):
+                assert extra.recv(10) == b""
             assert console.stats()["refused"] >= 1
             # none sent a request head: each is closed at the head deadline
             for sock in idle:
