@@ -327,7 +327,9 @@ async function showCommission() {
     const rest = [];
     for (const p of problems) {
       const holder = document.querySelector(`[data-field="${CSS.escape(p.path)}"]`);
-      if (holder) { holder.classList.add("has-error"); holder.querySelector(".field-error").textContent = p.message; }
+      // the field is where it shows; the value and the rule are the problem's text after its path
+      const said = p.text.startsWith(p.path) ? p.text.slice(p.path.length).trim() : p.text;
+      if (holder) { holder.classList.add("has-error"); holder.querySelector(".field-error").textContent = said; }
       else rest.push(p.text);
     }
     general.replaceChildren(...(problems.length ? [el("div", { class: "result bad", text: `${problems.length} problem(s)` })] : []),
