@@ -133,8 +133,9 @@ def test_console_idle_vs_off(gateway: Gateway, benchmark: Any) -> None:
         finally:
             console.stop()
         offs.append(window(gateway))
-    idle = statistics.median(i / ((a + b) / 2) for i, a, b in zip(idles, offs, offs[1:], strict=False))
-    watch = statistics.median(w / ((a + b) / 2) for w, a, b in zip(watched, offs, offs[1:], strict=False))
+    around = [(a + b) / 2 for a, b in zip(offs, offs[1:], strict=False)]  # off before/after
+    idle = statistics.median(i / off for i, off in zip(idles, around, strict=True))
+    watch = statistics.median(w / off for w, off in zip(watched, around, strict=True))
     assert streamed > 0  # the watched windows did stream values
     report("console: CPU per tag read (same run, median of rounds)", [
         ("console off (us/tag read)", 1e6 * statistics.median(offs), "us"),
