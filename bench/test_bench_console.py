@@ -17,6 +17,7 @@ on_changes for a batch of 100 items (a wake-up of the loop already pending).
 
 from __future__ import annotations
 
+import itertools
 import json
 import socket
 import statistics
@@ -133,7 +134,7 @@ def test_console_idle_vs_off(gateway: Gateway, benchmark: Any) -> None:
         finally:
             console.stop()
         offs.append(window(gateway))
-    around = [(a + b) / 2 for a, b in zip(offs, offs[1:], strict=False)]  # off before/after
+    around = [(a + b) / 2 for a, b in itertools.pairwise(offs)]  # the off before and after
     idle = statistics.median(i / off for i, off in zip(idles, around, strict=True))
     watch = statistics.median(w / off for w, off in zip(watched, around, strict=True))
     assert streamed > 0  # the watched windows did stream values
