@@ -334,6 +334,8 @@ async function showCommission() {
     }
     general.replaceChildren(...(problems.length ? [el("div", { class: "result bad", text: `${problems.length} problem(s)` })] : []),
       ...rest.map((t) => el("div", { class: "result bad", text: t })));
+    const first = document.querySelector(".has-error");
+    if (first) first.scrollIntoView({ block: "center" });
   };
   const check = async () => {
     const data = await api("POST", "/api/commission/check", { document: documentOf() });

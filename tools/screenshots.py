@@ -1,0 +1,117 @@
+"""Screenshots of the web console's main pages for docs/console/ (docs/console.md).
+
+Runs a gateway with its console (console/, 127.0.0.1, an ephemeral port) over a
+pymodbus slave (tests/peers.py) with two devices, one with an action, and takes with
+headless Chromium (Debian's chromium and chromium-driver, Selenium): the overview, a
+device's tags live, a write confirmed, the device form with a field's error and the
+read plan, and the login page.  ``python tools/screenshots.py [--out docs/console]``.
+The descriptor's labels are Chinese (the seed's): install a CJK font for the browser
+(Debian: fonts-wqy-zenhei) or they show as boxes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+from pathlib import Path
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+from selenium.webdriver.common.by import By  # noqa: E402
+from selenium.webdriver.support.ui import Select, WebDriverWait  # noqa: E402
+
+from edgemodbus.console.auth import hash_password  # noqa: E402
+from tests.browser.conftest import make_browser  # noqa: E402
+from tests.console_gateway import console_gateway  # noqa: E402
+from tests.peers import PymodbusSlave  # noqa: E402
+
+WAIT = 30.0
+
+
+def wait_text(browser: object, css: str, want: str) -> None:
+    script = "return [...document.querySelectorAll(arguments[0])].map((e) => e.innerText)"
+    WebDriverWait(browser, WAIT).until(
+        lambda b: any(want in t for t in b.execute_script(script, css)), f"{css}: {want}")
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", type=Path, default=Path("docs/console"))
+    args = parser.parse_args()
+    args.out.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory() as tmp, PymodbusSlave("rtu-over-tcp",
+                                                             units=(1, 2)) as slave:
+        folder = Path(tmp) / "cfg"
+        with console_gateway(folder, slave.port, tags=12, devices=2) as gateway:
+            doc = json.loads((folder / "dev1.json").read_text())
+            doc["addressList"][0].update(name="PumpSpeed", unit="rpm")
+            doc["addressList"][1].update(name="Setpoint", deviceDataType="Int16",
+                                         dataMultiplier=0.1, unit="bar")
+            doc["addressList"].append({"name": "Pressure", "address": "ir:3",
+                                       "deviceDataType": "UInt16", "unit": "kPa"})
+            (folder / "dev1.json").write_text(json.dumps(doc))
+            gateway.reload()
+            assert gateway.console is not None
+            url = gateway.console.url
+            browser = make_browser(1400, 820)
+            try:
+                browser.get(url)  # type: ignore[attr-defined]
+                wait_text(browser, 'tr[data-code="Dev2"] td.status', "Running")
+                # a second overview sample (2 s later): the cycle rate is shown
+                wait_text(browser, 'tr[data-code="Dev1"] td:nth-child(6)', ".")
+                WebDriverWait(browser, WAIT).until(lambda b: b.execute_script(
+                    "return Number(document.querySelector('tr[data-code=\"Dev1\"] "
+                    "td:nth-child(6)').innerText) > 0"))
+                browser.save_screenshot(str(args.out / "overview.png"))  # type: ignore[attr-defined]
+                browser.get(url + "#/device/Dev1")  # type: ignore[attr-defined]
+                wait_text(browser, 'tr[data-tag="PumpSpeed"] td.status', "Ok")
+                slave.set_registers(1, "hr", 0, [1480])
+                wait_text(browser, 'tr[data-tag="PumpSpeed"] td.value', "1480")
+                browser.find_element(By.CSS_SELECTOR,  # type: ignore[attr-defined]
+                                     'button.write[data-tag="Setpoint"]').click()
+                field = browser.find_element(By.ID, "write-value")  # type: ignore[attr-defined]
+                field.clear()
+                field.send_keys("4.5")
+                browser.find_element(By.ID, "write-send").click()  # type: ignore[attr-defined]
+                wait_text(browser, "#write-outcome", "confirmed")
+                browser.save_screenshot(str(args.out / "device.png"))  # type: ignore[attr-defined]
+                browser.get(url + "#/commission")  # type: ignore[attr-defined]
+                WebDriverWait(browser, WAIT).until(
+                    lambda b: b.find_elements(By.CSS_SELECTOR, '[data-path="organization.deviceCode"]'))
+                browser.find_element(By.CSS_SELECTOR, '[data-path="organization.deviceCode"]').send_keys("Boiler3")  # type: ignore[attr-defined]
+                Select(browser.find_element(By.CSS_SELECTOR, '[data-path="communication.baudRate"]')).select_by_value("19200")  # type: ignore[attr-defined]
+                sid = browser.find_element(By.CSS_SELECTOR, '[data-path="communication.slaveId"]')  # type: ignore[attr-defined]
+                sid.clear()
+                sid.send_keys("300")
+                browser.find_element(By.ID, "check").click()  # type: ignore[attr-defined]
+                wait_text(browser, '[data-field="communication.slaveId"] .field-error', "255")
+                browser.save_screenshot(str(args.out / "commission-error.png"))  # type: ignore[attr-defined]
+                sid.clear()
+                sid.send_keys("7")
+                browser.find_element(By.ID, "add-item").click()  # type: ignore[attr-defined]
+                browser.find_element(By.ID, "check").click()  # type: ignore[attr-defined]
+                wait_text(browser, "#plan", "requests per cycle")
+                browser.execute_script("window.scrollTo(0, document.body.scrollHeight)")  # type: ignore[attr-defined]
+                browser.save_screenshot(str(args.out / "commission-plan.png"))  # type: ignore[attr-defined]
+            finally:
+                browser.quit()  # type: ignore[attr-defined]
+        users = {"users": [{"name": "ops", "passwordHash": hash_password("x")}]}
+        with console_gateway(Path(tmp) / "cfg2", slave.port, users) as gateway:
+            assert gateway.console is not None
+            browser = make_browser(900, 500)
+            try:
+                browser.get(gateway.console.url)  # type: ignore[attr-defined]
+                WebDriverWait(browser, WAIT).until(lambda b: b.find_elements(By.ID, "login-user"))
+                browser.save_screenshot(str(args.out / "login.png"))  # type: ignore[attr-defined]
+            finally:
+                browser.quit()  # type: ignore[attr-defined]
+    for name in sorted(args.out.glob("*.png")):
+        print(name)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
