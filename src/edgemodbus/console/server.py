@@ -13,7 +13,8 @@ cost (docs/fault-checklist.md, "console"):
 * live streams are capped (``maxStreams``, 503 past it), each writes with a deadline
   (a reader that stalls is dropped) and holds only the latest row of each tag;
 * accept failing for want of fds (EMFILE) pauses accepting (asyncio's own back-off:
-  the listening socket leaves the selector for a second, no busy loop).
+  the listening socket leaves the selector for a second, no busy loop), counted
+  (``loopErrors``) and logged through line/log_limit.py (one line per 10 s).
 
 The socket is bound on the caller's thread, so a port in use is an OSError from
 :meth:`ConsoleServer.start`, as for the metrics exporter.
@@ -31,6 +32,7 @@ from typing import Any
 
 from aiohttp import web
 
+from ..line.log_limit import LogLimiter
 from .auth import Sessions
 from .feed import Feeds
 from .host import ConsoleHost
@@ -126,6 +128,8 @@ class ConsoleServer:
         self._error: BaseException | None = None
         self.routes: Routes | None = None
         self.port = 0
+        self.loop_errors = 0
+        self._logs = LogLimiter(log, interval=10.0, burst=1)
 
     @property
     def url(self) -> str:
@@ -171,10 +175,21 @@ class ConsoleServer:
         context.load_cert_chain(tls.cert_file, tls.key_file)
         return context
 
+    def _on_loop_error(self, loop: asyncio.AbstractEventLoop, context: dict[str, Any]) -> None:
+        """asyncio's errors of the loop (an accept failing for want of fds: asyncio takes
+        the listening socket out for a second): counted, logged through the limiter, one
+        line each (no traceback: it is the machine's state, not a bug of ours)."""
+        self.loop_errors += 1
+        exc = context.get("exception")
+        self._logs.event(logging.WARNING, "console loop errors", "console", "console: %s%s",
+                         context.get("message", "error"), f" ({exc})" if exc else "")
+        self._logs.flush()
+
     def _run(self, sock: socket.socket, context: ssl.SSLContext | None) -> None:
         loop = asyncio.new_event_loop()
         self._loop = loop
         asyncio.set_event_loop(loop)
+        loop.set_exception_handler(self._on_loop_error)
         try:
             runner, server = loop.run_until_complete(self._serve(loop, sock, context))
         except BaseException as exc:  # reported by start()
@@ -198,6 +213,7 @@ class ConsoleServer:
                 loop.run_until_complete(asyncio.gather(*tasks, return_exceptions=True))
             loop.run_until_complete(loop.shutdown_default_executor())  # login's scrypt
             loop.close()
+            self._logs.flush(force=True)
 
     async def _serve(self, loop: asyncio.AbstractEventLoop, sock: socket.socket,
                      context: ssl.SSLContext | None) -> tuple[web.AppRunner, asyncio.Server]:
@@ -239,7 +255,7 @@ class ConsoleServer:
         subscribed feeds."""
         routes = self.routes
         return {"connections": self.guard.open, "refused": self.guard.refused,
-                "slowHeads": self.guard.slow_heads,
+                "slowHeads": self.guard.slow_heads, "loopErrors": self.loop_errors,
                 "streams": routes.feeds.streams if routes is not None else 0,
                 "subscribed": routes.feeds.subscribed if routes is not None else 0}
 
