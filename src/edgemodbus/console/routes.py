@@ -275,7 +275,8 @@ class Routes:
         await response.prepare(request)
         stream = self.feeds.open(dev.driver)
         try:
-            await self._send(response, b"retry: 2000\n\n")
+            # subscribed: the page loads its table now, so nothing falls between the two
+            await self._send(response, b"retry: 2000\n\nevent: ready\ndata: {}\n\n")
             await self._pump(dev, stream, response)
         except (ConnectionError, asyncio.TimeoutError):
             pass  # the reader went away or stalled: drop it

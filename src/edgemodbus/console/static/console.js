@@ -176,7 +176,7 @@ async function showDevice(code) {
   }
   async function load() {
     const data = await api("GET", `/api/devices/${encodeURIComponent(code)}/tags`);
-    if (data.ok === false) { main(el("div", { class: "result bad", text: data.error })); return false; }
+    if (data.ok === false) { leave(); main(el("div", { class: "result bad", text: data.error })); return false; }
     offset = data.serverTime * 1000 - Date.now();
     tags.clear();
     for (const t of data.tags) tags.set(t.name, t);
@@ -200,11 +200,12 @@ async function showDevice(code) {
     el("table", {}, el("thead", {}, el("tr", {}, ...["Name", "Address", "Type", "Value", "Status", "Reason", "Age", ""].map((t) => el("th", { text: t })))), body));
   filter.addEventListener("input", () => { page = 0; render(); });
   only.addEventListener("change", () => { page = 0; render(); });
-  if (!(await load())) return;
-  const source = new EventSource(`/api/devices/${encodeURIComponent(code)}/events`);
-  state.source = source;
-  source.onmessage = (ev) => {
-    const event = JSON.parse(ev.data);
+  // The stream first: on "ready" (subscribed, also after a reconnect) the table is
+  // loaded, and the events that come meanwhile are applied after it, in order, so no
+  // change falls between the table and the stream.
+  const pending = [];
+  let loading = null;
+  const apply = (event) => {
     if (event.status) setStatus(event.status.status);
     const visible = new Map([...body.children].map((tr) => [tr.dataset.tag, tr]));
     for (const r of event.rows) {
@@ -215,7 +216,24 @@ async function showDevice(code) {
       if (tr) tr.replaceWith(row(t));
     }
   };
-  source.addEventListener("reload", () => { load(); });
+  const reload = () => {
+    loading = load().then(() => { for (const event of pending.splice(0)) apply(event); })
+      .finally(() => { loading = null; });
+  };
+  const source = new EventSource(`/api/devices/${encodeURIComponent(code)}/events`);
+  state.source = source;
+  source.addEventListener("ready", reload);
+  source.addEventListener("reload", reload);
+  const hash = location.hash;
+  source.onerror = () => { // refused (no such device yet: a file just saved): try again
+    if (source.readyState !== EventSource.CLOSED) return;
+    if (!tags.size) main(el("p", { class: "muted", text: `device ${code}: not running (yet), trying again...` }));
+    setTimeout(() => { if (state.source === source && location.hash === hash) route(); }, 2000);
+  };
+  source.onmessage = (ev) => {
+    const event = JSON.parse(ev.data);
+    if (loading) pending.push(event); else apply(event);
+  };
   state.timer = setInterval(() => { for (const td of body.querySelectorAll("td.age")) {
     const t = tags.get(td.parentElement.dataset.tag); if (t) td.textContent = age(t); } }, 1000);
 }
