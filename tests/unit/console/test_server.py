@@ -20,6 +20,7 @@ from edgemodbus.driver import DriverModbusRtu
 from edgemodbus.gateway import Gateway
 from tests.conftest import SlaveFactory
 from tests.console_gateway import Client, console_gateway
+from tests.peers import free_port
 from tests.waiting import wait_for
 
 HASH = hash_password("letmein", log2_n=4)
@@ -268,3 +269,43 @@ def test_stream_cap(tmp_path: Path, slave_factory: SlaveFactory) -> None:
         finally:
             first.close()
         wait_for(lambda: console.stats()["streams"] == 0, what="stream closed")
+
+
+def test_overview_shows_the_held_dtus(tmp_path: Path, slave_factory: SlaveFactory) -> None:
+    """The DTU table: a DTU that registered on a listen port, with its peer address, and
+    the port's counters (a refusal by kind)."""
+    slave = slave_factory("rtu-over-tcp")
+    listen = free_port()
+    with console_gateway(tmp_path / "cfg", slave.port) as gateway:
+        (tmp_path / "cfg" / "dtu.json").write_text(json.dumps({
+            "organization": {"deviceCode": "Dtu1"},
+            "communication": {
+                "transport": "rtu-over-tcp-server", "listenHost": "127.0.0.1",
+                "listenPort": listen, "registration": "regex",
+                "registrationPattern": "IMEI:(\\d{15})", "dtuId": "861234567890123",
+                "slaveId": 1, "readTimeout": 500},
+            "addressList": [{"name": "a", "address": "hr:0", "deviceDataType": "UInt16"}]}))
+        gateway.reload()
+        client = Client(port(gateway))
+        client.session()
+        key = f"127.0.0.1:{listen}"
+        wait_for(lambda: key in client.get("/api/overview")[1]["dtus"], what="the port")
+        dtu = socket.create_connection(("127.0.0.1", listen), timeout=10)
+        stranger = socket.create_connection(("127.0.0.1", listen), timeout=10)
+        try:
+            dtu.sendall(b"IMEI:861234567890123")
+            stranger.sendall(b"IMEI:999999999999999")
+            here = f"127.0.0.1:{dtu.getsockname()[1]}"
+
+            def held() -> dict[str, Any]:
+                return dict(client.get("/api/overview")[1]["dtus"][key][0])
+
+            wait_for(lambda: held()["connected"] and held()["peer"] == here, timeout=15,
+                     what="the DTU held with its peer address")
+            assert held()["dtuId"] == "861234567890123"
+            wait_for(lambda: any(v for k, v in client.get("/api/overview")[1]["listeners"]
+                                 [key].items() if "nknown" in k), timeout=15,
+                     what="the stranger's refusal counted")
+        finally:
+            dtu.close()
+            stranger.close()
