@@ -17,14 +17,14 @@ from tests.gateway_proc import device_file
 
 @contextmanager
 def console_gateway(folder: Path, slave_port: int, console: dict[str, Any] | None = None,
-                    *, tags: int = 5, read_cycle: int = 100,
-                    devices: int = 1) -> Iterator[Gateway]:
+                    *, tags: int = 5, read_cycle: int = 100, devices: int = 1,
+                    extra: dict[str, Any] | None = None) -> Iterator[Gateway]:
     """A started Gateway over ``folder``: ``devices`` device files (Dev1.., unit 1..) of
-    ``tags`` holding registers each; stopped on exit."""
+    ``tags`` holding registers each, with the keys of ``extra`` added; stopped on exit."""
     folder.mkdir(parents=True, exist_ok=True)
     for n in range(1, devices + 1):
-        (folder / f"dev{n}.json").write_text(json.dumps(
-            device_file(slave_port, n, f"Dev{n}", tags=tags, read_cycle=read_cycle)))
+        doc = device_file(slave_port, n, f"Dev{n}", tags=tags, read_cycle=read_cycle)
+        (folder / f"dev{n}.json").write_text(json.dumps({**doc, **(extra or {})}))
     gateway_file = folder / "gateway.json"
     gateway_file.write_text(json.dumps({"console": {"port": 0, **(console or {})}}))
     gateway = Gateway(folder, load_gateway_config(gateway_file), gateway_file)

@@ -171,3 +171,17 @@ def test_ten_thousand_tags_page_and_filter(tmp_path: Path, slave_factory: SlaveF
         text_of(browser, 'tr[data-tag="t9999"] td.value', str(default_register(1, "hr", 9999)))
         Select(browser.find_element(By.ID, "tag-status")).select_by_value("Invalid")
         text_of(browser, "#pager", "(0 tags)")
+
+
+def test_run_an_action(tmp_path: Path, slave_factory: SlaveFactory, browser: WebDriver) -> None:
+    slave = slave_factory("rtu-over-tcp")
+    actions = [{"name": "preset", "functionCode": 16, "parameters": [
+        {"name": "a", "item": "t1", "type": "UInt16"}, {"name": "b", "item": "t2"}]}]
+    with console_gateway(tmp_path / "cfg", slave.port, extra={"actions": actions}) as gateway:
+        browser.get(url(gateway, "#/device/Dev1"))
+        text_of(browser, "#actions button", "Run preset")
+        browser.find_element(By.CSS_SELECTOR, 'input[data-action="preset"]').send_keys(
+            '{"a": 11, "b": 22}')
+        click(browser, By.CSS_SELECTOR, "#actions button")
+        text_of(browser, "#write-outcome", "action preset: confirmed by the slave")
+        assert slave.registers(1, "hr", 1, 2) == [11, 22]

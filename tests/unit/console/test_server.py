@@ -309,3 +309,46 @@ def test_overview_shows_the_held_dtus(tmp_path: Path, slave_factory: SlaveFactor
         finally:
             dtu.close()
             stranger.close()
+
+
+def test_run_an_action(tmp_path: Path, slave_factory: SlaveFactory) -> None:
+    slave = slave_factory("rtu-over-tcp")
+    folder = tmp_path / "cfg"
+    actions = [{"name": "preset", "functionCode": 16, "parameters": [
+        {"name": "a", "item": "t1", "type": "UInt16", "maxValue": 100},
+        {"name": "b", "item": "t2", "default": 7}]}]
+    with console_gateway(folder, slave.port, extra={"actions": actions}) as gateway:
+        client = Client(port(gateway))
+        client.session()
+        assert client.get("/api/devices/Dev1/tags")[1]["actions"] == ["preset"]
+        _, out = client.post("/api/devices/Dev1/action", {"name": "preset",
+                                                          "params": {"a": 42}})
+        assert out == {"ok": True, "error": None, "name": "preset"}
+        assert slave.registers(1, "hr", 1, 2) == [42, 7]
+        _, out = client.post("/api/devices/Dev1/action", {"name": "preset",
+                                                          "params": {"a": 101}})
+        assert out["ok"] is False and "101" in out["error"] and "100" in out["error"]
+        status, out = client.post("/api/devices/Dev1/action", {"name": 5})
+        assert status == 400 and "name" in out["error"]
+
+
+def test_reload_moves_and_stops_the_console(tmp_path: Path, slave_factory: SlaveFactory
+                                            ) -> None:
+    """SIGHUP's path: a changed console section restarts the console, a removed one
+    stops it (and the old port no longer answers)."""
+    slave = slave_factory("rtu-over-tcp")
+    folder = tmp_path / "cfg"
+    with console_gateway(folder, slave.port) as gateway:
+        old = gateway.console
+        assert old is not None
+        (folder / "gateway.json").write_text(json.dumps({"console": {"port": 0,
+                                                                     "maxStreams": 3}}))
+        gateway.reload()
+        new = gateway.console
+        assert new is not None and new is not old and new.settings.max_streams == 3
+        assert Client(new.port).get("/api/session")[0] == 200
+        (folder / "gateway.json").write_text("{}")
+        gateway.reload()
+        assert gateway.console is None
+        with pytest.raises(OSError):
+            Client(new.port).get("/api/session")
