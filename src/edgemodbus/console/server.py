@@ -37,7 +37,7 @@ from .auth import Sessions
 from .feed import Feeds
 from .host import ConsoleHost
 from .routes import MAX_BODY, Routes
-from .settings import ConsoleSettings
+from .settings import ConsoleSettings, console_key
 
 log = logging.getLogger("edgemodbus.console")
 
@@ -128,6 +128,7 @@ class ConsoleServer:
         self._error: BaseException | None = None
         self.routes: Routes | None = None
         self.port = 0
+        self.key = console_key(settings)  # what it was made from, TLS file contents too
         self.loop_errors = 0
         self._logs = LogLimiter(log, interval=10.0, burst=1)
 

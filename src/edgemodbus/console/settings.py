@@ -5,6 +5,7 @@ console section loads without the optional packages (edgemodbus[console])."""
 
 from __future__ import annotations
 
+import hashlib
 import os
 from pathlib import Path
 from typing import Annotated, Any, ClassVar
@@ -126,13 +127,28 @@ class ConsoleSettings(Model):
     def problems(self) -> list[Problem]:
         return self.tls.problems() if self.tls is not None else []
 
+    def files_digest(self) -> str:
+        """A digest of the TLS files' contents ("" without TLS): a renewed certificate
+        restarts the console on SIGHUP."""
+        tls = self.tls
+        if tls is None or not tls.enabled:
+            return ""
+        digest = hashlib.sha256()
+        for name in (tls.cert_file, tls.key_file):
+            if name is not None:
+                try:
+                    digest.update(Path(name).read_bytes())
+                except OSError as exc:  # reported when the gateway file is loaded
+                    digest.update(str(exc).encode())
+        return digest.hexdigest()
+
 
 def console_key(settings: ConsoleSettings | None) -> dict[str, Any] | None:
-    """What the console is made from (secrets and TLS paths included): a change of it
-    restarts the console on reload."""
+    """What the console is made from (secrets, TLS paths and their contents included): a
+    change of it restarts the console on reload."""
     if settings is None or not settings.enabled:
         return None
-    return settings.to_dict(secrets=True)
+    return {**settings.to_dict(secrets=True), "tlsFiles": settings.files_digest()}
 
 
 __all__ = ["ConsoleSettings", "ConsoleTls", "ConsoleUser", "console_key"]

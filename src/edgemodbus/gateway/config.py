@@ -101,7 +101,8 @@ def gateway_digest(path: Path, config: GatewayConfig) -> str | None:
         data = file_bytes(path)
     except FileNotFoundError:
         return None
-    return hashlib.sha256(data + _tls_digest(config).encode()).hexdigest()
+    console = config.console.files_digest() if config.console is not None else ""
+    return hashlib.sha256(data + _tls_digest(config).encode() + console.encode()).hexdigest()
 
 
 def file_bytes(path: Path) -> bytes:

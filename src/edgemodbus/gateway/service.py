@@ -222,7 +222,8 @@ class Gateway:
                         if self.exporter is not None and new.metrics is not None
                         else "metrics off")
         self.config, self.gateway_id = new, new.effective_id
-        if console_key(old.console) != console_key(new.console):
+        running = self.console.key if self.console is not None else None
+        if running != console_key(new.console):  # (the key taken when it started)
             if self.console is not None:
                 self.console.stop()
                 self.console = None

@@ -5,8 +5,10 @@ CSRF / Host / auth checks, and the socket's bounds (docs/fault-checklist.md, con
 from __future__ import annotations
 
 import contextlib
+import http.client
 import json
 import socket
+import ssl
 import time
 from pathlib import Path
 from typing import Any
@@ -20,6 +22,7 @@ from edgemodbus.driver import DriverModbusRtu
 from edgemodbus.gateway import Gateway
 from tests.conftest import SlaveFactory
 from tests.console_gateway import Client, console_gateway
+from tests.fake_brokers import self_signed_cert
 from tests.peers import free_port
 from tests.waiting import wait_for
 
@@ -352,3 +355,33 @@ def test_reload_moves_and_stops_the_console(tmp_path: Path, slave_factory: Slave
         assert gateway.console is None
         with pytest.raises(OSError):
             Client(new.port).get("/api/session")
+
+
+def test_tls(tmp_path: Path, slave_factory: SlaveFactory) -> None:
+    """HTTPS with the configured certificate; the session cookie is Secure; a renewed
+    certificate restarts the console on reload."""
+    cert, key = self_signed_cert(tmp_path / "tls")
+    slave = slave_factory("rtu-over-tcp")
+    console = {"tls": {"certFile": str(cert), "keyFile": str(key)},
+               "users": [{"name": "ops", "passwordHash": HASH}]}
+    with console_gateway(tmp_path / "cfg", slave.port, console) as gateway:
+        server = gateway.console
+        assert server is not None and server.url.startswith("https://127.0.0.1:")
+        context = ssl.create_default_context(cafile=str(cert))
+        conn = http.client.HTTPSConnection("127.0.0.1", server.port, timeout=30,
+                                           context=context)
+        try:
+            conn.request("POST", "/api/login", body=json.dumps(
+                {"user": "ops", "password": "letmein"}),
+                headers={"Content-Type": "application/json"})
+            resp = conn.getresponse()
+            resp.read()
+            assert resp.status == 200
+            assert "Secure" in (resp.getheader("Set-Cookie") or "")
+        finally:
+            conn.close()
+        with pytest.raises(OSError):  # plain HTTP is not answered
+            Client(server.port).get("/api/session")
+        self_signed_cert(tmp_path / "tls")  # renewed: same paths, new contents
+        gateway.reload()
+        assert gateway.console is not None and gateway.console is not server
