@@ -21,6 +21,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
+import secrets
 import time
 from collections.abc import Awaitable, Callable
 from importlib import resources
@@ -38,6 +39,7 @@ from .auth import (
     SESSION_COOKIE,
     PasswordHash,
     Sessions,
+    hash_password,
     host_allowed,
     origin_allowed,
     token_matches,
@@ -86,6 +88,8 @@ class Routes:
         self.port = port
         self.csrf = Sessions().create("")[1].csrf  # no credentials: one token per server
         self.users = {u.name: PasswordHash.parse(u.password_hash) for u in settings.users}
+        self.decoy = PasswordHash.parse(hash_password(secrets.token_urlsafe(16)))
+        self.login_lock = asyncio.Lock()
         self.token = (settings.token.get_secret_value()
                       if settings.token is not None else None)
         self.rates: dict[str, tuple[float, int, float]] = {}  # code -> time, cycles, rate
@@ -210,15 +214,19 @@ class Routes:
         user = data.get("user")
         password, token = data.get("password"), data.get("token")
         ok = False
-        if isinstance(token, str) and self.token is not None:
-            ok, user = token_matches(token, self.token), "token"
-        elif isinstance(user, str) and isinstance(password, str):
-            known = self.users.get(user)
-            if known is not None:  # scrypt takes ~50 ms: off the loop
+        # one login at a time, a failed one held for a second: guessing is paced, and a
+        # flood of logins costs at most one scrypt (~50 ms of a core) per second
+        async with self.login_lock:
+            if isinstance(token, str) and self.token is not None:
+                ok, user = token_matches(token, self.token), "token"
+            elif isinstance(user, str) and isinstance(password, str):
+                # an unknown user costs the same scrypt (no timing tells who exists)
+                known = self.users.get(user, self.decoy)
                 ok = await asyncio.get_running_loop().run_in_executor(
-                    None, known.matches, password)
+                    None, known.matches, password) and user in self.users
+            if not ok:
+                await asyncio.sleep(LOGIN_FAILURE_DELAY)
         if not ok:
-            await asyncio.sleep(LOGIN_FAILURE_DELAY)  # paces guessing
             return _error(401, "wrong user name, password or token")
         sid, session = self.sessions.create(str(user))
         response = _json({"ok": True, "user": user, "csrf": session.csrf})
