@@ -28,8 +28,9 @@ class ConsoleUser(Model):
     _where: ClassVar[str] = "console.users[]"
     _max_lengths: ClassVar[dict[str, int]] = {"name": MAX_NAME}
 
-    name: str
-    password_hash: str
+    name: str = Field(description="The login name")
+    password_hash: str = Field(description="scrypt$<log2 n>$<r>$<p>$<salt>$<key> of the "
+                               "password: python -m edgemodbus.console hash-password")
 
     @field_validator("name")
     @classmethod
@@ -50,9 +51,11 @@ class ConsoleTls(Model):
 
     _where: ClassVar[str] = "console.tls"
 
-    enabled: bool = True
-    cert_file: str
-    key_file: str | None = None  # None: the key is in certFile
+    enabled: bool = Field(default=True, description="false: the section is kept, plain HTTP")
+    cert_file: str = Field(description="The server certificate (PEM; relative to the "
+                           "gateway file's folder)")
+    key_file: str | None = Field(default=None, description="Its private key (PEM); left out: the "
+                                 "key is in certFile")
 
     def resolved(self, base: str | os.PathLike[str]) -> ConsoleTls:
         """A copy whose relative file paths are taken from folder ``base``."""
@@ -76,16 +79,23 @@ class ConsoleSettings(Model):
     _where: ClassVar[str] = "console"
     _max_lengths: ClassVar[dict[str, int]] = {"host": MAX_HOST}
 
-    enabled: bool = True
-    host: Annotated[str, AfterValidator(check_host)] = "127.0.0.1"
-    port: Annotated[int, Range(0, 65535)] = DEFAULT_PORT  # 0: any free port (logged)
-    token: Secret | None = None
-    users: list[ConsoleUser] = Field(default_factory=list)
-    tls: ConsoleTls | None = None
-    # the live tag streams (server-sent events) open at once; more are answered 503
-    max_streams: Annotated[int, Range(1, 1000)] = 16
-    # connections open at once (pages, API calls, streams); more are closed at accept
-    max_connections: Annotated[int, Range(2, 4096)] = 64
+    enabled: bool = Field(default=True, description="false: the section is kept but no console "
+                          "runs")
+    host: Annotated[str, AfterValidator(check_host)] = Field(
+        default="127.0.0.1", description="The listen address; other than loopback only with a "
+        "token or users")
+    port: Annotated[int, Range(0, 65535)] = Field(
+        default=DEFAULT_PORT, description="Its port (0: any free one, logged)")
+    token: Secret | None = Field(default=None, description="A bearer token (at least 16 "
+                                 "characters): a login, or Authorization: Bearer")
+    users: list[ConsoleUser] = Field(default_factory=list,
+                                     description="Users who may log in (name, passwordHash)")
+    tls: ConsoleTls | None = Field(default=None, description="HTTPS: certFile and keyFile")
+    max_streams: Annotated[int, Range(1, 1000)] = Field(
+        default=16, description="Live tag streams open at once (one per open tag page); more "
+        "are answered 503")
+    max_connections: Annotated[int, Range(2, 4096)] = Field(
+        default=64, description="Connections open at once; more are closed at accept")
 
     @model_validator(mode="after")
     def _checks(self) -> ConsoleSettings:

@@ -10,6 +10,8 @@ import stat
 from pathlib import Path
 from typing import Any, ClassVar
 
+from pydantic import Field
+
 from ..config import ConfigError, Model, Ms, Problem, load_model
 from ..config.jsonfile import MAX_JSON_BYTES
 from ..config.limits import MAX_NAME
@@ -31,7 +33,8 @@ class GatewayConfig(Model):
     mqtt: MqttSettings | None = None
     metrics: MetricsSettings | None = None
     serve: ServeSettings | None = None  # the Modbus TCP server (edgemodbus/serve/)
-    console: ConsoleSettings | None = None  # the web console (edgemodbus/console/)
+    console: ConsoleSettings | None = Field(  # the web console (edgemodbus/console/)
+        default=None, description="The web console (docs/console.md); left out: no console")
     device_pattern: str = "*.json"
     status_check_interval: Ms = 500
 
