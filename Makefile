@@ -5,7 +5,7 @@
 PY      ?= python3
 VENV    := .venv
 BIN     := $(VENV)/bin
-DEB     := libmodbus-dev pkg-config socat mosquitto mbpoll
+DEB     := libmodbus-dev pkg-config socat mosquitto mbpoll chromium chromium-driver
 SUDO    := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 CSRC    := $(wildcard csrc/*.c csrc/*.h csrc/cdefs/*.h)
 PYTEST  := $(BIN)/python -m pytest
@@ -28,7 +28,7 @@ $(BIN)/python:
 	$(BIN)/python -m pip install -q --upgrade pip 'setuptools>=77' 'cffi>=2' wheel
 
 .stamp-install: pyproject.toml setup.py build_ffi.py src/edgemodbus/_ffi/sourcehash.py $(CSRC) | deps $(BIN)/python
-	$(BIN)/python -m pip install -q --no-build-isolation -e '.[test,bench]'
+	$(BIN)/python -m pip install -q --no-build-isolation -e '.[test,bench,console]'
 	@touch $@
 
 build: .stamp-install

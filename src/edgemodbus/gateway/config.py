@@ -10,9 +10,12 @@ import stat
 from pathlib import Path
 from typing import Any, ClassVar
 
+from pydantic import Field
+
 from ..config import ConfigError, Model, Ms, Problem, load_model
 from ..config.jsonfile import MAX_JSON_BYTES
 from ..config.limits import MAX_NAME
+from ..console import ConsoleSettings
 from ..northbound.metrics import MetricsSettings
 from ..northbound.mqtt import MqttSettings, check_name
 from ..serve import ServeSettings
@@ -30,6 +33,8 @@ class GatewayConfig(Model):
     mqtt: MqttSettings | None = None
     metrics: MetricsSettings | None = None
     serve: ServeSettings | None = None  # the Modbus TCP server (edgemodbus/serve/)
+    console: ConsoleSettings | None = Field(  # the web console (edgemodbus/console/)
+        default=None, description="The web console (docs/console.md); left out: no console")
     device_pattern: str = "*.json"
     status_check_interval: Ms = 500
 
@@ -44,20 +49,28 @@ def load_gateway_config(path: str | os.PathLike[str] | dict[str, Any]) -> Gatewa
     The TLS files of an enabled ``mqtt.tls`` must exist and hold PEM data (checked here,
     so a bad path is reported before anything connects), and so must the folder of
     ``mqtt.storeAndForward.path``; relative paths are taken from
-    the gateway file's folder."""
+    the gateway file's folder.  So must an enabled ``console.tls``'s files."""
     cfg = load_model(GatewayConfig, path)
-    mqtt = cfg.mqtt
-    if mqtt is None or not mqtt.enabled:
-        return cfg
-    problems: list[Problem] = []
-    try:
-        check_name("gatewayId", cfg.effective_id)
-    except ValueError as exc:
-        problems.append(Problem("gatewayId", cfg.effective_id, str(exc)))
     folder = None  # relative paths are taken from the gateway file's folder
     if isinstance(path, os.PathLike) or (
             isinstance(path, str) and not path.lstrip("\ufeff \t\r\n").startswith(("{", "["))):
         folder = Path(path).absolute().parent
+    problems: list[Problem] = []
+    console = cfg.console
+    if console is not None and console.enabled:
+        if folder is not None:
+            console = console.resolved(folder)
+            cfg = cfg.model_copy(update={"console": console})
+        problems += console.problems()
+    mqtt = cfg.mqtt
+    if mqtt is None or not mqtt.enabled:
+        if problems:
+            raise ConfigError(problems)
+        return cfg
+    try:
+        check_name("gatewayId", cfg.effective_id)
+    except ValueError as exc:
+        problems.append(Problem("gatewayId", cfg.effective_id, str(exc)))
     if mqtt.tls is not None and mqtt.tls.enabled:
         tls = mqtt.tls
         if folder is not None:
@@ -91,7 +104,8 @@ def gateway_digest(path: Path, config: GatewayConfig) -> str | None:
         data = file_bytes(path)
     except FileNotFoundError:
         return None
-    return hashlib.sha256(data + _tls_digest(config).encode()).hexdigest()
+    console = config.console.files_digest() if config.console is not None else ""
+    return hashlib.sha256(data + _tls_digest(config).encode() + console.encode()).hexdigest()
 
 
 def file_bytes(path: Path) -> bytes:

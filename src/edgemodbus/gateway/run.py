@@ -69,6 +69,7 @@ def run_service(config_dir: Path, gateway_config: Path | None = None, *,
                              (signal.SIGHUP, on_reload)):
             previous[sig] = signal.signal(sig, handler)
     gateway = Gateway(config_dir, config, gateway_config)
+    gateway.reload_hook = lambda: on_reload(signal.SIGHUP, None)  # the console's saves
     try:
         try:
             gateway.start()

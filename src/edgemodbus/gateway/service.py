@@ -19,6 +19,7 @@ from ..config import (
     load_device_config,
 )
 from ..config.templates import template_bytes
+from ..console import console_key, start_console
 from ..driver import DriverModbusRtu
 from .config import (
     GATEWAY_FILE,
@@ -33,6 +34,9 @@ from .config import (
 from .serving import GatewayServer
 
 if TYPE_CHECKING:
+    from collections.abc import Callable
+
+    from ..console.server import ConsoleServer
     from ..northbound.metrics import MetricsExporter
     from ..northbound.mqtt import MqttPublisher, MqttSettings
     from ..northbound.sparkplug.publisher import SparkplugPublisher
@@ -82,6 +86,8 @@ class Gateway:
         self.publisher: Publisher | None = None
         self.exporter: MetricsExporter | None = None
         self.serving = GatewayServer()  # the Modbus TCP server (gateway file: serve)
+        self.console: ConsoleServer | None = None  # the web console (edgemodbus/console/)
+        self.reload_hook: Callable[[], None] | None = None  # run.py: a reload, as SIGHUP
         self._gateway_digest = gateway_digest(self.gateway_file, config)
 
     # -- lifecycle -------------------------------------------------------------------
@@ -97,10 +103,19 @@ class Gateway:
         self.reload_devices()
         for done in self.serving.apply(self.config.serve, self._served()):
             log.info("serve: %s", done)
+        self.console = start_console(self.config.console, self)
+
+    def request_reload(self) -> None:
+        """The console saved a device file: reload as SIGHUP does (on the service's
+        thread when run.py set the hook, else here)."""
+        (self.reload_hook or self.reload)()
 
     def stop(self) -> None:
-        """Stop the Modbus TCP server, every device in parallel, then the publisher and
-        the exporter."""
+        """Stop the console, the Modbus TCP server, every device in parallel, then the
+        publisher and the exporter."""
+        if self.console is not None:
+            self.console.stop()
+            self.console = None
         self.serving.stop()
         devices = list(self.devices.values())
         self.devices.clear()
@@ -209,6 +224,16 @@ class Gateway:
                         if self.exporter is not None and new.metrics is not None
                         else "metrics off")
         self.config, self.gateway_id = new, new.effective_id
+        running = self.console.key if self.console is not None else None
+        if running != console_key(new.console):  # (the key taken when it started)
+            if self.console is not None:
+                self.console.stop()
+                self.console = None
+            try:
+                self.console = start_console(new.console, self)
+            except (OSError, ValueError) as exc:
+                log.error("console: %s; the console is off", exc)
+            done.append(f"console on {self.console.url}" if self.console else "console off")
         if mqtt_changed:
             self._swap_publisher(publisher)
             done.append(f"MQTT publisher restarted ({new.mqtt.host}:{new.mqtt.port}, "

@@ -40,6 +40,7 @@ import struct
 import threading
 import time
 from dataclasses import dataclass, field
+from typing import Any
 
 from .accept_pause import ACCEPT_ERRORS, AcceptPause
 from .admission import ByteBudget, Networks, Unregistered, key_matches
@@ -142,6 +143,14 @@ class DtuListener:
     def slot_count(self) -> int:
         with self._lock:
             return len(self._slots)
+
+    def held(self) -> list[dict[str, Any]]:
+        """The configured DTUs of this port: id, connected now, the last peer address,
+        connections taken and replaced (the web console's DTU table)."""
+        with self._lock:
+            slots = list(self._slots.values())
+        return [{"dtuId": s.dtu_id, "connected": s.connected(), "peer": s.peer,
+                 "connections": s.connections, "replaced": s.replaced} for s in slots]
 
     @property
     def stats(self) -> dict[str, int]:

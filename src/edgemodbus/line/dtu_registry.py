@@ -5,6 +5,7 @@ it (:data:`registry` is the process's; the driver acquires from it)."""
 from __future__ import annotations
 
 import threading
+from typing import Any
 
 from .dtu_listener import DtuListener
 from .dtu_slot import DtuSlot
@@ -84,6 +85,12 @@ class DtuRegistry:
         with self._lock:
             listeners = list(self._listeners.items())
         return {f"{h}:{p}": li.stats for (h, p), li in listeners}
+
+    def held(self) -> dict[str, list[dict[str, Any]]]:
+        """Per listen port ("host:port"): :meth:`DtuListener.held`."""
+        with self._lock:
+            listeners = list(self._listeners.items())
+        return {f"{h}:{p}": li.held() for (h, p), li in listeners}
 
 
 registry = DtuRegistry()
