@@ -3,12 +3,14 @@ lines, whole-line output and one-line problems."""
 
 from __future__ import annotations
 
+import argparse
+import contextlib
+import logging
+import os
 import sys
 import threading
+from collections.abc import Iterator
 from typing import Any
-
-from ..codec import json_text
-from ..config import ConfigError
 
 _stdout_lock = threading.Lock()  # lines from several line workers must not interleave
 
@@ -38,6 +40,8 @@ def value_text(value: Any) -> str:
 def json_line(obj: Any) -> str:
     """One strict JSON line (the `run --json` output), values as codec.json_bytes writes
     them: NaN and infinities as "NaN", "Infinity", "-Infinity" (null is no value)."""
+    from ..codec import json_text  # on first use: the codec loads the C extension
+
     return json_text(obj)
 
 
@@ -50,15 +54,27 @@ def emit(line: str) -> None:
 
 
 def print_json(data: Any) -> int:
+    from ..codec import json_text
+
     print(json_text(data, indent=True))
     return 0
+
+
+def print_descriptor(args: argparse.Namespace) -> int:
+    """``edgemodbus descriptor``: the driver descriptor JSON."""
+    from ..descriptor import driver_descriptor
+
+    return print_json(driver_descriptor(args.prefix))
 
 
 def problem_lines(exc: BaseException) -> list[str]:
     """One line per problem: a ConfigError may hold several."""
     if isinstance(exc, CliError):
         return [one_line(line) for line in exc.lines]
-    if isinstance(exc, ConfigError):
+    # a ConfigError exists only once config/ is loaded (importing it here would load
+    # pydantic for every command)
+    config = sys.modules.get("edgemodbus.config.problems")
+    if config is not None and isinstance(exc, config.ConfigError):
         return [one_line(str(p)) for p in exc.problems]
     if isinstance(exc, OSError) and exc.filename is not None and exc.strerror:
         return [f"{exc.filename}: {exc.strerror}"]
@@ -67,3 +83,35 @@ def problem_lines(exc: BaseException) -> list[str]:
 
 def one_line(text: str) -> str:
     return " ".join(text.split())
+
+
+def in_file(file: str | os.PathLike[str], message: str) -> str:
+    """``FILE: message`` on one line (the message as it is when it names the file)."""
+    message = one_line(message)
+    return message if message.startswith(f"{file}:") else f"{file}: {message}"
+
+
+@contextlib.contextmanager
+def config_warnings(messages: list[str]) -> Iterator[None]:
+    """Collect into ``messages`` what edgemodbus.config logs (WARNING and up) in the
+    block, instead of logging it: the caller prints each as a line that names its file
+    (the log line would not say which file)."""
+    collector = _Collector(logging.WARNING, messages)
+    config_log = logging.getLogger("edgemodbus.config")
+    propagate = config_log.propagate
+    config_log.addHandler(collector)
+    config_log.propagate = False
+    try:
+        yield
+    finally:
+        config_log.removeHandler(collector)
+        config_log.propagate = propagate
+
+
+class _Collector(logging.Handler):
+    def __init__(self, level: int, messages: list[str]) -> None:
+        super().__init__(level)
+        self.messages = messages
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.messages.append(record.getMessage())

@@ -8,7 +8,7 @@ import os
 import socket
 import stat
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import Any, ClassVar, Literal
 
 from ..config import ConfigError, Model, Ms, Problem, load_model
 from ..config.jsonfile import MAX_JSON_BYTES
@@ -32,6 +32,8 @@ class GatewayConfig(Model):
     serve: ServeSettings | None = None  # the Modbus TCP server (edgemodbus/serve/)
     device_pattern: str = "*.json"
     status_check_interval: Ms = 500
+    # the service's log lines: "text", or "json" (one object a line, for Loki/ELK; logs.py)
+    log_format: Literal["text", "json"] = "text"
 
     @property
     def effective_id(self) -> str:
