@@ -10,8 +10,11 @@ SUDO    := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 CSRC    := $(wildcard csrc/*.c csrc/*.h csrc/cdefs/*.h)
 PYTEST  := $(BIN)/python -m pytest
 QUICK   ?= 0
+# Our C's warnings are errors in development and CI builds (build_ffi.py); a user's
+# build of the sdist or a pip install from source leaves them warnings.
+export EDGEMODBUS_WERROR := 1
 
-.PHONY: all deps build demo test lint typecheck unit integration test-asan bench bench-quick fuzz fuzz-quick soak soak-listener soak-gateway proto clean
+.PHONY: all deps build wheel wheel-test demo test lint typecheck unit integration test-asan bench bench-quick fuzz fuzz-quick soak soak-listener soak-gateway proto clean
 
 all: test
 
@@ -25,10 +28,11 @@ deps:
 
 $(BIN)/python:
 	$(PY) -m venv $(VENV)
-	$(BIN)/python -m pip install -q --upgrade pip 'setuptools>=77' 'cffi>=2' wheel
+	$(BIN)/python -m pip install -q --upgrade pip -c constraints.txt 'setuptools>=77' 'cffi>=2' wheel
 
-.stamp-install: pyproject.toml setup.py build_ffi.py src/edgemodbus/_ffi/sourcehash.py $(CSRC) | deps $(BIN)/python
-	$(BIN)/python -m pip install -q --no-build-isolation -e '.[test,bench]'
+# The exact versions of constraints.txt (pyproject.toml has ranges for users).
+.stamp-install: pyproject.toml setup.py build_ffi.py constraints.txt src/edgemodbus/_ffi/sourcehash.py $(CSRC) | deps $(BIN)/python
+	$(BIN)/python -m pip install -q --no-build-isolation -c constraints.txt -e '.[test,bench]'
 	@touch $@
 
 build: .stamp-install
