@@ -47,10 +47,54 @@ def json_line(obj: Any) -> str:
 
 def emit(line: str) -> None:
     """One whole line on stdout (print() writes the newline separately, so lines from two
-    line workers could interleave)."""
+    line workers could interleave).  Once the reader went away (``edgemodbus run |
+    head``), nothing more is written and the polling commands stop (see
+    :func:`stop_when_stdout_closes`): no traceback per item update."""
     with _stdout_lock:
-        sys.stdout.write(line + "\n")
-        sys.stdout.flush()
+        if _closed.is_set():
+            return
+        try:
+            sys.stdout.write(line + "\n")
+            sys.stdout.flush()
+        except BrokenPipeError:
+            _stdout_went_away()
+
+
+_closed = threading.Event()  # the reader of stdout went away
+_watchers: list[threading.Event] = []
+
+
+def _stdout_went_away() -> None:
+    """Point fd 1 at /dev/null (the interpreter's last flush at exit would fail again,
+    with a message) and wake whoever waits for it."""
+    _closed.set()
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        try:
+            os.dup2(devnull, sys.stdout.fileno())
+        finally:
+            os.close(devnull)
+    except (OSError, ValueError):  # stdout is no file (captured): nothing to redirect
+        pass
+    for event in list(_watchers):
+        event.set()
+
+
+def stdout_closed() -> bool:
+    """True once a write to stdout found its reader gone (EPIPE)."""
+    return _closed.is_set()
+
+
+@contextlib.contextmanager
+def stop_when_stdout_closes(stop: threading.Event) -> Iterator[None]:
+    """Set ``stop`` when stdout's reader goes away during the block (or went before)."""
+    _watchers.append(stop)
+    if _closed.is_set():
+        stop.set()
+    try:
+        yield
+    finally:
+        _watchers.remove(stop)
 
 
 def print_json(data: Any) -> int:

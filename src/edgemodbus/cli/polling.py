@@ -24,7 +24,7 @@ from ..driver import DriverModbusRtu
 from ..line.endpoint import endpoint_for
 from ..poll.poller import build_plan
 from ..poll.schedule import entity_numbers_notice
-from .exits import INTERRUPTED, OK, CommandFailed
+from .exits import FAILED, INTERRUPTED, OK, CommandFailed
 from .oneitem import entity_notice_line, framing_hint, start_one_item
 from .output import (
     CliError,
@@ -33,6 +33,8 @@ from .output import (
     in_file,
     json_line,
     problem_lines,
+    stdout_closed,
+    stop_when_stdout_closes,
     value_text,
 )
 
@@ -68,7 +70,7 @@ def demo(args: argparse.Namespace) -> int:
             items = [it.model_copy(deep=True) for it in cfg.address_list]
             drivers.append(_start(org, comm, items, json_lines=False))
         interrupted = _poll_until_done(drivers, args.seconds, json_lines=False)
-    return INTERRUPTED if interrupted else OK
+    return INTERRUPTED if interrupted else _done()
 
 
 def run(args: argparse.Namespace) -> int:
@@ -99,6 +101,8 @@ def run(args: argparse.Namespace) -> int:
     interrupted = _poll_until_done([drv for _, drv in drivers], args.seconds, args.json)
     if interrupted:
         return INTERRUPTED
+    if stdout_closed():
+        return _done()
     silent = [_never_answered(file, drv) for file, drv in drivers
               if drv.is_enable and not drv.stats().get("responses")]
     if silent:
@@ -220,13 +224,21 @@ def _poll_until_done(drivers: list[DriverModbusRtu], seconds: float, json_lines:
     return interrupted
 
 
+def _done() -> int:
+    """OK, or FAILED when stdout's reader went away before the end (the exit code
+    Python's own EPIPE handling gives)."""
+    return FAILED if stdout_closed() else OK
+
+
 def _wait(seconds: float) -> bool:
-    """Wait ``seconds`` (0: forever) or until SIGTERM; True when Ctrl-C ended it."""
+    """Wait ``seconds`` (0: forever), until SIGTERM or until stdout's reader went away;
+    True when Ctrl-C ended it."""
     stop = threading.Event()
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGTERM, lambda *_: stop.set())
     try:
-        stop.wait(seconds if seconds > 0 else None)
+        with stop_when_stdout_closes(stop):
+            stop.wait(seconds if seconds > 0 else None)
     except KeyboardInterrupt:
         return True
     return False
