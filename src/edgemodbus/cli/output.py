@@ -98,10 +98,12 @@ def stop_when_stdout_closes(stop: threading.Event) -> Iterator[None]:
 
 
 def print_json(data: Any) -> int:
+    """A JSON document on stdout; exit code 0, or 1 when stdout's reader went away
+    (``edgemodbus descriptor | head``: no traceback, no error line)."""
     from ..codec import json_text
 
-    print(json_text(data, indent=True))
-    return 0
+    emit(json_text(data, indent=True))
+    return 1 if stdout_closed() else 0
 
 
 def print_descriptor(args: argparse.Namespace) -> int:
