@@ -63,7 +63,7 @@ $(ROOTFS)/.made:
 	$(SUDO) debootstrap --variant=minbase --include=python3,python3-venv bookworm \
 	  $(ROOTFS).tmp $(DEBIAN_MIRROR) >build/debootstrap.log
 	mv $(ROOTFS).tmp $(ROOTFS)
-	touch $@
+	$(SUDO) touch $@
 
 wheel-test: wheel $(ROOTFS)/.made
 	$(SUDO) env EDGEMODBUS_WHEEL_ROOT=$(ROOTFS) $(PYTEST) -q -p no:cacheprovider tests/wheel

@@ -26,7 +26,9 @@ REPO = Path(__file__).resolve().parents[2]
 pytestmark = pytest.mark.skipif(
     not ROOT_ENV, reason="needs the bookworm root of `make wheel-test` (EDGEMODBUS_WHEEL_ROOT)")
 
-_CLEAN_ENV = {"PATH": "/usr/sbin:/usr/bin:/sbin:/bin", "HOME": "/root", "LANG": "C.UTF-8"}
+# no pip cache either: the root stays as debootstrap made it for the next run
+_CLEAN_ENV = {"PATH": "/usr/sbin:/usr/bin:/sbin:/bin", "HOME": "/root", "LANG": "C.UTF-8",
+              "PIP_NO_CACHE_DIR": "1", "PIP_DISABLE_PIP_VERSION_CHECK": "1"}
 
 
 def _wheel() -> Path:
