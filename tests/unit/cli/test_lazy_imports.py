@@ -1,5 +1,5 @@
-"""Start-up cost (issue 29): ``import edgemodbus`` loads no pydantic model, driver or C
-extension, and ``edgemodbus read`` none of the gateway, the simulator, scan, rich,
+"""Start-up cost (issue 29): ``import edgemodbus`` loads no pydantic model, driver, codec
+or C extension, and ``edgemodbus read`` none of the gateway, the simulator, scan, rich,
 sqlite3 or asyncio; the public names still import as before."""
 
 from __future__ import annotations
@@ -40,7 +40,7 @@ def test_an_unknown_name_is_an_attribute_error() -> None:
 def test_import_edgemodbus_loads_nothing_heavy() -> None:
     loaded = _modules_after("import edgemodbus")
     heavy = {"pydantic", "edgemodbus.config", "edgemodbus.driver", "edgemodbus._native",
-             "edgemodbus._ffi", "typing", "asyncio"}
+             "edgemodbus._ffi", "edgemodbus.codec", "asyncio"}
     assert not heavy & loaded, sorted(heavy & loaded)
 
 
