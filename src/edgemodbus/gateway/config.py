@@ -10,6 +10,8 @@ import stat
 from pathlib import Path
 from typing import Any, ClassVar, Literal
 
+from pydantic import Field
+
 from ..config import ConfigError, Model, Ms, Problem, load_model
 from ..config.jsonfile import MAX_JSON_BYTES
 from ..config.limits import MAX_NAME
@@ -32,8 +34,9 @@ class GatewayConfig(Model):
     serve: ServeSettings | None = None  # the Modbus TCP server (edgemodbus/serve/)
     device_pattern: str = "*.json"
     status_check_interval: Ms = 500
-    # the service's log lines: "text", or "json" (one object a line, for Loki/ELK; logs.py)
-    log_format: Literal["text", "json"] = "text"
+    log_format: Literal["text", "json"] = Field(
+        default="text", description="The service's log lines: text, or JSON lines (time, "
+        "level, logger, message) for Loki/ELK (logs.py; `--log-format` on the command line)")
 
     @property
     def effective_id(self) -> str:
