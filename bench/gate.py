@@ -201,6 +201,19 @@ GATES: dict[str, Gate] = {
         8.0, 4.0, "higher", "x", "serve: CPU/reply, pymodbus server / gateway"),
     "serve.rps_vs_pymodbus": Gate(
         3.0, 1.5, "higher", "x", "serve: replies/s, gateway / pymodbus server"),
+    # bench/test_bench_cli_startup.py: whole-process wall time over `python -c pass` in
+    # the same rounds (median of interleaved rounds).  Issue 29: `import edgemodbus` at
+    # most 60 ms and `edgemodbus read` at most 100 ms, over an interpreter start of about
+    # 12 ms: 5x and 8.3x.  Import: 1.0-1.05 with the lazy package (about 20x when it built
+    # the config models and the driver at import); the limit is the target.  Read: NOT
+    # MET, 16-20x (175-215 ms; 28-30x, 330 ms, before): pydantic's import (~50 ms), the
+    # config models (~30 ms) and the driver (~20 ms) are on the read path; the limit only
+    # catches the gateway, simulator and rich coming back onto it
+    # (tests/unit/cli/test_lazy_imports.py checks that precisely).
+    "cli.import_vs_pass": Gate(
+        5.0, 5.0, "lower", "x", "python -c 'import edgemodbus' / python -c pass"),
+    "cli.read_vs_pass": Gate(
+        8.3, 30.0, "lower", "x", "edgemodbus read (simulator) / python -c pass"),
 }
 
 

@@ -14,7 +14,6 @@ import argparse
 import shlex
 from typing import Any
 
-from ..commission.scan import SettingDone, scan_line
 from ..config import ConfigError, DeviceAddressItem, DeviceConfig, load_device_config
 from ..driver import DriverModbusRtu
 from ..errors import ModbusConnectionError
@@ -166,6 +165,8 @@ def framing_hint(args: argparse.Namespace, drv: DriverModbusRtu) -> str | None:
     if stats.get("responses", 0) or stats.get("exceptions") or \
             not stats.get("line", {}).get("connects", 0):
         return None  # the framing was understood, or the link never came up
+    from ..commission.scan import SettingDone, scan_line  # only after a failure
+
     other = _OTHER[host_transport(args)]
     try:
         addr = parse_address(args.address.strip(), args.address_prefix)

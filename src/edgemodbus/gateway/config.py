@@ -8,7 +8,9 @@ import os
 import socket
 import stat
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import Any, ClassVar, Literal
+
+from pydantic import Field
 
 from pydantic import Field
 
@@ -37,6 +39,9 @@ class GatewayConfig(Model):
         default=None, description="The web console (docs/console.md); left out: no console")
     device_pattern: str = "*.json"
     status_check_interval: Ms = 500
+    log_format: Literal["text", "json"] = Field(
+        default="text", description="The service's log lines: text, or JSON lines (time, "
+        "level, logger, message) for Loki/ELK (logs.py; `--log-format` on the command line)")
 
     @property
     def effective_id(self) -> str:

@@ -16,7 +16,7 @@ from types import FrameType
 from typing import Any
 
 from ..config import ConfigError
-from ..logs import configure_logging
+from ..logs import configure_logging, set_log_format
 from .config import GATEWAY_FILE, GatewayConfig, load_gateway_config
 from .service import Gateway, one_line
 
@@ -51,6 +51,8 @@ def run_service(config_dir: Path, gateway_config: Path | None = None, *,
         print(f"edgemodbus service: {gateway_config}: cannot load ({one_line(exc)})",
               file=sys.stderr)
         return 2
+    if config.log_format != "text":  # the gateway file's logFormat
+        set_log_format(config.log_format)
     wake = threading.Event()
     flags = {"stop": False, "reload": False, "interrupted": False}
 
