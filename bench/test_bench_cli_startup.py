@@ -7,7 +7,7 @@ machine hits all three; the ratios are of the medians.  Children run with byteco
 on (PYTHONDONTWRITEBYTECODE removed from their environment: an installed package has its
 .pyc files), after one warm-up run that writes them.  The simulator is started once, in a
 process of its own (``python -m edgemodbus.sim``; in this process its thread answered
-late, ~250 ms more per read, while the main thread waited on the child).  docs/performance.md,
+late, ~250 ms more per read, while the main thread waited on the child).  docs/benchmarks.md,
 "CLI", has the absolute figures.
 """
 

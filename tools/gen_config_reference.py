@@ -30,6 +30,7 @@ from edgemodbus.config.actions import ActionParameter, DeviceAction
 from edgemodbus.config.communication import DriverModbusRtuParameter
 from edgemodbus.config.device import DeviceConfig, DeviceOrganizationParameter
 from edgemodbus.config.items import DeviceAddressItem
+from edgemodbus.console.settings import ConsoleSettings, ConsoleTls, ConsoleUser
 from edgemodbus.gateway.config import GatewayConfig
 from edgemodbus.northbound.metrics import MetricsSettings
 from edgemodbus.northbound.mqtt.settings import (
@@ -80,6 +81,12 @@ GATEWAY = (
             "([gateway.md](gateway.md#a-modbus-tcp-server-for-scada-serve-and-forward))."),
     Section("serve.units[]", ServeUnit,
             "One unit id each: `device` (serve: cached reads) or `forward` (forward mode)."),
+    Section("console", ConsoleSettings, "The web console ([console.md](console.md)); off "
+            "unless the section is there."),
+    Section("console.users[]", ConsoleUser, "Who may log in; passwords as scrypt hashes "
+            "(`python -m edgemodbus.console hash-password`)."),
+    Section("console.tls", ConsoleTls, "HTTPS for the console; the files are checked at load "
+            "as the MQTT ones are."),
 )
 
 _RUNTIME = ("runtime state the driver writes (what it last read); a file may carry it "

@@ -8,8 +8,8 @@ writes and reports with per-slave fault isolation, to its callbacks and to the
 The public names are imported on first use (module ``__getattr__``, PEP 562): ``import
 edgemodbus`` costs no pydantic model, no driver and no cffi extension, so a command that
 needs none of them (``edgemodbus --version``, ``descriptor``) starts as fast as Python
-(docs/performance.md, "CLI").  ``from edgemodbus import DriverModbusRtu`` and
-``em.DriverModbusRtu`` work as before.
+(docs/benchmarks.md, "Start-up of the command line").  ``from edgemodbus import
+DriverModbusRtu`` and ``em.DriverModbusRtu`` work as before.
 """
 
 from __future__ import annotations

@@ -8,9 +8,9 @@ so that they read back exactly: a float as its shortest round-trip form (``repr`
 ``nan``, ``inf`` and ``-inf`` in text, ``null`` in JSON, which has no such numbers).
 """
 
-# Start-up time (docs/performance.md, "CLI"): main() builds the options of the one command
-# it runs and imports that command's module only; the others get a parser with their help
-# line, so `edgemodbus read` loads neither the gateway, the simulator, scan's nor rich.
+# Start-up time (docs/benchmarks.md, "Start-up of the command line"): main() builds the
+# options of the one command it runs and imports that command's module only; the others
+# get a parser with their help line, so `edgemodbus read` loads neither the gateway, the simulator, scan's nor rich.
 
 from __future__ import annotations
 

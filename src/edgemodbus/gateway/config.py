@@ -12,8 +12,6 @@ from typing import Any, ClassVar, Literal
 
 from pydantic import Field
 
-from pydantic import Field
-
 from ..config import ConfigError, Model, Ms, Problem, load_model
 from ..config.jsonfile import MAX_JSON_BYTES
 from ..config.limits import MAX_NAME
