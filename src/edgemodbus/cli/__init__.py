@@ -10,7 +10,8 @@ so that they read back exactly: a float as its shortest round-trip form (``repr`
 
 # Start-up time (docs/benchmarks.md, "Start-up of the command line"): main() builds the
 # options of the one command it runs and imports that command's module only; the others
-# get a parser with their help line, so `edgemodbus read` loads neither the gateway, the simulator, scan's nor rich.
+# get a parser with their help line, so `edgemodbus read` loads neither the gateway, the
+# simulator, scan's nor rich.
 
 from __future__ import annotations
 
