@@ -25,6 +25,8 @@ from .codec import (
     CODEC_MODE_VALUES,
     CodecItem,
     CodecPlan,
+    CodecScale,
+    ScaleFactors,
     codec_constants,
     codec_encode,
 )
@@ -56,6 +58,8 @@ __all__ = [
     "Block",
     "CodecItem",
     "CodecPlan",
+    "CodecScale",
+    "ScaleFactors",
     "Context",
     "StreamCounters",
     "check",
