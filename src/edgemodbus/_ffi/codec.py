@@ -239,6 +239,18 @@ class CodecPlan:
     ) -> None:
         """Lay out the engineering units steps (plan.scales, EMB_F_EXT items' aux) and
         the scale factor items (plan.sf_src) over ``factors``' table."""
+        try:
+            self._lay_out(plan, scales, factors, sources)
+        except (OverflowError, TypeError) as exc:
+            raise ValueError(f"codec: scaling steps do not fit the C plan ({exc})") from None
+
+    def _lay_out(
+        self,
+        plan: Any,
+        scales: Sequence[CodecScale | None],
+        factors: ScaleFactors | None,
+        sources: Sequence[tuple[int, int]],
+    ) -> None:
         used = [(k, sc) for k, sc in enumerate(scales) if sc is not None]
         if used:
             self._scales = ffi.new("emb_scale[]", len(used))

@@ -165,7 +165,7 @@ class BlockDecoder:
     def _scaling_reason(self, spec: ValueSpec, index: int, code: int) -> str:
         v = self._plan.errval(index)
         if code == _E["RAW_RANGE"]:
-            lo, hi = spec.raw_range or (None, None)
+            lo, hi = spec.raw_range or (math.nan, math.nan)
             return (f"raw value {_fmt_number(v) if v is not None else v} outside "
                     f"rawMin..rawMax ({_fmt_number(lo)}..{_fmt_number(hi)})")
         which = f"scale factor item {spec.scale_factor!r}"

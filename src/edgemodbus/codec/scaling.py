@@ -14,13 +14,42 @@ from __future__ import annotations
 
 import math
 from decimal import Decimal, localcontext
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 from .. import _ffi
 from .._ffi import CodecScale, ScaleFactors
+from ..datatypes import DataType
 
-if TYPE_CHECKING:
-    from .spec import ValueSpec
+
+class ValueSpec(Protocol):
+    """What this module reads of a spec (codec/spec.py's ValueSpec, which imports it)."""
+
+    @property
+    def name(self) -> str: ...
+    @property
+    def data_type(self) -> DataType: ...
+    @property
+    def quantity(self) -> int | None: ...
+    @property
+    def bit(self) -> int | None: ...
+    @property
+    def multiplier(self) -> float: ...
+    @property
+    def offset(self) -> float: ...
+    @property
+    def raw_range(self) -> tuple[float, float] | None: ...
+    @property
+    def eng_range(self) -> tuple[float, float] | None: ...
+    @property
+    def clamp(self) -> bool: ...
+    @property
+    def scale_factor(self) -> str | None: ...
+    @property
+    def holds_factor(self) -> str | None: ...
+    @property
+    def factors(self) -> ScaleFactors | None: ...
+    @property
+    def scaled(self) -> bool: ...
 
 __all__ = ["SF_MAX", "ScaleFactors", "check_scaling", "scale_step", "to_eng", "to_raw"]
 
@@ -43,9 +72,12 @@ def check_scaling(spec: ValueSpec) -> tuple[str, object, str] | None:
     if not _finite(spec.offset):
         return "offset", spec.offset, "a finite number"
     rr, er = spec.raw_range, spec.eng_range
-    if (rr is None) != (er is None):
-        return ("rawMin/rawMax" if rr is None else "engMin/engMax", None,
-                "rawMin, rawMax, engMin and engMax all four, or none")
+    given = dict(zip(("rawMin", "rawMax", "engMin", "engMax"),
+                     (*(rr or (None, None)), *(er or (None, None))), strict=True))
+    missing = [key for key, v in given.items() if v is None]
+    if 0 < len(missing) < 4:
+        return (missing[0], None, "rawMin, rawMax, engMin and engMax all four, or none "
+                f"(missing: {', '.join(missing)})")
     if rr is not None and er is not None:
         for key, v in zip(("rawMin", "rawMax", "engMin", "engMax"), (*rr, *er), strict=True):
             if not _finite(v):
@@ -54,19 +86,22 @@ def check_scaling(spec: ValueSpec) -> tuple[str, object, str] | None:
             return "rawMax", rr[1], f"a number other than rawMin ({rr[0]})"
         if er[0] == er[1]:
             return "engMax", er[1], f"a number other than engMin ({er[0]})"
-        for key, v, off in (("dataMultiplier", spec.multiplier, 1), ("offset", spec.offset, 0),
-                            ("scaleFactor", spec.scale_factor, None)):
-            if v != off:
-                return key, v, ("a range (rawMin..engMax) maps the raw value alone: "
+        others: tuple[tuple[str, object, object], ...] = (
+            ("dataMultiplier", spec.multiplier, 1), ("offset", spec.offset, 0),
+            ("scaleFactor", spec.scale_factor, None))
+        for key, other, off in others:
+            if other != off:
+                return key, other, ("a range (rawMin..engMax) maps the raw value alone: "
                                 f"leave {key} out, or fold it into engMin/engMax")
     elif spec.clamp:
         return "clamp", True, "clamp needs rawMin, rawMax, engMin and engMax"
     if spec.scaled and not t.is_numeric:
-        key = "scaleFactor" if spec.scale_factor is not None else (
-            "offset" if spec.offset else "rawMin")
-        value = spec.scale_factor if key == "scaleFactor" else (
-            spec.offset if key == "offset" else rr and rr[0])
-        return key, value, f"{t.value} values are not scaled (numeric types only)"
+        why = f"{t.value} values are not scaled (numeric types only)"
+        if spec.scale_factor is not None:
+            return "scaleFactor", spec.scale_factor, why
+        if spec.offset:
+            return "offset", spec.offset, why
+        return "rawMin", rr and rr[0], why
     if spec.scale_factor is not None:
         f = spec.factors
         if f is None or spec.scale_factor not in f.names:
@@ -75,7 +110,7 @@ def check_scaling(spec: ValueSpec) -> tuple[str, object, str] | None:
     if spec.holds_factor is not None:
         if spec.factors is None or spec.holds_factor not in spec.factors.names:
             return "scaleFactor", spec.holds_factor, "a factor of the device's table"
-        if t.value != "Int16" or spec.quantity not in (None, 1) or spec.bit is not None:
+        if t is not DataType.INT16 or spec.quantity not in (None, 1) or spec.bit is not None:
             return ("deviceDataType", t.value,
                     "a scale factor item is Int16 (one register; SunSpec sunssf)")
         if spec.scaled or spec.multiplier != 1:
