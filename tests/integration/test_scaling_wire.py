@@ -85,7 +85,7 @@ def test_values_in_engineering_units_from_pymodbus(
 def test_a_changed_factor_rescales_and_bad_factors_make_items_invalid(
     slave: PymodbusSlave, device: tuple[em.DriverModbusRtu, dict[str, Any]]
 ) -> None:
-    drv, items = device
+    _, items = device
     wait_for(lambda: _reads(items, "W", 12.34), 15, "W first read")
     slave.set_registers(1, "hr", 1, [1])  # W_SF 1: the same raw value is ten times more
     wait_for(lambda: _reads(items, "W", 12340.0), 15, "W with sf 1")
@@ -104,7 +104,7 @@ def test_a_changed_factor_rescales_and_bad_factors_make_items_invalid(
 def test_a_raw_value_outside_its_range_is_invalid_or_clamped(
     slave: PymodbusSlave, device: tuple[em.DriverModbusRtu, dict[str, Any]]
 ) -> None:
-    drv, items = device
+    _, items = device
     wait_for(lambda: _reads(items, "Current", 12.0), 15, "Current first read")
     slave.set_registers(1, "hr", 110, [30000])
     wait_for(lambda: _invalid(items, "Current", "raw value 30000 outside rawMin..rawMax "
