@@ -109,16 +109,27 @@ def test_seed_parameters_keep_their_label_type_category_control() -> None:
 
 
 def test_address_parameters_are_the_seed_file_s_item_fields() -> None:
-    # the item's scan rate, in full (tests/data/seed-descriptor.json pins it)
-    assert driver_descriptor()["addressParameter"] == SEED["addressParameter"]
+    # the item's scan rate, in full (tests/data/seed-descriptor.json pins it), then the
+    # engineering units keys (docs/engineering-units.md)
+    ours = driver_descriptor()["addressParameter"]
+    assert ours[: len(SEED["addressParameter"])] == SEED["addressParameter"]
     assert [p["name"] for p in SEED["addressParameter"]] == ["readCycle"]
+    scaling = {p["name"]: p for p in ours[len(SEED["addressParameter"]):]}
+    assert list(scaling) == ["offset", "rawMin", "rawMax", "engMin", "engMax", "clamp",
+                             "scaleFactor"]
+    assert {p["category"] for p in scaling.values()} == {"Scaling"}
+    assert (scaling["offset"]["type"], scaling["offset"]["defaultValue"]) == ("double", 0.0)
+    assert (scaling["clamp"]["type"], scaling["clamp"]["controlType"]) == ("bool", "switch")
+    assert scaling["scaleFactor"]["type"] == "string"
+    assert all(p["description"] for p in scaling.values())
 
 
 def test_item_read_cycle_has_the_device_s_range_and_loads_its_limits() -> None:
     item_meta = DeviceAddressItem.model_fields["read_cycle"].metadata
     device_meta = DriverModbusRtuParameter.model_fields["read_cycle"].metadata
     assert item_meta == device_meta  # one source: config.base.READ_CYCLE_RANGE
-    (entry,) = driver_descriptor()["addressParameter"]
+    entry = driver_descriptor()["addressParameter"][0]
+    assert entry["name"] == "readCycle"
     base = {"name": "x", "address": "hr:1", "deviceDataType": "UInt16"}
     for ok in (entry["min"], entry["max"], entry["defaultValue"]):
         assert DeviceAddressItem.model_validate({**base, "readCycle": ok}).read_cycle == ok
