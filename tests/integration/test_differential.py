@@ -6,8 +6,8 @@ and converted types, register bits, coils and discrete inputs, Strings and Binar
 longer than a block, gaps, overlapping items, disabled items; engineering units: offset,
 range scaling with and without clamp, docs/engineering-units.md) and planner settings
 (block sizes, merge gap, continuous blocks, report mode), puts random registers and
-bits into a slave of our simulator (``edgemodbus.sim``: in process, so its registers are set directly and at once), and runs a DriverModbusRtu against it
-for several cycles.  At the end of every cycle the registers change (and the address
+bits into a slave of our simulator (``edgemodbus.sim``: in process, so its registers
+are set directly and at once), and runs a DriverModbusRtu against it for several cycles.  At the end of every cycle the registers change (and the address
 list may be replaced by ``update_addresses``), so change detection and re-planning are
 exercised; some examples add illegal-address ranges (exception 02, which bisects
 blocks), other exception codes, or wire faults, and some give items scan rates of their
