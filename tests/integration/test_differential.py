@@ -1,17 +1,18 @@
 """Differential test of the whole read path: a value reported Ok is never wrong.
 
-Hypothesis draws an address list (every data type and byte order: dataFormat,
-byteSwap16 and dataFormat64 per device and per item; Smart Cast quantities, multipliers
-and converted types, register bits, coils and discrete inputs, Strings and Binaries
-longer than a block, gaps, overlapping items, disabled items; engineering units: offset,
-range scaling with and without clamp, docs/engineering-units.md) and planner settings
-(block sizes, merge gap, continuous blocks, report mode), puts random registers and
-bits into a slave of our simulator (``edgemodbus.sim``: in process, so its registers
-are set directly and at once), and runs a DriverModbusRtu against it for several cycles.  At the end of every cycle the registers change (and the address
-list may be replaced by ``update_addresses``), so change detection and re-planning are
-exercised; some examples add illegal-address ranges (exception 02, which bisects
-blocks), other exception codes, or wire faults, and some give items scan rates of their
-own (``readCycle``), so that a cycle reads only the blocks due.
+Hypothesis draws an address list (every data type and byte order: dataFormat, byteSwap16
+and dataFormat64 per device and per item; Smart Cast quantities, multipliers and
+converted types, register bits, coils and discrete inputs, Strings and Binaries longer
+than a block, gaps, overlapping items, disabled items; engineering units: offset, range
+scaling with and without clamp, docs/engineering-units.md) and planner settings (block
+sizes, merge gap, continuous blocks, report mode), puts random registers and bits into a
+slave of our simulator (``edgemodbus.sim``: in process, so its registers are set
+directly and at once), and runs a DriverModbusRtu against it for several cycles. At the
+end of every cycle the registers change (and the address list may be replaced by
+``update_addresses``), so change detection and re-planning are exercised; some examples
+add illegal-address ranges (exception 02, which bisects blocks), other exception codes,
+or wire faults, and some give items scan rates of their own (``readCycle``), so that a
+cycle reads only the blocks due.
 
 Every item that is Ok - at the end of every cycle (snapshot publisher with a 1 ms
 interval, called by the worker when a cycle ends), in every ``address_updated_callback``
