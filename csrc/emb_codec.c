@@ -371,27 +371,38 @@ static uint64_t store(const emb_plan *p, const emb_item *it, const emb_num *n)
 static const double emb_pow10[EMB_SF_MAX + 1] = {1e0, 1e1, 1e2, 1e3, 1e4, 1e5,
                                                  1e6, 1e7, 1e8, 1e9, 1e10};
 
-/* The engineering units step of an EMB_F_EXT item (emb_codec.h), on its raw value. */
-static int scale_ext(const emb_plan *p, const emb_item *it, emb_num *n, emb_errval *ev)
+/* The engineering units step of an EMB_F_EXT item (emb_codec.h) on its raw value `x`:
+ * the engineering value and a status (EMB_E_RAW_RANGE leaves the caller to record the
+ * raw value).  Out of line, on scalars, its result in registers: the decode loop keeps
+ * its emb_num in registers (docs/engineering-units.md "Cost"). */
+typedef struct emb_scaled {
+    double value;
+    int status; /* EMB_E_* */
+} emb_scaled;
+
+__attribute__((noinline)) static emb_scaled scale_ext(const emb_plan *p, const emb_item *it,
+                                                      double x, emb_errval *ev)
 {
+    emb_scaled r = {0.0, EMB_E_OK};
     const emb_scale *s = &p->scales[it->aux];
-    double x = num_to_double(n);
     if (s->range == EMB_R_INVALID && !(x >= s->raw_lo && x <= s->raw_hi)) {
-        set_err(ev, n);
-        return EMB_E_RAW_RANGE;
+        r.status = EMB_E_RAW_RANGE;
+        return r;
     }
     if (s->sf >= 0) {
         int32_t sf = p->sf[s->sf];
         if (sf == EMB_SF_UNKNOWN || sf == EMB_SF_NI) {
             ev->bits = 0;
             ev->kind = EMB_K_NONE;
-            return sf == EMB_SF_NI ? EMB_E_SF_NI : EMB_E_SF_UNKNOWN;
+            r.status = sf == EMB_SF_NI ? EMB_E_SF_NI : EMB_E_SF_UNKNOWN;
+            return r;
         }
         if (sf < -EMB_SF_MAX || sf > EMB_SF_MAX) {
             int64_t v = sf;
             memcpy(&ev->bits, &v, sizeof ev->bits);
             ev->kind = EMB_K_INT;
-            return EMB_E_SF_RANGE;
+            r.status = EMB_E_SF_RANGE;
+            return r;
         }
         x = sf >= 0 ? x * emb_pow10[sf] : x / emb_pow10[-sf];
     }
@@ -406,13 +417,13 @@ static int scale_ext(const emb_plan *p, const emb_item *it, emb_num *n, emb_errv
         else if (x > s->eng_hi)
             x = s->eng_hi;
     }
-    n->f = x;
-    n->cls = NUM_FLOAT;
-    return EMB_E_OK;
+    r.value = x;
+    return r;
 }
 
 /* Store the block's scale factors (emb_sfsrc) before any item is scaled with them. */
-static void store_factors(emb_plan *p, const uint16_t *regs, uint32_t count)
+__attribute__((noinline)) static void store_factors(emb_plan *p, const uint16_t *regs,
+                                                  uint32_t count)
 {
     for (uint32_t k = 0; k < p->n_sf_src; k++) {
         const emb_item *it = &p->items[p->sf_src[k].item];
@@ -468,7 +479,7 @@ long emb_decode(emb_plan *p, const void *data, uint32_t count, int mode)
     const uint16_t *regs = data;
     uint32_t n_err = 0, n_chg = 0;
 
-    if (p->n_sf_src && mode != EMB_MODE_VALUES)
+    if (__builtin_expect(p->n_sf_src != 0, 0) && mode != EMB_MODE_VALUES)
         store_factors(p, regs, count);
 
     for (uint32_t i = 0; i < p->n_items; i++) {
@@ -488,9 +499,16 @@ long emb_decode(emb_plan *p, const void *data, uint32_t count, int mode)
         } else {
             emb_num n = {NUM_UINT, 0, 0, 0.0};
             st = read_raw(it, data, &n, &p->errval[i]);
-            if (st == EMB_E_OK && (it->flags & (EMB_F_MULTIPLY | EMB_F_DIVIDE | EMB_F_EXT))) {
-                if (it->flags & EMB_F_EXT) {
-                    st = scale_ext(p, it, &n, &p->errval[i]);
+            /* an EMB_F_EXT item has MULTIPLY or DIVIDE too (emb_plan_check): the items
+             * without either pay this one test, as before engineering units */
+            if (st == EMB_E_OK && (it->flags & (EMB_F_MULTIPLY | EMB_F_DIVIDE))) {
+                if (__builtin_expect((it->flags & EMB_F_EXT) != 0, 0)) {
+                    emb_scaled r = scale_ext(p, it, num_to_double(&n), &p->errval[i]);
+                    st = r.status;
+                    if (st == EMB_E_RAW_RANGE)
+                        set_err(&p->errval[i], &n);
+                    n.f = r.value;
+                    n.cls = NUM_FLOAT;
                 } else {
                     double x = num_to_double(&n);
                     n.f = (it->flags & EMB_F_DIVIDE) ? x / it->scale : x * it->scale;
@@ -589,7 +607,7 @@ long emb_plan_check(const emb_plan *p)
         if (ok && (it->flags & (EMB_F_MULTIPLY | EMB_F_DIVIDE)))
             ok = isfinite(it->scale) && it->scale != 0.0;
         if (ok && (it->flags & EMB_F_EXT))
-            ok = scale_fits(p, it);
+            ok = (it->flags & (EMB_F_MULTIPLY | EMB_F_DIVIDE)) && scale_fits(p, it);
         if (!ok)
             return (long)i + 1;
     }

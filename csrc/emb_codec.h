@@ -62,8 +62,9 @@
 #define EMB_F_DIVIDE 0x08   /* value = raw / scale: scale is 1/multiplier, exact for 0.1 etc. */
 #define EMB_F_STRIP 0x10    /* BYTES: reported length excludes trailing NULs */
 #define EMB_F_DWORD_SWAP 0x20 /* 4-register values: swap the two halves; else ignored */
-#define EMB_F_EXT 0x40      /* engineering units: scaled by plan->scales[aux] (below); an
-                             * item without it pays one flag test, nothing more */
+#define EMB_F_EXT 0x40      /* engineering units: scaled by plan->scales[aux] (below);
+                             * set with MULTIPLY (scale 1 for none) or DIVIDE, so that an
+                             * item without a multiplier pays no test more than before */
 
 /* Conversion targets (convertedDataType); NONE keeps the raw value's kind. */
 #define EMB_C_NONE 0

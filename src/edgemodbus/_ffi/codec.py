@@ -258,8 +258,12 @@ class CodecPlan:
                 dst = self._scales[j]
                 (dst.sub, dst.mul, dst.add, dst.raw_lo, dst.raw_hi, dst.eng_lo, dst.eng_hi,
                  dst.sf, dst.range) = sc
-                self._citems[k].flags |= lib.EMB_F_EXT
-                self._citems[k].aux = j
+                citem = self._citems[k]
+                citem.flags |= lib.EMB_F_EXT
+                if not citem.flags & (lib.EMB_F_MULTIPLY | lib.EMB_F_DIVIDE):
+                    citem.flags |= lib.EMB_F_MULTIPLY  # by 1.0: EXT rides on its test
+                    citem.scale = 1.0
+                citem.aux = j
             plan.scales, plan.n_scales = self._scales, len(used)
         if sources:
             self._sources = ffi.new("emb_sfsrc[]", len(sources))
