@@ -283,6 +283,8 @@ def smart_cast(spec: ValueSpec) -> str | None:
         how = f"read as {what} and narrowed to {t.value}"
         if spec.multiplier != 1:
             how += " (with a dataMultiplier the scaled value is reported as read)"
+        elif spec.scaled:
+            how += " (in engineering units the scaled value is reported as read)"
         elif t.is_integer:
             lo, hi = t.integer_range
             how += f" (a value outside {lo}..{hi} makes the item Invalid)"
