@@ -1,5 +1,8 @@
 """Decode cost per value of a 120-register block: our C batch codec against a plain
-Python struct decoder and against pymodbus' per-item ``convert_from_registers``.
+Python struct decoder and against pymodbus' per-item ``convert_from_registers``; and the
+same block with every number in engineering units (an offset, docs/engineering-units.md),
+beside the plain one, whose items pay nothing for the feature (run this module against
+a build without it for the before/after figure).
 
 Prints a table of ns per value (and the ratios, from this same run) when the module
 ends.  EDGEMODBUS_BENCH_QUICK=1 keeps every benchmark short.
@@ -11,6 +14,7 @@ import os
 import random
 import struct
 from collections.abc import Callable, Iterator
+from dataclasses import replace
 from typing import Any
 
 import pytest
@@ -285,6 +289,35 @@ def test_ours_nothing_changed(benchmark: BenchmarkFixture, blocks: tuple[Block, 
     decoder.decode(blocks[0])
     assert decoder.decode(blocks[0]) == []
     _run(benchmark, "ours decode, nothing changed", lambda: decoder.decode(blocks[0]))
+
+
+def _scaled_specs() -> list[tuple[int, ValueSpec]]:
+    """SPECS with an offset on every numeric item (the String and bits stay as they are)."""
+    if "offset" not in getattr(ValueSpec, "__dataclass_fields__", {}):
+        pytest.skip("this build has no engineering units (ValueSpec.offset)")
+    return [(o, replace(spec, offset=0.5) if spec.data_type.is_numeric else spec)
+            for o, spec in SPECS]
+
+
+def test_ours_scaled_nothing_changed(
+    benchmark: BenchmarkFixture, blocks: tuple[Block, Block]
+) -> None:
+    decoder = BlockDecoder(Area.HOLDING_REGISTER, REGISTERS, _scaled_specs())
+    decoder.decode(blocks[0])
+    assert decoder.decode(blocks[0]) == []
+    _run(benchmark, "ours decode, nothing changed, offsets", lambda: decoder.decode(blocks[0]))
+
+
+def test_ours_scaled_decode_values(
+    benchmark: BenchmarkFixture, blocks: tuple[Block, Block]
+) -> None:
+    decoder = BlockDecoder(Area.HOLDING_REGISTER, REGISTERS, _scaled_specs())
+    block = blocks[0]
+    plain = BlockDecoder(Area.HOLDING_REGISTER, REGISTERS, SPECS).decode_values(block)
+    scaled = decoder.decode_values(block)
+    assert [v + 0.5 if isinstance(v, (int, float)) and not isinstance(v, bool) else v
+            for v in plain] == scaled
+    _run(benchmark, "ours decode_values, offsets", lambda: decoder.decode_values(block))
 
 
 def test_ours_one_value_changed(benchmark: BenchmarkFixture, blocks: tuple[Block, Block]) -> None:

@@ -367,6 +367,72 @@ static uint64_t store(const emb_plan *p, const emb_item *it, const emb_num *n)
     }
 }
 
+/* 10^k, exact in a double for k <= 22. */
+static const double emb_pow10[EMB_SF_MAX + 1] = {1e0, 1e1, 1e2, 1e3, 1e4, 1e5,
+                                                 1e6, 1e7, 1e8, 1e9, 1e10};
+
+/* The engineering units step of an EMB_F_EXT item (emb_codec.h) on its raw value `x`:
+ * the engineering value and a status (EMB_E_RAW_RANGE leaves the caller to record the
+ * raw value).  Out of line, on scalars, its result in registers: the decode loop keeps
+ * its emb_num in registers (docs/engineering-units.md "Cost"). */
+typedef struct emb_scaled {
+    double value;
+    int status; /* EMB_E_* */
+} emb_scaled;
+
+__attribute__((noinline)) static emb_scaled scale_ext(const emb_plan *p, const emb_item *it,
+                                                      double x, emb_errval *ev)
+{
+    emb_scaled r = {0.0, EMB_E_OK};
+    const emb_scale *s = &p->scales[it->aux];
+    if (s->range == EMB_R_INVALID && !(x >= s->raw_lo && x <= s->raw_hi)) {
+        r.status = EMB_E_RAW_RANGE;
+        return r;
+    }
+    if (s->sf >= 0) {
+        int32_t sf = p->sf[s->sf];
+        if (sf == EMB_SF_UNKNOWN || sf == EMB_SF_NI) {
+            ev->bits = 0;
+            ev->kind = EMB_K_NONE;
+            r.status = sf == EMB_SF_NI ? EMB_E_SF_NI : EMB_E_SF_UNKNOWN;
+            return r;
+        }
+        if (sf < -EMB_SF_MAX || sf > EMB_SF_MAX) {
+            int64_t v = sf;
+            memcpy(&ev->bits, &v, sizeof ev->bits);
+            ev->kind = EMB_K_INT;
+            r.status = EMB_E_SF_RANGE;
+            return r;
+        }
+        x = sf >= 0 ? x * emb_pow10[sf] : x / emb_pow10[-sf];
+    }
+    if (it->flags & EMB_F_DIVIDE)
+        x /= it->scale;
+    else if (it->flags & EMB_F_MULTIPLY)
+        x *= it->scale;
+    x = (x - s->sub) * s->mul + s->add;
+    if (s->range == EMB_R_CLAMP) { /* NaN stays NaN */
+        if (x < s->eng_lo)
+            x = s->eng_lo;
+        else if (x > s->eng_hi)
+            x = s->eng_hi;
+    }
+    r.value = x;
+    return r;
+}
+
+/* Store the block's scale factors (emb_sfsrc) before any item is scaled with them. */
+__attribute__((noinline)) static void store_factors(emb_plan *p, const uint16_t *regs,
+                                                  uint32_t count)
+{
+    for (uint32_t k = 0; k < p->n_sf_src; k++) {
+        const emb_item *it = &p->items[p->sf_src[k].item];
+        if ((uint64_t)it->offset + 1 > count)
+            continue; /* not in this reply: the last value stays */
+        p->sf[p->sf_src[k].index] = (int32_t)sext(gather(regs + it->offset, 1, it->flags), 16);
+    }
+}
+
 /* Whether a new value differs from the last reported one by more than the deadband.
  * Doubles: any NaN equals any NaN (its payload is no value), a NaN against a number is
  * a change, and so is -0.0 against 0.0 without a deadband.  Integers: the distance is
@@ -404,13 +470,17 @@ static bool value_changed(const emb_item *it, uint64_t now, uint64_t was)
  * range errors; a missing register and a NaN have one reason each. */
 static inline uint64_t err_key(int st, const emb_errval *ev)
 {
-    return (st == EMB_E_BCD || st == EMB_E_RANGE) ? ev->bits : 0;
+    return (st == EMB_E_BCD || st == EMB_E_RANGE || st == EMB_E_RAW_RANGE
+            || st == EMB_E_SF_RANGE) ? ev->bits : 0;
 }
 
 long emb_decode(emb_plan *p, const void *data, uint32_t count, int mode)
 {
     const uint16_t *regs = data;
     uint32_t n_err = 0, n_chg = 0;
+
+    if (__builtin_expect(p->n_sf_src != 0, 0) && mode != EMB_MODE_VALUES)
+        store_factors(p, regs, count);
 
     for (uint32_t i = 0; i < p->n_items; i++) {
         const emb_item *it = &p->items[i];
@@ -429,10 +499,21 @@ long emb_decode(emb_plan *p, const void *data, uint32_t count, int mode)
         } else {
             emb_num n = {NUM_UINT, 0, 0, 0.0};
             st = read_raw(it, data, &n, &p->errval[i]);
+            /* an EMB_F_EXT item has MULTIPLY or DIVIDE too (emb_plan_check): the items
+             * without either pay this one test, as before engineering units */
             if (st == EMB_E_OK && (it->flags & (EMB_F_MULTIPLY | EMB_F_DIVIDE))) {
-                double x = num_to_double(&n);
-                n.f = (it->flags & EMB_F_DIVIDE) ? x / it->scale : x * it->scale;
-                n.cls = NUM_FLOAT;
+                if (__builtin_expect((it->flags & EMB_F_EXT) != 0, 0)) {
+                    emb_scaled r = scale_ext(p, it, num_to_double(&n), &p->errval[i]);
+                    st = r.status;
+                    if (st == EMB_E_RAW_RANGE)
+                        set_err(&p->errval[i], &n);
+                    n.f = r.value;
+                    n.cls = NUM_FLOAT;
+                } else {
+                    double x = num_to_double(&n);
+                    n.f = (it->flags & EMB_F_DIVIDE) ? x / it->scale : x * it->scale;
+                    n.cls = NUM_FLOAT;
+                }
             }
             if (st == EMB_E_OK)
                 st = convert(&n, it->target, &p->errval[i]);
@@ -493,6 +574,18 @@ static bool group_fits(const emb_plan *p, const emb_item *it)
     }
 }
 
+static bool scale_fits(const emb_plan *p, const emb_item *it)
+{
+    if (it->wire == EMB_W_BYTES || it->wire == EMB_W_COIL || !p->scales || it->aux >= p->n_scales)
+        return false;
+    const emb_scale *s = &p->scales[it->aux];
+    if (s->range > EMB_R_CLAMP || !isfinite(s->sub) || !isfinite(s->mul) || !isfinite(s->add))
+        return false;
+    if (s->range != EMB_R_NONE && !(s->raw_lo <= s->raw_hi && s->eng_lo <= s->eng_hi))
+        return false;
+    return s->sf < 0 || (p->sf && (uint32_t)s->sf < p->n_sf);
+}
+
 long emb_plan_check(const emb_plan *p)
 {
     if (p->n_items > 0 && (!p->items || !p->status || !p->errval || !p->errs || !p->changed ||
@@ -513,8 +606,16 @@ long emb_plan_check(const emb_plan *p)
             ok = it->nregs == wire_width(it->wire) && it->bit <= 15;
         if (ok && (it->flags & (EMB_F_MULTIPLY | EMB_F_DIVIDE)))
             ok = isfinite(it->scale) && it->scale != 0.0;
+        if (ok && (it->flags & EMB_F_EXT))
+            ok = (it->flags & (EMB_F_MULTIPLY | EMB_F_DIVIDE)) && scale_fits(p, it);
         if (!ok)
             return (long)i + 1;
+    }
+    for (uint32_t k = 0; k < p->n_sf_src; k++) {
+        const emb_sfsrc *src = &p->sf_src[k];
+        if (!p->sf || src->item >= p->n_items || src->index >= p->n_sf
+            || p->items[src->item].wire != EMB_W_I16)
+            return -1;
     }
     return 0;
 }

@@ -62,6 +62,9 @@
 #define EMB_F_DIVIDE 0x08   /* value = raw / scale: scale is 1/multiplier, exact for 0.1 etc. */
 #define EMB_F_STRIP 0x10    /* BYTES: reported length excludes trailing NULs */
 #define EMB_F_DWORD_SWAP 0x20 /* 4-register values: swap the two halves; else ignored */
+#define EMB_F_EXT 0x40      /* engineering units: scaled by plan->scales[aux] (below);
+                             * set with MULTIPLY (scale 1 for none) or DIVIDE, so that an
+                             * item without a multiplier pays no test more than before */
 
 /* Conversion targets (convertedDataType); NONE keeps the raw value's kind. */
 #define EMB_C_NONE 0
@@ -96,6 +99,11 @@
 #define EMB_E_BCD 2     /* a BCD nibble above 9 */
 #define EMB_E_NAN 3     /* NaN cannot become an integer */
 #define EMB_E_RANGE 4   /* value outside the target type */
+#define EMB_E_RAW_RANGE 5  /* EMB_F_EXT: raw value outside rawMin..rawMax (errval: it) */
+#define EMB_E_SF_UNKNOWN 6 /* EMB_F_EXT: its scale factor not read yet */
+#define EMB_E_SF_NI 7      /* EMB_F_EXT: scale factor 0x8000 (SunSpec: not implemented) */
+#define EMB_E_SF_RANGE 8   /* EMB_F_EXT: scale factor outside -EMB_SF_MAX..EMB_SF_MAX
+                            * (errval: it, an int) */
 #define EMB_E_UNREPORTED 255 /* state only: nothing reported yet */
 
 /* Kinds of a failed item's offending value (emb_errval.kind). */
@@ -109,6 +117,37 @@
 #define EMB_MODE_TRACK 1  /* decode, list changed items, remember what is reported */
 #define EMB_MODE_ALL 2    /* decode, report every item, remember it; `changed` lists the
                            * items whose result differs exactly from the last report */
+
+/* Engineering units (docs/engineering-units.md).  An item with EMB_F_EXT is scaled, in
+ * this order: x = raw (as a double); x *= 10^sf (sf: its scale factor, read from another
+ * item, SunSpec's *_SF; a negative sf divides by 10^-sf, so 0.1 steps are correctly
+ * rounded); x *= scale (EMB_F_MULTIPLY) or x /= scale (EMB_F_DIVIDE);
+ * x = (x - sub) * mul + add; with EMB_R_CLAMP x is then held in [eng_lo, eng_hi].  With a
+ * range (EMB_R_INVALID or EMB_R_CLAMP) a raw value outside [raw_lo, raw_hi] (or NaN) is
+ * EMB_E_RAW_RANGE under EMB_R_INVALID.  The result goes through the target conversion
+ * as any value does. */
+#define EMB_R_NONE 0
+#define EMB_R_INVALID 1
+#define EMB_R_CLAMP 2
+#define EMB_SF_MAX 10              /* |sf| allowed */
+#define EMB_SF_UNKNOWN INT32_MIN   /* a scale factor slot not read yet */
+#define EMB_SF_NI (-32768)         /* 0x8000: SunSpec's "not implemented" */
+
+typedef struct emb_scale {
+    double sub, mul, add;
+    double raw_lo, raw_hi; /* raw_lo <= raw_hi */
+    double eng_lo, eng_hi; /* eng_lo <= eng_hi */
+    int32_t sf;            /* index in plan->sf of the item's scale factor; -1: none */
+    uint8_t range;         /* EMB_R_* */
+} emb_scale;
+
+/* An item whose raw Int16 (wire EMB_W_I16) is a scale factor: emb_decode stores it in
+ * plan->sf[index] before it scales any item of the block (TRACK and ALL modes only: a
+ * VALUES decode, a write's check, never changes what the device last reported). */
+typedef struct emb_sfsrc {
+    uint32_t item;
+    uint32_t index;
+} emb_sfsrc;
 
 typedef struct emb_item {
     uint32_t offset;   /* first register (or bit) of the item inside the block */
@@ -154,6 +193,15 @@ typedef struct emb_plan {
                           * the errval bits for EMB_E_BCD and EMB_E_RANGE, else 0 */
     uint8_t *last_status; /* [n_items] EMB_E_*, EMB_E_UNREPORTED before the first report */
     uint8_t *last_bytes; /* [n_bytes] raw bytes of BYTES items */
+    /* engineering units, all optional (NULL / 0 when no item of the plan is scaled) */
+    const emb_scale *scales;  /* [n_scales], EMB_F_EXT items' aux indexes it */
+    uint32_t n_scales;
+    const emb_sfsrc *sf_src;  /* [n_sf_src] the block's scale factor items */
+    uint32_t n_sf_src;
+    int32_t *sf;              /* [n_sf] the device's scale factors, shared by its blocks'
+                               * plans (a block read later in the pass, or in an earlier
+                               * pass, sees what this one stored); EMB_SF_UNKNOWN unread */
+    uint32_t n_sf;
 } emb_plan;
 
 /* 0 if every item fits the plan's arrays and is coherent; else 1 + the first bad item's

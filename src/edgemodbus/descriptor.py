@@ -6,7 +6,8 @@ separated by commas, a secret's default is never shown) and their UI labels in
 :mod:`edgemodbus.config.labels` (label, category, controlType, options, visibleWhen,
 dataSource); ``addressParameter`` lists, the same way, the optional fields of an address
 item (:class:`~edgemodbus.config.DeviceAddressItem`) that have labels there
-(``ITEM_LABELS``: the item's scan rate, ``readCycle``).
+(``ITEM_LABELS``: the item's scan rate, ``readCycle``; its engineering units keys,
+``offset``, ``rawMin``..``engMax``, ``clamp``, ``scaleFactor``: docs/engineering-units.md).
 The address regex and examples come from :mod:`edgemodbus.protocol.address`;
 ``presets`` lists the device templates on the search path (name, description, source:
 :mod:`edgemodbus.config.templates`), which a device file names with ``"template"``.

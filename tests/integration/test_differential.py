@@ -1,17 +1,18 @@
 """Differential test of the whole read path: a value reported Ok is never wrong.
 
-Hypothesis draws an address list (every data type and byte order: dataFormat,
-byteSwap16 and dataFormat64 per device and per item; Smart Cast quantities, multipliers
-and converted types, register bits, coils and discrete inputs, Strings and Binaries
-longer than a block, gaps, overlapping items, disabled items) and
-planner settings (block sizes, merge gap, continuous blocks, report mode), puts random
-registers and bits into a slave of our simulator (``edgemodbus.sim``: in process,
-so its registers are set directly and at once), and runs a DriverModbusRtu against it
-for several cycles.  At the end of every cycle the registers change (and the address
-list may be replaced by ``update_addresses``), so change detection and re-planning are
-exercised; some examples add illegal-address ranges (exception 02, which bisects
-blocks), other exception codes, or wire faults, and some give items scan rates of their
-own (``readCycle``), so that a cycle reads only the blocks due.
+Hypothesis draws an address list (every data type and byte order: dataFormat, byteSwap16
+and dataFormat64 per device and per item; Smart Cast quantities, multipliers and
+converted types, register bits, coils and discrete inputs, Strings and Binaries longer
+than a block, gaps, overlapping items, disabled items; engineering units: offset, range
+scaling with and without clamp, docs/engineering-units.md) and planner settings (block
+sizes, merge gap, continuous blocks, report mode), puts random registers and bits into a
+slave of our simulator (``edgemodbus.sim``: in process, so its registers are set
+directly and at once), and runs a DriverModbusRtu against it for several cycles. At the
+end of every cycle the registers change (and the address list may be replaced by
+``update_addresses``), so change detection and re-planning are exercised; some examples
+add illegal-address ranges (exception 02, which bisects blocks), other exception codes,
+or wire faults, and some give items scan rates of their own (``readCycle``), so that a
+cycle reads only the blocks due.
 
 Every item that is Ok - at the end of every cycle (snapshot publisher with a 1 ms
 interval, called by the worker when a cycle ends), in every ``address_updated_callback``
@@ -103,6 +104,9 @@ INT_RANGE = {
 UNCONVERTED = {"Char", "String", "Binary", "DateTime", "Timestamp"}
 TARGETS = ["Boolean", *INT_RANGE, "Float", "Double", "String"]
 MULTIPLIERS = [0.1, 0.01, 0.001, 0.5, 0.25, 2.0, 10.0, -1.0, 1.5]
+OFFSETS = [-40.0, 0.5, 273.15, -1e4, 3.0]
+RAW_ENDS = [0.0, 4000.0, 20000.0, 27648.0, -100.0, 65535.0, 10.0, 1e9]
+ENG_ENDS = [0.0, 4.0, 20.0, 100.0, -50.5, 1e3]
 DECIMAL_STEPS = {0.1: 10, 0.01: 100, 0.001: 1000}  # a multiplier 1/10^k divides by 10^k
 FORMATS = ["ABCD", "BADC", "CDAB", "DCBA"]
 # 64-bit orders: the value's bytes A..H as the registers hold them by address
@@ -130,6 +134,13 @@ class Spec:
     encoding: str | None = None
     enabled: bool = True
     rate: int | None = None  # the item's readCycle (ms), None: the device's
+    add: float = 0.0  # the item's "offset" key (engineering units)
+    span: tuple[float, float, float, float] | None = None  # rawMin, rawMax, engMin, engMax
+    clamp: bool = False
+
+    @property
+    def scaled(self) -> bool:
+        return self.multiplier != 1 or self.add != 0 or self.span is not None
 
     @property
     def size(self) -> int:
@@ -163,6 +174,11 @@ class Spec:
             out["encoding"] = self.encoding
         if self.rate is not None:
             out["readCycle"] = self.rate
+        if self.add:
+            out["offset"] = self.add
+        if self.span is not None:
+            out.update(zip(("rawMin", "rawMax", "engMin", "engMax"), self.span, strict=True))
+            out["clamp"] = self.clamp
         return out
 
 
@@ -260,6 +276,23 @@ def _scaled(value: Any, multiplier: float) -> Any:
     return float(value) / steps if steps else float(value) * multiplier
 
 
+def _engineering(value: Any, spec: Spec) -> Any:
+    """docs/engineering-units.md's formulas, in doubles step by step as documented: a
+    range maps the raw value (Invalid outside it, or clamped); else value x multiplier +
+    offset."""
+    if spec.span is None:
+        return _scaled(value, spec.multiplier) + spec.add if spec.add else _scaled(
+            value, spec.multiplier)
+    r0, r1, e0, e1 = spec.span
+    x = float(value)
+    if not min(r0, r1) <= x <= max(r0, r1) and not spec.clamp:
+        return BAD  # NaN too
+    x = (x - r0) * ((e1 - e0) / (r1 - r0)) + e0
+    if spec.clamp:
+        x = min(e0, e1) if x < min(e0, e1) else max(e0, e1) if x > max(e0, e1) else x
+    return x
+
+
 def _converted(value: Any, target: str) -> Any:
     if target == "String":
         return str(value)
@@ -299,9 +332,9 @@ def reference(spec: Spec, truth: Truth, device_fmt: str, device_encoding: str,
             value = _raw(spec, regs, order, spec.encoding or device_encoding)
     if value is BAD:
         return BAD
-    value = _scaled(value, spec.multiplier)
+    value = _engineering(value, spec)
     target = spec.converted
-    if target is None or (target == spec.dtype and spec.multiplier == 1):
+    if target is None or (target == spec.dtype and not spec.scaled):
         return value
     return _converted(value, target)
 
@@ -403,11 +436,23 @@ def item_specs(draw: st.DrawFn, name: str) -> Spec:
     multiplier = 1.0
     if dtype in NUMERIC and draw(st.integers(0, 3)) == 0:
         multiplier = draw(st.sampled_from(MULTIPLIERS))
+    add, span, clamp = 0.0, None, False
+    if dtype in NUMERIC and draw(st.integers(0, 3)) == 0:  # engineering units
+        if draw(st.booleans()):
+            add = draw(st.sampled_from(OFFSETS))
+        else:
+            multiplier = 1.0
+            r0, r1 = draw(st.lists(st.sampled_from(RAW_ENDS), min_size=2, max_size=2,
+                                   unique=True))
+            e0, e1 = draw(st.lists(st.sampled_from(ENG_ENDS), min_size=2, max_size=2,
+                                   unique=True))
+            span, clamp = (r0, r1, e0, e1), draw(st.booleans())
     converted = None
     if dtype not in UNCONVERTED and draw(st.integers(0, 2)) == 0:
         converted = draw(st.sampled_from(TARGETS))
     spec = Spec(name, area, 0, dtype, quantity=quantity, fmt=fmt, swap16=swap16, fmt64=fmt64,
-                multiplier=multiplier, converted=converted, enabled=enabled)
+                multiplier=multiplier, converted=converted, enabled=enabled, add=add,
+                span=span, clamp=clamp)
     return replace(spec, offset=draw(st.integers(0, REG_SPAN - spec.size)))
 
 
@@ -614,6 +659,10 @@ def _describe(setup: Setup) -> None:
         event("byteSwap16 set")
     if setup.comm["dataFormat64"] or any(s.fmt64 is not None for s in specs):
         event("dataFormat64 set")
+    if any(s.add for s in specs):
+        event("an offset")
+    if any(s.span is not None for s in specs):
+        event("range scaling")
 
 
 @pytest.mark.timeout(max(120, 6 * EXAMPLES))

@@ -25,6 +25,8 @@ from .codec import (
     CODEC_MODE_VALUES,
     CodecItem,
     CodecPlan,
+    CodecScale,
+    ScaleFactors,
     codec_constants,
     codec_encode,
 )
@@ -56,7 +58,9 @@ __all__ = [
     "Block",
     "CodecItem",
     "CodecPlan",
+    "CodecScale",
     "Context",
+    "ScaleFactors",
     "StreamCounters",
     "check",
     "check_fingerprint",

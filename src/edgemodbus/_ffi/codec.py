@@ -39,6 +39,53 @@ class CodecItem(NamedTuple):
     deadband: float
 
 
+class CodecScale(NamedTuple):
+    """An item's engineering units step (emb_scale, csrc/emb_codec.h): value =
+    (raw x 10^sf x multiplier - sub) x mul + add; ``range`` EMB_R_* with the raw and
+    engineering bounds; ``sf`` the index of its scale factor in the device's
+    :class:`ScaleFactors` (-1: none)."""
+
+    sub: float = 0.0
+    mul: float = 1.0
+    add: float = 0.0
+    raw_lo: float = 0.0
+    raw_hi: float = 0.0
+    eng_lo: float = 0.0
+    eng_hi: float = 0.0
+    sf: int = -1
+    range: int = 0
+
+
+class ScaleFactors:
+    """One device's scale factors (SunSpec ``*_SF`` items), by the name of the item that
+    holds each: a C array shared by the plans of the device's blocks.  The plan of a
+    block that reads a factor's item stores it (in C, on the line's worker); a plan
+    whose items use it reads it there.  :meth:`get` reads it from any thread (an
+    aligned int32: the last stored value, or None before the first read).
+
+    Compared by identity: specs of two devices never share one."""
+
+    __slots__ = ("_table", "names")
+
+    def __init__(self, names: Sequence[str]) -> None:
+        self.names: dict[str, int] = {name: k for k, name in enumerate(dict.fromkeys(names))}
+        self._table = ffi.new("int32_t[]", max(len(self.names), 1))
+        for k in range(len(self.names)):
+            self._table[k] = lib.EMB_SF_UNKNOWN
+
+    def index(self, name: str) -> int:
+        """The slot of ``name``'s factor (KeyError if it is not one)."""
+        return self.names[name]
+
+    def get(self, name: str) -> int | None:
+        """The last value read of ``name``'s factor (its raw Int16), None before."""
+        v = int(self._table[self.names[name]])
+        return None if v == lib.EMB_SF_UNKNOWN else v
+
+    def __repr__(self) -> str:
+        return f"ScaleFactors({list(self.names)})"
+
+
 def _fill_item(dst: Any, item: CodecItem, slot: int, aux: int) -> None:
     try:
         dst.offset = item.offset
@@ -60,7 +107,10 @@ class CodecPlan:
     """A compiled read block: C item array, typed output arrays and change-tracking state.
 
     ``posts[i]`` (or None) turns item i's raw result into its Python value (bytes for
-    BYTES items).  Used by one thread at a time, like the block it decodes.
+    BYTES items).  ``scales[i]`` (or None; no list: no item is) is item i's engineering
+    units step; ``sources`` the (item index, factor slot) of the items that hold a
+    scale factor of ``factors`` (needed by both).  Used by one thread at a time, like
+    the block it decodes.
     """
 
     def __init__(
@@ -68,6 +118,9 @@ class CodecPlan:
         bits: bool,
         items: Sequence[CodecItem],
         posts: Sequence[Callable[[Any], object] | None],
+        scales: Sequence[CodecScale | None] = (),
+        factors: ScaleFactors | None = None,
+        sources: Sequence[tuple[int, int]] = (),
     ) -> None:
         n = len(items)
         o_bytes = lib.EMB_O_BYTES
@@ -121,6 +174,7 @@ class CodecPlan:
             self._last_status,
             self._last_bytes,
         )
+        self._scaling(plan, scales, factors, sources)
         bad = lib.emb_plan_check(plan)
         if bad:
             where = f"item {bad - 1}" if bad > 0 else "the plan"
@@ -175,6 +229,50 @@ class CodecPlan:
             self._getter = operator.itemgetter(*[base[src] + idx for src, idx in place])
         else:
             self._runs = [(src, a, b, a == 0 and b == lengths[src]) for src, a, b in runs]
+
+    def _scaling(
+        self,
+        plan: Any,
+        scales: Sequence[CodecScale | None],
+        factors: ScaleFactors | None,
+        sources: Sequence[tuple[int, int]],
+    ) -> None:
+        """Lay out the engineering units steps (plan.scales, EMB_F_EXT items' aux) and
+        the scale factor items (plan.sf_src) over ``factors``' table."""
+        try:
+            self._lay_out(plan, scales, factors, sources)
+        except (OverflowError, TypeError) as exc:
+            raise ValueError(f"codec: scaling steps do not fit the C plan ({exc})") from None
+
+    def _lay_out(
+        self,
+        plan: Any,
+        scales: Sequence[CodecScale | None],
+        factors: ScaleFactors | None,
+        sources: Sequence[tuple[int, int]],
+    ) -> None:
+        used = [(k, sc) for k, sc in enumerate(scales) if sc is not None]
+        if used:
+            self._scales = ffi.new("emb_scale[]", len(used))
+            for j, (k, sc) in enumerate(used):
+                dst = self._scales[j]
+                (dst.sub, dst.mul, dst.add, dst.raw_lo, dst.raw_hi, dst.eng_lo, dst.eng_hi,
+                 dst.sf, dst.range) = sc
+                citem = self._citems[k]
+                citem.flags |= lib.EMB_F_EXT
+                if not citem.flags & (lib.EMB_F_MULTIPLY | lib.EMB_F_DIVIDE):
+                    citem.flags |= lib.EMB_F_MULTIPLY  # by 1.0: EXT rides on its test
+                    citem.scale = 1.0
+                citem.aux = j
+            plan.scales, plan.n_scales = self._scales, len(used)
+        if sources:
+            self._sources = ffi.new("emb_sfsrc[]", len(sources))
+            for j, (k, index) in enumerate(sources):
+                self._sources[j].item = k
+                self._sources[j].index = index
+            plan.sf_src, plan.n_sf_src = self._sources, len(sources)
+        if factors is not None:
+            plan.sf, plan.n_sf = factors._table, len(factors.names)
 
     def decode(self, block: Block, mode: int) -> int:
         """Run the C decode over ``block``; returns the reported (or failed) item count."""

@@ -1,6 +1,7 @@
 """``edgemodbus import FILE.csv [-o device.json]``: a tag list exported from another tool
-(Kepware's CSV export, or a generic ``name,address,type[,scanRate,scale]`` list) as our
-device file (docs/command-line.md, "Importing a tag list").
+(Kepware's CSV export, or a generic ``name,address,type[,scanRate,scale]`` list, with the
+engineering units columns of docs/engineering-units.md) as our device file
+(docs/command-line.md, "Importing a tag list").
 
 Every row that cannot be converted is one line on stderr (row, column, value, what is
 allowed).  Exit code 0 when every row was converted; 1 when rows were refused, and then

@@ -38,14 +38,17 @@ from .encoder import encode, register_bit
 from .float32 import Float32, float32_short, float32_text
 from .jsonable import json_bytes, json_text, json_value, jsonable
 from .normalize import normalize_value
+from .scaling import SF_MAX, ScaleFactors
 from .spec import MAX_QUANTITY, SMART_CAST_TYPES, ValueSpec, check_spec, smart_cast
 
 __all__ = [
     "MAX_QUANTITY",
+    "SF_MAX",
     "SMART_CAST_TYPES",
     "BlockDecoder",
     "Change",
     "Float32",
+    "ScaleFactors",
     "ValueSpec",
     "check_spec",
     "encode",

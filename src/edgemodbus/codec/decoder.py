@@ -12,6 +12,7 @@ from collections.abc import Sequence
 from .. import _ffi
 from .._ffi import Block, CodecPlan
 from ..datatypes import Area, DataType
+from .scaling import SF_MAX, scale_step
 from .spec import ValueSpec, _compile, _Compiled, check_spec
 
 __all__ = ["BlockDecoder", "Change"]
@@ -49,6 +50,31 @@ def _shared_indexes(n: int) -> tuple[int, ...]:
 
 
 _INDEXES: tuple[int, ...] = tuple(range(257))  # the ints Python keeps anyway
+
+
+_SCALING_CODES = frozenset((_E["RAW_RANGE"], _E["SF_UNKNOWN"], _E["SF_NI"], _E["SF_RANGE"]))
+
+
+def _scaling(
+    items: Sequence[tuple[int, ValueSpec]],
+) -> tuple[list[_ffi.CodecScale | None], _ffi.ScaleFactors | None, list[tuple[int, int]]]:
+    """The engineering units of a block's items for its C plan: each item's step (an
+    empty list when none has one), the device's scale factors and the block's items
+    that hold one (codec/scaling.py)."""
+    steps = [scale_step(spec) for _, spec in items]
+    if not any(steps):
+        steps = []
+    factors = None
+    sources: list[tuple[int, int]] = []
+    for k, (_, spec) in enumerate(items):
+        if spec.factors is None:
+            continue
+        if factors is not None and spec.factors is not factors:
+            raise ValueError(f"item {spec.name!r}: its scale factors are another device's")
+        factors = spec.factors
+        if spec.holds_factor is not None:
+            sources.append((k, factors.index(spec.holds_factor)))
+    return steps, factors, sources
 
 
 class BlockDecoder:
@@ -95,7 +121,8 @@ class BlockDecoder:
         self._offsets = _small_ints([offset for offset, _ in items])
         # the compiled items live on in the C plan only: error reasons, which are rare,
         # compile their item again (see _reason), which keeps a decoder small per tag
-        self._plan = CodecPlan(area.is_bit, [c.item for c in compiled], [c.post for c in compiled])
+        self._plan = CodecPlan(area.is_bit, [c.item for c in compiled],
+                               [c.post for c in compiled], *_scaling(items))
         self._indexes = _shared_indexes(len(compiled))
         # The tuple last reported for each item: mirrors the C state, so that a report of
         # every item rebuilds only the tuples whose value or status moved.
@@ -116,7 +143,10 @@ class BlockDecoder:
     def _reason(self, index: int, code: int) -> str:
         if code == _E["MISSING"]:
             return "not in response"
-        c = _compile(self._specs[self._spec_of[index]], self.area, self._offsets[index])
+        spec = self._specs[self._spec_of[index]]
+        if code in _SCALING_CODES:
+            return self._scaling_reason(spec, index, code)
+        c = _compile(spec, self.area, self._offsets[index])
         if code == _E["NAN"]:
             return f"NaN cannot be converted to {c.target_label}"
         v = self._plan.errval(index)
@@ -131,6 +161,19 @@ class BlockDecoder:
             lo, hi = c.target_range
             return f"value {_fmt_number(v)} is out of range for {c.target_label} ({lo}..{hi})"
         return f"value {_fmt_number(v)} is out of range for {c.target_label}"
+
+    def _scaling_reason(self, spec: ValueSpec, index: int, code: int) -> str:
+        v = self._plan.errval(index)
+        if code == _E["RAW_RANGE"]:
+            lo, hi = spec.raw_range or (math.nan, math.nan)
+            return (f"raw value {_fmt_number(v) if v is not None else v} outside "
+                    f"rawMin..rawMax ({_fmt_number(lo)}..{_fmt_number(hi)})")
+        which = f"scale factor item {spec.scale_factor!r}"
+        if code == _E["SF_UNKNOWN"]:
+            return f"{which} not read yet"
+        if code == _E["SF_NI"]:
+            return f"{which} is 0x8000 (SunSpec: not implemented)"
+        return f"{which} holds {v}, outside -{SF_MAX}..{SF_MAX}"
 
     def decode(self, block: Block, report_all: bool = False) -> list[Change]:
         """(index, value or None, error reason or None) of every item whose value, status

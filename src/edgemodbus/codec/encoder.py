@@ -9,6 +9,7 @@ from decimal import ROUND_HALF_EVEN, Decimal, InvalidOperation
 
 from .. import _ffi
 from ..datatypes import Area, DataType
+from .scaling import factor_of, to_eng, to_raw
 from .spec import _EPOCH, _F, _WIRE_RANGE, _WIRE_TYPE, ValueSpec, _compile, _scale, check_spec
 
 __all__ = ["encode", "register_bit"]
@@ -59,6 +60,8 @@ def _encode_int(spec: ValueSpec, value: object, wire: str) -> int:
         tlo, thi = t.integer_range
         if tlo > lo or thi < hi:  # Smart Cast from a wider read: the type's own range
             lo, hi, what = max(lo, tlo), min(hi, thi), t.value
+    if spec.scaled:
+        return _encode_scaled_int(spec, value, x, lo, hi, what)
     if (isinstance(x, float) and not math.isfinite(x)) or (
         isinstance(x, Decimal) and not x.is_finite()
     ):
@@ -72,9 +75,37 @@ def _encode_int(spec: ValueSpec, value: object, wire: str) -> int:
     return raw
 
 
+def _encode_scaled_int(spec: ValueSpec, value: object, x: int | float | Decimal, lo: int,
+                       hi: int, what: str) -> int:
+    """An integer item's raw value through the exact inverse of its engineering units
+    (codec/scaling.py: offset, range, the last scale factor read)."""
+    sf = factor_of(spec)
+    a, b = sorted((to_eng(spec, lo, sf), to_eng(spec, hi, sf)))
+    allowed = f"{_fmt_decimal(a)}..{_fmt_decimal(b)} ({what} on the device)"
+    d = _decimal(x)
+    if not d.is_finite():
+        raise _fail(spec, value, allowed)
+    try:
+        raw = int(to_raw(spec, d, sf).to_integral_value(rounding=ROUND_HALF_EVEN))
+    except ValueError as exc:
+        raise _fail(spec, value, str(exc).partition(": allowed ")[2]) from None
+    if not lo <= raw <= hi:
+        raise _fail(spec, value, allowed)
+    return raw
+
+
 def _encode_float(spec: ValueSpec, value: object, wire: str) -> float:
     x = float(_number(spec, value))
     flag, k = _scale(spec.multiplier)
+    if spec.scaled:
+        if not math.isfinite(x):
+            raise _fail(spec, value, "a finite number (the item is scaled)")
+        sf = factor_of(spec)
+        try:
+            x = float(to_raw(spec, _decimal(x), sf))
+        except ValueError as exc:
+            raise _fail(spec, value, str(exc).partition(": allowed ")[2]) from None
+        flag = 0
     if flag == _F["DIVIDE"]:
         x = x * k
     elif flag:

@@ -12,10 +12,11 @@ from dataclasses import dataclass
 from typing import Any
 
 from .. import _ffi
-from .._ffi import CodecItem
+from .._ffi import CodecItem, ScaleFactors
 from ..datatypes import Area, DataFormat, DataFormat64, DataType
 from ..protocol.limits import MAX_READ_REGISTERS
 from .float32 import Float32, float32_text
+from .scaling import check_scaling
 
 __all__ = ["MAX_QUANTITY", "SMART_CAST_TYPES", "ValueSpec", "check_spec", "smart_cast"]
 
@@ -40,6 +41,13 @@ class ValueSpec:
     ``data_format`` means for them (docs/device-files.md "Byte order").  ``quantity`` is in
     registers (None = the type's default); ``deadband`` is absolute on the final value
     (0 = report any change).
+
+    Engineering units (codec/scaling.py): ``offset`` is added after the multiplier;
+    ``raw_range``/``eng_range`` (rawMin, rawMax)/(engMin, engMax) map the raw value
+    linearly, a raw value outside it Invalid, or with ``clamp`` the value held in the
+    engineering range; ``scale_factor`` names the Int16 item whose value sf scales this
+    one by 10^sf, ``holds_factor`` is the name an item that is a scale factor stores
+    its value under, both in the device's ``factors``.
     """
 
     name: str
@@ -53,6 +61,19 @@ class ValueSpec:
     encoding: str = "utf-8"
     byte_swap16: bool = False
     data_format64: DataFormat64 | None = None
+    offset: float = 0.0
+    raw_range: tuple[float, float] | None = None
+    eng_range: tuple[float, float] | None = None
+    clamp: bool = False
+    scale_factor: str | None = None
+    holds_factor: str | None = None
+    factors: ScaleFactors | None = None
+
+    @property
+    def scaled(self) -> bool:
+        """Whether the item has an engineering units step (an offset, a range or a
+        scale factor) beyond the multiplier."""
+        return bool(self.offset) or self.raw_range is not None or self.scale_factor is not None
 
     @property
     def format64(self) -> DataFormat64:
@@ -117,6 +138,9 @@ def check_spec(spec: ValueSpec, area: Area) -> None:
         raise _bad(spec, "dataMultiplier", m, "a finite number other than 0")
     if m != 1 and not t.is_numeric:
         raise _bad(spec, "dataMultiplier", m, f"{t.value} values take no multiplier, use 1")
+    wrong = check_scaling(spec)
+    if wrong is not None:
+        raise _bad(spec, *wrong)
     c = spec.converted_type
     if c is not None and c is not t:
         if t in _NO_CONVERSION:
@@ -259,6 +283,8 @@ def smart_cast(spec: ValueSpec) -> str | None:
         how = f"read as {what} and narrowed to {t.value}"
         if spec.multiplier != 1:
             how += " (with a dataMultiplier the scaled value is reported as read)"
+        elif spec.scaled:
+            how += " (in engineering units the scaled value is reported as read)"
         elif t.is_integer:
             lo, hi = t.integer_range
             how += f" (a value outside {lo}..{hi} makes the item Invalid)"
@@ -338,8 +364,9 @@ def _compile(spec: ValueSpec, area: Area, offset: int) -> _Compiled:
     flags = order_flags(spec, wire, nregs)
     scale_flag, scale = _scale(spec.multiplier)
     flags |= scale_flag
+    scaled = bool(scale_flag) or spec.scaled  # the value is a double before conversion
     conv = spec.converted_type
-    if conv is t and (t in _NO_CONVERSION or spec.multiplier == 1):
+    if conv is t and (t in _NO_CONVERSION or not scaled):
         conv = None
     post: Callable[[Any], object] | None = None
     target = "NONE"
@@ -355,7 +382,7 @@ def _compile(spec: ValueSpec, area: Area, offset: int) -> _Compiled:
     elif t is DataType.DATETIME:
         out, target, post = "I64", "DATETIME", _to_datetime
     elif conv is None or conv is DataType.STRING:
-        if scale_flag:
+        if scaled:
             out = "F64"
         elif t is DataType.BOOLEAN:
             out = "BOOL"
@@ -365,12 +392,12 @@ def _compile(spec: ValueSpec, area: Area, offset: int) -> _Compiled:
             out = "U64"
         else:
             out = "I64"
-        if nregs > t.registers and not scale_flag and t in SMART_CAST_TYPES:
+        if nregs > t.registers and not scaled and t in SMART_CAST_TYPES:
             # Smart Cast from a wider read: narrowed to the type, range-checked in C
             target = _TARGET[t]
             if t.is_integer:
                 out, rng = "I64", t.integer_range
-        float32 = t is DataType.FLOAT and not scale_flag
+        float32 = t is DataType.FLOAT and not scaled
         if conv is DataType.STRING:
             post = float32_text if float32 else str
         elif float32:

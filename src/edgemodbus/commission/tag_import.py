@@ -9,8 +9,11 @@ Two CSV forms, told apart by the header row:
   writes them with its default zero-based addressing (``400001`` and ``40001`` = holding
   register 0, ``300010``, ``100001``, ``000001``), with ``.bit`` (0..15) on registers.
 * A generic list: ``name, address, type`` and optionally ``scanRate`` (ms), ``scale``
-  (a multiplier), ``unit``, ``description``; its addresses are ours (``hr:100``), read
-  with the chosen ``addressPrefix`` (``entity`` reads ``40001``).
+  (a multiplier), ``unit``, ``description`` and the engineering units keys ``offset``,
+  ``rawMin``, ``rawMax``, ``engMin``, ``engMax``, ``clamp``, ``scaleFactor``
+  (docs/engineering-units.md); its addresses are ours (``hr:100``), read with the
+  chosen ``addressPrefix`` (``entity`` reads ``40001``).  A row with a scaleFactor is
+  checked alone: the item it names is checked when the device file loads.
 
 Every row is converted on its own and checked by the config loader; a row that cannot be
 converted is a :class:`Refusal` naming its row (the header is row 1), column, value and
@@ -37,7 +40,8 @@ KEPWARE_COLUMNS: tuple[str, ...] = (
     "Clamp Low", "Clamp High", "Eng Units", "Description",
 )
 GENERIC_COLUMNS: tuple[str, ...] = ("name", "address", "type", "scanRate", "scale", "unit",
-                                    "description")
+                                    "description", "offset", "rawMin", "rawMax", "engMin",
+                                    "engMax", "clamp", "scaleFactor")
 
 KEPWARE_TYPES: dict[str, DataType] = {
     "Boolean": DataType.BOOLEAN,
@@ -137,28 +141,42 @@ def _kepware_type(text: str, column: str, area_is_bit: bool) -> DataType:
     raise _Refused(column, text, f"{why} (allowed: {_KEPWARE_ALLOWED})")
 
 
-def _scaling(row: dict[str, str]) -> float:
-    """The multiplier of Kepware's scaling columns (1: none); offsets are refused."""
+def _scaling(row: dict[str, str]) -> dict[str, Any]:
+    """The item keys of Kepware's scaling columns (docs/engineering-units.md): Linear
+    extrapolates, so it is ``dataMultiplier`` and ``offset`` (scaled = raw x factor +
+    offset); Linear with both clamps is a clamped range (rawMin..engMax, clamp).  Negate
+    Value negates the scaled value."""
     kind = row.get("Scaling", "").strip().lower()
+    clamps = [_flag(row, c) for c in ("Clamp Low", "Clamp High")]
     if kind in ("", "none"):
-        return 1.0
+        for column, on in zip(("Clamp Low", "Clamp High"), clamps, strict=True):
+            if on:
+                raise _Refused(column, row[column], "clamping needs Linear scaling (use 0)")
+        return {"dataMultiplier": -1.0} if _flag(row, "Negate Value") else {}
     if kind != "linear":
         raise _Refused("Scaling", row.get("Scaling", ""),
-                       "only None and Linear scaling are converted (a multiplier)")
+                       "only None and Linear scaling are converted")
     raw_lo, raw_hi, sc_lo, sc_hi = (_number(row.get(c, "").strip(), c) for c in
                                     ("Raw Low", "Raw High", "Scaled Low", "Scaled High"))
     if raw_hi == raw_lo:
         raise _Refused("Raw High", row.get("Raw High", ""), "must differ from Raw Low")
-    factor = (sc_hi - sc_lo) / (raw_hi - raw_lo)
-    offset = sc_lo - raw_lo * factor
-    if abs(offset) > 1e-9 * max(1.0, abs(sc_lo), abs(sc_hi)):
-        raise _Refused("Scaling", row.get("Scaling", ""),
-                       f"linear scaling with an offset ({offset:g}) is not converted: "
-                       "dataMultiplier only multiplies (scaled = raw x factor)")
-    if factor == 0:
+    if sc_hi == sc_lo:
         raise _Refused("Scaled High", row.get("Scaled High", ""),
                        "must differ from Scaled Low")
-    return factor
+    sign = -1.0 if _flag(row, "Negate Value") else 1.0
+    if clamps[0] != clamps[1]:
+        column = "Clamp Low" if clamps[0] else "Clamp High"
+        raise _Refused(column, row[column], "clamping one end only is not converted (set "
+                                            "Clamp Low and Clamp High both, or neither)")
+    if clamps[0]:
+        return {"rawMin": raw_lo, "rawMax": raw_hi, "engMin": sign * sc_lo,
+                "engMax": sign * sc_hi, "clamp": True}
+    factor = (sc_hi - sc_lo) / (raw_hi - raw_lo)
+    offset = sc_lo - raw_lo * factor
+    keys: dict[str, Any] = {"dataMultiplier": sign * factor}
+    if abs(offset) > 1e-12 * max(1.0, abs(sc_lo), abs(sc_hi)):
+        keys["offset"] = sign * offset
+    return keys
 
 
 def _kepware_item(row: dict[str, str]) -> dict[str, Any]:
@@ -180,17 +198,11 @@ def _kepware_item(row: dict[str, str]) -> dict[str, Any]:
                           addr.area.is_bit or addr.bit is not None)
     item: dict[str, Any] = {"name": name, "address": format_address(addr),
                             "deviceDataType": dtype.value}
-    factor = _scaling(row)
-    if _flag(row, "Negate Value"):
-        factor = -factor
-    if factor != 1:
-        item["dataMultiplier"] = factor
-    if factor != 1 and row.get("Scaled Data Type", "").strip():
+    scaling = _scaling(row)
+    item.update(scaling)
+    if scaling and row.get("Scaled Data Type", "").strip():
         item["convertedDataType"] = _kepware_type(row["Scaled Data Type"], "Scaled Data Type",
                                                   False).value
-    for column in ("Clamp Low", "Clamp High"):
-        if _flag(row, column):
-            raise _Refused(column, row[column], "clamping is not converted (use 0)")
     _rate(item, row, "Scan Rate")
     for column, key in (("Eng Units", "unit"), ("Description", "description")):
         if row.get(column, "").strip():
@@ -227,6 +239,17 @@ def _generic_item(row: dict[str, str], prefix: str) -> dict[str, Any]:
     scale = row.get("scale", "").strip()
     if scale:
         item["dataMultiplier"] = _number(scale, "scale")
+    for key in ("offset", "rawMin", "rawMax", "engMin", "engMax"):
+        text = row.get(key, "").strip()
+        if text:
+            item[key] = _number(text, key)
+    clamp = row.get("clamp", "").strip().lower()
+    if clamp:
+        if clamp not in ("true", "false", "1", "0"):
+            raise _Refused("clamp", row["clamp"], "must be true or false (1 or 0)")
+        item["clamp"] = clamp in ("true", "1")
+    if row.get("scaleFactor", "").strip():
+        item["scaleFactor"] = row["scaleFactor"].strip()
     _rate(item, row, "scanRate")
     for key in ("unit", "description"):
         if row.get(key, "").strip():
@@ -238,17 +261,27 @@ def _generic_item(row: dict[str, str], prefix: str) -> dict[str, Any]:
 _COLUMN_OF = {
     "kepware": {"name": "Tag Name", "address": "Address", "deviceDataType": "Data Type",
                 "quantity": "Data Type", "dataMultiplier": "Scaling",
-                "convertedDataType": "Scaled Data Type", "readCycle": "Scan Rate"},
+                "convertedDataType": "Scaled Data Type", "readCycle": "Scan Rate",
+                "offset": "Scaling", "rawMin": "Raw Low", "rawMax": "Raw High",
+                "engMin": "Scaled Low", "engMax": "Scaled High", "clamp": "Clamp Low"},
     "generic": {"name": "name", "address": "address", "deviceDataType": "type",
                 "quantity": "type", "dataMultiplier": "scale", "convertedDataType": "scale",
-                "readCycle": "scanRate"},
+                "readCycle": "scanRate", **{k: k for k in ("offset", "rawMin", "rawMax",
+                                                           "engMin", "engMax", "clamp",
+                                                           "scaleFactor")}},
 }
 
 
 def _checked(item: dict[str, Any], form: str, row: dict[str, str]) -> None:
-    """The config loader's own check of one item; its first problem is a refusal."""
+    """The config loader's own check of one item; its first problem is a refusal.  The
+    item a scaleFactor names is stood in for by an Int16 (import_tags checks that the
+    list holds it)."""
+    items = [item]
+    factor = item.get("scaleFactor")
+    if isinstance(factor, str) and factor != item["name"]:
+        items.append({"name": factor, "address": "hr:0", "deviceDataType": "Int16"})
     try:
-        load_device_config({"addressList": [item]})
+        load_device_config({"addressList": items})
     except ConfigError as exc:
         problem = exc.problems[0]
         key = problem.path.rpartition(".")[2]
@@ -317,4 +350,21 @@ def import_tags(text: str, address_prefix: str = "function-code") -> ImportResul
         result.items.append(item)
     if result is None:
         raise ValueError("the file holds no header row (and no tags)")
+    _check_factors(result, seen)
     return result
+
+
+def _check_factors(result: ImportResult, seen: dict[str, int]) -> None:
+    """Refuse the rows whose scaleFactor names no converted tag."""
+    column = "scaleFactor"
+    kept: list[dict[str, Any]] = []
+    for item in result.items:
+        factor = item.get(column)
+        if factor is not None and factor not in seen:
+            result.refused.append(Refusal(seen[item["name"]], column, factor,
+                                          "no tag of that name in the list (a scale factor "
+                                          "is an Int16 tag of the same device)"))
+            continue
+        kept.append(item)
+    result.items = kept
+    result.refused.sort(key=lambda r: r.row)

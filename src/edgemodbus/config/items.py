@@ -39,6 +39,13 @@ from .base import (
 from .communication import DriverModbusRtuParameter, ReportMode
 from .compat import NG_POINT_KEYS, iso_timestamp, ng_point
 from .problems import NO_VALUE, ConfigError, Problem, WrongType
+from .scaling import (
+    ScaleFactors,
+    link_scale_factors,
+    scaling_fields,
+    scaling_keys,
+    scaling_shape,
+)
 
 _log = logging.getLogger("edgemodbus.config")
 ON_DEMAND = -1  # an item's readCycle -1: never polled, read when asked (docs/reporting.md)
@@ -85,6 +92,22 @@ class DeviceAddressItem(SlotModel):
     report_every: OptionalMs = Field(
         default=None, description="Report an unchanged item again once its last report is "
         "this old (ms, at least its scan rate); default the device's reportEvery")
+    offset: float = Field(default=0.0, description="Added to the value after dataMultiplier "
+                          "(value = raw x 10^sf x dataMultiplier + offset; "
+                          "docs/engineering-units.md)")
+    raw_min: float | None = Field(default=None, description="Range scaling: the raw value "
+                                  "that reads as engMin (rawMin, rawMax, engMin, engMax: "
+                                  "all four or none)")
+    raw_max: float | None = Field(default=None, description="Range scaling: the raw value "
+                                  "that reads as engMax")
+    eng_min: float | None = Field(default=None, description="Range scaling: the value at rawMin")
+    eng_max: float | None = Field(default=None, description="Range scaling: the value at rawMax")
+    clamp: bool = Field(default=False, description="Range scaling: a raw value outside "
+                        "rawMin..rawMax reads as the nearest of engMin/engMax (false: the "
+                        "item is Invalid)")
+    scale_factor: str | None = Field(default=None, description="The name of an Int16 item "
+                                     "of the same device holding sf: value x 10^sf "
+                                     "(SunSpec *_SF); -10..10, 0x8000 = not implemented")
     value: Any = None
     error_reason: str | None = None
 
@@ -138,6 +161,32 @@ class DeviceAddressItem(SlotModel):
     @classmethod
     def _multiplier_number(cls, value: Any) -> Any:
         return as_number(value, False, False, "a finite number other than 0")
+
+    @field_validator("offset", mode="before")
+    @classmethod
+    def _offset_number(cls, value: Any) -> Any:
+        return as_number(value, False, False, "a finite number")
+
+    @field_validator("raw_min", "raw_max", "eng_min", "eng_max", mode="before")
+    @classmethod
+    def _range_number(cls, value: Any) -> Any:
+        return as_number(value, False, True, "a finite number")
+
+    @field_validator("offset", "raw_min", "raw_max", "eng_min", "eng_max")
+    @classmethod
+    def _finite(cls, value: float | None) -> float | None:
+        if value is not None and not math.isfinite(value):
+            raise ValueError("must be a finite number")
+        return value
+
+    @field_validator("scale_factor", mode="before")
+    @classmethod
+    def _factor_name(cls, value: Any) -> Any:
+        if value is None or (isinstance(value, str) and not value.strip()):
+            return None
+        if not isinstance(value, str):
+            raise WrongType("must be the name of an Int16 item of the same device")
+        return value
 
     @field_validator("address")
     @classmethod
@@ -280,6 +329,7 @@ class ParsedItem:
     multiplier: float
     deadband: float | None
     encoding: str
+    factors: ScaleFactors | None = None  # the device's, when an item has a scaleFactor
 
     @property
     def name(self) -> str:
@@ -300,6 +350,7 @@ class ParsedItem:
             converted_type=self.converted_type,
             deadband=self.deadband or 0.0,
             encoding=self.encoding,
+            **scaling_keys(self.item, self.factors),
         )
 
 
@@ -417,7 +468,7 @@ def validate_items(
         # the codec's check depends on everything but the name: check each shape once
         shape = (addr.area, addr.bit, one.data_type, one.data_format, one.byte_swap16,
                  one.data_format64, one.quantity, one.multiplier, one.converted_type,
-                 one.deadband, one.encoding)
+                 one.deadband, one.encoding, *scaling_shape(item))
         if shape not in checked:
             spec = one.value_spec()
             try:
@@ -428,6 +479,7 @@ def validate_items(
             checked.add(shape)
         _warn_smart_cast(one.value_spec(), path)
         parsed.append(one)
+    parsed = link_scale_factors(parsed, items, problems)
     if problems:
         raise ConfigError(problems)
     return parsed
@@ -491,6 +543,7 @@ def _codec_problem(
             None if spec.converted_type is None else spec.converted_type.value,
         ),
         "deadband": ("deadband", spec.deadband),
+        **scaling_fields(spec),
         "encoding": ("encoding", spec.encoding),
     }
     head, sep, why = text.partition(" is not allowed (")

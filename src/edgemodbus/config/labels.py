@@ -159,6 +159,14 @@ ITEM_LABELS: dict[str, dict[str, Any]] = {
     "read_cycle": _ui("扫描周期(ms)", "Address", "number"),
     "report_mode": _ui("上报方式", "Address", "select"),
     "report_every": _ui("定期上报(ms)", "Address", "number"),
+    # engineering units (docs/engineering-units.md)
+    "offset": _ui("偏移量", "Scaling", "number"),
+    "raw_min": _ui("原始值下限", "Scaling", "number"),
+    "raw_max": _ui("原始值上限", "Scaling", "number"),
+    "eng_min": _ui("工程值下限", "Scaling", "number"),
+    "eng_max": _ui("工程值上限", "Scaling", "number"),
+    "clamp": _ui("超限钳位", "Scaling", "switch"),
+    "scale_factor": _ui("比例因子点位(SunSpec SF)", "Scaling", "string"),
 }
 """UI labels of the optional address item fields the descriptor lists
 (``addressParameter``), keyed by DeviceAddressItem's field names."""

@@ -15,7 +15,7 @@ import sys
 import pytest
 
 from edgemodbus import _ffi
-from edgemodbus._ffi import Block, CodecItem, CodecPlan, codec_encode
+from edgemodbus._ffi import Block, CodecItem, CodecPlan, CodecScale, ScaleFactors, codec_encode
 from edgemodbus.codec import BlockDecoder, ValueSpec, encode
 from edgemodbus.datatypes import Area, DataFormat, DataType
 
@@ -116,7 +116,9 @@ def random_c_item(rng: random.Random, bits: bool) -> CodecItem:
         "offset": rng.choice([0, rng.randint(0, 200), 2**32 - 1, 2**31, 2**16]),
         "nregs": nregs,
         "wire": wire,
-        "flags": rng.randint(0, 255) & (0x13 if wire == W["BYTES"] else 0xFF),
+        # EMB_F_EXT comes from the plan's scales (test below); alone it is refused
+        "flags": rng.randint(0, 255) & (0x13 if wire == W["BYTES"] else ~_ffi.codec_constants(
+            "F")["EXT"] & 0xFF),
         "bit": rng.randint(0, 15),
         "target": 0 if wire == W["BYTES"] else rng.randint(0, _ffi.codec_constants("C")["LAST"]),
         "out": out,
@@ -155,6 +157,52 @@ def test_random_c_item_descriptions_are_refused_or_safe(seed: int) -> None:
             assert len(plan.values()) == len(items)
             assert all(0 <= k < len(items) for k in plan.errors())
     assert accepted > 10  # the random plans do reach the decoder
+
+
+def random_scale(rng: random.Random, n_sf: int) -> CodecScale | None:
+    """A wild engineering units step (csrc/emb_codec.h emb_scale), or None; now and
+    then a field that is plain wrong."""
+    if rng.random() < 0.3:
+        return None
+    finite = [x for x in WEIRD_NUMBERS if math.isfinite(x)]
+    lo, hi = sorted(rng.choice([*finite, -5.0, 5.0, 1e9]) for _ in range(2))
+    fields = {
+        "sub": rng.choice(finite), "mul": rng.choice(finite), "add": rng.choice(finite),
+        "raw_lo": lo, "raw_hi": hi, "eng_lo": min(lo, -1.0), "eng_hi": max(hi, 1.0),
+        "sf": rng.choice([-1, 0, n_sf - 1]), "range": rng.choice([0, 1, 2]),
+    }
+    if rng.random() < 0.1:
+        name = rng.choice(list(fields))
+        fields[name] = rng.choice([math.nan, math.inf, -7.0, 3, n_sf, 2**31 - 1, 255])
+    return CodecScale(**fields)  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+def test_random_scaling_steps_are_refused_or_safe(seed: int) -> None:
+    """Scaled items, scale factor sources and factor values past what the codec package
+    builds: refused by emb_plan_check, or decoded without a fault (asan build too)."""
+    rng = random.Random(3000 + seed)
+    accepted = 0
+    for _ in range(150):
+        items = [random_c_item(rng, False) for _ in range(rng.randint(1, 3))]
+        factors = ScaleFactors([f"sf{k}" for k in range(rng.randint(0, 3))])
+        n_sf = len(factors.names)
+        scales = [random_scale(rng, n_sf) for _ in items]
+        sources = [(rng.choice([0, len(items) - 1, len(items)]),
+                    rng.choice([0, n_sf - 1, n_sf])) for _ in range(rng.randint(0, 1))]
+        try:
+            plan = CodecPlan(False, items, [None] * len(items), scales,
+                             factors if rng.random() < 0.9 else None, sources)
+        except ValueError:
+            continue
+        accepted += 1
+        block = Block.from_values([rng.choice([0, 1, 0x8000, 0xFFF6, 11, rng.randint(0, 0xFFFF)])
+                                   for _ in range(rng.randint(0, 300))], False)
+        for mode in (_ffi.CODEC_MODE_VALUES, _ffi.CODEC_MODE_TRACK, _ffi.CODEC_MODE_ALL):
+            n = plan.decode(block, mode)
+            assert 0 <= n <= len(items)
+            assert len(plan.values()) == len(items)
+    assert accepted > 10
 
 
 @pytest.mark.parametrize("seed", SEEDS)

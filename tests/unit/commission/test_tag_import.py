@@ -55,6 +55,45 @@ def test_kepware_rows_convert() -> None:
         "hr:0", "hr:2", "coil:16", "hr:4.3", "ir:1", "di:7", "hr:99", "ir:99", "ir:49"]
 
 
+def test_linear_scaling_with_an_offset_and_clamped_ranges_convert() -> None:
+    """Kepware's Linear extrapolates: a multiplier and an offset; with both clamps it is
+    a clamped range (docs/engineering-units.md).  The old importer refused both."""
+    text = kepware(
+        '"Level","400010","Word",1,RO,100,"Linear",4000,20000,0,100,"Float",0,0,,',
+        '"Loop","400011","Word",1,RO,100,"Linear",0,27648,4,20,"Float",1,1,"mA",',
+    )
+    result = import_tags(text)
+    assert result.refused == []
+    level, loop = result.items
+    assert (level["dataMultiplier"], level["offset"]) == (0.00625, -25.0)
+    assert {k: loop[k] for k in ("rawMin", "rawMax", "engMin", "engMax", "clamp")} == {
+        "rawMin": 0.0, "rawMax": 27648.0, "engMin": 4.0, "engMax": 20.0, "clamp": True}
+    assert "dataMultiplier" not in loop
+    em.load_device_config(result.device())
+
+
+def test_generic_form_takes_the_engineering_units_keys() -> None:
+    text = ("name,address,type,offset,rawMin,rawMax,engMin,engMax,clamp,scaleFactor\n"
+            "t,hr:1,Int16,-40,,,,,,\n"
+            "i,hr:2,UInt16,,0,27648,4,20,true,\n"
+            "w,hr:3,Int16,,,,,,,w_sf\n"
+            "w_sf,hr:4,Int16,,,,,,,\n"
+            "v,hr:5,Int16,,,,,,,nope\n"
+            "c,hr:6,Int16,,,,,,maybe,\n"
+            "s,hr:7,Int16,,1,,,,,\n")
+    result = import_tags(text)
+    assert [i["name"] for i in result.items] == ["t", "i", "w", "w_sf"]
+    assert result.items[0]["offset"] == -40.0 and result.items[1]["clamp"] is True
+    assert result.items[2]["scaleFactor"] == "w_sf"
+    assert [str(r) for r in result.refused] == [
+        "row 6, column 'scaleFactor', value 'nope': no tag of that name in the list (a scale "
+        "factor is an Int16 tag of the same device)",
+        "row 7, column 'clamp', value 'maybe': must be true or false (1 or 0)",
+        "row 8, column 'rawMax', value '': not allowed: rawMin, rawMax, engMin and engMax all "
+        "four, or none (missing: rawMax, engMin, engMax)"]
+    em.load_device_config(result.device())
+
+
 def test_negate_value_is_a_negative_multiplier() -> None:
     text = (HEADER + ',"Negate Value"\n'
             '"Out","400001","Short",1,RO,100,"Linear",0,10,0,1,"Float",0,0,,,1\n')
@@ -78,12 +117,14 @@ def test_negate_value_is_a_negative_multiplier() -> None:
          Refusal(2, "Scan Rate", "fast", "must be a number")),
         ('"R","400010","Word",1,RO,0,,,,,,,,,,',
          Refusal(2, "Scan Rate", "0", "must be a whole number of milliseconds, 1 or more")),
-        ('"O","400010","Word",1,RO,100,"Linear",0,100,10,20,"Float",0,0,,',
-         Refusal(2, "Scaling", "Linear", "linear scaling with an offset (10) is not converted")),
+        ('"O","400010","Word",1,RO,100,"Linear",0,100,10,20,"Float",1,0,,',
+         Refusal(2, "Clamp Low", "1", "clamping one end only is not converted")),
+        ('"O","400010","Word",1,RO,100,"Linear",0,100,10,10,"Float",0,0,,',
+         Refusal(2, "Scaled High", "10", "must differ from Scaled Low")),
         ('"Q","400010","Word",1,RO,100,"Square Root",0,100,0,20,"Float",0,0,,',
          Refusal(2, "Scaling", "Square Root", "only None and Linear scaling are converted")),
         ('"K","400010","Word",1,RO,100,,,,,,,1,0,,',
-         Refusal(2, "Clamp Low", "1", "clamping is not converted (use 0)")),
+         Refusal(2, "Clamp Low", "1", "clamping needs Linear scaling (use 0)")),
         ('"B","500001","Word",1,RO,100,,,,,,,,,,',
          Refusal(2, "Address", "500001", "table digit '5' is not a Modbus table")),
         ('"B","465537","Word",1,RO,100,,,,,,,,,,',

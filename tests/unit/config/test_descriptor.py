@@ -110,10 +110,20 @@ def test_seed_parameters_keep_their_label_type_category_control() -> None:
 
 
 def test_address_parameters_are_the_seed_file_s_item_fields() -> None:
-    # the item's scan rate, in full (tests/data/seed-descriptor.json pins it)
-    assert driver_descriptor()["addressParameter"] == SEED["addressParameter"]
+    # the item's scan rate, in full (tests/data/seed-descriptor.json pins it), then the
+    # engineering units keys (docs/engineering-units.md)
+    ours = driver_descriptor()["addressParameter"]
+    assert ours[: len(SEED["addressParameter"])] == SEED["addressParameter"]
     assert [p["name"] for p in SEED["addressParameter"]] == [
         "readCycle", "reportMode", "reportEvery"]
+    scaling = {p["name"]: p for p in ours[len(SEED["addressParameter"]):]}
+    assert list(scaling) == ["offset", "rawMin", "rawMax", "engMin", "engMax", "clamp",
+                             "scaleFactor"]
+    assert {p["category"] for p in scaling.values()} == {"Scaling"}
+    assert (scaling["offset"]["type"], scaling["offset"]["defaultValue"]) == ("double", 0.0)
+    assert (scaling["clamp"]["type"], scaling["clamp"]["controlType"]) == ("bool", "switch")
+    assert scaling["scaleFactor"]["type"] == "string"
+    assert all(p["description"] for p in scaling.values())
 
 
 def test_item_read_cycle_has_the_device_s_range_and_demand_and_loads_its_limits() -> None:
