@@ -109,15 +109,23 @@ def test_range_scaling_equals_exact_arithmetic(
         assert min(e0, e1) <= value <= max(e0, e1)
 
 
+@st.composite
+def inside_range_cases(draw: st.DrawFn) -> tuple[DataType, int, tuple[int, int],
+                                                tuple[float, float], bool]:
+    """A range case whose raw value lies inside rawMin..rawMax, drawn there (filtering
+    it out of range_cases() left too few inputs on some runs)."""
+    dtype, _, (r0, r1), eng, clamp = draw(range_cases())
+    return dtype, draw(st.integers(min(r0, r1), max(r0, r1))), (r0, r1), eng, clamp
+
+
 @settings(max_examples=300, deadline=None)
-@given(range_cases())
+@given(inside_range_cases())
 def test_a_write_reads_back_as_the_value_written(
     case: tuple[DataType, int, tuple[int, int], tuple[float, float], bool],
 ) -> None:
     """The inverse is exact: the raw value written is the exact raw value of the
     engineering value, rounded half to even (decimal), and reads back as it."""
     dtype, raw, (r0, r1), (e0, e1), clamp = case
-    assume(min(r0, r1) <= raw <= max(r0, r1))
     # one raw count is far above a double's resolution of the values (else no inverse
     # can name the raw value: many read as one)
     assume(abs(e1 - e0) / abs(r1 - r0) > 1e-6 * max(1.0, abs(e0), abs(e1)))
