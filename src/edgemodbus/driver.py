@@ -238,7 +238,8 @@ class DriverModbusRtu:
     @property
     def address_items(self) -> list[DeviceAddressItem]:
         """The items in force (after ``update_addresses`` too): the objects whose value,
-        status and updateTs the line worker sets; for reading only.  [] before start."""
+        status and updateTs read what the line worker stores (poll/store.py).  [] before
+        start."""
         poller = self._poller or self._last_poller
         return [state.item for state in poller.items] if poller is not None else []
 
@@ -253,14 +254,14 @@ class DriverModbusRtu:
         it holds it (NaN, infinities, bytes, datetime); ``codec.json_bytes`` writes it as
         JSON."""
         poller = self._poller or self._last_poller
-        items = poller.items if poller is not None else []
+        items = poller.store.snapshot() if poller is not None else {}  # at one moment
         params = self._params
         return {
             "deviceCode": self._code(self._org),
             "deviceDriverStatus": self.device_driver_status.value,
             "readCycle": params.read_cycle if params is not None else None,
             "dataItemCount": len(items),
-            "items": {s.item.name: s.snapshot() for s in items},
+            "items": items,
         }
 
     def stats(self) -> dict[str, Any]:

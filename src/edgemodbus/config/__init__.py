@@ -55,7 +55,14 @@ from .device import (
     load_device_config,
     validate_parameters,
 )
-from .items import ALLOWED_QUANTITIES, DeviceAddressItem, ParsedItem, validate_items
+from .items import (
+    ALLOWED_QUANTITIES,
+    DeviceAddressItem,
+    ItemFields,
+    ItemReading,
+    ParsedItem,
+    validate_items,
+)
 from .labels import BAUD_RATES
 from .problems import NO_VALUE, ConfigError, Problem, WrongType, join_path
 
@@ -78,6 +85,8 @@ __all__ = [
     "DeviceOrganizationParameter",
     "DriverModbusRtuParameter",
     "Framing",
+    "ItemFields",
+    "ItemReading",
     "Model",
     "Ms",
     "OptionalMs",

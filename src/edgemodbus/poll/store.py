@@ -1,0 +1,221 @@
+"""The runtime state of a device's items: one :class:`ItemStore` per poller.
+
+Parallel arrays indexed like the poller's items (``Poller.items[i]`` is index ``i``):
+values (a list), statuses (a bytearray of codes), update times and error reasons (lists of
+shared objects: one time per pass, a few reason texts).  The line worker writes them (one
+call per block read: :meth:`ItemStore.apply`); a bound :class:`DeviceAddressItem` reads
+its fields here (config/item_model.py), so the configuration is never written by the
+worker and nothing is copied per start.
+
+Consistency: every write of an item's four fields, and every read of more than one field
+(:meth:`ItemStore.reading`, :meth:`ItemStore.snapshot`), holds the store's lock, so a
+reader on any thread never sees the value of one read with the status of another.  A
+single field is one list or bytearray read (atomic under the GIL).  The lock is never
+held while a callback runs.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Mapping, Sequence
+from datetime import datetime
+from typing import TYPE_CHECKING, Any
+
+from ..config import DeviceAddressItem, ItemReading
+from ..datatypes import ItemStatus, enum_value
+
+if TYPE_CHECKING:
+    from .items import ItemState
+
+STATUSES = (ItemStatus.UNKNOWN, ItemStatus.OK, ItemStatus.INVALID)
+_CODE = {status: code for code, status in enumerate(STATUSES)}
+UNKNOWN, OK, INVALID = 0, 1, 2
+
+
+class ItemInUseError(ValueError):
+    """An item object is already polled by another running driver."""
+
+
+class ItemStore:
+    """The values, statuses, times and reasons of one device's items (see above)."""
+
+    __slots__ = ("active", "lock", "reasons", "stamps", "states", "status", "values")
+
+    def __init__(self, states: Sequence[ItemState]) -> None:
+        n = len(states)
+        self.states = states  # the poller's items: states[i].index == i
+        self.lock = threading.Lock()
+        self.values: list[Any] = [None] * n
+        self.status = bytearray(n)  # codes into STATUSES
+        self.stamps: list[datetime | None] = [None] * n
+        self.reasons: list[str | None] = [None] * n
+        self.active = False  # a running poller writes it
+
+    def __len__(self) -> int:
+        return len(self.values)
+
+    def owns(self, state: ItemState) -> bool:
+        """Whether ``state`` is this store's (not one of a plan replaced since)."""
+        index = state.index
+        return index < len(self.states) and self.states[index] is state
+
+    # -- reads (any thread) ---------------------------------------------------------------
+    def reading(self, index: int) -> ItemReading:
+        with self.lock:
+            return ItemReading(self.values[index], STATUSES[self.status[index]],
+                               self.stamps[index], self.reasons[index])
+
+    def field(self, index: int, which: int) -> Any:
+        """Field ``which`` (ItemReading's order) of item ``index``."""
+        if which == 0:
+            return self.values[index]
+        if which == 1:
+            return STATUSES[self.status[index]]
+        return self.stamps[index] if which == 2 else self.reasons[index]
+
+    def snapshot(self) -> dict[str, dict[str, Any]]:
+        """Each item's entry of ``driver.snapshot()`` (Python values, as held: NaN,
+        bytes, a datetime; JSON writers convert, codec/jsonable.py), all read at one
+        moment."""
+        states = self.states
+        with self.lock:
+            values, status, stamps, reasons = (self.values, self.status, self.stamps,
+                                               self.reasons)
+            entries = [(values[i], status[i], stamps[i], reasons[i])
+                       for i in range(len(states))]
+        texts = [str(enum_value(s)) for s in STATUSES]
+        return {
+            state.item.name: {
+                "address": state.item.address,
+                "value": value,
+                "status": texts[code],
+                "updateTs": stamp.isoformat() if stamp else None,
+                "errorReason": reason,
+            }
+            for state, (value, code, stamp, reason) in zip(states, entries, strict=True)
+        }
+
+    # -- writes ---------------------------------------------------------------------------
+    def assign(self, index: int, which: int, value: Any) -> None:
+        """A host's assignment to a runtime field (the compatibility path)."""
+        with self.lock:
+            if which == 0:
+                self.values[index] = value
+            elif which == 1:
+                self.status[index] = _CODE[ItemStatus(value)]
+            elif which == 2:
+                self.stamps[index] = value
+            else:
+                self.reasons[index] = value
+
+    def set(self, index: int, value: Any, error: str | None, now: datetime) -> None:
+        """Store a result: the value and Ok, or Invalid with the reason (the last good
+        value stays)."""
+        with self.lock:
+            if error is None:
+                self.values[index] = value
+                self.status[index] = OK
+            else:
+                self.status[index] = INVALID
+            self.reasons[index] = error
+            self.stamps[index] = now
+
+    def apply(self, index: Sequence[int], whole: Sequence[ItemState],
+              changes: Sequence[tuple[int, Any, str | None]], now: datetime,
+              reported: list[DeviceAddressItem]) -> None:
+        """Store a block's change records (``(k, value, error)``: its k-th whole item,
+        at store index ``index[k]``), stamped ``now``; the items set are appended to
+        ``reported``.  The hot loop of a poll."""
+        values, status, stamps, reasons = self.values, self.status, self.stamps, self.reasons
+        with self.lock:
+            for k, value, error in changes:
+                i = index[k]
+                if error is None:
+                    values[i] = value
+                    status[i] = OK
+                else:
+                    status[i] = INVALID
+                reasons[i] = error
+                stamps[i] = now
+                reported.append(whole[k].item)
+
+    # -- change tests (worker) ------------------------------------------------------------
+    def holds(self, index: int, value: Any) -> bool:
+        """Whether item ``index`` is already Ok with exactly ``value``."""
+        return self.status[index] == OK and _same(self.values[index], value)
+
+    def is_news(self, index: int, value: Any, error: str | None, deadband: float) -> bool:
+        """Whether a decoded result differs from what item ``index`` holds, as the change
+        mode reports it: another error reason, or a value not exactly the held one and,
+        for numbers with a deadband, more than the deadband away from it."""
+        code = self.status[index]
+        if error is not None:
+            return code != INVALID or self.reasons[index] != error
+        if code != OK:
+            return True
+        held = self.values[index]
+        if _same(held, value):
+            return False
+        if deadband and _is_number(held) and _is_number(value):
+            return not abs(value - held) <= deadband
+        return True
+
+    # -- binding --------------------------------------------------------------------------
+    def bind(self, carry: Mapping[int, ItemReading] | None = None,
+             previous: ItemStore | None = None) -> None:
+        """Make each item read from this store, starting with what it held (or
+        ``carry[i]``: the state of the item it replaces); ``previous`` is the store this
+        one replaces (its items may move).  Raises :class:`ItemInUseError` when an item
+        is polled by another running driver: nothing is bound then."""
+        items = [state.item for state in self.states]
+        for k, item in enumerate(items):
+            other = item._store
+            if isinstance(other, ItemStore) and other.active and other is not previous \
+                    and other is not self:
+                raise ItemInUseError(
+                    f"addressList[{k}] {item.name!r}: this item object is polled by another "
+                    "running driver; give each driver its own items (item.model_copy())")
+        readings = [item.reading for item in items]
+        for i, reading in (carry or {}).items():
+            readings[i] = reading
+        with self.lock:
+            for i, (value, status, stamp, reason) in enumerate(readings):
+                self.values[i] = value
+                self.status[i] = _CODE[status]
+                self.stamps[i] = stamp
+                self.reasons[i] = reason
+        for i, item in enumerate(items):
+            item._store, item._index = self, shared_index(i)
+        self.active = True
+
+
+def _same(held: Any, value: Any) -> bool:
+    """Whether ``held`` is exactly ``value`` (same type; NaN matches NaN)."""
+    return type(held) is type(value) and (held == value or (held != held and value != value))
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def shared_index(i: int) -> int:
+    """``i`` (0..65535) as one int object shared by every user of that number.
+
+    An int above 256 is 32 bytes of its own, and the same numbers recur by the
+    thousands (offsets of devices of one kind, store indices): the first user lends its
+    int to the others, kept in lists of 256 made on first use (2 KB each).  Other values
+    come back as they are."""
+    chunk_no, at = divmod(i, _CHUNK)
+    if not 0 <= chunk_no < len(_SHARED):
+        return i
+    chunk = _SHARED[chunk_no]
+    if chunk is None:
+        chunk = _SHARED[chunk_no] = [None] * _CHUNK
+    shared = chunk[at]
+    if shared is None:
+        shared = chunk[at] = i
+    return shared
+
+
+_CHUNK = 256
+_SHARED: list[list[int | None] | None] = [None] * (0x10000 // _CHUNK)
