@@ -77,6 +77,10 @@ def _shared(conf: tuple[Any, ...]) -> tuple[Any, ...]:
     return found
 
 
+def _is_unread(reading: tuple[Any, ...]) -> bool:
+    return all(x is y for x, y in zip(reading, UNREAD, strict=True))
+
+
 T = TypeVar("T")
 
 
@@ -175,8 +179,9 @@ class DeviceAddressItem:
         self.description = fields.description
         self._conf = _shared(tuple(getattr(fields, f) for f in CONF_FIELDS))
         self._store = None
-        self._index = ItemReading(fields.value, fields.status, fields.update_ts,
-                                  fields.error_reason)
+        reading = (fields.value, fields.status, fields.update_ts, fields.error_reason)
+        # the usual item has never been read: one shared reading (the tuple is 80 bytes)
+        self._index = UNREAD if _is_unread(reading) else ItemReading(*reading)
 
     @classmethod
     def of(cls, fields: ItemFields) -> DeviceAddressItem:

@@ -147,7 +147,6 @@ class Slot:
     whole: list[ItemState]
     decoder: BlockDecoder | None
     partial: list[tuple[Piece, Assembly]]
-    index: list[int] = field(init=False)  # whole[k].index, for the hot loop (store.py)
     # the decoder was reset because an item was set from outside it (a write, a report):
     # its next reports are filtered by what the items hold (is_news)
     recheck: bool = field(default=False, init=False)
@@ -155,7 +154,6 @@ class Slot:
     due: float = field(default=0.0, init=False)  # monotonic time of its next read
 
     def __post_init__(self) -> None:
-        self.index = [state.index for state in self.whole]
         self.period = self.block.rate / 1000
 
 

@@ -73,10 +73,8 @@ class Poller(FaultPolicy):
         self.active = False
         self.line: LineWorker | None = None
         self.items: list[ItemState] = []
-        self.by_name: dict[str, ItemState] = {}
         self.slots: list[Slot] = []  # in plan order: slot k is the device's block k
         self._assemblies: dict[ItemState, Assembly] = {}
-        self._owner: list[Slot | Assembly | None] = []  # what decodes each item, by index
         self.store = ItemStore([])  # the items' values (store.py), bound at start
         self.device = EngineDevice(self.slave, self.timeout, self.report_all, 0.0,
                                    coalesce=params.forward_coalesce / 1000)
@@ -88,6 +86,27 @@ class Poller(FaultPolicy):
         self.next_snapshot = 0.0  # the first cycle's end publishes one
         if self.snapshot_interval:
             self.device.notify_at = 0.0
+
+    @property
+    def by_name(self) -> dict[str, ItemState]:
+        """The items in force by name (made on first use: store.py)."""
+        return self.store.by_name()
+
+    def _owner(self, state: ItemState) -> Slot | Assembly | None:
+        """What decodes ``state`` in the plan in force (None: a state of an older plan).
+        A search, as only writes and reports ask: a dict would be a tag's largest part."""
+        if not self.store.owns(state):
+            return None
+        asm = self._assemblies.get(state)
+        if asm is not None:
+            return asm
+        area, offset = state.area, state.offset
+        for slot in self.slots:
+            block = slot.block
+            if block.area is area and block.start <= offset < block.start + block.count \
+                    and any(s is state for s in slot.whole):
+                return slot
+        return None
 
     @property
     def plan(self) -> list[ReadBlock]:
@@ -121,7 +140,8 @@ class Poller(FaultPolicy):
         self.status = DeviceDriverStatus.STOPPED
 
     def _install(self, parsed: Sequence[ParsedItem]) -> None:
-        old, old_store = self.by_name, self.store
+        old_store = self.store
+        old = old_store.by_name() if old_store.states else {}
         enabled = [p for p in parsed if p.item.is_enable]
         items = [ItemState(p, i) for i, p in enumerate(enabled)]
         # a new item object of an unchanged definition keeps the state of the old one
@@ -132,11 +152,9 @@ class Poller(FaultPolicy):
                 self.carry[state.index] = old_store.reading(prev.index)
         self.items = items
         self.store = ItemStore(items)
-        self.by_name = {s.item.name: s for s in items}
         self._reports = ReportDecoders(items)
         blocks = build_plan(enabled, self.params)
         self._assemblies = {}  # filled by _make_slot: one per large item, for all its pieces
-        self._owner = [None] * len(items)
         self.slots = [self._make_slot(b) for b in blocks]
         # report-only: nothing polled (readCycle 0 and no item with a rate of its own);
         # cycle: what offline probing backs off from (readCycle, else the fastest rate)
@@ -165,10 +183,6 @@ class Poller(FaultPolicy):
                 partial.append((piece, self._assembly(state)))
         decoder = BlockDecoder(block.area, block.count, specs) if specs else None
         slot = Slot(block, whole, decoder, partial)
-        for state in whole:
-            self._owner[state.index] = slot
-        for _, asm in partial:
-            self._owner[asm.state.index] = asm
         return slot
 
     def _assembly(self, state: ItemState) -> Assembly:
@@ -316,7 +330,7 @@ class Poller(FaultPolicy):
                 whole = slot.whole
                 changes = [c for c in changes if is_news(self.store, whole[c[0]], c[1], c[2])]
         if changes:
-            self.store.apply(slot.index, slot.whole, changes, now, reported)
+            self.store.apply(slot.whole, changes, now, reported)
         if slot.partial and data is not None:
             values = data.to_list()
             cycle = self.device.passes
@@ -360,7 +374,7 @@ class Poller(FaultPolicy):
         read back is not published a second time, and a value the slave went back to
         (a write it clamped or another master undid) is not missed."""
         for state in states:
-            owner = self._owner[state.index] if self.store.owns(state) else None
+            owner = self._owner(state)
             if owner is None or owner.decoder is None:
                 continue
             owner.decoder.reset()

@@ -39,7 +39,7 @@ class ItemInUseError(ValueError):
 class ItemStore:
     """The values, statuses, times and reasons of one device's items (see above)."""
 
-    __slots__ = ("active", "lock", "reasons", "stamps", "states", "status", "values")
+    __slots__ = ("_names", "active", "lock", "reasons", "stamps", "states", "status", "values")
 
     def __init__(self, states: Sequence[ItemState]) -> None:
         n = len(states)
@@ -50,9 +50,18 @@ class ItemStore:
         self.stamps: list[datetime | None] = [None] * n
         self.reasons: list[str | None] = [None] * n
         self.active = False  # a running poller writes it
+        self._names: dict[str, ItemState] | None = None
 
     def __len__(self) -> int:
         return len(self.values)
+
+    def by_name(self) -> dict[str, ItemState]:
+        """Name -> item state, made on first use (a write, an action): a device that is
+        only read never pays for it (a dict entry per tag).  Any thread."""
+        names = self._names
+        if names is None:
+            names = self._names = {state.item.name: state for state in self.states}
+        return names
 
     def owns(self, state: ItemState) -> bool:
         """Whether ``state`` is this store's (not one of a plan replaced since)."""
@@ -120,16 +129,17 @@ class ItemStore:
             self.reasons[index] = error
             self.stamps[index] = now
 
-    def apply(self, index: Sequence[int], whole: Sequence[ItemState],
+    def apply(self, whole: Sequence[ItemState],
               changes: Sequence[tuple[int, Any, str | None]], now: datetime,
               reported: list[DeviceAddressItem]) -> None:
-        """Store a block's change records (``(k, value, error)``: its k-th whole item,
-        at store index ``index[k]``), stamped ``now``; the items set are appended to
-        ``reported``.  The hot loop of a poll."""
+        """Store a block's change records (``(k, value, error)``: of its k-th whole
+        item), stamped ``now``; the items set are appended to ``reported``.  The hot
+        loop of a poll."""
         values, status, stamps, reasons = self.values, self.status, self.stamps, self.reasons
         with self.lock:
             for k, value, error in changes:
-                i = index[k]
+                state = whole[k]
+                i = state.index
                 if error is None:
                     values[i] = value
                     status[i] = OK
@@ -137,7 +147,7 @@ class ItemStore:
                     status[i] = INVALID
                 reasons[i] = error
                 stamps[i] = now
-                reported.append(whole[k].item)
+                reported.append(state.item)
 
     # -- change tests (worker) ------------------------------------------------------------
     def holds(self, index: int, value: Any) -> bool:
