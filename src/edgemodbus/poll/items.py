@@ -157,7 +157,7 @@ class Slot:
         self.period = self.block.rate / 1000
 
 
-def set_state(store: ItemStore, state: ItemState, value: Any, error: str | None,
+def set_state(store: ItemStore[ItemState], state: ItemState, value: Any, error: str | None,
               now: datetime) -> DeviceAddressItem:
     """Store a result of ``state``'s item: the value and Ok, or Invalid with the reason
     (the last good value stays); its item back."""
@@ -165,13 +165,13 @@ def set_state(store: ItemStore, state: ItemState, value: Any, error: str | None,
     return state.item
 
 
-def holds(store: ItemStore, state: ItemState, value: Any) -> bool:
+def holds(store: ItemStore[ItemState], state: ItemState, value: Any) -> bool:
     """Whether the item is already Ok with ``value``: a change the decoder sees against
     its own last report (e.g. after a confirmed write) that is no news to the host."""
     return store.holds(state.index, value)
 
 
-def is_news(store: ItemStore, state: ItemState, value: Any, error: str | None) -> bool:
+def is_news(store: ItemStore[ItemState], state: ItemState, value: Any, error: str | None) -> bool:
     """Whether a decoded result differs from what the item holds (ItemStore.is_news,
     with the item's deadband)."""
     return store.is_news(state.index, value, error, state.kind.spec.deadband)

@@ -75,7 +75,8 @@ class Poller(FaultPolicy):
         self.items: list[ItemState] = []
         self.slots: list[Slot] = []  # in plan order: slot k is the device's block k
         self._assemblies: dict[ItemState, Assembly] = {}
-        self.store = ItemStore([])  # the items' values (store.py), bound at start
+        # the items' values (store.py), bound at start
+        self.store: ItemStore[ItemState] = ItemStore([])
         self.device = EngineDevice(self.slave, self.timeout, self.report_all, 0.0,
                                    coalesce=params.forward_coalesce / 1000)
         self.counters.native = self.device.counts  # the engine counts requests and cycles

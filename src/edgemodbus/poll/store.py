@@ -19,13 +19,19 @@ from __future__ import annotations
 import threading
 from collections.abc import Mapping, Sequence
 from datetime import datetime
-from typing import TYPE_CHECKING, Any
+from typing import Any, Generic, Protocol, TypeVar
 
 from ..config import DeviceAddressItem, ItemReading
 from ..datatypes import ItemStatus, enum_value
 
-if TYPE_CHECKING:
-    from .items import ItemState
+
+class StateLike(Protocol):
+    """What the store needs of an item's state (poll/items.py's ItemState)."""
+
+    @property
+    def index(self) -> int: ...
+    @property
+    def item(self) -> DeviceAddressItem: ...
 
 STATUSES = (ItemStatus.UNKNOWN, ItemStatus.OK, ItemStatus.INVALID)
 _CODE = {status: code for code, status in enumerate(STATUSES)}
@@ -36,12 +42,15 @@ class ItemInUseError(ValueError):
     """An item object is already polled by another running driver."""
 
 
-class ItemStore:
+S = TypeVar("S", bound=StateLike)
+
+
+class ItemStore(Generic[S]):
     """The values, statuses, times and reasons of one device's items (see above)."""
 
     __slots__ = ("_names", "active", "lock", "reasons", "stamps", "states", "status", "values")
 
-    def __init__(self, states: Sequence[ItemState]) -> None:
+    def __init__(self, states: Sequence[S]) -> None:
         n = len(states)
         self.states = states  # the poller's items: states[i].index == i
         self.lock = threading.Lock()
@@ -50,12 +59,12 @@ class ItemStore:
         self.stamps: list[datetime | None] = [None] * n
         self.reasons: list[str | None] = [None] * n
         self.active = False  # a running poller writes it
-        self._names: dict[str, ItemState] | None = None
+        self._names: dict[str, S] | None = None
 
     def __len__(self) -> int:
         return len(self.values)
 
-    def by_name(self) -> dict[str, ItemState]:
+    def by_name(self) -> dict[str, S]:
         """Name -> item state, made on first use (a write, an action): a device that is
         only read never pays for it (a dict entry per tag).  Any thread."""
         names = self._names
@@ -63,7 +72,7 @@ class ItemStore:
             names = self._names = {state.item.name: state for state in self.states}
         return names
 
-    def owns(self, state: ItemState) -> bool:
+    def owns(self, state: S) -> bool:
         """Whether ``state`` is this store's (not one of a plan replaced since)."""
         index = state.index
         return index < len(self.states) and self.states[index] is state
@@ -129,7 +138,7 @@ class ItemStore:
             self.reasons[index] = error
             self.stamps[index] = now
 
-    def apply(self, whole: Sequence[ItemState],
+    def apply(self, whole: Sequence[S],
               changes: Sequence[tuple[int, Any, str | None]], now: datetime,
               reported: list[DeviceAddressItem]) -> None:
         """Store a block's change records (``(k, value, error)``: of its k-th whole
@@ -172,7 +181,7 @@ class ItemStore:
 
     # -- binding --------------------------------------------------------------------------
     def bind(self, carry: Mapping[int, ItemReading] | None = None,
-             previous: ItemStore | None = None) -> None:
+             previous: ItemStore[Any] | None = None) -> None:
         """Make each item read from this store, starting with what it held (or
         ``carry[i]``: the state of the item it replaces); ``previous`` is the store this
         one replaces (its items may move).  Raises :class:`ItemInUseError` when an item

@@ -142,7 +142,7 @@ class Writer:
         self.no_fc22 = False
 
     def run(self, link: Link, ops: list[WriteOp],
-            recheck: Callable[[list[ItemState]], None], store: ItemStore,
+            recheck: Callable[[list[ItemState]], None], store: ItemStore[ItemState],
             whole: bool = False) -> tuple[bool, str | None]:
         """Send ``ops`` in order; a confirmed write's values go into ``store`` (the
         device's, store.py: items of a plan replaced since are left to the next read)
