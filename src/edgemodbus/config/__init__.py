@@ -57,6 +57,7 @@ from .device import (
 )
 from .items import (
     ALLOWED_QUANTITIES,
+    STATUSES,
     DeviceAddressItem,
     ItemFields,
     ItemReading,
@@ -75,6 +76,7 @@ __all__ = [
     "NO_VALUE",
     "PARAMETER_TYPES",
     "READ_CYCLE_RANGE",
+    "STATUSES",
     "ActionParameter",
     "AddressPrefixOption",
     "Choice",

@@ -44,13 +44,18 @@ class ItemReading(NamedTuple):
 
 
 UNREAD = ItemReading(None, ItemStatus.UNKNOWN, None, None)
+STATUSES = (ItemStatus.UNKNOWN, ItemStatus.OK, ItemStatus.INVALID)
+"""The statuses by their code in a store's status array."""
 
 
 class ValueStore(Protocol):
-    """Where a polled item's state is (poll/store.py's ItemStore, as config sees it)."""
+    """Where a polled item's state is (poll/store.py's ItemStore, as config sees it):
+    parallel arrays by index (statuses as codes into :data:`STATUSES`)."""
+
+    arrays: tuple[list[Any], bytearray, list[datetime | None], list[str | None]]
+    """values, status codes, update times, error reasons (ItemReading's order)"""
 
     def reading(self, index: int) -> ItemReading: ...
-    def field(self, index: int, which: int) -> Any: ...
     def assign(self, index: int, which: int, value: Any) -> None: ...
 
 
@@ -108,7 +113,8 @@ class _Conf(Generic[T]):
 
 
 class _Runtime(Generic[T]):
-    """A runtime field: read from the item's store (or its own reading, unbound)."""
+    """A runtime field: read from the item's store (its array ``at`` of ``arrays``) or,
+    unbound, from its own reading."""
 
     __slots__ = ("at",)
 
@@ -123,8 +129,11 @@ class _Runtime(Generic[T]):
         if item is None:
             return self
         store = item._store
-        value: T = item._index[self.at] if store is None else store.field(item._index, self.at)
-        return value
+        if store is None:
+            own: T = item._index[self.at]
+            return own
+        value = store.arrays[self.at][item._index]
+        return STATUSES[value] if self.at == 1 else value  # type: ignore[return-value]
 
     def __set__(self, item: DeviceAddressItem, value: T) -> None:
         store = item._store

@@ -19,10 +19,10 @@ from ..protocol.address import Address, check_span, parse_address
 from .base import MS_RANGE, field_checks, recheck
 from .communication import DriverModbusRtuParameter
 from .item_fields import ItemFields, _strip_echo
-from .item_model import DeviceAddressItem, ItemReading
+from .item_model import STATUSES, DeviceAddressItem, ItemReading
 from .problems import NO_VALUE, ConfigError, Problem
 
-__all__ = ["ALLOWED_QUANTITIES", "DeviceAddressItem", "ItemFields", "ItemReading",
+__all__ = ["ALLOWED_QUANTITIES", "STATUSES", "DeviceAddressItem", "ItemFields", "ItemReading",
            "ParsedItem", "validate_items"]
 
 _log = logging.getLogger("edgemodbus.config")

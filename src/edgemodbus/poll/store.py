@@ -21,7 +21,7 @@ from collections.abc import Mapping, Sequence
 from datetime import datetime
 from typing import Any, Generic, Protocol, TypeVar
 
-from ..config import DeviceAddressItem, ItemReading
+from ..config import STATUSES, DeviceAddressItem, ItemReading
 from ..datatypes import ItemStatus, enum_value
 
 
@@ -33,9 +33,9 @@ class StateLike(Protocol):
     @property
     def item(self) -> DeviceAddressItem: ...
 
-STATUSES = (ItemStatus.UNKNOWN, ItemStatus.OK, ItemStatus.INVALID)
 _CODE = {status: code for code, status in enumerate(STATUSES)}
-UNKNOWN, OK, INVALID = 0, 1, 2
+UNKNOWN, OK, INVALID = 0, 1, 2  # codes of STATUSES
+_new = tuple.__new__  # a NamedTuple without its Python-level __new__
 
 
 class ItemInUseError(ValueError):
@@ -48,7 +48,8 @@ S = TypeVar("S", bound=StateLike)
 class ItemStore(Generic[S]):
     """The values, statuses, times and reasons of one device's items (see above)."""
 
-    __slots__ = ("_names", "active", "lock", "reasons", "stamps", "states", "status", "values")
+    __slots__ = ("_names", "active", "arrays", "lock", "reasons", "stamps", "states", "status",
+                 "values")
 
     def __init__(self, states: Sequence[S]) -> None:
         n = len(states)
@@ -58,6 +59,7 @@ class ItemStore(Generic[S]):
         self.status = bytearray(n)  # codes into STATUSES
         self.stamps: list[datetime | None] = [None] * n
         self.reasons: list[str | None] = [None] * n
+        self.arrays = (self.values, self.status, self.stamps, self.reasons)  # items read these
         self.active = False  # a running poller writes it
         self._names: dict[str, S] | None = None
 
@@ -80,16 +82,8 @@ class ItemStore(Generic[S]):
     # -- reads (any thread) ---------------------------------------------------------------
     def reading(self, index: int) -> ItemReading:
         with self.lock:
-            return ItemReading(self.values[index], STATUSES[self.status[index]],
-                               self.stamps[index], self.reasons[index])
-
-    def field(self, index: int, which: int) -> Any:
-        """Field ``which`` (ItemReading's order) of item ``index``."""
-        if which == 0:
-            return self.values[index]
-        if which == 1:
-            return STATUSES[self.status[index]]
-        return self.stamps[index] if which == 2 else self.reasons[index]
+            return _new(ItemReading, (self.values[index], STATUSES[self.status[index]],
+                                      self.stamps[index], self.reasons[index]))
 
     def snapshot(self) -> dict[str, dict[str, Any]]:
         """Each item's entry of ``driver.snapshot()`` (Python values, as held: NaN,
