@@ -232,3 +232,26 @@ def test_the_gateway_polls_the_loaded_items_themselves(
         assert dev.cfg.address_list[0].status is ItemStatus.OK
     finally:
         gateway.stop()
+
+
+def test_an_update_with_another_drivers_item_is_refused_and_changes_nothing(
+        sim: tuple[Simulator, int]) -> None:
+    _, port = sim
+    first, second = _config(port, slave=2, readCycle=50), _config(port, slave=1, readCycle=50)
+    one, two = em.DriverModbusRtu(), em.DriverModbusRtu()
+    assert one.start_device(first.organization, first.communication, first.address_list)
+    try:
+        assert two.start_device(second.organization, second.communication,
+                                second.address_list)
+        try:
+            mixed = [second.address_list[0], first.address_list[1]]
+            with pytest.raises(ItemInUseError, match=r"addressList\[1\] 'count'"):
+                two.update_addresses(mixed)
+            assert all(a is b for a, b in zip(two.address_items, second.address_list,
+                                               strict=True))
+            wait_for(lambda: second.address_list[1].status is ItemStatus.OK,
+                     what="the running plan still polled")
+        finally:
+            two.stop_device()
+    finally:
+        one.stop_device()

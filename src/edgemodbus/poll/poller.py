@@ -35,7 +35,7 @@ from .planner import Piece, ReadBlock
 from .reports import ReportDecoders
 from .schedule import build_plan as build_plan  # the CLI's plan command uses it
 from .sink import Delivery, PollSink
-from .store import ItemStore
+from .store import ItemStore, check_free
 from .writes import WriteOp, Writer
 
 if TYPE_CHECKING:
@@ -198,6 +198,7 @@ class Poller(FaultPolicy):
 
         def swap(_link: Link | None = None) -> None:
             previous = self.store
+            check_free([p.item for p in parsed], (previous,))  # before any change
             self._install(parsed)
             self.store.bind(self.carry, previous)
             previous.active = False

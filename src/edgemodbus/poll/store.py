@@ -181,13 +181,7 @@ class ItemStore(Generic[S]):
         one replaces (its items may move).  Raises :class:`ItemInUseError` when an item
         is polled by another running driver: nothing is bound then."""
         items = [state.item for state in self.states]
-        for k, item in enumerate(items):
-            other = item._store
-            if isinstance(other, ItemStore) and other.active and other is not previous \
-                    and other is not self:
-                raise ItemInUseError(
-                    f"addressList[{k}] {item.name!r}: this item object is polled by another "
-                    "running driver; give each driver its own items (item.model_copy())")
+        check_free(items, (self, previous))
         readings = [item.reading for item in items]
         for i, reading in (carry or {}).items():
             readings[i] = reading
@@ -200,6 +194,21 @@ class ItemStore(Generic[S]):
         for i, item in enumerate(items):
             item._store, item._index = self, shared_index(i)
         self.active = True
+
+
+def check_free(items: Sequence[DeviceAddressItem], mine: Sequence[object] = ()) -> None:
+    """Raise :class:`ItemInUseError` for the first enabled item (``addressList[k]``) that
+    a running driver's store other than ``mine`` holds (one item object is polled by one
+    driver at a time)."""
+    for k, item in enumerate(items):
+        other = item._store
+        if not item.is_enable:
+            continue
+        if isinstance(other, ItemStore) and other.active and not any(
+                other is m for m in mine):
+            raise ItemInUseError(
+                f"addressList[{k}] {item.name!r}: this item object is polled by another "
+                "running driver; give each driver its own items (item.model_copy())")
 
 
 def _same(held: Any, value: Any) -> bool:
