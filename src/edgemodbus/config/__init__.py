@@ -57,6 +57,7 @@ from .device import (
 )
 from .items import (
     ALLOWED_QUANTITIES,
+    MOVING,
     STATUSES,
     DeviceAddressItem,
     ItemFields,
@@ -72,6 +73,7 @@ __all__ = [
     "ALLOWED_QUANTITIES",
     "BAUD_RATES",
     "MAX_MS",
+    "MOVING",
     "MS_RANGE",
     "NO_VALUE",
     "PARAMETER_TYPES",

@@ -86,6 +86,9 @@ def _is_unread(reading: tuple[Any, ...]) -> bool:
     return all(x is y for x, y in zip(reading, UNREAD, strict=True))
 
 
+MOVING: Any = object()
+"""An item's ``_store`` while a store binds it (see DeviceAddressItem.bound)."""
+
 T = TypeVar("T")
 
 
@@ -128,19 +131,23 @@ class _Runtime(Generic[T]):
     def __get__(self, item: DeviceAddressItem | None, owner: type) -> T | _Runtime[T]:
         if item is None:
             return self
-        store = item._store
+        while True:  # the store and the index of one binding (see bound())
+            store = item._store
+            index = item._index
+            if store is item._store and store is not MOVING:
+                break
         if store is None:
-            own: T = item._index[self.at]
+            own: T = index[self.at]
             return own
-        value = store.arrays[self.at][item._index]
+        value = store.arrays[self.at][index]
         return STATUSES[value] if self.at == 1 else value  # type: ignore[return-value]
 
     def __set__(self, item: DeviceAddressItem, value: T) -> None:
-        store = item._store
+        store, index = item.bound()
         if store is None:
             item._index = item._index._replace(**{RUNTIME_FIELDS[self.at]: value})
         else:
-            store.assign(item._index, self.at, value)
+            store.assign(index, self.at, value)
 
 
 class DeviceAddressItem:
@@ -155,7 +162,7 @@ class DeviceAddressItem:
     address: str
     description: str
     _conf: tuple[Any, ...]
-    _store: ValueStore | None
+    _store: Any  # a ValueStore, None (unbound), or MOVING while a store binds it
     _index: Any  # the store's index, or (unbound) the item's own ItemReading
 
     device_data_type = _Conf[DataType](0)
@@ -202,9 +209,20 @@ class DeviceAddressItem:
     @property
     def reading(self) -> ItemReading:
         """value, status, update_ts and error_reason at one moment, from any thread."""
-        store = self._store
-        reading: ItemReading = self._index if store is None else store.reading(self._index)
+        store, index = self.bound()
+        reading: ItemReading = index if store is None else store.reading(index)
         return reading
+
+    def bound(self) -> tuple[ValueStore | None, Any]:
+        """(store, index) of one binding, or (None, the item's own reading).  A store
+        rebinding the item sets ``_store`` to :data:`MOVING`, then the index, then
+        itself: a reader that saw the same store before and after the index has the
+        index of that store (never the new index into the old store)."""
+        while True:
+            store = self._store
+            index = self._index
+            if store is self._store and store is not MOVING:
+                return store, index
 
     # -- the BaseModel methods -----------------------------------------------------------
     @classmethod

@@ -19,11 +19,11 @@ from ..protocol.address import Address, check_span, parse_address
 from .base import MS_RANGE, field_checks, recheck
 from .communication import DriverModbusRtuParameter
 from .item_fields import ItemFields, _strip_echo
-from .item_model import STATUSES, DeviceAddressItem, ItemReading
+from .item_model import MOVING, STATUSES, DeviceAddressItem, ItemReading
 from .problems import NO_VALUE, ConfigError, Problem
 
-__all__ = ["ALLOWED_QUANTITIES", "STATUSES", "DeviceAddressItem", "ItemFields", "ItemReading",
-           "ParsedItem", "validate_items"]
+__all__ = ["ALLOWED_QUANTITIES", "MOVING", "STATUSES", "DeviceAddressItem", "ItemFields",
+           "ItemReading", "ParsedItem", "validate_items"]
 
 _log = logging.getLogger("edgemodbus.config")
 

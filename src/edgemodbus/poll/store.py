@@ -21,7 +21,7 @@ from collections.abc import Mapping, Sequence
 from datetime import datetime
 from typing import Any, Generic, Protocol, TypeVar
 
-from ..config import STATUSES, DeviceAddressItem, ItemReading
+from ..config import MOVING, STATUSES, DeviceAddressItem, ItemReading
 from ..datatypes import ItemStatus, enum_value
 
 
@@ -191,8 +191,10 @@ class ItemStore(Generic[S]):
                 self.status[i] = _CODE[status]
                 self.stamps[i] = stamp
                 self.reasons[i] = reason
-        for i, item in enumerate(items):
-            item._store, item._index = self, shared_index(i)
+        for i, item in enumerate(items):  # the order a reader relies on (item.bound())
+            item._store = MOVING
+            item._index = shared_index(i)
+            item._store = self
         self.active = True
 
 

@@ -139,3 +139,45 @@ def test_an_unbound_items_runtime_fields_are_its_own() -> None:
     assert plain.reading is again.reading  # one shared reading until set
     plain.value = 1
     assert again.value is None
+
+
+def test_a_reader_never_mixes_the_store_of_one_binding_with_the_index_of_another() -> None:
+    """An item moved between two stores (update_addresses moves it to a new index) while
+    another thread reads it: every value read is the item's in one store or the other,
+    never another item's (the new index into the old store)."""
+    import sys
+    import threading
+
+    cfg = em.load_device_config({"addressList": [
+        {"name": n, "address": f"hr:{k}", "deviceDataType": "Int16"}
+        for k, n in enumerate(["x", "y"])]})
+    x, y = cfg.address_list
+    parsed = cfg.parsed_items()
+    a = ItemStore([ItemState(parsed[0], 0), ItemState(parsed[1], 1)])  # x at 0
+    b = ItemStore([ItemState(parsed[1], 0), ItemState(parsed[0], 1)])  # x at 1
+    x.value, y.value = "x", "y"
+    a.bind()
+    b.bind(previous=a)
+    a.values[:] = ["x", "y"]  # each store holds each item's own value
+    b.values[:] = ["y", "x"]
+    seen: set[Any] = set()
+    stop = threading.Event()
+
+    def read() -> None:
+        while not stop.is_set():
+            seen.add(x.value)
+
+    interval = sys.getswitchinterval()
+    reader = threading.Thread(target=read)
+    sys.setswitchinterval(1e-6)
+    reader.start()
+    try:
+        for n in range(20000):
+            store, other = (a, b) if n % 2 else (b, a)
+            store.bind(previous=other)
+            store.values[:] = ["x", "y"] if store is a else ["y", "x"]
+    finally:
+        stop.set()
+        reader.join()
+        sys.setswitchinterval(interval)
+    assert seen == {"x"}
