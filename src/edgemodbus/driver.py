@@ -49,6 +49,7 @@ from .poll.listeners import BatchCallbackListener, Listener, Subscribers
 from .poll.poller import Poller
 from .poll.schedule import block_dict, entity_numbers_notice
 from .poll.sink import BatchCallback, ItemCallback, SnapshotPublisher
+from .poll.store import check_free
 from .poll.writes import WriteOp, plan_writes
 from .protocol.forward import check_request
 
@@ -110,6 +111,7 @@ class DriverModbusRtu:
             return False
         parsed = validate_items(list(addresses), params)
         validate_actions(actions, parsed)
+        check_free(addresses)  # ItemInUseError: an item polled by a running driver
         self._actions = list(actions)
         endpoint = endpoint_for(params)
         timing = _timing(params)
@@ -233,8 +235,8 @@ class DriverModbusRtu:
 
     @property
     def address_items(self) -> list[DeviceAddressItem]:
-        """The items in force (after ``update_addresses`` too): the objects whose value,
-        status and updateTs the line worker sets; for reading only.  [] before start."""
+        """The items in force (after ``update_addresses`` too): the objects whose state
+        the line worker stores (poll/store.py); [] before start."""
         poller = self._poller or self._last_poller
         return [state.item for state in poller.items] if poller is not None else []
 
@@ -245,18 +247,17 @@ class DriverModbusRtu:
         return [block_dict(b, self._poller.items) for b in self._poller.plan]
 
     def snapshot(self) -> dict[str, Any]:
-        """The runtime snapshot (camelCase keys) with Python values: each item's value as
-        it holds it (NaN, infinities, bytes, datetime); ``codec.json_bytes`` writes it as
-        JSON."""
+        """The runtime snapshot (camelCase keys; each device's items read at one moment),
+        values as held (NaN, bytes, datetime); ``codec.json_bytes`` writes it as JSON."""
         poller = self._poller or self._last_poller
-        items = poller.items if poller is not None else []
+        items = poller.store.snapshot() if poller is not None else {}  # at one moment
         params = self._params
         return {
             "deviceCode": self._code(self._org),
             "deviceDriverStatus": self.device_driver_status.value,
             "readCycle": params.read_cycle if params is not None else None,
             "dataItemCount": len(items),
-            "items": {s.item.name: s.snapshot() for s in items},
+            "items": items,
         }
 
     def stats(self) -> dict[str, Any]:

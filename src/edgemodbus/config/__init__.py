@@ -55,7 +55,17 @@ from .device import (
     load_device_config,
     validate_parameters,
 )
-from .items import ALLOWED_QUANTITIES, ON_DEMAND, DeviceAddressItem, ParsedItem, validate_items
+from .items import (
+    ALLOWED_QUANTITIES,
+    MOVING,
+    ON_DEMAND,
+    STATUSES,
+    DeviceAddressItem,
+    ItemFields,
+    ItemReading,
+    ParsedItem,
+    validate_items,
+)
 from .labels import BAUD_RATES
 from .problems import NO_VALUE, ConfigError, Problem, WrongType, join_path
 
@@ -64,11 +74,13 @@ __all__ = [
     "ALLOWED_QUANTITIES",
     "BAUD_RATES",
     "MAX_MS",
+    "MOVING",
     "MS_RANGE",
     "NO_VALUE",
     "ON_DEMAND",
     "PARAMETER_TYPES",
     "READ_CYCLE_RANGE",
+    "STATUSES",
     "ActionParameter",
     "AddressPrefixOption",
     "Choice",
@@ -79,6 +91,8 @@ __all__ = [
     "DeviceOrganizationParameter",
     "DriverModbusRtuParameter",
     "Framing",
+    "ItemFields",
+    "ItemReading",
     "Model",
     "Ms",
     "OptionalMs",

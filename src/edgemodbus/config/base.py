@@ -13,7 +13,6 @@ Secrets: secret.py.
 from __future__ import annotations
 
 import codecs
-import copy
 import enum
 import logging
 import math
@@ -22,7 +21,7 @@ import types
 import typing
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import Annotated, Any, ClassVar, TypeVar, cast
+from typing import Annotated, Any, ClassVar, TypeVar
 
 from pydantic import (
     BaseModel,
@@ -32,13 +31,9 @@ from pydantic import (
     model_validator,
 )
 from pydantic.alias_generators import to_camel
-from pydantic.dataclasses import dataclass as pydantic_dataclass
 from pydantic.fields import FieldInfo
 from pydantic_core import (
-    ArgsKwargs,
     CoreSchema,
-    SchemaSerializer,
-    SchemaValidator,
     core_schema,
 )
 
@@ -281,75 +276,6 @@ class Model(KeyRules, BaseModel):
         return result
 
 
-class SlotModel(KeyRules):
-    """Base of a config model that exists by the tens of thousands (one per tag): a
-    pydantic dataclass with ``slots=True`` (no ``__dict__``, no fields-set bookkeeping:
-    a third of a BaseModel's size) with the key handling of :class:`Model` and the
-    BaseModel methods hosts and the code use (``model_validate``, ``model_fields``,
-    ``model_dump``, ``model_copy``, ``to_dict``).  Assignment is not validated.
-
-    A subclass is decorated with :func:`slot_model`; it validates its input with a
-    ``mode="before"`` model validator calling :meth:`accept_keys`."""
-
-    __slots__ = ()
-
-    model_fields: ClassVar[dict[str, FieldInfo]] = {}
-    __pydantic_validator__: ClassVar[SchemaValidator]
-    __pydantic_serializer__: ClassVar[SchemaSerializer]
-    if typing.TYPE_CHECKING:  # keys in any spelling, as BaseModel's __init__ takes them
-
-        def __init__(self, **data: Any) -> None: ...
-
-    @classmethod
-    def accept_keys(cls, data: Any) -> Any:
-        """Input of the model validator: keys (a dict's, or the keyword arguments of a
-        call) in their canonical spelling; anything but an object is refused."""
-        if isinstance(data, Mapping):
-            return cls.normalize_keys(data, cls._where or cls.__name__)
-        if isinstance(data, ArgsKwargs):
-            kwargs = cls.normalize_keys(data.kwargs or {}, cls._where or cls.__name__)
-            return ArgsKwargs(data.args, kwargs)
-        if isinstance(data, cls):
-            return data
-        raise WrongType("must be an object ({...})")
-
-    @classmethod
-    def model_validate(cls: type[_S], obj: Any) -> _S:
-        result: _S = cls.__pydantic_validator__.validate_python(obj)
-        return result
-
-    def model_dump(self, **kwargs: Any) -> dict[str, Any]:
-        result: dict[str, Any] = type(self).__pydantic_serializer__.to_python(self, **kwargs)
-        return result
-
-    def model_copy(
-        self: _S, *, update: Mapping[str, Any] | None = None, deep: bool = False
-    ) -> _S:
-        """A copy (deep: of the values too); ``update`` sets attributes, unvalidated
-        (as BaseModel.model_copy)."""
-        copied = copy.deepcopy(self) if deep else copy.copy(self)
-        for name, value in (update or {}).items():
-            setattr(copied, name, value)
-        return copied
-
-    def to_dict(self) -> dict[str, Any]:
-        """camelCase, JSON-able dict (loads back to an equal model)."""
-        return self.model_dump(mode="json", by_alias=True)
-
-
-_S = TypeVar("_S", bound=SlotModel)
-
-
-def slot_model(cls: type[_S]) -> type[_S]:
-    """Make ``cls`` a slotted pydantic dataclass with :class:`Model`'s key rules."""
-    made = cast(type[_S], pydantic_dataclass(cls, slots=True, config=_SLOT_CONFIG))
-    made.model_fields = made.__pydantic_fields__  # type: ignore[attr-defined]
-    return made
-
-
-_SLOT_CONFIG = ConfigDict(alias_generator=to_camel, extra="ignore", ser_json_bytes="base64")
-
-
 _key_tables: dict[type, dict[str, str]] = {}
 
 
@@ -389,7 +315,7 @@ _EXEMPT: tuple[int, frozenset[str]] = (-1, frozenset())
 Checks = tuple[tuple[str, str, Callable[[Any], Any]], ...]
 
 
-def field_checks(model: type[BaseModel] | type[SlotModel]) -> Checks:
+def field_checks(model: type[BaseModel]) -> Checks:
     """(attribute, JSON key, check) of every Range/Choice-limited field of ``model``."""
     return tuple(
         (name, field.alias or name, meta.check)
@@ -399,7 +325,7 @@ def field_checks(model: type[BaseModel] | type[SlotModel]) -> Checks:
     )
 
 
-def recheck(model: BaseModel | SlotModel, checks: Checks, path: str) -> list[Problem]:
+def recheck(model: object, checks: Checks, path: str) -> list[Problem]:
     """The field limits again, on the values a model holds now (models do not validate
     assignments: a value may have been changed after loading)."""
     problems: list[Problem] = []

@@ -9,36 +9,18 @@ quantities come from the codec, offsets and bits from the address parser, and
 from __future__ import annotations
 
 import logging
-import math
-import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
-from datetime import datetime
-from typing import Annotated, Any, ClassVar
+from typing import Any
 
-from pydantic import Field, field_serializer, field_validator, model_validator
-
-from ..codec import MAX_QUANTITY, SMART_CAST_TYPES, ValueSpec, check_spec, smart_cast
-from ..datatypes import Area, DataFormat, DataFormat64, DataType, ItemStatus
-from ..protocol.address import ENTITY_TABLES, Address, check_span, parse_address
-from .base import (
-    MAX_MS,
-    MS_RANGE,
-    OptionalMs,
-    Range,
-    SlotModel,
-    as_number,
-    check_encoding,
-    field_checks,
-    lower_literal,
-    parse_enum_ci,
-    parse_format,
-    recheck,
-    slot_model,
-)
-from .communication import DriverModbusRtuParameter, ReportMode
-from .compat import NG_POINT_KEYS, iso_timestamp, ng_point
-from .problems import NO_VALUE, ConfigError, Problem, WrongType
+from ..codec import SMART_CAST_TYPES, ValueSpec, check_spec, smart_cast
+from ..datatypes import Area, DataFormat, DataFormat64, DataType
+from ..protocol.address import Address, check_span, parse_address
+from .base import MS_RANGE, field_checks, recheck
+from .communication import DriverModbusRtuParameter
+from .item_fields import ON_DEMAND, ItemFields, _strip_echo
+from .item_model import MOVING, STATUSES, DeviceAddressItem, ItemReading
+from .problems import NO_VALUE, ConfigError, Problem
 from .scaling import (
     ScaleFactors,
     link_scale_factors,
@@ -47,229 +29,10 @@ from .scaling import (
     scaling_shape,
 )
 
+__all__ = ["ALLOWED_QUANTITIES", "MOVING", "ON_DEMAND", "STATUSES", "DeviceAddressItem",
+           "ItemFields", "ItemReading", "ParsedItem", "validate_items"]
+
 _log = logging.getLogger("edgemodbus.config")
-ON_DEMAND = -1  # an item's readCycle -1: never polled, read when asked (docs/reporting.md)
-
-
-@slot_model
-class DeviceAddressItem(SlotModel):
-    """One tag.  ``value``, ``status``, ``update_ts`` and ``error_reason`` are runtime
-    state set by the driver's worker thread: assignment is not validated (cheap).
-
-    A slotted pydantic dataclass (see :class:`SlotModel`): a gateway holds one per tag,
-    and a BaseModel's ``__dict__`` and fields-set made up most of a tag's memory.
-    Repeated text (address, description, unit, encoding) is interned: the same
-    addresses recur on every device of a kind."""
-
-    _where: ClassVar[str] = "addressList[]"
-
-    name: str
-    address: str
-    device_data_type: DataType
-    converted_data_type: DataType | None = None
-    data_multiplier: float = 1.0
-    description: str = ""
-    unit: str = ""
-    update_ts: datetime | None = None
-    status: ItemStatus = ItemStatus.UNKNOWN
-    is_enable: bool = True
-    address_changed: bool = False
-    data_format: DataFormat | None = None
-    byte_swap16: bool | None = None
-    data_format64: DataFormat64 | None = None
-    quantity: Annotated[int | None, Range(1, MAX_QUANTITY)] = None
-    deadband: Annotated[float | None, Range(0)] = None
-    encoding: str | None = None
-    read_cycle: Annotated[int | None, Range(ON_DEMAND, MAX_MS)] = Field(
-        default=None,
-        description="This item's scan rate (ms), default the device's readCycle; items of "
-        "different rates are never read in one request; 0 = not polled, updated by "
-        "wrapped reports only (framing wrapped-report); -1 or \"demand\" = never polled, "
-        "read only when asked (docs/reporting.md)",
-    )
-    report_mode: ReportMode | None = Field(
-        default=None, description="change or cycle; default the device's reportMode")
-    report_every: OptionalMs = Field(
-        default=None, description="Report an unchanged item again once its last report is "
-        "this old (ms, at least its scan rate); default the device's reportEvery")
-    offset: float = Field(default=0.0, description="Added to the value after dataMultiplier "
-                          "(value = raw x 10^sf x dataMultiplier + offset; "
-                          "docs/engineering-units.md)")
-    raw_min: float | None = Field(default=None, description="Range scaling: the raw value "
-                                  "that reads as engMin (rawMin, rawMax, engMin, engMax: "
-                                  "all four or none)")
-    raw_max: float | None = Field(default=None, description="Range scaling: the raw value "
-                                  "that reads as engMax")
-    eng_min: float | None = Field(default=None, description="Range scaling: the value at rawMin")
-    eng_max: float | None = Field(default=None, description="Range scaling: the value at rawMax")
-    clamp: bool = Field(default=False, description="Range scaling: a raw value outside "
-                        "rawMin..rawMax reads as the nearest of engMin/engMax (false: the "
-                        "item is Invalid)")
-    scale_factor: str | None = Field(default=None, description="The name of an Int16 item "
-                                     "of the same device holding sf: value x 10^sf "
-                                     "(SunSpec *_SF); -10..10, 0x8000 = not implemented")
-    value: Any = None
-    error_reason: str | None = None
-
-    _extra_keys: ClassVar[tuple[str, ...]] = NG_POINT_KEYS
-
-    @model_validator(mode="before")
-    @classmethod
-    def _accept_keys(cls, data: Any) -> Any:
-        # by name: pydantic binds ``cls`` to the class before slots=True remade it
-        data = DeviceAddressItem.accept_keys(data)
-        return ng_point(data) if isinstance(data, dict) else data
-
-    @field_validator("read_cycle", mode="before")
-    @classmethod
-    def _read_cycle(cls, value: Any) -> Any:
-        if isinstance(value, str) and value.strip().lower().replace("-", "") in _DEMAND_WORDS:
-            return ON_DEMAND
-        if isinstance(value, int) and not isinstance(value, bool) and value < ON_DEMAND:
-            raise ValueError(f"must be -1 (\"demand\": read only when asked), 0 (wrapped "
-                             f"reports only) or {MS_RANGE.describe()} ms")
-        return value
-
-    @field_validator("report_mode", mode="before")
-    @classmethod
-    def _report_mode(cls, value: Any) -> Any:
-        return lower_literal(value)
-
-    @field_validator("address", "description", "unit")
-    @classmethod
-    def _intern(cls, value: str) -> str:
-        return sys.intern(value)
-
-    @field_validator("name")
-    @classmethod
-    def _name(cls, value: str) -> str:
-        if not value.strip():
-            raise ValueError("an item needs a non-empty name")
-        return value
-
-    @field_validator("address", mode="before")
-    @classmethod
-    def _address_text(cls, value: Any) -> Any:
-        """A JSON number is the offset it spells (100 means "100", i.e. hr:100)."""
-        if isinstance(value, int) and not isinstance(value, bool):
-            return str(value)
-        if not isinstance(value, str):
-            raise WrongType("must be a string like 'hr:100' (or a whole number: an offset)")
-        return value
-
-    @field_validator("data_multiplier", mode="before")
-    @classmethod
-    def _multiplier_number(cls, value: Any) -> Any:
-        return as_number(value, False, False, "a finite number other than 0")
-
-    @field_validator("offset", mode="before")
-    @classmethod
-    def _offset_number(cls, value: Any) -> Any:
-        return as_number(value, False, False, "a finite number")
-
-    @field_validator("raw_min", "raw_max", "eng_min", "eng_max", mode="before")
-    @classmethod
-    def _range_number(cls, value: Any) -> Any:
-        return as_number(value, False, True, "a finite number")
-
-    @field_validator("offset", "raw_min", "raw_max", "eng_min", "eng_max")
-    @classmethod
-    def _finite(cls, value: float | None) -> float | None:
-        if value is not None and not math.isfinite(value):
-            raise ValueError("must be a finite number")
-        return value
-
-    @field_validator("scale_factor", mode="before")
-    @classmethod
-    def _factor_name(cls, value: Any) -> Any:
-        if value is None or (isinstance(value, str) and not value.strip()):
-            return None
-        if not isinstance(value, str):
-            raise WrongType("must be the name of an Int16 item of the same device")
-        return value
-
-    @field_validator("address")
-    @classmethod
-    def _address(cls, value: str) -> str:
-        # Syntax only: prefix/base live in communication (checked by validate_items).
-        try:
-            parse_address(value)
-        except ValueError as exc:
-            try:
-                parse_address(value, base=1)
-            except ValueError:
-                if not _entity_like(value):
-                    raise ValueError(_strip_echo(value, exc)) from None
-            # a bare number: an entity number under addressPrefix entity, whose own
-            # message (its table's range) validate_items gives with the options
-        return value
-        return value
-
-    @field_validator("device_data_type", mode="before")
-    @classmethod
-    def _device_type(cls, value: Any) -> Any:
-        return DataType.parse(value) if isinstance(value, str) else value
-
-    @field_validator("converted_data_type", mode="before")
-    @classmethod
-    def _converted_type(cls, value: Any) -> Any:
-        if value is None or (isinstance(value, str) and not value.strip()):
-            return None
-        return DataType.parse(value) if isinstance(value, str) else value
-
-    @field_validator("data_format", mode="before")
-    @classmethod
-    def _format(cls, value: Any) -> Any:
-        if isinstance(value, str) and not value.strip():
-            return None
-        return parse_format(value)
-
-    @field_validator("data_format64", mode="before")
-    @classmethod
-    def _format64(cls, value: Any) -> Any:
-        if isinstance(value, str) and not value.strip():
-            return None
-        return parse_format(value, DataFormat64)
-
-    @field_validator("status", mode="before")
-    @classmethod
-    def _status(cls, value: Any) -> Any:
-        return parse_enum_ci(ItemStatus, value)
-
-    @field_validator("data_multiplier")
-    @classmethod
-    def _multiplier(cls, value: float) -> float:
-        if not math.isfinite(value) or value == 0:
-            raise ValueError("must be a finite number other than 0")
-        return value
-
-    @field_validator("encoding")
-    @classmethod
-    def _encoding(cls, value: str | None) -> str | None:
-        return None if value is None or not value.strip() else sys.intern(check_encoding(value))
-
-    @field_validator("update_ts", mode="before")
-    @classmethod
-    def _ts(cls, value: Any) -> Any:
-        return iso_timestamp(value)
-
-    @field_serializer("converted_data_type")
-    def _ser_converted(self, value: DataType | None) -> str:
-        return "" if value is None else value.value
-
-
-def _entity_like(text: str) -> bool:
-    """A bare decimal number of at most 6 digits whose first is a table digit, with or
-    without ``.bit``: the shape of an entity number (its range is checked later)."""
-    number, _, bit = text.strip().partition(".")
-    return (number.isascii() and number.isdigit() and len(number) <= 6
-            and number.zfill(5)[0] in ENTITY_TABLES and (not bit or bit.isdigit()))
-
-
-def _strip_echo(text: str, exc: ValueError) -> str:
-    """parse_address's message without its leading ``'text': `` (the path shows it)."""
-    message = str(exc)
-    return message.removeprefix(f"{text!r}: ")
 
 
 ALLOWED_QUANTITIES: dict[DataType, tuple[int, ...]] = {
@@ -485,8 +248,7 @@ def validate_items(
     return parsed
 
 
-_ITEM_CHECKS = field_checks(DeviceAddressItem)
-_DEMAND_WORDS = ("demand", "ondemand")
+_ITEM_CHECKS = field_checks(ItemFields)
 
 
 def _report_problems(item: DeviceAddressItem, comm: DriverModbusRtuParameter, path: str,

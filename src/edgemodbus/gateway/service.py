@@ -363,7 +363,7 @@ class Gateway:
         snapshot_interval = inherited_snapshot(self.config)
         if snapshot_interval and "snapshot_interval" not in comm.model_fields_set:
             comm = comm.model_copy(update={"snapshot_interval": snapshot_interval})
-        items = [it.model_copy(deep=True) for it in cfg.address_list]
+        items = cfg.address_list  # the driver's store holds their state: no copy
         driver = DriverModbusRtu()
         try:
             if self.publisher is not None:
@@ -390,7 +390,7 @@ class Gateway:
                      == dev.cfg.communication.to_dict(secrets=True)
                      and cfg.driver_type == dev.cfg.driver_type)
         if same_line and dev.driver.device_driver_status.value != "Disabled":
-            items = [it.model_copy(deep=True) for it in cfg.address_list]
+            items = cfg.address_list
             try:
                 if self.publisher is not None:
                     self.publisher.check_item_names(dev.code, [it.name for it in items])

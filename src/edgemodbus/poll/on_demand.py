@@ -22,16 +22,14 @@ from typing import TYPE_CHECKING, Any
 
 from .._ffi import Block
 from ..codec import Change
-from ..datatypes import ItemStatus
 from ..errors import ModbusConnectionError, ModbusError
-from .items import Assembly, ItemState, Slot, is_news, set_item
+from .items import Assembly, ItemState, Slot, is_news, set_state
 
 if TYPE_CHECKING:
     from ..config import DeviceAddressItem
     from ..line import Link
     from ..stats import DeviceStats
-
-_INVALID = ItemStatus.INVALID
+    from .store import ItemStore
 
 
 def slots_holding(slots: Sequence[Slot], wanted: set[ItemState]) -> list[Slot]:
@@ -41,8 +39,9 @@ def slots_holding(slots: Sequence[Slot], wanted: set[ItemState]) -> list[Slot]:
             or any(asm.state in wanted for _, asm in slot.partial)]
 
 
-def read_slots(link: Link, slave: int, slots: Sequence[Slot], wanted: set[ItemState],
-               counters: DeviceStats, token: int) -> list[DeviceAddressItem]:
+def read_slots(link: Link, slave: int, store: ItemStore[ItemState], slots: Sequence[Slot],
+               wanted: set[ItemState], counters: DeviceStats,
+               token: int) -> list[DeviceAddressItem]:
     """Read ``slots`` now and store what they hold: the items of ``wanted`` always,
     the others when they changed; returns the items set, for one report.  ``token``
     numbers this read for the assemblies of large items (pieces of one read only).
@@ -63,18 +62,18 @@ def read_slots(link: Link, slave: int, slots: Sequence[Slot], wanted: set[ItemSt
         except ModbusConnectionError:
             raise
         except ModbusError as exc:
-            _failed(slot, str(exc), wanted, now, token, reported)
+            _failed(store, slot, str(exc), wanted, now, token, reported)
             continue
         counters.responses += 1
         for index, value, error in changes:
             state = slot.whole[index]
-            if state in wanted or is_news(state, value, error):
-                reported.append(set_item(state.item, value, error, now))
+            if state in wanted or is_news(store, state, value, error):
+                reported.append(set_state(store, state, value, error, now))
         if slot.partial:
             values = data.to_list()
             for piece, asm in slot.partial:
                 if asm.add(piece, values, token):
-                    _assembled(asm, wanted, now, reported)
+                    _assembled(store, asm, wanted, now, reported)
         _forget(slot)
     return reported
 
@@ -91,31 +90,30 @@ def _forget(slot: Slot) -> None:
         asm.decoder.reset()
 
 
-def _assembled(asm: Assembly, wanted: set[ItemState], now: datetime,
-               reported: list[DeviceAddressItem]) -> None:
+def _assembled(store: ItemStore[ItemState], asm: Assembly, wanted: set[ItemState],
+               now: datetime, reported: list[DeviceAddressItem]) -> None:
     state = asm.state
     block = Block.from_values(asm.registers, bits=False)
     for _, value, error in asm.decoder.decode(block, True):
-        if state in wanted or is_news(state, value, error):
-            reported.append(set_item(state.item, value, error, now))
+        if state in wanted or is_news(store, state, value, error):
+            reported.append(set_state(store, state, value, error, now))
 
 
-def _failed(slot: Slot, reason: str, wanted: set[ItemState], now: datetime, token: int,
-            reported: list[DeviceAddressItem]) -> None:
+def _failed(store: ItemStore[ItemState], slot: Slot, reason: str, wanted: set[ItemState],
+            now: datetime, token: int, reported: list[DeviceAddressItem]) -> None:
     """A block of the read failed: its items Invalid with ``reason`` (reported when
     asked for or when that is news), its decoder told to report them again."""
     states = slot.whole + [asm.state for _, asm in slot.partial if asm.fail(token)]
     for state in states:
-        item = state.item
-        news = item.status is not _INVALID or item.error_reason != reason
-        if state in wanted or news:
-            reported.append(set_item(item, None, reason, now))
+        if state in wanted or is_news(store, state, None, reason):
+            reported.append(set_state(store, state, None, reason, now))
     if slot.decoder is not None:
         slot.decoder.reset()
 
 
-def answer(states: Sequence[ItemState]) -> dict[str, dict[str, Any]]:
+def answer(store: ItemStore[ItemState],
+           states: Sequence[ItemState]) -> dict[str, dict[str, Any]]:
     """What a read job answers: each item's snapshot entry (value, status, updateTs,
-    errorReason), by name."""
-    return {state.item.name: state.snapshot() for state in states}
+    errorReason), by name, read at one moment."""
+    return store.snapshot(states)
 

@@ -25,13 +25,13 @@ from .._ffi import Block
 from .._ffi.engine import BlockSpec, EngineDevice
 from ..codec import BlockDecoder, Change, ValueSpec
 from ..config import DriverModbusRtuParameter, ParsedItem
-from ..datatypes import DeviceDriverStatus, ItemStatus
+from ..datatypes import DeviceDriverStatus
 from ..errors import ModbusConnectionError
 from ..line import LineWorker, Link
 from ..line.link import READ_FC
 from ..stats import DeviceStats
 from .faults import FaultPolicy
-from .items import Assembly, ItemState, Slot, copy_runtime, is_news, set_item
+from .items import Assembly, ItemState, Slot, is_news, set_state
 from .on_demand import answer, read_slots, slots_holding
 from .periodic import PeriodicReports, reports_all
 from .planner import Piece, ReadBlock
@@ -39,10 +39,11 @@ from .reports import ReportDecoders
 from .schedule import build_plan as build_plan  # the CLI's plan command uses it
 from .schedule import item_rate
 from .sink import Delivery, PollSink
+from .store import ItemStore, check_free
 from .writes import WriteOp, Writer
 
 if TYPE_CHECKING:
-    from ..config import DeviceAddressItem
+    from ..config import DeviceAddressItem, ItemReading
     from ..protocol.wrapped import Report
 
 
@@ -76,10 +77,10 @@ class Poller(FaultPolicy):
         self.active = False
         self.line: LineWorker | None = None
         self.items: list[ItemState] = []
-        self.by_name: dict[str, ItemState] = {}
         self.slots: list[Slot] = []  # in plan order: slot k is the device's block k
         self._assemblies: dict[ItemState, Assembly] = {}
-        self._owner: dict[ItemState, Slot | Assembly] = {}  # what decodes each item
+        # the items' values (store.py), bound at start
+        self.store: ItemStore[ItemState] = ItemStore([])
         self.demand_slots: list[Slot] = []  # on-demand items' blocks (poll/on_demand.py)
         self.periodic: PeriodicReports | None = None  # poll/periodic.py
         self._demand_reads = 0
@@ -93,6 +94,27 @@ class Poller(FaultPolicy):
         self.next_snapshot = 0.0  # the first cycle's end publishes one
         if self.snapshot_interval:
             self.device.notify_at = 0.0
+
+    @property
+    def by_name(self) -> dict[str, ItemState]:
+        """The items in force by name (made on first use: store.py)."""
+        return self.store.by_name()
+
+    def _owner(self, state: ItemState) -> Slot | Assembly | None:
+        """What decodes ``state`` in the plan in force (None: a state of an older plan).
+        A search, as only writes and reports ask: a dict would be a tag's largest part."""
+        if not self.store.owns(state):
+            return None
+        asm = self._assemblies.get(state)
+        if asm is not None:
+            return asm
+        area, offset = state.area, state.offset
+        for slot in self.slots:
+            block = slot.block
+            if block.area is area and block.start <= offset < block.start + block.count \
+                    and any(s is state for s in slot.whole):
+                return slot
+        return None
 
     @property
     def plan(self) -> list[ReadBlock]:
@@ -114,6 +136,7 @@ class Poller(FaultPolicy):
         self.active = self.device.active = True
         self._all_due_now()
         self._update_notify()
+        self.store.bind()  # ItemInUseError: another running driver polls an item
         line.attach(self)
 
     def _all_due_now(self) -> None:
@@ -121,23 +144,25 @@ class Poller(FaultPolicy):
         self.device.all_due(time.monotonic())
 
     def stop(self) -> None:
-        self.active = self.device.active = False
+        self.active = self.device.active = self.store.active = False
         self.status = DeviceDriverStatus.STOPPED
 
     def _install(self, parsed: Sequence[ParsedItem]) -> None:
-        old = self.by_name
+        old_store = self.store
+        old = old_store.by_name() if old_store.states else {}
         enabled = [p for p in parsed if p.item.is_enable]
-        items = [ItemState(p) for p in enabled]
+        items = [ItemState(p, i) for i, p in enumerate(enabled)]
+        # a new item object of an unchanged definition keeps the state of the old one
+        self.carry: dict[int, ItemReading] = {}
         for state in items:
             prev = old.get(state.item.name)
             if prev is not None and prev.item is not state.item and prev.same_definition(state):
-                copy_runtime(prev.item, state.item)
+                self.carry[state.index] = old_store.reading(prev.index)
         self.items = items
-        self.by_name = {s.item.name: s for s in items}
+        self.store = ItemStore(items)
         self._reports = ReportDecoders(items)
         blocks = build_plan(enabled, self.params)
         self._assemblies = {}  # filled by _make_slot: one per large item, for all its pieces
-        self._owner = {}
         self.slots = [self._make_slot(b) for b in blocks]
         # report-only: nothing polled (readCycle 0 and no item with a rate of its own);
         # cycle: what offline probing backs off from (readCycle, else the fastest rate)
@@ -178,10 +203,6 @@ class Poller(FaultPolicy):
                 partial.append((piece, self._assembly(state)))
         decoder = BlockDecoder(block.area, block.count, specs) if specs else None
         slot = Slot(block, whole, decoder, partial)
-        for state in whole:
-            self._owner[state] = slot
-        for _, asm in partial:
-            self._owner[asm.state] = asm
         return slot
 
     def _assembly(self, state: ItemState) -> Assembly:
@@ -195,7 +216,11 @@ class Poller(FaultPolicy):
         assert self.line is not None
 
         def swap(_link: Link | None = None) -> None:
+            previous = self.store
+            check_free([p.item for p in parsed], (previous,))  # before any change
             self._install(parsed)
+            self.store.bind(self.carry, previous)
+            previous.active = False
             self._all_due_now()
 
         if self.line.on_worker():  # from a callback: the worker is between two reads
@@ -237,13 +262,13 @@ class Poller(FaultPolicy):
             wanted = set(states)
             self._demand_reads -= 1  # the assemblies' "cycle" of this read: never a pass's
             link.set_response_timeout(self.timeout)
-            reported = read_slots(link, self.slave,
+            reported = read_slots(link, self.slave, self.store,
                                   slots_holding(self.slots + self.demand_slots, wanted),
                                   wanted, self.counters, self._demand_reads)
             if reported:
                 self.delivery.report(reported)
                 self.delivery.flush()
-            return answer(states)
+            return answer(self.store, states)
 
         return self.line.submit(run, reads=True, slave=self.slave)
 
@@ -280,11 +305,13 @@ class Poller(FaultPolicy):
             return
         self.counters.reports += 1
         report_all = self.report_all
+        store = self.store
         news = [(state, value, error) for state, (_, value, error) in decoded
-                if report_all or is_news(state, value, error)]
+                if report_all or is_news(store, state, value, error)]
         if news:
             now = datetime.now(timezone.utc)
-            reported = [set_item(state.item, value, error, now) for state, value, error in news]
+            reported = [set_state(store, state, value, error, now)
+                        for state, value, error in news]
             self._recheck([state for state, _, _ in news])
             self.counters.values_changed += len(reported)
             self.delivery.report(reported)
@@ -369,22 +396,9 @@ class Poller(FaultPolicy):
             slot.recheck = False
             if not self.report_all:
                 whole = slot.whole
-                changes = [c for c in changes if is_news(whole[c[0]], c[1], c[2])]
+                changes = [c for c in changes if is_news(self.store, whole[c[0]], c[1], c[2])]
         if changes:
-            items = slot.items
-            for index, value, error in changes:  # set_item, inlined: the hot loop
-                item = items[index]
-                if error is None:
-                    item.value = value
-                    if item.status is not _OK:
-                        item.status = _OK
-                    if item.error_reason is not None:
-                        item.error_reason = None
-                else:
-                    item.status = _INVALID
-                    item.error_reason = error
-                item.update_ts = now
-                reported.append(item)
+            self.store.apply(slot.whole, changes, now, reported)
         if slot.partial and data is not None:
             values = data.to_list()
             cycle = self.device.passes
@@ -393,8 +407,8 @@ class Poller(FaultPolicy):
                     block = Block.from_values(asm.registers, bits=False)
                     state = asm.state
                     for _, value, error in asm.decoder.decode(block, self.report_all):
-                        if self.report_all or is_news(state, value, error):
-                            reported.append(set_item(state.item, value, error, now))
+                        if self.report_all or is_news(self.store, state, value, error):
+                            reported.append(set_state(self.store, state, value, error, now))
 
     def _deliver(self, reported: list[DeviceAddressItem]) -> None:
         """Hand the items just set to the callbacks (the batch goes at the cycle's end)."""
@@ -410,12 +424,12 @@ class Poller(FaultPolicy):
         reported = []
         cycle = self.device.passes
         states = slot.whole + [asm.state for _, asm in slot.partial if asm.fail(cycle)]
+        store = self.store
         for state in states:
-            item = state.item
-            changed = item.status is not ItemStatus.INVALID or item.error_reason != reason
-            set_item(item, None, reason, now)
+            changed = is_news(store, state, None, reason)
+            set_state(store, state, None, reason, now)
             if changed or self.report_all:
-                reported.append(item)
+                reported.append(state.item)
         if reported:
             self.delivery.report(reported)
         if slot.decoder is not None:
@@ -428,7 +442,7 @@ class Poller(FaultPolicy):
         read back is not published a second time, and a value the slave went back to
         (a write it clamped or another master undid) is not missed."""
         for state in states:
-            owner = self._owner.get(state)
+            owner = self._owner(state)
             if owner is None or owner.decoder is None:
                 continue
             owner.decoder.reset()
@@ -457,7 +471,5 @@ class Poller(FaultPolicy):
         if not self.active:
             return False, "device stopped before the write was sent"
         link.set_response_timeout(self.timeout)
-        return self.writer.run(link, ops, self._recheck, whole)
+        return self.writer.run(link, ops, self._recheck, self.store, whole)
 
-_OK = ItemStatus.OK
-_INVALID = ItemStatus.INVALID

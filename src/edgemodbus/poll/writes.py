@@ -23,8 +23,9 @@ from ..errors import IllegalFunction, ModbusConnectionError, ModbusError, Modbus
 from ..line import Link
 from ..protocol.limits import MAX_WRITE_BITS, MAX_WRITE_REGISTERS
 from ..stats import DeviceStats
-from .items import ItemState, holds, set_item
+from .items import ItemState, holds, set_state
 from .sink import Delivery
+from .store import ItemStore
 
 if TYPE_CHECKING:
     from ..config import DeviceAddressItem
@@ -141,10 +142,12 @@ class Writer:
         self.no_fc22 = False
 
     def run(self, link: Link, ops: list[WriteOp],
-            recheck: Callable[[list[ItemState]], None],
+            recheck: Callable[[list[ItemState]], None], store: ItemStore[ItemState],
             whole: bool = False) -> tuple[bool, str | None]:
-        """Send ``ops`` in order; ``recheck`` is told which items a confirmed write set.
-        ``whole`` (an action): the first failure stops the batch, the rest is not sent."""
+        """Send ``ops`` in order; a confirmed write's values go into ``store`` (the
+        device's, store.py: items of a plan replaced since are left to the next read)
+        and ``recheck`` is told which items it set.  ``whole`` (an action): the first
+        failure stops the batch, the rest is not sent."""
         errors: list[str] = []
         now = datetime.now(timezone.utc)
         written: list[DeviceAddressItem] = []
@@ -171,9 +174,9 @@ class Writer:
                 continue
             recheck([state for state, _ in op.updates])
             confirmed = [
-                set_item(state.item, value, None, now)
+                set_state(store, state, value, None, now)
                 for state, value in op.updates
-                if self.report_all or not holds(state.item, value, None)
+                if store.owns(state) and (self.report_all or not holds(store, state, value))
             ]
             if confirmed:
                 self.counters.values_changed += len(confirmed)

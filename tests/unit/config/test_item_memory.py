@@ -98,8 +98,10 @@ def test_poll_state_takes_under_200_bytes_per_item() -> None:
     kept, held = _traced_bytes(lambda: [_poll_state(c) for c in configs])
     assert isinstance(kept, list)
     # was 404: a Piece per item in the plan, and per item in each decoder a tuple of
-    # where its value is, its spec, offset and index, and its own offset int
-    assert held / (2 * N) < 200
+    # where its value is, its spec, offset and index, and its own offset int; 205 since
+    # an item state holds its index in the store (poll/store.py): 8 bytes more asked,
+    # in the same 64-byte block of pymalloc
+    assert held / (2 * N) < 210
 
 
 def test_items_at_one_offset_share_one_int() -> None:

@@ -1,0 +1,246 @@
+"""The runtime state of a device's items: one :class:`ItemStore` per poller.
+
+Parallel arrays indexed like the poller's items (``Poller.items[i]`` is index ``i``):
+values (a list), statuses (a bytearray of codes), update times and error reasons (lists of
+shared objects: one time per pass, a few reason texts).  The line worker writes them (one
+call per block read: :meth:`ItemStore.apply`); a bound :class:`DeviceAddressItem` reads
+its fields here (config/item_model.py), so the configuration is never written by the
+worker and nothing is copied per start.
+
+Consistency: every write of an item's four fields, and every read of more than one field
+(:meth:`ItemStore.reading`, :meth:`ItemStore.snapshot`), holds the store's lock, so a
+reader on any thread never sees the value of one read with the status of another.  A
+single field is one list or bytearray read (atomic under the GIL).  The lock is never
+held while a callback runs.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Mapping, Sequence
+from datetime import datetime
+from typing import Any, Generic, Protocol, TypeVar
+
+from ..config import MOVING, STATUSES, DeviceAddressItem, ItemReading
+from ..datatypes import ItemStatus, enum_value
+
+
+class StateLike(Protocol):
+    """What the store needs of an item's state (poll/items.py's ItemState)."""
+
+    @property
+    def index(self) -> int: ...
+    @property
+    def item(self) -> DeviceAddressItem: ...
+
+_CODE = {status: code for code, status in enumerate(STATUSES)}
+UNKNOWN, OK, INVALID = 0, 1, 2  # codes of STATUSES
+_new = tuple.__new__  # a NamedTuple without its Python-level __new__
+
+
+class ItemInUseError(ValueError):
+    """An item object is already polled by another running driver."""
+
+
+S = TypeVar("S", bound=StateLike)
+
+
+class ItemStore(Generic[S]):
+    """The values, statuses, times and reasons of one device's items (see above)."""
+
+    __slots__ = ("_names", "active", "arrays", "lock", "reasons", "stamps", "states", "status",
+                 "values")
+
+    def __init__(self, states: Sequence[S]) -> None:
+        n = len(states)
+        self.states = states  # the poller's items: states[i].index == i
+        self.lock = threading.Lock()
+        self.values: list[Any] = [None] * n
+        self.status = bytearray(n)  # codes into STATUSES
+        self.stamps: list[datetime | None] = [None] * n
+        self.reasons: list[str | None] = [None] * n
+        self.arrays = (self.values, self.status, self.stamps, self.reasons)  # items read these
+        self.active = False  # a running poller writes it
+        self._names: dict[str, S] | None = None
+
+    def __len__(self) -> int:
+        return len(self.values)
+
+    def by_name(self) -> dict[str, S]:
+        """Name -> item state, made on first use (a write, an action): a device that is
+        only read never pays for it (a dict entry per tag).  Any thread."""
+        names = self._names
+        if names is None:
+            names = self._names = {state.item.name: state for state in self.states}
+        return names
+
+    def owns(self, state: S) -> bool:
+        """Whether ``state`` is this store's (not one of a plan replaced since)."""
+        index = state.index
+        return index < len(self.states) and self.states[index] is state
+
+    # -- reads (any thread) ---------------------------------------------------------------
+    def reading(self, index: int) -> ItemReading:
+        with self.lock:
+            return _new(ItemReading, (self.values[index], STATUSES[self.status[index]],
+                                      self.stamps[index], self.reasons[index]))
+
+    def snapshot(self, states: Sequence[S] | None = None) -> dict[str, dict[str, Any]]:
+        """Each item's entry of ``driver.snapshot()`` (Python values, as held: NaN,
+        bytes, a datetime; JSON writers convert, codec/jsonable.py), all read at one
+        moment; ``states``: only these (of this store)."""
+        if states is None:
+            states = self.states
+        with self.lock:
+            values, status, stamps, reasons = (self.values, self.status, self.stamps,
+                                               self.reasons)
+            entries = [(values[i], status[i], stamps[i], reasons[i])
+                       for i in (state.index for state in states)]
+        texts = [str(enum_value(s)) for s in STATUSES]
+        return {
+            state.item.name: {
+                "address": state.item.address,
+                "value": value,
+                "status": texts[code],
+                "updateTs": stamp.isoformat() if stamp else None,
+                "errorReason": reason,
+            }
+            for state, (value, code, stamp, reason) in zip(states, entries, strict=True)
+        }
+
+    # -- writes ---------------------------------------------------------------------------
+    def assign(self, index: int, which: int, value: Any) -> None:
+        """A host's assignment to a runtime field (the compatibility path)."""
+        with self.lock:
+            if which == 0:
+                self.values[index] = value
+            elif which == 1:
+                self.status[index] = _CODE[ItemStatus(value)]
+            elif which == 2:
+                self.stamps[index] = value
+            else:
+                self.reasons[index] = value
+
+    def set(self, index: int, value: Any, error: str | None, now: datetime) -> None:
+        """Store a result: the value and Ok, or Invalid with the reason (the last good
+        value stays)."""
+        with self.lock:
+            if error is None:
+                self.values[index] = value
+                self.status[index] = OK
+            else:
+                self.status[index] = INVALID
+            self.reasons[index] = error
+            self.stamps[index] = now
+
+    def apply(self, whole: Sequence[S],
+              changes: Sequence[tuple[int, Any, str | None]], now: datetime,
+              reported: list[DeviceAddressItem]) -> None:
+        """Store a block's change records (``(k, value, error)``: of its k-th whole
+        item), stamped ``now``; the items set are appended to ``reported``.  The hot
+        loop of a poll."""
+        values, status, stamps, reasons = self.values, self.status, self.stamps, self.reasons
+        with self.lock:
+            for k, value, error in changes:
+                state = whole[k]
+                i = state.index
+                if error is None:
+                    values[i] = value
+                    status[i] = OK
+                else:
+                    status[i] = INVALID
+                reasons[i] = error
+                stamps[i] = now
+                reported.append(state.item)
+
+    # -- change tests (worker) ------------------------------------------------------------
+    def holds(self, index: int, value: Any) -> bool:
+        """Whether item ``index`` is already Ok with exactly ``value``."""
+        return self.status[index] == OK and _same(self.values[index], value)
+
+    def is_news(self, index: int, value: Any, error: str | None, deadband: float) -> bool:
+        """Whether a decoded result differs from what item ``index`` holds, as the change
+        mode reports it: another error reason, or a value not exactly the held one and,
+        for numbers with a deadband, more than the deadband away from it."""
+        code = self.status[index]
+        if error is not None:
+            return code != INVALID or self.reasons[index] != error
+        if code != OK:
+            return True
+        held = self.values[index]
+        if _same(held, value):
+            return False
+        if deadband and _is_number(held) and _is_number(value):
+            return not abs(value - held) <= deadband
+        return True
+
+    # -- binding --------------------------------------------------------------------------
+    def bind(self, carry: Mapping[int, ItemReading] | None = None,
+             previous: ItemStore[Any] | None = None) -> None:
+        """Make each item read from this store, starting with what it held (or
+        ``carry[i]``: the state of the item it replaces); ``previous`` is the store this
+        one replaces (its items may move).  Raises :class:`ItemInUseError` when an item
+        is polled by another running driver: nothing is bound then."""
+        items = [state.item for state in self.states]
+        check_free(items, (self, previous))
+        readings = [item.reading for item in items]
+        for i, reading in (carry or {}).items():
+            readings[i] = reading
+        with self.lock:
+            for i, (value, status, stamp, reason) in enumerate(readings):
+                self.values[i] = value
+                self.status[i] = _CODE[status]
+                self.stamps[i] = stamp
+                self.reasons[i] = reason
+        for i, item in enumerate(items):  # the order a reader relies on (item.bound())
+            item._store = MOVING
+            item._index = shared_index(i)
+            item._store = self
+        self.active = True
+
+
+def check_free(items: Sequence[DeviceAddressItem], mine: Sequence[object] = ()) -> None:
+    """Raise :class:`ItemInUseError` for the first enabled item (``addressList[k]``) that
+    a running driver's store other than ``mine`` holds (one item object is polled by one
+    driver at a time)."""
+    for k, item in enumerate(items):
+        other = item._store
+        if not item.is_enable:
+            continue
+        if isinstance(other, ItemStore) and other.active and not any(
+                other is m for m in mine):
+            raise ItemInUseError(
+                f"addressList[{k}] {item.name!r}: this item object is polled by another "
+                "running driver; give each driver its own items (item.model_copy())")
+
+
+def _same(held: Any, value: Any) -> bool:
+    """Whether ``held`` is exactly ``value`` (same type; NaN matches NaN)."""
+    return type(held) is type(value) and (held == value or (held != held and value != value))
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def shared_index(i: int) -> int:
+    """``i`` (0..65535) as one int object shared by every user of that number.
+
+    An int above 256 is 32 bytes of its own, and the same numbers recur by the
+    thousands (offsets of devices of one kind, store indices): the first user lends its
+    int to the others, kept in lists of 256 made on first use (2 KB each).  Other values
+    come back as they are."""
+    chunk_no, at = divmod(i, _CHUNK)
+    if not 0 <= chunk_no < len(_SHARED):
+        return i
+    chunk = _SHARED[chunk_no]
+    if chunk is None:
+        chunk = _SHARED[chunk_no] = [None] * _CHUNK
+    shared = chunk[at]
+    if shared is None:
+        shared = chunk[at] = i
+    return shared
+
+
+_CHUNK = 256
+_SHARED: list[list[int | None] | None] = [None] * (0x10000 // _CHUNK)
