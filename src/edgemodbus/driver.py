@@ -189,20 +189,22 @@ class DriverModbusRtu:
         self.logger.info("%s: stopped", poller.code)
         return True
 
-    def update_addresses(self, addresses: Sequence[DeviceAddressItem]) -> None:
-        """Replace the address list while running: re-plan on the worker between two
-        reads.  New items start Unknown; removed items are no longer read; items whose
-        definition did not change keep their state.  Raises ValueError if invalid."""
+    def update_addresses(self, addresses: Sequence[DeviceAddressItem],
+                         actions: Sequence[DeviceAction] | None = None) -> None:
+        """Replace the address list (and the actions, unless None) while running: re-plan
+        on the worker between two reads.  New items start Unknown; removed ones are no
+        longer read; unchanged ones keep their state.  ValueError if invalid."""
         if self._params is None:
             raise RuntimeError("update_addresses before start_device")
         parsed = validate_items(list(addresses), self._params)
-        validate_actions(self._actions, parsed)  # an action's item may be gone
-        if self._poller is None:
-            return
-        # a trial build of the specs, plan and decoders: a list the codec or the planner
-        # refuses raises here and the running device keeps its items and plan
-        Poller(self._poller.sink, self._poller.code, self._params, parsed, self.logger)
-        self._poller.replace_items(parsed).result()
+        new_actions = self._actions if actions is None else list(actions)
+        validate_actions(new_actions, parsed)  # an action's item may be gone
+        if self._poller is not None:
+            # a trial build of the specs, plan and decoders: a list the codec or the
+            # planner refuses raises here and the device keeps its items and plan
+            Poller(self._poller.sink, self._poller.code, self._params, parsed, self.logger)
+            self._poller.replace_items(parsed).result()
+        self._actions = new_actions
 
     # -- subscribers (poll/listeners.py) --------------------------------------------------
     def subscribe(self, listener: Listener[DriverModbusRtu]) -> None:
@@ -345,7 +347,7 @@ class DriverModbusRtu:
     # -- actions (poll/actions.py) --------------------------------------------------------
     @property
     def actions(self) -> list[DeviceAction]:
-        """The actions given to :meth:`start_device`."""
+        """The actions given to :meth:`start_device` (or the last update_addresses)."""
         return list(self._actions)
 
     def run_action(self, name: str,

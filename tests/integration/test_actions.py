@@ -328,3 +328,35 @@ def test_cli_runs_an_ng_action(tmp_path: Path, capsys: pytest.CaptureFixture[str
         assert main(["action", str(path), "regs", "value=1,2,3"]) == 0
         assert capsys.readouterr().out == "ok\n"
         assert sim.slave(1).get_registers(em.Area.HOLDING_REGISTER, 310, 3) == [1, 2, 3]
+
+
+def test_a_reload_that_changes_only_the_actions_applies_them(
+        tmp_path: Path, slave: PymodbusSlave) -> None:
+    """A device file whose only change is its actions is updated in place (no restart),
+    and the new actions run (they were ignored until the device restarted)."""
+    from edgemodbus.gateway import Gateway, load_gateway_config
+
+    conf = tmp_path / "conf"
+    conf.mkdir()
+    (conf / "gateway.json").write_text(json.dumps({"gatewayId": "gw-actions"}))
+    comm = {"transport": "rtu-over-tcp", "tcpHost": "127.0.0.1", "tcpPort": slave.port,
+            "slaveId": 1, "readTimeout": 500, "readCycle": 200, "byteTimeout": 50}
+    body: dict[str, Any] = {"organization": {"deviceCode": "pump"}, "communication": comm,
+                            "addressList": ITEMS, "actions": ACTIONS[:1]}
+    (conf / "pump.json").write_text(json.dumps(body))
+    gateway = Gateway(conf, load_gateway_config(conf / "gateway.json"), conf / "gateway.json")
+    gateway.start()
+    try:
+        (dev,) = gateway.devices.values()
+        driver = dev.driver
+        assert [a.name for a in driver.actions] == ["start"]
+        body["actions"] = [*ACTIONS[:1], {"name": "mode7", "functionCode": 6, "parameters": [
+            {"name": "mode", "item": "Mode", "default": 7}]}]
+        (conf / "pump.json").write_text(json.dumps(body))
+        gateway.reload_devices()
+        assert next(iter(gateway.devices.values())).driver is driver  # not restarted
+        assert [a.name for a in driver.actions] == ["start", "mode7"]
+        assert driver.run_action("mode7") == (True, None)
+        assert slave.registers(1, "hr", 102) == [7]
+    finally:
+        gateway.stop()

@@ -90,7 +90,7 @@ def test_service_polls_publishes_reloads_and_stops_cleanly(
         write_json(conf / "dev3.json", device_file(slave.port, 3, code="dev3"))
         (conf / "broken.json").write_text('{"communication": {"slaveId": 999}}')
         svc.signal(signal.SIGHUP)
-        svc.wait_log(r"dev1: address list updated from dev1\.json \(4 items\)")
+        svc.wait_log(r"dev1: address list updated from dev1\.json \(4 items, 0 actions\)")
         svc.wait_log(r"boiler: restarted from boiler\.json")
         svc.wait_log(r"dev3: started from dev3\.json")
         svc.wait_log(r"broken\.json: invalid, not started")

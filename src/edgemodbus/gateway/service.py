@@ -394,14 +394,14 @@ class Gateway:
             try:
                 if self.publisher is not None:
                     self.publisher.check_item_names(dev.code, [it.name for it in items])
-                dev.driver.update_addresses(items)
+                dev.driver.update_addresses(items, cfg.actions)
             except (ValueError, RuntimeError) as exc:
                 log.error("%s: address list not applied, keeping the running one: %s",
                           dev.path, exc)
                 return
             dev.digest, dev.cfg = digest, cfg
-            log.info("%s: address list updated from %s (%d items)", dev.code, dev.path.name,
-                     len(items))
+            log.info("%s: address list updated from %s (%d items, %d actions)", dev.code,
+                     dev.path.name, len(items), len(cfg.actions))
             return
         del self.devices[dev.path]
         self._stop_device(dev)
