@@ -27,16 +27,16 @@ from concurrent.futures import Future
 from typing import Any, Protocol, TypeVar
 
 from .._ffi.engine import (
-    EV_CYCLE,
     EV_ERROR,
     EV_FAILED,
     EV_INPUT,
     EV_REPORTS,
+    EV_SPLIT,
     EV_WAKE,
     EngineDevice,
-    LineCounters,
     Waker,
 )
+from .._ffi.outcomes import LineCounters
 from ..errors import LineBusyError, ModbusConnectionError, ModbusError, TargetBackoffError
 from ..stats import LineStats
 from .connect import open_link
@@ -299,8 +299,10 @@ class LineWorker(LineRequests):
         more, the link logged the frames traced when the engine came back)."""
         kind, which, err = event
         try:
-            if kind == EV_CYCLE:
-                pollers[which].engine_cycle()
+            for ended in link.take_ended():  # every pass that ended, EV_CYCLE or not
+                pollers[ended].engine_cycle()
+            if kind == EV_SPLIT:
+                pollers[which].engine_split()
             elif kind == EV_FAILED:
                 pollers[which].engine_failed(link, err)
             elif kind == EV_WAKE:  # the queue is served next; a stale flag is cleared
