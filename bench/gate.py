@@ -74,6 +74,12 @@ GATES: dict[str, Gate] = {
     # driver.few_changes_vs_floor.
     "driver.pymodbus_vs_few_changes": Gate(
         8.0, 3.0, "higher", "x", "pymodbus CPU/tag / driver, 1% change"),
+    # The same bench, (a): how often the line worker came back from the engine to Python
+    # per round of its 10 slaves (each pass has changes).  Issue 26: at most once per
+    # round, however many devices share the line (10 before: one per device's pass; 1.8
+    # with a 5 ms handover; 1.0-1.2 since passes are handed over per round).
+    "driver.entries_per_round": Gate(
+        1.0, 1.5, "lower", "", "Python entries per round of a line's devices, 1% change"),
     # bench/test_bench_line.py: client CPU per 125-register transaction on the line worker
     # over pymodbus' sync client.  Issue 2: at most a third; half is the noise margin.
     "line.worker_vs_pymodbus": Gate(

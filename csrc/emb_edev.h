@@ -10,7 +10,8 @@
 
 #define EMB_HIST_MAX 16 /* cycle-time histogram buckets, the +Inf one included */
 #define EMB_JOIN_NS 5000000LL /* a block due this soon joins the pass that begins now */
-#define EMB_HANDOVER_NS 50000000LL /* a pass's news waits this long at most for others' */
+#define EMB_HANDOVER_NS 50000000LL /* news waits this long at most for a device due next */
+#define EMB_LATEST_NS 1000000000LL /* ... and at most this long on a busy line */
 #define EMB_NEVER INT64_MAX
 #define EMB_FAIL_RSP 12   /* bytes of a rejected reply kept for its reason */
 #define EMB_N_EXC 256     /* exception codes counted */
@@ -161,7 +162,8 @@ typedef struct emb_engine {
     uint32_t *ended_list;  /* indices of the devices whose `ended` is set (room for
                             * n_devices); Python takes them and sets n_ended to 0 */
     uint32_t n_ended;
-    int64_t handover_ns;   /* the listed passes go to Python by then */
+    int64_t idle_ns;       /* the listed passes go to Python rather than idle this long */
+    int64_t latest_ns;     /* ... and by this time at the latest */
     emb_line_counters *lc; /* the line's counters, kept across its links */
     /* cleaning the line after a failed read (line/link.py sets them once) */
     int settle_ms;         /* after a timeout: wait out a late reply (0: no settling) */

@@ -256,23 +256,27 @@ static int emb_step(emb_engine *e, emb_device *d)
     return emb_fault_read(e, d, b, data);
 }
 
-/* A pass of d (device `which`) that Python must see ended: list it; the list goes to
- * Python by a tenth of the device's cycle from now (at most EMB_HANDOVER_NS, at least
- * EMB_JOIN_NS), so that the passes of other devices due meanwhile join it. */
+/* A pass of d (device `which`) that Python must see ended: list it.  The list goes to
+ * Python before the next pass of a device in it (a round), or rather than let the line
+ * idle longer than a tenth of a listed device's cycle (at most EMB_HANDOVER_NS, at least
+ * EMB_JOIN_NS), or EMB_LATEST_NS after the first pass listed (a line busy with passes
+ * without news): the passes of the devices of a round join it, and news waits at most
+ * one cycle of its device (its next pass) and EMB_LATEST_NS. */
 static void emb_ended(emb_engine *e, emb_device *d, int which)
 {
-    int64_t wait = d->cycle_ns / 10, at;
+    int64_t idle = d->cycle_ns / 10, now = emb_now_ns();
 
     if (d->ended)
         return;
     d->ended = 1;
-    if (wait > EMB_HANDOVER_NS)
-        wait = EMB_HANDOVER_NS;
-    if (wait < EMB_JOIN_NS)
-        wait = EMB_JOIN_NS;
-    at = emb_now_ns() + wait;
-    if (e->n_ended == 0 || at < e->handover_ns)
-        e->handover_ns = at;
+    if (idle > EMB_HANDOVER_NS)
+        idle = EMB_HANDOVER_NS;
+    if (idle < EMB_JOIN_NS)
+        idle = EMB_JOIN_NS;
+    if (e->n_ended == 0 || idle < e->idle_ns)
+        e->idle_ns = idle;
+    if (e->n_ended == 0)
+        e->latest_ns = now + EMB_LATEST_NS;
     e->ended_list[e->n_ended++] = (uint32_t)which;
 }
 
@@ -295,12 +299,12 @@ int emb_engine_run(emb_engine *e, int64_t until_ns)
     for (;;) {
         now = emb_now_ns();
         d = emb_pick(e, &which);
-        if (e->n_ended && (now >= e->handover_ns || d == NULL || d->due_ns > e->handover_ns ||
-                           (!d->in_pass && d->ended)))
-            return EMB_EV_CYCLE; /* the passes that ended, before idling, a new pass of
-                                  * one of them, or their handover time; a device due
-                                  * before it runs first (one Python entry for the
-                                  * devices of a line that poll at one rate) */
+        if (e->n_ended && (d == NULL || (!d->in_pass && d->ended) || now >= e->latest_ns ||
+                           d->due_ns > now + e->idle_ns))
+            return EMB_EV_CYCLE; /* the passes that ended, before a new pass of one of
+                                  * them (a round), before idling longer than idle_ns, or
+                                  * at latest_ns on a busy line: one Python entry per
+                                  * round of the devices of a line */
         if (e->owed && (d == NULL || d->due_ns > now))
             e->owed = 0; /* nothing due: the jobs may have the line */
         if (emb_woken(e) && !e->owed)

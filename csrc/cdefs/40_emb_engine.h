@@ -127,7 +127,8 @@ typedef struct emb_engine {
     int event_errno;
     uint32_t *ended_list;
     uint32_t n_ended;
-    int64_t handover_ns;
+    int64_t idle_ns;
+    int64_t latest_ns;
     emb_line_counters *lc;
     int settle_ms;
     int settle_limit_ms;
