@@ -298,9 +298,12 @@ class LineWorker(LineRequests):
         """Hand what the engine came back for to whom it concerns (EV_TRACE: nothing
         more, the link logged the frames traced when the engine came back)."""
         kind, which, err = event
-        try:
-            for ended in link.take_ended():  # every pass that ended, EV_CYCLE or not
+        for ended in link.take_ended():  # every pass that ended, EV_CYCLE or not
+            try:
                 pollers[ended].engine_cycle()
+            except Exception:  # a poller bug must not cost the others their pass
+                log.exception("%s: poller failed", self.endpoint.describe())
+        try:
             if kind == EV_SPLIT:
                 pollers[which].engine_split()
             elif kind == EV_FAILED:

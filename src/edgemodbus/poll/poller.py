@@ -295,11 +295,12 @@ class Poller:
         """The link failed (errno ``err``) on a read of the engine's pass: the results
         so far, then the link is closed (the line reports it down and reconnects)."""
         device = self.device
-        slot = self.slots[device.pass_blocks()[device.index]]
-        if self.active:
-            self.take_results()
-        block = slot.block
-        link.read_failed(err, self.slave, block.area, block.start, block.count)
+        block = self.slots[device.pass_blocks()[device.index]].block
+        try:
+            if self.active:
+                self.take_results()
+        finally:  # the link is closed whatever the results did
+            link.read_failed(err, self.slave, block.area, block.start, block.count)
 
     def _cycle_done(self, now: float) -> None:
         self.delivery.flush()
