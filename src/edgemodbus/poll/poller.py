@@ -244,12 +244,13 @@ class Poller:
         now = datetime.now(timezone.utc)  # one time stamp for the pass's reports
         for k in order[device.taken:upto]:
             slot = slots[k]
-            n = device.reported(k)
-            if not (n or report_all or slot.partial or slot.recheck) or device.failed(k):
+            n = device.reported(k)  # 0 after a failure
+            if not n and (not (report_all or slot.partial or slot.recheck) or device.failed(k)):
                 continue  # the usual block: nothing changed (a failed one: below)
             decoder = slot.decoder
             changes = decoder.finish(n, report_all) if decoder else []
-            self._apply(slot, device.data(k), changes, now, reported)
+            self._apply(slot, device.data(k) if slot.partial else None, changes, now,
+                        reported)
         device.taken = upto
         if device.has_failures:
             for failure in device.take_failures():
