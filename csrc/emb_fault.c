@@ -1,7 +1,7 @@
 /* edgemodbus: the fault policy, run by the line engine beside the read.
  *
- * As libmodbus's own transaction (and Neuron's modbus_stack read-retry) do, a failed read
- * is handled where it happened, without a trip to Python:
+ * A failed read is handled where it happened, in the C call that made it, without a
+ * trip to Python:
  *   - a timeout or a CRC error is read again, up to the device's `retries` (none while
  *     the slave is offline); every request, retry and error is counted once, here;
  *   - RTU has no transaction id: after a timeout the line is settled (a late reply is

@@ -98,12 +98,7 @@ class EngineDevice:
         blocks = ffi.new("emb_eblock[]", max(n, 1))
         buffers: list[Block | None] = []
         for k, spec in enumerate(specs):
-            b = blocks[k]
-            b.function = spec.function
-            b.start = spec.start
-            b.count = spec.size
-            b.period_ns = _ns(spec.period)
-            buffers.append(self._fill(b, spec))
+            buffers.append(self._fill(blocks[k], spec))
         self._blocks = blocks
         self._pass = ffi.new("uint32_t[]", max(n, 1))
         self._specs = list(specs)  # keeps the plans alive while C points at them
