@@ -1,15 +1,18 @@
 /* edgemodbus: the line engine (see emb_engine.h).
  *
- * The straight path of polling, kept in C so that a line re-enters Python once per pass
- * that has news, not once per request: on a line whose values do not change, a device
- * costs no Python at all between the caller's deadlines.  What is rare stays in Python
- * (poll/poller.py): a failed read ends the engine's run at once, with the link as the
- * failure left it, and Python settles or drains the line, retries, splits the block or
- * takes the slave offline, then hands the device back.  Every link kind runs here, DTU
- * streams too (their heartbeats are skipped in C and counted live; a read that took
+ * Polling, faults included, kept in C so that a line re-enters Python at most once per
+ * round of passes that has news, not once per request or per device: on a line whose
+ * values do not change, its devices cost no Python at all between the caller's
+ * deadlines.  The fault policy runs beside the read (csrc/emb_fault.c); Python is told
+ * its outcomes (a block's failure, a status change, a block to split).  Devices whose
+ * pass ended with news are listed (ended_list) and handed over together, once nothing
+ * more is due or before such a device begins its next pass.  Every link kind runs here,
+ * DTU streams too (their heartbeats are skipped in C and counted live; a read that took
  * wrapped reports comes back to Python with them, EMB_EV_REPORTS). */
 #define _GNU_SOURCE /* ppoll */
 #include "emb_engine.h"
+
+#include <string.h>
 
 #include <errno.h>
 #include <poll.h>
@@ -50,6 +53,8 @@ uint32_t emb_dev_begin_pass(emb_device *d, int64_t now_ns)
     d->index = 0;
     d->taken = 0;
     d->news = 0;
+    d->timed_out = 0;
+    d->answered = 0;
     if (n == 0 && d->n_blocks > 0) {
         d->due_ns = emb_next_due(d);
         return 0;
@@ -120,6 +125,46 @@ void emb_dev_all_due(emb_device *d, int64_t at_ns)
     d->taken = 0;
     d->n_pass = 0;
     d->due_ns = (d->n_blocks || d->cycle_ns) ? at_ns : EMB_NEVER;
+}
+
+/* Block `at` becomes the k blocks Python planned (an exception 02 bisection) in
+ * blocks[at..at+k), an array of n_blocks + k - 1 whose other entries this fills from the
+ * old one; pass_list: room for as many.  The halves inherit the block's due time and
+ * place in the pass under way, which goes on with the first of them.  0, or -1 (EINVAL). */
+int emb_dev_split(emb_device *d, emb_eblock *blocks, uint32_t *pass_list, uint32_t at,
+                  uint32_t k)
+{
+    uint32_t i, j, n = 0;
+
+    if (at >= d->n_blocks || k < 1) {
+        errno = EINVAL;
+        return -1;
+    }
+    for (j = 0; j < k; j++) {
+        blocks[at + j].due_ns = d->blocks[at].due_ns;
+        blocks[at + j].read_ns = 0;
+        blocks[at + j].reported = 0;
+        blocks[at + j].fail_kind = EMB_FAIL_NONE;
+        blocks[at + j].fail_new = blocks[at + j].fail_known = 0;
+    }
+    memcpy(blocks, d->blocks, at * sizeof *blocks);
+    memcpy(blocks + at + k, d->blocks + at + 1, (d->n_blocks - at - 1) * sizeof *blocks);
+    for (i = 0; i < d->n_pass; i++) {
+        uint32_t b = d->pass_list[i];
+
+        if (b < at)
+            pass_list[n++] = b;
+        else if (b == at)
+            for (j = 0; j < k; j++)
+                pass_list[n++] = at + j;
+        else
+            pass_list[n++] = b + k - 1;
+    }
+    d->blocks = blocks;
+    d->pass_list = pass_list;
+    d->n_blocks += k - 1;
+    d->n_pass = n;
+    return 0;
 }
 
 /* A DTU stream's read left what only Python handles: wrapped reports (applied in the
@@ -201,40 +246,38 @@ static emb_device *emb_pick(emb_engine *e, int *which)
     return best;
 }
 
-/* Read and decode the pass's next block.  0, or -1 with errno (the read failed). */
+/* Read and decode the pass's next block with the fault policy: 0 (the pass goes on), or
+ * an EMB_EV_* for Python (csrc/emb_fault.c). */
 static int emb_step(emb_engine *e, emb_device *d)
 {
     emb_eblock *b = &d->blocks[d->pass_list[d->index]];
     void *data = b->data ? b->data : (b->function <= 2 ? (void *)e->bits : (void *)e->regs);
-    int64_t start;
-    int rc;
 
-    if (d->timeout_ms != e->timeout_ms) {
-        modbus_set_response_timeout(e->ctx, (uint32_t)(d->timeout_ms / 1000),
-                                    (uint32_t)(d->timeout_ms % 1000) * 1000U);
-        e->timeout_ms = d->timeout_ms;
-    }
-    e->lc->requests++;
-    d->c.requests++;
-    start = emb_now_ns();
-    rc = emb_read(e->ctx, e->lk, d->slave, b->function, b->start, b->count, data, e->rsp);
-    e->lc->discarded += e->lk->discarded;
-    e->lk->discarded = 0;
-    e->lc->heartbeats += e->lk->heartbeats; /* a DTU stream's: live, no Python */
-    e->lk->heartbeats = 0;
-    if (e->pace_ns)
-        e->ready_ns = emb_now_ns() + e->pace_ns;
-    if (rc == -1)
-        return -1;
-    e->lc->rtt_ns += emb_now_ns() - start;
-    e->lc->responses++;
-    b->read_ns = start; /* the data is no older than the request */
-    d->c.responses++;
-    b->reported = b->plan ? emb_decode(b->plan, data, (uint32_t)rc, d->mode) : 0;
-    if (b->reported || b->keep)
-        d->news = 1;
-    d->index++;
-    return 0;
+    return emb_fault_read(e, d, b, data);
+}
+
+/* A pass of d (device `which`) that Python must see ended: list it.  The list goes to
+ * Python before the next pass of a device in it (a round), or rather than let the line
+ * idle longer than a tenth of a listed device's cycle (at most EMB_HANDOVER_NS, at least
+ * EMB_JOIN_NS), or EMB_LATEST_NS after the first pass listed (a line busy with passes
+ * without news): the passes of the devices of a round join it, and news waits at most
+ * one cycle of its device (its next pass) and EMB_LATEST_NS. */
+static void emb_ended(emb_engine *e, emb_device *d, int which)
+{
+    int64_t idle = d->cycle_ns / 10, now = emb_now_ns();
+
+    if (d->ended)
+        return;
+    d->ended = 1;
+    if (idle > EMB_HANDOVER_NS)
+        idle = EMB_HANDOVER_NS;
+    if (idle < EMB_JOIN_NS)
+        idle = EMB_JOIN_NS;
+    if (e->n_ended == 0 || idle < e->idle_ns)
+        e->idle_ns = idle;
+    if (e->n_ended == 0)
+        e->latest_ns = now + EMB_LATEST_NS;
+    e->ended_list[e->n_ended++] = (uint32_t)which;
 }
 
 /* Run the line until something needs Python (an EMB_EV_* code; event_device and
@@ -256,6 +299,12 @@ int emb_engine_run(emb_engine *e, int64_t until_ns)
     for (;;) {
         now = emb_now_ns();
         d = emb_pick(e, &which);
+        if (e->n_ended && (d == NULL || (!d->in_pass && d->ended) || now >= e->latest_ns ||
+                           d->due_ns > now + e->idle_ns))
+            return EMB_EV_CYCLE; /* the passes that ended, before a new pass of one of
+                                  * them (a round), before idling longer than idle_ns, or
+                                  * at latest_ns on a busy line: one Python entry per
+                                  * round of the devices of a line */
         if (e->owed && (d == NULL || d->due_ns > now))
             e->owed = 0; /* nothing due: the jobs may have the line */
         if (emb_woken(e) && !e->owed)
@@ -289,10 +338,10 @@ int emb_engine_run(emb_engine *e, int64_t until_ns)
                 return ev;
             }
             e->owed = 0; /* this read pays for the job that ran before it */
-            if (emb_step(e, d) == -1) {
+            ev = emb_step(e, d);
+            if (ev != 0) {
                 e->event_device = which;
-                e->event_errno = errno;
-                return EMB_EV_FAILED;
+                return ev;
             }
             if (emb_has_reports(e->lk)) {
                 e->event_device = which; /* the pass goes on when Python hands it back */
@@ -301,9 +350,8 @@ int emb_engine_run(emb_engine *e, int64_t until_ns)
         }
         now = emb_now_ns();
         emb_dev_end_pass(d, now, e->bounds_ns, e->n_bounds);
-        if (d->news || d->notify || now >= d->notify_ns) {
-            e->event_device = which;
-            return EMB_EV_CYCLE;
-        }
+        emb_fault_end_pass(d, now);
+        if (d->news || d->notify || now >= d->notify_ns || d->status_ev || d->fail_news)
+            emb_ended(e, d, which);
     }
 }

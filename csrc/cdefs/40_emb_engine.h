@@ -8,6 +8,15 @@
 #define EMB_EV_ERROR ...
 #define EMB_EV_TRACE ...
 #define EMB_EV_REPORTS ...
+#define EMB_EV_SPLIT ...
+#define EMB_FAIL_RSP ...
+#define EMB_N_EXC ...
+#define EMB_FAIL_NONE ...
+#define EMB_FAIL_OWN ...
+#define EMB_FAIL_SILENT ...
+#define EMB_ST_BACK ...
+#define EMB_ST_OFFLINE ...
+#define EMB_ST_AGAIN ...
 
 typedef struct emb_eblock {
     emb_plan *plan;
@@ -20,6 +29,17 @@ typedef struct emb_eblock {
     uint16_t count;
     uint8_t function;
     uint8_t keep;
+    uint8_t splittable;
+    uint8_t fail_kind;
+    uint8_t fail_new;
+    uint8_t fail_known;
+    uint8_t fail_function;
+    uint16_t fail_start;
+    uint16_t fail_count;
+    int fail_errno;
+    uint16_t fail_rsp_len;
+    uint8_t fail_header;
+    uint8_t fail_rsp[...];
 } emb_eblock;
 
 typedef struct emb_dev_counters {
@@ -31,6 +51,13 @@ typedef struct emb_dev_counters {
     int64_t total_cycle_ns;
     int64_t max_cycle_ns;
     uint64_t hist[...];
+    uint64_t retries;
+    uint64_t timeouts;
+    uint64_t crc_errors;
+    uint64_t protocol_errors;
+    uint64_t failed_cycles;
+    uint64_t skipped_blocks;
+    uint64_t exceptions[...];
 } emb_dev_counters;
 
 typedef struct emb_line_counters {
@@ -39,6 +66,10 @@ typedef struct emb_line_counters {
     int64_t rtt_ns;
     int64_t discarded;
     int64_t heartbeats;
+    uint64_t timeouts;
+    uint64_t crc_errors;
+    uint64_t protocol_errors;
+    uint64_t exceptions[...];
 } emb_line_counters;
 
 typedef struct emb_device {
@@ -50,6 +81,18 @@ typedef struct emb_device {
     uint32_t taken;
     int slave;
     int timeout_ms;
+    int retries;
+    uint32_t offline_after;
+    int64_t max_backoff_ns;
+    uint32_t failed_cycles;
+    uint8_t offline;
+    uint8_t running;
+    uint8_t status_ev;
+    uint8_t timed_out;
+    uint8_t answered;
+    uint8_t fail_news;
+    uint8_t ended;
+    int64_t backoff_ns;
     int mode;
     uint8_t active;
     uint8_t notify;
@@ -82,7 +125,15 @@ typedef struct emb_engine {
     uint32_t n_bounds;
     int event_device;
     int event_errno;
+    uint32_t *ended_list;
+    uint32_t n_ended;
+    int64_t idle_ns;
+    int64_t latest_ns;
     emb_line_counters *lc;
+    int settle_ms;
+    int settle_limit_ms;
+    int quiet_ms;
+    int drain_limit_ms;
 } emb_engine;
 
 int emb_engine_run(emb_engine *e, int64_t until_ns);
@@ -90,3 +141,15 @@ uint32_t emb_dev_begin_pass(emb_device *d, int64_t now_ns);
 int emb_dev_end_pass(emb_device *d, int64_t now_ns, const int64_t *bounds_ns,
                      uint32_t n_bounds);
 void emb_dev_all_due(emb_device *d, int64_t at_ns);
+void emb_dev_due_at(emb_device *d, int64_t at_ns);
+int emb_dev_split(emb_device *d, emb_eblock *blocks, uint32_t *pass_list, uint32_t at,
+                  uint32_t k);
+
+/* csrc/emb_fault.h, for cffi (its tests drive the policy without I/O). */
+#define EMB_K_TIMEOUT ...
+#define EMB_K_CRC ...
+#define EMB_K_PROTOCOL ...
+#define EMB_K_EXCEPTION ...
+#define EMB_K_LINK ...
+int emb_fault_kind(int err, int *code);
+void emb_fault_end_pass(emb_device *d, int64_t now_ns);

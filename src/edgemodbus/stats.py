@@ -37,6 +37,14 @@ class NativeCounts(NamedTuple):
     total_cycle_time: float = 0.0
     max_cycle_time: float = 0.0
     cycle_hist: tuple[int, ...] = (0,) * (len(CYCLE_BUCKETS) + 1)
+    # how requests failed, counted once by the engine's fault policy (csrc/emb_fault.c)
+    timeouts: int = 0
+    crc_errors: int = 0
+    protocol_errors: int = 0
+    exceptions: tuple[tuple[int, int], ...] = ()  # (code, count)
+    retries: int = 0  # devices
+    failed_cycles: int = 0
+    skipped_blocks: int = 0
 
 
 def _no_counts() -> NativeCounts:
@@ -62,13 +70,16 @@ class RequestStats:
 
     def as_dict(self) -> dict[str, Any]:
         native = self.native()
+        exceptions = dict(self.exceptions)
+        for code, n in native.exceptions:
+            exceptions[code] = exceptions.get(code, 0) + n
         return {
             "requests": self.requests + native.requests,
             "responses": self.responses + native.responses,
-            "timeouts": self.timeouts,
-            "crcErrors": self.crc_errors,
-            "protocolErrors": self.protocol_errors,
-            "exceptions": dict(self.exceptions),
+            "timeouts": self.timeouts + native.timeouts,
+            "crcErrors": self.crc_errors + native.crc_errors,
+            "protocolErrors": self.protocol_errors + native.protocol_errors,
+            "exceptions": exceptions,
             "reports": self.reports,
         }
 
@@ -153,9 +164,6 @@ class LineStats(RequestStats):
 class DeviceStats(RequestStats):
     """Counters of one device (a slave's poller), updated on its line's worker."""
 
-    retries: int = 0
-    failed_cycles: int = 0
-    skipped_blocks: int = 0
     callback_errors: int = 0
     callback_time: float = 0.0
     values_changed: int = 0
@@ -163,16 +171,16 @@ class DeviceStats(RequestStats):
     write_errors: int = 0
 
     def as_dict(self) -> dict[str, Any]:
-        """The counters; cycles and their times are the engine's (every pass ends in
-        C, also one run from Python)."""
+        """The counters; cycles, their times, retries, failed cycles and skipped blocks
+        are the engine's alone (the fault policy runs in C)."""
         c = self.native()
         return {
             **super().as_dict(),
-            "retries": self.retries,
+            "retries": c.retries,
             "cycles": c.cycles,
-            "failedCycles": self.failed_cycles,
+            "failedCycles": c.failed_cycles,
             "overruns": c.overruns,
-            "skippedBlocks": self.skipped_blocks,
+            "skippedBlocks": c.skipped_blocks,
             "lastCycleTime": c.last_cycle_time,
             "avgCycleTime": c.total_cycle_time / c.cycles if c.cycles else 0.0,
             "maxCycleTime": c.max_cycle_time,

@@ -6,7 +6,7 @@ from __future__ import annotations
 import errno as _errno
 import os
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, NamedTuple
+from typing import Any, NamedTuple
 
 from ..errors import ModbusConnectionError, ModbusError, ProtocolError
 from .block import Block
@@ -19,9 +19,6 @@ from .native import (
     ffi,
     lib,
 )
-
-if TYPE_CHECKING:
-    from .codec import CodecPlan
 
 
 @dataclass(frozen=True, slots=True)
@@ -312,22 +309,6 @@ class Context:
         block.count = rc
         return block
 
-    def read_decode(self, slave: int, function: int, address: int, count: int,
-                    plan: CodecPlan, mode: int) -> int:
-        """:meth:`read`, then decode the block through ``plan`` in the same C call;
-        returns the count the decode reports.  The block stays readable as with read."""
-        bits = function in (1, 2)
-        if bits != plan.bits:
-            raise ValueError(f"codec: a plan for {'registers' if bits else 'bits'} used "
-                             f"for FC{function:02d}")
-        block = self.bits if bits else self.registers
-        rc = lib.emb_read_decode(self._ptr, self._link, slave, function, address, count,
-                                 block._ptr, self._rsp, plan._plan, mode)
-        if rc == -1:
-            raise self.read_error(ffi.errno, slave, function, address, count)
-        block.count = count
-        return int(rc)
-
     def read_error(self, err: int, slave: int, function: int, address: int,
                    count: int) -> ModbusError:
         """The typed error of a read that failed with errno ``err`` (here or in the
@@ -374,29 +355,46 @@ class Context:
     def _error(self, err: int, what: str, function: int, count: int) -> ModbusError:
         """The typed error for ``err``, with what the rejected reply held when it says
         more than the errno (which byte count, which unit, which function code)."""
-        exc = error_from_errno(err, what)
         rsp = self.last_reply()
-        h = self._header
-        if len(rsp) < h + 2:
-            return exc
-        detail = ""
-        if err == lib.EMB_ECOUNT:
-            detail = f"{rsp[h + 1]}, expected {count}"
-        elif err == lib.EMB_ESLAVE:
-            detail = f"{rsp[h - 1]}"
-        elif err == lib.EMB_EFUNCTION:
-            detail = f"{rsp[h]:#04x}, expected {function:#04x}"
-        elif err == lib.EMB_EOTHEREXC:
-            detail = f"{rsp[h]:#04x} code {rsp[h + 1]:#04x}"
-        elif err == lib.EMB_EPROTOID:
-            detail = f"{rsp[2] << 8 | rsp[3]:#06x}"
-        elif err == lib.EMB_EMBAPLEN:
-            detail = f"{rsp[4] << 8 | rsp[5]}, frame has {len(rsp) - 6}"
-        elif err == lib.EMB_ELENGTH:
-            detail = f"{len(rsp) - h - (0 if h > 1 else 2)} bytes of PDU"
-        if detail:
-            return type(exc)(f"{exc} ({detail})")
+        return worded_error(err, what, function, count, rsp, len(rsp), self._header)
+
+
+def read_error_of(err: int, slave: int, function: int, address: int, count: int,
+                  reply: bytes, length: int, header: int) -> ModbusError:
+    """The typed error of a read of ``count`` at ``address`` that failed with errno
+    ``err``, worded as :meth:`Context.read_error` words it; ``reply``: the first bytes of
+    the reply rejected (``length`` long, ``header`` bytes before its PDU), as the
+    engine's fault policy keeps them (csrc/emb_fault.c)."""
+    return worded_error(err, f"slave {slave} FC{function:02d} @{address}+{count}", function,
+                        2 * count if function > 2 else (count + 7) // 8, reply, length,
+                        header)
+
+
+def worded_error(err: int, what: str, function: int, count: int, rsp: bytes, length: int,
+                 h: int) -> ModbusError:
+    """The typed error for ``err`` about ``what``; ``rsp``: the rejected reply (its first
+    bytes at least), ``length``: its whole length, ``h``: its header size."""
+    exc = error_from_errno(err, what)
+    if length < h + 2 or len(rsp) < h + 2:
         return exc
+    detail = ""
+    if err == lib.EMB_ECOUNT:
+        detail = f"{rsp[h + 1]}, expected {count}"
+    elif err == lib.EMB_ESLAVE:
+        detail = f"{rsp[h - 1]}"
+    elif err == lib.EMB_EFUNCTION:
+        detail = f"{rsp[h]:#04x}, expected {function:#04x}"
+    elif err == lib.EMB_EOTHEREXC:
+        detail = f"{rsp[h]:#04x} code {rsp[h + 1]:#04x}"
+    elif err == lib.EMB_EPROTOID:
+        detail = f"{rsp[2] << 8 | rsp[3]:#06x}"
+    elif err == lib.EMB_EMBAPLEN:
+        detail = f"{rsp[4] << 8 | rsp[5]}, frame has {length - 6}"
+    elif err == lib.EMB_ELENGTH:
+        detail = f"{length - h - (0 if h > 1 else 2)} bytes of PDU"
+    if detail:
+        return type(exc)(f"{exc} ({detail})")
+    return exc
 
 
 def discard_input(fd: int, total_s: float, quiet_s: float, limit_s: float | None = None) -> int:

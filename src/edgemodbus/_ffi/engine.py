@@ -11,13 +11,14 @@ import contextlib
 import os
 import weakref
 from collections.abc import Sequence
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 from ..stats import CYCLE_BUCKETS, NativeCounts
 from .block import Block
 from .codec import CODEC_MODE_ALL, CODEC_MODE_TRACK, CodecPlan
 from .context import Context
 from .native import ffi, lib
+from .outcomes import Clean, Failure, LineCounters, exception_counts
 
 EV_DEADLINE: int = lib.EMB_EV_DEADLINE
 EV_CYCLE: int = lib.EMB_EV_CYCLE
@@ -27,6 +28,7 @@ EV_INPUT: int = lib.EMB_EV_INPUT
 EV_ERROR: int = lib.EMB_EV_ERROR
 EV_REPORTS: int = lib.EMB_EV_REPORTS  # a read took wrapped reports besides its reply
 EV_TRACE: int = lib.EMB_EV_TRACE  # the frame trace has frames to log (Link.run_engine did)
+EV_SPLIT: int = lib.EMB_EV_SPLIT  # exception 02 on a splittable block: Python splits it
 
 _NEVER = (1 << 63) - 1
 _BOUNDS = ffi.new("int64_t[]", [round(b * 1e9) for b in CYCLE_BUCKETS])
@@ -51,6 +53,7 @@ class BlockSpec(NamedTuple):
     period: float  # seconds
     plan: CodecPlan | None  # its whole items, or None
     keep: bool  # Python reads the block's data after every good read (pieces)
+    splittable: bool = False  # more than one piece: exception 02 splits it (EV_SPLIT)
 
 
 class EngineDevice:
@@ -67,8 +70,9 @@ class EngineDevice:
         dev.slave = slave
         dev.timeout_ms = max(1, round(timeout * 1000))
         dev.mode = CODEC_MODE_ALL if report_all else CODEC_MODE_TRACK
-        dev.cycle_ns = _ns(cycle)
+        dev.cycle_ns = dev.backoff_ns = _ns(cycle)
         dev.due_ns = dev.notify_ns = _NEVER
+        self.set_policy(0, 1, cycle)
         self._specs: list[BlockSpec] = []
         self._buffers: list[Block | None] = []
         self.set_blocks([])
@@ -77,6 +81,16 @@ class EngineDevice:
     def slave(self) -> int:
         return int(self._dev.slave)
 
+    def set_policy(self, retries: int, offline_after: int, max_backoff: float) -> None:
+        """The fault policy the engine runs (csrc/emb_fault.c): a timeout or CRC error is
+        read again ``retries`` times; ``offline_after`` failed cycles in a row take the
+        slave offline, probed once per backoff (its cycle, doubling up to
+        ``max_backoff`` seconds)."""
+        dev = self._dev
+        dev.retries = retries
+        dev.offline_after = max(1, offline_after)
+        dev.max_backoff_ns = _ns(max_backoff)
+
     # -- the plan ---------------------------------------------------------------------
     def set_blocks(self, specs: Sequence[BlockSpec], dues: Sequence[float] | None = None) -> None:
         """Install a new plan; ``dues``: each block's due time (default: due now)."""
@@ -84,19 +98,7 @@ class EngineDevice:
         blocks = ffi.new("emb_eblock[]", max(n, 1))
         buffers: list[Block | None] = []
         for k, spec in enumerate(specs):
-            b = blocks[k]
-            b.function = spec.function
-            b.start = spec.start
-            b.count = spec.size
-            b.period_ns = _ns(spec.period)
-            b.plan = spec.plan._plan if spec.plan is not None else ffi.NULL
-            buf = None
-            if spec.keep or self.coalesce > 0:
-                bits = spec.function <= 2
-                buf = Block(ffi.new("uint8_t[]" if bits else "uint16_t[]", spec.size), bits)
-                b.data = buf._ptr
-                b.keep = spec.keep
-            buffers.append(buf)
+            buffers.append(self._fill(blocks[k], spec))
         self._blocks = blocks
         self._pass = ffi.new("uint32_t[]", max(n, 1))
         self._specs = list(specs)  # keeps the plans alive while C points at them
@@ -114,32 +116,36 @@ class EngineDevice:
             for k, due in enumerate(dues):
                 blocks[k].due_ns = _ns(due)
 
+    def _fill(self, b: Any, spec: BlockSpec) -> Block | None:
+        """Set the C block ``b`` from ``spec``; its own buffer, if it needs one."""
+        b.function = spec.function
+        b.start = spec.start
+        b.count = spec.size
+        b.period_ns = _ns(spec.period)
+        b.plan = spec.plan._plan if spec.plan is not None else ffi.NULL
+        b.splittable = 1 if spec.splittable else 0
+        if not (spec.keep or self.coalesce > 0):
+            return None
+        bits = spec.function <= 2
+        buf = Block(ffi.new("uint8_t[]" if bits else "uint16_t[]", spec.size), bits)
+        b.data = buf._ptr
+        b.keep = spec.keep
+        return buf
+
     def split(self, at: int, specs: Sequence[BlockSpec]) -> None:
-        """Replace block ``at`` by ``specs`` (exception 02 bisection), which inherit its
-        due time; the pass under way reads them in its place."""
-        dev = self._dev
-        old_pass = self.pass_blocks()
-        index, in_pass = int(dev.index), int(dev.in_pass)
-        dues = [self.due_of(k) for k in range(len(self._specs))]
-        due = dues[at]
-        grow = len(specs) - 1
-        new_specs = self._specs[:at] + list(specs) + self._specs[at + 1:]
-        self.set_blocks(new_specs, dues[:at] + [due] * len(specs) + dues[at + 1:])
-        new_pass: list[int] = []
-        for k in old_pass:
-            if k < at:
-                new_pass.append(k)
-            elif k == at:
-                new_pass.extend(range(at, at + len(specs)))
-            else:
-                new_pass.append(k + grow)
-        for k, block in enumerate(new_pass):
-            self._pass[k] = block
-        dev.n_pass = len(new_pass)
-        dev.index = index
-        dev.in_pass = in_pass
-        dev.due_ns = min((int(self._blocks[k].due_ns) for k in range(len(new_specs))),
-                         default=_NEVER) if not in_pass else dev.due_ns
+        """Replace block ``at`` by ``specs`` (an exception 02 bisection, planned by the
+        poller): the engine puts them in its place (emb_dev_split), with its due time
+        and its place in the pass under way, which goes on with the first of them.  The
+        new arrays are allocated here, once per split, never in the engine's loop."""
+        n = len(self._specs) + len(specs) - 1
+        blocks = ffi.new("emb_eblock[]", n)
+        pass_list = ffi.new("uint32_t[]", n)
+        new = [self._fill(blocks[at + j], spec) for j, spec in enumerate(specs)]
+        if lib.emb_dev_split(self._dev, blocks, pass_list, at, len(specs)) == -1:
+            raise ValueError(f"engine: no block {at} to split (of {len(self._specs)})")
+        self._blocks, self._pass = blocks, pass_list
+        self._specs[at:at + 1] = list(specs)
+        self._buffers[at:at + 1] = new
 
     # -- settings ---------------------------------------------------------------------
     @property
@@ -204,10 +210,6 @@ class EngineDevice:
     def index(self) -> int:
         return int(self._dev.index)
 
-    @index.setter
-    def index(self, value: int) -> None:
-        self._dev.index = value
-
     @property
     def taken(self) -> int:
         """How many blocks of the pass Python has taken the results of."""
@@ -271,6 +273,75 @@ class EngineDevice:
         """Every block due at ``at`` (a start, a new plan, a new link, an offline probe)."""
         lib.emb_dev_all_due(self._dev, _ns(at))
 
+    # -- the fault policy's outcomes (csrc/emb_fault.c) ----------------------------------
+    @property
+    def ended(self) -> bool:
+        """A pass ended that Python has not taken yet (the engine listed it)."""
+        return bool(self._dev.ended)
+
+    def take_end(self) -> None:
+        """Python takes the pass that ended."""
+        self._dev.ended = 0
+
+    @property
+    def has_failures(self) -> bool:
+        return bool(self._dev.fail_news)
+
+    def failed(self, block: int) -> bool:
+        """The block's last read failed (or was not made: the slave was silent)."""
+        return bool(self._blocks[block].fail_kind)
+
+    def take_failures(self) -> list[Failure]:
+        """The failures Python has not taken yet, in plan order; they become known (the
+        engine tells the same failure again only after :meth:`forget_failures`)."""
+        dev = self._dev
+        out: list[Failure] = []
+        if not dev.fail_news:
+            return out
+        dev.fail_news = 0
+        for k in range(int(dev.n_blocks)):
+            b = self._blocks[k]
+            if not b.fail_new:
+                continue
+            b.fail_new = 0
+            b.fail_known = 1
+            length = int(b.fail_rsp_len)
+            out.append(Failure(k, int(b.fail_kind), int(b.fail_errno), int(b.fail_function),
+                               int(b.fail_start), int(b.fail_count),
+                               bytes(ffi.buffer(b.fail_rsp, min(length, lib.EMB_FAIL_RSP))),
+                               length, int(b.fail_header)))
+        return out
+
+    def forget_failures(self) -> None:
+        """Items of the blocks were set from elsewhere (a write, a report): a failure of
+        them is told again, as news."""
+        for k in range(int(self._dev.n_blocks)):
+            self._blocks[k].fail_known = 0
+
+    def take_status(self) -> int:
+        """The status changes (ST_* bits) the engine made since the last call."""
+        ev = int(self._dev.status_ev)
+        self._dev.status_ev = 0
+        return ev
+
+    def link_lost(self) -> None:
+        """The link went down: the slave is Running again once it answers."""
+        self._dev.running = 0
+
+    @property
+    def failed_cycles(self) -> int:
+        """Failed cycles in a row."""
+        return int(self._dev.failed_cycles)
+
+    @property
+    def offline(self) -> bool:
+        return bool(self._dev.offline)
+
+    @property
+    def backoff(self) -> float:
+        """The probe interval while offline (seconds)."""
+        return _seconds(int(self._dev.backoff_ns))
+
     def counts(self) -> NativeCounts:
         """The device's counters, read live (any thread)."""
         c = self._dev.c
@@ -278,23 +349,11 @@ class EngineDevice:
             requests=c.requests, responses=c.responses, cycles=c.cycles,
             overruns=c.overruns, last_cycle_time=c.last_cycle_ns / 1e9,
             total_cycle_time=c.total_cycle_ns / 1e9, max_cycle_time=c.max_cycle_ns / 1e9,
-            cycle_hist=tuple(c.hist[0:_N_HIST]),
+            cycle_hist=tuple(c.hist[0:_N_HIST]), timeouts=c.timeouts,
+            crc_errors=c.crc_errors, protocol_errors=c.protocol_errors,
+            exceptions=exception_counts(c.exceptions), retries=c.retries,
+            failed_cycles=c.failed_cycles, skipped_blocks=c.skipped_blocks,
         )
-
-
-class LineCounters:
-    """A line's request counters (``emb_line_counters``), kept by the engines of its
-    successive links."""
-
-    def __init__(self) -> None:
-        self._lc = ffi.new("emb_line_counters *")
-
-    def counts(self) -> NativeCounts:
-        """Read live (any thread)."""
-        lc = self._lc
-        return NativeCounts(requests=lc.requests, responses=lc.responses,
-                            rtt_total=lc.rtt_ns / 1e9, discarded_bytes=lc.discarded,
-                            heartbeats=lc.heartbeats)
 
 
 class Waker:
@@ -330,7 +389,9 @@ class Engine:
     """The engine of one open link (``emb_engine``): runs its devices' passes in C."""
 
     def __init__(self, ctx: Context, waker: Waker, counters: LineCounters, pace: float,
-                 watch_fd: int | None) -> None:
+                 watch_fd: int | None, clean: Clean) -> None:
+        """``clean``: how the line is settled after a timeout and drained after a bad
+        frame (line/link.py)."""
         e = ffi.new("emb_engine *")
         e.lc = counters._lc
         e.ctx = ctx._ptr
@@ -345,36 +406,73 @@ class Engine:
         e.pace_ns = round(pace * 1e9)
         e.bounds_ns = _BOUNDS
         e.n_bounds = len(CYCLE_BUCKETS)
+        e.settle_ms = round(clean.settle * 1000)
+        e.settle_limit_ms = round(clean.settle_limit * 1000)
+        e.quiet_ms = max(1, round(clean.quiet * 1000))
+        e.drain_limit_ms = round(clean.drain_limit * 1000)
         self._e = e
         self._ctx = ctx
         self._counters = counters  # C points at them
         self.waker = waker
         self._devices: tuple[EngineDevice, ...] = ()
         self._ptrs = ffi.new("emb_device *[]", 1)
+        self._ended = ffi.new("uint32_t[]", 1)
+        e.ended_list = self._ended
 
     def set_devices(self, devices: Sequence[EngineDevice]) -> None:
         devices = tuple(devices)
         if devices == self._devices:
             return
+        for device in devices:
+            device.take_end()  # a pass listed by another engine: its list is gone
         self._ptrs = ffi.new("emb_device *[]", [d._dev for d in devices] or [ffi.NULL])
-        self._e.devices = self._ptrs
-        self._e.n_devices = len(devices)
+        self._ended = ffi.new("uint32_t[]", max(1, len(devices)))
+        e = self._e
+        e.devices = self._ptrs
+        e.n_devices = len(devices)
+        e.ended_list = self._ended
+        e.n_ended = 0
         self._devices = devices
 
-    def run(self, until: float, ready_at: float, owed: bool = False) -> int:
-        """Poll until something needs Python (an ``EV_*``) or ``until``; ``ready_at``:
-        no request before then (the pacing of the Python side); ``owed``: a queued job
-        ran since the last read, so a job queued meanwhile waits for one read of a due
-        block before ``EV_WAKE`` (fair line scheduling, csrc/emb_engine.c)."""
+    def run(self, until: float, owed: bool = False) -> int:
+        """Poll until something needs Python (an ``EV_*``) or ``until``; ``owed``: a
+        queued job ran since the last read, so a job queued meanwhile waits for one read
+        of a due block before ``EV_WAKE`` (fair line scheduling, csrc/emb_engine.c)."""
         e = self._e
-        e.ready_ns = _ns(ready_at)
         e.owed = 1 if owed else 0
-        e.timeout_ms = -1  # Python may have set another one
         return int(lib.emb_engine_run(e, _ns(until)))
+
+    def take_ended(self) -> list[int]:
+        """The indices of the devices whose passes ended with something for Python
+        (EV_CYCLE, or still listed when the engine came back for another reason)."""
+        e = self._e
+        n = int(e.n_ended)
+        if not n:
+            return []
+        e.n_ended = 0
+        ended = list(ffi.unpack(self._ended, n))
+        for k in ended:
+            self._devices[k].take_end()  # even if Python fails to handle it
+        return ended
 
     @property
     def ready_at(self) -> float:
+        """No request before this (the line's pacing, which the link's own requests
+        keep here too)."""
         return _seconds(int(self._e.ready_ns))
+
+    @ready_at.setter
+    def ready_at(self, at: float) -> None:
+        self._e.ready_ns = _ns(at)
+
+    @property
+    def timeout_ms(self) -> int:
+        """The response timeout the engine last set on the context (-1: unknown)."""
+        return int(self._e.timeout_ms)
+
+    @timeout_ms.setter
+    def timeout_ms(self, ms: int) -> None:
+        self._e.timeout_ms = ms
 
     @property
     def owed(self) -> bool:

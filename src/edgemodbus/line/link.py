@@ -18,9 +18,9 @@ import struct
 import time
 from collections.abc import Callable, Sequence
 
-from .._ffi import Block, CodecPlan, Context, StreamCounters, check
-from .._ffi.engine import EV_DEADLINE, Engine, EngineDevice, LineCounters, Waker
-from ..codec import BlockDecoder, Change
+from .._ffi import Block, Context, StreamCounters, check
+from .._ffi.engine import EV_DEADLINE, Engine, EngineDevice, Waker
+from .._ffi.outcomes import Clean, LineCounters
 from ..datatypes import Area
 from ..errors import (
     CrcError,
@@ -49,7 +49,7 @@ class Link:
     """An open line as the worker thread sees it: one request at a time, blocking.
 
     The base of the two backends, never used on its own: a backend implements
-    :meth:`read`, :meth:`read_decode`, :meth:`set_response_timeout`, :meth:`close`,
+    :meth:`read`, :meth:`set_response_timeout`, :meth:`close`,
     :meth:`transact` and ``_write`` (a request and its checked reply) and ``_fail``
     (count an error, clean the line).  Every method raises a :class:`ModbusError`; a
     :class:`ModbusConnectionError` means the link is closed (the worker reconnects).
@@ -89,12 +89,6 @@ class Link:
         backend's buffer: use it before the next request."""
         raise NotImplementedError
 
-    def read_decode(self, slave: int, area: Area, address: int, count: int,
-                    decoder: BlockDecoder, report_all: bool) -> tuple[Block, list[Change]]:
-        """Read a block and decode it: the block, and the decoder's reports (see
-        :meth:`BlockDecoder.decode`)."""
-        raise NotImplementedError
-
     def set_response_timeout(self, seconds: float) -> None:
         """Use ``seconds`` as the response timeout from now on (a per-device setting)."""
         raise NotImplementedError
@@ -130,9 +124,12 @@ class Link:
 
     def read_failed(self, err: int, slave: int, area: Area, address: int,
                     count: int) -> ModbusError:
-        """A read the engine made failed with errno ``err``: count it and clean the
-        line as :meth:`read` would have; returns the typed error."""
+        """The link failed (errno ``err``) on an engine's read: count it, close the link."""
         raise NotImplementedError
+
+    def take_ended(self) -> list[int]:
+        """Devices (by index in :meth:`run_engine`'s) whose passes ended for Python."""
+        return []
 
     def pump(self) -> None:
         """Read and dispatch what arrived unsolicited (links with ``idle_fd``)."""
@@ -249,13 +246,14 @@ class ContextLink(Link):
             return EV_DEADLINE, -1, 0
         engine = self._engine
         if engine is None or engine.waker is not waker:
-            engine = self._engine = Engine(self._ctx, waker, counters, self._pace, self.idle_fd)
+            ready = self._ready_at
+            engine = Engine(self._ctx, waker, counters, self._pace, self.idle_fd, Clean(
+                self.timing.settle, self._settle_limit, self._quiet, self._drain_limit))
+            engine.ready_at = ready
+            self._engine = engine  # the pacing lives in it from now on
         engine.set_devices(devices)
-        event = engine.run(until, self._ready_at, owed)
+        event = engine.run(until, owed)
         self.owed = engine.owed
-        if self._pace:
-            self._ready_at = engine.ready_at
-        self._timeouts = (-1.0, -1.0)  # the engine sets each device's own
         self._collect()
         return event, engine.event_device, engine.event_errno
 
@@ -279,10 +277,26 @@ class ContextLink(Link):
         if lost:
             log.debug("%s: %d frames not traced (the trace ring was full)", where, lost)
 
+    @property
+    def _ready_at(self) -> float:
+        """No request before this: the engine's (one clock for its reads and ours)."""
+        engine = getattr(self, "_engine", None)
+        return engine.ready_at if engine is not None else self._ready_py
+
+    @_ready_at.setter
+    def _ready_at(self, at: float) -> None:
+        engine = getattr(self, "_engine", None)
+        if engine is not None:
+            engine.ready_at = at
+        else:
+            self._ready_py = at
+
     def read_failed(self, err: int, slave: int, area: Area, address: int,
                     count: int) -> ModbusError:
-        exc = self._ctx.read_error(err, slave, READ_FC[area], address, count)
-        return self._fail(exc)
+        return self._fail(self._ctx.read_error(err, slave, READ_FC[area], address, count))
+
+    def take_ended(self) -> list[int]:
+        return self._engine.take_ended() if self._engine is not None else []
 
     # -- DTU streams -----------------------------------------------------------------
     def flush_reports(self) -> None:
@@ -353,11 +367,17 @@ class ContextLink(Link):
 
     # -- bookkeeping -----------------------------------------------------------------
     def set_response_timeout(self, seconds: float) -> None:
-        """Use ``seconds`` as the response timeout from now on (a per-device setting)."""
+        """Use ``seconds`` as the response timeout from now on (a per-device setting).
+        The engine sets each device's own on the same context: what it set last counts."""
+        engine = self._engine
+        if engine is not None and engine.timeout_ms >= 0:
+            self._timeouts = (engine.timeout_ms / 1000, self._timeouts[1])
         wanted = (seconds, self.timing.byte_timeout)
         if wanted != self._timeouts:
             self._ctx.set_timeouts(*wanted)
             self._timeouts = wanted
+            if engine is not None:
+                engine.timeout_ms = -1  # the engine sets the device's own again
 
     def close(self) -> None:
         if not self.is_open:
@@ -410,20 +430,11 @@ class ContextLink(Link):
 
     # -- reads -----------------------------------------------------------------------
     def read(self, slave: int, area: Area, address: int, count: int) -> Block:
-        """Read ``count`` bits or registers (FC01-04).  The returned block is the
-        context's buffer: use it before the next request."""
-        return self._read(slave, area, address, count, None, 0)[0]
+        """Read ``count`` bits or registers (FC01-04) into the context's buffer (use the
+        block before the next request); the engine makes the polls, never this."""
+        return self._read(slave, area, address, count)
 
-    def read_decode(self, slave: int, area: Area, address: int, count: int,
-                    decoder: BlockDecoder, report_all: bool) -> tuple[Block, list[Change]]:
-        """Read a block and decode it in one C call: the block, and the decoder's
-        reports (see :meth:`BlockDecoder.decode`)."""
-        plan, mode = decoder.begin(report_all)
-        block, n = self._read(slave, area, address, count, plan, mode)
-        return block, decoder.finish(n, report_all)
-
-    def _read(self, slave: int, area: Area, address: int, count: int,
-              plan: CodecPlan | None, mode: int) -> tuple[Block, int]:
+    def _read(self, slave: int, area: Area, address: int, count: int) -> Block:
         if not self.is_open:
             raise ModbusConnectionError(f"{self.endpoint.describe()}: link is down")
         if self._ready_at:
@@ -432,14 +443,8 @@ class ContextLink(Link):
         stats.requests += 1
         function = READ_FC[area]
         start = time.monotonic()
-        ctx = self._ctx
-        n = 0
         try:
-            if plan is None:
-                block = ctx.read(slave, function, address, count)
-            else:
-                n = ctx.read_decode(slave, function, address, count, plan, mode)
-                block = ctx.bits if function < 3 else ctx.registers
+            block = self._ctx.read(slave, function, address, count)
         except ModbusError as exc:
             raise self._fail(exc) from None
         finally:
@@ -448,7 +453,7 @@ class ContextLink(Link):
                 self._done()
         stats.responses += 1
         stats.rtt_total += time.monotonic() - start
-        return block, n
+        return block
 
     # -- writes ----------------------------------------------------------------------
     def _write(self, slave: int, pdu: bytes) -> None:

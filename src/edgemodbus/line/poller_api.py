@@ -23,11 +23,16 @@ class Poller(Protocol):
         ...
 
     def engine_cycle(self) -> None:
-        """The engine ended a pass of this poller that Python must see."""
+        """The engine ended a pass of this poller that Python must see (listed by the
+        engine: :meth:`Link.take_ended`)."""
         ...
 
     def engine_failed(self, link: Link, err: int) -> None:
-        """A read of the engine's pass failed with errno ``err``."""
+        """The link failed (errno ``err``) on a read of the engine's pass."""
+        ...
+
+    def engine_split(self) -> None:
+        """Exception 02 on the pass's next block, which the poller may split."""
         ...
 
     def take_results(self) -> None:

@@ -27,16 +27,16 @@ from concurrent.futures import Future
 from typing import Any, Protocol, TypeVar
 
 from .._ffi.engine import (
-    EV_CYCLE,
     EV_ERROR,
     EV_FAILED,
     EV_INPUT,
     EV_REPORTS,
+    EV_SPLIT,
     EV_WAKE,
     EngineDevice,
-    LineCounters,
     Waker,
 )
+from .._ffi.outcomes import LineCounters
 from ..errors import LineBusyError, ModbusConnectionError, ModbusError, TargetBackoffError
 from ..stats import LineStats
 from .connect import open_link
@@ -298,9 +298,14 @@ class LineWorker(LineRequests):
         """Hand what the engine came back for to whom it concerns (EV_TRACE: nothing
         more, the link logged the frames traced when the engine came back)."""
         kind, which, err = event
+        for ended in link.take_ended():  # every pass that ended, EV_CYCLE or not
+            try:
+                pollers[ended].engine_cycle()
+            except Exception:  # a poller bug must not cost the others their pass
+                log.exception("%s: poller failed", self.endpoint.describe())
         try:
-            if kind == EV_CYCLE:
-                pollers[which].engine_cycle()
+            if kind == EV_SPLIT:
+                pollers[which].engine_split()
             elif kind == EV_FAILED:
                 pollers[which].engine_failed(link, err)
             elif kind == EV_WAKE:  # the queue is served next; a stale flag is cleared

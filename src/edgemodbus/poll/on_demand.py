@@ -54,11 +54,9 @@ def read_slots(link: Link, slave: int, store: ItemStore[ItemState], slots: Seque
         counters.requests += 1
         changes: list[Change] = []
         try:
-            if slot.decoder is None:
-                data = link.read(slave, block.area, block.start, block.count)
-            else:
-                data, changes = link.read_decode(slave, block.area, block.start, block.count,
-                                                 slot.decoder, True)
+            data = link.read(slave, block.area, block.start, block.count)
+            if slot.decoder is not None:
+                changes = slot.decoder.decode(data, True)  # every item: it answers a request
         except ModbusConnectionError:
             raise
         except ModbusError as exc:

@@ -1,15 +1,16 @@
-"""One polled slave on a line: its read cycle and fault handling.
+"""One polled slave on a line: its read cycle and what its faults mean.
 
 A :class:`Poller` is attached to its line.  Its plan lives in C as well
 (:class:`~edgemodbus._ffi.engine.EngineDevice`: every block with its own due time, its
 items' scan rate, see schedule.py); a cycle is one pass over the blocks due when it
-begins.  The line's engine runs whole passes in C, on every link kind and with the frame
-trace on too, and hands the poller only what needs Python (:meth:`Poller.engine_cycle`
-for a pass with news, :meth:`Poller.take_results` before wrapped reports or a job,
-:meth:`Poller.engine_failed` for a failed read, whose retries are read in Python).
-Writes queued by other threads run between two blocks.  What it reads goes to its owner
-through a :class:`PollSink`.
-Faults are handled per slave: see faults.py.
+begins.  The line's engine runs whole passes in C, the fault policy included (retries,
+settling, offline and backoff: csrc/emb_fault.c, configured once here), on every link
+kind and with the frame trace on too, and hands the poller only its outcomes
+(:meth:`Poller.engine_cycle` for a pass with news, failures or a status change;
+:meth:`Poller.take_results` before wrapped reports or a job; :meth:`Poller.engine_split`
+to split a block answered with exception 02; :meth:`Poller.engine_failed` when the link
+failed).  Writes queued by other threads run between two blocks.  What it reads goes to
+its owner through a :class:`PollSink`.  faults.py words the outcomes.
 """
 
 from __future__ import annotations
@@ -30,11 +31,11 @@ from ..errors import ModbusConnectionError
 from ..line import LineWorker, Link
 from ..line.link import READ_FC
 from ..stats import DeviceStats
-from .faults import FaultPolicy
+from .faults import reason_of, status_change
 from .items import Assembly, ItemState, Slot, is_news, set_state
 from .on_demand import answer, read_slots, slots_holding
 from .periodic import PeriodicReports, reports_all
-from .planner import Piece, ReadBlock
+from .planner import Piece, ReadBlock, bisect_block
 from .reports import ReportDecoders
 from .schedule import build_plan as build_plan  # the CLI's plan command uses it
 from .schedule import item_rate
@@ -47,7 +48,7 @@ if TYPE_CHECKING:
     from ..protocol.wrapped import Report
 
 
-class Poller(FaultPolicy):
+class Poller:
     """The poller of one slave.  All state below is touched by the line's worker only,
     except ``status``, ``items`` and ``counters`` which other threads read."""
 
@@ -64,9 +65,6 @@ class Poller(FaultPolicy):
         self.log = logger
         self.slave = params.slave_id
         self.timeout = params.read_timeout / 1000
-        self.retries = params.retries
-        self.offline_after = params.offline_after_failed_cycles
-        self.max_backoff = params.max_backoff / 1000
         self.report_all = params.report_mode == "cycle"
         self.snapshot_interval = params.snapshot_interval / 1000
         self.params = params
@@ -86,11 +84,10 @@ class Poller(FaultPolicy):
         self._demand_reads = 0
         self.device = EngineDevice(self.slave, self.timeout, self.report_all, 0.0,
                                    coalesce=params.forward_coalesce / 1000)
-        self.counters.native = self.device.counts  # the engine counts requests and cycles
+        self.device.set_policy(params.retries, params.offline_after_failed_cycles,
+                               params.max_backoff / 1000)
+        self.counters.native = self.device.counts  # the engine counts requests and faults
         self._install(parsed)
-        self.failed_cycles = 0
-        self.offline = False
-        self.backoff = self.cycle
         self.next_snapshot = 0.0  # the first cycle's end publishes one
         if self.snapshot_interval:
             self.device.notify_at = 0.0
@@ -126,16 +123,18 @@ class Poller(FaultPolicy):
         return self.device.due
 
     @property
-    def _pass(self) -> list[Slot]:
-        """The slots of the pass under way (or the last one), in plan order."""
-        return [self.slots[k] for k in self.device.pass_blocks()]
+    def failed_cycles(self) -> int:
+        return self.device.failed_cycles
+
+    @property
+    def offline(self) -> bool:
+        return self.device.offline
 
     # -- lifecycle ---------------------------------------------------------------------
     def start(self, line: LineWorker) -> None:
         self.line = line
         self.active = self.device.active = True
         self._all_due_now()
-        self._update_notify()
         self.store.bind()  # ItemInUseError: another running driver polls an item
         line.attach(self)
 
@@ -146,6 +145,12 @@ class Poller(FaultPolicy):
     def stop(self) -> None:
         self.active = self.device.active = self.store.active = False
         self.status = DeviceDriverStatus.STOPPED
+
+    def _set_status(self, status: DeviceDriverStatus, reason: str | None) -> None:
+        """Set the device's status; a change is told to the listeners.  Worker thread."""
+        if status is not self.status:
+            self.status = status
+            self.delivery.status(status, reason)
 
     def _install(self, parsed: Sequence[ParsedItem]) -> None:
         old_store = self.store
@@ -176,6 +181,7 @@ class Poller(FaultPolicy):
         # item only when all of them report by cycle
         self.report_all = self.writer.report_all = self.device.report_all = reports_all(
             items, self.params)
+        self.device.notify = self.report_all  # every pass's end, to report every item
         self.device.set_blocks([self._spec(slot) for slot in self.slots])
         now = time.monotonic()
         self.periodic = PeriodicReports.build(
@@ -188,7 +194,7 @@ class Poller(FaultPolicy):
         block = slot.block
         plan = slot.decoder.begin(self.report_all)[0] if slot.decoder is not None else None
         return BlockSpec(READ_FC[block.area], block.start, block.count, block.rate / 1000,
-                         plan, bool(slot.partial))
+                         plan, bool(slot.partial), len(block.pieces) > 1)
 
     def _make_slot(self, block: ReadBlock) -> Slot:
         whole: list[ItemState] = []
@@ -229,18 +235,6 @@ class Poller(FaultPolicy):
             done.set_result(None)
             return done
         return self.line.submit(swap)
-
-    def _cycle_done(self, now: float) -> None:
-        """A pass ended: the items due for a period report join its batch first."""
-        periodic = self.periodic
-        if periodic is None:
-            super()._cycle_done(now)
-            return
-        if now >= periodic.next_due:
-            self.delivery.report(periodic.due(now))
-        super()._cycle_done(now)
-        snapshot = self.next_snapshot if self.snapshot_interval else float("inf")
-        self.device.notify_at = min(snapshot, periodic.next_due)
 
     def submit_read(self, names: Sequence[str] | None) -> Future[dict[str, dict[str, Any]]]:
         """Read these items (None: every item) now, as a job on the line's queue:
@@ -284,12 +278,12 @@ class Poller(FaultPolicy):
         self._all_due_now()
         if self.report_only and up:
             self._set_status(DeviceDriverStatus.RUNNING, None)  # ready for reports
-            self._update_notify()
             return
         if up:
             return
         self._set_status(DeviceDriverStatus.RECONNECTING, f"link down: {reason}")
-        self._update_notify()
+        self.device.link_lost()
+        self.device.forget_failures()  # its items now say "link down"
         for slot in self.slots:
             self._invalidate(slot, f"link down: {reason}")
         self.delivery.flush()
@@ -320,7 +314,8 @@ class Poller(FaultPolicy):
     # -- the engine's events ----------------------------------------------------------------
     def take_results(self) -> None:
         """Store what the blocks the engine read in this pass reported, those not taken
-        yet (before Python acts on the device: a pass's end, a failure, a job)."""
+        yet (before Python acts on the device: a pass's end, a split, a job), and the
+        failures the engine put on blocks (each told once)."""
         device = self.device
         order = device.pass_blocks()
         upto = device.index if device.in_pass else len(order)
@@ -330,62 +325,83 @@ class Poller(FaultPolicy):
         now = datetime.now(timezone.utc)  # one time stamp for the pass's reports
         for k in order[device.taken:upto]:
             slot = slots[k]
-            n = device.reported(k)
-            if not (n or report_all or slot.partial or slot.recheck):
-                continue  # the usual block: nothing changed
+            n = device.reported(k)  # 0 after a failure
+            if not n and (not (report_all or slot.partial or slot.recheck) or device.failed(k)):
+                continue  # the usual block: nothing changed (a failed one: below)
             decoder = slot.decoder
             changes = decoder.finish(n, report_all) if decoder else []
-            self._apply(slot, device.data(k), changes, now, reported)
+            self._apply(slot, device.data(k) if slot.partial else None, changes, now,
+                        reported)
         device.taken = upto
+        if device.has_failures:
+            for failure in device.take_failures():
+                self._invalidate(slots[failure.block], reason_of(failure, self.slave))
         self._deliver(reported)  # callbacks: they may re-plan (update_addresses) at once
+        events = device.take_status()
+        if events:
+            for change in status_change(device, events, self.code):
+                if change.log:
+                    level = logging.WARNING if change.reason else logging.INFO
+                    self.log.log(level, "%s", change.log)
+                self._set_status(change.status, change.reason)
 
     def engine_cycle(self) -> None:
-        """The engine ended a pass with news (or one the poller asked to see)."""
+        """The engine ended a pass Python must see (news, failures, a status change, or
+        one the poller asked for)."""
+        self.device.take_end()
         if not self.active:
             return  # stopped while the engine ran
         self.take_results()
-        if self.status is not DeviceDriverStatus.RUNNING:
-            self._back_online()
-        self.failed_cycles = 0
         self._cycle_done(time.monotonic())
 
-    def engine_failed(self, link: Link, err: int) -> None:
-        """A read of the engine's pass failed with errno ``err``: the fault policy."""
+    def engine_split(self) -> None:
+        """Exception 02 on the pass's next block, of several pieces: split it in two
+        (the halves read next, within this pass; the split kept for later cycles)."""
         if not self.active:
             return
-        device = self.device
-        slots = self.slots
-        slot = slots[device.pass_blocks()[device.index]]
-        block = slot.block
-        error = link.read_failed(err, self.slave, block.area, block.start, block.count)
         self.take_results()
-        if self.slots is slots:  # not re-planned by a callback meanwhile
-            self._read_failed(link, slot, error)
-
-    # -- retries (poll/faults.py): a block read again in Python ---------------------------
-    def _read_slot(self, link: Link, slot: Slot) -> tuple[Block, list[Change]]:
-        """Read a block and decode its whole items (one C call on the libmodbus path)."""
-        block = slot.block
-        if slot.decoder is None:
-            return link.read(self.slave, block.area, block.start, block.count), []
-        return link.read_decode(self.slave, block.area, block.start, block.count,
-                                slot.decoder, self.report_all)
-
-    def _good_read(self, slot: Slot, data: Block, changes: list[Change]) -> None:
-        self.counters.responses += 1
-        reported: list[DeviceAddressItem] = []
-        self._apply(slot, data, changes, datetime.now(timezone.utc), reported)
-        self._deliver(reported)
-        if self.status is not DeviceDriverStatus.RUNNING:
-            self._back_online()
-        self._next_block()
-
-    def _next_block(self) -> None:
         device = self.device
-        device.index += 1
-        device.taken = device.index
-        if device.index >= len(device.pass_blocks()):
-            self._end_cycle(failed=False)
+        at = device.pass_blocks()[device.index]
+        block = self.slots[at].block
+        halves = bisect_block(block)
+        new = [self._make_slot(b) for b in halves]
+        self.slots[at:at + 1] = new
+        device.split(at, [self._spec(s) for s in new])
+        self.log.info(
+            "%s: exception 02 on %s@%d+%d: split into %s", self.code,
+            block.area.short_name, block.start, block.count,
+            ", ".join(f"@{b.start}+{b.count}" for b in halves),
+        )
+
+    def engine_failed(self, link: Link, err: int) -> None:
+        """The link failed (errno ``err``) on a read of the engine's pass: the results
+        so far, then the link is closed (the line reports it down and reconnects)."""
+        device = self.device
+        block = self.slots[device.pass_blocks()[device.index]].block
+        try:
+            if self.active:
+                self.take_results()
+        finally:  # the link is closed whatever the results did
+            link.read_failed(err, self.slave, block.area, block.start, block.count)
+
+    def _cycle_done(self, now: float) -> None:
+        """A pass ended: the items due for a period report join its batch (periodic.py),
+        the batch goes out, the snapshot when due."""
+        periodic = self.periodic
+        if periodic is not None and now >= periodic.next_due:
+            self.delivery.report(periodic.due(now))
+        self.delivery.flush()
+        if self.snapshot_interval and now >= self.next_snapshot:
+            self._snapshot(now)
+        if periodic is not None:
+            snapshot = self.next_snapshot if self.snapshot_interval else float("inf")
+            self.device.notify_at = min(snapshot, periodic.next_due)
+
+    def _snapshot(self, now: float) -> None:
+        """Publish the snapshot; the engine hands over the first pass that ends after
+        the next one is due."""
+        self.next_snapshot = self.device.notify_at = now + self.snapshot_interval
+        self.delivery.snapshot_due()
 
     def _apply(self, slot: Slot, data: Block | None, changes: list[Change], now: datetime,
                reported: list[DeviceAddressItem]) -> None:
@@ -441,6 +457,7 @@ class Poller(FaultPolicy):
         Make it report them on the next read, where only news is kept: the written value
         read back is not published a second time, and a value the slave went back to
         (a write it clamped or another master undid) is not missed."""
+        self.device.forget_failures()  # a block failing again says so again
         for state in states:
             owner = self._owner(state)
             if owner is None or owner.decoder is None:

@@ -123,8 +123,7 @@ def test_a_report_only_device_is_never_due() -> None:
 def test_split_keeps_the_pass_and_puts_the_halves_in_place() -> None:
     dev = _device([0.1, 0.1, 0.1])
     dev.all_due(5.0)
-    assert dev.begin_pass(5.0) == 3
-    dev.index = 1  # block 0 read; block 1 answered exception 02
-    dev.split(1, [BlockSpec(3, 10, 1, 0.1, None, False), BlockSpec(3, 11, 1, 0.1, None, False)])
-    assert dev.pass_blocks() == [0, 1, 2, 3] and dev.index == 1 and dev.in_pass
+    assert dev.begin_pass(5.0) == 3  # block 0 (the pass's next) answered exception 02
+    dev.split(0, [BlockSpec(3, 0, 1, 0.1, None, False), BlockSpec(3, 1, 1, 0.1, None, False)])
+    assert dev.pass_blocks() == [0, 1, 2, 3] and dev.index == 0 and dev.in_pass
     assert [dev.due_of(k) for k in range(4)] == [5.0] * 4

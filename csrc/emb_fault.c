@@ -1,0 +1,285 @@
+/* edgemodbus: the fault policy, run by the line engine beside the read.
+ *
+ * A failed read is handled where it happened, in the C call that made it, without a
+ * trip to Python:
+ *   - a timeout or a CRC error is read again, up to the device's `retries` (none while
+ *     the slave is offline); every request, retry and error is counted once, here;
+ *   - RTU has no transaction id: after a timeout the line is settled (a late reply is
+ *     waited out, so it is never taken for the answer to the next request), after a bad
+ *     frame it is drained (Modbus over Serial Line 2.5.1.1: frames end with silence);
+ *   - a timeout ends the slave's pass: this block and the rest of the pass fail with "not
+ *     responding" (and, once the slave is or goes offline, every block); after
+ *     `offline_after` such passes in a row the slave is offline and probed once per
+ *     backoff, doubling from its cycle up to `max_backoff_ns`;
+ *   - an exception 02 (illegal data address) on a block of several pieces comes back to
+ *     Python (EMB_EV_SPLIT), which plans the halves once (poll/planner.py bisect_block)
+ *     and puts them in place (emb_dev_split); the pass goes on with them;
+ *   - any other exception, CRC or protocol error fails that block only; an exception
+ *     response means the slave is there (an offline slave is Running again);
+ *   - a link error stops the pass (EMB_EV_FAILED): Python closes the link.
+ * A block's failure stays on it (fail_kind, what Python words the reason from) until a
+ * good read; Python is told only a failure it does not know yet (fail_new). */
+#include "emb_fault.h"
+
+#include <errno.h>
+#include <string.h>
+
+/* The kind of a read's failure by its errno (_ffi/errors.py maps the same errnos to
+ * exceptions); *code: the exception code of an exception response. */
+int emb_fault_kind(int err, int *code)
+{
+    *code = 0;
+    if (err == ETIMEDOUT || err == EMB_EPARTIAL)
+        return EMB_K_TIMEOUT;
+    if (err >= EMB_EEXCEPTION && err < EMB_EEXCEPTION + EMB_N_EXC) {
+        *code = err - EMB_EEXCEPTION;
+        return EMB_K_EXCEPTION;
+    }
+    if (err > MODBUS_ENOBASE && err <= EMBXGTAR) {
+        *code = err - MODBUS_ENOBASE;
+        return EMB_K_EXCEPTION;
+    }
+    if (err == EMBBADCRC)
+        return EMB_K_CRC;
+    if ((err >= EMB_EECHO && err <= EMB_ELENGTH) || (err > EMBBADCRC && err <= EMBBADSLAVE))
+        return EMB_K_PROTOCOL;
+    return EMB_K_LINK;
+}
+
+/* Count a failed request once, for the device and for the line. */
+static void emb_fault_count(emb_engine *e, emb_device *d, int kind, int code)
+{
+    emb_line_counters *lc = e->lc;
+
+    switch (kind) {
+    case EMB_K_TIMEOUT:
+        d->c.timeouts++;
+        lc->timeouts++;
+        break;
+    case EMB_K_CRC:
+        d->c.crc_errors++;
+        lc->crc_errors++;
+        lc->responses++; /* a frame came */
+        break;
+    case EMB_K_PROTOCOL:
+        d->c.protocol_errors++;
+        lc->protocol_errors++;
+        lc->responses++;
+        break;
+    case EMB_K_EXCEPTION:
+        d->c.exceptions[code]++;
+        lc->exceptions[code]++;
+        lc->responses++;
+        break;
+    default:
+        break;
+    }
+}
+
+/* Clean the line after a failure of `kind`: settle after a timeout, drain after a bad
+ * frame.  0, or -1 with errno when the link failed meanwhile. */
+static int emb_fault_clean(emb_engine *e, int kind)
+{
+    long n = 0;
+
+    if (kind == EMB_K_TIMEOUT && e->settle_ms > 0)
+        n = emb_link_discard(e->ctx, e->lk, e->settle_ms, e->quiet_ms, e->settle_limit_ms);
+    else if (kind == EMB_K_CRC || kind == EMB_K_PROTOCOL)
+        n = emb_link_discard(e->ctx, e->lk, e->quiet_ms, e->quiet_ms, e->drain_limit_ms);
+    if (n == -1)
+        return -1;
+    e->lc->discarded += n + e->lk->discarded;
+    e->lk->discarded = 0;
+    e->lc->heartbeats += e->lk->heartbeats;
+    e->lk->heartbeats = 0;
+    return 0;
+}
+
+/* Put a failure on block b: its own (EMB_FAIL_OWN: errno err, the reply in e->rsp) or
+ * the slave's silence at block `at` (EMB_FAIL_SILENT).  News for Python when it differs
+ * from what Python knows. */
+static void emb_fault_mark(emb_engine *e, emb_device *d, emb_eblock *b, int kind,
+                           const emb_eblock *at, int err)
+{
+    uint16_t len = 0;
+    uint8_t header = e->lk->mbap ? 7 : 1;
+
+    if (kind == EMB_FAIL_OWN) {
+        len = (uint16_t)e->lk->rsp_len;
+        if (len > 260)
+            len = 0;
+    }
+    b->reported = 0;
+    if (b->fail_known && d->mode != EMB_MODE_ALL && b->fail_kind == kind && b->fail_errno == err &&
+        b->fail_function == at->function && b->fail_start == at->start &&
+        b->fail_count == at->count && b->fail_rsp_len == len && b->fail_header == header &&
+        memcmp(b->fail_rsp, e->rsp, len < EMB_FAIL_RSP ? len : EMB_FAIL_RSP) == 0)
+        return; /* the same failure again: Python's items already say so (unless every
+                 * item is reported every cycle) */
+    b->fail_kind = (uint8_t)kind;
+    b->fail_errno = err;
+    b->fail_function = at->function;
+    b->fail_start = at->start;
+    b->fail_count = at->count;
+    b->fail_rsp_len = len;
+    b->fail_header = header;
+    memset(b->fail_rsp, 0, EMB_FAIL_RSP);
+    memcpy(b->fail_rsp, e->rsp, len < EMB_FAIL_RSP ? len : EMB_FAIL_RSP);
+    b->fail_new = 1;
+    b->fail_known = 0;
+    d->fail_news = 1;
+}
+
+/* The slave answers: Running again (told to Python), its failed cycles forgotten. */
+static void emb_fault_back(emb_device *d)
+{
+    if (d->running)
+        return;
+    d->running = 1;
+    d->status_ev |= d->offline ? EMB_ST_BACK | EMB_ST_AGAIN : EMB_ST_BACK;
+    d->offline = 0;
+    d->failed_cycles = 0;
+    d->backoff_ns = d->cycle_ns;
+}
+
+/* The slave timed out on block b (errno err): its pass ends here. */
+static void emb_fault_silent(emb_engine *e, emb_device *d, emb_eblock *b, int err)
+{
+    uint32_t i;
+
+    d->c.skipped_blocks += d->n_pass - d->index - 1;
+    for (i = d->index; i < d->n_pass; i++)
+        emb_fault_mark(e, d, &d->blocks[d->pass_list[i]], EMB_FAIL_SILENT, b, err);
+    if (d->offline || d->failed_cycles + 1 >= d->offline_after)
+        for (i = 0; i < d->n_blocks; i++) /* not due now either: no fresh value */
+            emb_fault_mark(e, d, &d->blocks[i], EMB_FAIL_SILENT, b, err);
+    d->timed_out = 1;
+    d->index = d->n_pass;
+}
+
+/* One request for block b into data (the device's response timeout, the line's pacing),
+ * counted: the register or bit count, or -1 with errno. */
+static int emb_fault_request(emb_engine *e, emb_device *d, emb_eblock *b, void *data)
+{
+    int64_t start;
+    int rc, err;
+
+    if (d->timeout_ms != e->timeout_ms) {
+        modbus_set_response_timeout(e->ctx, (uint32_t)(d->timeout_ms / 1000),
+                                    (uint32_t)(d->timeout_ms % 1000) * 1000U);
+        e->timeout_ms = d->timeout_ms;
+    }
+    e->lc->requests++;
+    d->c.requests++;
+    start = emb_now_ns();
+    rc = emb_read(e->ctx, e->lk, d->slave, b->function, b->start, b->count, data, e->rsp);
+    err = errno;
+    e->lc->discarded += e->lk->discarded;
+    e->lk->discarded = 0;
+    e->lc->heartbeats += e->lk->heartbeats; /* a DTU stream's: live, no Python */
+    e->lk->heartbeats = 0;
+    if (e->pace_ns)
+        e->ready_ns = emb_now_ns() + e->pace_ns;
+    if (rc == -1) {
+        errno = err;
+        return -1;
+    }
+    e->lc->rtt_ns += emb_now_ns() - start;
+    e->lc->responses++;
+    b->read_ns = start; /* the data is no older than the request */
+    d->c.responses++;
+    return rc;
+}
+
+/* Read block b with the fault policy.  0: the pass goes on (the block was read, or its
+ * failure is marked, or the pass ended on a timeout); EMB_EV_SPLIT or EMB_EV_FAILED
+ * (event_errno) for Python. */
+int emb_fault_read(emb_engine *e, emb_device *d, emb_eblock *b, void *data)
+{
+    const int first = d->offline ? 0 : d->retries;
+    int tries = first;
+    int rc, err, kind, code;
+
+    for (;;) {
+        rc = emb_fault_request(e, d, b, data);
+        if (rc >= 0) {
+            b->reported = b->plan ? emb_decode(b->plan, data, (uint32_t)rc, d->mode) : 0;
+            if (b->reported || b->keep)
+                d->news = 1;
+            b->fail_kind = EMB_FAIL_NONE;
+            b->fail_known = 0;
+            d->answered = 1;
+            if (tries < first)
+                emb_fault_back(d); /* a retry got through */
+            d->index++;
+            return 0;
+        }
+        err = errno;
+        kind = emb_fault_kind(err, &code);
+        if (kind == EMB_K_LINK) {
+            e->event_errno = err;
+            return EMB_EV_FAILED;
+        }
+        if (emb_fault_clean(e, kind) == -1) {
+            e->event_errno = errno;
+            emb_fault_count(e, d, kind, code);
+            return EMB_EV_FAILED;
+        }
+        emb_fault_count(e, d, kind, code); /* once the line is clean: what it cost */
+        if (!((kind == EMB_K_TIMEOUT || kind == EMB_K_CRC) && tries > 0))
+            break;
+        tries--;
+        d->c.retries++;
+    }
+    if (kind == EMB_K_TIMEOUT) {
+        emb_fault_silent(e, d, b, err);
+        return 0;
+    }
+    if (kind == EMB_K_EXCEPTION && code == 2 && b->splittable)
+        return EMB_EV_SPLIT; /* the block stays the pass's next: Python splits it */
+    if (kind == EMB_K_EXCEPTION) {
+        d->answered = 1;
+        emb_fault_back(d);
+    }
+    emb_fault_mark(e, d, b, EMB_FAIL_OWN, b, err);
+    d->index++;
+    return 0;
+}
+
+/* Every block (and the device) due at at_ns, the pass list kept for Python (an offline
+ * slave's next probe). */
+void emb_dev_due_at(emb_device *d, int64_t at_ns)
+{
+    uint32_t i;
+
+    for (i = 0; i < d->n_blocks; i++)
+        d->blocks[i].due_ns = at_ns;
+    d->due_ns = (d->n_blocks || d->cycle_ns) ? at_ns : EMB_NEVER;
+}
+
+/* The pass ended (emb_dev_end_pass counted it): a failed cycle when it timed out, with
+ * offline and backoff; else the slave's failed cycles are forgotten, and it is Running
+ * if it answered. */
+void emb_fault_end_pass(emb_device *d, int64_t now_ns)
+{
+    if (!d->timed_out) {
+        d->failed_cycles = 0;
+        if (d->answered)
+            emb_fault_back(d);
+        return;
+    }
+    d->c.failed_cycles++;
+    d->failed_cycles++;
+    if (d->failed_cycles < d->offline_after)
+        return;
+    if (d->offline) {
+        d->backoff_ns = d->backoff_ns > d->max_backoff_ns / 2 ? d->max_backoff_ns
+                                                              : d->backoff_ns * 2;
+    } else {
+        d->offline = 1;
+        d->running = 0;
+        d->status_ev |= EMB_ST_OFFLINE;
+        d->backoff_ns = d->cycle_ns < d->max_backoff_ns ? d->cycle_ns : d->max_backoff_ns;
+    }
+    emb_dev_due_at(d, now_ns + d->backoff_ns); /* the probe: a pass over every block */
+}
