@@ -181,7 +181,8 @@ class Poller:
         # item only when all of them report by cycle
         self.report_all = self.writer.report_all = self.device.report_all = reports_all(
             items, self.params)
-        self.device.notify = self.report_all  # every pass's end, to report every item
+        # every pass's end: to report every item, or (no block to read) to go Running
+        self.device.notify = self.report_all or not self.slots
         self.device.set_blocks([self._spec(slot) for slot in self.slots])
         now = time.monotonic()
         self.periodic = PeriodicReports.build(
@@ -352,6 +353,10 @@ class Poller:
         if not self.active:
             return  # stopped while the engine ran
         self.take_results()
+        if not self.slots and self.status is not DeviceDriverStatus.RUNNING:
+            # nothing to read (on-demand items only): a pass on an open link is Running
+            self._set_status(DeviceDriverStatus.RUNNING, None)
+            self.device.notify = self.report_all
         self._cycle_done(time.monotonic())
 
     def engine_split(self) -> None:
