@@ -120,7 +120,8 @@ DTU_LISTENER_EVENTS: tuple[str, ...] = (
     "accepted", "registered", "unknown", "silent", "oversize", "evicted", "refusedPortCap",
     "refusedSourceCap", "refusedNotAllowed", "refusedDtuNotAllowed", "badKey",
     "duplicateRefused", "replaced", "contested", "refusedContested", "acceptErrors",
-    "acceptPauses", "logSuppressed",
+    "acceptPauses", "proxyNotAllowed", "proxyMissing", "proxyMalformed", "proxyLocal",
+    "logSuppressed",
 )
 DTU_LISTENER_GAUGES: tuple[tuple[str, str, str], ...] = (
     ("unregistered", "dtu_listener_unregistered",
