@@ -88,6 +88,12 @@ class DtuRegistry:
         if stop is not None:
             stop.stop()
 
+    def connected(self, host: str, port: int, dtu_id: str) -> bool:
+        """Whether DTU ``dtu_id`` of listen port ``host:port`` is connected (held by
+        this process, in a fleet's words); cheap: the MQTT thread asks per device."""
+        entry = self._slots.get((host, port, dtu_id))  # one dict read: no lock needed
+        return entry is not None and entry[0].connected()
+
     def listener(self, host: str, port: int) -> DtuListener | None:
         with self._lock:
             return self._listeners.get((host, port))
