@@ -75,3 +75,21 @@ def test_the_holder_with_the_newer_registration_wins() -> None:
                                      b'{"instance": "A", "heldSince": "x"}', b"\xff"])
 def test_statuses_without_a_holder_are_ignored(payload: bytes) -> None:
     assert holder_of(payload) is None
+
+
+def test_a_fleet_device_without_writes_subscribes_to_its_status_only() -> None:
+    """writes off: a held device's subscriptions are its status topic (read back), no
+    command topic (the subscription for the fleet must not turn commands on)."""
+    from edgemodbus.northbound.mqtt import MqttSettings
+    from edgemodbus.northbound.mqtt.devices import AttachedDevice
+
+    settings = MqttSettings()
+
+    def topic(template: str, code: str = "", item: str = "") -> str:
+        return template.format(prefix="p", deviceCode=code, itemName=item, gatewayId="g")
+
+    dev = AttachedDevice(settings, topic, None, "m1")  # type: ignore[arg-type]
+    assert "p/m1/set/#" in dev.filters(True) and dev.filters(False) == []
+    dev.fleet = Holding(lambda: True)
+    assert dev.filters(False) == ["p/m1/$status"]
+    assert dev.filters(True)[-1] == "p/m1/$status"

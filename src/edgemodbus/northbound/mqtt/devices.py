@@ -50,14 +50,14 @@ class AttachedDevice:
         self.seen_status: Any = None
         self.fleet: Holding | None = None  # in a fleet: published only while held here
 
-    def filters(self) -> list[str]:
-        """Subscriptions for this device's commands, without overlaps (an overlap
-        would deliver one command twice)."""
-        filters = [self.command_prefix + "#"]
-        if self.batch_command_topic + "/" != self.command_prefix:
+    def filters(self, writes: bool = True) -> list[str]:
+        """Subscriptions for this device's commands (none unless ``writes``), without
+        overlaps (an overlap would deliver one command twice)."""
+        filters = [self.command_prefix + "#"] if writes else []
+        if writes and self.batch_command_topic + "/" != self.command_prefix:
             filters.append(self.batch_command_topic)
         for own in (self.action_topic, self.read_topic):
-            if not own.startswith(self.command_prefix):
+            if writes and not own.startswith(self.command_prefix):
                 filters.append(own)
         if self.fleet is not None:  # its retained status read back (holding.py)
             filters.append(self.status_topic)

@@ -384,7 +384,7 @@ class MqttPublisher:
             if self._devices.get(dev.code) is not dev or (
                     dev.fleet is not None and not dev.fleet.holding):
                 return
-        for topic_filter in dev.filters():
+        for topic_filter in dev.filters(self.settings.writes):
             client.subscribe(topic_filter, qos=1)
 
     def _unsubscribe(self, dev: AttachedDevice) -> None:
@@ -392,7 +392,7 @@ class MqttPublisher:
         if client is None or not self._connected.is_set() or not (
                 self.settings.writes or dev.fleet is not None):
             return
-        for topic_filter in dev.filters():
+        for topic_filter in dev.filters(self.settings.writes):
             client.unsubscribe(topic_filter)
 
     def _run_actions(self, connected: bool = True) -> None:
