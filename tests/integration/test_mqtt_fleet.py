@@ -27,13 +27,14 @@ STATUS = f"{P}/dev1/$status"
 class Instance:
     """One fleet instance: a publisher (instance ``name``) and a driver of dev1."""
 
-    def __init__(self, stack: ExitStack, broker: int, port: int, name: str) -> None:
+    def __init__(self, stack: ExitStack, broker: int, port: int, name: str,
+                 mode: str = "per-item") -> None:
         cfg = device(port)  # items of its own
         self.name = name
         self.holds = False
         self.pub = MqttPublisher({"port": broker, "reconnectMin": 100, "reconnectMax": 400,
-                                  "statusCheckInterval": 100}, gateway_id="gw1",
-                                 instance=name)
+                                  "statusCheckInterval": 100, "mode": mode},
+                                 gateway_id="gw1", instance=name)
         self.drv = em.DriverModbusRtu()
         self.pub.start()
         stack.callback(self.pub.stop)
@@ -124,3 +125,18 @@ def test_a_late_departure_never_overwrites_the_new_holder(broker: Mosquitto,
         b.holds = False
         probe.wait_for(STATUS, lambda m: m.json().get("status") == "NotHere")
         assert retained(broker.port)["instance"] == "B"
+
+
+def test_batch_mode_publishes_the_held_device_only(broker: Mosquitto,
+                                                   slave: PymodbusSlave) -> None:
+    with ExitStack() as stack:
+        probe = stack.enter_context(MqttProbe(broker.port))
+        a = Instance(stack, broker.port, slave.port, "A", mode="batch")
+        b = Instance(stack, broker.port, slave.port, "B", mode="batch")
+        b.holds = True
+        probe.wait_for(STATUS, lambda m: m.json().get("instance") == "B")
+        slave.set_registers(1, "hr", 0, [555])
+        batch = probe.wait_for(f"{P}/dev1/$batch", lambda m: m.json()["values"]["t0"] == 555)
+        assert batch.json()["deviceCode"] == "dev1"
+        wait_for(lambda: a.drv.snapshot()["items"]["t0"]["value"] == 555, what="A read it")
+        assert a.published() == 0 and b.published() > 0
