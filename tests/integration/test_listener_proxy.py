@@ -106,3 +106,15 @@ def test_refusals_and_the_health_check() -> None:
         wait_for(lambda: counter(port, "proxyNotAllowed") == 1, what="proxyNotAllowed")
         wait_for(lambda: closed_by_peer(sock), what="closed")
         assert counter(port, "registered") == 0
+
+
+def test_a_port_without_registration_behind_the_balancer() -> None:
+    """registration "none": the one DTU of the port is handed the connection once its
+    header is read (before it, nothing was known of the DTU's address)."""
+    port = free_port()
+    cfg = dtu_device(port, "", registration="none", listenAllowFrom=[DTU_ADDR])
+    with balancers("127.0.0.1/32"), Simulator(slaves=[1]) as sim, running(cfg):
+        sim.dial("127.0.0.1", port, registration=build(DTU_ADDR, 7))
+        wait_for(ok(cfg), what="the DTU Ok through the balancer")
+        assert values(cfg) == REAL
+        assert peers(port) == [f"{DTU_ADDR}:7"]

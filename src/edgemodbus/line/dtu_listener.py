@@ -263,7 +263,7 @@ class DtuListener:
         with self._lock:
             slots = list(self._slots.values())
         if len(slots) == 1:
-            self._offer(slots[0], newcomer, b"")
+            self._offer(slots[0], newcomer, bytes(newcomer.buf))  # after a PROXY header
             return
         self.counts["unknown"] += 1
         self._close(newcomer)
