@@ -17,7 +17,7 @@ from __future__ import annotations
 import os
 import socket
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Annotated, ClassVar
+from typing import TYPE_CHECKING, Annotated, ClassVar, Protocol
 
 from pydantic import AfterValidator, BeforeValidator, Field, field_validator
 
@@ -80,6 +80,18 @@ class FleetSettings(Model):
 
 
 
+class FleetConfig(Protocol):
+    """What :func:`apply_fleet` reads of the gateway file (GatewayConfig; config.py
+    imports this module)."""
+
+    @property
+    def fleet(self) -> FleetSettings | None: ...
+    @property
+    def instance(self) -> str | None: ...
+    @property
+    def effective_id(self) -> str: ...
+
+
 def holder(params: DriverModbusRtuParameter,
            instance: str | None) -> Callable[[], bool] | None:
     """In a fleet, whether a listen-mode device's DTU is connected here now (the
@@ -103,15 +115,16 @@ def attach_device(publisher: Publisher, driver: DriverModbusRtu, code: str,
         publisher.attach(driver, code)
 
 
-def apply_fleet(fleet: FleetSettings | None, instance: str,
-                exporter: MetricsExporter | None) -> None:
-    """Apply the fleet section: the load balancers to every DTU listen port, this
-    instance's name to the exporter's ``edgemodbus_dtu_held`` gauge."""
+def apply_fleet(config: FleetConfig | None, exporter: MetricsExporter | None) -> None:
+    """Apply a gateway file's fleet section: its load balancers to every DTU listen port
+    of the process (None: none), this instance's name (else the gateway id) to the
+    exporter's ``edgemodbus_dtu_held`` gauge."""
+    fleet = config.fleet if config is not None else None
     enabled = fleet is not None and fleet.enabled
     DriverModbusRtu.dtu_registry.set_load_balancers(
         fleet.load_balancers if fleet is not None and enabled else ())
-    if exporter is not None:
-        exporter.instance = instance
+    if exporter is not None and config is not None:
+        exporter.instance = config.instance or config.effective_id
 
 
 __all__ = ["INSTANCE_ENV", "MAX_BALANCERS", "FleetSettings", "apply_fleet", "attach_device",

@@ -99,18 +99,13 @@ class Gateway:
             log.info("MQTT: gateway %s publishing to %s:%d (%s)", self.gateway_id, mqtt.host,
                      mqtt.port, mqtt.mode)
         self.exporter = _start_exporter(self.config, self.serving)
-        apply_fleet(self.config.fleet, self.instance, self.exporter)
+        apply_fleet(self.config, self.exporter)
         if self.exporter is not None and self.publisher is not None:
             self.exporter.set_publisher(self.publisher)
         self.reload_devices()
         for done in self.serving.apply(self.config.serve, self._served()):
             log.info("serve: %s", done)
         self.console = start_console(self.config.console, self)
-
-    @property
-    def instance(self) -> str:
-        """This instance's id: the fleet's, else the gateway id (the held gauge's label)."""
-        return self.config.instance or self.gateway_id
 
     def request_reload(self) -> None:
         """The console saved a device file: reload as SIGHUP does (on the service's
@@ -138,6 +133,7 @@ class Gateway:
         if self.exporter is not None:
             self.exporter.stop()
             self.exporter = None
+        apply_fleet(None, None)  # the process's DTU listen ports: no balancers
 
     def reload(self) -> None:
         """SIGHUP: the gateway file, then the device files (see gateway/__init__.py).
@@ -231,7 +227,7 @@ class Gateway:
                         if self.exporter is not None and new.metrics is not None
                         else "metrics off")
         self.config, self.gateway_id = new, new.effective_id
-        apply_fleet(new.fleet, self.instance, self.exporter)
+        apply_fleet(new, self.exporter)
         running = self.console.key if self.console is not None else None
         if running != console_key(new.console):  # (the key taken when it started)
             if self.console is not None:
