@@ -51,8 +51,8 @@ def test_a_new_instance_id_restarts_the_publisher() -> None:
     assert mqtt_key(one) != mqtt_key(two)
 
 
-def status(instance: str, since: float) -> bytes:
-    return orjson.dumps({"status": "Running", "instance": instance, "heldSince": since})
+def status(instance: str, since: float, text: str = "Running") -> bytes:
+    return orjson.dumps({"status": text, "instance": instance, "heldSince": since})
 
 
 def test_the_holder_with_the_newer_registration_wins() -> None:
@@ -63,6 +63,7 @@ def test_the_holder_with_the_newer_registration_wins() -> None:
     assert holding.read_back(status("B", 99.0), "A")  # B took it earlier: ours again
     assert not holding.read_back(status("B", 150.0), "A")  # B took it later: B's
     assert holding.read_back(status("B", 100.0), "A") is False  # a tie: the larger id, B
+    assert holding.read_back(status("B", 150.0, "NotHere"), "A")  # B let it go: ours
     assert Holding(lambda: True).read_back(status("B", 1.0), "C") is False  # not holding
     here[0] = False
     assert holding.turn(200.0) == "left"

@@ -7,12 +7,16 @@ others.  :class:`Holding` is one device's state; the rule for its retained statu
   device's command topics and its status topic (to read back what is retained there);
 * while it holds the device it publishes status changes as a lone gateway does; if the
   retained status names another instance with an older ``heldSince`` (on a tie the larger
-  instance id wins), it publishes its own again;
-* on departure it unsubscribes, and publishes ``"NotHere"`` only if the retained status
-  it last read names itself: an instance never overwrites a fresher status of another.
+  instance id wins), or another instance's ``"NotHere"``, it publishes its own again;
+* on departure it unsubscribes, and publishes ``"NotHere"`` unless the retained status it
+  last read names another instance with a stronger claim (a later ``heldSince``, as
+  above): an instance never overwrites the status of one that took the device after it,
+  and a status of its own still in flight is always followed by its ``"NotHere"``.
 
-So the retained status ends up naming the instance that holds the device, or, when none
-does, the last one that did with ``"status": "NotHere"``."""
+A holder answers another's ``"NotHere"`` with its own status, so the retained status
+ends up naming the instance that holds the device, or, when none does, the last one that
+did with ``"status": "NotHere"``.  tests/unit/northbound/test_holding_property.py checks
+this against a model of the broker in every interleaving it draws."""
 
 from __future__ import annotations
 
@@ -52,28 +56,30 @@ class Holding:
 
     def may_say_left(self, instance: str) -> bool:
         """Whether the "NotHere" of a departure may be published: the retained status
-        last read names this instance (or none was read)."""
-        return self.seen is None or self.seen[0] == instance
+        last read names no other instance with a stronger claim than this one's."""
+        seen = self.seen
+        return seen is None or seen[0] == instance or (seen[1], seen[0]) < (self.since, instance)
 
     def read_back(self, payload: bytes, instance: str) -> bool:
         """Note a retained status read back; True when this instance holds the device
         and the status names an instance that took it earlier: publish ours again."""
-        seen = holder_of(payload)
-        if seen is None:
+        found = holder_of(payload)
+        if found is None:
             return False
-        self.seen = seen
-        return self.holding and seen[0] != instance and \
-            (seen[1], seen[0]) < (self.since, instance)
+        other, since, status = found
+        self.seen = (other, since)
+        return self.holding and other != instance and (
+            status == NOT_HERE or (since, other) < (self.since, instance))
 
 
-def holder_of(payload: bytes) -> tuple[str, float] | None:
-    """(instance, heldSince) of a retained status; None for one without them."""
+def holder_of(payload: bytes) -> tuple[str, float, str] | None:
+    """(instance, heldSince, status) of a retained status; None for one without them."""
     try:
         body: Any = orjson.loads(payload)
-        instance, since = body["instance"], float(body["heldSince"])
+        instance, since, status = body["instance"], float(body["heldSince"]), body["status"]
     except (orjson.JSONDecodeError, KeyError, TypeError, ValueError):
         return None
-    return (instance, since) if isinstance(instance, str) else None
+    return (instance, since, status) if isinstance(instance, str) else None
 
 
 __all__ = ["NOT_HERE", "Holding", "holder_of"]
