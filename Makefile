@@ -5,7 +5,7 @@
 PY      ?= python3
 VENV    := .venv
 BIN     := $(VENV)/bin
-DEB     := libmodbus-dev pkg-config socat mosquitto mbpoll chromium chromium-driver
+DEB     := libmodbus-dev pkg-config socat mosquitto haproxy mbpoll chromium chromium-driver
 SUDO    := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 CSRC    := $(wildcard csrc/*.c csrc/*.h csrc/cdefs/*.h)
 PYTEST  := $(BIN)/python -m pytest
@@ -14,7 +14,7 @@ QUICK   ?= 0
 # build of the sdist or a pip install from source leaves them warnings.
 export EDGEMODBUS_WERROR := 1
 
-.PHONY: all deps build wheel wheel-test demo test lint typecheck unit integration test-asan bench bench-quick fuzz fuzz-quick soak soak-listener soak-gateway proto clean
+.PHONY: all deps build wheel wheel-test demo test lint typecheck unit integration test-asan bench bench-quick fuzz fuzz-quick soak soak-listener soak-gateway soak-fleet proto clean
 
 all: test
 
@@ -163,6 +163,14 @@ SOAK_GATEWAY_SECONDS ?= 20
 SOAK_GATEWAY_ARGS    ?=
 soak-gateway: build
 	$(BIN)/python tools/soak_gateway.py --seconds $(SOAK_GATEWAY_SECONDS) $(SOAK_GATEWAY_ARGS)
+
+# The dial-in fleet behind HAProxy at a larger size (docs/deploy.md; not in CI): three
+# gateway instances, FLEET_DTUS simulated DTUs, a kill -9 of one instance.  Needs an
+# open-files limit of about four times FLEET_DTUS and a machine of its own.
+FLEET_DTUS ?= 3000
+soak-fleet: build
+	FLEET_DTUS=$(FLEET_DTUS) $(BIN)/python -m pytest -p no:cacheprovider -q -s \
+	  tests/integration/test_fleet_haproxy.py
 
 # The Sparkplug B payload classes, generated from the specification's schema and committed
 # (src/edgemodbus/northbound/sparkplug/sparkplug_b.proto): protoc 31.1 from grpcio-tools

@@ -32,6 +32,7 @@ from edgemodbus.config.device import DeviceConfig, DeviceOrganizationParameter
 from edgemodbus.config.items import DeviceAddressItem
 from edgemodbus.console.settings import ConsoleSettings, ConsoleTls, ConsoleUser
 from edgemodbus.gateway.config import GatewayConfig
+from edgemodbus.gateway.fleet import FleetSettings
 from edgemodbus.northbound.metrics import MetricsSettings
 from edgemodbus.northbound.mqtt.settings import (
     MqttSettings,
@@ -87,6 +88,8 @@ GATEWAY = (
             "(`python -m edgemodbus.console hash-password`)."),
     Section("console.tls", ConsoleTls, "HTTPS for the console; the files are checked at load "
             "as the MQTT ones are."),
+    Section("fleet", FleetSettings, "This instance of a dial-in fleet behind a TCP load "
+            "balancer ([deploy.md](deploy.md)); left out: one gateway alone."),
 )
 
 _RUNTIME = ("runtime state the driver writes (what it last read); a file may carry it "

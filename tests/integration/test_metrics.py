@@ -20,7 +20,7 @@ import edgemodbus as em
 from edgemodbus.config import ConfigError
 from edgemodbus.datatypes import DeviceDriverStatus
 from edgemodbus.gateway import Gateway, GatewayConfig
-from edgemodbus.line.dtu_listener import COUNTERS
+from edgemodbus.line.dtu_newcomer import COUNTERS
 from edgemodbus.northbound.metrics import DTU_LISTENER_EVENTS, MetricsExporter, MetricsSettings
 from edgemodbus.northbound.mqtt import MqttPublisher
 from tests.peers import ExceptionRange, PymodbusSlave, free_port

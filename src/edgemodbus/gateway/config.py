@@ -19,6 +19,7 @@ from ..console import ConsoleSettings
 from ..northbound.metrics import MetricsSettings
 from ..northbound.mqtt import MqttSettings, check_name
 from ..serve import ServeSettings
+from .fleet import FleetSettings
 
 GATEWAY_FILE = "gateway.json"
 
@@ -35,6 +36,9 @@ class GatewayConfig(Model):
     serve: ServeSettings | None = None  # the Modbus TCP server (edgemodbus/serve/)
     console: ConsoleSettings | None = Field(  # the web console (edgemodbus/console/)
         default=None, description="The web console (docs/console.md); left out: no console")
+    fleet: FleetSettings | None = Field(  # a dial-in fleet behind a balancer (fleet.py)
+        default=None, description="This instance of a dial-in fleet (docs/deploy.md); left "
+        "out: one gateway alone")
     device_pattern: str = "*.json"
     status_check_interval: Ms = 500
     log_format: Literal["text", "json"] = Field(
@@ -44,6 +48,12 @@ class GatewayConfig(Model):
     @property
     def effective_id(self) -> str:
         return self.gateway_id or socket.gethostname().split(".")[0] or "edgemodbus"
+
+    @property
+    def instance(self) -> str | None:
+        """This instance's id in a fleet (an enabled ``fleet`` section), else None."""
+        fleet = self.fleet
+        return fleet.effective_instance if fleet is not None and fleet.enabled else None
 
 
 def load_gateway_config(path: str | os.PathLike[str] | dict[str, Any]) -> GatewayConfig:
@@ -137,16 +147,16 @@ def _tls_digest(config: GatewayConfig) -> str:
     return digest.hexdigest()
 
 
-def mqtt_key(config: GatewayConfig) -> tuple[str, dict[str, Any], str] | None:
-    """What the publisher is made from (settings, gateway id, TLS file contents): a
-    change of it restarts the publisher.  ``snapshotInterval`` is the devices' business
+def mqtt_key(config: GatewayConfig) -> tuple[str, dict[str, Any], str, str | None] | None:
+    """What the publisher is made from (settings, gateway id, TLS file contents, fleet
+    instance): a change of it restarts the publisher.  ``snapshotInterval`` is the devices' business
     (see :func:`inherited_snapshot`), not the publisher's."""
     mqtt = config.mqtt
     if mqtt is None or not mqtt.enabled:
         return None
     settings = mqtt.to_dict()
     del settings["snapshotInterval"]
-    return config.effective_id, settings, _tls_digest(config)
+    return config.effective_id, settings, _tls_digest(config), config.instance
 
 
 def metrics_key(config: GatewayConfig) -> dict[str, Any] | None:

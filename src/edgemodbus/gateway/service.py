@@ -31,6 +31,7 @@ from .config import (
     metrics_key,
     mqtt_key,
 )
+from .fleet import apply_fleet, attach_device
 from .serving import GatewayServer
 
 if TYPE_CHECKING:
@@ -94,10 +95,11 @@ class Gateway:
     def start(self) -> None:
         mqtt = self.config.mqtt
         if mqtt is not None and mqtt.enabled:
-            self.publisher = make_publisher(mqtt, self.gateway_id).start()
+            self.publisher = make_publisher(mqtt, self.gateway_id, self.config.instance).start()
             log.info("MQTT: gateway %s publishing to %s:%d (%s)", self.gateway_id, mqtt.host,
                      mqtt.port, mqtt.mode)
         self.exporter = _start_exporter(self.config, self.serving)
+        apply_fleet(self.config, self.exporter)
         if self.exporter is not None and self.publisher is not None:
             self.exporter.set_publisher(self.publisher)
         self.reload_devices()
@@ -131,6 +133,7 @@ class Gateway:
         if self.exporter is not None:
             self.exporter.stop()
             self.exporter = None
+        apply_fleet(None, None)  # the process's DTU listen ports: no balancers
 
     def reload(self) -> None:
         """SIGHUP: the gateway file, then the device files (see gateway/__init__.py).
@@ -205,7 +208,7 @@ class Gateway:
         publisher: Publisher | None = None
         mqtt_changed = mqtt_key(old) != mqtt_key(new)
         if mqtt_changed and new.mqtt is not None and new.mqtt.enabled:
-            publisher = make_publisher(new.mqtt, new.effective_id)
+            publisher = make_publisher(new.mqtt, new.effective_id, new.instance)
             try:
                 for dev in self.devices.values():
                     publisher.check_item_names(dev.code,
@@ -224,6 +227,7 @@ class Gateway:
                         if self.exporter is not None and new.metrics is not None
                         else "metrics off")
         self.config, self.gateway_id = new, new.effective_id
+        apply_fleet(new, self.exporter)
         running = self.console.key if self.console is not None else None
         if running != console_key(new.console):  # (the key taken when it started)
             if self.console is not None:
@@ -285,7 +289,7 @@ class Gateway:
             if old is not None:
                 old.detach(dev.driver)
             if new is not None:
-                new.attach(dev.driver, dev.code)
+                attach_device(new, dev.driver, dev.code, dev.cfg, self.config.instance)
         self.publisher = new
         if self.exporter is not None:
             self.exporter.set_publisher(new)
@@ -368,7 +372,7 @@ class Gateway:
         try:
             if self.publisher is not None:
                 self.publisher.check_item_names(code, [it.name for it in items])
-                self.publisher.attach(driver, code)
+                attach_device(self.publisher, driver, code, cfg, self.config.instance)
             if self.exporter is not None:
                 self.exporter.attach(driver, code, line_label(cfg.effective_parameters()))
             running = driver.start_device(org, comm, items, cfg.actions)
@@ -439,7 +443,7 @@ def one_line(exc: BaseException, limit: int = 300) -> str:
     return f"{type(exc).__name__}: {first}" if first else type(exc).__name__
 
 
-def make_publisher(mqtt: MqttSettings, gateway_id: str) -> Publisher:
+def make_publisher(mqtt: MqttSettings, gateway_id: str, instance: str | None) -> Publisher:
     """The publisher ``mqtt.mode`` asks for (not started): per-item MQTT or Sparkplug B.
     A missing optional package (paho-mqtt, protobuf) is a ConfigError naming ``mqtt``
     and the extra to install."""
@@ -450,7 +454,7 @@ def make_publisher(mqtt: MqttSettings, gateway_id: str) -> Publisher:
             return SparkplugPublisher(mqtt, gateway_id=gateway_id)
         from ..northbound.mqtt import MqttPublisher
 
-        return MqttPublisher(mqtt, gateway_id=gateway_id)
+        return MqttPublisher(mqtt, gateway_id=gateway_id, instance=instance)
     except ImportError as exc:
         raise missing_extra("mqtt", "sparkplug" if mqtt.mode == "sparkplug" else "mqtt",
                             exc) from None

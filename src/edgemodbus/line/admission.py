@@ -58,14 +58,15 @@ class Unregistered:
         self.total = 0
         self._by_source: Counter[str] = Counter()
 
-    def refusal(self, source: str) -> tuple[str, str] | None:
+    def refusal(self, source: str, per_source: bool = True) -> tuple[str, str] | None:
         """Why a new connection from ``source`` is refused, as (the listener's counter,
-        the reason), or None: it may wait."""
+        the reason), or None: it may wait.  ``per_source`` False: a load balancer's
+        connection, whose DTU's address is not known yet (only the port's cap holds)."""
         if self.total >= self.per_port:
             return ("refusedPortCap",
                     f"{self.total} connections are waiting to register (maxUnregistered)")
         waiting = self._by_source.get(source, 0)
-        if waiting >= self.per_source:
+        if per_source and waiting >= self.per_source:
             return ("refusedSourceCap", f"{waiting} connections from {source} are waiting "
                     "to register (maxUnregisteredPerSource)")
         return None

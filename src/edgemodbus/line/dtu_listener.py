@@ -22,7 +22,12 @@ than a bound (:mod:`.admission`):
 * a peer that named an unknown id, a DTU it may not be (``dtuAllowFrom``) or a wrong
   ``registrationKey`` is held without being read until the registration timeout, then
   closed (a misconfigured DTU cannot reconnect in a tight loop);
-* a second connection for a connected id follows the duplicate-id policy (dtu_slot.py).
+* a second connection for a connected id follows the duplicate-id policy (dtu_slot.py);
+* behind a load balancer (``fleet.loadBalancers``): a connection from a balancer must
+  start with a PROXY v2 header (:mod:`.proxy_v2`), and every check above then sees the
+  DTU's address from it; a header from any other address, a malformed or oversize one,
+  or a balancer's connection without one is refused; a LOCAL header (the balancer's
+  health check) is closed quietly.
 
 Every refusal is counted in :attr:`DtuListener.stats`; log lines go through a
 :class:`LogLimiter` (a few per kind and interval, the rest summarised) and show at most a
@@ -36,63 +41,27 @@ import logging
 import math
 import selectors
 import socket
-import struct
 import threading
 import time
-from dataclasses import dataclass, field
 from typing import Any
 
 from .accept_pause import ACCEPT_ERRORS, AcceptPause
 from .admission import ByteBudget, Networks, Unregistered, key_matches
+from .dtu_newcomer import ACCEPT_BATCH, BUDGET_BURST, COUNTERS, RESET, Newcomer, evictable
 from .dtu_slot import DtuSlot
 from .log_limit import LogLimiter, hex_prefix, short_text
+from .proxy_v2 import HEADER_FIXED, MAX_PAYLOAD
+from .proxy_v2 import step as proxy_step
 from .registration import Identified, IdIndex, PortSettings, identify
 
 log = logging.getLogger("edgemodbus.dtu")
 
-ACCEPT_BATCH = 64
-"""Connections accepted per turn of the loop, so that registrations are read between
-accepts when thousands of DTUs dial in at once (the caps count waiting connections)."""
-
-EVICT_SCAN = 32
-"""Oldest waiting connections looked at for one to evict when the port is full."""
-
-BUDGET_BURST = 64
-"""Bytes a newcomer may send at once before ``registrationByteRate`` applies."""
-
-_RESET = struct.pack("ii", 1, 0)  # SO_LINGER on, 0 s: close with RST, no TIME_WAIT here
-
-COUNTERS = ("accepted", "registered", "unknown", "silent", "oversize", "evicted",
-            "refusedPortCap",
-            "refusedSourceCap", "refusedNotAllowed", "refusedDtuNotAllowed", "badKey",
-            "duplicateRefused", "replaced", "contested", "refusedContested", "acceptErrors",
-            "acceptPauses")
-
-
-@dataclass(eq=False)
-class _Newcomer:
-    sock: socket.socket
-    peer: str
-    source: str  # the peer's address without the port
-    deadline: float
-    budget: ByteBudget
-    since: float  # accepted at (monotonic)
-    buf: bytearray = field(default_factory=bytearray)
-    quiet_at: float = math.inf  # when to look at the registration again if no byte comes
-    resume_at: float = math.inf  # reading paused (byte rate) until then
-    held: bool = False  # refused: kept unread until the deadline, then closed
-    waiting: bool = True  # counted against the caps on connections waiting to register
-    challenge: tuple[DtuSlot, bytes, int] | None = None  # keep-existing: slot, rest, answers
-
-    def wake(self) -> float:
-        return min(self.deadline, self.quiet_at, self.resume_at)
-
-
 class DtuListener:
     """One listen port and its thread: accepts DTUs, identifies them, hands them over."""
 
-    def __init__(self, settings: PortSettings) -> None:
+    def __init__(self, settings: PortSettings, balancers: Networks | None = None) -> None:
         self.settings = settings
+        self.balancers = balancers or Networks((), "fleet.loadBalancers")
         self._slots: dict[str, DtuSlot] = {}
         self._ids = IdIndex(settings.registration)  # the slots' ids, for identify()
         self._lock = threading.Lock()
@@ -119,7 +88,7 @@ class DtuListener:
         self._wake_r.setblocking(False)
         self._sel.register(sock, selectors.EVENT_READ, None)
         self._sel.register(self._wake_r, selectors.EVENT_READ, None)
-        self._newcomers: dict[_Newcomer, None] = {}  # in accept order, oldest first
+        self._newcomers: dict[Newcomer, None] = {}  # in accept order, oldest first
         self._challenged: set[str] = set()  # ids with a connection held as challenger
         self._paused = AcceptPause()  # accepting after an accept error (EMFILE...)
         self._stopping = False
@@ -128,6 +97,12 @@ class DtuListener:
         self._thread.start()
 
     # -- slots and figures (any thread) -----------------------------------------------------
+    def via_balancer(self, source: str) -> bool:
+        """Whether a connection from ``source`` comes through a load balancer (replaced
+        whole by the registry when the fleet section changes)."""
+        balancers = self.balancers
+        return bool(balancers.nets) and balancers.allows(source)
+
     def add_slot(self, slot: DtuSlot) -> None:
         with self._lock:
             self._slots[slot.dtu_id] = slot
@@ -211,7 +186,7 @@ class DtuListener:
         self._logs.event(logging.WARNING, f"connections refused ({counter})", source,
                          "DTU listener :%d: %s refused: %s", self.port, source, why)
         with contextlib.suppress(OSError):
-            conn.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, _RESET)
+            conn.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, RESET)
         conn.close()
 
     def _accept(self) -> None:
@@ -242,15 +217,16 @@ class DtuListener:
                          self.port, exc.strerror or exc, pause)
 
     def _admit(self, conn: socket.socket, source: str, peer: str) -> None:
-        if not self._allowed.allows(source):
+        proxied = self.via_balancer(source)  # the checks wait for the DTU's address
+        if not proxied and not self._allowed.allows(source):
             self._refuse("refusedNotAllowed", source, conn, "not in listenAllowFrom")
             return
         with contextlib.suppress(OSError):
             conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
             conn.setsockopt(socket.SOL_SOCKET, socket.SO_KEEPALIVE, 1)
-        refusal = self._waiting.refusal(source)
+        refusal = self._waiting.refusal(source, per_source=not proxied)
         if refusal is not None and refusal[0] == "refusedPortCap" and self._evict():
-            refusal = self._waiting.refusal(source)
+            refusal = self._waiting.refusal(source, per_source=not proxied)
         if refusal is not None:
             counter, why = refusal
             self._refuse(counter, source, conn, why)
@@ -259,10 +235,11 @@ class DtuListener:
         now = time.monotonic()
         budget = ByteBudget(self.settings.byte_rate,
                             min(BUDGET_BURST, self.settings.max_bytes), now)
-        newcomer = _Newcomer(conn, peer, source, now + self.settings.timeout, budget, now)
+        newcomer = Newcomer(conn, peer, source, now + self.settings.timeout, budget, now,
+                             proxied=proxied)
         self._newcomers[newcomer] = None
         self._waiting.add(source)
-        if self.settings.registration == "none":
+        if self.settings.registration == "none" and not proxied:
             self._hand_over_single(newcomer)
         else:
             self._sel.register(conn, selectors.EVENT_READ, newcomer)
@@ -271,26 +248,22 @@ class DtuListener:
         """The port is full: make room for a new connection by closing the oldest one
         that is either held as refused or has sent nothing for the quiet gap, so that
         idle connections cannot keep DTUs out.  False: none of the oldest qualifies."""
-        idle_since = time.monotonic() - self.settings.quiet_gap
-        for k, newcomer in enumerate(self._newcomers):
-            if k == EVICT_SCAN:
-                break
-            if newcomer.challenge is None and (
-                    newcomer.held or (not newcomer.buf and newcomer.since <= idle_since)):
-                self.counts["evicted"] += 1
-                self._logs.event(logging.WARNING, "connections evicted", newcomer.source,
-                                 "DTU listener :%d: %s evicted: the port is full and it has "
-                                 "not registered", self.port, newcomer.peer)
-                self._close(newcomer)
-                return True
-        return False
+        newcomer = evictable(self._newcomers, time.monotonic() - self.settings.quiet_gap)
+        if newcomer is None:
+            return False
+        self.counts["evicted"] += 1
+        self._logs.event(logging.WARNING, "connections evicted", newcomer.source,
+                         "DTU listener :%d: %s evicted: the port is full and it has not "
+                         "registered", self.port, newcomer.peer)
+        self._close(newcomer)
+        return True
 
-    def _hand_over_single(self, newcomer: _Newcomer) -> None:
+    def _hand_over_single(self, newcomer: Newcomer) -> None:
         """A port without registration: its one DTU takes every connection."""
         with self._lock:
             slots = list(self._slots.values())
         if len(slots) == 1:
-            self._offer(slots[0], newcomer, b"")
+            self._offer(slots[0], newcomer, bytes(newcomer.buf))  # after a PROXY header
             return
         self.counts["unknown"] += 1
         self._close(newcomer)
@@ -298,7 +271,7 @@ class DtuListener:
                          "DTU listener :%d: %s refused: %d DTUs are configured on this port "
                          "without registration", self.port, newcomer.peer, len(slots))
 
-    def _offer(self, slot: DtuSlot, newcomer: _Newcomer, rest: bytes) -> None:
+    def _offer(self, slot: DtuSlot, newcomer: Newcomer, rest: bytes) -> None:
         """Hand an identified connection to its slot, under the duplicate-id policy:
         handed over, held as the id's one challenger, or held as refused."""
         conn, peer = newcomer.sock, newcomer.peer
@@ -332,7 +305,7 @@ class DtuListener:
                          "DTU listener :%d: %s claims DTU id %r: %s; held until the "
                          "registration timeout", self.port, peer, slot.dtu_id, why)
 
-    def _hold(self, newcomer: _Newcomer) -> None:
+    def _hold(self, newcomer: Newcomer) -> None:
         """Keep a refused (or challenging) newcomer without reading it until its
         deadline; it still counts against the caps."""
         with contextlib.suppress(KeyError, ValueError):
@@ -340,12 +313,12 @@ class DtuListener:
         newcomer.held = True
         newcomer.quiet_at = newcomer.resume_at = math.inf
 
-    def _close(self, newcomer: _Newcomer) -> None:
+    def _close(self, newcomer: Newcomer) -> None:
         """Forget a newcomer and close its socket."""
         self._release(newcomer)
         newcomer.sock.close()
 
-    def _release(self, newcomer: _Newcomer) -> None:
+    def _release(self, newcomer: Newcomer) -> None:
         """Forget a newcomer whose socket is handed over or closed."""
         with contextlib.suppress(KeyError, ValueError):
             self._sel.unregister(newcomer.sock)
@@ -354,8 +327,9 @@ class DtuListener:
             self._waiting.remove(newcomer.source)
             newcomer.waiting = False
 
-    def _on_data(self, newcomer: _Newcomer) -> None:
-        room = self.settings.max_bytes - len(newcomer.buf)
+    def _on_data(self, newcomer: Newcomer) -> None:
+        limit = HEADER_FIXED + MAX_PAYLOAD if newcomer.proxied else self.settings.max_bytes
+        room = limit - len(newcomer.buf)
         try:
             data = newcomer.sock.recv(max(1, min(room, 4096)))
         except (BlockingIOError, InterruptedError):
@@ -371,7 +345,7 @@ class DtuListener:
             return
         newcomer.buf += data
         now = time.monotonic()
-        if self._decide(newcomer, settled=False) or newcomer.held:
+        if self._proxy(newcomer) or self._decide(newcomer, settled=False) or newcomer.held:
             return
         pause = newcomer.budget.spend(len(data), now)
         if pause:  # too fast: stop reading; the quiet gap counts from when reading resumes
@@ -382,15 +356,54 @@ class DtuListener:
         else:
             newcomer.quiet_at = now + self.settings.quiet_gap
 
+    def _proxy(self, newcomer: Newcomer) -> bool:
+        """Read a balancer's PROXY v2 header, then admit the connection as from the DTU's
+        address; refuse a header from elsewhere.  True: it left the listener's reading,
+        or waits for the rest of its header."""
+        step = proxy_step(bytes(newcomer.buf), newcomer.proxied)
+        if isinstance(step, tuple):
+            return self._drop(newcomer, *step)
+        if step is None or isinstance(step, bool):
+            return bool(step)
+        if step.local:  # the balancer's health check
+            self.counts["proxyLocal"] += 1
+            self._close(newcomer)
+            return True
+        del newcomer.buf[:step.size]
+        newcomer.proxied = False
+        if step.source is not None:
+            self._waiting.remove(newcomer.source)
+            newcomer.waiting = False
+            newcomer.source, newcomer.peer = step.source, f"{step.source}:{step.source_port}"
+            if not self._allowed.allows(newcomer.source):
+                return self._drop(newcomer, "refusedNotAllowed", "not in listenAllowFrom")
+            refusal = self._waiting.refusal(newcomer.source)
+            if refusal is not None:
+                return self._drop(newcomer, *refusal)
+            self._waiting.add(newcomer.source)
+            newcomer.waiting = True
+        if self.settings.registration == "none":
+            self._hand_over_single(newcomer)
+            return True
+        return not newcomer.buf
+
+    def _drop(self, newcomer: Newcomer, counter: str, why: str) -> bool:
+        """Refuse a newcomer already waiting (see :meth:`_refuse`)."""
+        self._release(newcomer)
+        self._refuse(counter, newcomer.source, newcomer.sock, why)
+        return True
+
     def _shown(self, buf: bytes | bytearray) -> str:
         """Untrusted registration bytes as a log line may show them."""
         if self._keyed:
             return f"{len(buf)} bytes, not shown: registrations carry a key"
         return hex_prefix(bytes(buf))
 
-    def _decide(self, newcomer: _Newcomer, settled: bool) -> bool:
+    def _decide(self, newcomer: Newcomer, settled: bool) -> bool:
         """Register, hold or close a newcomer whose registration is complete; True when
         it left the listener's reading (handed over or closed)."""
+        if newcomer.proxied:
+            return False  # its header is not complete
         buf = bytes(newcomer.buf)
         with self._lock:  # the index is kept sorted as drivers come and go
             found = identify(buf, self._ids, self.settings, settled=settled)
@@ -424,7 +437,7 @@ class DtuListener:
                          self._shown(buf))
         return False
 
-    def _access_refusal(self, slot: DtuSlot, newcomer: _Newcomer,
+    def _access_refusal(self, slot: DtuSlot, newcomer: Newcomer,
                         found: Identified) -> tuple[str, str] | None:
         """Why the newcomer may not be this DTU: (counter, reason), or None."""
         if not slot.allowed.allows(newcomer.source):
@@ -451,7 +464,7 @@ class DtuListener:
             elif newcomer.deadline <= now:
                 self._expire(newcomer)
 
-    def _expire(self, newcomer: _Newcomer) -> None:
+    def _expire(self, newcomer: Newcomer) -> None:
         """The registration timeout ran out."""
         if not newcomer.held and self._decide(newcomer, settled=True):
             return  # registered (an exact match at the timeout) or closed
@@ -464,7 +477,7 @@ class DtuListener:
                              self._shown(newcomer.buf))
         self._close(newcomer)
 
-    def _settle(self, newcomer: _Newcomer, now: float) -> None:
+    def _settle(self, newcomer: Newcomer, now: float) -> None:
         """keep-existing: the challenger's time is up."""
         assert newcomer.challenge is not None
         slot, rest, answers = newcomer.challenge

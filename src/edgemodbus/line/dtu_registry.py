@@ -7,6 +7,7 @@ from __future__ import annotations
 import threading
 from typing import Any
 
+from .admission import Networks
 from .dtu_listener import DtuListener
 from .dtu_slot import DtuSlot
 from .endpoint import DtuEndpoint
@@ -21,6 +22,17 @@ class DtuRegistry:
         self._lock = threading.Lock()
         self._listeners: dict[tuple[str, int], DtuListener] = {}
         self._slots: dict[tuple[str, int, str], tuple[DtuSlot, int]] = {}
+        self._balancers = Networks((), "fleet.loadBalancers")
+
+    def set_load_balancers(self, cidrs: tuple[str, ...]) -> None:
+        """The load balancers whose connections start with a PROXY v2 header (the
+        gateway file's ``fleet.loadBalancers``), for every listen port, now and later.
+        ValueError names a bad network."""
+        balancers = Networks(cidrs, "fleet.loadBalancers")
+        with self._lock:
+            self._balancers = balancers
+            for listener in self._listeners.values():
+                listener.balancers = balancers
 
     def acquire(self, settings: PortSettings, endpoint: DtuEndpoint,
                 access: DtuAccess | None = None) -> DtuSlot:
@@ -46,7 +58,7 @@ class DtuRegistry:
                 self._slots[key] = (slot, users + 1)
                 return slot
             if listener is None:
-                listener = DtuListener(settings)
+                listener = DtuListener(settings, self._balancers)
                 self._listeners[settings.key] = listener
             elif settings.registration == "none" and listener.slot_count():
                 raise ValueError(f"dtuId {endpoint.dtu_id!r}: port {settings.port} has no "
@@ -75,6 +87,12 @@ class DtuRegistry:
                 stop = listener
         if stop is not None:
             stop.stop()
+
+    def connected(self, host: str, port: int, dtu_id: str) -> bool:
+        """Whether DTU ``dtu_id`` of listen port ``host:port`` is connected (held by
+        this process, in a fleet's words); cheap: the MQTT thread asks per device."""
+        entry = self._slots.get((host, port, dtu_id))  # one dict read: no lock needed
+        return entry is not None and entry[0].connected()
 
     def listener(self, host: str, port: int) -> DtuListener | None:
         with self._lock:

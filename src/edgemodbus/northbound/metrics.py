@@ -120,7 +120,8 @@ DTU_LISTENER_EVENTS: tuple[str, ...] = (
     "accepted", "registered", "unknown", "silent", "oversize", "evicted", "refusedPortCap",
     "refusedSourceCap", "refusedNotAllowed", "refusedDtuNotAllowed", "badKey",
     "duplicateRefused", "replaced", "contested", "refusedContested", "acceptErrors",
-    "acceptPauses", "logSuppressed",
+    "acceptPauses", "proxyNotAllowed", "proxyMissing", "proxyMalformed", "proxyLocal",
+    "logSuppressed",
 )
 DTU_LISTENER_GAUGES: tuple[tuple[str, str, str], ...] = (
     ("unregistered", "dtu_listener_unregistered",
@@ -195,6 +196,7 @@ class MetricsExporter:
             settings = MetricsSettings.load(settings)
         self.settings: MetricsSettings = settings
         self.gateway_id = gateway_id
+        self.instance = gateway_id or "edgemodbus"  # edgemodbus_dtu_held label (fleet.py)
         self._lock = threading.Lock()
         self._drivers: dict[str, tuple[StatsSource, str]] = {}
         self._publisher: PublisherStats | None = None
@@ -382,7 +384,7 @@ class MetricsExporter:
         if publisher is not None:
             yield from self._mqtt_metrics(publisher)
         if listeners is not None:
-            yield from _listener_metrics(listeners)
+            yield from _listener_metrics(listeners, self.instance)
         if serve is not None:
             yield from server_metrics(serve)
         server = self._server
@@ -419,9 +421,11 @@ class MetricsExporter:
         yield from spool_metrics(stats)
 
 
-def _listener_metrics(source: ListenerStats) -> list[Metric]:
-    """The DTU listen ports' families; none (logged) when the source fails, so that a
-    scrape never does.  A counter or gauge a port's stats lack is not emitted."""
+def _listener_metrics(source: ListenerStats, instance: str) -> list[Metric]:
+    """The DTU listen ports' families, and the DTUs connected here on all of them
+    (``edgemodbus_dtu_held``, label ``instance``: a fleet's spread); none (logged) when
+    the source fails, so that a scrape never does.  A counter or gauge a port's stats
+    lack is not emitted."""
     from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
 
     events = CounterMetricFamily(
@@ -440,10 +444,13 @@ def _listener_metrics(source: ListenerStats) -> list[Metric]:
             for key, family in gauges.items():
                 if key in stats:
                     family.add_metric([port], float(stats[key]))
+        held = GaugeMetricFamily(f"{NAMESPACE}_dtu_held", "DTUs connected to this "
+                                 "instance (held here), all listen ports", labels=["instance"])
+        held.add_metric([instance], float(sum(s.get("connected", 0) for _, s in ports)))
     except Exception:  # a source must never break the scrape
         log.exception("DTU listener stats() failed")
         return []
-    return [events, *gauges.values()]
+    return [events, *gauges.values(), held]
 
 
 def _timing(stats: Mapping[str, Any], hist_key: str, avg_key: str, count_key: str,

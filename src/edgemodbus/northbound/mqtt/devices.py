@@ -6,11 +6,12 @@ from __future__ import annotations
 from collections.abc import Callable, Iterable
 from typing import TYPE_CHECKING, Any
 
+from ...driver import DriverModbusRtu
+from ...poll.listeners import Listener
 from .settings import FORBIDDEN, check_name
 
 if TYPE_CHECKING:
-    from ...driver import DriverModbusRtu
-    from ...poll.listeners import Listener
+    from .holding import Holding
     from .settings import MqttSettings
 
 
@@ -19,9 +20,9 @@ class AttachedDevice:
 
     __slots__ = (
         "action_topic", "attached", "batch_command_topic", "batch_topic", "code",
-        "command_prefix", "driver", "dropped", "item_topics", "largest", "listener",
-        "published", "published_status", "read_topic", "reply_topic",
-        "seen_status", "snapshot_topic", "snapshots", "snapshots_coalesced", "status_topic",
+        "command_prefix", "driver", "dropped", "fleet", "item_topics", "largest", "listener",
+        "published", "published_status", "read_topic", "reply_topic", "seen_status",
+        "snapshot_topic", "snapshots", "snapshots_coalesced", "status_topic",
     )
 
     def __init__(self, settings: MqttSettings, topic: Callable[..., str],
@@ -47,16 +48,19 @@ class AttachedDevice:
         self.snapshots_coalesced = 0
         self.published_status: str | None = None
         self.seen_status: Any = None
+        self.fleet: Holding | None = None  # in a fleet: published only while held here
 
-    def filters(self) -> list[str]:
-        """Subscriptions for this device's commands, without overlaps (an overlap
-        would deliver one command twice)."""
-        filters = [self.command_prefix + "#"]
-        if self.batch_command_topic + "/" != self.command_prefix:
+    def filters(self, writes: bool = True) -> list[str]:
+        """Subscriptions for this device's commands (none unless ``writes``), without
+        overlaps (an overlap would deliver one command twice)."""
+        filters = [self.command_prefix + "#"] if writes else []
+        if writes and self.batch_command_topic + "/" != self.command_prefix:
             filters.append(self.batch_command_topic)
         for own in (self.action_topic, self.read_topic):
-            if not own.startswith(self.command_prefix):
+            if writes and not own.startswith(self.command_prefix):
                 filters.append(own)
+        if self.fleet is not None:  # its retained status read back (holding.py)
+            filters.append(self.status_topic)
         return filters
 
 
@@ -105,4 +109,3 @@ def check_topics(settings: MqttSettings, topic_of: Callable[..., str],
                 f"item {name!r} of device {device_code!r}: its topic {topic!r} is the "
                 f"device's {clash} topic; rename the item or change mqtt.itemTopic"
             )
-

@@ -61,10 +61,15 @@ def status_text(status: Any) -> str:
     return str(enum_value(status))
 
 
-def status_payload(gateway_id: str, code: str, status: str) -> bytes:
-    """A device's status message (retained on its status topic)."""
-    return dumps({"deviceCode": code, "status": status, "gatewayId": gateway_id,
-                  "ts": now()})
+def status_payload(gateway_id: str, code: str, status: str,
+                   held: tuple[str, float] | None = None) -> bytes:
+    """A device's status message (retained on its status topic); in a fleet ``held`` is
+    (the instance, when the DTU registered there: Unix time), see holding.py."""
+    body: dict[str, Any] = {"deviceCode": code, "status": status, "gatewayId": gateway_id,
+                            "ts": now()}
+    if held is not None:
+        body["instance"], body["heldSince"] = held
+    return dumps(body)
 
 
 def gateway_payload(gateway_id: str, online: bool, reason: str | None) -> bytes:

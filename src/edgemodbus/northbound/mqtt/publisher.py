@@ -12,15 +12,16 @@ import random
 import select
 import threading
 import time
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from typing import TYPE_CHECKING, Any
 
 from ...config import ConfigError
 from ...driver import DriverModbusRtu
-from ...poll.listeners import Listener
 from .commands import CommandRunner
 from .connection import FailureLog, abandon, authenticate, error_text, write, write_wanted
 from .devices import AttachedDevice, check_topics
+from .holding import NOT_HERE, Holding
+from .listener import DeviceListener
 from .outbox import Message, Outbox
 from .payload import gateway_payload, status_payload, status_text
 from .sender import Sender
@@ -29,7 +30,6 @@ from .settings import MqttSettings, check_name
 if TYPE_CHECKING:
     from paho.mqtt.client import Client, MQTTMessage
 
-    from ...config import DeviceAddressItem
 
 log = logging.getLogger("edgemodbus.mqtt")
 
@@ -44,7 +44,8 @@ class MqttPublisher:
     """
 
     def __init__(self, settings: MqttSettings | Mapping[str, Any] | None = None, *,
-                 gateway_id: str = "edgemodbus") -> None:
+                 gateway_id: str = "edgemodbus", instance: str | None = None) -> None:
+        """``instance``: this instance's id in a dial-in fleet (holding.py), else None."""
         try:
             import paho.mqtt.client as paho
         except ImportError:  # pragma: no cover - depends on the install
@@ -77,7 +78,9 @@ class MqttPublisher:
         self._linger_until = 0.0  # no blocking wait before this: let messages gather
         self._flush_timeout = 1.0
         self._stop_reason = "shutdown"
-        self.client_id = settings.client_id or f"edgemodbus-{self.gateway_id}"
+        self.instance = instance
+        self.client_id = settings.client_id or f"edgemodbus-{self.gateway_id}" + (
+            f"-{instance}" if instance else "")
         self._closed = False
 
     # -- topics --------------------------------------------------------------------------
@@ -85,6 +88,11 @@ class MqttPublisher:
         """A topic template filled in for this gateway."""
         return template.format(prefix=self.settings.topic_prefix, deviceCode=device_code,
                                itemName=item_name, gatewayId=self.gateway_id)
+
+    def gateway_topic(self) -> str:
+        """The gateway's online/offline topic; in a fleet one per instance below it."""
+        topic = self.topic(self.settings.gateway_topic)
+        return f"{topic}/{self.instance}" if self.instance else topic
 
     def item_topic(self, device_code: str, item_name: str) -> str:
         return self.topic(self.settings.item_topic, device_code, item_name)
@@ -152,7 +160,7 @@ class MqttPublisher:
 
     def stats(self) -> dict[str, Any]:
         """Counters (camelCase): connection, published, dropped, queue depth, commands,
-        and per device ``published``, ``dropped``, ``snapshotsCoalesced``."""
+        and per device ``published``, ``dropped``, ``snapshotsCoalesced``, ``held``."""
         with self._lock:
             result: dict[str, Any] = dict(self._outbox.counts)
             result["queued"] = self._outbox.queued
@@ -162,7 +170,8 @@ class MqttPublisher:
             result["devices"] = {
                 d.code: {"published": d.published, "dropped": d.dropped,
                          "snapshotsPublished": d.snapshots,
-                         "snapshotsCoalesced": d.snapshots_coalesced}
+                         "snapshotsCoalesced": d.snapshots_coalesced,
+                         "held": d.fleet.holding if d.fleet is not None else None}
                 for d in self._devices.values()
             }
             result["pendingCommands"] = self._commands.pending
@@ -172,19 +181,22 @@ class MqttPublisher:
         return result
 
     # -- drivers -------------------------------------------------------------------------
-    def attach(self, driver: DriverModbusRtu, device_code: str | None = None) -> None:
+    def attach(self, driver: DriverModbusRtu, device_code: str | None = None,
+               held: Callable[[], bool] | None = None) -> None:
         """Publish what ``driver`` reports.  ``device_code`` defaults to the driver's
         (known once it was started).  Subscribes to it: other subscribers and the
-        driver's callbacks are left as they are."""
+        driver's callbacks are left as they are.  In a fleet, ``held`` says whether its
+        DTU is connected here: only then is it published (holding.py)."""
         code = device_code or str(driver.snapshot()["deviceCode"])
         check_name("deviceCode", code)
         self.check_item_names(code, driver.snapshot()["items"].keys())
         dev = AttachedDevice(self.settings, self.topic, driver, code)
+        dev.fleet = Holding(held) if held is not None and self.instance else None
         with self._lock:
             if code in self._devices:
                 raise ValueError(f"deviceCode {code!r} is already attached to this publisher")
             self._devices[code] = dev
-        dev.listener = listener = _DeviceListener(self._outbox, dev)
+        dev.listener = listener = DeviceListener(self._outbox, dev)
         try:
             driver.subscribe(listener)
         except BaseException:
@@ -205,9 +217,11 @@ class MqttPublisher:
         for dev in devs:
             if dev.listener is not None:
                 driver.unsubscribe(dev.listener)
-            payload = status_payload(self.gateway_id, dev.code,
-                                     status_text(driver.device_driver_status))
-            self._outbox.push_control(Message(dev.code, dev.status_topic, payload, 1, True))
+            fleet = dev.fleet  # in a fleet: "NotHere", and only if ours to say (holding.py)
+            if fleet is None or (fleet.holding and fleet.may_say_left(str(self.instance))):
+                status = NOT_HERE if fleet else status_text(driver.device_driver_status)
+                self._outbox.push_control(Message(dev.code, dev.status_topic,
+                                                  self._status(dev, status), 1, True))
             self._outbox.act(lambda dev=dev: self._unsubscribe(dev))  # type: ignore[misc]
 
     # -- the MQTT thread -------------------------------------------------------------------
@@ -223,7 +237,7 @@ class MqttPublisher:
         client.max_inflight_messages_set(s.max_inflight)
         client.max_queued_messages_set(max(4 * s.max_inflight, 1000))
         client.connect_timeout = s.connect_timeout / 1000
-        client.will_set(self.topic(s.gateway_topic),
+        client.will_set(self.gateway_topic(),
                         gateway_payload(self.gateway_id, False, "lost"), qos=1, retain=True)
         authenticate(client, s)
         # paho's external-loop mode: with this callback set, publish() queues a message
@@ -337,8 +351,7 @@ class MqttPublisher:
         self._connected.set()
         self._outbox.set_outage(False)
         self._sender.reconnected()  # qos>0 messages still pending are resent by paho
-        s = self.settings
-        client.publish(self.topic(s.gateway_topic),
+        client.publish(self.gateway_topic(),
                        gateway_payload(self.gateway_id, True, None), qos=1, retain=True)
         with self._lock:
             devices = list(self._devices.values())
@@ -364,19 +377,22 @@ class MqttPublisher:
 
     def _subscribe(self, dev: AttachedDevice) -> None:
         client = self._client
-        if client is None or not self.settings.writes or not self._connected.is_set():
+        if client is None or not self._connected.is_set() or not (
+                self.settings.writes or dev.fleet is not None):
             return
         with self._lock:
-            if self._devices.get(dev.code) is not dev:
+            if self._devices.get(dev.code) is not dev or (
+                    dev.fleet is not None and not dev.fleet.holding):
                 return
-        for topic_filter in dev.filters():
+        for topic_filter in dev.filters(self.settings.writes):
             client.subscribe(topic_filter, qos=1)
 
     def _unsubscribe(self, dev: AttachedDevice) -> None:
         client = self._client
-        if client is None or not self.settings.writes or not self._connected.is_set():
+        if client is None or not self._connected.is_set() or not (
+                self.settings.writes or dev.fleet is not None):
             return
-        for topic_filter in dev.filters():
+        for topic_filter in dev.filters(self.settings.writes):
             client.unsubscribe(topic_filter)
 
     def _run_actions(self, connected: bool = True) -> None:
@@ -394,22 +410,43 @@ class MqttPublisher:
             devices = list(self._devices.values())
         for dev in devices:
             status = status_text(dev.driver.device_driver_status)
+            if dev.fleet is not None and not self._fleet_turn(dev):
+                continue
             if status != dev.published_status:
                 dev.published_status = status
-                payload = status_payload(self.gateway_id, dev.code, status)
+                payload = self._status(dev, status)
                 with self._lock:
                     self._outbox.control.append(Message(dev.code, dev.status_topic, payload,
                                                         1, True))
+
+    def _status(self, dev: AttachedDevice, status: str) -> bytes:
+        held = (str(self.instance), dev.fleet.since) if dev.fleet is not None else None
+        return status_payload(self.gateway_id, dev.code, status, held)
+
+    def _fleet_turn(self, dev: AttachedDevice) -> bool:
+        """A fleet device's arrival or departure (holding.py); whether it is held."""
+        fleet = dev.fleet
+        assert fleet is not None
+        turn = fleet.turn(time.time())
+        if turn == "arrived":
+            dev.published_status = None
+            self._subscribe(dev)
+        elif turn == "left":
+            self._unsubscribe(dev)
+            if fleet.may_say_left(str(self.instance)):
+                with self._lock:
+                    self._outbox.control.append(Message(
+                        dev.code, dev.status_topic, self._status(dev, NOT_HERE), 1, True))
+        return fleet.holding
 
     def _shutdown(self, client: Client) -> None:
         """Last words on a clean stop: statuses, gateway offline, flush, disconnect."""
         try:
             if self._connected.is_set():
                 self._check_statuses()
-                s = self.settings
                 offline = gateway_payload(self.gateway_id, False, self._stop_reason)
                 with self._lock:
-                    self._outbox.control.append(Message(None, self.topic(s.gateway_topic),
+                    self._outbox.control.append(Message(None, self.gateway_topic(),
                                                         offline, 1, True))
                 started = time.monotonic()
                 deadline = started + self._flush_timeout
@@ -444,6 +481,11 @@ class MqttPublisher:
         with self._lock:
             devices = list(self._devices.values())
         for dev in devices:
+            if dev.fleet is not None and topic == dev.status_topic:
+                if dev.fleet.read_back(payload, str(self.instance)):
+                    dev.published_status = None  # publish ours again (holding.py)
+                    self._outbox.status_dirty = True
+                return
             if topic == dev.action_topic:
                 self._commands.dispatch(dev, None, payload, action=True)
                 return
@@ -456,19 +498,3 @@ class MqttPublisher:
             if topic.startswith(dev.command_prefix):
                 self._commands.dispatch(dev, topic[len(dev.command_prefix):], payload)
                 return
-
-
-class _DeviceListener(Listener[DriverModbusRtu]):
-    """The publisher's subscription to one driver: its batches and snapshots go to the
-    outbox (bounded, never blocking the line worker); statuses are polled by the MQTT
-    thread (``statusCheckInterval``)."""
-
-    def __init__(self, outbox: Outbox, dev: AttachedDevice) -> None:
-        self.outbox = outbox
-        self.dev = dev
-
-    def on_changes(self, source: DriverModbusRtu, items: list[DeviceAddressItem]) -> None:
-        self.outbox.offer_items(self.dev, items)
-
-    def on_snapshot(self, source: DriverModbusRtu, snapshot: dict[str, Any]) -> None:
-        self.outbox.offer_snapshot(self.dev, snapshot)
