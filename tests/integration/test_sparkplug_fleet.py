@@ -14,8 +14,10 @@ from contextlib import ExitStack
 import pytest
 
 import edgemodbus as em
+from edgemodbus.northbound.metrics import MetricsExporter
 from edgemodbus.northbound.sparkplug.publisher import SparkplugPublisher
 from edgemodbus.northbound.sparkplug.settings import node_id_for
+from tests.integration.test_metrics import scrape
 from tests.integration.test_sparkplug import BASE, G, device, wait_payload
 from tests.mosquitto import Mosquitto, MqttProbe
 from tests.peers import PymodbusSlave
@@ -100,6 +102,10 @@ def test_dbirth_on_arrival_ddeath_on_departure_dcmd_only_where_held(
             [encode_metric(alias=sp.alias, datatype="UInt16", value=111)], stamp))
         wait_for(lambda: a.stats("commandsNotHeld") == 1, what="A's refusal counted")
         assert a.stats("writes") == 0
+        exporter = stack.enter_context(MetricsExporter({"port": 0}))
+        exporter.set_publisher(a.pub)
+        _, samples = scrape(exporter.port)
+        assert samples[("edgemodbus_sparkplug_commands_not_held_total", ())] == 1
         # ... and one to its holder lands on the slave
         probe.publish(f"{BASE}/DCMD/{b.node}/dev1", encode(
             [encode_metric(alias=sp_b.alias, datatype="UInt16", value=777)], stamp))
