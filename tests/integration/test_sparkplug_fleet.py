@@ -61,8 +61,8 @@ def test_node_ids_name_the_instance() -> None:
     assert node_id_for("edge", "gw1", "A") == "edge-A"
     assert node_id_for("site.{instance}.edge", "gw1", "gw-2") == "site.gw-2.edge"
     assert node_id_for("edge", "gw1", None) == "edge"
-    with pytest.raises(ValueError, match=r"edgeNodeId 'edge-\{instance\}' names "
-                                         r"\{instance\}, but this gateway is not in a fleet"):
+    with pytest.raises(ValueError, match=r"mqtt\.sparkplug\.edgeNodeId 'edge-\{instance\}' "
+                                         r"names \{instance\}, but this gateway is not in"):
         node_id_for("edge-{instance}", "gw1", None)
     with pytest.raises(ValueError, match="instanceId"):
         SparkplugPublisher({"mode": "sparkplug", "sparkplug": {"groupId": G}},

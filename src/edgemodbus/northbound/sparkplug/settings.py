@@ -55,9 +55,9 @@ def node_id_for(edge_node_id: str | None, gateway_id: str, instance: str | None)
     base = edge_node_id or gateway_id
     if instance is None:
         if INSTANCE_FIELD in base:
-            raise ValueError(f"edgeNodeId {base!r} names {INSTANCE_FIELD}, but this gateway "
-                             "is not in a fleet (no enabled fleet section): remove it, or "
-                             "add the fleet section")
+            raise ValueError(f"mqtt.sparkplug.edgeNodeId {base!r} names {INSTANCE_FIELD}, but "
+                             "this gateway is not in a fleet (no enabled fleet section): "
+                             "remove it, or add the fleet section")
         return check_id("edgeNodeId", base)
     node = (base.replace(INSTANCE_FIELD, instance) if INSTANCE_FIELD in base
             else f"{base}-{instance}")
