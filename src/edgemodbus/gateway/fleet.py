@@ -106,11 +106,11 @@ def holder(params: DriverModbusRtuParameter,
 
 def attach_device(publisher: Publisher, driver: DriverModbusRtu, code: str,
                   cfg: DeviceConfig, instance: str | None) -> None:
-    """Attach a device to the publisher; in a fleet with its :func:`holder` (the
-    per-item/batch publisher; Sparkplug's per-instance births are not built yet)."""
+    """Attach a device to the publisher; in a fleet with its :func:`holder` (either
+    publisher: per-item/batch statuses, or Sparkplug DBIRTH/DDEATH per instance)."""
     held = holder(cfg.effective_parameters(), instance)
     if held is not None and getattr(publisher, "instance", None) is not None:
-        publisher.attach(driver, code, held=held)  # type: ignore[call-arg]
+        publisher.attach(driver, code, held=held)
     else:
         publisher.attach(driver, code)
 

@@ -451,7 +451,7 @@ def make_publisher(mqtt: MqttSettings, gateway_id: str, instance: str | None) ->
         if mqtt.mode == "sparkplug":
             from ..northbound.sparkplug.publisher import SparkplugPublisher
 
-            return SparkplugPublisher(mqtt, gateway_id=gateway_id)
+            return SparkplugPublisher(mqtt, gateway_id=gateway_id, instance=instance)
         from ..northbound.mqtt import MqttPublisher
 
         return MqttPublisher(mqtt, gateway_id=gateway_id, instance=instance)

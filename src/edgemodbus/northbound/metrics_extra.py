@@ -56,6 +56,8 @@ SPARKPLUG_COUNTERS: tuple[tuple[str, str, str], ...] = (
     ("commandErrors", "sparkplug_command_errors",
      "NCMD/DCMD messages refused whole (not Sparkplug, over a cap, unsupported NCMD "
      "metrics, DCMD for an unknown device)"),
+    ("commandsNotHeld", "sparkplug_commands_not_held",
+     "DCMD messages ignored: in a fleet, the device's DTU is not connected to this instance"),
     ("rebirthsFolded", "sparkplug_rebirths_folded",
      "Rebirth requests within rebirthInterval of the last rebirth, folded into the next"),
     ("commandLogsSuppressed", "sparkplug_command_logs_suppressed",

@@ -16,8 +16,10 @@ values), inbox.py (commands as untrusted input: refusals counted, logs rate-limi
 rebirths paced), state.py (the primary host's STATE), bdseq.py (bdSeq kept across
 restarts in a file that is ours), writes.py (DCMD writes).
 
-Messages (group ``G``, edge node ``N``: ``edgeNodeId``, default the gateway id; device
-``D``: the device code)::
+Messages (group ``G``, edge node ``N``: ``edgeNodeId``, default the gateway id; in a
+dial-in fleet one node per instance, settings.py ``node_id_for``, and a listen-mode
+device has DBIRTH/DDATA/DCMD only on the node holding its DTU, DDEATH when it leaves;
+device ``D``: the device code)::
 
     spBv1.0/G/NBIRTH/N      on connect: bdSeq, Node Control/Rebirth; seq 0     QoS 0
     spBv1.0/G/NDEATH/N      the MQTT will (bdSeq of the session), and on stop  QoS 1

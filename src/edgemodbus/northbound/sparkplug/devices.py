@@ -14,6 +14,7 @@ if TYPE_CHECKING:
     from ...config import DeviceAddressItem
     from ...driver import DriverModbusRtu
     from ...poll.listeners import Listener
+    from ..mqtt.holding import Holding
 
 
 def sample_of(item: DeviceAddressItem) -> Sample:
@@ -29,8 +30,8 @@ def is_good(sample: Sample) -> bool:
 class NodeDevice:
     """One Sparkplug device of the edge node: an attached driver."""
 
-    __slots__ = ("bad", "born", "born_at", "by_alias", "code", "driver", "dropped", "kinds",
-                 "listener", "metrics", "offered", "published")
+    __slots__ = ("bad", "born", "born_at", "by_alias", "code", "driver", "dropped", "fleet",
+                 "kinds", "listener", "metrics", "offered", "published")
 
     def __init__(self, driver: DriverModbusRtu, code: str) -> None:
         self.driver = driver
@@ -46,6 +47,12 @@ class NodeDevice:
         self.listener: Listener[DriverModbusRtu] | None = None  # its subscription
         self.published = 0
         self.dropped = 0
+        self.fleet: Holding | None = None  # in a fleet: whether its DTU is connected here
+
+    def here(self) -> bool:
+        """Whether this edge node may speak for the device: always, but in a fleet only
+        while its DTU is connected to this instance (northbound/mqtt/holding.py)."""
+        return self.fleet is None or not self.fleet.quiet()
 
     def birth(self, alias: Callable[[str, str], int]) -> list[tuple[Sample, MetricDef]]:
         """The metrics of a DBIRTH, from the items in force now (their types and

@@ -141,6 +141,11 @@ class CommandInbox:
             self.refuse("commandErrors", "DCMD for unknown devices", short_text(code),
                         "Sparkplug: DCMD for unknown device %s ignored", short_text(code))
             return
+        if not dev.here():  # a fleet device whose DTU is connected to another instance
+            self.refuse("commandsNotHeld", "DCMD for devices not held here", dev.code,
+                        "%s: DCMD ignored: its DTU is not connected to this instance "
+                        "(fleet: the edge node holding it takes its commands)", dev.code)
+            return
         try:
             metrics = parse_command(payload)
         except ValueError as exc:

@@ -15,13 +15,14 @@ from ...config import ConfigError, DeviceAddressItem
 from ...datatypes import DeviceDriverStatus
 from ...driver import DriverModbusRtu
 from ...poll.listeners import Listener
+from ..mqtt.holding import Holding
 from ..mqtt.settings import MqttSettings, check_name
 from .devices import NodeDevice, is_good, sample_of
 from .inbox import CommandInbox, CommandLog, RebirthPacer
 from .payloads import Sample, device_birth, device_data, device_death, node_birth, node_death
 from .reads import ReadRunner
 from .session import NodeSession
-from .settings import check_id
+from .settings import check_id, node_id_for
 from .state import HostState
 from .writes import WriteRunner
 
@@ -34,7 +35,7 @@ NAMESPACE = "spBv1.0"
 _COUNTERS = ("connects", "disconnects", "connectFailures", "published", "publishErrors",
              "dropped", "nbirths", "dbirths", "ddata", "ddeaths", "rebirths", "commands",
              "commandErrors", "writes", "writesRefused", "rebirthsFolded", "reads",
-             "readsRefused")
+             "readsRefused", "commandsNotHeld")
 
 
 def _now() -> int:
@@ -47,10 +48,12 @@ class SparkplugPublisher:
     ``attach(driver, "dev1")`` (before or after ``start_device``), ``start()`` connects in
     the background and returns at once, ``stop()`` publishes NDEATH and disconnects.  The
     same methods as :class:`~edgemodbus.northbound.mqtt.MqttPublisher`, so the gateway
-    uses either."""
+    uses either.  ``instance``: this instance's id in a dial-in fleet (docs/deploy.md):
+    the node id names it (settings.py ``node_id_for``) and a device attached with
+    ``held`` is born only while its DTU is connected here."""
 
     def __init__(self, settings: MqttSettings | Mapping[str, Any], *,
-                 gateway_id: str = "edgemodbus") -> None:
+                 gateway_id: str = "edgemodbus", instance: str | None = None) -> None:
         try:
             import paho.mqtt.client as paho
         except ImportError:  # pragma: no cover - depends on the install
@@ -65,8 +68,10 @@ class SparkplugPublisher:
         sp = settings.sparkplug
         self.gateway_id = check_name("gatewayId", gateway_id)
         self.group_id = sp.group_id
-        self.node_id = check_id("edgeNodeId", sp.edge_node_id or self.gateway_id)
-        self.client_id = settings.client_id or f"edgemodbus-{self.gateway_id}"
+        self.instance = None if instance is None else check_name("instanceId", instance)
+        self.node_id = node_id_for(sp.edge_node_id, self.gateway_id, self.instance)
+        self.client_id = settings.client_id or f"edgemodbus-{self.gateway_id}" + (
+            f"-{self.instance}" if self.instance else "")  # one per instance, as mqtt's
         self._paho = paho
         self._base = f"{NAMESPACE}/{self.group_id}"
         self._ncmd = f"{self._base}/NCMD/{self.node_id}"
@@ -170,7 +175,8 @@ class SparkplugPublisher:
             result["queued"] = self._queued
             result["queueSize"] = self.settings.queue_size
             result["devices"] = {d.code: {"published": d.published, "dropped": d.dropped,
-                                          "born": d.born} for d in self._devices.values()}
+                                          "born": d.born, "held": d.here()}
+                                 for d in self._devices.values()}
             result["bdSeq"] = self.bd_seq
             result["seq"] = self._seq
             result["born"] = self._born
@@ -180,12 +186,16 @@ class SparkplugPublisher:
         return result
 
     # -- drivers -------------------------------------------------------------------------
-    def attach(self, driver: DriverModbusRtu, device_code: str | None = None) -> None:
+    def attach(self, driver: DriverModbusRtu, device_code: str | None = None, *,
+               held: Callable[[], bool] | None = None) -> None:
         """Publish ``driver`` as Sparkplug device ``device_code`` (default the driver's):
-        subscribes to it, leaving its other subscribers and callbacks as they are."""
+        subscribes to it, leaving its other subscribers and callbacks as they are.  In a
+        fleet, ``held`` says whether its DTU is connected here: DBIRTH when it arrives,
+        DDEATH when it leaves, nothing (and no DCMD) in between (holding.py)."""
         code = device_code or str(driver.snapshot()["deviceCode"])
         self.check_item_names(code, [])
         dev = NodeDevice(driver, code)
+        dev.fleet = Holding(held) if held is not None and self.instance else None
         with self._lock:
             if code in self._devices:
                 raise ValueError(f"deviceCode {code!r} is already attached to this publisher")
@@ -399,7 +409,7 @@ class SparkplugPublisher:
             attached = self._devices.get(dev.code) is dev
         if not self._born or not attached:
             return
-        if dev.driver.device_driver_status is not DeviceDriverStatus.RUNNING:
+        if dev.driver.device_driver_status is not DeviceDriverStatus.RUNNING or not dev.here():
             if dev.born:
                 self._death(dev)
             return
@@ -422,6 +432,10 @@ class SparkplugPublisher:
     def _data(self, dev: NodeDevice, number: int, samples: list[Sample]) -> None:
         if not self._born:
             return  # the births after (re)connecting carry the current values
+        if not dev.here():  # a fleet device whose DTU left: not ours to publish
+            if dev.born:
+                self._death(dev)
+            return
         if dev.born and number <= dev.born_at:
             return  # queued before its DBIRTH, which carried these values already
         if not dev.born or any(s.name not in dev.metrics for s in samples):
@@ -443,18 +457,23 @@ class SparkplugPublisher:
             self._count("ddata")
 
     def _check_devices(self) -> None:
-        """A device that stopped running gets DDEATH; one running again (or whose items
-        changed) a DBIRTH."""
+        """A device that stopped running (or, in a fleet, whose DTU left) gets DDEATH;
+        one running again (or whose items changed, or whose DTU arrived) a DBIRTH."""
         if not self._born:
             return
         with self._lock:
             devices = list(self._devices.values())
         for dev in devices:
+            turned = dev.fleet.turn(time.time()) if dev.fleet is not None else None
+            if turned is not None:
+                log.info("Sparkplug: device %s: its DTU %s", dev.code, turned)
             running = dev.driver.device_driver_status is DeviceDriverStatus.RUNNING
-            if dev.born and not running:
+            if dev.born and not (running and dev.here()):
                 log.info("Sparkplug: device %s is %s: DDEATH", dev.code,
-                         dev.driver.device_driver_status.value)
+                         dev.driver.device_driver_status.value if dev.here() else "not here")
                 self._death(dev)
+            elif not dev.here():
+                continue
             elif running and (not dev.born or dev.changed_items()):
                 self._device_birth(dev)
 

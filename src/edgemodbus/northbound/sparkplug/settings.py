@@ -43,6 +43,27 @@ def check_id(kind: str, value: str) -> str:
     return value
 
 
+INSTANCE_FIELD = "{instance}"
+
+
+def node_id_for(edge_node_id: str | None, gateway_id: str, instance: str | None) -> str:
+    """The edge node id: ``edgeNodeId`` (default the gateway id).  In a dial-in fleet
+    (``instance`` given, docs/deploy.md) each instance is its own edge node: ``{instance}``
+    in ``edgeNodeId`` is replaced by the instance id, and an ``edgeNodeId`` without it
+    gets ``-<instance>`` appended, so two instances never share a node id (Sparkplug 3.0,
+    4.1.1: an edge node id is unique in its group)."""
+    base = edge_node_id or gateway_id
+    if instance is None:
+        if INSTANCE_FIELD in base:
+            raise ValueError(f"mqtt.sparkplug.edgeNodeId {base!r} names {INSTANCE_FIELD}, but "
+                             "this gateway is not in a fleet (no enabled fleet section): "
+                             "remove it, or add the fleet section")
+        return check_id("edgeNodeId", base)
+    node = (base.replace(INSTANCE_FIELD, instance) if INSTANCE_FIELD in base
+            else f"{base}-{instance}")
+    return check_id("edgeNodeId", node)
+
+
 class SparkplugSettings(Model):
     """``mqtt.sparkplug``: who this edge node is in Sparkplug B (v3.0)."""
 
@@ -51,7 +72,7 @@ class SparkplugSettings(Model):
         "groupId": MAX_NAME, "edgeNodeId": MAX_NAME, "primaryHostId": MAX_NAME}
 
     group_id: str
-    edge_node_id: str | None = None  # default: the gateway id
+    edge_node_id: str | None = None  # default: the gateway id; in a fleet see node_id_for
     primary_host_id: str | None = None  # wait for spBv1.0/STATE/<id> online before births
     bd_seq_file: str | None = None  # keeps bdSeq across restarts (the gateway's default:
     # DEFAULT_BD_SEQ_FILE; a library caller without one starts at 0 in each process)
