@@ -288,7 +288,7 @@ class MqttProbe:
             return [m for m in self.received if m.topic == topic]
 
     def wait_for(self, topic: str, match: Callable[[Received], bool] = lambda m: True,
-                 timeout: float = 10.0, after: int = 0) -> Received:
+                 timeout: float = 30.0, after: int = 0) -> Received:
         """The first message on ``topic`` (from index ``after`` of all received) that
         ``match`` accepts; AssertionError listing what came instead on timeout."""
         deadline = time.monotonic() + timeout

@@ -6,7 +6,7 @@ import time
 from collections.abc import Callable
 
 
-def wait_for(cond: Callable[[], object], timeout: float = 8.0, what: str = "") -> None:
+def wait_for(cond: Callable[[], object], timeout: float = 20.0, what: str = "") -> None:
     """Return as soon as ``cond()`` is true; AssertionError after ``timeout`` seconds."""
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:

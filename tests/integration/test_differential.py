@@ -333,6 +333,8 @@ def reference(spec: Spec, truth: Truth, device_fmt: str, device_encoding: str,
     if value is BAD:
         return BAD
     value = _engineering(value, spec)
+    if value is BAD:  # outside rawMin..rawMax: no conversion makes it good
+        return BAD
     target = spec.converted
     if target is None or (target == spec.dtype and not spec.scaled):
         return value
@@ -722,6 +724,11 @@ def test_reference_decoder_knows_the_documented_cases() -> None:
     assert ref(dtype="Int16", offset=12, multiplier=0.5, converted="Int16") == 2  # 2.5: even
     assert ref(dtype="UInt16", converted="Sbyte") is BAD
     assert ref(dtype="UInt16", multiplier=0.5, converted="String") == "2330.0"
+    # outside rawMin..rawMax and not clamped: Invalid, whatever it is converted to
+    assert ref(dtype="BCD16", span=(0.0, 1000.0, 0.0, 1.0)) is BAD  # 1234
+    assert ref(dtype="BCD16", span=(0.0, 1000.0, 0.0, 1.0), converted="Boolean") is BAD
+    assert ref(dtype="BCD16", span=(0.0, 1000.0, 0.0, 1.0), clamp=True,
+               converted="Boolean") is True
     assert ref(dtype="Boolean", area="coil") is True
     truth.refused.append(("hr", 1, 2))
     assert ref(dtype="UInt32") is BAD and ref(dtype="UInt16") == 0x1234
