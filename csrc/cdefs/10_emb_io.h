@@ -69,6 +69,7 @@ long emb_feed(emb_link *lk, const uint8_t *data, int n);
 int emb_report_take(emb_link *lk, uint8_t *out);
 int emb_trace_take(emb_trace *t, uint8_t *out, int *direction, int64_t *t_ns);
 int64_t emb_now_ns(void);
+uint16_t emb_crc16(const uint8_t *p, int n);
 
 /* csrc/emb_check.h: the one reply check */
 int emb_check_reply(const uint8_t *req, int req_len, const uint8_t *rsp, int rsp_len,
