@@ -16,6 +16,11 @@ int emb_read(modbus_t *ctx, emb_link *lk, int slave, int function, int addr, int
 int emb_transact(modbus_t *ctx, emb_link *lk, int slave, const uint8_t *pdu, int pdu_len,
                  uint8_t *rsp);
 int emb_send(modbus_t *ctx, emb_link *lk, int slave, const uint8_t *pdu, int pdu_len);
+int emb_request(modbus_t *ctx, emb_link *lk, int slave, const uint8_t *pdu, int pdu_len,
+                int timeout_ms, uint8_t *rsp);
+int emb_write_pdu(int function, int addr, int nb, const uint16_t *values, uint8_t *pdu);
+int emb_write(modbus_t *ctx, emb_link *lk, int slave, int function, int addr, int nb,
+              const uint16_t *values, int timeout_ms, uint8_t *req, uint8_t *rsp);
 long emb_link_discard(modbus_t *ctx, emb_link *lk, int total_ms, int quiet_ms, int limit_ms);
 long emb_pump(modbus_t *ctx, emb_link *lk);
 long emb_feed(emb_link *lk, const uint8_t *data, int n);

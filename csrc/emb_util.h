@@ -1,6 +1,6 @@
 /* edgemodbus: the leaf of our C (includes nothing of ours): CRC-16, the monotonic clock,
- * and the waits and reads on a file descriptor that every link kind shares.  Internal:
- * only emb_now_ns is in the cdefs. */
+ * and the waits and reads on a file descriptor that every link kind shares.  In the
+ * cdefs: emb_now_ns, emb_crc16 (its tests) and emb_discard_input. */
 #ifndef EMB_UTIL_H
 #define EMB_UTIL_H
 

@@ -62,6 +62,11 @@ int emb_read(modbus_t *ctx, emb_link *lk, int slave, int function, int addr, int
 int emb_transact(modbus_t *ctx, emb_link *lk, int slave, const uint8_t *pdu, int pdu_len,
                  uint8_t *rsp);
 int emb_send(modbus_t *ctx, emb_link *lk, int slave, const uint8_t *pdu, int pdu_len);
+int emb_request(modbus_t *ctx, emb_link *lk, int slave, const uint8_t *pdu, int pdu_len,
+                int timeout_ms, uint8_t *rsp);
+int emb_write_pdu(int function, int addr, int nb, const uint16_t *values, uint8_t *pdu);
+int emb_write(modbus_t *ctx, emb_link *lk, int slave, int function, int addr, int nb,
+              const uint16_t *values, int timeout_ms, uint8_t *req, uint8_t *rsp);
 long emb_discard_input(int fd, int total_ms, int quiet_ms, int limit_ms);
 long emb_link_discard(modbus_t *ctx, emb_link *lk, int total_ms, int quiet_ms, int limit_ms);
 long emb_pump(modbus_t *ctx, emb_link *lk);
@@ -69,6 +74,7 @@ long emb_feed(emb_link *lk, const uint8_t *data, int n);
 int emb_report_take(emb_link *lk, uint8_t *out);
 int emb_trace_take(emb_trace *t, uint8_t *out, int *direction, int64_t *t_ns);
 int64_t emb_now_ns(void);
+uint16_t emb_crc16(const uint8_t *p, int n);
 
 /* csrc/emb_check.h: the one reply check */
 int emb_check_reply(const uint8_t *req, int req_len, const uint8_t *rsp, int rsp_len,

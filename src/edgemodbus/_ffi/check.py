@@ -56,3 +56,11 @@ def check_reply_adu(mbap: bool, slave: int, pdu: bytes, adu: bytes) -> Verdict:
     exc = ffi.new("int *")
     err = lib.emb_check_adu(1 if mbap else 0, -1, slave, pdu, len(pdu), adu, len(adu), exc)
     return Verdict(int(err), int(exc[0]))
+
+
+def crc16(frame: bytes) -> int:
+    """CRC-16/MODBUS of ``frame`` as csrc/emb_util.c computes it for every RTU frame
+    sent and received (Modbus over Serial Line v1.02, 6.2.2); sent low byte first."""
+    if len(frame) > MAX_ADU_LENGTH:
+        raise ValueError(f"crc16: a frame of {len(frame)} bytes; at most {MAX_ADU_LENGTH}")
+    return int(lib.emb_crc16(frame, len(frame)))

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import errno as _errno
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
@@ -316,8 +317,10 @@ class Context:
         return self._error(err, f"slave {slave} FC{function:02d} @{address}+{count}",
                            function, 2 * count if function > 2 else (count + 7) // 8)
 
-    def transact(self, slave: int, pdu: bytes) -> bytes:
-        """Send ``pdu`` (function code first) to ``slave`` and return the reply ADU.
+    def transact(self, slave: int, pdu: bytes, timeout_ms: int = -1) -> bytes:
+        """Send ``pdu`` (function code first) to ``slave`` and return the reply ADU, in
+        one C call (csrc/emb_io.c ``emb_request``); ``timeout_ms``: the response timeout of
+        this request only (-1: the context's); slave 0 is a broadcast (no reply: b"").
 
         The C side checks the reply as every reply (csrc/emb_check.c: slave id, or MBAP
         transaction id, protocol id, length and unit id; the function code, a read's byte
@@ -325,15 +328,46 @@ class Context:
         """
         n = len(pdu)
         ffi.memmove(self._req, pdu, n)
-        rc = lib.emb_transact(self._ptr, self._link, slave, self._req, n, self._rsp)
+        rc = lib.emb_request(self._ptr, self._link, slave, self._req, n, timeout_ms,
+                             self._rsp)
+        if rc == -1:
+            raise self._request_error(ffi.errno, slave, pdu)
+        return bytes(ffi.buffer(self._rsp, rc))
+
+    def write(self, slave: int, function: int, address: int, values: Sequence[int],
+              timeout_ms: int = -1) -> int:
+        """A write encoded, sent, received and checked in one C call (csrc/emb_io.c
+        ``emb_write``): FC05 and FC15 (``values``: each non-zero is ON), FC06, FC16, FC22
+        (``values``: the AND and the OR mask).  Modbus Application Protocol v1.1b3, 6.5,
+        6.6, 6.11, 6.12, 6.16.  Returns the reply ADU's length (:meth:`last_reply`; 0 for
+        a broadcast, slave 0); raises as :meth:`transact`."""
+        vals = values if isinstance(values, (list, tuple)) else list(values)
+        try:
+            rc = lib.emb_write(self._ptr, self._link, slave, function, address, len(vals),
+                               vals, timeout_ms, self._req, self._rsp)
+        except OverflowError:
+            raise ValueError(f"{self.label}: FC{function:02d} @{address}: a value of "
+                             f"{[v for v in vals if not 0 <= v <= 0xFFFF][:1]} is not a "
+                             "register (0..65535)") from None
         if rc == -1:
             err = ffi.errno
-            if err == lib.EMB_EWECHO:  # worded as before the check moved into C
-                raise self._echo_error(slave, pdu)
-            qty = int.from_bytes(pdu[3:5], "big")  # a read's quantity (6.1-6.4, 6.17)
-            count = (qty + 7) // 8 if pdu[0] in (1, 2) else 2 * qty
-            raise self._error(err, f"slave {slave} FC{pdu[0]:02d}", pdu[0], count)
-        return bytes(ffi.buffer(self._rsp, rc))
+            if err == _errno.EINVAL:
+                raise ValueError(f"{self.label}: FC{function:02d} @{address} of {len(vals)} "
+                                 "values: the function must be 5, 6, 15, 16 or 22, the "
+                                 "address 0..65535 and the count what the function allows")
+            pdu = bytes(ffi.buffer(self._req, _write_pdu_len(function, len(vals))))
+            raise self._request_error(err, slave, pdu)
+        return int(rc)
+
+    def _request_error(self, err: int, slave: int, pdu: bytes) -> ModbusError:
+        """The typed error of a request ``pdu`` that failed with errno ``err``."""
+        if slave == 0:
+            return error_from_errno(err, f"broadcast FC{pdu[0]:02d}")
+        if err == lib.EMB_EWECHO:  # worded as before the check moved into C
+            return self._echo_error(slave, pdu)
+        qty = int.from_bytes(pdu[3:5], "big")  # a read's quantity (6.1-6.4, 6.17)
+        count = (qty + 7) // 8 if pdu[0] in (1, 2) else 2 * qty
+        return self._error(err, f"slave {slave} FC{pdu[0]:02d}", pdu[0], count)
 
     def _echo_error(self, slave: int, pdu: bytes) -> ProtocolError:
         """The error of a write whose reply does not echo the request (6.5, 6.6, 6.11,
@@ -357,6 +391,13 @@ class Context:
         more than the errno (which byte count, which unit, which function code)."""
         rsp = self.last_reply()
         return worded_error(err, what, function, count, rsp, len(rsp), self._header)
+
+
+def _write_pdu_len(function: int, n: int) -> int:
+    """The length of the request PDU csrc/emb_io.c's emb_write_pdu makes (6.5-6.16)."""
+    if function == 15:
+        return 6 + (n + 7) // 8
+    return 6 + 2 * n if function == 16 else (7 if function == 22 else 5)
 
 
 def read_error_of(err: int, slave: int, function: int, address: int, count: int,

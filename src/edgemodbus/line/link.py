@@ -30,7 +30,6 @@ from ..errors import (
     ProtocolError,
     exception_for_code,
 )
-from ..protocol import rtu
 from ..protocol.limits import MAX_WRITE_BITS, MAX_WRITE_REGISTERS
 from ..protocol.wrapped import Report, report_of
 from ..stats import LineStats
@@ -50,7 +49,7 @@ class Link:
 
     The base of the two backends, never used on its own: a backend implements
     :meth:`read`, :meth:`set_response_timeout`, :meth:`close`,
-    :meth:`transact` and ``_write`` (a request and its checked reply) and ``_fail``
+    :meth:`transact` and ``_write_op`` (a request and its checked reply) and ``_fail``
     (count an error, clean the line).  Every method raises a :class:`ModbusError`; a
     :class:`ModbusConnectionError` means the link is closed (the worker reconnects).
     """
@@ -96,7 +95,9 @@ class Link:
     def close(self) -> None:
         raise NotImplementedError
 
-    def _write(self, slave: int, pdu: bytes) -> None:
+    def _write_op(self, slave: int, function: int, address: int, values: Sequence[int]) -> None:
+        """A write (function 5, 6, 15, 16 or 22 of ``values``) and its checked reply;
+        slave 0: broadcast, no reply."""
         raise NotImplementedError
 
     def transact(self, slave: int, pdu: bytes,
@@ -154,29 +155,25 @@ class Link:
 
     # -- writes (Modbus Application Protocol v1.1b3, 6.5, 6.6, 6.11, 6.12, 6.16) ------
     def write_coil(self, slave: int, address: int, value: bool) -> None:
-        self._write(slave, struct.pack(">BHH", 5, address, 0xFF00 if value else 0x0000))
+        self._write_op(slave, 5, address, (1 if value else 0,))
 
     def write_register(self, slave: int, address: int, value: int) -> None:
-        self._write(slave, struct.pack(">BHH", 6, address, value))
+        self._write_op(slave, 6, address, (value,))
 
     def write_coils(self, slave: int, address: int, values: Sequence[bool]) -> None:
         n = len(values)
         if not 1 <= n <= MAX_WRITE_BITS:
             raise ValueError(f"write of {n} coils: must be 1..{MAX_WRITE_BITS}")
-        packed = rtu.pack_bits(values)
-        self._write(slave, struct.pack(">BHHB", 15, address, n, len(packed)) + packed)
+        self._write_op(slave, 15, address, values)
 
     def write_registers(self, slave: int, address: int, values: Sequence[int]) -> None:
         n = len(values)
         if not 1 <= n <= MAX_WRITE_REGISTERS:
-            raise ValueError(
-                f"write of {n} registers: must be 1..{MAX_WRITE_REGISTERS}"
-            )
-        pdu = struct.pack(f">BHHB{n}H", 16, address, n, 2 * n, *values)
-        self._write(slave, pdu)
+            raise ValueError(f"write of {n} registers: must be 1..{MAX_WRITE_REGISTERS}")
+        self._write_op(slave, 16, address, values)
 
     def mask_write_register(self, slave: int, address: int, and_mask: int, or_mask: int) -> None:
-        self._write(slave, struct.pack(">BHHH", 22, address, and_mask, or_mask))
+        self._write_op(slave, 22, address, (and_mask, or_mask))
 
     # -- reply check -------------------------------------------------------------------
     def _check_write_reply(self, slave: int, pdu: bytes, adu: bytes) -> None:
@@ -456,43 +453,45 @@ class ContextLink(Link):
         return block
 
     # -- writes ----------------------------------------------------------------------
-    def _write(self, slave: int, pdu: bytes) -> None:
-        if slave:
-            self.transact(slave, pdu)
-            return
-        self._begin(slave, pdu)  # broadcast: no reply (Modbus over Serial Line v1.02, 2.1)
+    def _write_op(self, slave: int, function: int, address: int, values: Sequence[int]) -> None:
+        """One C call: encoded, sent, its reply received and checked (csrc/emb_io.c
+        emb_write); a broadcast (slave 0) gets no reply (Modbus over Serial Line v1.02,
+        2.1) and keeps the turnaround delay."""
+        self._begin()
+        start = time.monotonic()
         try:
-            self._ctx.send(0, pdu)
+            self._ctx.write(slave, function, address, values)
         except ModbusError as exc:
             raise self._fail(exc) from None
         finally:
             self._collect()
-            self._done(self.timing.turnaround_delay)
+            self._done(0.0 if slave else self.timing.turnaround_delay)
+        if slave:
+            self.stats.responses += 1
+            self.stats.rtt_total += time.monotonic() - start
 
     def transact(self, slave: int, pdu: bytes,
                  timeout: float | None = None, early: Callable[[ModbusError], None] | None = None
                  ) -> bytes:
-        self._begin(slave, pdu)
-        before = self._timeouts
-        if timeout is not None:
-            self.set_response_timeout(timeout)
+        """One C call, ``timeout`` included (csrc/emb_io.c emb_request sets it for this
+        request and puts the context's back)."""
+        self._begin()
         start = time.monotonic()
         try:
-            adu = self._ctx.transact(slave, pdu)
+            adu = self._ctx.transact(slave, pdu, -1 if timeout is None
+                                     else max(1, round(timeout * 1000)))
         except ModbusError as exc:
             if early is not None:
                 early(exc)
             raise self._fail(exc) from None
         finally:
-            if timeout is not None and before[0] >= 0 and self.is_open:
-                self.set_response_timeout(before[0])  # (the engine sets its own anyway)
             self._collect()
             self._done()
         self.stats.responses += 1
         self.stats.rtt_total += time.monotonic() - start
         return adu
 
-    def _begin(self, slave: int, pdu: bytes) -> None:
+    def _begin(self) -> None:
         if not self.is_open:
             raise ModbusConnectionError(f"{self.endpoint.describe()}: link is down")
         self._wait_turn()
