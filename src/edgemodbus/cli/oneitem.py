@@ -1,5 +1,6 @@
-"""``read`` and ``write``: the line options, the one-item device they make, and what a
-failure adds to its message (the framing hint, the entity-number notice).
+"""``read`` and ``write``'s one-item device (the polled way; their options are in
+line_options.py, the one-shot read in oneshot.py) and what a failure adds to its message
+(the framing hint).
 
 ``--host`` speaks Modbus TCP (MBAP), as mbpoll and most tools do; ``--rtu-over-tcp`` (or
 ``--transport rtu-over-tcp``) sends raw RTU frames over TCP instead (a serial server, a
@@ -19,18 +20,12 @@ from ..driver import DriverModbusRtu
 from ..errors import ModbusConnectionError
 from ..line.endpoint import TcpEndpoint
 from ..protocol.address import parse_address
-from .line_options import (
-    add_line_options,
-    entity_notice_line,
-    host_transport,
-)
+from .line_options import host_transport
 from .output import CliError, one_line
 
 __all__ = [
-    "add_line_options",
-    "entity_notice_line",
     "framing_hint",
-    "host_transport",
+    "one_item_config",
     "start_one_item",
 ]
 
@@ -67,6 +62,15 @@ _HINT = {
 def start_one_item(args: argparse.Namespace) -> tuple[DriverModbusRtu, DeviceAddressItem]:
     """A driver polling the one item ``args`` name (its config checked first: a problem
     is a CliError naming the option)."""
+    cfg = one_item_config(args)
+    drv = DriverModbusRtu()
+    drv.start_device(cfg.organization, cfg.communication, cfg.address_list)
+    return drv, cfg.address_list[0]
+
+
+def one_item_config(args: argparse.Namespace) -> DeviceConfig:
+    """The checked device configuration of the one item ``args`` name (a problem is a
+    CliError naming the option); sets ``args.type`` when it was left out."""
     comm: dict[str, Any] = {
         "slaveId": args.slave, "readTimeout": args.timeout, "readCycle": 1000,
         "dataFormat": args.format, "byteSwap16": args.byte_swap16, "retries": 0,
@@ -94,9 +98,7 @@ def start_one_item(args: argparse.Namespace) -> tuple[DriverModbusRtu, DeviceAdd
     except ConfigError as exc:
         raise CliError(*(_option_problem(args, p.path, p.message) for p in exc.problems)) \
             from None
-    drv = DriverModbusRtu()
-    drv.start_device(cfg.organization, cfg.communication, cfg.address_list)
-    return drv, cfg.address_list[0]
+    return cfg
 
 
 def framing_hint(args: argparse.Namespace, drv: DriverModbusRtu) -> str | None:

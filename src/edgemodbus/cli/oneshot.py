@@ -4,9 +4,10 @@ with the codec's BlockDecoder, without the config models, pydantic, the driver o
 line worker, which cost ~110 ms of start-up before the 6-8 ms the read itself takes.
 
 It takes the options it can check with the layers below the config models (the
-address with protocol/address.py, the slave id with protocol/limits.py, the value spec
-with codec/spec.py's check_spec) and only values that the device-file check accepts
-too (tests/unit/cli/test_oneshot.py compares both over a set of options).  Everything
+address with protocol/address.py, the host with protocol/hosts.py, the slave id with
+protocol/limits.py, the value spec with codec/spec.py's check_spec), and only values
+that the device-file check accepts too (tests/unit/cli/test_oneshot.py compares both
+over a set of options).  Everything
 else goes the polled way (polling.read: a one-item device, config/ checks it): a
 serial line, --quantity, --format64, an option value it does not take, and every
 failure (a refused connection, no or a bad reply, a value the codec refuses), which
@@ -26,6 +27,7 @@ from ..codec import BlockDecoder, ValueSpec, check_spec
 from ..datatypes import DataFormat, DataType
 from ..errors import ModbusError
 from ..protocol.address import Address, parse_address
+from ..protocol.hosts import check_host
 from ..protocol.limits import MAX_ADDRESS, slave_id_problem
 from .exits import OK
 from .line_options import entity_notice_line, host_transport
@@ -62,6 +64,8 @@ def one_shot_item(args: argparse.Namespace) -> tuple[Address, ValueSpec] | None:
     not take them (they go the polled way, which checks them and names the option)."""
     if not args.host or args.quantity is not None or args.format64 is not None:
         return None
+    if not args.host.strip():
+        return None  # "a host is required"
     if not (1 <= args.port <= 65535 and 1 <= args.timeout <= MAX_TIMEOUT_MS):
         return None
     if slave_id_problem(args.slave, host_transport(args)) is not None:
@@ -71,6 +75,7 @@ def one_shot_item(args: argparse.Namespace) -> tuple[Address, ValueSpec] | None:
     if args.format not in {f.value for f in DataFormat}:
         return None
     try:
+        check_host(args.host)
         addr = parse_address(args.address, args.address_prefix)
         bit_item = addr.area.is_bit or addr.bit is not None
         if args.type is None:

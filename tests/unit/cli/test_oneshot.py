@@ -1,0 +1,165 @@
+"""The one-shot ``read`` (cli/oneshot.py, issue 29): it takes only options the device-file
+check accepts too, and reads what that one would (differential against the config
+models); it reads without pydantic or the config models; what it does not take, and
+every failure, goes the polled way with that path's messages."""
+
+from __future__ import annotations
+
+import argparse
+import struct
+import subprocess
+import sys
+
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from edgemodbus.cli import build_parser
+from edgemodbus.cli.oneitem import one_item_config
+from edgemodbus.cli.oneshot import one_shot_item, read_once
+from edgemodbus.cli.output import CliError
+from edgemodbus.codec import Float32
+from edgemodbus.protocol.limits import slave_id_problem
+from tests.peers import PymodbusSlave, default_bit, free_port
+
+
+def _args(*words: str) -> argparse.Namespace:
+    return build_parser("read").parse_args(["read", *words])
+
+
+_TYPES = ["UInt16", "Int16", "uint16", "Float", "float32", "Int32", "UInt32", "Int64",
+          "Double", "Boolean", "String", "Binary", "BCD16", "Int24", "Char", "DateTime",
+          "Timestamp", "Byte", "Nope", ""]
+_ADDRESSES = ["hr:7", "hr:7.3", "hr:7.16", "ir:65535", "hr:65534", "hr:65535", "coil:5",
+              "di:0", "3:00005", "4:1", "40001", "400001", "1", "10001", "30001", "hr:-1",
+              "hr:70000", "xx:1", " hr:7", "hr:7 ", "0x:5", "coil:5.1"]
+_FORMATS = ["ABCD", "BADC", "CDAB", "DCBA", "abcd", "ABDC", "", "ABCDEFGH"]
+
+
+@st.composite
+def _options(draw: st.DrawFn) -> list[str]:
+    words = ["--host", draw(st.sampled_from(["127.0.0.1", "localhost", " "]))]
+    words += ["--port", str(draw(st.sampled_from([502, 1, 65535, 0, 65536, -1])))]
+    if draw(st.booleans()):
+        words.append("--rtu-over-tcp")
+    words += ["--slave", str(draw(st.sampled_from([0, 1, 17, 247, 248, 255, 256, -1])))]
+    words += ["--timeout", str(draw(st.sampled_from([1, 1000, 60_000, 0, -5, 100_000])))]
+    if draw(st.booleans()):
+        words += ["--type", draw(st.sampled_from(_TYPES))]
+    words += ["--format", draw(st.sampled_from(_FORMATS))]
+    if draw(st.booleans()):
+        words.append("--byte-swap16")
+    multiplier = draw(st.sampled_from(["1", "0.1", "-2", "0", "nan", "inf", "1e300"]))
+    words += ["--multiplier", multiplier]
+    words += ["--address-prefix", draw(st.sampled_from(["function-code", "modicon",
+                                                        "entity"]))]
+    words += ["--", draw(st.sampled_from(_ADDRESSES))]
+    return words
+
+
+@settings(max_examples=400, deadline=None)
+@given(_options())
+def test_the_one_shot_takes_only_what_the_device_check_accepts(words: list[str]) -> None:
+    """Whatever the one-shot read takes, the config models accept, with the same address
+    and value spec: it never reads something the polled read would refuse or read
+    otherwise."""
+    item = one_shot_item(_args(*words))
+    try:
+        cfg = one_item_config(_args(*words))
+    except CliError as exc:
+        assert item is None, (words, exc.lines)
+        return
+    if item is None:
+        return  # the polled way reads it
+    addr, spec = item
+    parsed = cfg.parsed_items()[0]
+    assert (parsed.address.area, parsed.address.offset, parsed.address.bit) == \
+        (addr.area, addr.offset, addr.bit)
+    assert parsed.value_spec() == spec, words
+    assert parsed.registers == (1 if addr.area.is_bit else spec.registers)
+
+
+def test_the_slave_id_rule_is_the_config_models() -> None:
+    """protocol/limits.py's rule is the one the device files use: same verdict, same
+    words."""
+    for transport in ("tcp", "rtu-over-tcp"):
+        for slave in (0, 1, 247, 248, 255):
+            flag = ["--rtu-over-tcp"] if transport == "rtu-over-tcp" else []
+            problem = slave_id_problem(slave, transport)
+            try:
+                one_item_config(_args("--host", "h", "--slave", str(slave), *flag, "hr:1"))
+            except CliError as exc:
+                assert problem is not None, (transport, slave)
+                assert exc.lines == [f"--slave {slave}: {problem}"]
+            else:
+                assert problem is None, (transport, slave)
+
+
+def _f32(registers: list[int]) -> float:
+    return float(Float32(struct.unpack(">f", struct.pack(">HH", *registers))[0]))
+
+
+def test_one_shot_reads_what_an_independent_slave_holds() -> None:
+    """pymodbus holds the registers; the one-shot read (not the polled fallback: a
+    value comes back from read_once) decodes them as the types and orders say."""
+    for transport, flag in (("rtu-over-tcp", ["--rtu-over-tcp"]), ("tcp", [])):
+        with PymodbusSlave(transport, units=(3,)) as slave:
+            base = ["--host", "127.0.0.1", "--port", str(slave.port), "--slave", "3", *flag]
+            slave.set_registers(3, "hr", 20, [0x4049, 0x0FDB, 0xFFFE, 0x0001])
+            slave.set_bits(3, "co", 5, [True])
+
+            def once(*words: str, base: list[str] = base) -> object:
+                got = read_once(_args(*base, *words))
+                assert got is not None, words
+                return got[0]
+
+            assert once("hr:20") == 0x4049
+            assert once("--type", "Float", "hr:20") == _f32([0x4049, 0x0FDB])
+            assert once("--type", "Int32", "--format", "CDAB", "hr:21") == \
+                struct.unpack(">i", struct.pack(">HH", 0xFFFE, 0x0FDB))[0]
+            assert once("--type", "Int16", "hr:22") == -2
+            assert once("--byte-swap16", "hr:23") == 0x0100
+            assert once("--multiplier", "0.5", "hr:23") == 0.5
+            assert once("hr:22.0") is False
+            assert once("hr:22.1") is True
+            assert once("coil:5") is True
+            assert once("di:6") == bool(default_bit(3, "di", 6))
+            assert once("--address-prefix", "entity", "40021") == 0x4049
+
+
+def test_failures_and_other_options_go_the_polled_way() -> None:
+    """No value from the one-shot read: a refused connection, an exception reply, and a
+    serial line (the polled read then says what happened)."""
+    assert read_once(_args("--host", "127.0.0.1", "--port", str(free_port()), "hr:1")) is None
+    assert read_once(_args("--serial", "/dev/null", "hr:1")) is None
+    with PymodbusSlave("tcp", units=(3,)) as slave:
+        base = ["--host", "127.0.0.1", "--port", str(slave.port), "--slave", "3"]
+        assert read_once(_args(*base, "--timeout", "300", "--slave", "9", "hr:1")) is None
+        assert read_once(_args(*base, "--quantity", "2", "--type", "String", "hr:1")) is None
+
+
+def test_the_read_command_loads_no_pydantic() -> None:
+    """``edgemodbus read`` of a register imports neither pydantic, the config models nor
+    the driver (before: ~110 ms of its start-up)."""
+    with PymodbusSlave("tcp", units=(1,)) as slave:
+        probe = ("import sys\nfrom edgemodbus.cli import main\n"
+                 f"rc = main(['read', '--host', '127.0.0.1', '--port', '{slave.port}', "
+                 "'hr:1'])\nprint(rc)\nprint('\\n'.join(sorted(sys.modules)))")
+        out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True,
+                             timeout=120, check=True)
+    lines = out.stdout.split()
+    assert lines[1] == "0", out.stderr
+    loaded = set(lines[2:])
+    heavy = {"pydantic", "edgemodbus.config", "edgemodbus.driver", "edgemodbus.line",
+             "edgemodbus.poll"}
+    assert not heavy & loaded, sorted(heavy & loaded)
+
+
+def test_a_fallback_prints_the_entity_notice_once() -> None:
+    port = free_port()
+    out = subprocess.run([sys.executable, "-m", "edgemodbus.cli", "read", "--host",
+                          "127.0.0.1", "--port", str(port), "40001"],
+                         capture_output=True, text=True, timeout=120, check=False)
+    assert out.returncode == 1, out.stderr
+    assert out.stderr.count("notice:") == 1, out.stderr
+    assert f"hr:40001: link down: tcp://127.0.0.1:{port}" in out.stderr or \
+        "40001: link down" in out.stderr, out.stderr
