@@ -19,7 +19,7 @@ from edgemodbus.cli.oneshot import one_shot_item, read_once
 from edgemodbus.cli.output import CliError
 from edgemodbus.codec import Float32
 from edgemodbus.protocol.limits import slave_id_problem
-from tests.peers import PymodbusSlave, default_bit, free_port
+from tests.peers import PymodbusSlave, Transport, default_bit, free_port
 
 
 def _args(*words: str) -> argparse.Namespace:
@@ -101,7 +101,9 @@ def _f32(registers: list[int]) -> float:
 def test_one_shot_reads_what_an_independent_slave_holds() -> None:
     """pymodbus holds the registers; the one-shot read (not the polled fallback: a
     value comes back from read_once) decodes them as the types and orders say."""
-    for transport, flag in (("rtu-over-tcp", ["--rtu-over-tcp"]), ("tcp", [])):
+    transports: list[tuple[Transport, list[str]]] = [("rtu-over-tcp", ["--rtu-over-tcp"]),
+                                                     ("tcp", [])]
+    for transport, flag in transports:
         with PymodbusSlave(transport, units=(3,)) as slave:
             base = ["--host", "127.0.0.1", "--port", str(slave.port), "--slave", "3", *flag]
             slave.set_registers(3, "hr", 20, [0x4049, 0x0FDB, 0xFFFE, 0x0001])
