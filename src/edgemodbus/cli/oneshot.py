@@ -7,12 +7,12 @@ It takes the options it can check with the layers below the config models (the
 address with protocol/address.py, the host with protocol/hosts.py, the slave id with
 protocol/limits.py, the value spec with codec/spec.py's check_spec), and only values
 that the device-file check accepts too (tests/unit/cli/test_oneshot.py compares both
-over a set of options).  Everything
-else goes the polled way (polling.read: a one-item device, config/ checks it): a
-serial line, --quantity, --format64, an option value it does not take, and every
-failure (a refused connection, no or a bad reply, a value the codec refuses), which
-the polled read then repeats, so its messages, the framing hint and the exit codes
-stay those of the device's own path.  A read that timed out thus waits twice.
+over a set of options).  Everything else goes the polled way (polling.read: a one-item
+device, config/ checks it): a serial line, --quantity, --format64, -v (the line's log,
+-vv its frame trace), an option value it does not take, and every failure (a refused
+connection, no or a bad reply, a value the codec refuses), which the polled read then
+repeats, so its messages, the framing hint and the exit codes stay those of the
+device's own path.  A read that timed out thus waits twice.
 """
 
 from __future__ import annotations
@@ -64,6 +64,8 @@ def one_shot_item(args: argparse.Namespace) -> tuple[Address, ValueSpec] | None:
     not take them (they go the polled way, which checks them and names the option)."""
     if not args.host or args.quantity is not None or args.format64 is not None:
         return None
+    if args.verbose:
+        return None  # -v logs the line's life, -vv traces its frames: the polled way's
     if not args.host.strip():
         return None  # "a host is required"
     if not (1 <= args.port <= 65535 and 1 <= args.timeout <= MAX_TIMEOUT_MS):

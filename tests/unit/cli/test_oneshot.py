@@ -129,14 +129,16 @@ def test_one_shot_reads_what_an_independent_slave_holds() -> None:
 
 
 def test_failures_and_other_options_go_the_polled_way() -> None:
-    """No value from the one-shot read: a refused connection, an exception reply, and a
-    serial line (the polled read then says what happened)."""
+    """No value from the one-shot read: a refused connection, an exception reply, a serial
+    line, -v (the polled read then says what happened, or logs and traces it)."""
     assert read_once(_args("--host", "127.0.0.1", "--port", str(free_port()), "hr:1")) is None
     assert read_once(_args("--serial", "/dev/null", "hr:1")) is None
     with PymodbusSlave("tcp", units=(3,)) as slave:
         base = ["--host", "127.0.0.1", "--port", str(slave.port), "--slave", "3"]
         assert read_once(_args(*base, "--timeout", "300", "--slave", "9", "hr:1")) is None
         assert read_once(_args(*base, "--quantity", "2", "--type", "String", "hr:1")) is None
+        assert read_once(_args(*base, "hr:1")) is not None
+        assert read_once(_args(*base, "-vv", "hr:1")) is None  # the frame trace is the poller's
 
 
 def test_the_read_command_loads_no_pydantic() -> None:
