@@ -6,17 +6,21 @@ every failure, goes the polled way with that path's messages."""
 from __future__ import annotations
 
 import argparse
+import contextlib
+import io
 import struct
 import subprocess
 import sys
 
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from edgemodbus.cli import build_parser
+from edgemodbus.cli.exits import CommandFailed
 from edgemodbus.cli.oneitem import one_item_config
 from edgemodbus.cli.oneshot import one_shot_item, read_once
-from edgemodbus.cli.output import CliError
+from edgemodbus.cli.output import CliError, value_text
 from edgemodbus.codec import Float32
 from edgemodbus.protocol.limits import slave_id_problem
 from tests.peers import PymodbusSlave, Transport, default_bit, free_port
@@ -167,3 +171,42 @@ def test_a_fallback_prints_the_entity_notice_once() -> None:
     assert out.stderr.count("notice:") == 1, out.stderr
     assert f"hr:40001: link down: tcp://127.0.0.1:{port}" in out.stderr or \
         "40001: link down" in out.stderr, out.stderr
+
+
+_DECODE_TYPES = ["UInt16", "Int16", "Int32", "UInt32", "Float", "Double", "Int64", "UInt64",
+                 "BCD16", "BCD32", "Int24", "UInt24", "Byte", "Sbyte", "Char", "Boolean"]
+
+
+def test_one_shot_and_polled_reads_print_the_same() -> None:
+    """Differential: over registers and types, the one-shot read prints what the polled
+    read (the one-item device, its poller's decode) prints for the same options."""
+    from edgemodbus.cli.polling import read as polled_read
+
+    with PymodbusSlave("tcp", units=(1,)) as slave:
+        base = ["--host", "127.0.0.1", "--port", str(slave.port)]
+
+        @settings(max_examples=40, deadline=None)
+        @given(st.lists(st.integers(0, 0xFFFF), min_size=4, max_size=4),
+               st.sampled_from(_DECODE_TYPES), st.sampled_from(["ABCD", "CDAB", "BADC"]),
+               st.booleans(), st.sampled_from(["1", "0.1", "-3"]))
+        def same(registers: list[int], data_type: str, fmt: str, swap: bool,
+                 multiplier: str) -> None:
+            slave.set_registers(1, "hr", 30, registers)
+            words = [*base, "--type", data_type, "--format", fmt, "--multiplier", multiplier,
+                     *(["--byte-swap16"] if swap else []),
+                     "hr:30.5" if data_type == "Boolean" else "hr:30"]
+            if one_shot_item(_args(*words)) is None:  # e.g. a multiplier on a Boolean
+                with pytest.raises(CliError):  # the config models refuse it too
+                    polled_read(_args(*words), notice=False)
+                return
+            fast = read_once(_args(*words))
+            if fast is None:  # the codec refused the value (a BCD nibble over 9): so does
+                with pytest.raises(CommandFailed):  # the poller, and says why
+                    polled_read(_args(*words), notice=False)
+                return
+            out = io.StringIO()
+            with contextlib.redirect_stdout(out):
+                assert polled_read(_args(*words), notice=False) == 0
+            assert value_text(fast[0]) == out.getvalue().strip(), words
+
+        same()
