@@ -14,9 +14,17 @@ __all__ = [
     "add_transport_options",
     "entity_notice_line",
     "host_transport",
+    "other_framing_hint",
 ]
 
 HOST_TRANSPORTS = ("tcp", "rtu-over-tcp")
+_OTHER = {"tcp": "rtu-over-tcp", "rtu-over-tcp": "tcp"}
+_HINT = {
+    "rtu-over-tcp": "the device answered raw RTU frames over TCP (a serial server, a DTU, "
+                    "edgemodbus simulate): add --rtu-over-tcp",
+    "tcp": "the device answered Modbus TCP: leave out --rtu-over-tcp (--host speaks Modbus "
+           "TCP)",
+}
 
 
 def add_transport_options(p: argparse.ArgumentParser, *, several: bool = False) -> None:
@@ -77,3 +85,24 @@ def entity_notice_line(args: argparse.Namespace) -> str | None:
     read_as = parse_address(args.address.strip(), args.address_prefix)
     return (f"notice: {entity_notice(args.address.strip(), read_as, entity)}; for Modicon "
             "numbering use --address-prefix entity")
+
+
+def other_framing_hint(args: argparse.Namespace) -> str | None:
+    """After a read or write over ``--host`` whose link was up but got nothing
+    well-formed back: read the item's address once with the other framing; if that
+    answers, the hint that names the flag (None otherwise)."""
+    from ..commission.scan import SettingDone, scan_line  # only after a failure
+    from ..errors import ModbusConnectionError
+    from ..line.endpoint import TcpEndpoint
+
+    other = _OTHER[host_transport(args)]
+    try:
+        addr = parse_address(args.address.strip(), args.address_prefix)
+        events = scan_line([TcpEndpoint(args.host, args.port, other)], [args.slave],
+                           functions=[addr.area.read_function], address=addr.offset,
+                           timeout=min(max(args.timeout, 50), 2000) / 1000,
+                           garbage_limit=0)
+        done = [e for e in events if isinstance(e, SettingDone)]
+    except (ValueError, ModbusConnectionError):
+        return None  # e.g. a unit id only Modbus TCP has: no other framing to try
+    return _HINT[other] if done and done[0].replies else None

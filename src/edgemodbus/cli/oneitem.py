@@ -17,10 +17,8 @@ from typing import Any
 
 from ..config import ConfigError, DeviceAddressItem, DeviceConfig, load_device_config
 from ..driver import DriverModbusRtu
-from ..errors import ModbusConnectionError
-from ..line.endpoint import TcpEndpoint
 from ..protocol.address import parse_address
-from .line_options import host_transport
+from .line_options import host_transport, other_framing_hint
 from .output import CliError, one_line
 
 __all__ = [
@@ -49,15 +47,6 @@ _OPTION_OF_FIELD = {
     "addressList[0].quantity": "quantity",
     "addressList[0].dataMultiplier": "multiplier",
 }
-
-_OTHER = {"tcp": "rtu-over-tcp", "rtu-over-tcp": "tcp"}
-_HINT = {
-    "rtu-over-tcp": "the device answered raw RTU frames over TCP (a serial server, a DTU, "
-                    "edgemodbus simulate): add --rtu-over-tcp",
-    "tcp": "the device answered Modbus TCP: leave out --rtu-over-tcp (--host speaks Modbus "
-           "TCP)",
-}
-
 
 def start_one_item(args: argparse.Namespace) -> tuple[DriverModbusRtu, DeviceAddressItem]:
     """A driver polling the one item ``args`` name (its config checked first: a problem
@@ -111,19 +100,7 @@ def framing_hint(args: argparse.Namespace, drv: DriverModbusRtu) -> str | None:
     if stats.get("responses", 0) or stats.get("exceptions") or \
             not stats.get("line", {}).get("connects", 0):
         return None  # the framing was understood, or the link never came up
-    from ..commission.scan import SettingDone, scan_line  # only after a failure
-
-    other = _OTHER[host_transport(args)]
-    try:
-        addr = parse_address(args.address.strip(), args.address_prefix)
-        events = scan_line([TcpEndpoint(args.host, args.port, other)], [args.slave],
-                           functions=[addr.area.read_function], address=addr.offset,
-                           timeout=min(max(args.timeout, 50), 2000) / 1000,
-                           garbage_limit=0)
-        done = [e for e in events if isinstance(e, SettingDone)]
-    except (ValueError, ModbusConnectionError):
-        return None  # e.g. a unit id only Modbus TCP has: no other framing to try
-    return _HINT[other] if done and done[0].replies else None
+    return other_framing_hint(args)
 
 
 def _default_type(address: str, prefix: str) -> str:

@@ -12,7 +12,9 @@ device, config/ checks it): a serial line, --quantity, --format64, -v (the line'
 -vv its frame trace), an option value it does not take, and every failure (a refused
 connection, no or a bad reply, a value the codec refuses), which the polled read then
 repeats, so its messages, the framing hint and the exit codes stay those of the
-device's own path.  A read that timed out thus waits twice.
+device's own path; but for a slave that did not answer at all (the most common failure:
+the wrong framing, slave id or address), which is told in the polled read's words here
+(tests/unit/cli/test_oneshot.py compares the two) rather than waited for twice.
 """
 
 from __future__ import annotations
@@ -25,12 +27,12 @@ import sys
 from .._ffi import Context
 from ..codec import BlockDecoder, ValueSpec, check_spec
 from ..datatypes import DataFormat, DataType
-from ..errors import ModbusError
+from ..errors import ModbusError, ModbusTimeoutError
 from ..protocol.address import Address, parse_address
 from ..protocol.hosts import check_host
 from ..protocol.limits import MAX_ADDRESS, slave_id_problem
-from .exits import OK
-from .line_options import entity_notice_line, host_transport
+from .exits import OK, CommandFailed
+from .line_options import entity_notice_line, host_transport, other_framing_hint
 from .output import value_text
 
 __all__ = ["one_shot_item", "read", "read_once"]
@@ -100,7 +102,9 @@ def one_shot_item(args: argparse.Namespace) -> tuple[Address, ValueSpec] | None:
 
 def read_once(args: argparse.Namespace) -> tuple[object] | None:
     """The value of one request (a 1-tuple: a value may be None), or None when the
-    options are not the one-shot read's or anything failed."""
+    options are not the one-shot read's or anything else failed.  A slave that did not
+    answer at all is CommandFailed, worded as the polled read words it (and with its
+    framing hint), so that the user does not wait for a second timeout."""
     item = one_shot_item(args)
     if item is None:
         return None
@@ -118,7 +122,12 @@ def read_once(args: argparse.Namespace) -> tuple[object] | None:
                                 mbap=transport == "tcp")
         try:
             ctx.set_timeouts(args.timeout / 1000, BYTE_TIMEOUT_S)
-            block = ctx.read(args.slave, addr.area.read_function, addr.offset, count)
+            try:
+                block = ctx.read(args.slave, addr.area.read_function, addr.offset, count)
+            except ModbusTimeoutError as exc:
+                if type(exc) is not ModbusTimeoutError:
+                    raise  # a garbled or cut reply: the polled way words it
+                raise CommandFailed(_silent(args, exc)) from None
             decoder = BlockDecoder(addr.area, count, [(0, spec)])
             values = decoder.decode_values(block)
             if decoder.errors():
@@ -130,3 +139,12 @@ def read_once(args: argparse.Namespace) -> tuple[object] | None:
         return None
     finally:
         sock.close()
+
+
+def _silent(args: argparse.Namespace, exc: ModbusTimeoutError) -> str:
+    """The polled read's message for a slave that did not answer (its item's reason,
+    poll/faults.py reason_of; the hint of cli/oneitem.py framing_hint: the link was up
+    and nothing came back)."""
+    message = f"{args.address}: device not responding: {exc}"
+    hint = other_framing_hint(args)
+    return message if hint is None else f"{message}; {hint}"

@@ -8,9 +8,12 @@ from __future__ import annotations
 import argparse
 import contextlib
 import io
+import socket
 import struct
 import subprocess
 import sys
+from collections.abc import Callable
+from functools import partial
 
 import pytest
 from hypothesis import given, settings
@@ -133,13 +136,12 @@ def test_one_shot_reads_what_an_independent_slave_holds() -> None:
 
 
 def test_failures_and_other_options_go_the_polled_way() -> None:
-    """No value from the one-shot read: a refused connection, an exception reply, a serial
-    line, -v (the polled read then says what happened, or logs and traces it)."""
+    """No value from the one-shot read: a refused connection, a serial line, --quantity,
+    -v (the polled read then says what happened, or logs and traces it)."""
     assert read_once(_args("--host", "127.0.0.1", "--port", str(free_port()), "hr:1")) is None
     assert read_once(_args("--serial", "/dev/null", "hr:1")) is None
     with PymodbusSlave("tcp", units=(3,)) as slave:
         base = ["--host", "127.0.0.1", "--port", str(slave.port), "--slave", "3"]
-        assert read_once(_args(*base, "--timeout", "300", "--slave", "9", "hr:1")) is None
         assert read_once(_args(*base, "--quantity", "2", "--type", "String", "hr:1")) is None
         assert read_once(_args(*base, "hr:1")) is not None
         assert read_once(_args(*base, "-vv", "hr:1")) is None  # the frame trace is the poller's
@@ -210,3 +212,32 @@ def test_one_shot_and_polled_reads_print_the_same() -> None:
             assert value_text(fast[0]) == out.getvalue().strip(), words
 
         same()
+
+
+def _failure(read: Callable[[argparse.Namespace], object], words: list[str]) -> list[str]:
+    with pytest.raises(CommandFailed) as info:
+        read(_args(*words))
+    return info.value.lines
+
+
+def test_a_silent_slave_is_told_as_the_polled_read_tells_it() -> None:
+    """No answer at all (the wrong framing, a slave id nobody has, a peer that never
+    replies): the one-shot read says what the polled read says, framing hint included,
+    after one timeout, not two."""
+    from edgemodbus.cli.polling import read as polled_read
+
+    cases: list[list[str]] = []
+    with PymodbusSlave("rtu-over-tcp", units=(3,)) as rtu, \
+            socket.create_server(("127.0.0.1", 0)) as mute:
+        cases.append(["--port", str(rtu.port), "--slave", "3", "hr:4"])  # MBAP to RTU
+        cases.append(["--port", str(mute.getsockname()[1]), "--type", "Float", "hr:4"])
+        told = []
+        for words in cases:
+            args = ["--host", "127.0.0.1", "--timeout", "300", *words]
+            fast = _failure(read_once, args)
+            polled = _failure(partial(polled_read, notice=False), args)
+            assert fast == polled, words
+            told.append(fast)
+    assert told[0][0].endswith("add --rtu-over-tcp"), told
+    assert told[1] == ["hr:4: device not responding: slave 1 FC03 @4+2: no response "
+                       "(timeout)"], told
