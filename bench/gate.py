@@ -221,7 +221,7 @@ GATES: dict[str, Gate] = {
     # 12 ms: 5x and 8.3x.  Import: 1.0-1.05 with the lazy package (about 20x when it built
     # the config models and the driver at import); the limit is the target.  Read: the
     # one-shot read (cli/oneshot.py: no pydantic, config models, driver or line worker)
-    # measured 7.1-8.4x at load average 5-6 (75-181 ms; the polled read 21x in the same
+    # measured 7.0-8.4x at load average 5-7 (75-181 ms; the polled read 21x in the same
     # rounds, 16-20x quiet before); the limit is that plus the shared machine's noise,
     # and catches the config models or the driver coming back onto the read path
     # (tests/unit/cli/test_oneshot.py and test_lazy_imports.py check that precisely).
