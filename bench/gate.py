@@ -221,15 +221,16 @@ GATES: dict[str, Gate] = {
     # the same rounds (median of interleaved rounds).  Issue 29: `import edgemodbus` at
     # most 60 ms and `edgemodbus read` at most 100 ms, over an interpreter start of about
     # 12 ms: 5x and 8.3x.  Import: 1.0-1.05 with the lazy package (about 20x when it built
-    # the config models and the driver at import); the limit is the target.  Read: NOT
-    # MET, 16-20x (175-215 ms; 28-30x, 330 ms, before): pydantic's import (~50 ms), the
-    # config models (~30 ms) and the driver (~20 ms) are on the read path; the limit only
-    # catches the gateway, simulator and rich coming back onto it
-    # (tests/unit/cli/test_lazy_imports.py checks that precisely).
+    # the config models and the driver at import); the limit is the target.  Read: the
+    # one-shot read (cli/oneshot.py: no pydantic, config models, driver or line worker)
+    # measured 7.0-8.4x at load average 5-7 (75-181 ms; the polled read 21x in the same
+    # rounds, 16-20x quiet before); the limit is that plus the shared machine's noise,
+    # and catches the config models or the driver coming back onto the read path
+    # (tests/unit/cli/test_oneshot.py and test_lazy_imports.py check that precisely).
     "cli.import_vs_pass": Gate(
         5.0, 5.0, "lower", "x", "python -c 'import edgemodbus' / python -c pass"),
     "cli.read_vs_pass": Gate(
-        8.3, 30.0, "lower", "x", "edgemodbus read (simulator) / python -c pass"),
+        8.3, 12.0, "lower", "x", "edgemodbus read (simulator) / python -c pass"),
 }
 
 

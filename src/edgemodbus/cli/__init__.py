@@ -170,13 +170,13 @@ def _run(p: argparse.ArgumentParser) -> None:
 
 def _read_or_write(name: str) -> Callable[[argparse.ArgumentParser], None]:
     def add(p: argparse.ArgumentParser) -> None:
-        from .oneitem import add_line_options
+        from .line_options import add_line_options
 
         add_line_options(p)
         p.add_argument("address", help="e.g. hr:100, 3:00005, coil:5, hr:7.3")
         if name == "write":
             p.add_argument("value", help="value to write (number, true/false, text)")
-        p.set_defaults(func=_call("polling", name))
+        p.set_defaults(func=_call("oneshot" if name == "read" else "polling", name))
     return add
 
 

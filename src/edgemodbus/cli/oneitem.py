@@ -1,5 +1,6 @@
-"""``read`` and ``write``: the line options, the one-item device they make, and what a
-failure adds to its message (the framing hint, the entity-number notice).
+"""``read`` and ``write``'s one-item device (the polled way; their options are in
+line_options.py, the one-shot read in oneshot.py) and what a failure adds to its message
+(the framing hint).
 
 ``--host`` speaks Modbus TCP (MBAP), as mbpoll and most tools do; ``--rtu-over-tcp`` (or
 ``--transport rtu-over-tcp``) sends raw RTU frames over TCP instead (a serial server, a
@@ -16,16 +17,13 @@ from typing import Any
 
 from ..config import ConfigError, DeviceAddressItem, DeviceConfig, load_device_config
 from ..driver import DriverModbusRtu
-from ..errors import ModbusConnectionError
-from ..line.endpoint import TcpEndpoint
-from ..protocol.address import PREFIXES, entity_lookalike, entity_notice, parse_address
+from ..protocol.address import parse_address
+from .line_options import host_transport, other_framing_hint
 from .output import CliError, one_line
 
 __all__ = [
-    "add_line_options",
-    "entity_notice_line",
     "framing_hint",
-    "host_transport",
+    "one_item_config",
     "start_one_item",
 ]
 
@@ -50,68 +48,18 @@ _OPTION_OF_FIELD = {
     "addressList[0].dataMultiplier": "multiplier",
 }
 
-HOST_TRANSPORTS = ("tcp", "rtu-over-tcp")
-_OTHER = {"tcp": "rtu-over-tcp", "rtu-over-tcp": "tcp"}
-_HINT = {
-    "rtu-over-tcp": "the device answered raw RTU frames over TCP (a serial server, a DTU, "
-                    "edgemodbus simulate): add --rtu-over-tcp",
-    "tcp": "the device answered Modbus TCP: leave out --rtu-over-tcp (--host speaks Modbus "
-           "TCP)",
-}
-
-
-def add_transport_options(p: argparse.ArgumentParser, *, several: bool = False) -> None:
-    """``--transport`` and its short form ``--rtu-over-tcp`` (one dest)."""
-    if several:
-        p.add_argument("--transport", default="tcp",
-                       help="with --host: tcp (Modbus TCP, the default), rtu-over-tcp (raw "
-                       "RTU frames: a serial server, a DTU), or both: tcp,rtu-over-tcp")
-    else:
-        p.add_argument("--transport", choices=HOST_TRANSPORTS, default=None,
-                       help="with --host: tcp (Modbus TCP, the default) or rtu-over-tcp "
-                       "(raw RTU frames over TCP: a serial server, a DTU, edgemodbus "
-                       "simulate)")
-    p.add_argument("--rtu-over-tcp", dest="transport", action="store_const",
-                   const="rtu-over-tcp", help="the same as --transport rtu-over-tcp")
-
-
-def add_line_options(p: argparse.ArgumentParser) -> None:
-    where = p.add_mutually_exclusive_group(required=True)
-    where.add_argument("--host", help="TCP host (with --port): Modbus TCP unless "
-                       "--rtu-over-tcp")
-    where.add_argument("--serial", metavar="DEVICE", help="serial port, e.g. /dev/ttyUSB0")
-    p.add_argument("--port", type=int, default=502, help="TCP port (502)")
-    add_transport_options(p)
-    p.add_argument("--baud", type=int, default=9600)
-    p.add_argument("--parity", default="N", help="N, E or O")
-    p.add_argument("--data-bits", type=int, default=8)
-    p.add_argument("--stop-bits", type=int, default=1)
-    p.add_argument("--slave", type=int, default=1, help="slave / unit id (1)")
-    p.add_argument("--type", default=None,
-                   help="data type (Boolean for coils, discrete inputs and register bits such "
-                   "as hr:7.3, else UInt16)")
-    p.add_argument("--format", default="ABCD", help="byte and word order of values of 2 or "
-                   "more registers: ABCD, BADC, CDAB or DCBA")
-    p.add_argument("--byte-swap16", action="store_true",
-                   help="swap the two bytes of a one-register value (and of a bit's register)")
-    p.add_argument("--format64", default=None, help="order of 64-bit values (ABCDEFGH, "
-                   "EFGHABCD = first DWord low, ...); default: what --format means for them")
-    p.add_argument("--quantity", type=int, default=None, help="registers (String/Binary)")
-    p.add_argument("--multiplier", type=float, default=1.0)
-    p.add_argument("--timeout", type=int, default=1000, help="response timeout in ms (1000)")
-    p.add_argument("--address-prefix", choices=PREFIXES, default="function-code",
-                   help="how a bare number reads: function-code (40001 = holding register "
-                   "40001, the default), modicon, or entity (40001 = holding register 0)")
-
-
-def host_transport(args: argparse.Namespace) -> str:
-    """The framing ``--host`` uses: Modbus TCP unless told otherwise."""
-    return str(args.transport or "tcp")
-
-
 def start_one_item(args: argparse.Namespace) -> tuple[DriverModbusRtu, DeviceAddressItem]:
     """A driver polling the one item ``args`` name (its config checked first: a problem
     is a CliError naming the option)."""
+    cfg = one_item_config(args)
+    drv = DriverModbusRtu()
+    drv.start_device(cfg.organization, cfg.communication, cfg.address_list)
+    return drv, cfg.address_list[0]
+
+
+def one_item_config(args: argparse.Namespace) -> DeviceConfig:
+    """The checked device configuration of the one item ``args`` name (a problem is a
+    CliError naming the option); sets ``args.type`` when it was left out."""
     comm: dict[str, Any] = {
         "slaveId": args.slave, "readTimeout": args.timeout, "readCycle": 1000,
         "dataFormat": args.format, "byteSwap16": args.byte_swap16, "retries": 0,
@@ -139,20 +87,7 @@ def start_one_item(args: argparse.Namespace) -> tuple[DriverModbusRtu, DeviceAdd
     except ConfigError as exc:
         raise CliError(*(_option_problem(args, p.path, p.message) for p in exc.problems)) \
             from None
-    drv = DriverModbusRtu()
-    drv.start_device(cfg.organization, cfg.communication, cfg.address_list)
-    return drv, cfg.address_list[0]
-
-
-def entity_notice_line(args: argparse.Namespace) -> str | None:
-    """The notice for an address that looks like a Modicon entity number (40001) but is
-    read as an offset, with the option that switches; None otherwise."""
-    entity = entity_lookalike(args.address, args.address_prefix)
-    if entity is None:
-        return None
-    read_as = parse_address(args.address.strip(), args.address_prefix)
-    return (f"notice: {entity_notice(args.address.strip(), read_as, entity)}; for Modicon "
-            "numbering use --address-prefix entity")
+    return cfg
 
 
 def framing_hint(args: argparse.Namespace, drv: DriverModbusRtu) -> str | None:
@@ -165,19 +100,7 @@ def framing_hint(args: argparse.Namespace, drv: DriverModbusRtu) -> str | None:
     if stats.get("responses", 0) or stats.get("exceptions") or \
             not stats.get("line", {}).get("connects", 0):
         return None  # the framing was understood, or the link never came up
-    from ..commission.scan import SettingDone, scan_line  # only after a failure
-
-    other = _OTHER[host_transport(args)]
-    try:
-        addr = parse_address(args.address.strip(), args.address_prefix)
-        events = scan_line([TcpEndpoint(args.host, args.port, other)], [args.slave],
-                           functions=[addr.area.read_function], address=addr.offset,
-                           timeout=min(max(args.timeout, 50), 2000) / 1000,
-                           garbage_limit=0)
-        done = [e for e in events if isinstance(e, SettingDone)]
-    except (ValueError, ModbusConnectionError):
-        return None  # e.g. a unit id only Modbus TCP has: no other framing to try
-    return _HINT[other] if done and done[0].replies else None
+    return other_framing_hint(args)
 
 
 def _default_type(address: str, prefix: str) -> str:

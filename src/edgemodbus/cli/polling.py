@@ -25,7 +25,8 @@ from ..line.endpoint import endpoint_for
 from ..poll.poller import build_plan
 from ..poll.schedule import entity_numbers_notice
 from .exits import FAILED, INTERRUPTED, OK, CommandFailed
-from .oneitem import entity_notice_line, framing_hint, start_one_item
+from .line_options import entity_notice_line
+from .oneitem import framing_hint, start_one_item
 from .output import (
     CliError,
     config_warnings,
@@ -117,8 +118,11 @@ def _never_answered(file: Path, drv: DriverModbusRtu) -> str:
     return f"{file}: device {drv.snapshot()['deviceCode']} never answered{why}"
 
 
-def read(args: argparse.Namespace) -> int:
-    _notice(args)
+def read(args: argparse.Namespace, notice: bool = True) -> int:
+    """Read the item through a one-item device (oneshot.py's read when that could not:
+    it printed the notice already)."""
+    if notice:
+        _notice(args)
     drv, item = start_one_item(args)
     got = threading.Event()
     drv.address_updated_callback = lambda it: got.set()

@@ -32,7 +32,7 @@ from ..commission.scan import (
 from ..errors import ModbusConnectionError
 from ..line.endpoint import SerialPort, TcpEndpoint
 from ..protocol.rtu import MAX_SLAVE_ID, parse_slave_ids
-from .oneitem import add_transport_options
+from .line_options import add_transport_options
 from .output import CliError, print_json
 
 DEFAULT_BAUDS = "9600,19200,38400,57600,115200"

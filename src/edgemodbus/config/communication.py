@@ -31,6 +31,7 @@ from ..protocol.limits import (
     MAX_SLAVE_ID,
     MAX_UNIT_ID,
     MIN_SLAVE_ID,
+    slave_id_problem,
 )
 from .base import (
     MAX_MS,
@@ -413,17 +414,9 @@ class _CommunicationFields(Model):
             problems.append(
                 Problem("useTcp", self.use_tcp, f"contradicts transport {self.transport!r}")
             )
-        if self.transport == "tcp":
-            pass  # a Modbus TCP unit id may be 0..255
-        elif not MIN_SLAVE_ID <= self.slave_id <= MAX_SLAVE_ID:
-            problems.append(
-                Problem(
-                    "slaveId",
-                    self.slave_id,
-                    f"must be {MIN_SLAVE_ID}..{MAX_SLAVE_ID} on an RTU line (transport "
-                    f"{self.transport!r}); 0..{MAX_UNIT_ID} only as a Modbus TCP unit id",
-                )
-            )
+        slave_problem = slave_id_problem(self.slave_id, self.transport)  # protocol/limits.py
+        if slave_problem is not None:
+            problems.append(Problem("slaveId", self.slave_id, slave_problem))
         if self.transport == "rtu" and not self.com_port.strip():
             problems.append(Problem("comPort", self.com_port, "a serial port is required"))
         if self.transport in ("rtu-over-tcp", "tcp") and not self.tcp_host.strip():

@@ -5,7 +5,7 @@ every log line that named it.  So every string a config model takes is at most
 :data:`MAX_TEXT` characters, ids, names and hosts less (:data:`MAX_NAME`,
 :data:`MAX_HOST`; a model may name tighter ones per key, ``_max_lengths``), checked
 with the other key rules (keys.py via base.py) before any validator sees the value.
-Host names are checked as the resolver will take them (:func:`check_host`): a
+Host names are checked as the resolver will take them (:func:`check_host`, protocol/hosts.py): a
 ``"plc..local"`` or a label over 63 characters fails at load, naming the field, not
 later in a line's worker (RFC 1035 2.3.4: labels of 63 octets, names of 255 octets,
 253 characters as text).
@@ -13,10 +13,10 @@ later in a line's worker (RFC 1035 2.3.4: labels of 63 octets, names of 255 octe
 
 from __future__ import annotations
 
-import ipaddress
 from collections.abc import Mapping
 from typing import Any
 
+from ..protocol.hosts import MAX_HOST, MAX_LABEL, check_host  # one rule: the CLI's too
 from .problems import Problem, join_path
 
 MAX_TEXT = 4096
@@ -24,12 +24,6 @@ MAX_TEXT = 4096
 
 MAX_NAME = 256
 """Characters of an id or a name (deviceCode, gatewayId, dtuId, item names...)."""
-
-MAX_HOST = 253
-"""Characters of a host name (RFC 1035 2.3.4 as text: 255 octets on the wire)."""
-
-MAX_LABEL = 63
-"""Characters of one label of a host name (RFC 1035 2.3.4)."""
 
 MIN_SECONDS = 0.001
 """The shortest duration in seconds a float-seconds field takes besides 0 (the ms the
@@ -56,42 +50,6 @@ def length_problems(data: Mapping[str, Any], limits: Mapping[str, int],
 
 def _too_long(path: str, value: str, limit: int) -> Problem:
     return Problem(path, value, f"{len(value):,} characters: at most {limit:,}")
-
-
-def check_host(value: str) -> str:
-    """A host to connect to or listen on, as given: an IPv4 or IPv6 address, or a host
-    name whose labels are 1..63 characters (letters, digits, ``-``, ``_``; non-ASCII
-    names as IDNA takes them), at most 253 characters in all.  Empty passes (the
-    model's cross checks say whether a host is required).  ValueError says what is
-    wrong."""
-    text = value.strip()
-    if not text:
-        return value
-    if len(text) > MAX_HOST:
-        raise ValueError(f"{len(text):,} characters: a host name has at most {MAX_HOST}")
-    try:
-        ipaddress.ip_address(text.strip("[]"))
-    except ValueError:
-        pass
-    else:
-        return value
-    name = text[:-1] if text.endswith(".") else text  # a fully qualified name's root
-    for label in name.split("."):
-        if not label:
-            raise ValueError("is not a host name: an empty label (two dots in a row, or "
-                             "a dot at the start); use e.g. plc1.local or 192.168.0.10")
-        if len(label) > MAX_LABEL:
-            raise ValueError(f"is not a host name: the label {label[:20]!r}... has "
-                             f"{len(label)} characters, at most {MAX_LABEL}")
-        if label.isascii() and not all(c.isalnum() or c in "-_" for c in label):
-            raise ValueError(f"is not a host name: {label!r} has characters other than "
-                             "letters, digits, '-' and '_' (give the host alone, without "
-                             "scheme, port or path)")
-    try:
-        text.encode("idna")  # what the resolver does with it (socket.getaddrinfo)
-    except UnicodeError as exc:
-        raise ValueError(f"is not a host name IDNA can encode ({exc})") from None
-    return value
 
 
 def check_seconds(value: float) -> float:

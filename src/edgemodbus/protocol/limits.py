@@ -35,6 +35,7 @@ __all__ = [
     "MIN_SLAVE_ID",
     "TCP_UNIT_ID",
     "max_read",
+    "slave_id_problem",
 ]
 
 # Quantities of one request.
@@ -78,6 +79,19 @@ MAX_UNIT_ID = 255
 """A Modbus TCP unit id is one byte, 0..255 (TCP 4.4.2)."""
 TCP_UNIT_ID = 0xFF
 """The unit id that addresses a Modbus TCP device itself, no gateway behind it (TCP 4.4.2)."""
+
+
+def slave_id_problem(slave_id: int, transport: str) -> str | None:
+    """What is wrong with ``slave_id`` on a line of ``transport`` ("rtu", "rtu-over-tcp",
+    "tcp", ...), None when it is allowed: a Modbus TCP unit id is 0..255 (TCP 4.4.2), a
+    slave on an RTU line 1..247 (SL 2.2).  The one rule the device files (config/) and
+    the one-shot read (cli/oneshot.py) check."""
+    if not 0 <= slave_id <= MAX_UNIT_ID:
+        return f"must be 0..{MAX_UNIT_ID}"
+    if transport == "tcp" or MIN_SLAVE_ID <= slave_id <= MAX_SLAVE_ID:
+        return None
+    return (f"must be {MIN_SLAVE_ID}..{MAX_SLAVE_ID} on an RTU line (transport {transport!r}); "
+            f"0..{MAX_UNIT_ID} only as a Modbus TCP unit id")
 
 
 def max_read(area: Area) -> int:
