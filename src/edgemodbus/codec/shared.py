@@ -22,6 +22,22 @@ from typing import Generic, TypeVar
 V = TypeVar("V")
 
 
+class _Key:
+    """A key whose hash is computed once (a template's key is a tuple of many specs)."""
+
+    __slots__ = ("hash", "key")
+
+    def __init__(self, key: Hashable) -> None:
+        self.key = key
+        self.hash = hash(key)
+
+    def __hash__(self) -> int:
+        return self.hash
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, _Key) and self.hash == other.hash and self.key == other.key
+
+
 class SharedCache(Generic[V]):
     """``get(key, make)``: the value cached under ``key``, else ``make()``'s (cached).
     Thread-safe; ``make`` runs outside the lock (two threads may both make a value the
@@ -39,6 +55,7 @@ class SharedCache(Generic[V]):
         self.misses = 0
 
     def get(self, key: Hashable, make: Callable[[], V]) -> V:
+        key = _Key(key)  # hashed once here, not at each of the dicts below
         with self._lock:
             value = self._recent.get(key)
             if value is None and self._weak is not None:
