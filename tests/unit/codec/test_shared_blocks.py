@@ -9,7 +9,7 @@ from __future__ import annotations
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from edgemodbus._ffi import Block
+from edgemodbus._ffi import Block, ScaleFactors
 from edgemodbus.codec import BlockDecoder, ValueSpec
 from edgemodbus.codec import decoder as decoder_module
 from edgemodbus.codec.shared import SharedCache
@@ -92,3 +92,23 @@ def test_the_cache_is_bounded_and_keeps_what_is_in_use() -> None:
     cache.get("f", lambda: Value(0))
     assert cache.get("a", lambda: Value(3)).n == 3  # unused and not recent: made again
     assert len(cache) <= 3
+
+
+def test_devices_with_scale_factors_never_share_a_block_or_its_factor() -> None:
+    """A block whose items use a scale factor points at its device's factor table: two
+    devices of one template compile a block each, and a factor read on one device is
+    not the other's."""
+    ours, theirs = ScaleFactors(["SF"]), ScaleFactors(["SF"])
+
+    def block_of(factors: ScaleFactors) -> BlockDecoder:
+        return BlockDecoder(Area.HOLDING_REGISTER, 2, [
+            (0, ValueSpec("SF", DataType.INT16, holds_factor="SF", factors=factors)),
+            (1, ValueSpec("W", DataType.UINT16, scale_factor="SF", factors=factors))])
+
+    a, b = block_of(ours), block_of(theirs)
+    assert a._shape is not b._shape
+    assert a._shape is block_of(ours)._shape  # within one device: shared
+    assert a.decode(Block.from_values([0xFFFF, 50], False)) == [(0, -1, None), (1, 5.0, None)]
+    assert ours.get("SF") == -1 and theirs.get("SF") is None
+    assert b.decode(Block.from_values([1, 50], False)) == [(0, 1, None), (1, 500, None)]
+    assert ours.get("SF") == -1 and theirs.get("SF") == 1
