@@ -103,15 +103,21 @@ def _fill_item(dst: Any, item: CodecItem, slot: int, aux: int) -> None:
         raise ValueError(f"codec: {item} does not fit the C item ({exc})") from None
 
 
-class CodecPlan:
-    """A compiled read block: C item array, typed output arrays and change-tracking state.
+class CodecLayout:
+    """The immutable part of a compiled read block: the C items, the engineering units
+    steps, where each item's value lands and how the values list is assembled.
 
     ``posts[i]`` (or None) turns item i's raw result into its Python value (bytes for
     BYTES items).  ``scales[i]`` (or None; no list: no item is) is item i's engineering
     units step; ``sources`` the (item index, factor slot) of the items that hold a
-    scale factor of ``factors`` (needed by both).  Used by one thread at a time, like
-    the block it decodes.
-    """
+    scale factor of ``factors`` (needed by both).  Never written after it is built, so
+    the plans of many devices whose blocks hold the same items share one (C reads the
+    items through a const pointer, csrc/emb_codec.h); each :class:`CodecPlan` has the
+    per-device arrays and change-tracking state."""
+
+    __slots__ = ("__weakref__", "_citems", "_scales", "_sources", "bits", "factors",
+                 "getter", "group", "n_bytes", "n_items", "runs", "sizes", "slot",
+                 "special")
 
     def __init__(
         self,
@@ -142,59 +148,25 @@ class CodecPlan:
                 auxes.append(0)
         self.bits = bits
         self.n_items = n
+        self.n_bytes = n_bytes
+        self.factors = factors
         self._citems = ffi.new("emb_item[]", max(n, 1))
         for k, it in enumerate(items):
             _fill_item(self._citems[k], it, slots[k], auxes[k])
+        self._scales: Any = ffi.NULL
+        self._sources: Any = ffi.NULL
+        try:
+            self._lay_out(scales, sources)
+        except (OverflowError, TypeError) as exc:
+            raise ValueError(f"codec: scaling steps do not fit the C plan ({exc})") from None
         ni, nu, nf, nb = sizes
-        self._i64 = ffi.new("int64_t[]", max(ni, 1))
-        self._u64 = ffi.new("uint64_t[]", max(nu, 1))
-        self._f64 = ffi.new("double[]", max(nf, 1))
-        self._bool = ffi.new("_Bool[]", max(nb, 1))
-        self._bytes = ffi.new("uint8_t[]", max(n_bytes, 1))
-        self._last_bytes = ffi.new("uint8_t[]", max(n_bytes, 1))
-        self._status = ffi.new("uint8_t[]", max(n, 1))
-        self._errval = ffi.new("emb_errval[]", max(n, 1))
-        self._errs = ffi.new("uint32_t[]", max(n, 1))
-        self._changed = ffi.new("uint32_t[]", max(n, 1))
-        self._last = ffi.new("uint64_t[]", max(n, 1))
-        self._last_status = ffi.new("uint8_t[]", max(n, 1))
-        plan = ffi.new("emb_plan *")
-        plan.items = self._citems
-        plan.n_items = n
-        plan.bits = 1 if bits else 0
-        plan.out_i64, plan.n_i64 = self._i64, ni
-        plan.out_u64, plan.n_u64 = self._u64, nu
-        plan.out_f64, plan.n_f64 = self._f64, nf
-        plan.out_bool, plan.n_bool = self._bool, nb
-        plan.out_bytes, plan.n_bytes = self._bytes, n_bytes
-        plan.status, plan.errval = self._status, self._errval
-        plan.errs, plan.changed = self._errs, self._changed
-        plan.last, plan.last_status, plan.last_bytes = (
-            self._last,
-            self._last_status,
-            self._last_bytes,
-        )
-        self._scaling(plan, scales, factors, sources)
-        bad = lib.emb_plan_check(plan)
-        if bad:
-            where = f"item {bad - 1}" if bad > 0 else "the plan"
-            raise ValueError(f"codec: {where} is inconsistent (a bug in the item compiler)")
-        lib.emb_reset(plan)
-        self._plan = plan
-        self._sizes = (ni, nu, nf, nb)
-        self.status_view = memoryview(ffi.buffer(self._status, n))  # EMB_E_* of each item
-        # Typed views that turn the integer and bool arrays into lists at C speed (for
-        # doubles ffi.unpack is the faster one); an empty group shares one empty view.
-        self._view_i64 = _typed_view(self._i64, ni, "q")
-        self._view_u64 = _typed_view(self._u64, nu, "Q")
-        self._view_bool = _typed_view(self._bool, nb, "?")
-        self._bytes_buf = ffi.buffer(self._bytes)
+        self.sizes = (ni, nu, nf, nb)
         # Item k's value is lists[src][idx]: src 0..3 the groups, 4 the post-processed items.
         # Per item (a gateway holds one per tag) its group (0..3, or 4 for special[j],
         # post-processed or bytes) and its slot in that group (or j), as a tuple and a
-        # list of the small ints Python keeps anyway (0..256), which :meth:`value` reads
-        # fastest; larger slots (a block of many bits) go in an int array instead.
-        self._arrays = (self._i64, self._u64, self._f64, self._bool)
+        # list of the small ints Python keeps anyway (0..256), which
+        # :meth:`CodecPlan.value` reads fastest; larger slots (a block of many bits) go in
+        # an int array instead.
         special: list[tuple[int, int, int, Callable[[Any], object] | None, int]] = []
         place: list[tuple[int, int]] = []
         for k, group in enumerate(group_of):
@@ -206,13 +178,13 @@ class CodecPlan:
             else:
                 place.append((4, len(special)))
                 special.append((k, g, slots[k], post, aux))
-        self._group = tuple(src for src, _ in place)
+        self.group = tuple(src for src, _ in place)
         slot_of = [idx for _, idx in place]
-        self._slot: list[int] | array[int] = (
+        self.slot: list[int] | array[int] = (
             slot_of if max(slot_of, default=0) <= 256 else array("H" if n <= 0xFFFF else "I",
                                                                    slot_of)
         )
-        self._special = special
+        self.special = special
         # Assemble the values list from runs of consecutive slots (a few list slices for
         # the usual blocks of same-typed items), or with one itemgetter when interleaved.
         runs: list[list[int]] = []
@@ -222,35 +194,18 @@ class CodecPlan:
             else:
                 runs.append([src, idx, idx + 1])
         lengths = (ni, nu, nf, nb, len(special))
-        self._runs: list[tuple[int, int, int, bool]] = []
-        self._getter: Callable[[list[object]], Any] | None = None
+        self.runs: list[tuple[int, int, int, bool]] = []
+        self.getter: Callable[[list[object]], Any] | None = None
         if len(runs) > max(4, n // 8):
             base = (0, ni, ni + nu, ni + nu + nf, ni + nu + nf + nb)
-            self._getter = operator.itemgetter(*[base[src] + idx for src, idx in place])
+            self.getter = operator.itemgetter(*[base[src] + idx for src, idx in place])
         else:
-            self._runs = [(src, a, b, a == 0 and b == lengths[src]) for src, a, b in runs]
+            self.runs = [(src, a, b, a == 0 and b == lengths[src]) for src, a, b in runs]
 
-    def _scaling(
-        self,
-        plan: Any,
-        scales: Sequence[CodecScale | None],
-        factors: ScaleFactors | None,
-        sources: Sequence[tuple[int, int]],
-    ) -> None:
-        """Lay out the engineering units steps (plan.scales, EMB_F_EXT items' aux) and
-        the scale factor items (plan.sf_src) over ``factors``' table."""
-        try:
-            self._lay_out(plan, scales, factors, sources)
-        except (OverflowError, TypeError) as exc:
-            raise ValueError(f"codec: scaling steps do not fit the C plan ({exc})") from None
-
-    def _lay_out(
-        self,
-        plan: Any,
-        scales: Sequence[CodecScale | None],
-        factors: ScaleFactors | None,
-        sources: Sequence[tuple[int, int]],
-    ) -> None:
+    def _lay_out(self, scales: Sequence[CodecScale | None],
+                 sources: Sequence[tuple[int, int]]) -> None:
+        """Lay out the engineering units steps (EMB_F_EXT items' aux) and the scale
+        factor items of the block."""
         used = [(k, sc) for k, sc in enumerate(scales) if sc is not None]
         if used:
             self._scales = ffi.new("emb_scale[]", len(used))
@@ -264,15 +219,102 @@ class CodecPlan:
                     citem.flags |= lib.EMB_F_MULTIPLY  # by 1.0: EXT rides on its test
                     citem.scale = 1.0
                 citem.aux = j
-            plan.scales, plan.n_scales = self._scales, len(used)
         if sources:
             self._sources = ffi.new("emb_sfsrc[]", len(sources))
             for j, (k, index) in enumerate(sources):
                 self._sources[j].item = k
                 self._sources[j].index = index
-            plan.sf_src, plan.n_sf_src = self._sources, len(sources)
-        if factors is not None:
-            plan.sf, plan.n_sf = factors._table, len(factors.names)
+
+    def bind(self, plan: Any) -> None:
+        """Point the C plan ``plan`` at the items, steps and factor table."""
+        plan.items = self._citems
+        plan.n_items = self.n_items
+        plan.bits = 1 if self.bits else 0
+        if self._scales != ffi.NULL:
+            plan.scales, plan.n_scales = self._scales, len(self._scales)
+        if self._sources != ffi.NULL:
+            plan.sf_src, plan.n_sf_src = self._sources, len(self._sources)
+        if self.factors is not None:
+            plan.sf, plan.n_sf = self.factors._table, len(self.factors.names)
+
+
+class CodecPlan:
+    """A compiled read block of one device: a :class:`CodecLayout` (shared), its typed
+    output arrays and change-tracking state (its own).
+
+    ``CodecPlan(bits, items, posts, ...)`` compiles a layout of its own (see
+    :class:`CodecLayout` for the arguments); :meth:`of` makes a plan over a layout that
+    other plans may share.  Used by one thread at a time, like the block it decodes.
+    """
+
+    def __init__(
+        self,
+        bits: bool,
+        items: Sequence[CodecItem],
+        posts: Sequence[Callable[[Any], object] | None],
+        scales: Sequence[CodecScale | None] = (),
+        factors: ScaleFactors | None = None,
+        sources: Sequence[tuple[int, int]] = (),
+    ) -> None:
+        self._bind(CodecLayout(bits, items, posts, scales, factors, sources))
+
+    @classmethod
+    def of(cls, layout: CodecLayout) -> CodecPlan:
+        """A new plan (fresh state: every item unreported) over ``layout``."""
+        plan = cls.__new__(cls)
+        plan._bind(layout)
+        return plan
+
+    def _bind(self, layout: CodecLayout) -> None:
+        n = layout.n_items
+        n_bytes = layout.n_bytes
+        ni, nu, nf, nb = self._sizes = layout.sizes
+        self.layout = layout
+        self.bits = layout.bits
+        self.n_items = n
+        self._i64 = ffi.new("int64_t[]", max(ni, 1))
+        self._u64 = ffi.new("uint64_t[]", max(nu, 1))
+        self._f64 = ffi.new("double[]", max(nf, 1))
+        self._bool = ffi.new("_Bool[]", max(nb, 1))
+        self._bytes = ffi.new("uint8_t[]", max(n_bytes, 1))
+        self._last_bytes = ffi.new("uint8_t[]", max(n_bytes, 1))
+        self._status = ffi.new("uint8_t[]", max(n, 1))
+        self._errval = ffi.new("emb_errval[]", max(n, 1))
+        self._errs = ffi.new("uint32_t[]", max(n, 1))
+        self._changed = ffi.new("uint32_t[]", max(n, 1))
+        self._last = ffi.new("uint64_t[]", max(n, 1))
+        self._last_status = ffi.new("uint8_t[]", max(n, 1))
+        plan = ffi.new("emb_plan *")
+        layout.bind(plan)
+        plan.out_i64, plan.n_i64 = self._i64, ni
+        plan.out_u64, plan.n_u64 = self._u64, nu
+        plan.out_f64, plan.n_f64 = self._f64, nf
+        plan.out_bool, plan.n_bool = self._bool, nb
+        plan.out_bytes, plan.n_bytes = self._bytes, n_bytes
+        plan.status, plan.errval = self._status, self._errval
+        plan.errs, plan.changed = self._errs, self._changed
+        plan.last, plan.last_status, plan.last_bytes = (
+            self._last,
+            self._last_status,
+            self._last_bytes,
+        )
+        bad = lib.emb_plan_check(plan)
+        if bad:
+            where = f"item {bad - 1}" if bad > 0 else "the plan"
+            raise ValueError(f"codec: {where} is inconsistent (a bug in the item compiler)")
+        lib.emb_reset(plan)
+        self._plan = plan
+        self.status_view = memoryview(ffi.buffer(self._status, n))  # EMB_E_* of each item
+        # Typed views that turn the integer and bool arrays into lists at C speed (for
+        # doubles ffi.unpack is the faster one); an empty group shares one empty view.
+        self._view_i64 = _typed_view(self._i64, ni, "q")
+        self._view_u64 = _typed_view(self._u64, nu, "Q")
+        self._view_bool = _typed_view(self._bool, nb, "?")
+        self._bytes_buf = ffi.buffer(self._bytes)
+        self._arrays = (self._i64, self._u64, self._f64, self._bool)
+        # the layout's, read by values() and value() on every decode
+        self._group, self._slot, self._special = layout.group, layout.slot, layout.special
+        self._runs, self._getter = layout.runs, layout.getter
 
     def decode(self, block: Block, mode: int) -> int:
         """Run the C decode over ``block``; returns the reported (or failed) item count."""

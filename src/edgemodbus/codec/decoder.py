@@ -13,6 +13,7 @@ from .. import _ffi
 from .._ffi import Block, CodecPlan
 from ..datatypes import Area, DataType
 from .scaling import SF_MAX, scale_step
+from .shared import SharedCache
 from .spec import ValueSpec, _compile, _Compiled, check_spec
 
 __all__ = ["BlockDecoder", "Change"]
@@ -77,24 +78,12 @@ def _scaling(
     return steps, factors, sources
 
 
-class BlockDecoder:
-    """Decodes every item of one read block in one C call, reporting only what changed.
+class _Shape:
+    """The immutable part of a :class:`BlockDecoder`: the checked, compiled items of a
+    block (their C layout), their specs and offsets.  Shared by every decoder of the
+    same area, count and items (:data:`_SHAPES`)."""
 
-    Compiled once per plan; each decode reuses the same arrays.  Use from one thread at a
-    time (the worker of the line that reads the block).
-    """
-
-    __slots__ = (
-        "_indexes",
-        "_offsets",
-        "_plan",
-        "_reported",
-        "_spec_of",
-        "_specs",
-        "_texts",
-        "area",
-        "count",
-    )
+    __slots__ = ("__weakref__", "layout", "offsets", "spec_of", "specs", "strings")
 
     def __init__(self, area: Area, count: int, items: Sequence[tuple[int, ValueSpec]]) -> None:
         if not (isinstance(count, int) and count >= 0):
@@ -109,30 +98,68 @@ class BlockDecoder:
                     f"of {count} {'bits' if area.is_bit else 'registers'}"
                 )
             compiled.append(_compile(spec, area, offset))
-        self.area = area
-        self.count = count
         # Each item's spec and offset, for error reasons (rare) only: as small ints in
         # arrays (a gateway holds one decoder entry per tag), the specs an index into
         # the distinct ones (the items of a block share a few specs).
         distinct: dict[ValueSpec, int] = {}
         spec_of = [distinct.setdefault(spec, len(distinct)) for _, spec in items]
-        self._specs = tuple(distinct)
-        self._spec_of = _small_ints(spec_of)
-        self._offsets = _small_ints([offset for offset, _ in items])
-        # the compiled items live on in the C plan only: error reasons, which are rare,
+        self.specs = tuple(distinct)
+        self.spec_of = _small_ints(spec_of)
+        self.offsets = _small_ints([offset for offset, _ in items])
+        # the compiled items live on in the C layout only: error reasons, which are rare,
         # compile their item again (see _reason), which keeps a decoder small per tag
-        self._plan = CodecPlan(area.is_bit, [c.item for c in compiled],
-                               [c.post for c in compiled], *_scaling(items))
-        self._indexes = _shared_indexes(len(compiled))
+        self.layout = _ffi.CodecLayout(area.is_bit, [c.item for c in compiled],
+                                       [c.post for c in compiled], *_scaling(items))
+        self.strings = tuple(k for k, (_, spec) in enumerate(items)
+                             if spec.data_type is DataType.STRING)
+
+
+# Compiled blocks by (area, count, items): the devices of one template share them.  A
+# spec with scale factors holds its device's own ScaleFactors (compared by identity),
+# so such blocks are shared only within their device.
+_SHAPES: SharedCache[_Shape] = SharedCache(keep=256)
+
+
+class BlockDecoder:
+    """Decodes every item of one read block in one C call, reporting only what changed.
+
+    Compiled once per plan; each decode reuses the same arrays.  Use from one thread at a
+    time (the worker of the line that reads the block).
+    """
+
+    __slots__ = (
+        "_indexes",
+        "_offsets",
+        "_plan",
+        "_reported",
+        "_shape",
+        "_spec_of",
+        "_specs",
+        "_texts",
+        "area",
+        "count",
+    )
+
+    def __init__(self, area: Area, count: int, items: Sequence[tuple[int, ValueSpec]]) -> None:
+        # the compiled block is shared by every decoder of the same items (a template's
+        # devices): only the state below is this decoder's own
+        shape = _SHAPES.get((area, count, tuple(items)),
+                            lambda: _Shape(area, count, items))
+        self._shape = shape
+        self.area = area
+        self.count = count
+        self._specs = shape.specs
+        self._spec_of = shape.spec_of
+        self._offsets = shape.offsets
+        self._plan = CodecPlan.of(shape.layout)
+        self._indexes = _shared_indexes(shape.layout.n_items)
         # The tuple last reported for each item: mirrors the C state, so that a report of
         # every item rebuilds only the tuples whose value or status moved.
         self._reported: list[Change] = []
         # String items decode bytes that are not valid text to U+FFFD, so different
         # bytes (which C compares) can give the text already reported: the last text
         # reported for each String item (_NO_TEXT after an error or a reset).
-        self._texts: dict[int, object] = {
-            k: _NO_TEXT for k, (_, spec) in enumerate(items) if spec.data_type is DataType.STRING
-        }
+        self._texts: dict[int, object] = dict.fromkeys(shape.strings, _NO_TEXT)
 
     @property
     def specs(self) -> list[ValueSpec]:

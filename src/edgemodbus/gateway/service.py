@@ -84,6 +84,8 @@ class Gateway:
         self.gateway_file = (gateway_file or config_dir / GATEWAY_FILE).resolve()
         self.gateway_id = config.effective_id
         self.devices: dict[Path, ServiceDevice] = {}
+        # deviceCode -> path of the device last started with it (only _start_device adds)
+        self._code_paths: dict[str, Path] = {}
         self.publisher: Publisher | None = None
         self.exporter: MetricsExporter | None = None
         self.serving = GatewayServer()  # the Modbus TCP server (gateway file: serve)
@@ -321,7 +323,8 @@ class Gateway:
     def reload_devices(self) -> None:
         """Bring the running devices in line with the folder (see gateway/__init__.py)."""
         files = self.device_files()
-        for path in [p for p in self.devices if p not in files]:
+        present = set(files)  # thousands of files: no list scan per device
+        for path in [p for p in self.devices if p not in present]:
             dev = self.devices.pop(path)
             self._stop_device(dev)
             log.info("%s: stopped (%s removed)", dev.code, path.name)
@@ -357,10 +360,10 @@ class Gateway:
     def _start_device(self, path: Path, digest: str, cfg: DeviceConfig,
                       action: str = "started") -> None:
         code = self._code(path, cfg)
-        taken = [d.path for d in self.devices.values() if d.code == code]
-        if taken:
+        holder = self.devices.get(self._code_paths.get(code, path))
+        if holder is not None and holder.code == code:
             log.error("%s: deviceCode %r is already used by %s; not started", path, code,
-                      taken[0].name)
+                      holder.path.name)
             return
         org = cfg.organization.model_copy(update={"device_code": code})
         comm = cfg.communication
@@ -382,6 +385,7 @@ class Gateway:
             return
         status = driver.device_driver_status.value
         self.devices[path] = ServiceDevice(path, digest, cfg, code, driver, status)
+        self._code_paths[code] = path
         if running:
             log.info("%s: %s from %s (%d items)", code, action, path.name, len(items))
         else:

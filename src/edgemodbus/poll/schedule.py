@@ -22,7 +22,8 @@ from typing import TYPE_CHECKING, Any
 
 from ..config import ON_DEMAND, DriverModbusRtuParameter, ParsedItem
 from ..protocol.address import entity_lookalike, entity_notice
-from .planner import PlanItem, ReadBlock, plan_reads
+from .plan_cache import shared_plan
+from .planner import PlanItem, ReadBlock
 
 if TYPE_CHECKING:
     from .items import ItemState
@@ -37,14 +38,15 @@ def item_rate(parsed: ParsedItem, params: DriverModbusRtuParameter) -> int:
 def build_plan(items: Sequence[ParsedItem], params: DriverModbusRtuParameter,
                demand: bool = False) -> list[ReadBlock]:
     """The read blocks of a device's enabled, polled items (``demand``: of its on-demand
-    items instead, readCycle -1); piece keys index ``items``."""
+    items instead, readCycle -1); piece keys index ``items``.  Planned once per distinct
+    list of planned items and options (poll/plan_cache.py): a template's devices share it."""
     plan_items = []
     for i, p in enumerate(items):
         rate = item_rate(p, params)
         if p.item.is_enable and (rate == ON_DEMAND if demand else rate > 0):
             size = 1 if p.address.area.is_bit else p.registers
             plan_items.append(PlanItem(i, p.address.area, p.address.offset, size, rate))
-    return plan_reads(
+    return shared_plan(
         plan_items,
         max_registers=params.max_block_read_register_count,
         max_bits=params.max_block_read_bit_count,
