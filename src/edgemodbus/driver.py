@@ -113,8 +113,7 @@ class DriverModbusRtu:
         validate_actions(actions, parsed)
         check_free(addresses)  # ItemInUseError: an item polled by a running driver
         self._actions = list(actions)
-        endpoint = endpoint_for(params)
-        timing = _timing(params)
+        endpoint, timing = endpoint_for(params), _timing(params)
         # builds the items' codec specs, the plan and its decoders: raises here, not
         # after the line's worker is running
         poller = Poller(_Sink(self), code, params, parsed, self.logger)
@@ -122,17 +121,18 @@ class DriverModbusRtu:
         if notice is not None:
             self.logger.warning("%s: %s", code, notice)
         if params.read_cycle == 0 and params.framing != "wrapped-report":
-            self.logger.warning("%s: readCycle 0 means report-only, but framing is %r: "
-                                "nothing will update this device's items",
-                                code, params.framing)
-        # the poller is ours before its line runs it: its first callbacks may ask for stats
+            self.logger.warning("%s: readCycle 0 means report-only, but framing is %r: nothing "
+                                "will update this device's items", code, params.framing)
+        # ours before the line runs the poller: its first callbacks and snapshot come at once
+        before = self._org, self._params, self._enabled
         self._poller = poller
+        self._org, self._params, self._enabled = org_param, params, True
         try:
             line, slot = self._acquire(params, endpoint, timing, poller)
         except BaseException:
             self._poller = None
+            self._org, self._params, self._enabled = before
             raise
-        self._org, self._params, self._enabled = org_param, params, True
         self._slot = slot
         self._line, self._last_poller = line, None
         self._status = DeviceDriverStatus.CONNECTING

@@ -462,6 +462,28 @@ def test_fc16_refused_falls_back_to_fc06() -> None:
             assert drv.stats()["line"]["exceptions"] == {1: 1}
 
 
+def test_the_first_snapshot_names_the_device_even_before_start_returns(
+        slave: PymodbusSlave, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The line may run the first pass and publish its snapshot before start_device
+    returns: the snapshot said deviceCode "device" (the driver's organization was set
+    after the line started).  Here start_device waits for that snapshot first."""
+    published: list[dict[str, Any]] = []
+    acquire = em.DriverModbusRtu._acquire
+
+    def acquire_then_wait(self: em.DriverModbusRtu, *args: Any) -> Any:
+        got = acquire(self, *args)
+        wait_for(lambda: bool(published), what="the first snapshot, before start returns")
+        return got
+
+    monkeypatch.setattr(em.DriverModbusRtu, "_acquire", acquire_then_wait)
+    cfg = device(slave.port, [{"name": "a", "address": "hr:2", "deviceDataType": "UInt16"}],
+                 snapshotInterval=100)
+    with Running(cfg, snapshot_publisher=lambda _t, snap: published.append(snap)):
+        pass
+    assert published[0]["deviceCode"] == "dev1"
+    assert published[0]["readCycle"] == cfg.communication.read_cycle
+
+
 def test_snapshot_and_stats_keys(slave: PymodbusSlave) -> None:
     published: list[tuple[str, dict[str, Any]]] = []
     cfg = device(slave.port, [{"name": "a", "address": "coil:2", "deviceDataType": "Boolean"}],
