@@ -8,6 +8,10 @@
 extern const emb_backend emb_stream_backend;
 extern const emb_backend emb_wrapped_backend;
 
+#define EMB_STREAM_MORE (-2) /* emb_stream_try: no whole frame yet */
+
 int emb_report_take(emb_link *lk, uint8_t *out);
+int emb_stream_fill(emb_link *lk, int fd);
+int emb_stream_try(emb_link *lk, int slave, uint8_t *rsp, int *got);
 
 #endif

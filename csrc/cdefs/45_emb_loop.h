@@ -32,3 +32,9 @@ int64_t emb_timer_of(const emb_loop *lp, uint32_t slot);
 int emb_loop_wait(emb_loop *lp, int64_t until_ns, uint32_t *ready, uint32_t *ready_events,
                   int max_ready, uint32_t *expired, int max_expired, int *n_expired,
                   int *woken);
+
+/* csrc/emb_stream.h: the non-blocking framer of plain RTU streams, which the loop
+ * engine receives with */
+#define EMB_STREAM_MORE ...
+int emb_stream_fill(emb_link *lk, int fd);
+int emb_stream_try(emb_link *lk, int slave, uint8_t *rsp, int *got);
