@@ -535,28 +535,49 @@ static int emb_wrapped_send(modbus_t *ctx, emb_link *lk, int slave, const uint8_
     return emb_write_all(modbus_get_socket(ctx), wrapped, *sent_len + 5);
 }
 
+/* When a settle or drain that began at start_ns ends (emb_discard_input's timing): at
+ * total_ms, or quiet_ms after the last bytes (last_ns, 0: none yet) if that is later, but
+ * never past limit_ms (at least total_ms).  Pure: the blocking discard below waits for
+ * it, the loop engine (csrc/emb_loop.c) sets it as the settling link's deadline. */
+int64_t emb_settle_until(int64_t start_ns, int64_t last_ns, int total_ms, int quiet_ms,
+                         int limit_ms)
+{
+    int64_t total = start_ns + (int64_t)total_ms * 1000000, until = total;
+
+    if (limit_ms < total_ms)
+        limit_ms = total_ms;
+    if (last_ns) {
+        until = last_ns + (int64_t)quiet_ms * 1000000;
+        if (until < total)
+            until = total;
+    }
+    if (until > start_ns + (int64_t)limit_ms * 1000000)
+        until = start_ns + (int64_t)limit_ms * 1000000;
+    return until;
+}
+
+/* Frame what the link received with nothing asked (a settling link's bytes, input on
+ * an idle one): wrapped reports queued, heartbeats counted, stale bytes dropped.  The
+ * bytes dropped, or -1 with errno EINVAL for a link without stream buffers. */
+long emb_stream_take_idle(emb_link *lk)
+{
+    if (!emb_has_buffers(lk))
+        return -1;
+    return emb_stream_idle(lk);
+}
+
 /* emb_discard_input for a stream link: what comes is framed (reports queued: a late
  * wrapped frame carries its address, so it is a valid report; heartbeats counted) and
  * the rest dropped.  Returns the stale bytes dropped (plain RTU streams). */
 static long emb_stream_discard(emb_link *lk, int fd, int total_ms, int quiet_ms,
                                int limit_ms)
 {
-    int64_t start = emb_now_ns(), last = 0, until;
+    int64_t start = emb_now_ns(), last = 0;
     long dropped = 0;
     int rc;
 
-    if (limit_ms < total_ms)
-        limit_ms = total_ms;
     for (;;) {
-        until = start + (int64_t)total_ms * 1000000;
-        if (last) {
-            until = last + (int64_t)quiet_ms * 1000000;
-            if (until < start + (int64_t)total_ms * 1000000)
-                until = start + (int64_t)total_ms * 1000000;
-        }
-        if (until > start + (int64_t)limit_ms * 1000000)
-            until = start + (int64_t)limit_ms * 1000000;
-        rc = emb_rx_fill(lk, fd, until);
+        rc = emb_rx_fill(lk, fd, emb_settle_until(start, last, total_ms, quiet_ms, limit_ms));
         if (rc == -1)
             return -1;
         if (rc == 0)

@@ -38,3 +38,6 @@ int emb_loop_wait(emb_loop *lp, int64_t until_ns, uint32_t *ready, uint32_t *rea
 #define EMB_STREAM_MORE ...
 int emb_stream_fill(emb_link *lk, int fd);
 int emb_stream_try(emb_link *lk, int slave, uint8_t *rsp, int *got);
+long emb_stream_take_idle(emb_link *lk);
+int64_t emb_settle_until(int64_t start_ns, int64_t last_ns, int total_ms, int quiet_ms,
+                         int limit_ms);

@@ -119,3 +119,46 @@ def test_pieces_frame_as_the_model_says(case: tuple[bytes, bytes, list[int]]) ->
     finally:
         a.close()
         b.close()
+
+
+MS = 1_000_000
+
+
+@settings(max_examples=500, deadline=None)
+@given(start=st.integers(1, 10**12), gap=st.one_of(st.none(), st.integers(0, 5000 * MS)),
+       total=st.integers(0, 2000), quiet=st.integers(0, 500), limit=st.integers(0, 5000))
+def test_the_settle_deadline_follows_its_rules(start: int, gap: int | None, total: int,
+                                               quiet: int, limit: int) -> None:
+    """emb_settle_until (the settling link's deadline in the loop engine, the wait of the
+    blocking discard): total_ms; once bytes came, quiet_ms after the last if later; never
+    past limit_ms, which is at least total_ms."""
+    last = 0 if gap is None else start + gap
+    got = lib.emb_settle_until(start, last, total, quiet, limit)
+    cap = start + max(limit, total) * MS
+    want = start + total * MS
+    if last:
+        want = max(want, last + quiet * MS)
+    assert got == min(want, cap)
+    assert start + min(total, max(limit, total)) * MS <= got <= cap
+
+
+def test_bytes_with_nothing_asked_are_dropped_and_heartbeats_counted() -> None:
+    link = ffi.new("emb_link *")
+    buf = ffi.new("emb_stream_buf *")
+    assert lib.emb_stream_take_idle(link) == -1  # no stream buffers
+    link.sb = buf
+    ffi.memmove(link.hb, b"HB", 2)
+    link.hb_len = 2
+    a, b = socket.socketpair()
+    try:
+        a.setblocking(False)
+        b.sendall(b"HB\x07\x03\x02HB\x01")
+        assert lib.emb_stream_fill(link, a.fileno()) == 8
+        assert lib.emb_stream_take_idle(link) == 4  # 07 03 02, 01
+        assert link.heartbeats == 2
+        rsp = ffi.new("uint8_t[]", int(lib.EMB_MAX_ADU))
+        got = ffi.new("int *")
+        assert lib.emb_stream_try(link, SLAVE, rsp, got) == MORE  # nothing left
+    finally:
+        a.close()
+        b.close()
