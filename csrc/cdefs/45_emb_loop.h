@@ -41,3 +41,19 @@ int emb_stream_try(emb_link *lk, int slave, uint8_t *rsp, int *got);
 long emb_stream_take_idle(emb_link *lk);
 int64_t emb_settle_until(int64_t start_ns, int64_t last_ns, int total_ms, int quiet_ms,
                          int limit_ms);
+
+/* csrc/emb_loop_link.h: one link of the loop engine */
+#define EMB_LS_IDLE ...
+#define EMB_LS_AWAIT ...
+#define EMB_LS_SETTLE ...
+#define EMB_LS_FAILED ...
+typedef struct {
+    emb_engine *e;
+    int fd;
+    uint32_t slot;
+    int state;
+    int which;
+    int byte_ms;
+    ...;
+} emb_loop_link;
+int emb_loop_link_run(emb_loop *lp, emb_loop_link *k);

@@ -11,9 +11,13 @@ reads).  :meth:`Loop.wait` runs without the GIL.
 from __future__ import annotations
 
 import os
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 from .native import ffi, lib
+
+if TYPE_CHECKING:
+    from .context import Context
+    from .engine import Engine
 
 READABLE: int = lib.EMB_LOOP_IN
 WRITABLE: int = lib.EMB_LOOP_OUT
@@ -128,3 +132,61 @@ class Loop:
         ready = [(int(self._ready[i]), int(self._events[i])) for i in range(n)]
         expired = [int(self._expired[i]) for i in range(self._n_expired[0])]
         return Turn(ready, expired, bool(self._woken[0]))
+
+
+# the link's states (csrc/emb_loop_link.h) and what its run hands back (csrc/emb_edev.h)
+LS_IDLE: int = lib.EMB_LS_IDLE
+LS_AWAIT: int = lib.EMB_LS_AWAIT
+LS_SETTLE: int = lib.EMB_LS_SETTLE
+LS_FAILED: int = lib.EMB_LS_FAILED
+EV_WAITS: int = 0  # the link waits for its socket or its deadline
+EV_CYCLE: int = lib.EMB_EV_CYCLE
+EV_FAILED: int = lib.EMB_EV_FAILED
+EV_SPLIT: int = lib.EMB_EV_SPLIT
+
+
+class LoopLink:
+    """One plain RTU DTU stream as a state machine on ``loop`` under ``slot``
+    (csrc/emb_loop_link.c): the devices, counters and cleaning of ``engine`` (an
+    :class:`~edgemodbus._ffi.engine.Engine` on ``ctx``, a context on the DTU's
+    socket), no thread of its own.  Wrapped streams and echoing lines are not served
+    yet (the blocking engine serves them)."""
+
+    def __init__(self, loop: Loop, slot: int, engine: Engine, ctx: Context,
+                 byte_timeout: float) -> None:
+        if ctx.wrapped or ctx.echo:
+            raise ValueError(f"{ctx.label}: the loop engine serves plain RTU streams only "
+                             "(not wrapped, no echo)")
+        if not 0 <= byte_timeout <= 60:
+            raise ValueError(f"{ctx.label}: byte timeout {byte_timeout!r} s: must be 0..60")
+        self.loop = loop
+        self.slot = loop._slot(slot)
+        self.engine = engine
+        self.ctx = ctx
+        ctx.ensure_stream_buffers()
+        fd = ctx.fd
+        os.set_blocking(fd, False)
+        k = ffi.new("emb_loop_link *")
+        k.e = engine.native
+        k.fd = fd
+        k.slot = slot
+        k.state = LS_IDLE
+        k.which = -1
+        k.byte_ms = round(byte_timeout * 1000)
+        self._k = k
+        loop.watch(fd, slot)
+
+    @property
+    def state(self) -> int:
+        return int(self._k.state)
+
+    def run(self) -> int:
+        """Take the link as far as it goes now (GIL released): ``EV_WAITS``, or
+        ``EV_CYCLE`` (the engine's ``take_ended``), ``EV_SPLIT`` or ``EV_FAILED`` for
+        Python, which acts and runs it again."""
+        return int(lib.emb_loop_link_run(self.loop._lp, self._k))
+
+    def detach(self) -> None:
+        """Leave the loop (its deadline and its socket); the socket stays the caller's."""
+        self.loop.clear_timer(self.slot)
+        self.loop.unwatch(self.ctx.fd)

@@ -1,0 +1,107 @@
+"""Links of the loop engine (csrc/emb_loop_link.c): several DTU streams served by one
+thread (this test's) through one epoll set and deadline heap, against pymodbus
+(RTU over TCP, an independent slave): exact values on every link, and the fault policy
+of the blocking engine on a silent slave (timeouts, settle, offline with backoff)."""
+
+from __future__ import annotations
+
+import socket
+import time
+from collections.abc import Callable, Iterator
+from contextlib import ExitStack, contextmanager
+from dataclasses import dataclass
+
+from edgemodbus._ffi.context import Context
+from edgemodbus._ffi.engine import BlockSpec, Engine, EngineDevice, Waker
+from edgemodbus._ffi.loop import EV_CYCLE, EV_WAITS, Loop, LoopLink
+from edgemodbus._ffi.outcomes import ST_BACK, ST_OFFLINE, Clean, LineCounters
+from tests.peers import PymodbusSlave, default_register
+
+CLEAN = Clean(settle=0.05, settle_limit=0.2, quiet=0.01, drain_limit=0.1)
+
+
+@dataclass
+class Dtu:
+    sock: socket.socket
+    ctx: Context
+    engine: Engine
+    device: EngineDevice
+    link: LoopLink
+    counters: LineCounters
+    passes: int = 0
+    status: int = 0
+
+
+@contextmanager
+def dtus(loop: Loop, port: int, specs: list[tuple[int, int]], timeout: float = 0.5,
+         offline_after: int = 3) -> Iterator[list[Dtu]]:
+    """One connection per (unit, start): 10 holding registers from start, 50 ms cycle."""
+    with ExitStack() as stack:
+        out = []
+        for slot, (unit, start) in enumerate(specs):
+            sock = socket.create_connection(("127.0.0.1", port), timeout=10)
+            stack.callback(sock.close)
+            ctx = Context.on_socket(sock.fileno(), f"dtu{slot}", mbap=False)
+            stack.callback(ctx.close)
+            waker = Waker()
+            stack.callback(waker.close)
+            counters = LineCounters()
+            engine = Engine(ctx, waker, counters, 0.0, None, CLEAN)
+            device = EngineDevice(unit, timeout, True, 0.05)
+            device.set_policy(0, offline_after, 0.4)
+            device.set_blocks([BlockSpec(3, start, 10, 0.05, None, True)])
+            device.active = True
+            engine.set_devices([device])
+            link = LoopLink(loop, slot, engine, ctx, byte_timeout=0.1)
+            stack.callback(link.detach)
+            out.append(Dtu(sock, ctx, engine, device, link, counters))
+        yield out
+
+
+def serve(loop: Loop, links: list[Dtu], until: float, done: Callable[[], bool]) -> None:
+    """Run the loop on this thread until ``done()`` or ``until``."""
+    for d in links:
+        d.link.run()
+    while time.monotonic() < until and not done():
+        turn = loop.wait(min(until, time.monotonic() + 0.5))
+        slots = {s for s, _ in turn.ready} | set(turn.expired)
+        for s in sorted(slots):
+            d = links[s]
+            while (ev := d.link.run()) != EV_WAITS:
+                assert ev == EV_CYCLE, (s, ev, d.engine.event_errno)
+                for _ in d.engine.take_ended():
+                    d.passes += 1
+                    d.status |= d.device.take_status()
+
+
+def test_three_dtus_on_one_thread_read_exact_values() -> None:
+    with PymodbusSlave("rtu-over-tcp", units=(1, 2)) as slave, Loop(8) as loop, \
+            dtus(loop, slave.port, [(1, 0), (2, 100), (1, 500)]) as links:
+        serve(loop, links, time.monotonic() + 30, lambda: all(d.passes >= 10 for d in links))
+        for d, (unit, start) in zip(links, [(1, 0), (2, 100), (1, 500)], strict=True):
+            assert d.passes >= 10
+            block = d.device.data(0)
+            assert block is not None
+            assert block.to_list() == [default_register(unit, "hr", a)
+                                       for a in range(start, start + 10)]
+            counts = d.counters.counts()
+            assert counts.timeouts == 0 and counts.protocol_errors == 0, counts
+            assert d.status & ST_BACK
+
+
+def test_a_silent_slave_times_out_goes_offline_and_is_probed_with_backoff() -> None:
+    """Unit 9 is not served (pymodbus stays silent, as an RS-485 slave that is off):
+    every pass times out, after 3 the slave is offline and probed once per backoff; the
+    link beside it on the same loop keeps its cycle."""
+    with PymodbusSlave("rtu-over-tcp", units=(1,)) as slave, Loop(4) as loop, \
+            dtus(loop, slave.port, [(9, 0), (1, 0)], timeout=0.1) as links:
+        silent, good = links
+        start = time.monotonic()
+        serve(loop, links, start + 30, lambda: bool(silent.device.offline)
+              and silent.counters.counts().timeouts >= 5)
+        assert silent.device.offline and silent.status & ST_OFFLINE
+        assert silent.counters.counts().timeouts >= 5
+        assert good.passes >= 10  # the silent link never held the good one
+        block = good.device.data(0)
+        assert block is not None
+        assert block.to_list() == [default_register(1, "hr", a) for a in range(10)]
