@@ -34,7 +34,7 @@ class Dtu:
 
 @contextmanager
 def dtus(loop: Loop, port: int, specs: list[tuple[int, int]], timeout: float = 0.5,
-         offline_after: int = 3) -> Iterator[list[Dtu]]:
+         offline_after: int = 3, clean: Clean = CLEAN) -> Iterator[list[Dtu]]:
     """One connection per (unit, start): 10 holding registers from start, 50 ms cycle."""
     with ExitStack() as stack:
         out = []
@@ -46,7 +46,7 @@ def dtus(loop: Loop, port: int, specs: list[tuple[int, int]], timeout: float = 0
             waker = Waker()
             stack.callback(waker.close)
             counters = LineCounters()
-            engine = Engine(ctx, waker, counters, 0.0, None, CLEAN)
+            engine = Engine(ctx, waker, counters, 0.0, None, clean)
             device = EngineDevice(unit, timeout, True, 0.05)
             device.set_policy(0, offline_after, 0.4)
             device.set_blocks([BlockSpec(3, start, 10, 0.05, None, True)])
@@ -105,3 +105,29 @@ def test_a_silent_slave_times_out_goes_offline_and_is_probed_with_backoff() -> N
         block = good.device.data(0)
         assert block is not None
         assert block.to_list() == [default_register(1, "hr", a) for a in range(10)]
+
+
+def test_a_late_reply_is_waited_out_and_dropped() -> None:
+    """The slave answers after the reply timeout: each late reply comes while the link
+    settles and is dropped (counted), never taken for the next request's answer; once
+    the slave is quick again, the values read are the slave's new ones."""
+    settle = Clean(settle=0.3, settle_limit=0.6, quiet=0.01, drain_limit=0.1)
+    with PymodbusSlave("rtu-over-tcp", units=(1,), response_delay=0.15) as slave, \
+            Loop(2) as loop, dtus(loop, slave.port, [(1, 0)], timeout=0.1,
+                                  offline_after=100, clean=settle) as links:
+        (d,) = links
+        serve(loop, links, time.monotonic() + 30,
+              lambda: d.counters.counts().timeouts >= 3
+              and d.counters.counts().discarded_bytes >= 3 * 25)
+        counts = d.counters.counts()
+        assert counts.timeouts >= 3 and counts.responses == 0
+        assert counts.discarded_bytes >= 3 * 25  # 25 bytes a reply of 10 registers
+        new = [4000 + a for a in range(10)]
+        slave.set_registers(1, "hr", 0, new)
+        slave.set_response_delay(0.0)
+        passes = d.passes
+        serve(loop, links, time.monotonic() + 30,
+              lambda: d.counters.counts().responses >= 5 and d.passes >= passes + 5)
+        block = d.device.data(0)
+        assert block is not None and block.to_list() == new
+        assert d.counters.counts().protocol_errors == 0
