@@ -177,7 +177,7 @@ soak-fleet: build
 # the same run.  Needs an open-files limit of about four times LOOP_LINKS.
 LOOP_LINKS ?= 1000
 soak-loop: build
-	EDGEMODBUS_BENCH_LINKS=$(LOOP_LINKS) $(PYTEST) -p no:cacheprovider -q -s \
+	EDGEMODBUS_BENCH_LINKS=$(LOOP_LINKS) $(PYTEST) -p no:cacheprovider -q -s --benchmark-only \
 	  bench/test_bench_loop_links.py
 
 # The Sparkplug B payload classes, generated from the specification's schema and committed
