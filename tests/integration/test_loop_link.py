@@ -5,6 +5,7 @@ of the blocking engine on a silent slave (timeouts, settle, offline with backoff
 
 from __future__ import annotations
 
+import os
 import socket
 import time
 from collections.abc import Callable, Iterator
@@ -12,10 +13,11 @@ from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass
 
 from edgemodbus._ffi.context import Context
+from edgemodbus._ffi.engine import EV_CYCLE as ENGINE_CYCLE
 from edgemodbus._ffi.engine import BlockSpec, Engine, EngineDevice, Waker
 from edgemodbus._ffi.loop import EV_CYCLE, EV_WAITS, Loop, LoopLink
 from edgemodbus._ffi.outcomes import ST_BACK, ST_OFFLINE, Clean, LineCounters
-from tests.peers import PymodbusSlave, default_register
+from tests.peers import ExceptionRange, PymodbusSlave, default_register
 
 CLEAN = Clean(settle=0.05, settle_limit=0.2, quiet=0.01, drain_limit=0.1)
 
@@ -58,8 +60,10 @@ def dtus(loop: Loop, port: int, specs: list[tuple[int, int]], timeout: float = 0
         yield out
 
 
-def serve(loop: Loop, links: list[Dtu], until: float, done: Callable[[], bool]) -> None:
-    """Run the loop on this thread until ``done()`` or ``until``."""
+def serve(loop: Loop, links: list[Dtu], until: float, done: Callable[[], bool],
+          limit: int | None = None) -> None:
+    """Run the loop on this thread until ``done()`` or ``until``; a link stops after
+    ``limit`` passes (its deadline left unset)."""
     for d in links:
         d.link.run()
     while time.monotonic() < until and not done():
@@ -67,7 +71,10 @@ def serve(loop: Loop, links: list[Dtu], until: float, done: Callable[[], bool]) 
         slots = {s for s, _ in turn.ready} | set(turn.expired)
         for s in sorted(slots):
             d = links[s]
-            while (ev := d.link.run()) != EV_WAITS:
+            while limit is None or d.passes < limit:
+                ev = d.link.run()
+                if ev == EV_WAITS:
+                    break
                 assert ev == EV_CYCLE, (s, ev, d.engine.event_errno)
                 for _ in d.engine.take_ended():
                     d.passes += 1
@@ -131,3 +138,44 @@ def test_a_late_reply_is_waited_out_and_dropped() -> None:
         block = d.device.data(0)
         assert block is not None and block.to_list() == new
         assert d.counters.counts().protocol_errors == 0
+
+
+def _counts_after(engine: str, port: int, passes: int) -> list[tuple[object, ...]]:
+    """Per link, the device's fault counters and state after exactly ``passes`` passes
+    on the loop engine or on the blocking engine (csrc/emb_engine.c)."""
+    specs = [(1, 0), (1, 100), (9, 0)]  # good; exception 02 on every read; silent
+    with Loop(4) as loop, dtus(loop, port, specs, timeout=0.1, offline_after=2) as links:
+        for d in links:
+            d.device.set_policy(1, 2, 0.2)  # a retry per timeout; offline after 2
+        if engine == "loop":
+            serve(loop, links, time.monotonic() + 60,
+                  lambda: all(d.passes >= passes for d in links), limit=passes)
+        else:
+            for d in links:
+                d.link.detach()
+                os.set_blocking(d.ctx.fd, True)
+                while d.passes < passes:
+                    assert d.engine.run(time.monotonic() + 60) == ENGINE_CYCLE
+                    for _ in d.engine.take_ended():
+                        d.passes += 1
+                        d.status |= d.device.take_status()
+                d.link.loop.watch(d.ctx.fd, d.link.slot)  # detached again on the way out
+        out: list[tuple[object, ...]] = []
+        for d in links:
+            c = d.device.counts()
+            out.append((d.passes, c.requests, c.responses, c.timeouts, c.exceptions,
+                        c.retries, c.failed_cycles, c.skipped_blocks, c.cycles,
+                        bool(d.device.offline), d.status, d.device.has_failures))
+        return out
+
+
+def test_the_fault_counts_match_the_blocking_engine() -> None:
+    """Differential: the same devices, pass for pass, on both engines (a good slave, an
+    exception on every read, a silent slave with a retry that goes offline) end with
+    the same counters, status and failures."""
+    with PymodbusSlave("rtu-over-tcp", units=(1,), exception_ranges=[
+            ExceptionRange(100, 110, code=2, unit=1)]) as slave:
+        loop = _counts_after("loop", slave.port, 6)
+        blocking = _counts_after("thread", slave.port, 6)
+    assert loop == blocking
+    assert loop[1][4] == ((2, 6),) and loop[2][9] is True  # the cases happened
