@@ -60,25 +60,29 @@ def dtus(loop: Loop, port: int, specs: list[tuple[int, int]], timeout: float = 0
         yield out
 
 
+def drive(d: Dtu, limit: int | None = None) -> None:
+    """Run link d until it waits (every EV_CYCLE taken: a link that came back with one
+    is not running until it is run again), or until it made ``limit`` passes."""
+    while limit is None or d.passes < limit:
+        ev = d.link.run()
+        if ev == EV_WAITS:
+            return
+        assert ev == EV_CYCLE, (d.link.slot, ev, d.engine.event_errno)
+        for _ in d.engine.take_ended():
+            d.passes += 1
+            d.status |= d.device.take_status()
+
+
 def serve(loop: Loop, links: list[Dtu], until: float, done: Callable[[], bool],
           limit: int | None = None) -> None:
     """Run the loop on this thread until ``done()`` or ``until``; a link stops after
     ``limit`` passes (its deadline left unset)."""
     for d in links:
-        d.link.run()
+        drive(d, limit)
     while time.monotonic() < until and not done():
         turn = loop.wait(min(until, time.monotonic() + 0.5))
-        slots = {s for s, _ in turn.ready} | set(turn.expired)
-        for s in sorted(slots):
-            d = links[s]
-            while limit is None or d.passes < limit:
-                ev = d.link.run()
-                if ev == EV_WAITS:
-                    break
-                assert ev == EV_CYCLE, (s, ev, d.engine.event_errno)
-                for _ in d.engine.take_ended():
-                    d.passes += 1
-                    d.status |= d.device.take_status()
+        for s in sorted({s for s, _ in turn.ready} | set(turn.expired)):
+            drive(links[s], limit)
 
 
 def test_three_dtus_on_one_thread_read_exact_values() -> None:

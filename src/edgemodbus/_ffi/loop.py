@@ -183,7 +183,8 @@ class LoopLink:
     def run(self) -> int:
         """Take the link as far as it goes now (GIL released): ``EV_WAITS``, or
         ``EV_CYCLE`` (the engine's ``take_ended``), ``EV_SPLIT`` or ``EV_FAILED`` for
-        Python, which acts and runs it again."""
+        Python, which acts and must run it again: only ``EV_WAITS`` leaves a deadline
+        set or a socket to wake it."""
         return int(lib.emb_loop_link_run(self.loop._lp, self._k))
 
     def detach(self) -> None:
