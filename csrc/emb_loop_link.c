@@ -88,6 +88,30 @@ static int64_t emb_ll_reply_due(const emb_loop_link *k)
     return k->start_ns + (int64_t)d->timeout_ms * 1000000;
 }
 
+/* Another whole frame already behind the reply (len bytes in e->rsp) that answers the
+ * request replaces it: the last answer wins, as in the blocking receive (csrc/emb_io.c:
+ * a DTU that held a late reply sends it with the next one).  A second frame still on
+ * its way is not waited for: its bytes are dropped as stale before the next request.
+ * The reply's length. */
+static int emb_ll_last_answer(emb_loop_link *k, int len)
+{
+    emb_engine *e = k->e;
+    uint8_t next[EMB_MAX_ADU];
+    int len2, got2 = 0, exc = -1;
+
+    if (emb_stream_backend.pending(e->lk, k->fd) < emb_stream_backend.min_next)
+        return len;
+    len2 = emb_stream_try(e->lk, e->devices[k->which]->slave, next, &got2);
+    if (len2 > 0 && emb_check_reply(k->req, k->req_len, next, len2 - 2, &exc) == 0) {
+        e->lk->discarded += len;
+        memcpy(e->rsp, next, (size_t)len2);
+        return len2;
+    }
+    if (len2 > 0 || len2 == 0 || (len2 == -1 && errno != EMBBADDATA))
+        e->lk->discarded += len2 > 0 ? len2 : got2; /* taken from rx: counted here */
+    return len;
+}
+
 /* A whole reply frame (len bytes in e->rsp, its CRC checked): checked against the
  * request and decoded.  0: read (the pass goes on), else the errno of its failure. */
 static int emb_ll_reply(emb_loop_link *k, int len, int64_t now)
@@ -250,7 +274,7 @@ int emb_loop_link_run(emb_loop *lp, emb_loop_link *k)
                 break;
             }
             if (rc > 0) {
-                rc = emb_ll_reply(k, rc, now);
+                rc = emb_ll_reply(k, emb_ll_last_answer(k, rc), now);
                 if (rc)
                     emb_ll_failed(k, rc, now);
                 break;

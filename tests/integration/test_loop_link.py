@@ -17,6 +17,7 @@ from edgemodbus._ffi.engine import EV_CYCLE as ENGINE_CYCLE
 from edgemodbus._ffi.engine import BlockSpec, Engine, EngineDevice, Waker
 from edgemodbus._ffi.loop import EV_CYCLE, EV_WAITS, Loop, LoopLink
 from edgemodbus._ffi.outcomes import ST_BACK, ST_OFFLINE, Clean, LineCounters
+from edgemodbus.protocol import rtu
 from tests.peers import ExceptionRange, PymodbusSlave, default_register
 
 CLEAN = Clean(settle=0.05, settle_limit=0.2, quiet=0.01, drain_limit=0.1)
@@ -183,3 +184,36 @@ def test_the_fault_counts_match_the_blocking_engine() -> None:
         blocking = _counts_after("thread", slave.port, 6)
     assert loop == blocking
     assert loop[1][4] == ((2, 6),) and loop[2][9] is True  # the cases happened
+
+
+def test_the_last_answer_behind_a_reply_wins() -> None:
+    """A DTU that held a late reply sends it together with the answer to the next
+    request: the later frame answers, the earlier one is dropped (as csrc/emb_io.c)."""
+    peer, ours = socket.socketpair()
+    with ExitStack() as stack:
+        stack.callback(peer.close)
+        stack.callback(ours.close)
+        loop = stack.enter_context(Loop(1))
+        ctx = Context.on_socket(ours.fileno(), "dtu", mbap=False)
+        stack.callback(ctx.close)
+        waker = Waker()
+        stack.callback(waker.close)
+        counters = LineCounters()
+        engine = Engine(ctx, waker, counters, 0.0, None, CLEAN)
+        device = EngineDevice(1, 5.0, True, 60.0)
+        device.set_blocks([BlockSpec(3, 0, 2, 60.0, None, True)])
+        device.active = True
+        engine.set_devices([device])
+        link = LoopLink(loop, 0, engine, ctx, byte_timeout=0.1)
+        stack.callback(link.detach)
+        d = Dtu(ours, ctx, engine, device, link, counters)
+        drive(d)
+        peer.settimeout(10)
+        assert peer.recv(64) == rtu.frame(1, bytes([3, 0, 0, 0, 2]))
+        stale = rtu.frame(1, bytes([3, 4, 0, 1, 0, 2]))
+        fresh = rtu.frame(1, bytes([3, 4, 0, 7, 0, 8]))
+        peer.sendall(stale + fresh)
+        serve(loop, [d], time.monotonic() + 30, lambda: d.passes >= 1)
+        block = device.data(0)
+        assert block is not None and block.to_list() == [7, 8]
+        assert counters.counts().discarded_bytes == len(stale)
