@@ -5,6 +5,7 @@ of the blocking engine on a silent slave (timeouts, settle, offline with backoff
 
 from __future__ import annotations
 
+import errno
 import os
 import socket
 import time
@@ -15,7 +16,7 @@ from dataclasses import dataclass
 from edgemodbus._ffi.context import Context
 from edgemodbus._ffi.engine import EV_CYCLE as ENGINE_CYCLE
 from edgemodbus._ffi.engine import BlockSpec, Engine, EngineDevice, Waker
-from edgemodbus._ffi.loop import EV_CYCLE, EV_WAITS, Loop, LoopLink
+from edgemodbus._ffi.loop import EV_CYCLE, EV_FAILED, EV_WAITS, LS_FAILED, Loop, LoopLink
 from edgemodbus._ffi.outcomes import ST_BACK, ST_OFFLINE, Clean, LineCounters
 from edgemodbus.protocol import rtu
 from tests.peers import ExceptionRange, PymodbusSlave, default_register
@@ -186,9 +187,10 @@ def test_the_fault_counts_match_the_blocking_engine() -> None:
     assert loop[1][4] == ((2, 6),) and loop[2][9] is True  # the cases happened
 
 
-def test_the_last_answer_behind_a_reply_wins() -> None:
-    """A DTU that held a late reply sends it together with the answer to the next
-    request: the later frame answers, the earlier one is dropped (as csrc/emb_io.c)."""
+@contextmanager
+def scripted() -> Iterator[tuple[Loop, Dtu, socket.socket]]:
+    """One link on a socketpair whose other end the test plays (a DTU, byte for byte):
+    slave 1, holding registers 0..1, one pass a minute, a 5 s reply timeout."""
     peer, ours = socket.socketpair()
     with ExitStack() as stack:
         stack.callback(peer.close)
@@ -206,14 +208,38 @@ def test_the_last_answer_behind_a_reply_wins() -> None:
         engine.set_devices([device])
         link = LoopLink(loop, 0, engine, ctx, byte_timeout=0.1)
         stack.callback(link.detach)
-        d = Dtu(ours, ctx, engine, device, link, counters)
-        drive(d)
         peer.settimeout(10)
+        yield loop, Dtu(ours, ctx, engine, device, link, counters), peer
+
+
+def test_the_last_answer_behind_a_reply_wins() -> None:
+    """A DTU that held a late reply sends it together with the answer to the next
+    request: the later frame answers, the earlier one is dropped (as csrc/emb_io.c)."""
+    with scripted() as (loop, d, peer):
+        drive(d)
         assert peer.recv(64) == rtu.frame(1, bytes([3, 0, 0, 0, 2]))
         stale = rtu.frame(1, bytes([3, 4, 0, 1, 0, 2]))
         fresh = rtu.frame(1, bytes([3, 4, 0, 7, 0, 8]))
         peer.sendall(stale + fresh)
         serve(loop, [d], time.monotonic() + 30, lambda: d.passes >= 1)
-        block = device.data(0)
+        block = d.device.data(0)
         assert block is not None and block.to_list() == [7, 8]
-        assert counters.counts().discarded_bytes == len(stale)
+        assert d.counters.counts().discarded_bytes == len(stale)
+
+
+def test_a_closed_link_comes_back_as_failed() -> None:
+    """The DTU hangs up while a reply is awaited: the link comes back EV_FAILED with the
+    errno, for Python to close it (as the blocking engine's EMB_EV_FAILED)."""
+    with scripted() as (loop, d, peer):
+        drive(d)
+        assert peer.recv(64)
+        peer.close()
+        deadline = time.monotonic() + 30
+        ev = EV_WAITS
+        while ev == EV_WAITS and time.monotonic() < deadline:
+            loop.wait(deadline)
+            ev = d.link.run()
+        assert ev == EV_FAILED and d.link.state == LS_FAILED
+        assert d.engine.event_errno in (errno.ECONNRESET, errno.EPIPE, errno.ENOTCONN)
+        assert d.engine.event_device == 0
+        assert d.counters.counts().timeouts == 0
