@@ -14,7 +14,7 @@ QUICK   ?= 0
 # build of the sdist or a pip install from source leaves them warnings.
 export EDGEMODBUS_WERROR := 1
 
-.PHONY: all deps build wheel wheel-test demo test lint typecheck unit integration test-asan bench bench-quick fuzz fuzz-quick soak soak-listener soak-gateway soak-fleet proto clean
+.PHONY: all deps build wheel wheel-test demo test lint typecheck unit integration test-asan bench bench-quick fuzz fuzz-quick soak soak-listener soak-gateway soak-fleet soak-loop proto clean
 
 all: test
 
@@ -171,6 +171,14 @@ FLEET_DTUS ?= 3000
 soak-fleet: build
 	FLEET_DTUS=$(FLEET_DTUS) $(BIN)/python -m pytest -p no:cacheprovider -q -s \
 	  tests/integration/test_fleet_haproxy.py
+
+# The loop engine's links against the thread engine at size (bench/test_bench_loop_links.py,
+# docs/scale.md; not in CI): LOOP_LINKS DTU streams on one pymodbus slave, both engines in
+# the same run.  Needs an open-files limit of about four times LOOP_LINKS.
+LOOP_LINKS ?= 1000
+soak-loop: build
+	EDGEMODBUS_BENCH_LINKS=$(LOOP_LINKS) $(PYTEST) -p no:cacheprovider -q -s --benchmark-only \
+	  bench/test_bench_loop_links.py
 
 # The Sparkplug B payload classes, generated from the specification's schema and committed
 # (src/edgemodbus/northbound/sparkplug/sparkplug_b.proto): protoc 31.1 from grpcio-tools

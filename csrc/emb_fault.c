@@ -47,7 +47,7 @@ int emb_fault_kind(int err, int *code)
 }
 
 /* Count a failed request once, for the device and for the line. */
-static void emb_fault_count(emb_engine *e, emb_device *d, int kind, int code)
+void emb_fault_count(emb_engine *e, emb_device *d, int kind, int code)
 {
     emb_line_counters *lc = e->lc;
 
@@ -76,22 +76,48 @@ static void emb_fault_count(emb_engine *e, emb_device *d, int kind, int code)
     }
 }
 
-/* Clean the line after a failure of `kind`: settle after a timeout, drain after a bad
- * frame.  0, or -1 with errno when the link failed meanwhile. */
-static int emb_fault_clean(emb_engine *e, int kind)
+/* How to clean the line after a failure of `kind`: settle after a timeout (when the line
+ * settles at all), drain after a bad frame, else nothing (EMB_CLEAN_*).  Pure: the
+ * blocking engine cleans at once (emb_fault_clean), the loop engine (csrc/emb_loop.c)
+ * as a state of the link with a deadline. */
+int emb_fault_clean_of(const emb_engine *e, int kind)
 {
-    long n = 0;
-
     if (kind == EMB_K_TIMEOUT && e->settle_ms > 0)
-        n = emb_link_discard(e->ctx, e->lk, e->settle_ms, e->quiet_ms, e->settle_limit_ms);
-    else if (kind == EMB_K_CRC || kind == EMB_K_PROTOCOL)
-        n = emb_link_discard(e->ctx, e->lk, e->quiet_ms, e->quiet_ms, e->drain_limit_ms);
-    if (n == -1)
-        return -1;
+        return EMB_CLEAN_SETTLE;
+    if (kind == EMB_K_CRC || kind == EMB_K_PROTOCOL)
+        return EMB_CLEAN_DRAIN;
+    return EMB_CLEAN_NONE;
+}
+
+/* The line was cleaned: n bytes dropped; what the link dropped and skipped besides is
+ * moved into the line's counters. */
+void emb_fault_cleaned(emb_engine *e, long n)
+{
     e->lc->discarded += n + e->lk->discarded;
     e->lk->discarded = 0;
     e->lc->heartbeats += e->lk->heartbeats;
     e->lk->heartbeats = 0;
+}
+
+/* Clean the line after a failure of `kind` now (blocking).  0, or -1 with errno when
+ * the link failed meanwhile. */
+static int emb_fault_clean(emb_engine *e, int kind)
+{
+    long n = 0;
+
+    switch (emb_fault_clean_of(e, kind)) {
+    case EMB_CLEAN_SETTLE:
+        n = emb_link_discard(e->ctx, e->lk, e->settle_ms, e->quiet_ms, e->settle_limit_ms);
+        break;
+    case EMB_CLEAN_DRAIN:
+        n = emb_link_discard(e->ctx, e->lk, e->quiet_ms, e->quiet_ms, e->drain_limit_ms);
+        break;
+    default:
+        break;
+    }
+    if (n == -1)
+        return -1;
+    emb_fault_cleaned(e, n);
     return 0;
 }
 
@@ -157,79 +183,62 @@ static void emb_fault_silent(emb_engine *e, emb_device *d, emb_eblock *b, int er
     d->index = d->n_pass;
 }
 
-/* One request for block b into data (the device's response timeout, the line's pacing),
- * counted: the register or bit count, or -1 with errno. */
-static int emb_fault_request(emb_engine *e, emb_device *d, emb_eblock *b, void *data)
+/* A request for a block of d is about to go out: counted once, for the device and the
+ * line. */
+void emb_fault_sent(emb_engine *e, emb_device *d)
 {
-    int64_t start;
-    int rc, err;
-
-    if (d->timeout_ms != e->timeout_ms) {
-        modbus_set_response_timeout(e->ctx, (uint32_t)(d->timeout_ms / 1000),
-                                    (uint32_t)(d->timeout_ms % 1000) * 1000U);
-        e->timeout_ms = d->timeout_ms;
-    }
     e->lc->requests++;
     d->c.requests++;
-    start = emb_now_ns();
-    rc = emb_read(e->ctx, e->lk, d->slave, b->function, b->start, b->count, data, e->rsp);
-    err = errno;
-    e->lc->discarded += e->lk->discarded;
-    e->lk->discarded = 0;
-    e->lc->heartbeats += e->lk->heartbeats; /* a DTU stream's: live, no Python */
-    e->lk->heartbeats = 0;
-    if (e->pace_ns)
-        e->ready_ns = emb_now_ns() + e->pace_ns;
-    if (rc == -1) {
-        errno = err;
-        return -1;
-    }
-    e->lc->rtt_ns += emb_now_ns() - start;
-    e->lc->responses++;
-    b->read_ns = start; /* the data is no older than the request */
-    d->c.responses++;
-    return rc;
 }
 
-/* Read block b with the fault policy.  0: the pass goes on (the block was read, or its
- * failure is marked, or the pass ended on a timeout); EMB_EV_SPLIT or EMB_EV_FAILED
- * (event_errno) for Python. */
-int emb_fault_read(emb_engine *e, emb_device *d, emb_eblock *b, void *data)
+/* What the link dropped and skipped during a request (stale bytes, a DTU stream's
+ * heartbeats: live, no Python), moved into the line's counters. */
+void emb_fault_took(emb_engine *e)
 {
-    const int first = d->offline ? 0 : d->retries;
-    int tries = first;
-    int rc, err, kind, code;
+    e->lc->discarded += e->lk->discarded;
+    e->lk->discarded = 0;
+    e->lc->heartbeats += e->lk->heartbeats;
+    e->lk->heartbeats = 0;
+}
 
-    for (;;) {
-        rc = emb_fault_request(e, d, b, data);
-        if (rc >= 0) {
-            b->reported = b->plan ? emb_decode(b->plan, data, (uint32_t)rc, d->mode) : 0;
-            if (b->reported || b->keep)
-                d->news = 1;
-            b->fail_kind = EMB_FAIL_NONE;
-            b->fail_known = 0;
-            d->answered = 1;
-            if (tries < first)
-                emb_fault_back(d); /* a retry got through */
-            d->index++;
-            return 0;
-        }
-        err = errno;
-        kind = emb_fault_kind(err, &code);
-        if (kind == EMB_K_LINK) {
-            e->event_errno = err;
-            return EMB_EV_FAILED;
-        }
-        if (emb_fault_clean(e, kind) == -1) {
-            e->event_errno = errno;
-            emb_fault_count(e, d, kind, code);
-            return EMB_EV_FAILED;
-        }
-        emb_fault_count(e, d, kind, code); /* once the line is clean: what it cost */
-        if (!((kind == EMB_K_TIMEOUT || kind == EMB_K_CRC) && tries > 0))
-            break;
-        tries--;
+/* Block b was read (rc registers or bits in data, the request sent at start_ns): counted,
+ * decoded (news for Python when items changed), its failure forgotten, the slave Running
+ * again when a retry got through (retried); the pass goes on. */
+void emb_fault_answered(emb_engine *e, emb_device *d, emb_eblock *b, int rc, void *data,
+                        int64_t start_ns, int retried)
+{
+    e->lc->rtt_ns += emb_now_ns() - start_ns;
+    e->lc->responses++;
+    b->read_ns = start_ns; /* the data is no older than the request */
+    d->c.responses++;
+    b->reported = b->plan ? emb_decode(b->plan, data, (uint32_t)rc, d->mode) : 0;
+    if (b->reported || b->keep)
+        d->news = 1;
+    b->fail_kind = EMB_FAIL_NONE;
+    b->fail_known = 0;
+    d->answered = 1;
+    if (retried)
+        emb_fault_back(d);
+    d->index++;
+}
+
+/* The tries a read of d gets after its first: the device's retries, none offline. */
+int emb_fault_tries(const emb_device *d)
+{
+    return d->offline ? 0 : d->retries;
+}
+
+/* A read of block b failed with err (of `kind`, exception `code`), counted and the line
+ * cleaned; *tries: the retries left.  EMB_FAULT_RETRY: request again (one retry used,
+ * counted); else as emb_fault_read: 0 (the failure is marked, or the pass ended on a
+ * timeout) or EMB_EV_SPLIT.  Pure: no I/O. */
+int emb_fault_failed(emb_engine *e, emb_device *d, emb_eblock *b, int kind, int code,
+                     int err, int *tries)
+{
+    if ((kind == EMB_K_TIMEOUT || kind == EMB_K_CRC) && *tries > 0) {
+        (*tries)--;
         d->c.retries++;
+        return EMB_FAULT_RETRY;
     }
     if (kind == EMB_K_TIMEOUT) {
         emb_fault_silent(e, d, b, err);
@@ -244,6 +253,63 @@ int emb_fault_read(emb_engine *e, emb_device *d, emb_eblock *b, void *data)
     emb_fault_mark(e, d, b, EMB_FAIL_OWN, b, err);
     d->index++;
     return 0;
+}
+
+/* One request for block b into data (the device's response timeout, the line's pacing),
+ * counted: the register or bit count (*start_ns: when it was sent), or -1 with errno. */
+static int emb_fault_request(emb_engine *e, emb_device *d, emb_eblock *b, void *data,
+                             int64_t *start_ns)
+{
+    int rc, err;
+
+    if (d->timeout_ms != e->timeout_ms) {
+        modbus_set_response_timeout(e->ctx, (uint32_t)(d->timeout_ms / 1000),
+                                    (uint32_t)(d->timeout_ms % 1000) * 1000U);
+        e->timeout_ms = d->timeout_ms;
+    }
+    emb_fault_sent(e, d);
+    *start_ns = emb_now_ns();
+    rc = emb_read(e->ctx, e->lk, d->slave, b->function, b->start, b->count, data, e->rsp);
+    err = errno;
+    emb_fault_took(e);
+    if (e->pace_ns)
+        e->ready_ns = emb_now_ns() + e->pace_ns;
+    errno = err;
+    return rc;
+}
+
+/* Read block b with the fault policy.  0: the pass goes on (the block was read, or its
+ * failure is marked, or the pass ended on a timeout); EMB_EV_SPLIT or EMB_EV_FAILED
+ * (event_errno) for Python. */
+int emb_fault_read(emb_engine *e, emb_device *d, emb_eblock *b, void *data)
+{
+    const int first = emb_fault_tries(d);
+    int tries = first;
+    int64_t start;
+    int rc, err, kind, code;
+
+    for (;;) {
+        rc = emb_fault_request(e, d, b, data, &start);
+        if (rc >= 0) {
+            emb_fault_answered(e, d, b, rc, data, start, tries < first);
+            return 0;
+        }
+        err = errno;
+        kind = emb_fault_kind(err, &code);
+        if (kind == EMB_K_LINK) {
+            e->event_errno = err;
+            return EMB_EV_FAILED;
+        }
+        if (emb_fault_clean(e, kind) == -1) {
+            e->event_errno = errno;
+            emb_fault_count(e, d, kind, code);
+            return EMB_EV_FAILED;
+        }
+        emb_fault_count(e, d, kind, code); /* once the line is clean: what it cost */
+        rc = emb_fault_failed(e, d, b, kind, code, err, &tries);
+        if (rc != EMB_FAULT_RETRY)
+            return rc;
+    }
 }
 
 /* Every block (and the device) due at at_ns, the pass list kept for Python (an offline

@@ -400,35 +400,66 @@ static int emb_stream_skip_echo(emb_link *lk, int fd, const uint8_t *sent, int s
     }
 }
 
+/* Take in what is readable on fd now into the link's receive buffer, without waiting
+ * or framing (the loop engine, csrc/emb_loop.c, on a readable socket; then
+ * emb_stream_try).  The bytes read (0: none, or the buffer is full), or -1 with errno
+ * (end of file: emb_eof_errno). */
+int emb_stream_fill(emb_link *lk, int fd)
+{
+    if (!emb_has_buffers(lk))
+        return -1;
+    return emb_rx_fill(lk, fd, 0);
+}
+
+/* Plain RTU stream: frame one reply for slave from the bytes received (lk->sb->rx),
+ * heartbeats before it skipped, without reading or waiting (the blocking receive below
+ * and the loop engine, csrc/emb_loop.c, frame with it).  Returns the frame's length in
+ * rsp (EMB_MAX_ADU bytes) with its CRC checked, 0 for another slave's frame, -1 with
+ * errno (EMBBADDATA: bytes that begin no reply, left in rx for the drain; EMBBADCRC), or
+ * EMB_STREAM_MORE: no whole frame yet (nothing taken).  *got: the bytes taken. */
+int emb_stream_try(emb_link *lk, int slave, uint8_t *rsp, int *got)
+{
+    int need, have;
+    uint16_t crc;
+
+    *got = 0;
+    if (emb_hb_strip(lk) || lk->rx_len == 0)
+        return EMB_STREAM_MORE;
+    have = lk->rx_len < EMB_MAX_RTU ? (int)lk->rx_len : EMB_MAX_RTU;
+    need = emb_reply_length(lk->sb->rx, have, 0);
+    if (need >= 0 && have < need)
+        return EMB_STREAM_MORE;
+    if (need > 0)
+        have = need;
+    memcpy(rsp, lk->sb->rx, (size_t)have);
+    *got = have;
+    if (need < 0) { /* the bytes stay: the drain takes them */
+        errno = EMBBADDATA;
+        return -1;
+    }
+    emb_rx_consume(lk, (uint32_t)have);
+    if (rsp[0] != slave && rsp[0] != 0) /* as on plain RTU: another slave's frame */
+        return 0;
+    crc = emb_crc16(rsp, need - 2);
+    if (rsp[need - 2] != (crc & 0xFF) || rsp[need - 1] != (crc >> 8)) {
+        errno = EMBBADCRC;
+        return -1;
+    }
+    return need;
+}
+
 /* Plain RTU stream: receive one reply frame into rsp, heartbeats skipped before it; the
  * contract of emb_backend.recv.  Bytes behind the frame stay in rx. */
 static int emb_stream_recv(emb_link *lk, int fd, const emb_want *want, int first_ms,
                            int byte_ms, uint8_t *rsp, int *got)
 {
-    int slave = want->slave;
     int64_t response = emb_now_ns() + (int64_t)first_ms * 1000000, last = 0;
-    int partial_hb, need = 0, have, rc;
-    uint16_t crc;
+    int have, rc;
 
-    *got = 0;
     for (;;) {
-        partial_hb = emb_hb_strip(lk);
-        if (lk->rx_len > 0 && !partial_hb) {
-            have = lk->rx_len < EMB_MAX_RTU ? (int)lk->rx_len : EMB_MAX_RTU;
-            need = emb_reply_length(lk->sb->rx, have, 0);
-            if (need < 0 || have >= need) {
-                if (need > 0)
-                    have = need;
-                memcpy(rsp, lk->sb->rx, (size_t)have);
-                *got = have;
-                if (need < 0) { /* the bytes stay: the drain takes them */
-                    errno = EMBBADDATA;
-                    return -1;
-                }
-                emb_rx_consume(lk, (uint32_t)have);
-                break;
-            }
-        }
+        rc = emb_stream_try(lk, want->slave, rsp, got);
+        if (rc != EMB_STREAM_MORE)
+            return rc;
         rc = emb_rx_fill(lk, fd, emb_stream_deadline(lk, response, last, byte_ms));
         if (rc == -1)
             return -1;
@@ -441,14 +472,6 @@ static int emb_stream_recv(emb_link *lk, int fd, const emb_want *want, int first
         }
         last = emb_now_ns();
     }
-    if (rsp[0] != slave && rsp[0] != 0) /* as on plain RTU: another slave's frame */
-        return 0;
-    crc = emb_crc16(rsp, need - 2);
-    if (rsp[need - 2] != (crc & 0xFF) || rsp[need - 1] != (crc >> 8)) {
-        errno = EMBBADCRC;
-        return -1;
-    }
-    return need;
 }
 
 /* Plain RTU stream: bytes received and not framed yet, heartbeats aside. */
@@ -512,28 +535,49 @@ static int emb_wrapped_send(modbus_t *ctx, emb_link *lk, int slave, const uint8_
     return emb_write_all(modbus_get_socket(ctx), wrapped, *sent_len + 5);
 }
 
+/* When a settle or drain that began at start_ns ends (emb_discard_input's timing): at
+ * total_ms, or quiet_ms after the last bytes (last_ns, 0: none yet) if that is later, but
+ * never past limit_ms (at least total_ms).  Pure: the blocking discard below waits for
+ * it, the loop engine (csrc/emb_loop.c) sets it as the settling link's deadline. */
+int64_t emb_settle_until(int64_t start_ns, int64_t last_ns, int total_ms, int quiet_ms,
+                         int limit_ms)
+{
+    int64_t total = start_ns + (int64_t)total_ms * 1000000, until = total;
+
+    if (limit_ms < total_ms)
+        limit_ms = total_ms;
+    if (last_ns) {
+        until = last_ns + (int64_t)quiet_ms * 1000000;
+        if (until < total)
+            until = total;
+    }
+    if (until > start_ns + (int64_t)limit_ms * 1000000)
+        until = start_ns + (int64_t)limit_ms * 1000000;
+    return until;
+}
+
+/* Frame what the link received with nothing asked (a settling link's bytes, input on
+ * an idle one): wrapped reports queued, heartbeats counted, stale bytes dropped.  The
+ * bytes dropped, or -1 with errno EINVAL for a link without stream buffers. */
+long emb_stream_take_idle(emb_link *lk)
+{
+    if (!emb_has_buffers(lk))
+        return -1;
+    return emb_stream_idle(lk);
+}
+
 /* emb_discard_input for a stream link: what comes is framed (reports queued: a late
  * wrapped frame carries its address, so it is a valid report; heartbeats counted) and
  * the rest dropped.  Returns the stale bytes dropped (plain RTU streams). */
 static long emb_stream_discard(emb_link *lk, int fd, int total_ms, int quiet_ms,
                                int limit_ms)
 {
-    int64_t start = emb_now_ns(), last = 0, until;
+    int64_t start = emb_now_ns(), last = 0;
     long dropped = 0;
     int rc;
 
-    if (limit_ms < total_ms)
-        limit_ms = total_ms;
     for (;;) {
-        until = start + (int64_t)total_ms * 1000000;
-        if (last) {
-            until = last + (int64_t)quiet_ms * 1000000;
-            if (until < start + (int64_t)total_ms * 1000000)
-                until = start + (int64_t)total_ms * 1000000;
-        }
-        if (until > start + (int64_t)limit_ms * 1000000)
-            until = start + (int64_t)limit_ms * 1000000;
-        rc = emb_rx_fill(lk, fd, until);
+        rc = emb_rx_fill(lk, fd, emb_settle_until(start, last, total_ms, quiet_ms, limit_ms));
         if (rc == -1)
             return -1;
         if (rc == 0)

@@ -10,6 +10,8 @@ exception hierarchy of :mod:`edgemodbus.errors`.
   csrc/emb_stream.c calls;
 * check.py: the one reply check (csrc/emb_check.c) for bytes held in Python;
 * codec.py: the C value codec (csrc/emb_codec.c);
+* loop.py: the loop engine (csrc/emb_loop.c, csrc/emb_loop_link.c): many DTU streams on
+  one thread (docs/scale.md);
 * sourcehash.py: the fingerprint of the C sources (build_ffi.py loads it by path).
 
 Objects here hold cdata; the other packages hold these objects, never raw cdata.

@@ -117,6 +117,17 @@ class Context:
         self._link.wrapped = 1 if wrapped else 0
 
     @property
+    def echo(self) -> bool:
+        return bool(self._link.echo)
+
+    def ensure_stream_buffers(self) -> None:
+        """Give the link its stream buffers: the loop engine (_ffi/loop.py) frames every
+        DTU stream in them, with heartbeats or without."""
+        if self._stream_buf is None:
+            self._stream_buf = ffi.new("emb_stream_buf *")
+        self._link.sb = self._stream_buf
+
+    @property
     def is_stream(self) -> bool:
         return bool(self._link.wrapped or self._link.hb_len)
 

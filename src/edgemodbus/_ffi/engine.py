@@ -434,6 +434,11 @@ class Engine:
         e.n_ended = 0
         self._devices = devices
 
+    @property
+    def native(self) -> Any:
+        """The ``emb_engine *`` (for the loop engine's links, _ffi/loop.py)."""
+        return self._e
+
     def run(self, until: float, owed: bool = False) -> int:
         """Poll until something needs Python (an ``EV_*``) or ``until``; ``owed``: a
         queued job ran since the last read, so a job queued meanwhile waits for one read
