@@ -1,0 +1,83 @@
+"""A redundant pair (gateway/lease.py, gateway/pair.py, docs/deploy.md "Redundant
+pair"): two gateway processes with one config folder and a real redis-server poll one
+pymodbus slave over RTU over TCP.  Only the leader polls (the slave counts requests per
+connection); ``kill -STOP`` the leader: the standby polls within the lease time plus a
+retry and two cycles; ``kill -CONT``: the old leader finds its lease gone and sends
+nothing more on its connection, which it closes."""
+
+from __future__ import annotations
+
+import signal
+import time
+from pathlib import Path
+
+import pytest
+
+from tests.gateway_proc import GatewayProcess, device_file, write_json
+from tests.peers import PymodbusSlave
+from tests.redis_server import RedisServer, redis_binary
+from tests.waiting import wait_for
+
+LEASE_MS = 2000
+CYCLE_MS = 100
+LOAD_SLACK = 3.0  # s: a loaded 2-core machine (start of a Python thread, a connect)
+
+try:
+    redis_binary()
+    import redis  # noqa: F401
+except Exception as exc:  # pragma: no cover - the Makefile installs both
+    pytest.skip(f"no redis-server or redis client: {exc}", allow_module_level=True)
+
+
+def polling(slave: PymodbusSlave) -> dict[str, int]:
+    """The slave's connections that sent at least one request: name -> requests."""
+    per = slave.stats()["perConnection"]
+    return {name: n for name, n in per.items() if n > 0}
+
+
+def test_one_leader_polls_and_the_standby_takes_over_a_paused_one(tmp_path: Path) -> None:
+    with RedisServer(tmp_path / "redis") as rds, \
+            PymodbusSlave("rtu-over-tcp", units=(1,)) as slave:
+        conf = tmp_path / "conf"
+        conf.mkdir()
+        write_json(conf / "gateway.json", {"fleet": {"lease": {
+            "url": rds.url, "keyPrefix": "test:pair:", "leaseMs": LEASE_MS}}})
+        write_json(conf / "plc.json", device_file(slave.port, 1, "plc", read_cycle=CYCLE_MS))
+        with GatewayProcess(conf, tmp_path / "a.log") as gw_a:
+            gw_a.wait_log(r"lease: leader", timeout=30)
+            with GatewayProcess(conf, tmp_path / "b.log") as gw_b:
+                gw_b.wait_log(r"plc: standby", timeout=30)
+                wait_for(lambda: sum(polling(slave).values()) >= 10, timeout=30,
+                         what="the leader polling")
+                gw_b.wait_log(r"pair: standby until", timeout=30)
+                assert len(polling(slave)) == 1, slave.stats()
+                assert slave.stats()["connections"] == 1  # the standby never connected
+                (a_conn,) = polling(slave)
+
+                gw_a.signal(signal.SIGSTOP)
+                stopped = time.monotonic()
+                try:
+                    wait_for(lambda: len(polling(slave)) == 2, timeout=60,
+                             what="the standby polling")
+                    took_over = time.monotonic() - stopped
+                    frozen = polling(slave)[a_conn]
+                    b_conn = next(c for c in polling(slave) if c != a_conn)
+                    b_before = polling(slave)[b_conn]
+                    assert "lease: leader" in gw_b.log
+                finally:
+                    gw_a.signal(signal.SIGCONT)
+                print(f"takeover after SIGSTOP: {took_over:.3f} s "
+                      f"(lease {LEASE_MS} ms, cycle {CYCLE_MS} ms)")
+                bound = (LEASE_MS + LEASE_MS / 3 / 2 + 2 * CYCLE_MS) / 1000 + LOAD_SLACK
+                assert took_over < bound, (took_over, bound)
+
+                gw_a.wait_log(r"lease: no longer the leader", timeout=30)
+                gw_a.wait_log(r"plc: standby", timeout=30, count=1)
+                wait_for(lambda: a_conn not in slave.stats()["activeConnections"],
+                         timeout=30, what="the old leader's connection closed")
+                # B keeps polling; A sent nothing after it woke
+                wait_for(lambda: polling(slave)[b_conn] >= b_before + 10, timeout=30,
+                         what="the new leader polling on")
+                assert polling(slave)[a_conn] == frozen, (frozen, slave.stats())
+                assert len(slave.stats()["activeConnections"]) == 1
+                assert "lease: leader" not in gw_a.log.split("no longer the leader")[-1]
