@@ -81,3 +81,67 @@ def test_one_leader_polls_and_the_standby_takes_over_a_paused_one(tmp_path: Path
                 assert polling(slave)[a_conn] == frozen, (frozen, slave.stats())
                 assert len(slave.stats()["activeConnections"]) == 1
                 assert "lease: leader" not in gw_a.log.split("no longer the leader")[-1]
+
+
+class _Clock:
+    def __init__(self) -> None:
+        self.now = 0.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+class _Engine:
+    """The lease's engine reduced to a switch (the Redis protocol is tested above)."""
+
+    def __init__(self) -> None:
+        self.free = True
+
+    def acquire(self, token: str, ttl_ms: int) -> int | None:
+        return 1 if self.free else None
+
+    def renew(self, token: str, ttl_ms: int) -> bool:
+        return self.free
+
+    def release(self, token: str) -> None:
+        pass
+
+
+def test_writes_go_out_only_while_the_lease_holds_for_their_time() -> None:
+    """A LeaderDriver polling a real slave: a write reaches it while the lease holds;
+    near the lease's end, or once it is lost, the write, the action path and a forwarded
+    request are refused with "not the leader" and nothing reaches the slave."""
+    from edgemodbus.config import load_device_config
+    from edgemodbus.gateway.lease import Lease, NotLeaderError
+    from edgemodbus.gateway.pair import LeaderDriver
+
+    clock, engine = _Clock(), _Engine()
+    lease = Lease(engine, 10_000, 3_000, clock=clock)
+    with PymodbusSlave("rtu-over-tcp", units=(1,)) as slave:
+        cfg = load_device_config(device_file(slave.port, 1, "plc", read_cycle=CYCLE_MS))
+        driver = LeaderDriver(lease, cfg)
+        assert driver.write_budget == pytest.approx(2.0)  # 2 x 1000 ms x (0 retries + 1)
+        org = cfg.organization.model_copy(update={"device_code": "plc"})
+        assert driver.start_device(org, cfg.communication, cfg.address_list)
+        try:
+            ok, why = driver.write_address("t0", 77)
+            assert not ok and why is not None and "not the leader of the pair" in why
+            lease.step()  # the lease is ours for 10 s (fake clock)
+            assert driver.write_address("t0", 77) == (True, None)
+            assert slave.registers(1, "hr", 0) == [77]
+
+            clock.now = 8.5  # 1.5 s left: less than the write may take
+            ok, why = driver.write_address("t0", 78)
+            assert not ok and why is not None and "lease ends in 1.500 s" in why
+            clock.now = 10.0  # expired: given up at the check
+            ok, why = driver.write_address("t0", 79)
+            assert not ok and why is not None and "not the leader of the pair" in why
+            with pytest.raises(NotLeaderError, match="not the leader"):
+                driver.submit_writes([("t0", 80)])
+            with pytest.raises(NotLeaderError, match="not the leader"):
+                driver.forward(bytes([0x06, 0, 0, 0, 81])).result(timeout=10)
+            ok, why = driver.run_action("anything")
+            assert not ok and why is not None and "not the leader" in why
+            assert slave.registers(1, "hr", 0) == [77]
+        finally:
+            driver.stop_device()

@@ -28,6 +28,8 @@ import uuid
 from collections.abc import Callable
 from typing import Any, Protocol
 
+from ..errors import ModbusConnectionError
+
 log = logging.getLogger("edgemodbus.lease")
 
 _ACQUIRE = """
@@ -232,8 +234,9 @@ class LeaseKeeper:
         self.lease.release()
 
 
-class NotLeaderError(RuntimeError):
-    """A write refused on the standby, or where the lease may end before it is done."""
+class NotLeaderError(ModbusConnectionError):
+    """A write refused on the standby, or where the lease may end before it is done
+    (a ModbusConnectionError: callers that handle a device not running handle it)."""
 
 
 __all__ = ["Lease", "LeaseEngine", "LeaseKeeper", "NotLeaderError", "RedisEngine"]

@@ -12,11 +12,14 @@ from __future__ import annotations
 import logging
 import os
 import socket
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Mapping
+from concurrent.futures import Future
+from typing import Any
 
 from ..config import DeviceConfig
+from ..driver import DriverModbusRtu
 from .fleet import LeaseSettings
-from .lease import Lease, LeaseKeeper, RedisEngine
+from .lease import Lease, LeaseKeeper, NotLeaderError, RedisEngine
 
 log = logging.getLogger("edgemodbus.pair")
 
@@ -63,5 +66,63 @@ class Pair:
         """Whether this device may run here now."""
         return not gated(cfg) or self.lease.check()
 
+    def driver(self, cfg: DeviceConfig) -> DriverModbusRtu:
+        """The driver for a device of the file: a :class:`LeaderDriver` if gated."""
+        return LeaderDriver(self.lease, cfg) if gated(cfg) else DriverModbusRtu()
 
-__all__ = ["Pair", "gated"]
+
+class LeaderDriver(DriverModbusRtu):
+    """A gated device's driver: every write, action and forwarded request is refused
+    (``NotLeaderError``'s words) unless the lease is known to hold for as long as it may
+    take: twice the device's readTimeout x (retries + 1) (the request may wait for one
+    poll transaction on the line before its own)."""
+
+    def __init__(self, lease: Lease, cfg: DeviceConfig) -> None:
+        super().__init__()
+        params = cfg.effective_parameters()
+        self.pair_lease = lease
+        self.write_budget = 2 * params.read_timeout / 1000 * (params.retries + 1)
+
+    def refusal(self) -> str | None:
+        """Why a write must not go out now, or None."""
+        try:
+            self.pair_lease.require(self.write_budget)
+        except NotLeaderError as exc:
+            return str(exc)
+        return None
+
+    def write_addresses(self, items: Iterable[tuple[str, Any]]) -> tuple[bool, str | None]:
+        why = self.refusal()
+        return (False, why) if why else super().write_addresses(items)
+
+    async def write_addresses_async(
+            self, items: Iterable[tuple[str, Any]]) -> tuple[bool, str | None]:
+        why = self.refusal()
+        return (False, why) if why else await super().write_addresses_async(items)
+
+    def submit_writes(self, items: Iterable[tuple[str, Any]]) -> Future[tuple[bool, str | None]]:
+        why = self.refusal()
+        if why:
+            raise NotLeaderError(why)
+        return super().submit_writes(items)
+
+    def run_action(self, name: str,
+                   params: Mapping[str, Any] | None = None) -> tuple[bool, str | None]:
+        why = self.refusal()
+        return (False, why) if why else super().run_action(name, params)
+
+    async def run_action_async(self, name: str, params: Mapping[str, Any] | None = None
+                               ) -> tuple[bool, str | None]:
+        why = self.refusal()
+        return (False, why) if why else await super().run_action_async(name, params)
+
+    def forward(self, pdu: bytes, timeout: float | None = None) -> Future[bytes]:
+        why = self.refusal()
+        if why:
+            future: Future[bytes] = Future()
+            future.set_exception(NotLeaderError(why))
+            return future
+        return super().forward(pdu, timeout)
+
+
+__all__ = ["LeaderDriver", "Pair", "gated"]

@@ -400,7 +400,7 @@ class Gateway:
                       holder.path.name)
             return
         if self.pair is not None and not self.pair.may_run(cfg):
-            self.devices[path] = ServiceDevice(path, digest, cfg, code, DriverModbusRtu(),
+            self.devices[path] = ServiceDevice(path, digest, cfg, code, self.pair.driver(cfg),
                                                "Standby", standby=True)
             self._code_paths[code] = path
             log.info("%s: standby (%s): polled by the pair's leader", code, path.name)
@@ -411,7 +411,7 @@ class Gateway:
         if snapshot_interval and "snapshot_interval" not in comm.model_fields_set:
             comm = comm.model_copy(update={"snapshot_interval": snapshot_interval})
         items = cfg.address_list  # the driver's store holds their state: no copy
-        driver = DriverModbusRtu()
+        driver = DriverModbusRtu() if self.pair is None else self.pair.driver(cfg)
         try:
             if self.publisher is not None:
                 self.publisher.check_item_names(code, [it.name for it in items])
