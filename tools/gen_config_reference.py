@@ -92,7 +92,7 @@ GATEWAY = (
             "balancer ([deploy.md](deploy.md)); left out: one gateway alone."),
     Section("fleet.lease", LeaseSettings, "A redundant pair: the Redis lease that picks "
             "the instance polling the connect-mode devices "
-            "([deploy.md](deploy.md#redundant-pair))."),
+            "([deploy.md](deploy.md#a-redundant-pair))."),
 )
 
 _RUNTIME = ("runtime state the driver writes (what it last read); a file may carry it "
