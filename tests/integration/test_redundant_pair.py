@@ -29,6 +29,32 @@ except Exception as exc:  # pragma: no cover - the Makefile installs both
     pytest.skip(f"no redis-server or redis client: {exc}", allow_module_level=True)
 
 
+def test_the_redis_engine_hands_the_lease_to_one_token_at_a_time(tmp_path: Path) -> None:
+    """RedisEngine on a real redis-server: NX acquire with a growing fencing token,
+    renewal by the holder only, release by the holder only, expiry by PX."""
+    from edgemodbus.gateway.lease import RedisEngine
+
+    with RedisServer(tmp_path / "redis") as rds:
+        one = RedisEngine(rds.url, "t:", timeout=2.0)
+        two = RedisEngine(rds.url, "t:", timeout=2.0)
+        try:
+            assert one.acquire("a", 60_000) == 1
+            assert two.acquire("b", 60_000) is None
+            assert one.renew("a", 60_000) and not two.renew("b", 60_000)
+            two.release("b")  # not the holder: nothing happens
+            assert two.acquire("b", 60_000) is None
+            one.release("a")
+            assert two.acquire("b", 200) == 2  # a new leader, a higher token
+            assert 0 < one.client.pttl("t:leader") <= 200
+            wait_for(lambda: one.client.get("t:leader") is None, timeout=10,
+                     what="the lease to expire in Redis")
+            assert not two.renew("b", 60_000)  # expired: not extended
+            assert one.acquire("a", 60_000) == 3
+        finally:
+            one.close()
+            two.close()
+
+
 def polling(slave: PymodbusSlave) -> dict[str, int]:
     """The slave's connections that sent at least one request: name -> requests."""
     per = slave.stats()["perConnection"]
