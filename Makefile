@@ -5,7 +5,7 @@
 PY      ?= python3
 VENV    := .venv
 BIN     := $(VENV)/bin
-DEB     := libmodbus-dev pkg-config socat mosquitto haproxy mbpoll chromium chromium-driver
+DEB     := libmodbus-dev pkg-config socat mosquitto redis-server haproxy mbpoll chromium chromium-driver
 SUDO    := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 CSRC    := $(wildcard csrc/*.c csrc/*.h csrc/cdefs/*.h)
 PYTEST  := $(BIN)/python -m pytest

@@ -188,6 +188,7 @@ class App:
         self.connections = 0
         self.responses = 0
         self.handlers: set[Handler] = set()
+        self.per_connection: dict[str, int] = {}  # "<peer port>#<n>": its requests
 
     def control(self, msg: dict[str, Any]) -> Any:
         """Run one control command from the parent; returns its result."""
@@ -223,6 +224,8 @@ class App:
                 "connections": self.connections,
                 "active": len(self.handlers),
                 "responses": self.responses,
+                "perConnection": dict(self.per_connection),
+                "activeConnections": sorted(h.name for h in self.handlers),
             }
         if op == "ping":
             return "pong"
@@ -237,12 +240,17 @@ class Handler(ServerRequestHandler):
         super().__init__(owner, None, None, None)
         self.app = app
         self.tasks: set[asyncio.Task[None]] = set()
+        self.name = ""  # "<peer port>#<connection number>" once connected
 
     def callback_connected(self) -> None:
         """Count the connection."""
         super().callback_connected()
         self.app.connections += 1
         self.app.handlers.add(self)
+        peer = self.transport.get_extra_info("peername") if self.transport else None
+        port = peer[1] if isinstance(peer, tuple) and len(peer) > 1 else "serial"
+        self.name = f"{port}#{self.app.connections}"
+        self.app.per_connection[self.name] = 0
 
     def callback_disconnected(self, exc: Exception | None) -> None:
         """Forget the connection and its pending (delayed) answers."""
@@ -284,6 +292,8 @@ class Handler(ServerRequestHandler):
         store = app.store
         unit = pdu.dev_id
         store.requests[unit] += 1
+        if self.name:
+            app.per_connection[self.name] += 1
         if store.delay > 0:
             await asyncio.sleep(store.delay)
         try:

@@ -32,7 +32,7 @@ from edgemodbus.config.device import DeviceConfig, DeviceOrganizationParameter
 from edgemodbus.config.items import DeviceAddressItem
 from edgemodbus.console.settings import ConsoleSettings, ConsoleTls, ConsoleUser
 from edgemodbus.gateway.config import GatewayConfig
-from edgemodbus.gateway.fleet import FleetSettings
+from edgemodbus.gateway.fleet import FleetSettings, LeaseSettings
 from edgemodbus.northbound.metrics import MetricsSettings
 from edgemodbus.northbound.mqtt.settings import (
     MqttSettings,
@@ -90,6 +90,9 @@ GATEWAY = (
             "as the MQTT ones are."),
     Section("fleet", FleetSettings, "This instance of a dial-in fleet behind a TCP load "
             "balancer ([deploy.md](deploy.md)); left out: one gateway alone."),
+    Section("fleet.lease", LeaseSettings, "A redundant pair: the Redis lease that picks "
+            "the instance polling the connect-mode devices "
+            "([deploy.md](deploy.md#a-redundant-pair))."),
 )
 
 _RUNTIME = ("runtime state the driver writes (what it last read); a file may carry it "

@@ -2,7 +2,8 @@
 gateways running one config folder behind a TCP load balancer, docs/deploy.md).
 
 ```json
-"fleet": {"instanceId": "gw-2", "loadBalancers": ["10.0.5.10", "10.0.5.11"]}
+"fleet": {"instanceId": "gw-2", "loadBalancers": ["10.0.5.10", "10.0.5.11"],
+          "lease": {"url": "redis://10.0.5.20:6379/0", "leaseMs": 5000}}
 ```
 
 ``instanceId`` names this instance in the retained device statuses it publishes, its
@@ -10,6 +11,8 @@ MQTT client id and gateway topic and the ``edgemodbus_dtu_held`` gauge; left out
 environment's ``EDGEMODBUS_INSTANCE`` (a systemd template unit's ``%i``), else the host
 name.  ``loadBalancers``: the balancers' networks; a connection from one of them must
 start with a PROXY v2 header (line/proxy_v2.py), which gives the DTU's own address.
+``lease``: a redundant pair (docs/deploy.md "Redundant pair"): the instance holding the
+lease (gateway/lease.py) runs the connect-mode devices, the other keeps them stopped.
 """
 
 from __future__ import annotations
@@ -18,8 +21,9 @@ import os
 import socket
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Annotated, ClassVar, Protocol
+from urllib.parse import urlsplit
 
-from pydantic import AfterValidator, BeforeValidator, Field, field_validator
+from pydantic import AfterValidator, BeforeValidator, Field, field_validator, model_validator
 
 from ..config import DeviceConfig, DriverModbusRtuParameter, Model
 from ..config.limits import MAX_NAME
@@ -48,6 +52,55 @@ Balancers = Annotated[tuple[Annotated[str, AfterValidator(network)], ...],
                       BeforeValidator(allow_list), AfterValidator(_bounded)]
 
 
+LEASE_SCHEMES = ("redis", "rediss", "unix")
+
+
+class LeaseSettings(Model):
+    """``fleet.lease``: where the pair's lease lives and how long it lasts."""
+
+    _where: ClassVar[str] = "fleet.lease"
+    _max_lengths: ClassVar[dict[str, int]] = {"url": 1024, "keyPrefix": MAX_NAME}
+
+    enabled: bool = Field(default=True, description="false: the section is kept, this "
+                          "instance runs its devices alone (no lease)")
+    url: str = Field(description="The Redis server: redis://host:port/db, rediss:// "
+                     "(TLS) or unix:///path")
+    key_prefix: str = Field(default="edgemodbus:pair:", description="Prefix of the "
+                            "lease's keys (<prefix>leader, <prefix>fence); one per pair")
+    lease_ms: int = Field(default=10_000, ge=1_000, le=600_000, description="Lease time: "
+                          "the standby takes over within it plus a cycle")
+    renew_ms: int | None = Field(default=None, ge=100, description="Renewal period; left "
+                                 "out: leaseMs/3; at most leaseMs/3")
+
+    @field_validator("url")
+    @classmethod
+    def _url(cls, value: str) -> str:
+        scheme = urlsplit(value).scheme
+        if scheme not in LEASE_SCHEMES:
+            raise ValueError(f"{value!r} is not a Redis URL: use "
+                             f"{', '.join(s + '://' for s in LEASE_SCHEMES)}")
+        return value
+
+    @field_validator("key_prefix")
+    @classmethod
+    def _prefix(cls, value: str) -> str:
+        if not value or any(c.isspace() for c in value):
+            raise ValueError(f"{value!r}: give a non-empty prefix without spaces")
+        return value
+
+    @model_validator(mode="after")
+    def _three_renewals(self) -> LeaseSettings:
+        if self.renew_ms is not None and self.renew_ms * 3 > self.lease_ms:
+            raise ValueError(f"renewMs {self.renew_ms} must be at most a third of leaseMs "
+                             f"{self.lease_ms} ({self.lease_ms // 3})")
+        return self
+
+    @property
+    def effective_renew_ms(self) -> int:
+        """The renewal period: renewMs, else a third of leaseMs."""
+        return self.renew_ms if self.renew_ms is not None else self.lease_ms // 3
+
+
 class FleetSettings(Model):
     """The ``fleet`` section of the gateway file."""
 
@@ -61,6 +114,8 @@ class FleetSettings(Model):
                                     "else the host name")
     load_balancers: Balancers = Field(default=(), description="Networks (CIDR) or addresses "
                                       "of the load balancers that send a PROXY v2 header")
+    lease: LeaseSettings | None = Field(default=None, description="A redundant pair: "
+                                        "the lease that picks the polling instance")
 
     @field_validator("instance_id")
     @classmethod
@@ -127,5 +182,5 @@ def apply_fleet(config: FleetConfig | None, exporter: MetricsExporter | None) ->
         exporter.instance = config.instance or config.effective_id
 
 
-__all__ = ["INSTANCE_ENV", "MAX_BALANCERS", "FleetSettings", "apply_fleet", "attach_device",
-           "holder"]
+__all__ = ["INSTANCE_ENV", "MAX_BALANCERS", "FleetSettings", "LeaseSettings", "apply_fleet",
+           "attach_device", "holder"]

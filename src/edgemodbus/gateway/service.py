@@ -11,11 +11,9 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from ..config import (
-    NO_VALUE,
     ConfigError,
     DeviceConfig,
     DriverModbusRtuParameter,
-    Problem,
     load_device_config,
 )
 from ..config.templates import template_bytes
@@ -32,14 +30,16 @@ from .config import (
     mqtt_key,
 )
 from .fleet import apply_fleet, attach_device
+from .pair import Pair, gated
 from .serving import GatewayServer
+from .starting import make_publisher, start_exporter
 
 if TYPE_CHECKING:
     from collections.abc import Callable
 
     from ..console.server import ConsoleServer
     from ..northbound.metrics import MetricsExporter
-    from ..northbound.mqtt import MqttPublisher, MqttSettings
+    from ..northbound.mqtt import MqttPublisher
     from ..northbound.sparkplug.publisher import SparkplugPublisher
 
     Publisher = MqttPublisher | SparkplugPublisher
@@ -71,6 +71,7 @@ class ServiceDevice:
     code: str
     driver: DriverModbusRtu
     status: str
+    standby: bool = False  # a pair's standby: loaded, not started (gateway/pair.py)
 
 
 class Gateway:
@@ -92,6 +93,8 @@ class Gateway:
         self.console: ConsoleServer | None = None  # the web console (edgemodbus/console/)
         self.reload_hook: Callable[[], None] | None = None  # run.py: a reload, as SIGHUP
         self._gateway_digest = gateway_digest(self.gateway_file, config)
+        self.pair: Pair | None = None  # fleet.lease: a redundant pair (gateway/pair.py)
+        self._devices_lock = threading.RLock()  # the lease's thread starts/stops devices
 
     # -- lifecycle -------------------------------------------------------------------
     def start(self) -> None:
@@ -100,14 +103,43 @@ class Gateway:
             self.publisher = make_publisher(mqtt, self.gateway_id, self.config.instance).start()
             log.info("MQTT: gateway %s publishing to %s:%d (%s)", self.gateway_id, mqtt.host,
                      mqtt.port, mqtt.mode)
-        self.exporter = _start_exporter(self.config, self.serving)
+        self.exporter = start_exporter(self.config, self.serving)
         apply_fleet(self.config, self.exporter)
         if self.exporter is not None and self.publisher is not None:
             self.exporter.set_publisher(self.publisher)
-        self.reload_devices()
+        fleet = self.config.fleet
+        if fleet is not None and fleet.enabled and fleet.lease is not None \
+                and fleet.lease.enabled:
+            self.pair = Pair(fleet.lease, self.gateway_id, self._leadership)
+        with self._devices_lock:
+            self.reload_devices()
+        if self.pair is not None:
+            self.pair.start()
         for done in self.serving.apply(self.config.serve, self._served()):
             log.info("serve: %s", done)
         self.console = start_console(self.config.console, self)
+
+    def _stop_all(self, devices: list[ServiceDevice]) -> None:
+        threads = [threading.Thread(target=self._stop_device, args=(dev,),
+                                    name=f"stop {dev.code}") for dev in devices]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join()
+
+    def _leadership(self, leader: bool) -> None:
+        """The lease was gained or lost (on the lease's thread): start or stop (every
+        one at once) the connect-mode devices."""
+        with self._devices_lock:
+            devs = [dev for dev in self.devices.values() if gated(dev.cfg)]
+            if not leader:
+                self._stop_all([dev for dev in devs if not dev.standby])
+            for dev in devs:
+                del self.devices[dev.path]
+                if leader:
+                    self._stop_device(dev)
+                self._start_device(dev.path, dev.digest, dev.cfg,
+                                   action="started (leader)")
 
     def request_reload(self) -> None:
         """The console saved a device file: reload as SIGHUP does (on the service's
@@ -121,14 +153,13 @@ class Gateway:
             self.console.stop()
             self.console = None
         self.serving.stop()
-        devices = list(self.devices.values())
-        self.devices.clear()
-        threads = [threading.Thread(target=self._stop_device, args=(dev,),
-                                    name=f"stop {dev.code}") for dev in devices]
-        for thread in threads:
-            thread.start()
-        for thread in threads:
-            thread.join()
+        with self._devices_lock:
+            devices = list(self.devices.values())
+            self.devices.clear()
+            self._stop_all(devices)
+        if self.pair is not None:  # released once nothing polls here any more
+            self.pair.stop()
+            self.pair = None
         if self.publisher is not None:
             self.publisher.stop(timeout=0.5)
             self.publisher = None
@@ -142,7 +173,8 @@ class Gateway:
         Never raises: whatever fails is logged in one line and the running configuration
         of what failed is kept (a reload must not end a running gateway)."""
         try:
-            self._reload()
+            with self._devices_lock:
+                self._reload()
         except Exception as exc:  # each step guards itself; this is the last resort
             log.error("reload failed (%s); keeping what is running", one_line(exc))
 
@@ -254,6 +286,8 @@ class Gateway:
                 self._start_device(dev.path, dev.digest, dev.cfg, action="restarted")
             done.append(f"snapshotInterval {inherited_snapshot(new)} ms: "
                         f"{len(restarted)} devices restarted")
+        if (old.fleet and old.fleet.lease) != (new.fleet and new.fleet.lease):
+            done.append("fleet.lease changed: applied at the next restart")
         for key in ("devicePattern", "statusCheckInterval"):
             if old.to_dict()[key] != new.to_dict()[key]:
                 done.append(f"{key} {new.to_dict()[key]}")
@@ -266,7 +300,7 @@ class Gateway:
         if old is not None:
             old.stop()
         try:
-            exporter = _start_exporter(new, self.serving)
+            exporter = start_exporter(new, self.serving)
         except OSError:
             if old is not None:
                 try:
@@ -365,13 +399,19 @@ class Gateway:
             log.error("%s: deviceCode %r is already used by %s; not started", path, code,
                       holder.path.name)
             return
+        if self.pair is not None and not self.pair.may_run(cfg):
+            self.devices[path] = ServiceDevice(path, digest, cfg, code, self.pair.driver(cfg),
+                                               "Standby", standby=True)
+            self._code_paths[code] = path
+            log.info("%s: standby (%s): polled by the pair's leader", code, path.name)
+            return
         org = cfg.organization.model_copy(update={"device_code": code})
         comm = cfg.communication
         snapshot_interval = inherited_snapshot(self.config)
         if snapshot_interval and "snapshot_interval" not in comm.model_fields_set:
             comm = comm.model_copy(update={"snapshot_interval": snapshot_interval})
         items = cfg.address_list  # the driver's store holds their state: no copy
-        driver = DriverModbusRtu()
+        driver = DriverModbusRtu() if self.pair is None else self.pair.driver(cfg)
         try:
             if self.publisher is not None:
                 self.publisher.check_item_names(code, [it.name for it in items])
@@ -397,7 +437,8 @@ class Gateway:
                      and cfg.communication.to_dict(secrets=True)
                      == dev.cfg.communication.to_dict(secrets=True)
                      and cfg.driver_type == dev.cfg.driver_type)
-        if same_line and dev.driver.device_driver_status.value != "Disabled":
+        if same_line and not dev.standby \
+                and dev.driver.device_driver_status.value != "Disabled":
             items = cfg.address_list
             try:
                 if self.publisher is not None:
@@ -416,6 +457,8 @@ class Gateway:
         self._start_device(dev.path, digest, cfg, action="restarted")
 
     def _stop_device(self, dev: ServiceDevice) -> None:
+        if dev.standby:
+            return  # never started nor attached
         try:
             dev.driver.stop_device()
         except Exception:
@@ -431,6 +474,8 @@ class Gateway:
     def check_statuses(self) -> None:
         """Log each device status change, once."""
         for dev in self.devices.values():
+            if dev.standby:
+                continue
             status = dev.driver.device_driver_status.value
             if status != dev.status:
                 level = logging.WARNING if status in ("Offline", "Reconnecting") else logging.INFO
@@ -447,54 +492,6 @@ def one_line(exc: BaseException, limit: int = 300) -> str:
     return f"{type(exc).__name__}: {first}" if first else type(exc).__name__
 
 
-def make_publisher(mqtt: MqttSettings, gateway_id: str, instance: str | None) -> Publisher:
-    """The publisher ``mqtt.mode`` asks for (not started): per-item MQTT or Sparkplug B.
-    A missing optional package (paho-mqtt, protobuf) is a ConfigError naming ``mqtt``
-    and the extra to install."""
-    try:
-        if mqtt.mode == "sparkplug":
-            from ..northbound.sparkplug.publisher import SparkplugPublisher
-
-            return SparkplugPublisher(mqtt, gateway_id=gateway_id, instance=instance)
-        from ..northbound.mqtt import MqttPublisher
-
-        return MqttPublisher(mqtt, gateway_id=gateway_id, instance=instance)
-    except ImportError as exc:
-        raise missing_extra("mqtt", "sparkplug" if mqtt.mode == "sparkplug" else "mqtt",
-                            exc) from None
-
-
-def missing_extra(section: str, extra: str, exc: ImportError) -> ConfigError:
-    """The gateway file's ``section`` needs a package that is not installed."""
-    return ConfigError([Problem(section, NO_VALUE, f"needs the optional packages of "
-                                f"edgemodbus[{extra}], not installed ({exc}): pip install "
-                                f"'edgemodbus[{extra}]', or remove the {section} section")])
-
-
 def _digest(path: Path) -> str:
     """The device file's digest, with the template it names (a changed template reloads)."""
     return hashlib.sha256(file_bytes(path) + template_bytes(path)).hexdigest()
-
-
-def _start_exporter(config: GatewayConfig, serving: GatewayServer) -> MetricsExporter | None:
-    """The exporter ``config`` asks for, listening, with the drivers' DTU listen ports
-    as its listener source and ``serving`` (the Modbus TCP server); OSError names the
-    address."""
-    metrics = config.metrics
-    if metrics is None or not metrics.enabled:
-        return None
-    try:
-        from ..northbound.metrics import MetricsExporter
-
-        exporter = MetricsExporter(metrics, gateway_id=config.effective_id)
-    except ImportError as exc:
-        raise missing_extra("metrics", "metrics", exc) from None
-    exporter.set_listener_stats(DriverModbusRtu.dtu_registry)  # the DTU listen ports
-    exporter.set_server_stats(serving)
-    try:
-        exporter.start()
-    except OSError as exc:
-        raise OSError(f"metrics: cannot listen on {metrics.host}:{metrics.port}: "
-                      f"{exc.strerror or exc}") from None
-    return exporter
-

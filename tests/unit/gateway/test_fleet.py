@@ -94,3 +94,26 @@ def test_a_fleet_device_without_writes_subscribes_to_its_status_only() -> None:
     dev.fleet = Holding(lambda: True)
     assert dev.filters(False) == ["p/m1/$status"]
     assert dev.filters(True)[-1] == "p/m1/$status"
+
+
+def test_the_lease_section_is_read_with_its_defaults() -> None:
+    cfg = load_gateway_config({"fleet": {"lease": {"url": "redis://10.0.5.20:6379/0"}}})
+    assert cfg.fleet is not None and cfg.fleet.lease is not None
+    lease = cfg.fleet.lease
+    assert (lease.key_prefix, lease.lease_ms, lease.effective_renew_ms) == (
+        "edgemodbus:pair:", 10_000, 3_333)
+
+
+@pytest.mark.parametrize(("lease", "key", "words"), [
+    ({}, "fleet.lease.url", "required"),
+    ({"url": "http://x"}, "fleet.lease.url", "is not a Redis URL: use redis://"),
+    ({"url": "redis://x", "leaseMs": 999}, "fleet.lease.leaseMs", "greater than or equal"),
+    ({"url": "redis://x", "leaseMs": 600_001}, "fleet.lease.leaseMs", "less than or equal"),
+    ({"url": "redis://x", "leaseMs": 3000, "renewMs": 1001}, "fleet.lease",
+     "renewMs 1001 must be at most a third of leaseMs 3000"),
+    ({"url": "redis://x", "keyPrefix": "a b"}, "fleet.lease.keyPrefix", "without spaces"),
+])
+def test_bad_lease_values_are_named(lease: dict[str, object], key: str, words: str) -> None:
+    with pytest.raises(ConfigError) as err:
+        load_gateway_config({"fleet": {"lease": lease}})
+    assert key in str(err.value) and words in str(err.value)

@@ -1,0 +1,188 @@
+"""The lease state machine (gateway/lease.py) on a fake clock and a fake engine whose
+keys expire on that same clock: takeover, renewal, a paused leader, a slow renewal,
+the write gate; and a property: at no instant do two leases believe they hold it."""
+
+from __future__ import annotations
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from edgemodbus.gateway.lease import Lease, NotLeaderError
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.now = 100.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+class FakeEngine:
+    """A Redis key with PX on the fake clock; ``delay``: how long each call takes."""
+
+    def __init__(self, clock: Clock) -> None:
+        self.clock = clock
+        self.holder: str | None = None
+        self.until = 0.0
+        self.fence = 0
+        self.down = False
+        self.delay = 0.0
+
+    def _expire(self) -> None:
+        if self.holder is not None and self.clock.now >= self.until:
+            self.holder = None
+
+    def acquire(self, token: str, ttl_ms: int) -> int | None:
+        if self.down:
+            raise ConnectionError("engine down")
+        self._expire()
+        if self.holder is not None:
+            return None
+        self.holder, self.until = token, self.clock.now + ttl_ms / 1000
+        self.fence += 1
+        self.clock.now += self.delay
+        return self.fence
+
+    def renew(self, token: str, ttl_ms: int) -> bool:
+        if self.down:
+            raise ConnectionError("engine down")
+        self._expire()
+        ok = self.holder == token
+        if ok:
+            self.until = self.clock.now + ttl_ms / 1000
+        self.clock.now += self.delay
+        return ok
+
+    def release(self, token: str) -> None:
+        if self.holder == token:
+            self.holder = None
+
+
+def pair(clock: Clock, engine: FakeEngine) -> tuple[Lease, Lease, list[str]]:
+    events: list[str] = []
+    a = Lease(engine, 3000, 1000, token="a", clock=clock,
+              on_gain=lambda f: events.append(f"a+{f}"), on_loss=lambda r: events.append("a-"))
+    b = Lease(engine, 3000, 1000, token="b", clock=clock,
+              on_gain=lambda f: events.append(f"b+{f}"), on_loss=lambda r: events.append("b-"))
+    return a, b, events
+
+
+def test_one_leader_and_renewal() -> None:
+    clock = Clock()
+    engine = FakeEngine(clock)
+    a, b, events = pair(clock, engine)
+    assert a.step() == 1.0
+    assert b.step() == 0.5  # standby retries at half the renew period
+    assert (a.held, b.held, a.fence) == (True, False, 1)
+    for _ in range(10):
+        clock.now += 1.0
+        assert a.step() == 1.0
+        b.step()
+    assert events == ["a+1"]
+    assert a.valid_for() == pytest.approx(3.0)
+
+
+def test_paused_leader_gives_up_before_anything_else_and_standby_takes_over() -> None:
+    clock = Clock()
+    engine = FakeEngine(clock)
+    a, b, events = pair(clock, engine)
+    a.step()
+    clock.now += 2.9
+    b.step()
+    assert not b.held  # not yet expired
+    clock.now += 0.1  # a is "paused": no renewal; the key expires
+    b.step()
+    assert b.held and b.fence == 2  # a higher fencing token
+    clock.now += 2.0  # a wakes (b renews in time)
+    assert not a.check()
+    assert events == ["a+1", "b+2", "a-"]
+    a.step()
+    assert not a.held  # b holds the key
+
+
+def test_woken_leader_whose_key_survived_still_gives_up_on_time() -> None:
+    """No standby took it (the key is still ours in the engine if it never expired
+    there, e.g. engine clock behind): the local monotonic time decides."""
+    clock = Clock()
+    engine = FakeEngine(clock)
+    a, _b, events = pair(clock, engine)
+    a.step()
+    engine.until = 1e9  # the engine would still say yes
+    clock.now += 3.0
+    a.step()
+    assert events[:2] == ["a+1", "a-"]
+
+
+def test_renewal_slower_than_the_lease_loses_it() -> None:
+    clock = Clock()
+    engine = FakeEngine(clock)
+    a, _b, events = pair(clock, engine)
+    a.step()
+    engine.delay = 3.5
+    a.step()
+    assert not a.held
+    assert events == ["a+1", "a-"]
+
+
+def test_engine_failure_stops_the_leader_at_once() -> None:
+    clock = Clock()
+    engine = FakeEngine(clock)
+    a, _b, events = pair(clock, engine)
+    a.step()
+    engine.down = True
+    clock.now += 1.0
+    a.step()
+    assert not a.held and events == ["a+1", "a-"]
+    assert a.step() == 0.5  # and keeps trying without raising
+
+
+def test_write_gate() -> None:
+    clock = Clock()
+    engine = FakeEngine(clock)
+    a, b, _ = pair(clock, engine)
+    a.step()
+    b.step()
+    with pytest.raises(NotLeaderError, match="not the leader of the pair"):
+        b.require(1.0)
+    a.require(1.0)
+    clock.now += 2.5
+    with pytest.raises(NotLeaderError, match=r"lease ends in 0\.500 s, the write may take "
+                       r"1\.000 s"):
+        a.require(1.0)
+
+
+def test_release_lets_the_standby_in_at_once() -> None:
+    clock = Clock()
+    engine = FakeEngine(clock)
+    a, b, events = pair(clock, engine)
+    a.step()
+    a.release()
+    b.step()
+    assert b.held and events == ["a+1", "a-", "b+2"]
+
+
+def test_renew_period_bound() -> None:
+    with pytest.raises(ValueError, match="renewMs 1500 must be at most a third of leaseMs 3000"):
+        Lease(FakeEngine(Clock()), 3000, 1500)
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.tuples(st.sampled_from("ab"), st.floats(0, 4.0),
+                          st.sampled_from([0.0, 0.0, 0.2, 3.5])), max_size=40))
+def test_never_two_leaders(moves: list[tuple[str, float, float]]) -> None:
+    """Any interleaving of steps, clock jumps (pauses) and slow calls: when both check
+    at the same instant, at most one believes it holds the lease."""
+    clock = Clock()
+    engine = FakeEngine(clock)
+    a, b, _ = pair(clock, engine)
+    for who, jump, delay in moves:
+        clock.now += jump
+        engine.delay = delay
+        (a if who == "a" else b).step()
+        engine.delay = 0.0
+        held_a, held_b = a.check(), b.check()
+        assert not (held_a and held_b)
+        if held_a or held_b:  # whoever believes it holds it is the engine's holder
+            assert engine.holder == ("a" if held_a else "b")
