@@ -68,6 +68,17 @@ def ok(cfg: em.DeviceConfig) -> Callable[[], bool]:
     return lambda: all(it.status is ItemStatus.OK for it in cfg.address_list)
 
 
+@pytest.fixture(params=["thread", "loop"])
+def engine(request: pytest.FixtureRequest) -> Iterator[str]:
+    """The engine serving the DTU lines started in the test (line/loop.py for "loop")."""
+    dtu_registry.set_engine(request.param)
+    try:
+        yield str(request.param)
+    finally:
+        dtu_registry.set_engine("thread")
+
+
+@pytest.mark.usefixtures("engine")
 def test_two_dtus_on_one_port_each_feed_their_own_devices() -> None:
     port = free_port()
     a1, a2 = dtu_device(port, "DTU-A", 1), dtu_device(port, "DTU-A", 2)
@@ -89,6 +100,7 @@ def test_two_dtus_on_one_port_each_feed_their_own_devices() -> None:
         assert listener.stats["registered"] == 2
 
 
+@pytest.mark.usefixtures("engine")
 def test_not_connected_then_dial_in_then_a_reconnect_replaces_the_old_link() -> None:
     port = free_port()
     cfg = dtu_device(port, "861234567890123", registration="regex",
@@ -111,6 +123,39 @@ def test_not_connected_then_dial_in_then_a_reconnect_replaces_the_old_link() -> 
         wait_for(lambda: drv.device_driver_status is DeviceDriverStatus.RECONNECTING)
         wait_for(lambda: all("DTU not connected" in (it.error_reason or "")
                              for it in cfg.address_list), what="DTU not connected")
+
+
+@pytest.mark.usefixtures("engine")
+def test_a_write_reaches_the_dtus_slave_and_is_read_back() -> None:
+    port = free_port()
+    cfg = dtu_device(port, "DTU-W", 1)
+    with Simulator(slaves=[1]) as sim, running(cfg) as (drv,):
+        sim.dial("127.0.0.1", port, registration=b"DTU-W")
+        wait_for(ok(cfg), what="values after dial-in")
+        assert drv.write_address("r1", 4321) == (True, None)
+        assert sim.slave(1).get_registers(Area.HOLDING_REGISTER, 1) == [4321]
+        wait_for(lambda: values(cfg)[1] == 4321, what="the written value read back")
+        assert values(cfg)[0] == default_register(1, 0)
+
+
+@pytest.mark.usefixtures("engine")
+def test_a_silent_slave_goes_offline_while_the_neighbour_dtu_keeps_its_cycle() -> None:
+    port = free_port()
+    silent = dtu_device(port, "DTU-S", 9, readTimeout=100)  # the simulator serves slave 1
+    good = dtu_device(port, "DTU-G", 1)
+    with ExitStack() as stack:
+        sim_s = stack.enter_context(Simulator(slaves=[1]))
+        sim_g = stack.enter_context(Simulator(slaves=[1]))
+        drv_s, drv_g = stack.enter_context(running(silent, good))
+        sim_s.dial("127.0.0.1", port, registration=b"DTU-S")
+        sim_g.dial("127.0.0.1", port, registration=b"DTU-G")
+        wait_for(ok(good), what="the good DTU's values")
+        wait_for(lambda: drv_s.device_driver_status is DeviceDriverStatus.OFFLINE,
+                 what="the silent slave offline")
+        requests = drv_g.stats()["requests"]
+        wait_for(lambda: drv_g.stats()["requests"] > requests + 5, what="the good DTU polled")
+        assert values(good) == [default_register(1, a) for a in (0, 1, 7)]
+        assert drv_g.device_driver_status is DeviceDriverStatus.RUNNING
 
 
 def test_keep_existing_refuses_a_second_connection_while_the_first_answers() -> None:
