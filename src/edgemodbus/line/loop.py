@@ -249,30 +249,35 @@ class LoopWorker:
             served.pollers = list(line._pollers)
             self._connect(served)  # new pollers hear why the line is down
         ll = served.ll
-        if ll is not None and ll.state != LS_IDLE:
-            return  # the link comes back here once idle (_step)
-        ran = False
+        if ll is None:  # down: the jobs fail at once
+            while True:
+                try:
+                    item = line._queue.get_nowait()
+                except queue.Empty:
+                    return
+                line._handle(item, None)
+        if ll.state == LS_IDLE:  # else the link comes back to its jobs once idle (_step)
+            self._step(served)
+
+    def _run_jobs(self, served: _Served) -> bool:
+        """Run the jobs queued for the line's idle link, on its socket made blocking for
+        their transactions; False if the link was lost meanwhile."""
+        line, link, ll = served.line, served.link, served.ll
+        assert link is not None and ll is not None
         while True:
             try:
                 item = line._queue.get_nowait()
             except queue.Empty:
-                break
-            link = served.link
-            if ll is not None and link is not None:
-                os.set_blocking(ll.ctx.fd, True)
-                try:
-                    line._handle(item, link)
-                finally:
-                    if link.is_open:
-                        os.set_blocking(ll.ctx.fd, False)
-                ran = True
-                if not link.is_open:
-                    self._lost(served)
-                    return
-            else:
-                line._handle(item, None)
-        if ll is not None and (ran or served.pollers != line._pollers):
-            self._step(served)
+                return True
+            os.set_blocking(ll.ctx.fd, True)
+            try:
+                line._handle(item, link)
+            finally:
+                if link.is_open:
+                    os.set_blocking(ll.ctx.fd, False)
+            if not link.is_open:
+                self._lost(served)
+                return False
 
     def _step(self, served: _Served) -> None:
         """Run the line's link as far as it goes now; hand the ended passes to the
@@ -280,9 +285,12 @@ class LoopWorker:
         ll, engine, line = served.ll, served.engine, served.line
         assert ll is not None and engine is not None
         while True:
-            if ll.state == LS_IDLE and served.pollers != line._pollers:
-                served.pollers = list(line._pollers)
-                engine.set_devices([p.device for p in served.pollers])
+            if ll.state == LS_IDLE:  # jobs go ahead of the next read
+                if not line._queue.empty() and not self._run_jobs(served):
+                    return
+                if served.pollers != line._pollers:
+                    served.pollers = list(line._pollers)
+                    engine.set_devices([p.device for p in served.pollers])
             ev = ll.run()
             pollers = served.pollers
             for ended in engine.take_ended():
@@ -302,8 +310,6 @@ class LoopWorker:
                 return
             elif ev != EV_CYCLE:
                 raise RuntimeError(f"loop link: unexpected event {ev}")
-        if ll.state == LS_IDLE and not line._queue.empty():
-            self._serve_queue(served)
 
     def _failed(self, served: _Served, which: int, err: int) -> None:
         link = served.link
