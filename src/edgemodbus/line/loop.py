@@ -58,6 +58,7 @@ class _Served:
     link: ContextLink | None = None
     engine: Engine | None = None
     ll: LoopLink | None = None
+    failures: int = 0  # connects failed in a row (the reconnect backoff)
     pollers: list[Poller] = field(default_factory=list)
 
 
@@ -160,10 +161,15 @@ class LoopWorker:
                     served = self._by_line.get(line)
                     if served is not None:
                         self._serve_queue(served)
-                for slot in sorted({s for s, _ in turn.ready} | set(turn.expired)):
+                expired = set(turn.expired)
+                for slot in sorted({s for s, _ in turn.ready} | expired):
                     served = self._slots.get(slot)
-                    if served is not None and served.ll is not None:
+                    if served is None:
+                        continue
+                    if served.ll is not None:
                         self._step(served)
+                    elif slot in expired:  # down: the reconnect delay ran out
+                        self._connect(served)
             except Exception:  # a bug must not stop the other lines
                 log.exception("%s: loop turn failed", self.thread.name)
         for served in list(self._by_line.values()):
@@ -192,6 +198,7 @@ class LoopWorker:
     def _drop(self, served: _Served) -> None:
         """Take a line off this worker: its link closed, its jobs failed."""
         self._detach(served)
+        self.loop.clear_timer(served.slot)  # a reconnect delay
         del self._slots[served.slot], self._by_line[served.line]
         self._free.append(served.slot)
         served.line._shutdown()
@@ -203,11 +210,17 @@ class LoopWorker:
             os.set_blocking(served.ll.ctx.fd, True)
         served.ll = served.engine = None
 
-    def _connect(self, served: _Served) -> None:
-        """Take the line's new connection, if any (its devices hear up, or why not)."""
+    def _connect(self, served: _Served) -> bool:
+        """Take the line's new connection, if any (its devices hear up, or why not);
+        without one, try again after the line's reconnect delay (the slot's deadline,
+        free while the line is down), as the line worker does."""
         line = served.line
+        self.loop.clear_timer(served.slot)
         if not line._connect():
-            return
+            served.failures += 1
+            self._retry(served)
+            return False
+        served.failures = 0
         link = line._link
         assert isinstance(link, ContextLink)
         engine = link.new_engine(self.waker, line._counters)
@@ -218,21 +231,32 @@ class LoopWorker:
             link.close_reason = f"the loop engine cannot serve it: {exc}"
             link.close()
             line._link_lost(link)
-            return
+            self._retry(served)
+            return False
         served.link, served.engine, served.ll = link, engine, ll
         served.pollers = []  # the new engine has no devices yet: _step gives them
         self._step(served)
+        return True
+
+    def _retry(self, served: _Served) -> None:
+        delay = served.line._reconnect_delay(served.failures)
+        self.loop.set_timer(served.slot, time.monotonic() + delay)
 
     def _lost(self, served: _Served) -> None:
-        """The line's link failed or closed: the devices hear why."""
+        """The line's link failed or closed: the devices hear why, unless a new
+        connection is waiting (replaced: they see one "up", no "down")."""
         link = served.link
         self._detach(served)
         served.link = None
-        if link is not None:
-            if link.is_open:
-                link.close()
-            served.line._link_lost(link)
-            self._connect(served)  # a new connection waiting, or the devices hear why not
+        if link is None:
+            return
+        if link.is_open:
+            link.close()
+        if served.line._connect_now and self._connect(served):
+            return
+        served.line._link_lost(link)
+        if served.ll is None:
+            self._retry(served)
 
     def _serve_queue(self, served: _Served) -> None:
         """Run what the line queued, while its link is idle (or down: jobs fail)."""
@@ -244,10 +268,8 @@ class LoopWorker:
                 link.close_reason = "replaced by a new connection"
                 link.close()
             served.link = None
-            self._connect(served)
-        elif served.ll is None and served.pollers != line._pollers:
-            served.pollers = list(line._pollers)
-            self._connect(served)  # new pollers hear why the line is down
+            if not self._connect(served) and link is not None:
+                line._link_lost(link)  # replaced by nothing (e.g. the id is contested)
         ll = served.ll
         if ll is None:  # down: the jobs fail at once
             while True:
