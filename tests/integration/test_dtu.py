@@ -209,6 +209,7 @@ def test_without_registration_the_single_dtu_takes_the_connection() -> None:
         assert values(cfg) == [default_register(1, a) for a in (0, 1, 7)]
 
 
+@pytest.mark.usefixtures("engine")
 def test_heartbeats_are_discarded_wherever_they_arrive() -> None:
     port = free_port()
     cfg = dtu_device(port, "DTU7", heartbeat="HB")

@@ -242,7 +242,7 @@ class ContextLink(Link):
         engine.set_devices(devices)
         event = engine.run(until, owed)
         self.owed = engine.owed
-        self._collect()
+        self.collect()
         return event, engine.event_device, engine.event_errno
 
     def new_engine(self, waker: Waker, counters: LineCounters) -> Engine:
@@ -312,7 +312,7 @@ class ContextLink(Link):
         except ModbusConnectionError as exc:
             self._fail(exc)
         finally:
-            self._collect()
+            self.collect()
         self.flush_reports()
 
     def feed(self, data: bytes) -> None:
@@ -325,7 +325,7 @@ class ContextLink(Link):
             log.debug("%s: %d bytes after the registration discarded: %s",
                       self.endpoint.describe(), len(data), data.hex(" ").upper())
         self._ctx.feed(data)
-        self._collect()
+        self.collect()
 
     def _dispatch(self, raws: list[bytes]) -> None:
         self.stats.reports += len(raws)
@@ -334,7 +334,7 @@ class ContextLink(Link):
             for raw in raws:
                 on_report(report_of(raw))
 
-    def _collect(self) -> None:
+    def collect(self) -> None:
         """Take the C side's counters into the line's stats; dispatch the reports that
         came before the last reply (older than it)."""
         ctx = self._ctx
@@ -446,7 +446,7 @@ class ContextLink(Link):
         except ModbusError as exc:
             raise self._fail(exc) from None
         finally:
-            self._collect()
+            self.collect()
             if self._pace:
                 self._done()
         stats.responses += 1
@@ -465,7 +465,7 @@ class ContextLink(Link):
         except ModbusError as exc:
             raise self._fail(exc) from None
         finally:
-            self._collect()
+            self.collect()
             self._done(0.0 if slave else self.timing.turnaround_delay)
         if slave:
             self.stats.responses += 1
@@ -486,7 +486,7 @@ class ContextLink(Link):
                 early(exc)
             raise self._fail(exc) from None
         finally:
-            self._collect()
+            self.collect()
             self._done()
         self.stats.responses += 1
         self.stats.rtt_total += time.monotonic() - start

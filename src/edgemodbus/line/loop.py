@@ -332,11 +332,15 @@ class LoopWorker:
                 return
             elif ev != EV_CYCLE:
                 raise RuntimeError(f"loop link: unexpected event {ev}")
+        link = served.link
+        if link is not None:
+            link.collect()  # the stream's counters (heartbeats, drops) into the stats
 
     def _failed(self, served: _Served, which: int, err: int) -> None:
         link = served.link
         assert link is not None
         self._detach(served)
+        link.collect()
         try:
             if 0 <= which < len(served.pollers):
                 served.pollers[which].engine_failed(link, err)
