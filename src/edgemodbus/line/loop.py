@@ -135,19 +135,23 @@ class LoopWorker:
         """``line`` has something queued (a job, a connection, new pollers)."""
         with self._lock:
             self._news.add(line)
-        self.loop.wake()
+        try:
+            self.loop.wake()
+        except OSError:
+            if not self._stopping:  # else the loop is closed: nothing to wake
+                raise
 
     def stop(self) -> None:
-        """End the thread (its lines removed first), close the loop (idempotent)."""
-        if self.thread.is_alive():
-            self._stopping = True
-            self.loop.wake()
-            if self.thread is not threading.current_thread():
-                self.thread.join(30)
-                if self.thread.is_alive():
-                    raise RuntimeError(f"{self.thread.name}: did not stop")
-        self.loop.close()
-        self.waker.close()
+        """End the thread, which drops the lines left and closes the loop (idempotent;
+        from the loop thread itself, it ends after this turn)."""
+        self._stopping = True
+        if not self.thread.is_alive():
+            return
+        self.loop.wake()
+        if self.thread is not threading.current_thread():
+            self.thread.join(30)
+            if self.thread.is_alive():
+                raise RuntimeError(f"{self.thread.name}: did not stop")
 
     # -- the loop thread -----------------------------------------------------------
     def _run(self) -> None:
@@ -174,6 +178,8 @@ class LoopWorker:
                 log.exception("%s: loop turn failed", self.thread.name)
         for served in list(self._by_line.values()):
             self._drop(served)
+        self.loop.close()
+        self.waker.close()
 
     def _take_inbox(self) -> None:
         while True:
@@ -382,9 +388,11 @@ class LoopPool:
         return worker
 
     def release(self, line: LoopLine, worker: LoopWorker, timeout: float | None) -> None:
-        if worker.thread is threading.current_thread():
-            raise RuntimeError(f"{line.endpoint.describe()}: stopped from its loop thread")
-        worker.remove(line).result(timeout if timeout is not None else 30)
+        """Take ``line`` off ``worker`` (waited for, except on the loop thread itself: a
+        poller's callback, where the line goes at the next turn)."""
+        removed = worker.remove(line)
+        if worker.thread is not threading.current_thread():
+            removed.result(timeout if timeout is not None else 30)
         with self._lock:
             worker.load -= 1
             last = worker.load == 0

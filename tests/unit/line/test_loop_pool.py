@@ -14,6 +14,7 @@ from edgemodbus.line.endpoint import DtuEndpoint
 from edgemodbus.line.link import Link
 from edgemodbus.line.loop import LoopLine, LoopPool, loop_serves
 from edgemodbus.line.worker import LineWorker
+from tests.waiting import wait_for
 
 
 class Absent:
@@ -66,3 +67,21 @@ def test_lines_share_a_worker_that_stops_with_the_last() -> None:
     lines[1].stop()
     assert pool.workers == 0 and loop_threads() == before
     lines[1].stop()  # idempotent
+
+
+def test_a_line_stopped_on_its_loop_thread_goes_at_the_next_turn() -> None:
+    """A callback on the loop thread (here: a failed job's) stops the worker's last
+    line: nothing waits for itself, and the worker's thread ends."""
+    pool = LoopPool(1)
+    before = loop_threads()
+    line = LoopLine(DtuEndpoint("127.0.0.1", 1, "S"), None, Absent(), pool)
+    line.start()
+    stopped_on: list[str] = []
+
+    def stop_here(_future: object) -> None:
+        stopped_on.append(threading.current_thread().name)
+        line.stop()
+
+    line.write_register(1, 0, 5).add_done_callback(stop_here)
+    wait_for(lambda: loop_threads() == before, what="the loop thread gone")
+    assert stopped_on == ["edgemodbus-loop 1"] and pool.workers == 0
