@@ -20,11 +20,13 @@ worker starts with its first line and stops with its last.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import queue
 import threading
 import time
+from collections.abc import Callable
 from concurrent.futures import Future
 from dataclasses import dataclass, field
 from typing import Any
@@ -164,22 +166,36 @@ class LoopWorker:
                 for line in news:
                     served = self._by_line.get(line)
                     if served is not None:
-                        self._serve_queue(served)
+                        self._guarded(self._serve_queue, served)
                 expired = set(turn.expired)
                 for slot in sorted({s for s, _ in turn.ready} | expired):
                     served = self._slots.get(slot)
                     if served is None:
                         continue
                     if served.ll is not None:
-                        self._step(served)
+                        self._guarded(self._step, served)
                     elif slot in expired:  # down: the reconnect delay ran out
-                        self._connect(served)
+                        self._guarded(self._connect, served)
             except Exception:  # a bug must not stop the other lines
                 log.exception("%s: loop turn failed", self.thread.name)
         for served in list(self._by_line.values()):
             self._drop(served)
         self.loop.close()
         self.waker.close()
+
+    def _guarded(self, step: Callable[[_Served], object], served: _Served) -> None:
+        """Run ``step`` for one line; an unexpected error costs that line only, as on a
+        line worker (LineWorker._recover: logged, link closed, devices told, jobs
+        failed) and it tries again after the reconnect backoff."""
+        try:
+            step(served)
+        except Exception as exc:
+            self._detach(served)
+            served.link = None
+            line = served.line
+            line._recover(exc)
+            served.failures = max(1, line._crashes)
+            self._retry(served)
 
     def _take_inbox(self) -> None:
         while True:
@@ -192,7 +208,7 @@ class LoopWorker:
                     served = _Served(line, self._free.pop())
                     self._slots[served.slot] = served
                     self._by_line[line] = served
-                    self._connect(served)
+                    self._guarded(self._connect, served)
                 else:
                     served_or_none = self._by_line.get(line)
                     if served_or_none is not None:
@@ -212,8 +228,9 @@ class LoopWorker:
     def _detach(self, served: _Served) -> None:
         """The loop lets go of the line's link (before the link closes)."""
         if served.ll is not None:
-            served.ll.detach()
-            os.set_blocking(served.ll.ctx.fd, True)
+            with contextlib.suppress(OSError):  # (a socket closed already is unwatched)
+                served.ll.detach()
+                os.set_blocking(served.ll.ctx.fd, True)
         served.ll = served.engine = None
 
     def _connect(self, served: _Served) -> bool:

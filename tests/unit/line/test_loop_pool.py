@@ -10,7 +10,7 @@ import pytest
 
 from edgemodbus.errors import ModbusConnectionError
 from edgemodbus.line import DtuRegistry
-from edgemodbus.line.endpoint import DtuEndpoint
+from edgemodbus.line.endpoint import DtuEndpoint, LineTiming
 from edgemodbus.line.link import Link
 from edgemodbus.line.loop import LoopLine, LoopPool, loop_serves
 from edgemodbus.line.worker import LineWorker
@@ -85,3 +85,32 @@ def test_a_line_stopped_on_its_loop_thread_goes_at_the_next_turn() -> None:
     line.write_register(1, 0, 5).add_done_callback(stop_here)
     wait_for(lambda: loop_threads() == before, what="the loop thread gone")
     assert stopped_on == ["edgemodbus-loop 1"] and pool.workers == 0
+
+
+class Buggy(Absent):
+    """A connector with a bug the first time: not a connection error."""
+
+    def open(self, line: LineWorker) -> Link:
+        self.tries += 1
+        if self.tries == 1:
+            raise RuntimeError("bug")
+        return super().open(line)
+
+
+def test_an_unexpected_error_costs_its_line_only_and_the_line_tries_again() -> None:
+    pool = LoopPool(1)
+    buggy, calm = Buggy(), Absent()
+    quick = LineTiming(reconnect_interval=0.05, max_backoff=0.1)
+    lines = [LoopLine(DtuEndpoint("127.0.0.1", 1, name), quick, connector, pool)
+             for name, connector in (("B", buggy), ("C", calm))]
+    for line in lines:
+        line.start()
+    try:
+        assert lines[0].stats.worker_errors == 1
+        assert lines[0].last_link_error == "line worker error: RuntimeError: bug"
+        wait_for(lambda: buggy.tries >= 3, what="the buggy line trying again")
+        assert lines[0].last_link_error == "DTU not connected (test)"
+        assert lines[1].stats.worker_errors == 0 and calm.tries >= 1
+    finally:
+        for line in lines:
+            line.stop()
