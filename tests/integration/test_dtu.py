@@ -38,6 +38,8 @@ def dtu_device(port: int, dtu_id: str, slave: int = 1, addresses: tuple[int, ...
         "byteTimeout": 50,
     }
     comm.update(extra)
+    if ENGINE and "engine" not in extra:
+        comm["engine"] = ENGINE[-1]
     return em.load_device_config({
         "organization": {"deviceCode": f"{dtu_id or 'dtu'}-{slave}"},
         "communication": comm,
@@ -68,14 +70,19 @@ def ok(cfg: em.DeviceConfig) -> Callable[[], bool]:
     return lambda: all(it.status is ItemStatus.OK for it in cfg.address_list)
 
 
+ENGINE: list[str] = []
+"""The ``engine`` key dtu_device gives its devices while a test runs with the fixture."""
+
+
 @pytest.fixture(params=["thread", "loop"])
 def engine(request: pytest.FixtureRequest) -> Iterator[str]:
-    """The engine serving the DTU lines started in the test (line/loop.py for "loop")."""
-    dtu_registry.set_engine(request.param)
+    """The engine (the devices' ``engine`` key) serving the test's DTU lines
+    (line/loop.py for "loop")."""
+    ENGINE.append(str(request.param))
     try:
         yield str(request.param)
     finally:
-        dtu_registry.set_engine("thread")
+        ENGINE.pop()
 
 
 @pytest.mark.usefixtures("engine")
@@ -346,3 +353,21 @@ def test_a_full_port_evicts_its_oldest_idle_connection_for_a_dtu() -> None:
         oldest = idle[0]
         oldest.settimeout(2)
         assert oldest.recv(1) == b""  # the oldest was closed
+
+
+def test_the_port_s_engine_key_puts_its_dtus_on_a_loop_thread() -> None:
+    """``engine: "loop"`` on the devices of a port (no process-wide setting): their
+    line is served by a loop thread; a device that disagrees is refused by name."""
+    port = free_port()
+    cfg = dtu_device(port, "DTU-K", 1, engine="loop", loopThreads=1)
+    with Simulator(slaves=[1]) as sim, running(cfg):
+        loops = [t.name for t in threading.enumerate() if t.name.startswith("edgemodbus-loop")]
+        assert len(loops) == 1
+        assert not [t for t in threading.enumerate() if "DTU-K" in t.name]  # no line thread
+        sim.dial("127.0.0.1", port, registration=b"DTU-K")
+        wait_for(ok(cfg), what="values on the loop engine")
+        assert values(cfg) == [default_register(1, a) for a in (0, 1, 7)]
+        other = dtu_device(port, "DTU-L", 1, engine="thread")
+        with pytest.raises(ValueError, match=r"engine 'thread' \(the port has 'loop'\)"):
+            em.DriverModbusRtu().start_device(other.organization, other.communication,
+                                              other.address_list)

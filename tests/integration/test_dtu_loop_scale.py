@@ -11,11 +11,9 @@ import signal
 import subprocess
 import sys
 import threading
-from collections.abc import Iterator
 
 import pytest
 
-from edgemodbus.line import dtu_registry
 from edgemodbus.sim import default_register
 from tests.integration.test_dtu import dtu_device, free_port, ok, running, values
 from tests.waiting import wait_for
@@ -35,19 +33,11 @@ def cpu_seconds() -> float:
     return usage.ru_utime + usage.ru_stime
 
 
-@pytest.fixture(params=["loop", "thread"])
-def engine(request: pytest.FixtureRequest) -> Iterator[str]:
-    dtu_registry.set_engine(request.param, loop_threads=2)
-    try:
-        yield str(request.param)
-    finally:
-        dtu_registry.set_engine("thread")
-
-
+@pytest.mark.parametrize("engine", ["loop", "thread"])
 def test_two_hundred_dtus_read_exact_values_on_a_handful_of_threads(engine: str) -> None:
     port = free_port()
     cfgs = [dtu_device(port, f"L{k:03d}", 1, registrationTimeout=5000, readCycle=1000,
-                       readTimeout=1000) for k in range(N)]
+                       readTimeout=1000, engine=engine, loopThreads=2) for k in range(N)]
     threads, rss = proc_status("Threads:"), proc_status("VmRSS:")
     with running(*cfgs) as drivers:
         proc = subprocess.Popen(

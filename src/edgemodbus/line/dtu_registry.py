@@ -78,7 +78,9 @@ class DtuRegistry:
                                  "registration and already serves a DTU; without a "
                                  "registration packet a port serves one DTU")
             slot = DtuSlot(endpoint, settings, access)
-            slot.engine = self.engine
+            slot.engine = settings.engine or self.engine  # the port's key, else the default
+            if settings.engine == "loop" and settings.loop_threads is not None:
+                pool.configure(settings.loop_threads)
             listener.add_slot(slot)
             self._slots[key] = (slot, 1)
             return slot
