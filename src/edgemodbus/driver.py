@@ -489,8 +489,8 @@ def port_settings(params: DriverModbusRtuParameter) -> PortSettings:
         allow_from=networks(params.listen_allow_from, "listenAllowFrom"),
         duplicate_id=params.duplicate_id,
         flip_limit=params.id_flip_limit,
-        flip_window=params.id_flip_window / 1000,
-    )
+        flip_window=params.id_flip_window / 1000, engine=params.engine,
+        loop_threads=params.loop_threads)
 
 
 def dtu_access(params: DriverModbusRtuParameter) -> DtuAccess:

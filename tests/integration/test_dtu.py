@@ -38,6 +38,8 @@ def dtu_device(port: int, dtu_id: str, slave: int = 1, addresses: tuple[int, ...
         "byteTimeout": 50,
     }
     comm.update(extra)
+    if ENGINE and "engine" not in extra:
+        comm["engine"] = ENGINE[-1]
     return em.load_device_config({
         "organization": {"deviceCode": f"{dtu_id or 'dtu'}-{slave}"},
         "communication": comm,
@@ -68,6 +70,22 @@ def ok(cfg: em.DeviceConfig) -> Callable[[], bool]:
     return lambda: all(it.status is ItemStatus.OK for it in cfg.address_list)
 
 
+ENGINE: list[str] = []
+"""The ``engine`` key dtu_device gives its devices while a test runs with the fixture."""
+
+
+@pytest.fixture(params=["thread", "loop"])
+def engine(request: pytest.FixtureRequest) -> Iterator[str]:
+    """The engine (the devices' ``engine`` key) serving the test's DTU lines
+    (line/loop.py for "loop")."""
+    ENGINE.append(str(request.param))
+    try:
+        yield str(request.param)
+    finally:
+        ENGINE.pop()
+
+
+@pytest.mark.usefixtures("engine")
 def test_two_dtus_on_one_port_each_feed_their_own_devices() -> None:
     port = free_port()
     a1, a2 = dtu_device(port, "DTU-A", 1), dtu_device(port, "DTU-A", 2)
@@ -89,6 +107,7 @@ def test_two_dtus_on_one_port_each_feed_their_own_devices() -> None:
         assert listener.stats["registered"] == 2
 
 
+@pytest.mark.usefixtures("engine")
 def test_not_connected_then_dial_in_then_a_reconnect_replaces_the_old_link() -> None:
     port = free_port()
     cfg = dtu_device(port, "861234567890123", registration="regex",
@@ -111,6 +130,39 @@ def test_not_connected_then_dial_in_then_a_reconnect_replaces_the_old_link() -> 
         wait_for(lambda: drv.device_driver_status is DeviceDriverStatus.RECONNECTING)
         wait_for(lambda: all("DTU not connected" in (it.error_reason or "")
                              for it in cfg.address_list), what="DTU not connected")
+
+
+@pytest.mark.usefixtures("engine")
+def test_a_write_reaches_the_dtus_slave_and_is_read_back() -> None:
+    port = free_port()
+    cfg = dtu_device(port, "DTU-W", 1)
+    with Simulator(slaves=[1]) as sim, running(cfg) as (drv,):
+        sim.dial("127.0.0.1", port, registration=b"DTU-W")
+        wait_for(ok(cfg), what="values after dial-in")
+        assert drv.write_address("r1", 4321) == (True, None)
+        assert sim.slave(1).get_registers(Area.HOLDING_REGISTER, 1) == [4321]
+        wait_for(lambda: values(cfg)[1] == 4321, what="the written value read back")
+        assert values(cfg)[0] == default_register(1, 0)
+
+
+@pytest.mark.usefixtures("engine")
+def test_a_silent_slave_goes_offline_while_the_neighbour_dtu_keeps_its_cycle() -> None:
+    port = free_port()
+    silent = dtu_device(port, "DTU-S", 9, readTimeout=100)  # the simulator serves slave 1
+    good = dtu_device(port, "DTU-G", 1)
+    with ExitStack() as stack:
+        sim_s = stack.enter_context(Simulator(slaves=[1]))
+        sim_g = stack.enter_context(Simulator(slaves=[1]))
+        drv_s, drv_g = stack.enter_context(running(silent, good))
+        sim_s.dial("127.0.0.1", port, registration=b"DTU-S")
+        sim_g.dial("127.0.0.1", port, registration=b"DTU-G")
+        wait_for(ok(good), what="the good DTU's values")
+        wait_for(lambda: drv_s.device_driver_status is DeviceDriverStatus.OFFLINE,
+                 what="the silent slave offline")
+        requests = drv_g.stats()["requests"]
+        wait_for(lambda: drv_g.stats()["requests"] > requests + 5, what="the good DTU polled")
+        assert values(good) == [default_register(1, a) for a in (0, 1, 7)]
+        assert drv_g.device_driver_status is DeviceDriverStatus.RUNNING
 
 
 def test_keep_existing_refuses_a_second_connection_while_the_first_answers() -> None:
@@ -164,6 +216,7 @@ def test_without_registration_the_single_dtu_takes_the_connection() -> None:
         assert values(cfg) == [default_register(1, a) for a in (0, 1, 7)]
 
 
+@pytest.mark.usefixtures("engine")
 def test_heartbeats_are_discarded_wherever_they_arrive() -> None:
     port = free_port()
     cfg = dtu_device(port, "DTU7", heartbeat="HB")
@@ -300,3 +353,21 @@ def test_a_full_port_evicts_its_oldest_idle_connection_for_a_dtu() -> None:
         oldest = idle[0]
         oldest.settimeout(2)
         assert oldest.recv(1) == b""  # the oldest was closed
+
+
+def test_the_port_s_engine_key_puts_its_dtus_on_a_loop_thread() -> None:
+    """``engine: "loop"`` on the devices of a port (no process-wide setting): their
+    line is served by a loop thread; a device that disagrees is refused by name."""
+    port = free_port()
+    cfg = dtu_device(port, "DTU-K", 1, engine="loop", loopThreads=1)
+    with Simulator(slaves=[1]) as sim, running(cfg):
+        loops = [t.name for t in threading.enumerate() if t.name.startswith("edgemodbus-loop")]
+        assert len(loops) == 1
+        assert not [t for t in threading.enumerate() if "DTU-K" in t.name]  # no line thread
+        sim.dial("127.0.0.1", port, registration=b"DTU-K")
+        wait_for(ok(cfg), what="values on the loop engine")
+        assert values(cfg) == [default_register(1, a) for a in (0, 1, 7)]
+        other = dtu_device(port, "DTU-L", 1, engine="thread")
+        with pytest.raises(ValueError, match=r"engine 'thread' \(the port has 'loop'\)"):
+            em.DriverModbusRtu().start_device(other.organization, other.communication,
+                                              other.address_list)

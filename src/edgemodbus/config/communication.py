@@ -60,6 +60,7 @@ AddressPrefixOption = Literal["function-code", "modicon", "entity"]
 ReportMode = Literal["change", "cycle"]
 Rs485Mode = Literal["none", "kernel", "rts-up", "rts-down"]
 DuplicateId = Literal["keep-existing", "replace"]
+DtuEngine = Literal["thread", "loop"]
 AllowFrom = Annotated[tuple[Annotated[str, AfterValidator(network)], ...],
                       BeforeValidator(allow_list)]
 """A source-address allow-list: networks (CIDR) or single addresses, normalised."""
@@ -227,6 +228,17 @@ class _CommunicationFields(Model):
         description="rtu-over-tcp-server with registration regex: the secret this "
         f"device's DTU sends in the registrationPattern group named key (e.g. {KEY_EXAMPLE}); "
         "compared in constant time, never shown nor logged",
+    )
+    engine: DtuEngine = Field(
+        default="thread",
+        description="rtu-over-tcp-server: what polls the port's DTUs: thread (a thread "
+        "per DTU) or loop (plain RTU DTUs on a few loop threads; wrapped or echoing ones "
+        "keep a thread; docs/scale.md); every device of a port must agree",
+    )
+    loop_threads: Annotated[int | None, Range(1, 1024)] = Field(
+        default=None,
+        description="rtu-over-tcp-server with engine loop: loop threads of the process "
+        "(unset = one per core); the last port opened sets it for threads started later",
     )
     framing: Framing = Field(
         default="rtu",

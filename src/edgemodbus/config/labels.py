@@ -94,6 +94,8 @@ LABELS: dict[str, dict[str, Any]] = {
     "id_flip_window": _ui("ID争用窗口(ms)", "Connection", "number", tcp=True),
     "dtu_allow_from": _ui("DTU来源白名单(CIDR)", "Connection", "text", tcp=True),
     "registration_key": _ui("注册密钥", "Connection", "password", tcp=True),
+    "engine": _ui("轮询引擎", "Connection", "select", tcp=True),
+    "loop_threads": _ui("事件循环线程数", "Connection", "number", tcp=True),
     "framing": _ui("报文封装", "Connection", "select", tcp=True),
     "connect_timeout": _ui("连接超时(ms)", "Connection", "number", tcp=True),
     "reconnect_interval": _ui("重连间隔(ms)", "Connection", "number"),

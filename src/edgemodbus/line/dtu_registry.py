@@ -11,7 +11,10 @@ from .admission import Networks
 from .dtu_listener import DtuListener
 from .dtu_slot import DtuSlot
 from .endpoint import DtuEndpoint
+from .loop import pool
 from .registration import DtuAccess, PortSettings
+
+ENGINES = ("thread", "loop")
 
 
 class DtuRegistry:
@@ -23,6 +26,16 @@ class DtuRegistry:
         self._listeners: dict[tuple[str, int], DtuListener] = {}
         self._slots: dict[tuple[str, int, str], tuple[DtuSlot, int]] = {}
         self._balancers = Networks((), "fleet.loadBalancers")
+        self.engine = "thread"  # what serves the lines of DTUs acquired from now on
+
+    def set_engine(self, engine: str, loop_threads: int | None = None) -> None:
+        """``engine``: "thread" (a thread per DTU line) or "loop" (plain RTU DTUs on
+        ``loop_threads`` loop threads, default the cores: line/loop.py), for the DTU
+        lines started from now on.  ValueError names a bad value."""
+        if engine not in ENGINES:
+            raise ValueError(f"engine {engine!r}: must be one of {', '.join(ENGINES)}")
+        pool.configure(loop_threads)
+        self.engine = engine
 
     def set_load_balancers(self, cidrs: tuple[str, ...]) -> None:
         """The load balancers whose connections start with a PROXY v2 header (the
@@ -65,6 +78,9 @@ class DtuRegistry:
                                  "registration and already serves a DTU; without a "
                                  "registration packet a port serves one DTU")
             slot = DtuSlot(endpoint, settings, access)
+            slot.engine = settings.engine or self.engine  # the port's key, else the default
+            if settings.engine == "loop" and settings.loop_threads is not None:
+                pool.configure(settings.loop_threads)
             listener.add_slot(slot)
             self._slots[key] = (slot, 1)
             return slot
@@ -113,4 +129,4 @@ class DtuRegistry:
 
 registry = DtuRegistry()
 
-__all__ = ["DtuRegistry", "registry"]
+__all__ = ["ENGINES", "DtuRegistry", "registry"]

@@ -56,6 +56,7 @@ class DtuSlot:
         self.access = access or DtuAccess()
         self.allowed = Networks(self.access.allow_from, "dtuAllowFrom")
         self.line: LineWorker | None = None
+        self.engine = "thread"  # or "loop": what serves its line (line/registry.py)
         self._lock = threading.Lock()
         self._pending: tuple[socket.socket, str, bytes] | None = None
         self._current: socket.socket | None = None

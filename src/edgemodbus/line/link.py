@@ -61,9 +61,8 @@ class Link:
 
     def __init__(self, endpoint: Endpoint, timing: LineTiming, stats: LineStats, fd: int, *,
                  mbap: bool = False, on_close: Callable[[], None] | None = None) -> None:
-        """``fd``: what the line reads from; ``mbap``: Modbus TCP framing (the frame
-        trace and the write-reply check read it); ``on_close``: called when the link
-        closes, before its socket is."""
+        """``fd``: what the line reads from; ``mbap``: Modbus TCP framing (frame trace,
+        write-reply check); ``on_close``: called on close, before the socket closes."""
         self.endpoint = endpoint
         self.timing = timing
         self.stats = stats
@@ -108,8 +107,7 @@ class Link:
         ``early``: called with a failure before the line is settled or drained."""
         raise NotImplementedError
 
-    def reply_pdu(self, adu: bytes) -> bytes:
-        """The PDU of a reply ADU: without the MBAP header, or the slave id and CRC."""
+    def reply_pdu(self, adu: bytes) -> bytes:  # without the MBAP header, or id and CRC
         return adu[_MBAP_LEN:] if self._mbap else adu[1:-2]
 
     def _fail(self, exc: ModbusError) -> ModbusError:
@@ -118,9 +116,8 @@ class Link:
     def run_engine(self, waker: Waker, counters: LineCounters, devices: Sequence[EngineDevice],
                    until: float, owed: bool = False) -> tuple[int, int, int]:
         """Run ``devices``' passes in C until something needs Python or ``until``: the
-        event, the index of the device concerned and an errno (see _ffi/engine.py).
-        ``owed``: a job ran since the last read, so the next waits for one read of a
-        due block (:attr:`owed`: still owed)."""
+        event, the device's index and an errno (_ffi/engine.py). ``owed``: a job ran
+        since the last read: the next waits for a due block's read (:attr:`owed`)."""
         raise NotImplementedError
 
     def read_failed(self, err: int, slave: int, area: Area, address: int,
@@ -128,17 +125,15 @@ class Link:
         """The link failed (errno ``err``) on an engine's read: count it, close the link."""
         raise NotImplementedError
 
-    def take_ended(self) -> list[int]:
-        """Devices (by index in :meth:`run_engine`'s) whose passes ended for Python."""
+    def take_ended(self) -> list[int]:  # devices (by index) whose passes ended for Python
         return []
 
-    def pump(self) -> None:
-        """Read and dispatch what arrived unsolicited (links with ``idle_fd``)."""
+    def pump(self) -> None:  # read and dispatch what arrived unsolicited (``idle_fd``)
+        pass
 
     def flush_reports(self) -> None:
-        """Dispatch the unsolicited reports that arrived behind the reply of the last
-        transaction; the worker calls it once that reply was applied, so that the
-        newer values win (links that take reports only)."""
+        """Dispatch the reports that came behind the last reply, once it was applied
+        (they are newer; links that take reports only)."""
 
     # -- pacing -----------------------------------------------------------------------
     def _wait_turn(self) -> None:
@@ -243,16 +238,22 @@ class ContextLink(Link):
             return EV_DEADLINE, -1, 0
         engine = self._engine
         if engine is None or engine.waker is not waker:
-            ready = self._ready_at
-            engine = Engine(self._ctx, waker, counters, self._pace, self.idle_fd, Clean(
-                self.timing.settle, self._settle_limit, self._quiet, self._drain_limit))
-            engine.ready_at = ready
-            self._engine = engine  # the pacing lives in it from now on
+            engine = self.new_engine(waker, counters)
         engine.set_devices(devices)
         event = engine.run(until, owed)
         self.owed = engine.owed
-        self._collect()
+        self.collect()
         return event, engine.event_device, engine.event_errno
+
+    def new_engine(self, waker: Waker, counters: LineCounters) -> Engine:
+        """A new engine on this link, its pacing from now on (loop workers: line/loop.py)."""
+        ready, self._engine = self._ready_at, Engine(
+            self._ctx, waker, counters, self._pace, self.idle_fd,
+            Clean(self.timing.settle, self._settle_limit, self._quiet, self._drain_limit))
+        self._engine.ready_at = ready
+        return self._engine
+
+    context = property(lambda self: self._ctx, doc="The link's libmodbus context.")
 
     def _log_trace(self) -> None:
         """Log the frames our C traced (csrc/emb_io.c, in the line engine too) at DEBUG:
@@ -311,7 +312,7 @@ class ContextLink(Link):
         except ModbusConnectionError as exc:
             self._fail(exc)
         finally:
-            self._collect()
+            self.collect()
         self.flush_reports()
 
     def feed(self, data: bytes) -> None:
@@ -324,7 +325,7 @@ class ContextLink(Link):
             log.debug("%s: %d bytes after the registration discarded: %s",
                       self.endpoint.describe(), len(data), data.hex(" ").upper())
         self._ctx.feed(data)
-        self._collect()
+        self.collect()
 
     def _dispatch(self, raws: list[bytes]) -> None:
         self.stats.reports += len(raws)
@@ -333,7 +334,7 @@ class ContextLink(Link):
             for raw in raws:
                 on_report(report_of(raw))
 
-    def _collect(self) -> None:
+    def collect(self) -> None:
         """Take the C side's counters into the line's stats; dispatch the reports that
         came before the last reply (older than it)."""
         ctx = self._ctx
@@ -445,7 +446,7 @@ class ContextLink(Link):
         except ModbusError as exc:
             raise self._fail(exc) from None
         finally:
-            self._collect()
+            self.collect()
             if self._pace:
                 self._done()
         stats.responses += 1
@@ -464,7 +465,7 @@ class ContextLink(Link):
         except ModbusError as exc:
             raise self._fail(exc) from None
         finally:
-            self._collect()
+            self.collect()
             self._done(0.0 if slave else self.timing.turnaround_delay)
         if slave:
             self.stats.responses += 1
@@ -485,7 +486,7 @@ class ContextLink(Link):
                 early(exc)
             raise self._fail(exc) from None
         finally:
-            self._collect()
+            self.collect()
             self._done()
         self.stats.responses += 1
         self.stats.rtt_total += time.monotonic() - start

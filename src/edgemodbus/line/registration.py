@@ -89,6 +89,8 @@ class PortSettings:
     duplicate_id: str = "keep-existing"  # duplicateId: one of DUPLICATE_POLICIES
     flip_limit: int = 5  # idFlipLimit: replacements of one id within flip_window ...
     flip_window: float = 60.0  # idFlipWindow (s): ... beyond which the id is contested
+    engine: str | None = None  # engine: thread | loop (None: the registry's; line/loop.py)
+    loop_threads: int | None = None  # loopThreads (None: one per core)
 
     @property
     def key(self) -> tuple[str, int]:
@@ -101,7 +103,8 @@ class PortSettings:
                  "byte_rate": "registrationByteRate", "max_unregistered": "maxUnregistered",
                  "max_per_source": "maxUnregisteredPerSource",
                  "allow_from": "listenAllowFrom", "duplicate_id": "duplicateId",
-                 "flip_limit": "idFlipLimit", "flip_window": "idFlipWindow"}
+                 "flip_limit": "idFlipLimit", "flip_window": "idFlipWindow",
+                 "engine": "engine"}
         return [f"{key} {getattr(other, attr)!r} (the port has {getattr(self, attr)!r})"
                 for attr, key in names.items() if getattr(self, attr) != getattr(other, attr)]
 

@@ -7,8 +7,10 @@ import threading
 from collections.abc import Callable
 from dataclasses import fields
 
+from .dtu_slot import DtuSlot
 from .endpoint import DtuEndpoint, Endpoint, LineTiming, MqttDtuEndpoint, TcpEndpoint
 from .failover import Failover
+from .loop import LoopLine, loop_serves, pool
 from .mqtt_dtu import MqttDtuSlot, hubs
 from .worker import Connector, LineWorker
 
@@ -61,8 +63,13 @@ class LineRegistry:
         elif connector is None and not isinstance(endpoint, DtuEndpoint) and \
                 endpoint.alternates:
             failover = Failover(endpoint)
-        line = LineWorker(endpoint, timing, failover or slot or (
-            connector() if connector is not None else None))
+        made = connector() if connector is not None else None
+        line: LineWorker
+        if isinstance(made, DtuSlot) and made.engine == "loop" and \
+                isinstance(endpoint, DtuEndpoint) and loop_serves(endpoint):
+            line = LoopLine(endpoint, timing, made, pool)  # on a loop thread: line/loop.py
+        else:
+            line = LineWorker(endpoint, timing, failover or slot or made)
         if slot is not None:
             slot.line = line
         line.start()
