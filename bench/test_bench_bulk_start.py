@@ -1,4 +1,4 @@
-"""Starting thousands of drivers of one template (issue 27): time and memory per driver.
+"""Starting thousands of drivers of one template: time and memory per driver.
 
 N listen-mode DTU drivers (one template: 20 UInt16 tags, each DTU its own dtuId, none
 dialled in) start on one listen port, then stop.  Measured twice, each in a fresh

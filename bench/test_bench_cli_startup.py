@@ -1,4 +1,4 @@
-"""CLI start-up (issue 29): whole-process wall time of ``python -c "import edgemodbus"``
+"""CLI start-up: whole-process wall time of ``python -c "import edgemodbus"``
 and of ``edgemodbus read`` of one register from a simulator, each over ``python -c pass``
 timed in the same rounds (the interpreter's own start, the baseline).
 

@@ -9,7 +9,7 @@ paired differences, in transaction times (the median direct read).  A driver's
 ``forward`` on its own idle line (the public path: the device's slave and timeout
 added) is timed too and reported beside it.
 
-Target (issue 16): forward mode adds at most one transaction time over a direct read on
+Target: forward mode adds at most one transaction time over a direct read on
 an idle line; gated at that (measured: a few hundredths, see bench/gate.py).
 """
 

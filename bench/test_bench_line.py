@@ -1,6 +1,6 @@
 """Client CPU per transaction: 125 holding registers over loopback RTU-over-TCP from a
 pymodbus slave in its own process; our LineWorker against pymodbus' own sync client, measured
-in the same run.  Target (issue 2): ours at most one third of pymodbus' (the ratio worker /
+in the same run.  Target: ours at most one third of pymodbus' (the ratio worker /
 pymodbus is gated: bench/gate.py)."""
 
 from __future__ import annotations

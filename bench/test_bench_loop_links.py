@@ -1,4 +1,4 @@
-"""The loop engine's links against the thread engine, in the same run (issue #27).
+"""The loop engine's links against the thread engine, in the same run.
 
 N plain RTU DTU streams (1 slave x 10 holding registers each, one read per pass, 5 s
 cycle) connected to one pymodbus slave in a process of its own (RTU over TCP), served

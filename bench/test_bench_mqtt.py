@@ -12,7 +12,7 @@ MQTT thread included) per tag read is compared: each on window against the mean 
 off windows before and after its round, the median over the rounds (the machine is
 shared: a burst of someone else's load spoils a window, not the figure).  Publishers in
 mode "batch" (one message per device and cycle) and "per-item" (one message per update),
-each at QoS 0 and QoS 1, all through paho's public publish().  Targets (issue 15, gated:
+each at QoS 0 and QoS 1, all through paho's public publish().  Targets (gated:
 bench/gate.py): batch on / off <= 1.2 at QoS 0 and <= 1.5 at QoS 1; per-item QoS 0 keeps
 issue 8's target (<= 1.5, not met since the hand-built packets went: its limit is a
 regression guard) and per-item QoS 1 is reported.  The benchmark fixture times the line

@@ -1,4 +1,4 @@
-"""What the store-and-forward spool costs (issue 15): 10,000 tags with 1% changing per
+"""What the store-and-forward spool costs: 10,000 tags with 1% changing per
 cycle, i.e. 100 messages a cycle, each kept in SQLite and deleted when acknowledged.
 
 Live QoS 1 path: per cycle one ``append(100 messages, claimed=True)`` and one

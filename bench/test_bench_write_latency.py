@@ -10,7 +10,7 @@ timestamps when the frame arrives (``time.monotonic()``: one clock for both proc
 Linux).  It is given in transaction times (the median interval between two read
 requests at the slave).
 
-Target (issue 13): a write starts within one transaction time (it waits at most for the
+Target: a write starts within one transaction time (it waits at most for the
 transaction in flight, never for the rest of the cycle); the gated figure is the 90th
 percentile, with the gate at 2 transaction times.
 """

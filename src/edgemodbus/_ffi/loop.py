@@ -1,4 +1,4 @@
-"""The core of the loop engine (csrc/emb_loop.c, issue #27): one epoll set, one wake-up
+"""The core of the loop engine (csrc/emb_loop.c): one epoll set, one wake-up
 eventfd and one min-heap of deadlines that a loop thread serves many links with.
 
 A link is a *slot* number ``0 <= slot < capacity``; its socket is watched under that

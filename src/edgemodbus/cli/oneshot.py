@@ -1,4 +1,4 @@
-"""``edgemodbus read`` in one shot (issue 29, docs/benchmarks.md "Start-up of the command
+"""``edgemodbus read`` in one shot (docs/benchmarks.md "Start-up of the command
 line"): over ``--host``, one request on a libmodbus context of its own (``_ffi``), decoded
 with the codec's BlockDecoder, without the config models, pydantic, the driver or the
 line worker, which cost ~110 ms of start-up before the 6-8 ms the read itself takes.

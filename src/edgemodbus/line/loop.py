@@ -1,4 +1,4 @@
-"""The loop engine's workers (issue #27): a few threads, each running one
+"""The loop engine's workers: a few threads, each running one
 :class:`~edgemodbus._ffi.loop.Loop`, serve many DTU lines instead of a thread per line.
 
 A :class:`LoopLine` is a :class:`~edgemodbus.line.worker.LineWorker` without a thread of

@@ -1,4 +1,4 @@
-"""The ``/metrics`` HTTP server: one thread, one selector, bounded (issue #25).
+"""The ``/metrics`` HTTP server: one thread, one selector, bounded.
 
 The standard library's servers give every connection a thread and wait for a request's
 headers as long as the peer likes: 1,024 connections that never finish their headers

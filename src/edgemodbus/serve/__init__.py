@@ -1,4 +1,4 @@
-"""The gateway's Modbus TCP server (issue 16): serve mode and the server side of forward
+"""The gateway's Modbus TCP server: serve mode and the server side of forward
 mode.
 
 * settings.py: the ``serve`` section of the gateway file (:class:`ServeSettings`);

@@ -48,7 +48,7 @@ with messages pending queues its live ones behind them, the others publish at on
 A retained message replayed after a newer live one would replace the
 broker's retained value with an older one; the MQTT sender, whose live messages queue
 behind their device's backlog, replays with the retain flag kept, so the last message
-of a topic is its newest and the retained value ends up current (issue #24).
+of a topic is its newest and the retained value ends up current.
 
 The file (file.py): database and WAL together stay within ``maxBytes`` (the WAL
 checkpointed every few pages and truncated back to its share, the database capped by
