@@ -229,8 +229,9 @@ static int emb_sleep(emb_engine *e, int64_t until_ns, int idle)
     }
 }
 
-/* The device due first, or NULL when none is polled. */
-static emb_device *emb_pick(emb_engine *e, int *which)
+/* The device due first (active, polled), or NULL when none is polled; *which: its
+ * index.  The blocking engine and the loop's links (emb_loop_link.c) pick alike. */
+emb_device *emb_engine_pick(const emb_engine *e, int *which)
 {
     emb_device *best = NULL;
     uint32_t i;
@@ -298,7 +299,7 @@ int emb_engine_run(emb_engine *e, int64_t until_ns)
     e->event_errno = 0;
     for (;;) {
         now = emb_now_ns();
-        d = emb_pick(e, &which);
+        d = emb_engine_pick(e, &which);
         if (e->n_ended && (d == NULL || (!d->in_pass && d->ended) || now >= e->latest_ns ||
                            d->due_ns > now + e->idle_ns))
             return EMB_EV_CYCLE; /* the passes that ended, before a new pass of one of

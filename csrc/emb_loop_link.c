@@ -17,23 +17,6 @@
 #include "emb_rtu.h"
 #include "emb_stream.h"
 
-/* The device due first (active, polled), or NULL. */
-static emb_device *emb_ll_pick(const emb_engine *e, int *which)
-{
-    emb_device *best = NULL;
-    uint32_t i;
-
-    for (i = 0; i < e->n_devices; i++) {
-        emb_device *d = e->devices[i];
-
-        if (d->active && d->due_ns != EMB_NEVER && (!best || d->due_ns < best->due_ns)) {
-            best = d;
-            *which = (int)i;
-        }
-    }
-    return best;
-}
-
 /* Send the read of the pass's next block of device k->which.  0, or -1 with errno. */
 static int emb_ll_send(emb_loop_link *k, int64_t now)
 {
@@ -241,7 +224,7 @@ int emb_loop_link_run(emb_loop *lp, emb_loop_link *k)
                 }
                 break;
             }
-            d = emb_ll_pick(e, &k->which);
+            d = emb_engine_pick(e, &k->which);
             if (d == NULL) {
                 k->which = -1;
                 emb_timer_clear(lp, k->slot);
