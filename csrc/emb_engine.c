@@ -249,12 +249,12 @@ emb_device *emb_engine_pick(const emb_engine *e, int *which)
 
 /* Read and decode the pass's next block with the fault policy: 0 (the pass goes on), or
  * an EMB_EV_* for Python (csrc/emb_fault.c). */
-static int emb_step(emb_engine *e, emb_device *d)
+static int emb_step(emb_engine *e, emb_device *d, int64_t until_ns)
 {
     emb_eblock *b = &d->blocks[d->pass_list[d->index]];
     void *data = b->data ? b->data : (b->function <= 2 ? (void *)e->bits : (void *)e->regs);
 
-    return emb_fault_read(e, d, b, data);
+    return emb_fault_read(e, d, b, data, until_ns);
 }
 
 /* A pass of d (device `which`) that Python must see ended: list it.  The list goes to
@@ -334,12 +334,16 @@ int emb_engine_run(emb_engine *e, int64_t until_ns)
                 ev = EMB_EV_WAKE;
             else if (e->lk->trace && e->lk->trace->used > EMB_TRACE_SIZE / 2)
                 ev = EMB_EV_TRACE; /* a long pass: Python logs what the ring holds */
+            if (ev < 0 && emb_now_ns() >= until_ns)
+                ev = EMB_EV_DEADLINE; /* no request at or after until_ns (a pair's lease
+                                       * ends there: line/worker.py); the pass goes on
+                                       * at the next run */
             if (ev >= 0) {
                 e->event_device = which; /* interrupted mid-pass */
                 return ev;
             }
             e->owed = 0; /* this read pays for the job that ran before it */
-            ev = emb_step(e, d);
+            ev = emb_step(e, d, until_ns);
             if (ev != 0) {
                 e->event_device = which;
                 return ev;

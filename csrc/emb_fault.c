@@ -280,8 +280,9 @@ static int emb_fault_request(emb_engine *e, emb_device *d, emb_eblock *b, void *
 
 /* Read block b with the fault policy.  0: the pass goes on (the block was read, or its
  * failure is marked, or the pass ended on a timeout); EMB_EV_SPLIT or EMB_EV_FAILED
- * (event_errno) for Python. */
-int emb_fault_read(emb_engine *e, emb_device *d, emb_eblock *b, void *data)
+ * (event_errno) for Python.  No retry starts at or after until_ns (the run's deadline:
+ * a pair's lease, line/worker.py): the failure is then taken as the last try's. */
+int emb_fault_read(emb_engine *e, emb_device *d, emb_eblock *b, void *data, int64_t until_ns)
 {
     const int first = emb_fault_tries(d);
     int tries = first;
@@ -306,6 +307,8 @@ int emb_fault_read(emb_engine *e, emb_device *d, emb_eblock *b, void *data)
             return EMB_EV_FAILED;
         }
         emb_fault_count(e, d, kind, code); /* once the line is clean: what it cost */
+        if (tries > 0 && emb_now_ns() >= until_ns)
+            tries = 0;
         rc = emb_fault_failed(e, d, b, kind, code, err, &tries);
         if (rc != EMB_FAULT_RETRY)
             return rc;

@@ -33,7 +33,8 @@ int emb_fault_clean_of(const emb_engine *e, int kind);
 void emb_fault_cleaned(emb_engine *e, long n);
 int emb_fault_failed(emb_engine *e, emb_device *d, emb_eblock *b, int kind, int code,
                      int err, int *tries);
-int emb_fault_read(emb_engine *e, emb_device *d, emb_eblock *b, void *data);
+int emb_fault_read(emb_engine *e, emb_device *d, emb_eblock *b, void *data,
+                   int64_t until_ns);
 void emb_fault_end_pass(emb_device *d, int64_t now_ns);
 void emb_dev_due_at(emb_device *d, int64_t at_ns);
 

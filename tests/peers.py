@@ -444,7 +444,9 @@ class PymodbusSlave:
 
     def stats(self) -> dict[str, Any]:
         """Counters since start: {"requests": {unit: n}, "connections": total accepted,
-        "active": open now, "responses": answers sent}."""
+        "active": open now, "responses": answers sent, "perConnection": {name: requests},
+        "activeConnections": [name], "requestTimes": {name: [first, last]} (arrivals on
+        time.monotonic()), "writesPerConnection": {name: writes}}."""
         raw = self._call("stats")
         raw["requests"] = {int(k): int(v) for k, v in raw["requests"].items()}
         return dict(raw)

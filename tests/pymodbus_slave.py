@@ -22,6 +22,7 @@ from __future__ import annotations
 import asyncio
 import json
 import sys
+import time
 import traceback
 from array import array
 from collections import Counter
@@ -48,6 +49,9 @@ FC_AREA: dict[int, str] = {
     3: "hr", 6: "hr", 16: "hr", 22: "hr", 23: "hr",
     4: "ir",
 }  # fmt: skip
+
+
+WRITE_FC = frozenset((5, 6, 15, 16, 22))
 
 
 def log(message: str) -> None:
@@ -189,6 +193,10 @@ class App:
         self.responses = 0
         self.handlers: set[Handler] = set()
         self.per_connection: dict[str, int] = {}  # "<peer port>#<n>": its requests
+        # per connection: its first and last request's arrival (time.monotonic(): one
+        # clock for every process of the host) and its writes (FC 05, 06, 15, 16, 22)
+        self.request_times: dict[str, list[float]] = {}
+        self.writes: dict[str, int] = {}
 
     def control(self, msg: dict[str, Any]) -> Any:
         """Run one control command from the parent; returns its result."""
@@ -226,6 +234,8 @@ class App:
                 "responses": self.responses,
                 "perConnection": dict(self.per_connection),
                 "activeConnections": sorted(h.name for h in self.handlers),
+                "requestTimes": dict(self.request_times),
+                "writesPerConnection": dict(self.writes),
             }
         if op == "ping":
             return "pong"
@@ -294,6 +304,10 @@ class Handler(ServerRequestHandler):
         store.requests[unit] += 1
         if self.name:
             app.per_connection[self.name] += 1
+            now = time.monotonic()
+            app.request_times.setdefault(self.name, [now, now])[1] = now
+            if pdu.function_code in WRITE_FC:
+                app.writes[self.name] = app.writes.get(self.name, 0) + 1
         if store.delay > 0:
             await asyncio.sleep(store.delay)
         try:

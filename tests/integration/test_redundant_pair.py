@@ -7,13 +7,16 @@ nothing more on its connection, which it closes."""
 
 from __future__ import annotations
 
+import json
 import signal
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
 
 from tests.gateway_proc import GatewayProcess, device_file, write_json
+from tests.mosquitto import Mosquitto, MqttProbe, Received
 from tests.peers import PymodbusSlave
 from tests.redis_server import RedisServer, redis_binary
 from tests.waiting import wait_for
@@ -61,16 +64,42 @@ def polling(slave: PymodbusSlave) -> dict[str, int]:
     return {name: n for name, n in per.items() if n > 0}
 
 
-def test_one_leader_polls_and_the_standby_takes_over_a_paused_one(tmp_path: Path) -> None:
-    with RedisServer(tmp_path / "redis") as rds, \
-            PymodbusSlave("rtu-over-tcp", units=(1,)) as slave:
+def write(probe: MqttProbe, value: int, request: str) -> None:
+    """A per-item MQTT write of ``value`` to item t0 of device plc, with an id."""
+    probe.publish("edgemodbus/plc/set/t0", json.dumps({"value": value, "id": request}))
+
+
+def reply_ok(probe: MqttProbe, request: str) -> Callable[[Received], bool]:
+    return lambda m: m.json().get("id") == request and m.json().get("ok") is True
+
+
+def test_one_leader_polls_and_the_standby_takes_over_a_paused_one(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Two gateway processes (instances a and b of one config folder), a per-item MQTT
+    publisher each, one pymodbus slave that counts requests, writes and their times per
+    connection.  ``kill -STOP`` the leader a: b polls within the lease time plus two
+    cycles; a write sent through MQTT meanwhile reaches the slave once, through b;
+    ``kill -CONT``: a finds its lease gone, sends nothing more (none of its requests came
+    after its lease's end in Redis, all of them before b's first) and closes its
+    connection; the write it finds waiting when it wakes is not sent again."""
+    import redis
+
+    with RedisServer(tmp_path / "redis") as rds, Mosquitto(tmp_path / "mqtt") as broker, \
+            PymodbusSlave("rtu-over-tcp", units=(1,)) as slave, \
+            MqttProbe(broker.port, ["edgemodbus/plc/#"]) as probe:
         conf = tmp_path / "conf"
         conf.mkdir()
-        write_json(conf / "gateway.json", {"fleet": {"lease": {
-            "url": rds.url, "keyPrefix": "test:pair:", "leaseMs": LEASE_MS}}})
-        write_json(conf / "plc.json", device_file(slave.port, 1, "plc", read_cycle=CYCLE_MS))
+        write_json(conf / "gateway.json", {
+            "gatewayId": "pair", "mqtt": {"port": broker.port, "reconnectMin": 100},
+            "fleet": {"lease": {"url": rds.url, "keyPrefix": "test:pair:",
+                                "leaseMs": LEASE_MS}}})
+        plc = device_file(slave.port, 1, "plc", read_cycle=CYCLE_MS)
+        plc["communication"]["readTimeout"] = 300  # a write may take 0.6 s: < the lease
+        write_json(conf / "plc.json", plc)
+        monkeypatch.setenv("EDGEMODBUS_INSTANCE", "a")
         with GatewayProcess(conf, tmp_path / "a.log") as gw_a:
             gw_a.wait_log(r"lease: leader", timeout=30)
+            monkeypatch.setenv("EDGEMODBUS_INSTANCE", "b")
             with GatewayProcess(conf, tmp_path / "b.log") as gw_b:
                 gw_b.wait_log(r"plc: standby", timeout=30)
                 wait_for(lambda: sum(polling(slave).values()) >= 10, timeout=30,
@@ -79,17 +108,27 @@ def test_one_leader_polls_and_the_standby_takes_over_a_paused_one(tmp_path: Path
                 assert len(polling(slave)) == 1, slave.stats()
                 assert slave.stats()["connections"] == 1  # the standby never connected
                 (a_conn,) = polling(slave)
+                probe.wait_for("edgemodbus/plc/t0", timeout=30)  # a publishes: subscribed
+                write(probe, 11, "w1")
+                probe.wait_for("edgemodbus/plc/$reply", reply_ok(probe, "w1"), timeout=30)
+                assert slave.stats()["writesPerConnection"] == {a_conn: 1}
 
-                gw_a.signal(signal.SIGSTOP)
-                stopped = time.monotonic()
+                with redis.Redis.from_url(rds.url) as client:
+                    gw_a.signal(signal.SIGSTOP)
+                    stopped = time.monotonic()
+                    # a's lease ends in Redis no earlier than this (the key's time to live)
+                    a_lease_end = stopped + client.pttl("test:pair:leader") / 1000
                 try:
                     wait_for(lambda: len(polling(slave)) == 2, timeout=60,
                              what="the standby polling")
                     took_over = time.monotonic() - stopped
-                    frozen = polling(slave)[a_conn]
                     b_conn = next(c for c in polling(slave) if c != a_conn)
                     b_before = polling(slave)[b_conn]
                     assert "lease: leader" in gw_b.log
+                    mark = probe.mark()
+                    write(probe, 22, "w2")  # a is paused: b writes (a gets it too, later)
+                    probe.wait_for("edgemodbus/plc/$reply", reply_ok(probe, "w2"),
+                                   timeout=30, after=mark)
                 finally:
                     gw_a.signal(signal.SIGCONT)
                 print(f"takeover after SIGSTOP: {took_over:.3f} s "
@@ -101,17 +140,28 @@ def test_one_leader_polls_and_the_standby_takes_over_a_paused_one(tmp_path: Path
                 gw_a.wait_log(r"plc: standby", timeout=30, count=1)
                 wait_for(lambda: a_conn not in slave.stats()["activeConnections"],
                          timeout=30, what="the old leader's connection closed")
-                # B keeps polling; A sent nothing after it woke
+                # b keeps polling; a sent nothing after it woke
                 wait_for(lambda: polling(slave)[b_conn] >= b_before + 10, timeout=30,
                          what="the new leader polling on")
-                assert polling(slave)[a_conn] == frozen, (frozen, slave.stats())
-                assert len(slave.stats()["activeConnections"]) == 1
+                stats = slave.stats()
+                _, a_last = stats["requestTimes"][a_conn]
+                b_first, _ = stats["requestTimes"][b_conn]
+                assert a_last < a_lease_end, (a_last, a_lease_end)
+                assert a_last < b_first  # one master at a time
+                assert set(polling(slave)) == {a_conn, b_conn}  # a opened no other link
+                assert stats["activeConnections"] == [b_conn]
+                # each write reached the slave once: w1 through a, w2 through b only
+                assert stats["writesPerConnection"] == {a_conn: 1, b_conn: 1}, stats
+                assert slave.registers(1, "hr", 0) == [22]
                 assert "lease: leader" not in gw_a.log.split("no longer the leader")[-1]
 
 
 class _Clock:
+    """The monotonic clock, moved on by hand (the line compares the lease's deadline
+    with the real one)."""
+
     def __init__(self) -> None:
-        self.now = 0.0
+        self.start = self.now = time.monotonic()
 
     def __call__(self) -> float:
         return self.now
@@ -156,10 +206,10 @@ def test_writes_go_out_only_while_the_lease_holds_for_their_time() -> None:
             assert driver.write_address("t0", 77) == (True, None)
             assert slave.registers(1, "hr", 0) == [77]
 
-            clock.now = 8.5  # 1.5 s left: less than the write may take
+            clock.now = clock.start + 8.5  # 1.5 s left: less than the write may take
             ok, why = driver.write_address("t0", 78)
             assert not ok and why is not None and "lease ends in 1.500 s" in why
-            clock.now = 10.0  # expired: given up at the check
+            clock.now = clock.start + 10.0  # expired: given up at the check
             ok, why = driver.write_address("t0", 79)
             assert not ok and why is not None and "not the leader of the pair" in why
             with pytest.raises(NotLeaderError, match="not the leader"):

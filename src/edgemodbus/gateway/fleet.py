@@ -71,6 +71,11 @@ class LeaseSettings(Model):
                           "the standby takes over within it plus a cycle")
     renew_ms: int | None = Field(default=None, ge=100, description="Renewal period; left "
                                  "out: leaseMs/3; at most leaseMs/3")
+    margin_ms: int | None = Field(default=None, ge=0, description="No request to a "
+                                  "connect-mode device starts later than this before the "
+                                  "lease's known end (the frame's time on the wire, the "
+                                  "clocks' rates); left out: leaseMs/10, at least 100; at "
+                                  "most leaseMs/2")
 
     @field_validator("url")
     @classmethod
@@ -93,6 +98,10 @@ class LeaseSettings(Model):
         if self.renew_ms is not None and self.renew_ms * 3 > self.lease_ms:
             raise ValueError(f"renewMs {self.renew_ms} must be at most a third of leaseMs "
                              f"{self.lease_ms} ({self.lease_ms // 3})")
+        if self.margin_ms is not None and self.margin_ms * 2 > self.lease_ms:
+            raise ValueError(f"marginMs {self.margin_ms} must be at most half of leaseMs "
+                             f"{self.lease_ms} ({self.lease_ms // 2}): a renewed lease must "
+                             "leave time to poll")
         return self
 
     @property

@@ -11,7 +11,11 @@ it); the client is the maintained ``redis`` package (edgemodbus[fleet]).
 - renew every ``renewMs`` (default leaseMs/3): a script extends the key only if it still
   holds our token;
 - the lease is valid until the *start* of the last successful renewal plus leaseMs, on
-  the monotonic clock (a renewal's reply may come late; its start is the safe side).
+  the monotonic clock (a renewal's reply may come late; its start is the safe side);
+- requests go out only before that less a margin (:meth:`Lease.deadline`): the line
+  worker and the engine in C start none at or after it (line/worker.py ``lease``), so a
+  leader paused past its lease sends nothing when it wakes, before its lease thread
+  has even looked.
 
 :class:`Lease` is the state machine (no thread, clock injected: unit-tested with a fake
 clock); :class:`LeaseKeeper` runs it on a thread.  A paused process (``kill -STOP``, a
@@ -107,10 +111,16 @@ class Lease:
     def __init__(self, engine: LeaseEngine, ttl_ms: int, renew_ms: int, *,
                  token: str | None = None, clock: Callable[[], float] = time.monotonic,
                  on_gain: Callable[[int], None] = lambda fence: None,
-                 on_loss: Callable[[str], None] = lambda reason: None) -> None:
+                 on_loss: Callable[[str], None] = lambda reason: None,
+                 margin_ms: int | None = None) -> None:
         if renew_ms * 3 > ttl_ms:
             raise ValueError(f"renewMs {renew_ms} must be at most a third of leaseMs "
                              f"{ttl_ms} (three renewals per lease)")
+        margin_ms = default_margin_ms(ttl_ms) if margin_ms is None else margin_ms
+        if not 0 <= margin_ms * 2 <= ttl_ms:
+            raise ValueError(f"marginMs {margin_ms} must be 0..{ttl_ms // 2} (at most half "
+                             f"of leaseMs {ttl_ms})")
+        self.margin = margin_ms / 1000.0
         self.engine = engine
         self.ttl = ttl_ms / 1000.0
         self.ttl_ms = ttl_ms
@@ -122,7 +132,28 @@ class Lease:
         self.held = False
         self.fence: int | None = None
         self.expires = 0.0  # on self.clock; meaningful while held
+        self._until = (False, 0.0)  # (held, expires - margin): what deadline() reads
         self._lock = threading.Lock()
+        self._watchers: list[Callable[[], None]] = []  # told of a loss: watch()
+
+    def deadline(self) -> float:
+        """The time (on the lease's clock, the monotonic one) before which a request to a
+        gated device may start: the lease's known end less the margin; 0.0 when not held.
+        Read by line workers before every request (no lock: one tuple read)."""
+        held, until = self._until
+        return until if held else 0.0
+
+    def watch(self, fn: Callable[[], None]) -> None:
+        """Call ``fn`` (on the thread that saw it) whenever the lease is lost: a line
+        gated by it reads the deadline again at once (LineWorker.lease_changed), not at
+        the end of the engine's run that began while it held."""
+        with self._lock:
+            self._watchers = [*self._watchers, fn]
+
+    def unwatch(self, fn: Callable[[], None]) -> None:
+        """Stop calling ``fn`` (an equal bound method will do)."""
+        with self._lock:
+            self._watchers = [w for w in self._watchers if w != fn]
 
     def valid_for(self) -> float:
         """Seconds the lease is known to stay ours (0 when not held or expired)."""
@@ -165,6 +196,7 @@ class Lease:
                 return self.retry_period
             with self._lock:
                 self.expires = start + self.ttl
+                self._until = (self.held, self.expires - self.margin)
             self.check()  # a renewal that took longer than the lease
             return self.renew_period if self.held else self.retry_period
         try:
@@ -176,6 +208,7 @@ class Lease:
             return self.retry_period
         with self._lock:
             self.held, self.fence, self.expires = True, fence, start + self.ttl
+            self._until = (True, self.expires - self.margin)
         if not self.check():
             return self.retry_period
         log.info("lease: leader (fencing token %d)", fence)
@@ -201,9 +234,19 @@ class Lease:
     def _lose(self, reason: str) -> None:
         with self._lock:
             was, self.held, self.fence = self.held, False, None
+            self._until = (False, 0.0)
         if was:
             log.warning("lease: no longer the leader: %s", reason)
+            for watcher in self._watchers:
+                watcher()
             self.on_loss(reason)
+
+
+def default_margin_ms(ttl_ms: int) -> int:
+    """The margin when ``marginMs`` is left out: a tenth of the lease, at least 100 ms
+    and at most half of it.  It covers a request's frame on its way to the slave (a
+    256-byte RTU frame at 9600 Bd: 0.27 s) and the two clocks' rates."""
+    return min(ttl_ms // 2, max(100, ttl_ms // 10))
 
 
 class LeaseKeeper:
@@ -239,4 +282,5 @@ class NotLeaderError(ModbusConnectionError):
     (a ModbusConnectionError: callers that handle a device not running handle it)."""
 
 
-__all__ = ["Lease", "LeaseEngine", "LeaseKeeper", "NotLeaderError", "RedisEngine"]
+__all__ = ["Lease", "LeaseEngine", "LeaseKeeper", "NotLeaderError", "RedisEngine",
+           "default_margin_ms"]

@@ -16,8 +16,11 @@ from collections.abc import Callable, Iterable, Mapping
 from concurrent.futures import Future
 from typing import Any
 
-from ..config import DeviceConfig
+from ..config import DeviceConfig, DriverModbusRtuParameter
 from ..driver import DriverModbusRtu
+from ..line import DtuSlot, Endpoint, LineTiming, LineWorker
+from ..line.loop import LoopLine
+from ..poll.poller import Poller
 from .fleet import LeaseSettings
 from .lease import Lease, LeaseKeeper, NotLeaderError, RedisEngine
 
@@ -46,7 +49,8 @@ class Pair:
         self.engine = engine
         self.lease = Lease(engine, settings.lease_ms, renew_ms, token=token,
                            on_gain=lambda fence: on_change(True),
-                           on_loss=lambda reason: on_change(False))
+                           on_loss=lambda reason: on_change(False),
+                           margin_ms=settings.margin_ms)
         self.keeper = LeaseKeeper(self.lease)
         self.key = (settings.url, settings.key_prefix, settings.lease_ms, renew_ms)
 
@@ -75,13 +79,47 @@ class LeaderDriver(DriverModbusRtu):
     """A gated device's driver: every write, action and forwarded request is refused
     (``NotLeaderError``'s words) unless the lease is known to hold for as long as it may
     take: twice the device's readTimeout x (retries + 1) (the request may wait for one
-    poll transaction on the line before its own)."""
+    poll transaction on the line before its own).
+
+    Its line is gated by the lease too (line/worker.py ``lease``): past the lease's
+    :meth:`~Lease.deadline` the engine in C starts no poll and no retry, a job's request
+    is refused as it is about to go out, and the link is closed until the lease is
+    renewed; so a leader paused past its lease sends nothing when it wakes."""
 
     def __init__(self, lease: Lease, cfg: DeviceConfig) -> None:
         super().__init__()
         params = cfg.effective_parameters()
         self.pair_lease = lease
+        self.gated_line: LineWorker | None = None  # while running: its line, gated
         self.write_budget = 2 * params.read_timeout / 1000 * (params.retries + 1)
+
+    def _acquire(self, params: DriverModbusRtuParameter, endpoint: Endpoint,
+                 timing: LineTiming, poller: Poller) -> tuple[LineWorker, DtuSlot | None]:
+        """The line, gated by the lease before the poller is on it (the base's steps;
+        a gated device is never a DTU that dials in, so no DTU slot)."""
+        line = self.registry.acquire(endpoint, timing)
+        try:
+            if isinstance(line, LoopLine):
+                raise ValueError(f"{endpoint.describe()}: engine \"loop\" does not follow "
+                                 "the pair's lease (line/loop.py): a connect-mode device of "
+                                 "a redundant pair needs engine \"thread\" (the default)")
+            line.lease = self.pair_lease.deadline
+            self.pair_lease.watch(line.lease_changed)
+            poller.start(line)
+        except BaseException:
+            self.pair_lease.unwatch(line.lease_changed)
+            poller.stop()
+            line.detach(poller)
+            self.registry.release(line)
+            raise
+        self.gated_line = line
+        return line, None
+
+    def stop_device(self) -> bool:
+        line, self.gated_line = self.gated_line, None
+        if line is not None:
+            self.pair_lease.unwatch(line.lease_changed)
+        return super().stop_device()
 
     def refusal(self) -> str | None:
         """Why a write must not go out now, or None."""

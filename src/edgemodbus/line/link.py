@@ -58,6 +58,7 @@ class Link:
     """A link that receives unsolicited frames (wrapped reports) sets this: the worker
     then watches the fd while idle and calls :meth:`pump`."""
     owed: bool = False  # after run_engine: the read owed to polling is still owed
+    gate: Callable[[], None] | None = None  # may refuse a request (line/worker.py: a lease)
 
     def __init__(self, endpoint: Endpoint, timing: LineTiming, stats: LineStats, fd: int, *,
                  mbap: bool = False, on_close: Callable[[], None] | None = None) -> None:
@@ -433,16 +434,11 @@ class ContextLink(Link):
         return self._read(slave, area, address, count)
 
     def _read(self, slave: int, area: Area, address: int, count: int) -> Block:
-        if not self.is_open:
-            raise ModbusConnectionError(f"{self.endpoint.describe()}: link is down")
-        if self._ready_at:
-            self._wait_turn()
+        self._begin()
         stats = self.stats
-        stats.requests += 1
-        function = READ_FC[area]
         start = time.monotonic()
         try:
-            block = self._ctx.read(slave, function, address, count)
+            block = self._ctx.read(slave, READ_FC[area], address, count)
         except ModbusError as exc:
             raise self._fail(exc) from None
         finally:
@@ -496,5 +492,7 @@ class ContextLink(Link):
         if not self.is_open:
             raise ModbusConnectionError(f"{self.endpoint.describe()}: link is down")
         self._wait_turn()
+        if self.gate is not None:  # after the wait, right before the request goes out
+            self.gate()
         self.stats.requests += 1
 

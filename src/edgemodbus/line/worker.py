@@ -51,6 +51,8 @@ T = TypeVar("T")
 
 _IDLE_SLICE = 0.05  # the pause after a failed engine wait (poll() failing) before the next
 _MAX_IDLE = 3600.0  # the engine comes back at least once an hour
+_LEASE_SLICE = 0.1  # while the line's lease is not held: how often it is looked at again
+LEASE_ENDED = "this instance does not hold the pair's lease (it sends nothing until it does)"
 
 
 class Connector(Protocol):
@@ -95,6 +97,11 @@ class LineWorker(LineRequests):
         self._crashes = 0  # unexpected errors without a calm max_backoff between them
         self._up_since = self._next_connect = 0.0
         self._failures = 0
+        self.lease: Callable[[], float] | None = None
+        """A redundant pair's lease (gateway/pair.py): the monotonic time before which a
+        request may start.  At or after it the engine (its run's ``until``) and the jobs
+        (:meth:`_gate`, as each request goes out) send nothing, the link is closed and none
+        is opened until the time moves on (the lease renewed)."""
 
     # -- lifecycle -------------------------------------------------------------------
     def start(self) -> None:
@@ -162,6 +169,11 @@ class LineWorker(LineRequests):
             except Exception:
                 log.exception("%s: poller on_report failed", self.endpoint.describe())
 
+    def lease_changed(self) -> None:
+        """The line's lease was lost: the engine comes back (after the transaction in
+        flight) and reads the deadline again (:attr:`lease`).  Any thread."""
+        self._post(None)
+
     def connect_now(self) -> None:
         """A new link is ready (a DTU dialled in, maybe replacing its old connection):
         drop the current link, if any, and open the new one without waiting for the
@@ -216,15 +228,20 @@ class LineWorker(LineRequests):
     def _turn(self) -> None:
         """One turn of the worker: (re)connect when due, else serve the link."""
         link = self._link
-        if link is not None and link.is_open and self._connect_now:
-            link.close_reason = "replaced by a new connection"
+        held = self.lease is None or time.monotonic() < self.lease()
+        if link is not None and link.is_open and (self._connect_now or not held):
+            link.close_reason = "replaced by a new connection" if held else LEASE_ENDED
             link.close()
         if link is None or not link.is_open:
             if link is not None:
-                if self._connect_now and self._connect():
+                if held and self._connect_now and self._connect():
                     return  # replaced: the pollers see one "up", no "down"
                 self._link_lost(link)
                 self._next_connect = time.monotonic() + self._reconnect_delay(0)
+            if not held:  # no link while the lease is not held; jobs fail at once
+                self._connect_now, self.last_link_error = False, LEASE_ENDED
+                self._serve_queue_while_down(time.monotonic() + _LEASE_SLICE)
+                return
             if self._connect_now or time.monotonic() >= self._next_connect:
                 if self._connect():
                     self._failures = 0
@@ -289,8 +306,11 @@ class LineWorker(LineRequests):
         if not pollers:
             self._handle(self._queue.get(), link)
             return
+        until = time.monotonic() + _MAX_IDLE
+        if self.lease is not None:  # the engine starts no request at or after it
+            until = min(until, self.lease())
         event = link.run_engine(self._waker, self._counters, [p.device for p in pollers],
-                                time.monotonic() + _MAX_IDLE, self._owed)
+                                until, self._owed)
         self._owed = link.owed
         self._dispatch(link, event, pollers)
 
@@ -407,6 +427,7 @@ class LineWorker(LineRequests):
             log.log(logging.DEBUG if repeated else logging.WARNING, "connect failed: %s", exc)
             return False
         self._link = link
+        link.gate = self._gate
         self.link_up = True
         self.last_link_error = None
         self._up_since = time.monotonic()
@@ -417,6 +438,16 @@ class LineWorker(LineRequests):
         log.info("%s: link up", self.endpoint.describe())
         self._notify(True, None)
         return True
+
+    def _gate(self) -> None:
+        """The link's check right before each request of a job (Link.gate): past the
+        line's lease, close the link and refuse (ModbusConnectionError: nothing sent)."""
+        lease, link = self.lease, self._link
+        if lease is not None and time.monotonic() >= lease():
+            if link is not None:
+                link.close_reason = LEASE_ENDED
+                link.close()
+            raise ModbusConnectionError(f"{self.endpoint.describe()}: not sent: {LEASE_ENDED}")
 
     def _open(self) -> Link:
         ep = self.endpoint
