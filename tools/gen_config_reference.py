@@ -243,6 +243,11 @@ DESCRIPTIONS: dict[str, str] = {
                                 "gateway file's folder",
     "mqtt.sparkplug.rebirthInterval": "Rebirth requests within this of the last rebirth are "
                                       "folded into one (ms; 0: no limit)",
+    "mqtt.sparkplug.sharedByPair": "true: the two instances of a redundant pair (needs "
+                                   "`fleet.lease`) are one edge node (`edgeNodeId` as given, "
+                                   "no instance suffix), connected only on the leader, "
+                                   "bdSeq kept in the lease's Redis (`<keyPrefix>bdseq`, "
+                                   "not `bdSeqFile`) ([deploy.md](deploy.md#a-redundant-pair))",
     "metrics.enabled": "false: the section is kept but no exporter runs",
     "metrics.host": "The address `/metrics` is served on",
     "metrics.port": "Its port (0: any free one)",

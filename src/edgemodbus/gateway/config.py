@@ -98,6 +98,10 @@ def load_gateway_config(path: str | os.PathLike[str] | dict[str, Any]) -> Gatewa
             mqtt = mqtt.model_copy(update={"sparkplug": sparkplug})
             cfg = cfg.model_copy(update={"mqtt": mqtt})
         problems += sparkplug.problems()
+        lease = cfg.fleet.lease if cfg.fleet is not None and cfg.fleet.enabled else None
+        if sparkplug.shared_by_pair and (lease is None or not lease.enabled):
+            problems.append(Problem("mqtt.sparkplug.sharedByPair", True, "needs a redundant "
+                                    "pair: an enabled fleet.lease section (docs/deploy.md)"))
     spool = mqtt.store_and_forward
     if spool is not None:
         if folder is not None:

@@ -14,15 +14,19 @@ import os
 import socket
 from collections.abc import Callable, Iterable, Mapping
 from concurrent.futures import Future
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from ..config import DeviceConfig, DriverModbusRtuParameter
 from ..driver import DriverModbusRtu
 from ..line import DtuSlot, Endpoint, LineTiming, LineWorker
 from ..line.loop import LoopLine
+from ..northbound.sparkplug.bdseq import RedisBdSeqStore
 from ..poll.poller import Poller
 from .fleet import LeaseSettings
 from .lease import Lease, LeaseKeeper, NotLeaderError, RedisEngine
+
+if TYPE_CHECKING:
+    from ..northbound.sparkplug.publisher import SparkplugPublisher
 
 log = logging.getLogger("edgemodbus.pair")
 
@@ -35,7 +39,8 @@ def gated(cfg: DeviceConfig) -> bool:
 
 class Pair:
     """The lease of this instance and what follows from it: ``on_change(leader)`` runs on
-    the lease's thread at each change (the gateway starts or stops its gated devices)."""
+    the lease's thread at each change (the gateway starts or stops its gated devices);
+    a Sparkplug edge node the pair shares (:meth:`follow`) is connected while it leads."""
 
     def __init__(self, settings: LeaseSettings, instance: str,
                  on_change: Callable[[bool], None]) -> None:
@@ -47,10 +52,20 @@ class Pair:
                               f"'edgemodbus[fleet]' ({exc})") from None
         token = f"{instance}@{socket.gethostname()}:{os.getpid()}"
         self.engine = engine
+        self.node: SparkplugPublisher | None = None  # a shared edge node: follow()
+
+        def gained(fence: int) -> None:
+            on_change(True)  # the devices first: the NBIRTH's DBIRTHs follow it
+            if self.node is not None:
+                self.node.lead(True)
+
+        def lost(reason: str) -> None:
+            if self.node is not None:  # NDEATH before the devices' stop
+                self.node.lead(False)
+            on_change(False)
+
         self.lease = Lease(engine, settings.lease_ms, renew_ms, token=token,
-                           on_gain=lambda fence: on_change(True),
-                           on_loss=lambda reason: on_change(False),
-                           margin_ms=settings.margin_ms)
+                           on_gain=gained, on_loss=lost, margin_ms=settings.margin_ms)
         self.keeper = LeaseKeeper(self.lease)
         self.key = (settings.url, settings.key_prefix, settings.lease_ms, renew_ms)
 
@@ -65,6 +80,18 @@ class Pair:
         next attempt)."""
         self.keeper.stop()
         self.engine.close()
+
+    def bd_seq_store(self) -> RedisBdSeqStore:
+        """Where the edge node the pair shares keeps its bdSeq (``<keyPrefix>bdseq``)."""
+        return RedisBdSeqStore(self.engine.client, f"{self.key[1]}bdseq", self.lease.check)
+
+    def follow(self, node: SparkplugPublisher) -> None:
+        """The Sparkplug edge node the two instances share (``sharedByPair``; the
+        gateway's publisher, also one swapped on reload): connected while this instance
+        leads, from now on."""
+        self.node = node
+        if self.lease.check():
+            node.lead(True)
 
     def may_run(self, cfg: DeviceConfig) -> bool:
         """Whether this device may run here now."""

@@ -98,19 +98,20 @@ class Gateway:
 
     # -- lifecycle -------------------------------------------------------------------
     def start(self) -> None:
+        fleet = self.config.fleet
+        if fleet is not None and fleet.enabled and fleet.lease is not None \
+                and fleet.lease.enabled:  # before the publisher: it may share the node
+            self.pair = Pair(fleet.lease, self.gateway_id, self._leadership)
         mqtt = self.config.mqtt
         if mqtt is not None and mqtt.enabled:
-            self.publisher = make_publisher(mqtt, self.gateway_id, self.config.instance).start()
+            self.publisher = make_publisher(mqtt, self.gateway_id, self.config.instance,
+                                            self.pair).start()
             log.info("MQTT: gateway %s publishing to %s:%d (%s)", self.gateway_id, mqtt.host,
                      mqtt.port, mqtt.mode)
         self.exporter = start_exporter(self.config, self.serving)
         apply_fleet(self.config, self.exporter)
         if self.exporter is not None and self.publisher is not None:
             self.exporter.set_publisher(self.publisher)
-        fleet = self.config.fleet
-        if fleet is not None and fleet.enabled and fleet.lease is not None \
-                and fleet.lease.enabled:
-            self.pair = Pair(fleet.lease, self.gateway_id, self._leadership)
         with self._devices_lock:
             self.reload_devices()
         if self.pair is not None:
@@ -242,7 +243,7 @@ class Gateway:
         publisher: Publisher | None = None
         mqtt_changed = mqtt_key(old) != mqtt_key(new)
         if mqtt_changed and new.mqtt is not None and new.mqtt.enabled:
-            publisher = make_publisher(new.mqtt, new.effective_id, new.instance)
+            publisher = make_publisher(new.mqtt, new.effective_id, new.instance, self.pair)
             try:
                 for dev in self.devices.values():
                     publisher.check_item_names(dev.code,

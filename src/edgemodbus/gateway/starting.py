@@ -14,19 +14,28 @@ if TYPE_CHECKING:
     from ..northbound.metrics import MetricsExporter
     from ..northbound.mqtt import MqttPublisher, MqttSettings
     from ..northbound.sparkplug.publisher import SparkplugPublisher
+    from .pair import Pair
 
     Publisher = MqttPublisher | SparkplugPublisher
 
 
-def make_publisher(mqtt: MqttSettings, gateway_id: str, instance: str | None) -> Publisher:
-    """The publisher ``mqtt.mode`` asks for (not started): per-item MQTT or Sparkplug B.
+def make_publisher(mqtt: MqttSettings, gateway_id: str, instance: str | None,
+                   pair: Pair | None = None) -> Publisher:
+    """The publisher ``mqtt.mode`` asks for (not started): per-item MQTT or Sparkplug B;
+    a Sparkplug edge node that the ``pair`` shares (``sharedByPair``) follows its lease.
     A missing optional package (paho-mqtt, protobuf) is a ConfigError naming ``mqtt``
     and the extra to install."""
     try:
         if mqtt.mode == "sparkplug":
             from ..northbound.sparkplug.publisher import SparkplugPublisher
 
-            return SparkplugPublisher(mqtt, gateway_id=gateway_id, instance=instance)
+            shared = mqtt.sparkplug is not None and mqtt.sparkplug.shared_by_pair
+            pair = pair if shared else None
+            node = SparkplugPublisher(mqtt, gateway_id=gateway_id, instance=instance,
+                                      bd_seq_store=None if pair is None else pair.bd_seq_store())
+            if pair is not None:
+                pair.follow(node)
+            return node
         from ..northbound.mqtt import MqttPublisher
 
         return MqttPublisher(mqtt, gateway_id=gateway_id, instance=instance)

@@ -8,14 +8,23 @@ The file is ours and says so: a first line :data:`MAGIC`, then the number.  An e
 file that is anything else (``gateway.json`` given by mistake) is refused, never
 overwritten; a bare number 0-255 (what earlier versions wrote) and an empty file are
 taken as ours.  Writes are atomic: a temporary file beside it, fsync, rename, fsync of
-the folder, so a crash leaves the old number or the new one."""
+the folder, so a crash leaves the old number or the new one.
+
+A redundant pair whose two instances are one edge node (``mqtt.sparkplug.sharedByPair``,
+docs/deploy.md "Redundant pair") keeps it in the pair's Redis instead
+(:class:`RedisBdSeqStore`), read again before each connect: the new leader's NBIRTH then
+carries the number after the old leader's, and a host that applies the spec's rule
+(an NDEATH counts only with the bdSeq of the node's last NBIRTH) ignores the old
+leader's late NDEATH."""
 
 from __future__ import annotations
 
 import contextlib
 import logging
 import os
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 from ...config import ConfigError, Problem
 
@@ -62,6 +71,11 @@ def file_problem(path: str) -> str | None:
 class BdSeqStore:
     """The next session's bdSeq, read from and written to an optional file."""
 
+    shared = False  # one process uses it: read once, at start
+
+    def leading(self) -> bool:  # (RedisBdSeqStore's: whether this instance leads)
+        return True
+
     def __init__(self, path: str | None) -> None:
         self.path = Path(path) if path is not None else None
 
@@ -104,3 +118,38 @@ class BdSeqStore:
             log.warning("%s: cannot keep bdSeq %d: %s", self.path, value, exc.strerror or exc)
             with contextlib.suppress(OSError):
                 tmp.unlink()
+
+
+class RedisBdSeqStore:
+    """The next session's bdSeq of an edge node that a redundant pair shares, in the
+    pair's Redis (``client``: the lease's, gateway/lease.py) under ``key``; read before
+    each connect (:attr:`shared`: the other instance may have used numbers since);
+    ``leading``: whether this instance holds the pair's lease now (a session that paho
+    opens again after it lost it is left at once)."""
+
+    shared = True
+
+    def __init__(self, client: Any, key: str, leading: Callable[[], bool]) -> None:
+        self.client = client
+        self.key = key
+        self.leading = leading
+
+    def load(self) -> int:
+        """The stored next bdSeq (0 when none is stored); ValueError when the key holds
+        anything else (the key prefix of another application?); a Redis error raises."""
+        raw = self.client.get(self.key)
+        if raw is None:
+            return 0
+        text = raw.decode("utf-8", "replace") if isinstance(raw, bytes) else str(raw)
+        if text.isdecimal() and int(text) <= 255:
+            return int(text)
+        raise ValueError(f"Redis key {self.key} holds {text[:40]!r}, not a bdSeq 0-255")
+
+    def save(self, value: int) -> None:
+        """Keep ``value`` as the next session's bdSeq; a failure is logged, not raised
+        (the next leader may then reuse this session's number, and a host would take
+        this session's late NDEATH for the new one's)."""
+        try:
+            self.client.set(self.key, value)
+        except Exception as exc:
+            log.warning("Redis %s: cannot keep bdSeq %d: %s", self.key, value, exc)

@@ -7,13 +7,13 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
+from ...config import DeviceAddressItem
 from ...datatypes import DataType, ItemStatus
+from ...driver import DriverModbusRtu
+from ...poll.listeners import Listener
 from .payloads import MetricDef, Sample, epoch_ms, sparkplug_type
 
 if TYPE_CHECKING:
-    from ...config import DeviceAddressItem
-    from ...driver import DriverModbusRtu
-    from ...poll.listeners import Listener
     from ..mqtt.holding import Holding
 
 
@@ -84,3 +84,17 @@ class NodeDevice:
         items = self.driver.address_items
         return len(items) != len(self.metrics) or any(
             item.name not in self.metrics for item in items)
+
+
+class DeviceListener(Listener[DriverModbusRtu]):
+    """The edge node's subscription to one driver: each batch, as samples copied on the
+    line worker, goes to the node's bounded queue (``offer``, never blocking); statuses
+    are polled by the node's thread (``statusCheckInterval``)."""
+
+    def __init__(self, offer: Callable[[NodeDevice, list[Sample]], None],
+                 dev: NodeDevice) -> None:
+        self.offer = offer
+        self.dev = dev
+
+    def on_changes(self, source: DriverModbusRtu, items: list[DeviceAddressItem]) -> None:
+        self.offer(self.dev, [sample_of(item) for item in items])

@@ -11,13 +11,13 @@ from collections import deque
 from collections.abc import Callable, Iterable, Mapping
 from typing import TYPE_CHECKING, Any
 
-from ...config import ConfigError, DeviceAddressItem
+from ...config import ConfigError
 from ...datatypes import DeviceDriverStatus
 from ...driver import DriverModbusRtu
-from ...poll.listeners import Listener
 from ..mqtt.holding import Holding
 from ..mqtt.settings import MqttSettings, check_name
-from .devices import NodeDevice, is_good, sample_of
+from .bdseq import RedisBdSeqStore
+from .devices import DeviceListener, NodeDevice, is_good
 from .inbox import CommandInbox, CommandLog, RebirthPacer
 from .payloads import Sample, device_birth, device_data, device_death, node_birth, node_death
 from .reads import ReadRunner
@@ -53,7 +53,8 @@ class SparkplugPublisher:
     ``held`` is born only while its DTU is connected here."""
 
     def __init__(self, settings: MqttSettings | Mapping[str, Any], *,
-                 gateway_id: str = "edgemodbus", instance: str | None = None) -> None:
+                 gateway_id: str = "edgemodbus", instance: str | None = None,
+                 bd_seq_store: RedisBdSeqStore | None = None) -> None:
         try:
             import paho.mqtt.client as paho
         except ImportError:  # pragma: no cover - depends on the install
@@ -69,7 +70,8 @@ class SparkplugPublisher:
         self.gateway_id = check_name("gatewayId", gateway_id)
         self.group_id = sp.group_id
         self.instance = None if instance is None else check_name("instanceId", instance)
-        self.node_id = node_id_for(sp.edge_node_id, self.gateway_id, self.instance)
+        self.node_id = node_id_for(sp.edge_node_id, self.gateway_id, self.instance,
+                                   shared=bd_seq_store is not None)
         self.client_id = settings.client_id or f"edgemodbus-{self.gateway_id}" + (
             f"-{self.instance}" if self.instance else "")  # one per instance, as mqtt's
         self._paho = paho
@@ -89,7 +91,7 @@ class SparkplugPublisher:
             paho, settings, self.client_id, node_name=f"{self.group_id}/{self.node_id}",
             death_topic=self.topic("NDEATH"), death=lambda bd: node_death(bd, _now()),
             subscriptions=self._subscriptions, count=self._count, push=self._push,
-            on_message=self._on_message)
+            on_message=self._on_message, store=bd_seq_store)
         self.bd_seq: int | None = None  # the session's (the NBIRTH's and the will's)
         self._seq = 0
         self._born = False  # NBIRTH published in this session, no NDEATH since
@@ -161,6 +163,11 @@ class SparkplugPublisher:
     def wait_connected(self, timeout: float) -> bool:
         return self._connected.wait(timeout)
 
+    def lead(self, leader: bool) -> None:
+        """A redundant pair's shared node (``bd_seq_store`` given): connect as the edge
+        node while this instance leads, NDEATH and disconnect when it no longer does."""
+        self._push(("lead", leader))
+
     def rebirth(self) -> None:
         """NBIRTH and every DBIRTH again (what NCMD ``Node Control/Rebirth`` does, paced
         by ``rebirthInterval`` as it is)."""
@@ -200,7 +207,7 @@ class SparkplugPublisher:
             if code in self._devices:
                 raise ValueError(f"deviceCode {code!r} is already attached to this publisher")
             self._devices[code] = dev
-        dev.listener = listener = _DeviceListener(self._offer, dev)
+        dev.listener = listener = DeviceListener(self._offer, dev)
         try:
             driver.subscribe(listener)
         except BaseException:
@@ -337,6 +344,11 @@ class SparkplugPublisher:
             dev = event[1]
             if dev.born and self._born:
                 self._death(dev)
+        elif kind == "lead":
+            if not event[1] and self._born:
+                self._session.goodbye(self._session_bd_seq(), 1.0)
+            self._unborn()
+            self._session.lead(event[1])
         elif kind == "resync" and event[1].born:
             self._device_birth(event[1])
 
@@ -483,17 +495,3 @@ class SparkplugPublisher:
             self._session.goodbye(self._session_bd_seq(), timeout)
         self._born = False
         self._logs.flush(force=True)  # the summaries of folded command log lines
-
-
-class _DeviceListener(Listener[DriverModbusRtu]):
-    """The edge node's subscription to one driver: each batch, as samples copied on the
-    line worker, goes to the node's bounded queue (``offer``, never blocking); statuses
-    are polled by the node's thread (``statusCheckInterval``)."""
-
-    def __init__(self, offer: Callable[[NodeDevice, list[Sample]], None],
-                 dev: NodeDevice) -> None:
-        self.offer = offer
-        self.dev = dev
-
-    def on_changes(self, source: DriverModbusRtu, items: list[DeviceAddressItem]) -> None:
-        self.offer(self.dev, [sample_of(item) for item in items])

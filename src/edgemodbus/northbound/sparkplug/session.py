@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING, Any
 
 from ..mqtt.connection import FailureLog
 from ..mqtt.settings import MqttSettings
-from .bdseq import BdSeqStore
+from .bdseq import BdSeqStore, RedisBdSeqStore
 from .client import make_client
 
 if TYPE_CHECKING:
@@ -37,7 +37,8 @@ class NodeSession:
                  node_name: str, death_topic: str, death: Callable[[int], bytes],
                  subscriptions: Callable[[], list[tuple[str, int]]],
                  count: Callable[[str], None], push: Callable[[tuple[Any, ...]], None],
-                 on_message: Callable[[Any, Any, MQTTMessage], None]) -> None:
+                 on_message: Callable[[Any, Any, MQTTMessage], None],
+                 store: RedisBdSeqStore | None = None) -> None:
         assert settings.sparkplug is not None
         self.settings = settings
         self.client_id = client_id
@@ -49,8 +50,11 @@ class NodeSession:
         self._count = count
         self._push = push
         self._on_message = on_message
-        self._store = BdSeqStore(settings.sparkplug.bd_seq_file)
-        self.next_bd_seq = self._store.load()
+        self._store = store or BdSeqStore(settings.sparkplug.bd_seq_file)
+        self.next_bd_seq = 0 if self._store.shared else self._store.load()
+        # a pair's shared node (store given): connected only while this instance leads
+        self.standby = self._store.shared
+        self._leading = threading.Lock()  # start() and lead(): one connect at a time
         self._failures = FailureLog(f"{settings.host}:{settings.port}",
                                     settings.failure_log_interval / 1000,
                                     settings.reconnect_max / 1000)
@@ -60,16 +64,48 @@ class NodeSession:
         self.client: Client | None = None
 
     def start(self) -> Client:
-        """Make the client and connect in the background (paho's thread retries)."""
+        """Make the client and connect in the background (paho's thread retries);
+        a standby connects only when it leads (:meth:`lead`)."""
         self.client = client = make_client(self._paho, self.settings, self.client_id)
         client.on_connect = self._on_connect
         client.on_connect_fail = self._on_connect_fail
         client.on_disconnect = self._on_disconnect
         client.on_message = self._on_message
-        self._connect(client)
+        with self._leading:
+            if not self.standby:
+                self._connect(client)
         return client
 
+    def lead(self, leader: bool) -> None:
+        """A shared node's pair changed hands (publisher's thread): leading, connect (a
+        new session, its bdSeq read from the shared store); no longer, disconnect (the
+        publisher said NDEATH first) and stay away."""
+        with self._leading:
+            if leader != self.standby:
+                return  # so already
+            self.standby = not leader
+            client = self.client
+            if client is None:
+                return  # start() connects if it leads
+            if leader:
+                self._connect(client)
+                return
+        self._leaving = True
+        try:
+            client.disconnect()
+            client.loop_stop()
+        finally:
+            self._leaving = False
+        self.connected.clear()
+        log.info("Sparkplug: edge node %s: standby, disconnected", self.node_name)
+
     def _connect(self, client: Client) -> None:
+        if self._store.shared:  # the other instance may have used numbers since
+            try:
+                self.next_bd_seq = self._store.load()
+            except Exception as exc:
+                log.error("Sparkplug: bdSeq not read from the pair's store (%s); using "
+                          "%d", exc, self.next_bd_seq)
         self._set_will(client)
         s = self.settings
         client.connect_async(s.host, s.port, s.keepalive)
@@ -126,6 +162,14 @@ class NodeSession:
             self._count("connectFailures")
             self._failures.failed(f"the broker refused the connection: {reason}",
                                   time.monotonic())
+            return
+        if self._store.shared and not self._store.leading():
+            # paho reconnected a leader paused past its lease (the broker had dropped
+            # it): the node is the other instance's now; a clean DISCONNECT drops the will
+            log.warning("Sparkplug: edge node %s: reconnected but no longer the pair's "
+                        "leader: disconnecting", self.node_name)
+            self.standby = True
+            client.disconnect()
             return
         bd_seq = self.next_bd_seq  # the will the broker holds now carries it
         self.next_bd_seq = (bd_seq + 1) % 256

@@ -46,14 +46,21 @@ def check_id(kind: str, value: str) -> str:
 INSTANCE_FIELD = "{instance}"
 
 
-def node_id_for(edge_node_id: str | None, gateway_id: str, instance: str | None) -> str:
+def node_id_for(edge_node_id: str | None, gateway_id: str, instance: str | None,
+                shared: bool = False) -> str:
     """The edge node id: ``edgeNodeId`` (default the gateway id).  In a dial-in fleet
     (``instance`` given, docs/deploy.md) each instance is its own edge node: ``{instance}``
     in ``edgeNodeId`` is replaced by the instance id, and an ``edgeNodeId`` without it
     gets ``-<instance>`` appended, so two instances never share a node id (Sparkplug 3.0,
-    4.1.1: an edge node id is unique in its group)."""
+    4.1.1: an edge node id is unique in its group).  ``shared`` (``sharedByPair``): the
+    two instances of a redundant pair are one edge node, the id as given, and only the
+    leader is connected as it (gateway/pair.py)."""
     base = edge_node_id or gateway_id
-    if instance is None:
+    if shared and INSTANCE_FIELD in base:
+        raise ValueError(f"mqtt.sparkplug.edgeNodeId {base!r} names {INSTANCE_FIELD}, but "
+                         "sharedByPair makes both instances of the pair one edge node: "
+                         "remove it")
+    if instance is None or shared:
         if INSTANCE_FIELD in base:
             raise ValueError(f"mqtt.sparkplug.edgeNodeId {base!r} names {INSTANCE_FIELD}, but "
                              "this gateway is not in a fleet (no enabled fleet section): "
@@ -77,6 +84,8 @@ class SparkplugSettings(Model):
     bd_seq_file: str | None = None  # keeps bdSeq across restarts (the gateway's default:
     # DEFAULT_BD_SEQ_FILE; a library caller without one starts at 0 in each process)
     rebirth_interval: Annotated[int, Range(0, 3_600_000)] = 5000  # ms between rebirths
+    shared_by_pair: bool = False  # a redundant pair's two instances are one edge node:
+    # its bdSeq kept in the pair's Redis (bdseq.py RedisBdSeqStore), the leader connected
 
     @field_validator("group_id")
     @classmethod
