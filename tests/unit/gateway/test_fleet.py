@@ -112,8 +112,64 @@ def test_the_lease_section_is_read_with_its_defaults() -> None:
     ({"url": "redis://x", "leaseMs": 3000, "renewMs": 1001}, "fleet.lease",
      "renewMs 1001 must be at most a third of leaseMs 3000"),
     ({"url": "redis://x", "keyPrefix": "a b"}, "fleet.lease.keyPrefix", "without spaces"),
+    ({"url": "redis://x", "leaseMs": 2000, "marginMs": 1001}, "fleet.lease",
+     "marginMs 1001 must be at most half of leaseMs 2000"),
+    ({"url": "redis://x", "marginMs": -1}, "fleet.lease.marginMs", "greater than or equal"),
 ])
 def test_bad_lease_values_are_named(lease: dict[str, object], key: str, words: str) -> None:
     with pytest.raises(ConfigError) as err:
         load_gateway_config({"fleet": {"lease": lease}})
     assert key in str(err.value) and words in str(err.value)
+
+
+SPARKPLUG = {"mode": "sparkplug", "sparkplug": {"groupId": "g", "sharedByPair": True,
+                                                "bdSeqFile": "/nonexistent/ignored"}}
+
+
+@pytest.mark.parametrize("fleet", [
+    None, {"instanceId": "a"}, {"lease": {"url": "redis://x", "enabled": False}},
+    {"enabled": False, "lease": {"url": "redis://x"}}])
+def test_a_node_shared_by_a_pair_needs_the_pair(fleet: dict[str, object] | None) -> None:
+    data: dict[str, object] = {"mqtt": SPARKPLUG}
+    if fleet is not None:
+        data["fleet"] = fleet
+    with pytest.raises(ConfigError) as err:
+        load_gateway_config(data)
+    assert "mqtt.sparkplug.sharedByPair" in str(err.value)
+    assert "needs a redundant pair: an enabled fleet.lease" in str(err.value)
+
+
+def test_a_node_shared_by_a_pair_has_one_id() -> None:
+    from edgemodbus.northbound.sparkplug.settings import node_id_for
+
+    assert node_id_for(None, "gw", "a", shared=True) == "gw"
+    assert node_id_for("line-7", "gw", "b", shared=True) == "line-7"
+    with pytest.raises(ValueError, match="sharedByPair makes both instances"):
+        node_id_for("line-{instance}", "gw", "a", shared=True)
+
+
+def test_the_shared_bdseq_store_reads_only_its_numbers() -> None:
+    from edgemodbus.northbound.sparkplug.bdseq import RedisBdSeqStore
+
+    class Client:
+        def __init__(self, value: object) -> None:
+            self.value = value
+
+        def get(self, key: str) -> object:
+            assert key == "p:bdseq"
+            return self.value
+
+        def set(self, key: str, value: int) -> None:
+            if self.value == "down":
+                raise ConnectionError("refused")
+            self.value = str(value).encode()
+
+    assert RedisBdSeqStore(Client(None), "p:bdseq", lambda: True).load() == 0
+    store = RedisBdSeqStore(Client(b"255"), "p:bdseq", lambda: True)
+    assert store.load() == 255
+    store.save(0)
+    assert store.load() == 0
+    for bad in (b"256", b"-1", b"x", b"1.5"):
+        with pytest.raises(ValueError, match="not a bdSeq 0-255"):
+            RedisBdSeqStore(Client(bad), "p:bdseq", lambda: True).load()
+    RedisBdSeqStore(Client("down"), "p:bdseq", lambda: True).save(3)  # logged, not raised

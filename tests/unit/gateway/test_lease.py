@@ -186,3 +186,65 @@ def test_never_two_leaders(moves: list[tuple[str, float, float]]) -> None:
         assert not (held_a and held_b)
         if held_a or held_b:  # whoever believes it holds it is the engine's holder
             assert engine.holder == ("a" if held_a else "b")
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.tuples(st.sampled_from("ab"), st.floats(0, 4.0),
+                          st.sampled_from([0.0, 0.0, 0.2, 3.5])), max_size=40))
+def test_never_two_deadlines_ahead(moves: list[tuple[str, float, float]]) -> None:
+    """What a line reads (Lease.deadline, no check() between: the lease's thread may be
+    paused): at no instant are both instances' deadlines ahead of the clock, whatever
+    the interleaving of steps, pauses and slow calls; a deadline is never past the
+    engine's expiry of that instance's key."""
+    clock = Clock()
+    engine = FakeEngine(clock)
+    a, b, _ = pair(clock, engine)
+    for who, jump, delay in moves:
+        clock.now += jump
+        engine.delay = delay
+        (a if who == "a" else b).step()
+        engine.delay = 0.0
+        ahead = [lease for lease in (a, b) if clock.now < lease.deadline()]
+        assert len(ahead) <= 1
+        for lease in ahead:
+            assert engine.holder == lease.token and lease.deadline() <= engine.until
+
+
+def test_the_deadline_is_the_known_end_less_the_margin() -> None:
+    clock = Clock()
+    lease = Lease(FakeEngine(clock), 3000, 1000, token="a", clock=clock, margin_ms=250)
+    assert lease.deadline() == 0.0  # not held
+    lease.step()
+    assert lease.deadline() == pytest.approx(100.0 + 3.0 - 0.25)
+    clock.now += 1.0
+    lease.step()  # renewed
+    assert lease.deadline() == pytest.approx(101.0 + 3.0 - 0.25)
+    lease.release()
+    assert lease.deadline() == 0.0
+    assert Lease(FakeEngine(clock), 3000, 1000).margin == pytest.approx(0.3)  # leaseMs/10
+    assert Lease(FakeEngine(clock), 1000, 300).margin == pytest.approx(0.1)  # at least 100
+    with pytest.raises(ValueError, match="marginMs 1600 must be 0..1500"):
+        Lease(FakeEngine(clock), 3000, 1000, margin_ms=1600)
+
+
+def test_watchers_hear_of_a_loss_before_the_gateway() -> None:
+    """A line gated by the lease is woken (LineWorker.lease_changed) at a loss."""
+    clock = Clock()
+    engine = FakeEngine(clock)
+    events: list[str] = []
+    lease = Lease(engine, 3000, 1000, token="a", clock=clock,
+                  on_loss=lambda reason: events.append("gateway"))
+
+    def line() -> None:
+        events.append("line")
+
+    lease.watch(line)
+    lease.step()
+    clock.now += 3.5  # paused past the lease
+    assert not lease.check()
+    assert events == ["line", "gateway"]
+    lease.unwatch(line)
+    lease.step()
+    clock.now += 3.5
+    lease.check()
+    assert events == ["line", "gateway", "gateway"]
