@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING, Any
 
 from ..config import DeviceConfig, DriverModbusRtuParameter
 from ..driver import DriverModbusRtu
-from ..line import DtuSlot, Endpoint, LineTiming, LineWorker
+from ..line import DtuEndpoint, DtuSlot, Endpoint, LineTiming, LineWorker
 from ..line.loop import LoopLine
 from ..northbound.sparkplug.bdseq import RedisBdSeqStore
 from ..poll.poller import Poller
@@ -124,6 +124,10 @@ class LeaderDriver(DriverModbusRtu):
                  timing: LineTiming, poller: Poller) -> tuple[LineWorker, DtuSlot | None]:
         """The line, gated by the lease before the poller is on it (the base's steps;
         a gated device is never a DTU that dials in, so no DTU slot)."""
+        if isinstance(endpoint, DtuEndpoint):
+            raise ValueError(f"{endpoint.describe()}: a DTU that dials in connects to one "
+                             "instance only and is not gated by the pair's lease: use "
+                             "DriverModbusRtu for it")
         line = self.registry.acquire(endpoint, timing)
         try:
             if isinstance(line, LoopLine):

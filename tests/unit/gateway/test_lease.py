@@ -223,7 +223,7 @@ def test_the_deadline_is_the_known_end_less_the_margin() -> None:
     assert lease.deadline() == 0.0
     assert Lease(FakeEngine(clock), 3000, 1000).margin == pytest.approx(0.3)  # leaseMs/10
     assert Lease(FakeEngine(clock), 1000, 300).margin == pytest.approx(0.1)  # at least 100
-    with pytest.raises(ValueError, match="marginMs 1600 must be 0..1500"):
+    with pytest.raises(ValueError, match=r"marginMs 1600 must be 0\.\.1500"):
         Lease(FakeEngine(clock), 3000, 1000, margin_ms=1600)
 
 
