@@ -3,9 +3,18 @@
  * emb_loop_link_run() takes the link as far as it goes without waiting: it reads what
  * the socket holds, frames and checks a reply, runs the fault policy's pure steps
  * (csrc/emb_fault.c) and the device passes (csrc/emb_engine.c's emb_dev_begin_pass /
- * emb_dev_end_pass), sends the next request, and sets the link's one deadline on the
- * loop's heap for what it waits for next.  A late reply during a settle is dropped
- * (RTU frames carry no transaction id: Modbus over Serial Line v1.02, 2.5.1.1). */
+ * emb_dev_end_pass), sends the next request (its rest once the socket is writable again,
+ * EMB_LS_SEND), and sets the link's one deadline on the loop's heap for what it waits
+ * for next.  The framing is the blocking backends' (csrc/emb_backend.h), on reads that
+ * never wait: a DTU stream's bytes go into its buffer and are framed there
+ * (csrc/emb_stream.c: plain RTU with heartbeats, the request's own bytes first with the
+ * echo option; wrapped frames, every frame but the reply queued as a report and handed
+ * to Python as the blocking engine hands them, emb_engine_reports); a Modbus TCP reply is
+ * read as far as its header tells (emb_reply_length) and its MBAP header checked, a reply
+ * to another transaction id skipped (Modbus Messaging on TCP/IP v1.0b, 3.1.3).  A late
+ * reply during a settle is dropped (RTU frames carry no transaction id: Modbus over
+ * Serial Line v1.02, 2.5.1.1).  Every frame sent and received goes to the link's trace
+ * ring (csrc/emb_io.c emb_trace_put), as in the blocking engine. */
 #include "emb_loop_link.h"
 
 #include <errno.h>
@@ -14,18 +23,102 @@
 
 #include "emb_check.h"
 #include "emb_engine.h"
+#include "emb_io.h" /* emb_trace_put */
 #include "emb_rtu.h"
 #include "emb_stream.h"
 
-/* Send the read of the pass's next block of device k->which.  0, or -1 with errno. */
-static int emb_ll_send(emb_loop_link *k, int64_t now)
+#define EMB_LL_WRAP 4 /* a wrapped request: FF AA and the register address before the RTU
+                       * frame, 0D after it (csrc/emb_stream.c) */
+
+/* Bytes of a reply ADU before its function code, and after its PDU (emb_backend.h). */
+static int emb_ll_header(const emb_link *lk)
+{
+    return lk->mbap ? EMB_MBAP : 1;
+}
+
+static int emb_ll_trailer(const emb_link *lk)
+{
+    return lk->mbap ? 0 : 2;
+}
+
+/* Put the request in k->req on the wire format of the link (k->wire): an RTU frame, a
+ * wrapped one, or an MBAP header with the link's next transaction id.  0, or -1. */
+static int emb_ll_frame(emb_loop_link *k)
+{
+    emb_link *lk = k->e->lk;
+    int len = 0;
+
+    if (lk->mbap) {
+        lk->tid = (lk->tid + 1U) & 0xFFFFU;
+        k->wire[0] = (uint8_t)(lk->tid >> 8);
+        k->wire[1] = (uint8_t)(lk->tid & 0xFF);
+        k->wire[2] = 0;
+        k->wire[3] = 0;
+        k->wire[4] = (uint8_t)(k->req_len >> 8); /* the unit id and the PDU */
+        k->wire[5] = (uint8_t)(k->req_len & 0xFF);
+        memcpy(k->wire + 6, k->req, (size_t)k->req_len);
+        k->wire_len = 6 + k->req_len;
+        return 0;
+    }
+    if (!lk->wrapped)
+        return emb_rtu_frame(k->req[0], k->req + 1, k->req_len - 1, k->wire, &k->wire_len);
+    if (emb_rtu_frame(k->req[0], k->req + 1, k->req_len - 1, k->wire + EMB_LL_WRAP, &len) == -1)
+        return -1;
+    k->wire[0] = 0xFF;
+    k->wire[1] = 0xAA;
+    k->wire[2] = k->req[2]; /* the register address */
+    k->wire[3] = k->req[3];
+    k->wire[EMB_LL_WRAP + len] = 0x0D;
+    k->wire_len = len + EMB_LL_WRAP + 1;
+    return 0;
+}
+
+/* Send what is left of the request.  0: it is out (the reply is awaited from now on);
+ * 1: the send buffer is full (the rest when the socket is writable); -1 with errno. */
+static int emb_ll_push(emb_loop *lp, emb_loop_link *k, int64_t now)
+{
+    emb_link *lk = k->e->lk;
+    ssize_t n;
+
+    while (k->sent < k->wire_len) {
+        n = send(k->fd, k->wire + k->sent, (size_t)(k->wire_len - k->sent),
+                 MSG_NOSIGNAL | MSG_DONTWAIT);
+        if (n > 0) {
+            k->sent += (int)n;
+            continue;
+        }
+        if (n == -1 && errno == EINTR)
+            continue;
+        if (n == -1 && (errno == EAGAIN || errno == EWOULDBLOCK)) {
+            if (!k->want_out && emb_loop_watch(lp, k->fd, k->slot, 1) == -1)
+                return -1;
+            k->want_out = 1;
+            return 1;
+        }
+        return -1;
+    }
+    if (k->want_out && emb_loop_watch(lp, k->fd, k->slot, 0) == -1)
+        return -1;
+    k->want_out = 0;
+    if (lk->wrapped) /* the trace shows the RTU frame inside, as csrc/emb_io.c */
+        emb_trace_put(lk, EMB_TRACE_TX, k->wire + EMB_LL_WRAP, k->wire_len - EMB_LL_WRAP - 1);
+    else
+        emb_trace_put(lk, EMB_TRACE_TX, k->wire, k->wire_len);
+    k->start_ns = now;
+    k->last_ns = 0;
+    k->got = 0;
+    k->skipped = 0;
+    k->echo_left = lk->echo && !lk->wrapped && !lk->mbap;
+    k->state = EMB_LS_AWAIT;
+    return 0;
+}
+
+/* Begin the read of the pass's next block of device k->which.  0, or -1 with errno. */
+static int emb_ll_send(emb_loop *lp, emb_loop_link *k, int64_t now)
 {
     emb_engine *e = k->e;
     emb_device *d = e->devices[k->which];
     emb_eblock *b = &d->blocks[d->pass_list[d->index]];
-    uint8_t frame[EMB_MAX_RTU];
-    int len = 0;
-    ssize_t n;
 
     k->req[0] = (uint8_t)d->slave;
     k->req[1] = b->function;
@@ -34,23 +127,17 @@ static int emb_ll_send(emb_loop_link *k, int64_t now)
     k->req[4] = (uint8_t)(b->count >> 8);
     k->req[5] = (uint8_t)(b->count & 0xFF);
     k->req_len = 6;
-    if (emb_rtu_frame(d->slave, k->req + 1, 5, frame, &len) == -1)
+    if (emb_ll_frame(k) == -1)
         return -1;
     e->lk->rsp_len = 0;
     emb_fault_sent(e, d);
-    n = send(k->fd, frame, (size_t)len, MSG_NOSIGNAL);
-    if (n != len) { /* 8 bytes on a link whose send buffer is full: the DTU is gone */
-        if (n >= 0)
-            errno = EAGAIN;
-        return -1;
-    }
-    k->start_ns = now;
-    k->last_ns = 0;
-    k->state = EMB_LS_AWAIT;
-    return 0;
+    k->sent = 0;
+    k->start_ns = now; /* the request must be out within the reply timeout */
+    k->state = EMB_LS_SEND;
+    return emb_ll_push(lp, k, now) == -1 ? -1 : 0;
 }
 
-/* Take in what the socket holds: the bytes read, or -1 with errno (the link failed). */
+/* Take in what a stream link's socket holds: the bytes read, or -1 with errno. */
 static int emb_ll_fill(emb_loop_link *k)
 {
     int rc, total = 0;
@@ -60,38 +147,160 @@ static int emb_ll_fill(emb_loop_link *k)
     return rc == -1 ? -1 : total;
 }
 
-/* The reply's deadline: the response timeout until bytes of it came, then the byte
- * timeout from the last ones (as the blocking receive, csrc/emb_stream.c). */
-static int64_t emb_ll_reply_due(const emb_loop_link *k)
+/* What came while no reply is awaited (idle, sending, settling): a stream link frames it
+ * (wrapped reports queued, heartbeats counted, stale bytes dropped), a Modbus TCP link
+ * drops it (as its blocking prepare and discard).  The bytes dropped, or -1 with errno;
+ * *came: whether bytes came. */
+static long emb_ll_absorb(emb_loop_link *k, int *came)
+{
+    long n;
+    int rc;
+
+    if (k->e->lk->mbap) {
+        n = emb_discard_input(k->fd, 0, 0, 0);
+        *came = n > 0;
+        return n;
+    }
+    rc = emb_ll_fill(k);
+    *came = rc > 0;
+    return rc == -1 ? -1 : emb_stream_take_idle(k->e->lk);
+}
+
+/* Modbus TCP: read a reply into buf (*have bytes of it so far) as far as its header tells,
+ * never past its end (what follows stays in the socket, as csrc/emb_rtu.c reads).  Its
+ * length when whole, EMB_STREAM_MORE, or -1 with errno (EMBBADDATA, the link's). */
+static int emb_ll_mbap_read(int fd, uint8_t *buf, int *have)
+{
+    ssize_t n;
+    int need;
+
+    for (;;) {
+        need = emb_reply_length(buf, *have, 1);
+        if (need < 0) {
+            errno = EMBBADDATA;
+            return -1;
+        }
+        if (*have >= need)
+            return need;
+        n = emb_read_some(fd, buf + *have, (size_t)(need - *have));
+        if (n < 0)
+            return -1;
+        if (n == 0)
+            return EMB_STREAM_MORE;
+        *have += (int)n;
+    }
+}
+
+/* What the reply awaited must be (a wrapped link's receiver picks it by these). */
+static void emb_ll_want(const emb_loop_link *k, emb_want *w)
 {
     const emb_device *d = k->e->devices[k->which];
+    const emb_eblock *b = &d->blocks[d->pass_list[d->index]];
 
-    if (k->last_ns && k->byte_ms > 0 && emb_stream_backend.pending(k->e->lk, k->fd) > 0)
+    w->slave = d->slave;
+    w->function = b->function;
+    w->address = b->start;
+    w->count = b->function <= 2 ? (b->count + 7) / 8 : 2 * b->count;
+}
+
+/* Frame the reply awaited from what the socket holds: its length in e->rsp (whole,
+ * integrity checked), 0 for a frame that answers nothing (another slave's, or a Modbus TCP
+ * reply to another transaction id: skipped), EMB_STREAM_MORE, or -1 with errno.  *got:
+ * the bytes taken. */
+static int emb_ll_take(emb_loop_link *k, int64_t now, int *got)
+{
+    emb_engine *e = k->e;
+    emb_link *lk = e->lk;
+    emb_want want;
+    int rc, before = k->got;
+
+    *got = 0;
+    if (lk->mbap) {
+        rc = emb_ll_mbap_read(k->fd, e->rsp, &k->got);
+        if (k->got > before)
+            k->last_ns = now;
+        *got = k->got;
+        if (rc < 0)
+            return rc;
+        k->got = 0;
+        if (emb_check_mbap(e->rsp, rc, (long)lk->tid) != EMB_ETID)
+            return rc;
+        emb_trace_put(lk, EMB_TRACE_RX, e->rsp, rc);
+        lk->discarded += rc; /* ours is awaited for the rest of the response timeout */
+        k->skipped++;
+        *got = 0;
+        return 0;
+    }
+    rc = emb_ll_fill(k);
+    if (rc == -1)
+        return -1;
+    if (rc > 0)
+        k->last_ns = now;
+    if (lk->wrapped) { /* the frames besides the reply are queued as reports */
+        emb_ll_want(k, &want);
+        rc = emb_wrapped_backend.recv(lk, k->fd, &want, 0, 0, e->rsp, got);
+        return rc == -1 && errno == ETIMEDOUT ? EMB_STREAM_MORE : rc;
+    }
+    if (k->echo_left) {
+        if (emb_stream_backend.skip_echo(lk, k->fd, k->wire, k->wire_len, 0, 0) == -1)
+            return errno == ETIMEDOUT || errno == EMB_EPARTIAL ? EMB_STREAM_MORE : -1;
+        k->echo_left = 0;
+        k->start_ns = now; /* the reply's own timeout from here on, as csrc/emb_io.c */
+        k->last_ns = 0;
+    }
+    return emb_stream_try(lk, e->devices[k->which]->slave, e->rsp, got);
+}
+
+/* Bytes of a reply received and not framed yet (heartbeats aside). */
+static int emb_ll_pending(emb_loop_link *k)
+{
+    return k->e->lk->mbap ? k->got : emb_stream_backend.pending(k->e->lk, k->fd);
+}
+
+/* The reply's deadline: the response timeout until bytes of it came, then the byte
+ * timeout from the last ones (as the blocking receivers; a wrapped reply: the response
+ * timeout, as csrc/emb_stream.c emb_wrapped_recv). */
+static int64_t emb_ll_reply_due(emb_loop_link *k)
+{
+    const emb_device *d = k->e->devices[k->which];
+    emb_link *lk = k->e->lk;
+
+    if (!lk->wrapped && k->last_ns && k->byte_ms > 0 && emb_ll_pending(k) > 0)
         return k->last_ns + (int64_t)k->byte_ms * 1000000; /* heartbeats do not count */
     return k->start_ns + (int64_t)d->timeout_ms * 1000000;
 }
 
 /* Another whole frame already behind the reply (len bytes in e->rsp) that answers the
  * request replaces it: the last answer wins, as in the blocking receive (csrc/emb_io.c:
- * a DTU that held a late reply sends it with the next one).  A second frame still on
- * its way is not waited for: its bytes are dropped as stale before the next request.
- * The reply's length. */
+ * a DTU that held a late reply sends it with the next one; a Modbus TCP peer that
+ * repeats a reply).  A second frame still on its way is not waited for: its bytes are
+ * dropped as stale before the next request.  Wrapped links take the first answer (the
+ * frames behind it are reports).  The reply's length. */
 static int emb_ll_last_answer(emb_loop_link *k, int len)
 {
     emb_engine *e = k->e;
+    emb_link *lk = e->lk;
     uint8_t next[EMB_MAX_ADU];
-    int len2, got2 = 0, exc = -1;
+    int len2, got2 = 0, exc = -1, h = emb_ll_header(lk);
 
-    if (emb_stream_backend.pending(e->lk, k->fd) < emb_stream_backend.min_next)
+    if (lk->wrapped || emb_ll_pending(k) < (lk->mbap ? EMB_MBAP + 2 : 5))
         return len;
-    len2 = emb_stream_try(e->lk, e->devices[k->which]->slave, next, &got2);
-    if (len2 > 0 && emb_check_reply(k->req, k->req_len, next, len2 - 2, &exc) == 0) {
-        e->lk->discarded += len;
+    if (lk->mbap) {
+        len2 = emb_ll_mbap_read(k->fd, next, &got2);
+        if (len2 > 0 && emb_check_mbap(next, len2, (long)lk->tid) != 0)
+            len2 = 0; /* not an answer to this request */
+    } else {
+        len2 = emb_stream_try(lk, e->devices[k->which]->slave, next, &got2);
+    }
+    emb_trace_put(lk, EMB_TRACE_RX, next, len2 > 0 ? len2 : got2);
+    if (len2 > 0 && emb_check_reply(k->req, k->req_len, next + h - 1,
+                                    len2 - (h - 1) - emb_ll_trailer(lk), &exc) == 0) {
+        lk->discarded += len;
         memcpy(e->rsp, next, (size_t)len2);
         return len2;
     }
     if (len2 > 0 || len2 == 0 || (len2 == -1 && errno != EMBBADDATA))
-        e->lk->discarded += len2 > 0 ? len2 : got2; /* taken from rx: counted here */
+        lk->discarded += len2 > 0 ? len2 : got2; /* taken from the socket: counted here */
     return len;
 }
 
@@ -100,14 +309,19 @@ static int emb_ll_last_answer(emb_loop_link *k, int len)
 static int emb_ll_reply(emb_loop_link *k, int len, int64_t now)
 {
     emb_engine *e = k->e;
+    emb_link *lk = e->lk;
     emb_device *d = e->devices[k->which];
     emb_eblock *b = &d->blocks[d->pass_list[d->index]];
     void *data = b->data ? b->data : (b->function <= 2 ? (void *)e->bits : (void *)e->regs);
-    const uint8_t *p = e->rsp + 3;
+    int h = emb_ll_header(lk);
+    const uint8_t *p = e->rsp + h + 2;
     int exc = -1, err, i;
 
-    e->lk->rsp_len = len;
-    err = emb_check_reply(k->req, k->req_len, e->rsp, len - 2, &exc);
+    lk->rsp_len = len;
+    err = lk->mbap ? emb_check_mbap(e->rsp, len, (long)lk->tid) : 0;
+    if (!err)
+        err = emb_check_reply(k->req, k->req_len, e->rsp + h - 1,
+                              len - (h - 1) - emb_ll_trailer(lk), &exc);
     if (!err && exc >= 0)
         err = EMB_EEXCEPTION + exc;
     if (err)
@@ -163,6 +377,13 @@ static void emb_ll_failed(emb_loop_link *k, int err, int64_t now)
     k->state = EMB_LS_SETTLE;
 }
 
+/* The link failed outside a read (err): EMB_LS_FAILED. */
+static void emb_ll_lost(emb_loop_link *k, int err)
+{
+    k->e->event_errno = err;
+    k->state = EMB_LS_FAILED;
+}
+
 /* List device `which`'s ended pass for Python when it has news (as the blocking
  * engine's emb_ended).  1 if listed. */
 static int emb_ll_ended(emb_engine *e, emb_device *d, int which, int64_t now)
@@ -176,9 +397,67 @@ static int emb_ll_ended(emb_engine *e, emb_device *d, int which, int64_t now)
     return 1;
 }
 
+/* A failed reply on a plain RTU link without the echo option that begins with the
+ * request's own bytes: EMB_EECHOSEEN (the line echoes: set the echo option), as the
+ * blocking exchange says it (csrc/emb_io.c emb_echo_seen); else err. */
+static int emb_ll_echo_seen(const emb_loop_link *k, int err, int got)
+{
+    const emb_link *lk = k->e->lk;
+
+    if (lk->echo || lk->wrapped || lk->mbap || err == ETIMEDOUT)
+        return err;
+    return emb_echo_seen(err, k->e->rsp, got, k->wire, k->wire_len);
+}
+
+/* The awaited reply: framed, checked and decoded, or failed (the reply timeout, a bad
+ * frame, the link).  0: the state moved on; 1: it waits (its deadline is set). */
+static int emb_ll_await(emb_loop *lp, emb_loop_link *k, int64_t now)
+{
+    emb_engine *e = k->e;
+    emb_link *lk = e->lk;
+    int64_t until;
+    int rc, got, err;
+
+    rc = emb_ll_take(k, now, &got);
+    if (rc == 0) { /* another slave's frame (a skipped Modbus TCP reply is counted) */
+        if (!lk->mbap) {
+            emb_trace_put(lk, EMB_TRACE_RX, e->rsp, got);
+            lk->discarded += got;
+        }
+        return 0;
+    }
+    if (rc == -1) {
+        err = errno;
+        emb_trace_put(lk, EMB_TRACE_RX, e->rsp, got); /* what came, if anything */
+        lk->rsp_len = 0; /* no whole frame to show, as csrc/emb_io.c leaves it */
+        emb_ll_failed(k, emb_ll_echo_seen(k, err, got), now);
+        return 0;
+    }
+    if (rc > 0) {
+        emb_trace_put(lk, EMB_TRACE_RX, e->rsp, rc);
+        rc = emb_ll_reply(k, emb_ll_last_answer(k, rc), now);
+        if (rc)
+            emb_ll_failed(k, emb_ll_echo_seen(k, rc, lk->rsp_len), now);
+        return 0;
+    }
+    until = emb_ll_reply_due(k);
+    if (now < until) {
+        emb_timer_set(lp, k->slot, until);
+        return 1;
+    }
+    lk->rsp_len = 0;
+    err = !lk->wrapped && emb_ll_pending(k) > 0 ? EMB_EPARTIAL : ETIMEDOUT;
+    if (err == ETIMEDOUT && k->skipped)
+        err = EMB_ETID; /* only replies to other requests came */
+    emb_ll_failed(k, err, now);
+    return 0;
+}
+
 /* Run link k as far as it goes now.  0: it waits (its deadline is set, or none when no
  * device is polled); EMB_EV_CYCLE: passes ended with news (e->ended_list); EMB_EV_SPLIT:
- * exception 02 on a splittable block of device e->event_device; EMB_EV_FAILED: the link
+ * exception 02 on a splittable block of device e->event_device; EMB_EV_REPORTS: a wrapped
+ * link took reports (e->event_device: the device whose read took them, -1: taken while
+ * idle), which Python takes before it runs the link again; EMB_EV_FAILED: the link
  * failed (e->event_errno).  Python acts, then runs the link again. */
 int emb_loop_link_run(emb_loop *lp, emb_loop_link *k)
 {
@@ -186,20 +465,21 @@ int emb_loop_link_run(emb_loop *lp, emb_loop_link *k)
     emb_device *d;
     int64_t now, until;
     long n;
-    int rc, got;
+    int rc, came;
 
     e->event_device = -1;
     for (;;) {
         now = emb_now_ns();
         switch (k->state) {
         case EMB_LS_IDLE:
-            if (emb_ll_fill(k) == -1 || (n = emb_stream_take_idle(e->lk)) == -1) {
-                e->event_errno = errno;
-                k->state = EMB_LS_FAILED;
+            if ((n = emb_ll_absorb(k, &came)) == -1) {
+                emb_ll_lost(k, errno);
                 break;
             }
             e->lc->discarded += n;
             emb_fault_took(e);
+            if (emb_engine_reports(e, k->which))
+                return EMB_EV_REPORTS;
             if (k->which >= 0) {
                 d = e->devices[k->which];
                 if (d->index >= d->n_pass) {
@@ -218,10 +498,8 @@ int emb_loop_link_run(emb_loop *lp, emb_loop_link *k)
                 if (!k->retrying)
                     k->first = k->tries = emb_fault_tries(d);
                 k->retrying = 0;
-                if (emb_ll_send(k, now) == -1) {
-                    e->event_errno = errno;
-                    k->state = EMB_LS_FAILED;
-                }
+                if (emb_ll_send(lp, k, now) == -1)
+                    emb_ll_lost(k, errno);
                 break;
             }
             d = emb_engine_pick(e, &k->which);
@@ -238,52 +516,36 @@ int emb_loop_link_run(emb_loop *lp, emb_loop_link *k)
             if (!d->in_pass && emb_dev_begin_pass(d, now) == 0 && d->n_blocks > 0)
                 k->which = -1; /* nothing due yet: pick again */
             break;
-        case EMB_LS_AWAIT:
-            rc = emb_ll_fill(k);
-            if (rc == -1) {
-                emb_ll_failed(k, errno, now);
+        case EMB_LS_SEND: /* what comes before the request is out is stale */
+            if ((n = emb_ll_absorb(k, &came)) == -1 || (rc = emb_ll_push(lp, k, now)) == -1) {
+                emb_ll_lost(k, errno);
                 break;
             }
-            if (rc > 0)
-                k->last_ns = now;
-            rc = emb_stream_try(e->lk, e->devices[k->which]->slave, e->rsp, &got);
-            if (rc == 0) { /* another slave's frame */
-                e->lk->discarded += got;
+            e->lc->discarded += n;
+            if (rc == 0)
                 break;
-            }
-            if (rc == -1) {
-                e->lk->rsp_len = got;
-                emb_ll_failed(k, errno, now);
-                break;
-            }
-            if (rc > 0) {
-                rc = emb_ll_reply(k, emb_ll_last_answer(k, rc), now);
-                if (rc)
-                    emb_ll_failed(k, rc, now);
-                break;
-            }
-            until = emb_ll_reply_due(k);
+            until = k->start_ns + (int64_t)e->devices[k->which]->timeout_ms * 1000000;
             if (now < until) {
                 emb_timer_set(lp, k->slot, until);
                 return 0;
             }
-            e->lk->rsp_len = 0;
-            emb_ll_failed(k, emb_stream_backend.pending(e->lk, k->fd) > 0 ? EMB_EPARTIAL
-                                                                           : ETIMEDOUT, now);
+            emb_ll_lost(k, ETIMEDOUT); /* the peer took no byte within the reply timeout */
+            break;
+        case EMB_LS_AWAIT:
+            if (emb_ll_await(lp, k, now))
+                return 0;
             break;
         case EMB_LS_SETTLE:
-            rc = emb_ll_fill(k);
-            n = rc == -1 ? -1 : emb_stream_take_idle(e->lk);
+            n = emb_ll_absorb(k, &came);
             if (n == -1) {
                 e->event_errno = errno;
                 emb_fault_count(e, e->devices[k->which], k->kind, k->code);
                 k->state = EMB_LS_FAILED;
                 break;
             }
-            if (n > 0) {
-                k->dropped += n;
+            k->dropped += n;
+            if (came)
                 k->last_ns = now;
-            }
             until = emb_settle_until(k->start_ns, k->last_ns, k->clean_total_ms,
                                      e->quiet_ms, k->clean_limit_ms);
             if (now < until) {

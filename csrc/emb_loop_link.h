@@ -1,7 +1,9 @@
-/* edgemodbus: one link of the loop engine (issue #27) as a non-blocking state machine:
- * a plain RTU DTU stream (heartbeats allowed; not wrapped, no echo) polled through the
- * line engine's devices (csrc/emb_edev.h) and fault policy steps (csrc/emb_fault.h),
- * on a loop thread's epoll set and deadline heap (csrc/emb_loop.h). */
+/* edgemodbus: one link of the loop engine as a non-blocking state machine: a DTU stream
+ * (plain RTU with heartbeats or an echo, or wrapped frames with their reports) or a
+ * Modbus TCP link (MBAP), polled through the line engine's devices (csrc/emb_edev.h) and
+ * fault policy steps (csrc/emb_fault.h), on a loop thread's epoll set and deadline heap
+ * (csrc/emb_loop.h).  The link kind is its emb_link's (mbap, wrapped, echo), as for the
+ * blocking engine's backends (csrc/emb_backend.h). */
 #ifndef EMB_LOOP_LINK_H
 #define EMB_LOOP_LINK_H
 
@@ -12,6 +14,9 @@
 #define EMB_LS_AWAIT 1  /* a request is out: its reply, or the reply timeout */
 #define EMB_LS_SETTLE 2 /* after a failure: wait out a late reply, or drain a bad frame */
 #define EMB_LS_FAILED 3 /* the link failed (event_errno): Python closes it */
+#define EMB_LS_SEND 4   /* a request went out in part (a full send buffer): the rest when
+                         * the socket is writable, within the reply timeout */
+#define EMB_LL_WIRE 264 /* the longest request on the wire: FF AA, address, RTU, 0D */
 
 typedef struct {
     emb_engine *e;   /* devices, counters, link (with stream buffers), rsp, regs, bits,
@@ -32,6 +37,12 @@ typedef struct {
     long dropped;        /* bytes dropped by the cleaning under way */
     int req_len;
     uint8_t req[8];      /* the unit id and the PDU sent (a read: 6 bytes) */
+    int echo_left;       /* the echo option: the request's own bytes still to come back */
+    int skipped;         /* Modbus TCP: replies to other transaction ids skipped */
+    int got;             /* Modbus TCP: bytes of the reply read into e->rsp so far */
+    int want_out;        /* the socket is watched for EPOLLOUT (EMB_LS_SEND) */
+    int wire_len, sent;  /* the request on the wire, and how much of it went out */
+    uint8_t wire[EMB_LL_WIRE];
 } emb_loop_link;
 
 int emb_loop_link_run(emb_loop *lp, emb_loop_link *k);
