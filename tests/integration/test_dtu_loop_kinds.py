@@ -8,6 +8,8 @@ test_faults.py."""
 from __future__ import annotations
 
 import threading
+
+import pytest
 from typing import Any
 
 from edgemodbus.datatypes import Area, ItemStatus
@@ -60,3 +62,30 @@ def test_an_echoing_dtu_is_read_with_the_echo_option_on_a_loop_thread() -> None:
         assert stats["timeouts"] == 0 and stats["protocolErrors"] == 0
         assert stats["line"]["discardedBytes"] >= 8 * 5  # the echoes, skipped
         assert not _line_threads("ECHO1")
+
+
+def test_the_frames_of_a_loop_line_are_logged_at_debug(
+        caplog: pytest.LogCaptureFixture) -> None:
+    """DEBUG on edgemodbus.line: the loop link writes every frame to the line's trace
+    ring and the loop worker logs them (ContextLink.collect), a request then its reply,
+    as a line worker does."""
+    caplog.set_level("DEBUG", logger="edgemodbus.line")
+    port = free_port()
+    cfg = dtu_device(port, "TRACE1", 1, engine="loop", loopThreads=1)
+    with Simulator(slaves=[1]) as sim, running(cfg) as (drv,):
+        sim.dial("127.0.0.1", port, registration=b"TRACE1")
+        wait_for(ok(cfg), what="values on the loop engine")
+        wait_for(lambda: drv.stats()["cycles"] >= 3, what="three passes")
+        wait_for(lambda: len(_frames(caplog, " TX 01 03 ")) >= 3, what="three requests logged")
+    tx, rx = _frames(caplog, " TX 01 03 "), _frames(caplog, " RX 01 03 ")
+    assert all(line.endswith("TX 01 03 00 00 00 08 44 0C") for line in tx), tx
+    assert len(rx) >= len(tx) - 1
+    lines = _frames(caplog, "")
+    assert " RX 01 03 10 " in lines[lines.index(tx[0]) + 1]  # the reply right after it
+
+
+def _frames(caplog: pytest.LogCaptureFixture, part: str) -> list[str]:
+    return [r.getMessage() for r in caplog.records
+            if r.name == "edgemodbus.line" and (" TX " in r.getMessage()
+                                                or " RX " in r.getMessage())
+            and part in r.getMessage()]
