@@ -8,9 +8,9 @@ test_faults.py."""
 from __future__ import annotations
 
 import threading
+from typing import Any
 
 import pytest
-from typing import Any
 
 from edgemodbus.datatypes import Area, ItemStatus
 from edgemodbus.sim import Simulator, default_register
