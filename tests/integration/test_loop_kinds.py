@@ -7,6 +7,7 @@ does only by chance (reports around a reply, a reply to an old transaction id)."
 
 from __future__ import annotations
 
+import errno
 import os
 import socket
 import time
@@ -20,7 +21,16 @@ from edgemodbus._ffi.context import Context
 from edgemodbus._ffi.engine import EV_CYCLE as ENGINE_CYCLE
 from edgemodbus._ffi.engine import EV_REPORTS as ENGINE_REPORTS
 from edgemodbus._ffi.engine import BlockSpec, Engine, EngineDevice, Waker
-from edgemodbus._ffi.loop import EV_CYCLE, EV_REPORTS, EV_WAITS, Loop, LoopLink
+from edgemodbus._ffi.loop import (
+    EV_CYCLE,
+    EV_FAILED,
+    EV_REPORTS,
+    EV_WAITS,
+    LS_AWAIT,
+    LS_SEND,
+    Loop,
+    LoopLink,
+)
 from edgemodbus._ffi.native import lib
 from edgemodbus._ffi.outcomes import Clean, LineCounters
 from edgemodbus.protocol import rtu
@@ -420,3 +430,66 @@ def test_the_loop_traces_the_frames_the_blocking_engine_traces(kind: str) -> Non
     request = loop_run[0][1]
     body = bytes([1, 3, 0, 0, 0, 10])
     assert request[6:] == body if kind == "mbap" else request == rtu.frame(1, body[1:])
+
+
+# -- a request that does not go out whole ---------------------------------------------------
+
+def _fill_send_buffer(sock: socket.socket) -> int:
+    """Send until the socket takes no more: the bytes sent."""
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 4096)
+    sock.setblocking(False)
+    sent = 0
+    while True:
+        try:
+            sent += sock.send(b"\0" * 1024)
+        except BlockingIOError:
+            return sent
+
+
+@contextmanager
+def full_buffer(timeout: float) -> Iterator[tuple[Loop, Link, socket.socket, int]]:
+    peer, ours = socket.socketpair()
+    with ExitStack() as stack:
+        stack.callback(peer.close)
+        stack.callback(ours.close)
+        peer.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+        junk = _fill_send_buffer(ours)
+        loop = stack.enter_context(Loop(1))
+        (d,) = stack.enter_context(links(loop, [ours], [(1, 0)], "rtu", timeout=timeout,
+                                         cycle=60.0, count=2))
+        peer.settimeout(10)
+        yield loop, d, peer, junk
+
+
+def test_a_request_on_a_full_send_buffer_goes_out_once_the_socket_drains() -> None:
+    """The socket's send buffer is full when the read begins: the link waits (sending,
+    the socket watched for writing), not failed; once the peer drains it the request
+    goes out whole and its reply is read."""
+    with full_buffer(timeout=5.0) as (loop, d, peer, junk):
+        drive(d)
+        assert d.ll.state == LS_SEND
+        assert d.counters.counts().requests == 1
+        serve(loop, [d], 0.05, lambda: False)
+        assert d.ll.state == LS_SEND  # a full buffer is no reason to give up
+        request = rtu.frame(1, bytes([3, 0, 0, 0, 2]))
+        got = b""
+        while len(got) < junk + len(request):
+            got += peer.recv(65536)
+            serve(loop, [d], 0.001, lambda: False)
+        assert got[junk:] == request and got[:junk] == b"\0" * junk
+        assert d.ll.state == LS_AWAIT
+        peer.sendall(rtu.frame(1, bytes([3, 4, 0, 7, 0, 8])))
+        serve(loop, [d], 30, lambda: d.passes >= 1)
+        assert values_of(d) == [7, 8]
+        assert d.counters.counts().timeouts == 0
+
+
+def test_a_peer_that_takes_nothing_within_the_reply_timeout_fails_the_link() -> None:
+    with full_buffer(timeout=0.2) as (loop, d, _peer, _junk):
+        start = time.monotonic()
+        ev = d.ll.run()
+        while ev == EV_WAITS and time.monotonic() < start + 30:
+            loop.wait(start + 30)
+            ev = d.ll.run()
+        assert ev == EV_FAILED and d.engine.event_errno == errno.ETIMEDOUT
+        assert 0.15 <= time.monotonic() - start < 10
