@@ -270,38 +270,80 @@ static int64_t emb_ll_reply_due(emb_loop_link *k)
     return k->start_ns + (int64_t)d->timeout_ms * 1000000;
 }
 
-/* Another whole frame already behind the reply (len bytes in e->rsp) that answers the
- * request replaces it: the last answer wins, as in the blocking receive (csrc/emb_io.c:
- * a DTU that held a late reply sends it with the next one; a Modbus TCP peer that
- * repeats a reply).  A second frame still on its way is not waited for: its bytes are
- * dropped as stale before the next request.  Wrapped links take the first answer (the
- * frames behind it are reports).  The reply's length. */
-static int emb_ll_last_answer(emb_loop_link *k, int len)
+/* Frame a second frame behind the reply into k->next, as emb_ll_take frames the reply
+ * (a Modbus TCP one read as far as its header tells, k->got2 bytes so far; one with
+ * another transaction id answers nothing: 0). */
+static int emb_ll_take_next(emb_loop_link *k, int64_t now, int *got)
+{
+    emb_link *lk = k->e->lk;
+    int rc, before = k->got2;
+
+    *got = 0;
+    if (lk->mbap) {
+        rc = emb_ll_mbap_read(k->fd, k->next, &k->got2);
+        if (k->got2 > before)
+            k->last_ns = now;
+        *got = k->got2;
+        return rc > 0 && emb_check_mbap(k->next, rc, (long)lk->tid) != 0 ? 0 : rc;
+    }
+    rc = emb_ll_fill(k);
+    if (rc == -1)
+        return -1;
+    if (rc > 0)
+        k->last_ns = now;
+    return emb_stream_try(lk, k->e->devices[k->which]->slave, k->next, got);
+}
+
+/* The last answer wins, as in the blocking receive (csrc/emb_io.c: a DTU that held a
+ * late reply sends it with the next one; a Modbus TCP peer that repeats a reply): a
+ * frame behind the reply (k->first_len bytes in e->rsp) that answers the request
+ * replaces it; one still arriving (at least a header's worth came) is waited for up to
+ * the byte timeout from its last bytes (EMB_LS_NEXT), then given up (its bytes are stale
+ * before the next request).  Wrapped links take the first answer (the frames behind it
+ * are reports).  1 while it waits (its deadline set), else 0: the reply is decided
+ * (k->first_len bytes in e->rsp). */
+static int emb_ll_last_answer(emb_loop *lp, emb_loop_link *k, int64_t now)
 {
     emb_engine *e = k->e;
     emb_link *lk = e->lk;
-    uint8_t next[EMB_MAX_ADU];
-    int len2, got2 = 0, exc = -1, h = emb_ll_header(lk);
+    int len2, got2 = 0, exc = -1, err, h = emb_ll_header(lk);
+    int64_t until;
 
-    if (lk->wrapped || emb_ll_pending(k) < (lk->mbap ? EMB_MBAP + 2 : 5))
-        return len;
-    if (lk->mbap) {
-        len2 = emb_ll_mbap_read(k->fd, next, &got2);
-        if (len2 > 0 && emb_check_mbap(next, len2, (long)lk->tid) != 0)
-            len2 = 0; /* not an answer to this request */
-    } else {
-        len2 = emb_stream_try(lk, e->devices[k->which]->slave, next, &got2);
+    if (k->state != EMB_LS_NEXT) {
+        if (lk->wrapped || (lk->mbap ? emb_pending(k->fd) < EMB_MBAP + 2
+                                     : emb_ll_pending(k) < 5))
+            return 0;
+        k->got2 = 0;
+        k->last_ns = now;
     }
-    emb_trace_put(lk, EMB_TRACE_RX, next, len2 > 0 ? len2 : got2);
-    if (len2 > 0 && emb_check_reply(k->req, k->req_len, next + h - 1,
+    len2 = emb_ll_take_next(k, now, &got2);
+    err = errno;
+    if (len2 == EMB_STREAM_MORE) {
+        until = k->last_ns + (int64_t)k->byte_ms * 1000000;
+        if (now < until) {
+            k->state = EMB_LS_NEXT;
+            emb_timer_set(lp, k->slot, until);
+            return 1;
+        }
+        k->state = EMB_LS_AWAIT; /* it stopped short */
+        if (lk->mbap) {
+            emb_trace_put(lk, EMB_TRACE_RX, k->next, got2);
+            lk->discarded += got2;
+        }
+        return 0;
+    }
+    k->state = EMB_LS_AWAIT;
+    emb_trace_put(lk, EMB_TRACE_RX, k->next, len2 > 0 ? len2 : got2);
+    if (len2 > 0 && emb_check_reply(k->req, k->req_len, k->next + h - 1,
                                     len2 - (h - 1) - emb_ll_trailer(lk), &exc) == 0) {
-        lk->discarded += len;
-        memcpy(e->rsp, next, (size_t)len2);
-        return len2;
+        lk->discarded += k->first_len;
+        memcpy(e->rsp, k->next, (size_t)len2);
+        k->first_len = len2;
+        return 0;
     }
-    if (len2 > 0 || len2 == 0 || (len2 == -1 && errno != EMBBADDATA))
-        lk->discarded += len2 > 0 ? len2 : got2; /* taken from the socket: counted here */
-    return len;
+    if (len2 >= 0 || lk->mbap || err != EMBBADDATA) /* a stream's bad bytes stay in rx */
+        lk->discarded += len2 > 0 ? len2 : got2;
+    return 0;
 }
 
 /* A whole reply frame (len bytes in e->rsp, its CRC checked): checked against the
@@ -409,6 +451,15 @@ static int emb_ll_echo_seen(const emb_loop_link *k, int err, int got)
     return emb_echo_seen(err, k->e->rsp, got, k->wire, k->wire_len);
 }
 
+/* The reply decided (k->first_len bytes in e->rsp): checked and decoded, or failed. */
+static void emb_ll_answered(emb_loop_link *k, int64_t now)
+{
+    int err = emb_ll_reply(k, k->first_len, now);
+
+    if (err)
+        emb_ll_failed(k, emb_ll_echo_seen(k, err, k->e->lk->rsp_len), now);
+}
+
 /* The awaited reply: framed, checked and decoded, or failed (the reply timeout, a bad
  * frame, the link).  0: the state moved on; 1: it waits (its deadline is set). */
 static int emb_ll_await(emb_loop *lp, emb_loop_link *k, int64_t now)
@@ -435,9 +486,10 @@ static int emb_ll_await(emb_loop *lp, emb_loop_link *k, int64_t now)
     }
     if (rc > 0) {
         emb_trace_put(lk, EMB_TRACE_RX, e->rsp, rc);
-        rc = emb_ll_reply(k, emb_ll_last_answer(k, rc), now);
-        if (rc)
-            emb_ll_failed(k, emb_ll_echo_seen(k, rc, lk->rsp_len), now);
+        k->first_len = rc;
+        if (emb_ll_last_answer(lp, k, now))
+            return 1;
+        emb_ll_answered(k, now);
         return 0;
     }
     until = emb_ll_reply_due(k);
@@ -534,6 +586,11 @@ int emb_loop_link_run(emb_loop *lp, emb_loop_link *k)
         case EMB_LS_AWAIT:
             if (emb_ll_await(lp, k, now))
                 return 0;
+            break;
+        case EMB_LS_NEXT:
+            if (emb_ll_last_answer(lp, k, now))
+                return 0;
+            emb_ll_answered(k, now);
             break;
         case EMB_LS_SETTLE:
             n = emb_ll_absorb(k, &came);

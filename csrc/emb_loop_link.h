@@ -7,6 +7,7 @@
 #ifndef EMB_LOOP_LINK_H
 #define EMB_LOOP_LINK_H
 
+#include "emb_check.h" /* EMB_MAX_ADU */
 #include "emb_fault.h"
 #include "emb_loop.h"
 
@@ -16,6 +17,8 @@
 #define EMB_LS_FAILED 3 /* the link failed (event_errno): Python closes it */
 #define EMB_LS_SEND 4   /* a request went out in part (a full send buffer): the rest when
                          * the socket is writable, within the reply timeout */
+#define EMB_LS_NEXT 5   /* a reply came with another frame arriving behind it: the rest
+                         * of that one, within the byte timeout (the last answer wins) */
 #define EMB_LL_WIRE 264 /* the longest request on the wire: FF AA, address, RTU, 0D */
 
 typedef struct {
@@ -43,6 +46,9 @@ typedef struct {
     int want_out;        /* the socket is watched for EPOLLOUT (EMB_LS_SEND) */
     int wire_len, sent;  /* the request on the wire, and how much of it went out */
     uint8_t wire[EMB_LL_WIRE];
+    int first_len;       /* the reply taken (in e->rsp) while a second frame arrives */
+    int got2;            /* Modbus TCP: bytes of that second frame in next so far */
+    uint8_t next[EMB_MAX_ADU]; /* the second frame */
 } emb_loop_link;
 
 int emb_loop_link_run(emb_loop *lp, emb_loop_link *k);

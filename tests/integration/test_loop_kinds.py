@@ -27,6 +27,7 @@ from edgemodbus._ffi.loop import (
     EV_REPORTS,
     EV_WAITS,
     LS_AWAIT,
+    LS_NEXT,
     LS_SEND,
     Loop,
     LoopLink,
@@ -68,7 +69,7 @@ def _context(fd: int, label: str, kind: str) -> Context:
 @contextmanager
 def links(loop: Loop, socks: list[socket.socket], specs: list[tuple[int, int]], kind: str,
           timeout: float = 0.5, offline_after: int = 3, cycle: float = 0.05,
-          count: int = 10) -> Iterator[list[Link]]:
+          count: int = 10, byte_timeout: float = 0.1) -> Iterator[list[Link]]:
     """A link per (unit, start) on each socket: ``count`` holding registers from start."""
     with ExitStack() as stack:
         out = []
@@ -84,7 +85,7 @@ def links(loop: Loop, socks: list[socket.socket], specs: list[tuple[int, int]], 
             device.set_blocks([BlockSpec(3, start, count, cycle, None, True)])
             device.active = True
             engine.set_devices([device])
-            ll = LoopLink(loop, slot, engine, ctx, byte_timeout=0.1)
+            ll = LoopLink(loop, slot, engine, ctx, byte_timeout=byte_timeout)
             stack.callback(ll.detach)
             out.append(Link(ctx, engine, device, ll, counters))
         yield out
@@ -236,7 +237,8 @@ def test_the_fault_counts_match_the_blocking_engine(kind: str) -> None:
 
 
 @contextmanager
-def scripted(kind: str, timeout: float = 5.0) -> Iterator[tuple[Loop, Link, socket.socket]]:
+def scripted(kind: str, timeout: float = 5.0,
+             byte_timeout: float = 0.1) -> Iterator[tuple[Loop, Link, socket.socket]]:
     """One link on a socketpair whose other end the test plays byte for byte: slave 1,
     holding registers 0..1, one pass a minute, a 5 s reply timeout."""
     peer, ours = socket.socketpair()
@@ -245,7 +247,7 @@ def scripted(kind: str, timeout: float = 5.0) -> Iterator[tuple[Loop, Link, sock
         stack.callback(ours.close)
         loop = stack.enter_context(Loop(1))
         (d,) = stack.enter_context(links(loop, [ours], [(1, 0)], kind, timeout=timeout,
-                                         cycle=60.0, count=2))
+                                         cycle=60.0, count=2, byte_timeout=byte_timeout))
         peer.settimeout(10)
         yield loop, d, peer
 
@@ -493,3 +495,45 @@ def test_a_peer_that_takes_nothing_within_the_reply_timeout_fails_the_link() -> 
             ev = d.ll.run()
         assert ev == EV_FAILED and d.engine.event_errno == errno.ETIMEDOUT
         assert 0.15 <= time.monotonic() - start < 10
+
+
+# -- the last answer wins, also while it is still arriving ----------------------------------
+
+@pytest.mark.parametrize("kind", ["rtu", "mbap"])
+def test_a_second_answer_still_arriving_is_waited_for_and_wins(kind: str) -> None:
+    """A late reply and the real one come back to back, the second cut in two pieces: the
+    link waits for its rest (up to the byte timeout from its last bytes) and takes it,
+    as the blocking receive does; the first is dropped, counted."""
+    with scripted(kind, byte_timeout=5.0) as (loop, d, peer):
+        drive(d)
+        sent = peer.recv(64)
+        if kind == "mbap":
+            tid = int.from_bytes(sent[:2], "big")
+            stale = _mbap(tid, 1, bytes([3, 4, 0, 1, 0, 2]))  # a repeat with other values
+            fresh = _mbap(tid, 1, bytes([3, 4, 0, 7, 0, 8]))
+        else:
+            stale = rtu.frame(1, bytes([3, 4, 0, 1, 0, 2]))
+            fresh = rtu.frame(1, bytes([3, 4, 0, 7, 0, 8]))
+        cut = len(fresh) - 3
+        peer.sendall(stale + fresh[:cut])
+        serve(loop, [d], 30, lambda: d.ll.state == LS_NEXT)
+        assert d.passes == 0
+        peer.sendall(fresh[cut:])
+        serve(loop, [d], 30, lambda: d.passes >= 1)
+        assert values_of(d) == [7, 8]
+        assert d.counters.counts().discarded_bytes == len(stale)
+
+
+def test_a_second_frame_that_stops_short_leaves_the_first_answer() -> None:
+    """The frame behind the reply never completes: after the byte timeout the reply
+    stands (its values taken), the rest is stale and dropped before the next request."""
+    with scripted("rtu", byte_timeout=0.1) as (loop, d, peer):
+        drive(d)
+        peer.recv(64)
+        reply = rtu.frame(1, bytes([3, 4, 0, 7, 0, 8]))
+        peer.sendall(reply + rtu.frame(1, bytes([3, 4, 0, 1, 0, 2]))[:6])
+        start = time.monotonic()
+        serve(loop, [d], 30, lambda: d.passes >= 1)
+        assert time.monotonic() - start >= 0.09  # the byte timeout was waited out
+        assert values_of(d) == [7, 8]
+        assert d.counters.counts().protocol_errors == 0

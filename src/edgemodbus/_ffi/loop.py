@@ -140,6 +140,7 @@ LS_AWAIT: int = lib.EMB_LS_AWAIT
 LS_SETTLE: int = lib.EMB_LS_SETTLE
 LS_FAILED: int = lib.EMB_LS_FAILED
 LS_SEND: int = lib.EMB_LS_SEND
+LS_NEXT: int = lib.EMB_LS_NEXT
 EV_WAITS: int = 0  # the link waits for its socket or its deadline
 EV_CYCLE: int = lib.EMB_EV_CYCLE
 EV_FAILED: int = lib.EMB_EV_FAILED
