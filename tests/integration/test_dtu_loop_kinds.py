@@ -13,10 +13,11 @@ from typing import Any
 import pytest
 
 from edgemodbus.datatypes import Area, ItemStatus
+from edgemodbus.protocol.wrapped import wrap
 from edgemodbus.sim import Simulator, default_register
 from tests.integration.test_dtu import dtu_device, free_port, ok, running, values
 from tests.integration.test_wrapped_link import running as running_one
-from tests.integration.test_wrapped_link import wrapped_device
+from tests.integration.test_wrapped_link import value_of, wrapped_device
 from tests.waiting import wait_for
 
 
@@ -89,3 +90,27 @@ def _frames(caplog: pytest.LogCaptureFixture, part: str) -> list[str]:
             if r.name == "edgemodbus.line" and (" TX " in r.getMessage()
                                                 or " RX " in r.getMessage())
             and part in r.getMessage()]
+
+
+def test_a_report_only_mcu_on_a_loop_thread_takes_its_reports_while_idle() -> None:
+    """readCycle 0: nothing is polled, the link idles on the loop; a report in the
+    registration's segment (fed to the link) and one pushed later both reach the items
+    (EV_REPORTS with no device: the worker dispatches them), and a write goes out
+    wrapped through the idle link."""
+    port = free_port()
+    cfg = wrapped_device({"transport": "rtu-over-tcp-server", "listenHost": "127.0.0.1",
+                          "listenPort": port, "dtuId": "MCU2", "registration": "text",
+                          "readCycle": 0, "engine": "loop", "loopThreads": 1})
+    report = wrap(80, 1, bytes.fromhex("03021234"))
+    with Simulator(slaves=[1]) as sim, running_one(cfg) as drv:
+        client = sim.dial("127.0.0.1", port, registration=b"MCU2" + report, wrapped=True)
+        wait_for(lambda: value_of(cfg, "r80") == 0x1234, what="the first report applied")
+        sim.slave(1).set_registers(Area.HOLDING_REGISTER, 30, [31337])
+        client.push_report(1, Area.HOLDING_REGISTER, 30, 1)
+        wait_for(lambda: value_of(cfg, "r30") == 31337, what="the pushed report applied")
+        ok_, err = drv.write_address("r2", 4242)
+        assert ok_, err
+        assert sim.slave(1).get_registers(Area.HOLDING_REGISTER, 2) == [4242]
+        stats = drv.stats()
+        assert stats["reports"] == 2 and stats["line"]["droppedFrames"] == 0
+        assert not _line_threads("MCU2")
