@@ -167,11 +167,18 @@ int emb_dev_split(emb_device *d, emb_eblock *blocks, uint32_t *pass_list, uint32
     return 0;
 }
 
-/* A DTU stream's read left what only Python handles: wrapped reports (applied in the
- * order they came around the reply), dropped frames or lost reports (logged). */
-static int emb_has_reports(const emb_link *lk)
+/* After a read of device `which` (-1: none, the link was idle): EMB_EV_REPORTS when the
+ * DTU stream took what only Python handles (wrapped reports, applied in the order they
+ * came around the reply; dropped frames or lost reports, logged), event_device set;
+ * else 0.  The one hand-over of both engines (the loop's links: csrc/emb_loop_link.c). */
+int emb_engine_reports(emb_engine *e, int which)
 {
-    return lk->n_reports > 0 || lk->dropped > 0 || lk->reports_lost > 0;
+    const emb_link *lk = e->lk;
+
+    if (!(lk->n_reports > 0 || lk->dropped > 0 || lk->reports_lost > 0))
+        return 0;
+    e->event_device = which;
+    return EMB_EV_REPORTS;
 }
 
 /* The frame trace is due for Python: a quarter of the ring used, or its oldest frame
@@ -348,10 +355,8 @@ int emb_engine_run(emb_engine *e, int64_t until_ns)
                 e->event_device = which;
                 return ev;
             }
-            if (emb_has_reports(e->lk)) {
-                e->event_device = which; /* the pass goes on when Python hands it back */
-                return EMB_EV_REPORTS;
-            }
+            if (emb_engine_reports(e, which))
+                return EMB_EV_REPORTS; /* the pass goes on when Python hands it back */
         }
         now = emb_now_ns();
         emb_dev_end_pass(d, now, e->bounds_ns, e->n_bounds);

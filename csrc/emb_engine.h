@@ -20,6 +20,7 @@
 
 int emb_engine_run(emb_engine *e, int64_t until_ns);
 emb_device *emb_engine_pick(const emb_engine *e, int *which);
+int emb_engine_reports(emb_engine *e, int which);
 uint32_t emb_dev_begin_pass(emb_device *d, int64_t now_ns);
 int emb_dev_end_pass(emb_device *d, int64_t now_ns, const int64_t *bounds_ns,
                      uint32_t n_bounds);

@@ -160,8 +160,9 @@ static int emb_looks_like_echo(const uint8_t *rsp, int got, const uint8_t *sent,
 }
 
 /* An RTU reply that failed with err and starts with our own request: the line echoes
- * (the errors a reply check makes of an echo; a write's wrong echo is its own). */
-static int emb_echo_seen(int err, const uint8_t *rsp, int got, const uint8_t *sent,
+ * (the errors a reply check makes of an echo; a write's wrong echo is its own).  The
+ * loop engine's links (csrc/emb_loop_link.c) name an echo with it too. */
+int emb_echo_seen(int err, const uint8_t *rsp, int got, const uint8_t *sent,
                          int sent_len)
 {
     if (err == ETIMEDOUT || err == EMB_EWECHO || err == EMB_ELENGTH)

@@ -24,6 +24,7 @@ int emb_write(modbus_t *ctx, emb_link *lk, int slave, int function, int addr, in
 long emb_link_discard(modbus_t *ctx, emb_link *lk, int total_ms, int quiet_ms, int limit_ms);
 long emb_pump(modbus_t *ctx, emb_link *lk);
 long emb_feed(emb_link *lk, const uint8_t *data, int n);
+int emb_echo_seen(int err, const uint8_t *rsp, int got, const uint8_t *sent, int sent_len);
 void emb_trace_put(emb_link *lk, int direction, const uint8_t *frame, int n);
 int emb_trace_take(emb_trace *t, uint8_t *out, int *direction, int64_t *t_ns);
 

@@ -1,31 +1,28 @@
 /* edgemodbus: one link of the loop engine as a state machine (see emb_loop_link.h).
  *
- * emb_loop_link_run() takes the link as far as it goes without waiting: it reads what
- * the socket holds, frames and checks a reply, runs the fault policy's pure steps
- * (csrc/emb_fault.c) and the device passes (csrc/emb_engine.c's emb_dev_begin_pass /
- * emb_dev_end_pass), sends the next request, and sets the link's one deadline on the
- * loop's heap for what it waits for next.  A late reply during a settle is dropped
- * (RTU frames carry no transaction id: Modbus over Serial Line v1.02, 2.5.1.1). */
+ * emb_loop_link_run() takes the link as far as it goes without waiting: it takes in what
+ * the socket holds and frames the reply (csrc/emb_loop_io.c, each link kind as the
+ * blocking engine's backends frame it), checks and decodes it, runs the fault policy's
+ * pure steps (csrc/emb_fault.c) and the device passes (csrc/emb_engine.c's
+ * emb_dev_begin_pass / emb_dev_end_pass), sends the next request, and sets the link's
+ * one deadline on the loop's heap for what it waits for next.  A wrapped link's reports
+ * go to Python as the blocking engine hands them (emb_engine_reports).  A late reply
+ * during a settle is dropped (RTU frames carry no transaction id: Modbus over Serial
+ * Line v1.02, 2.5.1.1). */
 #include "emb_loop_link.h"
 
 #include <errno.h>
-#include <string.h>
-#include <sys/socket.h>
 
 #include "emb_check.h"
 #include "emb_engine.h"
-#include "emb_rtu.h"
-#include "emb_stream.h"
+#include "emb_io.h" /* emb_trace_put */
 
-/* Send the read of the pass's next block of device k->which.  0, or -1 with errno. */
-static int emb_ll_send(emb_loop_link *k, int64_t now)
+/* Begin the read of the pass's next block of device k->which.  0, or -1 with errno. */
+static int emb_ll_send(emb_loop *lp, emb_loop_link *k, int64_t now)
 {
     emb_engine *e = k->e;
     emb_device *d = e->devices[k->which];
     emb_eblock *b = &d->blocks[d->pass_list[d->index]];
-    uint8_t frame[EMB_MAX_RTU];
-    int len = 0;
-    ssize_t n;
 
     k->req[0] = (uint8_t)d->slave;
     k->req[1] = b->function;
@@ -34,65 +31,14 @@ static int emb_ll_send(emb_loop_link *k, int64_t now)
     k->req[4] = (uint8_t)(b->count >> 8);
     k->req[5] = (uint8_t)(b->count & 0xFF);
     k->req_len = 6;
-    if (emb_rtu_frame(d->slave, k->req + 1, 5, frame, &len) == -1)
+    if (emb_ll_frame(k) == -1)
         return -1;
     e->lk->rsp_len = 0;
     emb_fault_sent(e, d);
-    n = send(k->fd, frame, (size_t)len, MSG_NOSIGNAL);
-    if (n != len) { /* 8 bytes on a link whose send buffer is full: the DTU is gone */
-        if (n >= 0)
-            errno = EAGAIN;
-        return -1;
-    }
-    k->start_ns = now;
-    k->last_ns = 0;
-    k->state = EMB_LS_AWAIT;
-    return 0;
-}
-
-/* Take in what the socket holds: the bytes read, or -1 with errno (the link failed). */
-static int emb_ll_fill(emb_loop_link *k)
-{
-    int rc, total = 0;
-
-    while ((rc = emb_stream_fill(k->e->lk, k->fd)) > 0)
-        total += rc;
-    return rc == -1 ? -1 : total;
-}
-
-/* The reply's deadline: the response timeout until bytes of it came, then the byte
- * timeout from the last ones (as the blocking receive, csrc/emb_stream.c). */
-static int64_t emb_ll_reply_due(const emb_loop_link *k)
-{
-    const emb_device *d = k->e->devices[k->which];
-
-    if (k->last_ns && k->byte_ms > 0 && emb_stream_backend.pending(k->e->lk, k->fd) > 0)
-        return k->last_ns + (int64_t)k->byte_ms * 1000000; /* heartbeats do not count */
-    return k->start_ns + (int64_t)d->timeout_ms * 1000000;
-}
-
-/* Another whole frame already behind the reply (len bytes in e->rsp) that answers the
- * request replaces it: the last answer wins, as in the blocking receive (csrc/emb_io.c:
- * a DTU that held a late reply sends it with the next one).  A second frame still on
- * its way is not waited for: its bytes are dropped as stale before the next request.
- * The reply's length. */
-static int emb_ll_last_answer(emb_loop_link *k, int len)
-{
-    emb_engine *e = k->e;
-    uint8_t next[EMB_MAX_ADU];
-    int len2, got2 = 0, exc = -1;
-
-    if (emb_stream_backend.pending(e->lk, k->fd) < emb_stream_backend.min_next)
-        return len;
-    len2 = emb_stream_try(e->lk, e->devices[k->which]->slave, next, &got2);
-    if (len2 > 0 && emb_check_reply(k->req, k->req_len, next, len2 - 2, &exc) == 0) {
-        e->lk->discarded += len;
-        memcpy(e->rsp, next, (size_t)len2);
-        return len2;
-    }
-    if (len2 > 0 || len2 == 0 || (len2 == -1 && errno != EMBBADDATA))
-        e->lk->discarded += len2 > 0 ? len2 : got2; /* taken from rx: counted here */
-    return len;
+    k->sent = 0;
+    k->start_ns = now; /* the request must be out within the reply timeout */
+    k->state = EMB_LS_SEND;
+    return emb_ll_push(lp, k, now) == -1 ? -1 : 0;
 }
 
 /* A whole reply frame (len bytes in e->rsp, its CRC checked): checked against the
@@ -100,14 +46,19 @@ static int emb_ll_last_answer(emb_loop_link *k, int len)
 static int emb_ll_reply(emb_loop_link *k, int len, int64_t now)
 {
     emb_engine *e = k->e;
+    emb_link *lk = e->lk;
     emb_device *d = e->devices[k->which];
     emb_eblock *b = &d->blocks[d->pass_list[d->index]];
     void *data = b->data ? b->data : (b->function <= 2 ? (void *)e->bits : (void *)e->regs);
-    const uint8_t *p = e->rsp + 3;
+    int h = emb_ll_header(lk);
+    const uint8_t *p = e->rsp + h + 2;
     int exc = -1, err, i;
 
-    e->lk->rsp_len = len;
-    err = emb_check_reply(k->req, k->req_len, e->rsp, len - 2, &exc);
+    lk->rsp_len = len;
+    err = lk->mbap ? emb_check_mbap(e->rsp, len, (long)lk->tid) : 0;
+    if (!err)
+        err = emb_check_reply(k->req, k->req_len, e->rsp + h - 1,
+                              len - (h - 1) - emb_ll_trailer(lk), &exc);
     if (!err && exc >= 0)
         err = EMB_EEXCEPTION + exc;
     if (err)
@@ -163,6 +114,13 @@ static void emb_ll_failed(emb_loop_link *k, int err, int64_t now)
     k->state = EMB_LS_SETTLE;
 }
 
+/* The link failed outside a read (err): EMB_LS_FAILED. */
+static void emb_ll_lost(emb_loop_link *k, int err)
+{
+    k->e->event_errno = err;
+    k->state = EMB_LS_FAILED;
+}
+
 /* List device `which`'s ended pass for Python when it has news (as the blocking
  * engine's emb_ended).  1 if listed. */
 static int emb_ll_ended(emb_engine *e, emb_device *d, int which, int64_t now)
@@ -176,9 +134,77 @@ static int emb_ll_ended(emb_engine *e, emb_device *d, int which, int64_t now)
     return 1;
 }
 
+/* A failed reply on a plain RTU link without the echo option that begins with the
+ * request's own bytes: EMB_EECHOSEEN (the line echoes: set the echo option), as the
+ * blocking exchange says it (csrc/emb_io.c emb_echo_seen); else err. */
+static int emb_ll_echo_seen(const emb_loop_link *k, int err, int got)
+{
+    const emb_link *lk = k->e->lk;
+
+    if (lk->echo || lk->wrapped || lk->mbap || err == ETIMEDOUT)
+        return err;
+    return emb_echo_seen(err, k->e->rsp, got, k->wire, k->wire_len);
+}
+
+/* The reply decided (k->first_len bytes in e->rsp): checked and decoded, or failed. */
+static void emb_ll_answered(emb_loop_link *k, int64_t now)
+{
+    int err = emb_ll_reply(k, k->first_len, now);
+
+    if (err)
+        emb_ll_failed(k, emb_ll_echo_seen(k, err, k->e->lk->rsp_len), now);
+}
+
+/* The awaited reply: framed, checked and decoded, or failed (the reply timeout, a bad
+ * frame, the link).  0: the state moved on; 1: it waits (its deadline is set). */
+static int emb_ll_await(emb_loop *lp, emb_loop_link *k, int64_t now)
+{
+    emb_engine *e = k->e;
+    emb_link *lk = e->lk;
+    int64_t until;
+    int rc, got, err;
+
+    rc = emb_ll_take(k, now, &got);
+    if (rc == 0) { /* another slave's frame (a skipped Modbus TCP reply is counted) */
+        if (!lk->mbap) {
+            emb_trace_put(lk, EMB_TRACE_RX, e->rsp, got);
+            lk->discarded += got;
+        }
+        return 0;
+    }
+    if (rc == -1) {
+        err = errno;
+        emb_trace_put(lk, EMB_TRACE_RX, e->rsp, got); /* what came, if anything */
+        lk->rsp_len = 0; /* no whole frame to show, as csrc/emb_io.c leaves it */
+        emb_ll_failed(k, emb_ll_echo_seen(k, err, got), now);
+        return 0;
+    }
+    if (rc > 0) {
+        emb_trace_put(lk, EMB_TRACE_RX, e->rsp, rc);
+        k->first_len = rc;
+        if (emb_ll_last_answer(lp, k, now))
+            return 1;
+        emb_ll_answered(k, now);
+        return 0;
+    }
+    until = emb_ll_reply_due(k);
+    if (now < until) {
+        emb_timer_set(lp, k->slot, until);
+        return 1;
+    }
+    lk->rsp_len = 0;
+    err = !lk->wrapped && emb_ll_pending(k) > 0 ? EMB_EPARTIAL : ETIMEDOUT;
+    if (err == ETIMEDOUT && k->skipped)
+        err = EMB_ETID; /* only replies to other requests came */
+    emb_ll_failed(k, err, now);
+    return 0;
+}
+
 /* Run link k as far as it goes now.  0: it waits (its deadline is set, or none when no
  * device is polled); EMB_EV_CYCLE: passes ended with news (e->ended_list); EMB_EV_SPLIT:
- * exception 02 on a splittable block of device e->event_device; EMB_EV_FAILED: the link
+ * exception 02 on a splittable block of device e->event_device; EMB_EV_REPORTS: a wrapped
+ * link took reports (e->event_device: the device whose read took them, -1: taken while
+ * idle), which Python takes before it runs the link again; EMB_EV_FAILED: the link
  * failed (e->event_errno).  Python acts, then runs the link again. */
 int emb_loop_link_run(emb_loop *lp, emb_loop_link *k)
 {
@@ -186,20 +212,21 @@ int emb_loop_link_run(emb_loop *lp, emb_loop_link *k)
     emb_device *d;
     int64_t now, until;
     long n;
-    int rc, got;
+    int rc, came;
 
     e->event_device = -1;
     for (;;) {
         now = emb_now_ns();
         switch (k->state) {
         case EMB_LS_IDLE:
-            if (emb_ll_fill(k) == -1 || (n = emb_stream_take_idle(e->lk)) == -1) {
-                e->event_errno = errno;
-                k->state = EMB_LS_FAILED;
+            if ((n = emb_ll_absorb(k, &came)) == -1) {
+                emb_ll_lost(k, errno);
                 break;
             }
             e->lc->discarded += n;
             emb_fault_took(e);
+            if (emb_engine_reports(e, k->which))
+                return EMB_EV_REPORTS;
             if (k->which >= 0) {
                 d = e->devices[k->which];
                 if (d->index >= d->n_pass) {
@@ -218,10 +245,8 @@ int emb_loop_link_run(emb_loop *lp, emb_loop_link *k)
                 if (!k->retrying)
                     k->first = k->tries = emb_fault_tries(d);
                 k->retrying = 0;
-                if (emb_ll_send(k, now) == -1) {
-                    e->event_errno = errno;
-                    k->state = EMB_LS_FAILED;
-                }
+                if (emb_ll_send(lp, k, now) == -1)
+                    emb_ll_lost(k, errno);
                 break;
             }
             d = emb_engine_pick(e, &k->which);
@@ -238,52 +263,41 @@ int emb_loop_link_run(emb_loop *lp, emb_loop_link *k)
             if (!d->in_pass && emb_dev_begin_pass(d, now) == 0 && d->n_blocks > 0)
                 k->which = -1; /* nothing due yet: pick again */
             break;
-        case EMB_LS_AWAIT:
-            rc = emb_ll_fill(k);
-            if (rc == -1) {
-                emb_ll_failed(k, errno, now);
+        case EMB_LS_SEND: /* what comes before the request is out is stale */
+            if ((n = emb_ll_absorb(k, &came)) == -1 || (rc = emb_ll_push(lp, k, now)) == -1) {
+                emb_ll_lost(k, errno);
                 break;
             }
-            if (rc > 0)
-                k->last_ns = now;
-            rc = emb_stream_try(e->lk, e->devices[k->which]->slave, e->rsp, &got);
-            if (rc == 0) { /* another slave's frame */
-                e->lk->discarded += got;
+            e->lc->discarded += n;
+            if (rc == 0)
                 break;
-            }
-            if (rc == -1) {
-                e->lk->rsp_len = got;
-                emb_ll_failed(k, errno, now);
-                break;
-            }
-            if (rc > 0) {
-                rc = emb_ll_reply(k, emb_ll_last_answer(k, rc), now);
-                if (rc)
-                    emb_ll_failed(k, rc, now);
-                break;
-            }
-            until = emb_ll_reply_due(k);
+            until = k->start_ns + (int64_t)e->devices[k->which]->timeout_ms * 1000000;
             if (now < until) {
                 emb_timer_set(lp, k->slot, until);
                 return 0;
             }
-            e->lk->rsp_len = 0;
-            emb_ll_failed(k, emb_stream_backend.pending(e->lk, k->fd) > 0 ? EMB_EPARTIAL
-                                                                           : ETIMEDOUT, now);
+            emb_ll_lost(k, ETIMEDOUT); /* the peer took no byte within the reply timeout */
+            break;
+        case EMB_LS_AWAIT:
+            if (emb_ll_await(lp, k, now))
+                return 0;
+            break;
+        case EMB_LS_NEXT:
+            if (emb_ll_last_answer(lp, k, now))
+                return 0;
+            emb_ll_answered(k, now);
             break;
         case EMB_LS_SETTLE:
-            rc = emb_ll_fill(k);
-            n = rc == -1 ? -1 : emb_stream_take_idle(e->lk);
+            n = emb_ll_absorb(k, &came);
             if (n == -1) {
                 e->event_errno = errno;
                 emb_fault_count(e, e->devices[k->which], k->kind, k->code);
                 k->state = EMB_LS_FAILED;
                 break;
             }
-            if (n > 0) {
-                k->dropped += n;
+            k->dropped += n;
+            if (came)
                 k->last_ns = now;
-            }
             until = emb_settle_until(k->start_ns, k->last_ns, k->clean_total_ms,
                                      e->quiet_ms, k->clean_limit_ms);
             if (now < until) {

@@ -1,38 +1,13 @@
-/* edgemodbus: one link of the loop engine (issue #27) as a non-blocking state machine:
- * a plain RTU DTU stream (heartbeats allowed; not wrapped, no echo) polled through the
- * line engine's devices (csrc/emb_edev.h) and fault policy steps (csrc/emb_fault.h),
- * on a loop thread's epoll set and deadline heap (csrc/emb_loop.h). */
+/* edgemodbus: one link of the loop engine as a non-blocking state machine: a DTU stream
+ * (plain RTU with heartbeats or an echo, or wrapped frames with their reports) or a
+ * Modbus TCP link (MBAP), polled through the line engine's devices (csrc/emb_edev.h) and
+ * fault policy steps (csrc/emb_fault.h), on a loop thread's epoll set and deadline heap
+ * (csrc/emb_loop.h); its I/O, framing each kind as the blocking engine's backends
+ * do, is csrc/emb_loop_io.c. */
 #ifndef EMB_LOOP_LINK_H
 #define EMB_LOOP_LINK_H
 
-#include "emb_fault.h"
-#include "emb_loop.h"
-
-#define EMB_LS_IDLE 0   /* between requests: the next due block, pacing */
-#define EMB_LS_AWAIT 1  /* a request is out: its reply, or the reply timeout */
-#define EMB_LS_SETTLE 2 /* after a failure: wait out a late reply, or drain a bad frame */
-#define EMB_LS_FAILED 3 /* the link failed (event_errno): Python closes it */
-
-typedef struct {
-    emb_engine *e;   /* devices, counters, link (with stream buffers), rsp, regs, bits,
-                      * pacing and cleaning; e->ctx is not used */
-    int fd;          /* the link's socket (non-blocking) */
-    uint32_t slot;   /* its slot on the loop */
-    int state;       /* EMB_LS_* */
-    int which;       /* the device in its pass, -1: none */
-    int tries;       /* retries left for the block under way */
-    int first;       /* ... of emb_fault_tries */
-    int retrying;    /* the next request is a retry of the block under way */
-    int byte_ms;     /* the longest gap inside a reply (0: the whole reply within the
-                      * response timeout) */
-    int kind, code, err; /* the failure being cleaned */
-    int clean_total_ms, clean_limit_ms;
-    int64_t start_ns;    /* the request went out (or the cleaning began) */
-    int64_t last_ns;     /* the last bytes of the reply or of the cleaning came (0: none) */
-    long dropped;        /* bytes dropped by the cleaning under way */
-    int req_len;
-    uint8_t req[8];      /* the unit id and the PDU sent (a read: 6 bytes) */
-} emb_loop_link;
+#include "emb_loop_io.h" /* emb_loop_link, EMB_LS_* */
 
 int emb_loop_link_run(emb_loop *lp, emb_loop_link *k);
 

@@ -47,6 +47,8 @@ int64_t emb_settle_until(int64_t start_ns, int64_t last_ns, int total_ms, int qu
 #define EMB_LS_AWAIT ...
 #define EMB_LS_SETTLE ...
 #define EMB_LS_FAILED ...
+#define EMB_LS_SEND ...
+#define EMB_LS_NEXT ...
 typedef struct {
     emb_engine *e;
     int fd;
@@ -54,6 +56,8 @@ typedef struct {
     int state;
     int which;
     int byte_ms;
+    int echo_left;
+    int want_out;
     ...;
 } emb_loop_link;
 int emb_loop_link_run(emb_loop *lp, emb_loop_link *k);

@@ -132,6 +132,11 @@ class Context:
         return bool(self._link.wrapped or self._link.hb_len)
 
     @property
+    def mbap(self) -> bool:
+        """Modbus TCP framing (an MBAP header with our transaction ids)."""
+        return bool(self._link.mbap)
+
+    @property
     def wrapped(self) -> bool:
         return bool(self._link.wrapped)
 

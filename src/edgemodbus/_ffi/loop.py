@@ -139,31 +139,34 @@ LS_IDLE: int = lib.EMB_LS_IDLE
 LS_AWAIT: int = lib.EMB_LS_AWAIT
 LS_SETTLE: int = lib.EMB_LS_SETTLE
 LS_FAILED: int = lib.EMB_LS_FAILED
+LS_SEND: int = lib.EMB_LS_SEND
+LS_NEXT: int = lib.EMB_LS_NEXT
 EV_WAITS: int = 0  # the link waits for its socket or its deadline
 EV_CYCLE: int = lib.EMB_EV_CYCLE
 EV_FAILED: int = lib.EMB_EV_FAILED
 EV_SPLIT: int = lib.EMB_EV_SPLIT
+EV_REPORTS: int = lib.EMB_EV_REPORTS
 
 
 class LoopLink:
-    """One plain RTU DTU stream as a state machine on ``loop`` under ``slot``
-    (csrc/emb_loop_link.c): the devices, counters and cleaning of ``engine`` (an
-    :class:`~edgemodbus._ffi.engine.Engine` on ``ctx``, a context on the DTU's
-    socket), no thread of its own.  Wrapped streams and echoing lines are not served
-    yet (the blocking engine serves them)."""
+    """One link as a state machine on ``loop`` under ``slot`` (csrc/emb_loop_link.c):
+    the devices, counters and cleaning of ``engine`` (an
+    :class:`~edgemodbus._ffi.engine.Engine` on ``ctx``, a context on a connected
+    socket), no thread of its own.  The link kind is the context's, as on the blocking
+    engine: a DTU stream (plain RTU with heartbeats or the echo option, or wrapped
+    frames with their reports: :meth:`run` comes back ``EV_REPORTS``) or Modbus TCP
+    (``Context.on_socket(fd, label, mbap=True)``: MBAP header, transaction ids)."""
 
     def __init__(self, loop: Loop, slot: int, engine: Engine, ctx: Context,
                  byte_timeout: float) -> None:
-        if ctx.wrapped or ctx.echo:
-            raise ValueError(f"{ctx.label}: the loop engine serves plain RTU streams only "
-                             "(not wrapped, no echo)")
         if not 0 <= byte_timeout <= 60:
             raise ValueError(f"{ctx.label}: byte timeout {byte_timeout!r} s: must be 0..60")
         self.loop = loop
         self.slot = loop._slot(slot)
         self.engine = engine
         self.ctx = ctx
-        ctx.ensure_stream_buffers()
+        if not ctx.mbap:  # a stream is framed in its buffers; MBAP replies in the engine's
+            ctx.ensure_stream_buffers()
         fd = ctx.fd
         os.set_blocking(fd, False)
         k = ffi.new("emb_loop_link *")
@@ -182,9 +185,12 @@ class LoopLink:
 
     def run(self) -> int:
         """Take the link as far as it goes now (GIL released): ``EV_WAITS``, or
-        ``EV_CYCLE`` (the engine's ``take_ended``), ``EV_SPLIT`` or ``EV_FAILED`` for
-        Python, which acts and must run it again: only ``EV_WAITS`` leaves a deadline
-        set or a socket to wake it."""
+        ``EV_CYCLE`` (the engine's ``take_ended``), ``EV_SPLIT``, ``EV_REPORTS`` (the
+        context holds wrapped reports, dropped or lost frames: taken before the link
+        runs again, as after the blocking engine's EV_REPORTS; ``engine.event_device``:
+        the device whose read took them, -1 while idle) or ``EV_FAILED`` for Python,
+        which acts and must run it again: only ``EV_WAITS`` leaves a deadline set or a
+        socket to wake it."""
         return int(lib.emb_loop_link_run(self.loop._lp, self._k))
 
     def detach(self) -> None:

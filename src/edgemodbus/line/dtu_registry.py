@@ -29,7 +29,7 @@ class DtuRegistry:
         self.engine = "thread"  # what serves the lines of DTUs acquired from now on
 
     def set_engine(self, engine: str, loop_threads: int | None = None) -> None:
-        """``engine``: "thread" (a thread per DTU line) or "loop" (plain RTU DTUs on
+        """``engine``: "thread" (a thread per DTU line) or "loop" (the DTU lines on
         ``loop_threads`` loop threads, default the cores: line/loop.py), for the DTU
         lines started from now on.  ValueError names a bad value."""
         if engine not in ENGINES:

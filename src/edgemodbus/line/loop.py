@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from .._ffi.engine import Engine, Waker
-from .._ffi.loop import EV_CYCLE, EV_FAILED, EV_SPLIT, EV_WAITS, LS_IDLE, Loop, LoopLink
+from .._ffi.loop import EV_CYCLE, EV_FAILED, EV_REPORTS, EV_SPLIT, EV_WAITS, LS_IDLE, Loop, LoopLink
 from ..errors import ModbusConnectionError
 from .endpoint import DtuEndpoint, LineTiming
 from .link import ContextLink
@@ -46,9 +46,10 @@ DEFAULT_CAPACITY = 8192  # lines one worker serves at most
 
 
 def loop_serves(endpoint: DtuEndpoint) -> bool:
-    """Whether the loop engine serves this DTU: plain RTU streams only (csrc/
-    emb_loop_link.c does not frame wrapped reports nor skip an echo yet)."""
-    return not endpoint.echo and endpoint.framing == "rtu"
+    """Whether the loop engine serves this DTU: every DTU stream it frames (csrc/
+    emb_loop_link.c: plain RTU, with heartbeats or the echo option, and wrapped frames
+    with their reports)."""
+    return endpoint.framing in ("rtu", "wrapped-report")
 
 
 @dataclass(eq=False)
@@ -70,8 +71,9 @@ class LoopLine(LineWorker):
     def __init__(self, endpoint: DtuEndpoint, timing: LineTiming | None,
                  connector: Connector, workers: LoopPool) -> None:
         if not loop_serves(endpoint):
-            raise ValueError(f"{endpoint.describe()}: engine 'loop' serves plain RTU DTUs "
-                             "only (no echo, framing rtu); use engine 'thread'")
+            raise ValueError(f"{endpoint.describe()}: framing {endpoint.framing!r}: engine "
+                             "'loop' serves framing rtu and wrapped-report; use engine "
+                             "'thread'")
         super().__init__(endpoint, timing, connector)
         self._workers = workers
         self._worker: LoopWorker | None = None
@@ -350,6 +352,8 @@ class LoopWorker:
                     pollers[engine.event_device].engine_split()
                 except Exception:
                     log.exception("%s: poller failed", line.endpoint.describe())
+            elif ev == EV_REPORTS:
+                self._reports(served, engine.event_device)
             elif ev == EV_FAILED:
                 self._failed(served, engine.event_device, engine.event_errno)
                 return
@@ -358,6 +362,20 @@ class LoopWorker:
         link = served.link
         if link is not None:
             link.collect()  # the stream's counters (heartbeats, drops) into the stats
+
+    def _reports(self, served: _Served, which: int) -> None:
+        """A wrapped link took reports: handed over as the line worker hands them after
+        the blocking engine's EV_REPORTS (line/worker.py ``_dispatch``): those that came
+        before the reply, then the reply's results (device ``which``), then the rest."""
+        link = served.link
+        assert link is not None
+        link.collect()
+        if 0 <= which < len(served.pollers):
+            try:
+                served.pollers[which].take_results()
+            except Exception:
+                log.exception("%s: poller failed", served.line.endpoint.describe())
+        link.flush_reports()
 
     def _failed(self, served: _Served, which: int, err: int) -> None:
         link = served.link

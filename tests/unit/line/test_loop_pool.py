@@ -39,13 +39,18 @@ def test_bad_settings_are_named() -> None:
         LoopPool().configure(0)
 
 
-def test_only_plain_rtu_dtus_go_to_the_loop() -> None:
+def test_every_dtu_stream_kind_goes_to_the_loop() -> None:
+    """Plain, wrapped and echoing DTUs are all served by the loop (csrc/emb_loop_link.c
+    frames each); a framing it does not know is refused by name."""
     plain = DtuEndpoint("127.0.0.1", 1, "A")
     wrapped = DtuEndpoint("127.0.0.1", 1, "B", framing="wrapped-report")
     echo = DtuEndpoint("127.0.0.1", 1, "C", echo=True)
-    assert loop_serves(plain) and not loop_serves(wrapped) and not loop_serves(echo)
-    with pytest.raises(ValueError, match=r"wrapped: engine 'loop' serves plain RTU DTUs"):
-        LoopLine(wrapped, None, Absent(), LoopPool(1))
+    assert loop_serves(plain) and loop_serves(wrapped) and loop_serves(echo)
+    other = DtuEndpoint("127.0.0.1", 1, "D", framing="ascii")
+    assert not loop_serves(other)
+    with pytest.raises(ValueError, match=r"framing 'ascii': engine 'loop' serves framing rtu "
+                                         r"and wrapped-report"):
+        LoopLine(other, None, Absent(), LoopPool(1))
 
 
 def test_lines_share_a_worker_that_stops_with_the_last() -> None:
