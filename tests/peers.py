@@ -221,7 +221,7 @@ class PymodbusSlave:
         initial: InitialSpec | None = None,
         response_delay: float = 0.0,
         exception_ranges: Sequence[ExceptionRange] = (),
-        start_timeout: float = 15.0,
+        start_timeout: float = 60.0,
         control_timeout: float = 10.0,
         bind_patience: float = 3.0,
     ) -> None:
