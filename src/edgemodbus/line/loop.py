@@ -81,9 +81,9 @@ class LoopLine(LineWorker):
     def __init__(self, endpoint: DtuEndpoint | TcpEndpoint, timing: LineTiming | None,
                  connector: Connector, workers: LoopPool) -> None:
         if not loop_serves(endpoint):
-            raise ValueError(f"{endpoint.describe()}: engine 'loop' serves plain RTU "
-                             "streams only (DTUs or rtu-over-tcp without alternates; no "
-                             "echo, framing rtu); use engine 'thread'")
+            raise ValueError(f"{endpoint.describe()}: engine 'loop' serves plain RTU DTUs "
+                             "and rtu-over-tcp endpoints only (no alternates, no echo, "
+                             "framing rtu); use engine 'thread'")
         super().__init__(endpoint, timing, connector)
         self._workers = workers
         self._worker: LoopWorker | None = None
