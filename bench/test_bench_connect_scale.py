@@ -29,6 +29,8 @@ import time
 from multiprocessing.connection import Connection
 from typing import Any
 
+import pytest
+
 import edgemodbus as em
 from bench import gate
 from bench.conftest import cpu_seconds, report, scale
@@ -133,6 +135,7 @@ def _phase(ctx: Any, engine: str, ports: list[int]) -> dict[str, float]:
     return figures
 
 
+@pytest.mark.timeout(1800)  # four phases; 2,000 endpoints take a few minutes
 def test_connect_mode_at_scale_loop_vs_thread(benchmark: Any) -> None:
     ctx = multiprocessing.get_context("spawn")
     parent, child = ctx.Pipe()
