@@ -182,7 +182,11 @@ class Dialer:
         """Start the connect to the next address: True while it is under way or done
         (watched on ``slot``), False if it failed at once (the next address, if any)."""
         family, address = self._addresses.pop(0)
-        sock = socket.socket(family, socket.SOCK_STREAM)
+        try:
+            sock = socket.socket(family, socket.SOCK_STREAM)
+        except OSError as exc:  # e.g. EMFILE: no fd left (the line worker's words)
+            self._error = exc.strerror or str(exc)
+            return False
         sock.setblocking(False)
         err = sock.connect_ex(address)
         if err not in (0, errno.EINPROGRESS):
