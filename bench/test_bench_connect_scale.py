@@ -10,9 +10,9 @@ start_device to every value Ok, its threads, RSS per endpoint (polling against t
 same process before its drivers started), CPU per tag read (all its threads; the least
 of two windows), wrong values (against the simulator's formula) and timeouts.  Each
 engine runs twice, in turn, and the cheaper run of each is compared (the load of a
-shared machine drifts).  The loop phase runs ``loopThreads`` 1 (one loop thread holds
-thousands of links; a second one mostly adds GIL hand-overs).  Gated (bench/gate.py):
-the loop's CPU per tag read over the thread engine's.
+shared machine drifts).  The loop phase runs ``loopThreads`` 1 unless told otherwise
+(one loop thread holds thousands of links; two measured about the same, docs/scale.md).
+Gated (bench/gate.py): the loop's CPU per tag read over the thread engine's.
 
 Quick mode: 100 endpoints, readCycle 250 ms, windows of 2 s.  Full: 2,000 endpoints,
 readCycle 5 s (the simulator answers 400 reads a second then), windows of 10 s.
