@@ -231,14 +231,15 @@ class _CommunicationFields(Model):
     )
     engine: DtuEngine = Field(
         default="thread",
-        description="rtu-over-tcp-server: what polls the port's DTUs: thread (a thread "
-        "per DTU) or loop (plain RTU DTUs on a few loop threads; wrapped or echoing ones "
-        "keep a thread; docs/scale.md); every device of a port must agree",
+        description="rtu-over-tcp-server, rtu-over-tcp: what polls the line: thread (a "
+        "thread per line) or loop (a few loop threads: DTUs that dial in, plain rtu-over-tcp "
+        "endpoints without alternates; not tcp yet; docs/scale.md); every device of a "
+        "listen port, or of an endpoint, must agree",
     )
     loop_threads: Annotated[int | None, Range(1, 1024)] = Field(
         default=None,
-        description="rtu-over-tcp-server with engine loop: loop threads of the process "
-        "(unset = one per core); the last port opened sets it for threads started later",
+        description="engine loop: loop threads of the process "
+        "(unset = one per core); the last port or line opened sets it for threads started later",
     )
     framing: Framing = Field(
         default="rtu",

@@ -27,6 +27,8 @@ NETWORKS_ALLOWED = ("an IPv4 or IPv6 network in CIDR notation or a single addres
 KEY_EXAMPLE = r"ID:(\d+);KEY:(?P<key>\w+)"
 STREAMS = ("rtu-over-tcp", "rtu-over-tcp-server", "mqtt-dtu")
 """The transports whose link is a DTU stream: heartbeats and wrapped frames apply."""
+LOOP_TRANSPORTS = ("rtu-over-tcp-server", "rtu-over-tcp")
+"""The transports the loop engine serves (engine "loop": line/loop.py)."""
 
 
 class ListenParams(Protocol):
@@ -59,6 +61,10 @@ class ListenParams(Protocol):
     def framing(self) -> str: ...
     @property
     def echo(self) -> bool: ...
+    @property
+    def engine(self) -> str: ...
+    @property
+    def model_fields_set(self) -> set[str]: ...
 
 
 # --------------------------------------------------------------------------- source lists
@@ -136,7 +142,8 @@ def check_key(key: SecretStr) -> SecretStr:
 
 
 def listen_problems(p: ListenParams) -> list[Problem]:
-    """Listen mode, registration, heartbeat and framing options, checked together."""
+    """Listen mode, registration, heartbeat, framing and engine options, checked
+    together."""
     problems: list[Problem] = []
     if p.transport == "rtu-over-tcp-server":
         problems += _registration_problems(p)
@@ -150,6 +157,12 @@ def listen_problems(p: ListenParams) -> list[Problem]:
     if p.echo and p.transport == "tcp":
         problems.append(Problem("echo", p.echo, "a Modbus TCP (MBAP) link has no "
                                 "request echo; the option is for RTU lines"))
+    if p.engine == "loop" and p.transport not in LOOP_TRANSPORTS and \
+            "engine" in p.model_fields_set:  # (a default of "loop" falls back to a thread)
+        why = " (its MBAP framing is not on the loop yet)" if p.transport == "tcp" else ""
+        problems.append(Problem("engine", p.engine, "the loop engine serves transports "
+                                f"{' and '.join(LOOP_TRANSPORTS)}, not {p.transport!r}"
+                                f"{why}; use engine 'thread'"))
     return problems
 
 

@@ -83,6 +83,8 @@ class TcpEndpoint:
     failback_interval: float = 30.0  # on an alternate: probe the primary this often (0: no)
     connections: int = 1  # Modbus TCP: parallel connections to this host:port
     channel: int = 0  # which of them this line is (0..connections-1)
+    engine: str = "thread"  # what serves the line: thread, or loop (line/loop.py)
+    loop_threads: int | None = field(default=None, compare=False)  # the pool's, with loop
 
     def __post_init__(self) -> None:
         if self.transport not in ("rtu-over-tcp", "tcp"):
@@ -97,6 +99,8 @@ class TcpEndpoint:
         if self.transport == "tcp" and (self.framing != "rtu" or self.heartbeat):
             raise ValueError(f"framing {self.framing!r}/heartbeat: Modbus TCP (MBAP) has its "
                              "own framing; use transport rtu-over-tcp or rtu-over-tcp-server")
+        if self.engine not in ("thread", "loop"):
+            raise ValueError(f"engine {self.engine!r}: must be one of thread, loop")
         if not 0 <= self.channel < self.connections or (
                 self.connections > 1 and self.transport != "tcp"):
             raise ValueError(f"channel {self.channel} of {self.connections} connections: "
@@ -261,7 +265,8 @@ def endpoint_for(params: DriverModbusRtuParameter) -> Endpoint:
                        alternates=tuple(split_host_port(a) for a in params.alternates),
                        connections=connections, channel=channel % connections,
                        failover_after=params.failover_after,
-                       failback_interval=params.failback_interval / 1000)
+                       failback_interval=params.failback_interval / 1000,
+                       engine=params.engine, loop_threads=params.loop_threads)
 
 
 def mqtt_dtu_endpoint(params: DriverModbusRtuParameter) -> MqttDtuEndpoint:

@@ -12,7 +12,10 @@ that ended to the pollers; a link's jobs run while that link is idle, one after 
 other, blocking the loop for the job's own transaction (writes are rare and short;
 the fairness rule of csrc/emb_engine.c, one job between two reads, is not kept yet).
 A link failure closes that link only: its devices go down with the reason and the
-line waits for the DTU to dial in again (:meth:`LineWorker.connect_now`).
+line waits for the DTU to dial in again (:meth:`LineWorker.connect_now`).  A
+connect-mode line (an RTU-over-TCP endpoint the gateway connects to) connects again
+after the line worker's reconnect backoff, without blocking the loop: its connector is a
+:class:`~edgemodbus.line.loop_connect.Dialer`, a non-blocking connect on the same slot.
 
 :data:`pool` spreads the lines over ``loopThreads`` workers (least loaded first); a
 worker starts with its first line and stops with its last.
@@ -34,8 +37,9 @@ from typing import Any
 from .._ffi.engine import Engine, Waker
 from .._ffi.loop import EV_CYCLE, EV_FAILED, EV_REPORTS, EV_SPLIT, EV_WAITS, LS_IDLE, Loop, LoopLink
 from ..errors import ModbusConnectionError
-from .endpoint import DtuEndpoint, LineTiming
+from .endpoint import DtuEndpoint, LineTiming, TcpEndpoint
 from .link import ContextLink
+from .loop_connect import Dialer
 from .poller_api import Poller
 from .worker import Connector, LineWorker
 
@@ -45,10 +49,14 @@ _MAX_IDLE = 3600.0  # the loop comes back at least once an hour
 DEFAULT_CAPACITY = 8192  # lines one worker serves at most
 
 
-def loop_serves(endpoint: DtuEndpoint) -> bool:
-    """Whether the loop engine serves this DTU: every DTU stream it frames (csrc/
-    emb_loop_link.c: plain RTU, with heartbeats or the echo option, and wrapped frames
-    with their reports)."""
+def loop_serves(endpoint: DtuEndpoint | TcpEndpoint) -> bool:
+    """Whether the loop engine serves this line: a DTU that dials in, with every stream
+    framing csrc/emb_loop_link.c serves (plain RTU, with heartbeats or the echo option,
+    and wrapped frames with their reports), or an RTU-over-TCP endpoint the gateway
+    connects to, plain, without alternates (failover.py's watcher drives a line worker)."""
+    if isinstance(endpoint, TcpEndpoint):
+        return (endpoint.transport == "rtu-over-tcp" and not endpoint.alternates
+                and not endpoint.echo and endpoint.framing == "rtu")
     return endpoint.framing in ("rtu", "wrapped-report")
 
 
@@ -66,14 +74,16 @@ class _Served:
 
 
 class LoopLine(LineWorker):
-    """A DTU line served by a :class:`LoopWorker` (see the module)."""
+    """A DTU line, or a connect-mode RTU-over-TCP line (its connector a
+    :class:`~edgemodbus.line.loop_connect.Dialer`), served by a :class:`LoopWorker`
+    (see the module)."""
 
-    def __init__(self, endpoint: DtuEndpoint, timing: LineTiming | None,
+    def __init__(self, endpoint: DtuEndpoint | TcpEndpoint, timing: LineTiming | None,
                  connector: Connector, workers: LoopPool) -> None:
         if not loop_serves(endpoint):
-            raise ValueError(f"{endpoint.describe()}: framing {endpoint.framing!r}: engine "
-                             "'loop' serves framing rtu and wrapped-report; use engine "
-                             "'thread'")
+            raise ValueError(f"{endpoint.describe()}: engine 'loop' serves DTUs that dial in "
+                             "(framing rtu or wrapped-report) and plain rtu-over-tcp "
+                             "endpoints (no alternates, no echo); use engine 'thread'")
         super().__init__(endpoint, timing, connector)
         self._workers = workers
         self._worker: LoopWorker | None = None
@@ -176,8 +186,8 @@ class LoopWorker:
                         continue
                     if served.ll is not None:
                         self._guarded(self._step, served)
-                    elif slot in expired:  # down: the reconnect delay ran out
-                        self._guarded(self._connect, served)
+                    elif slot in expired or _dialing(served):  # down: the reconnect
+                        self._guarded(self._connect, served)  # delay ran out, or a connect
             except Exception:  # a bug must not stop the other lines
                 log.exception("%s: loop turn failed", self.thread.name)
         for served in list(self._by_line.values()):
@@ -193,6 +203,7 @@ class LoopWorker:
             step(served)
         except Exception as exc:
             self._detach(served)
+            _abort_dial(served)
             served.link = None
             line = served.line
             line._recover(exc)
@@ -222,6 +233,7 @@ class LoopWorker:
     def _drop(self, served: _Served) -> None:
         """Take a line off this worker: its link closed, its jobs failed."""
         self._detach(served)
+        _abort_dial(served)
         self.loop.clear_timer(served.slot)  # a reconnect delay
         del self._slots[served.slot], self._by_line[served.line]
         self._free.append(served.slot)
@@ -241,6 +253,10 @@ class LoopWorker:
         free while the line is down), as the line worker does."""
         line = served.line
         self.loop.clear_timer(served.slot)
+        dialer = line.connector
+        if isinstance(dialer, Dialer) and not dialer.step(
+                self.loop, served.slot, line.timing.connect_timeout, lambda: self.news(line)):
+            return False  # connecting: the slot wakes when the socket or deadline says
         if not line._connect():
             served.failures += 1
             self._retry(served)
@@ -295,6 +311,8 @@ class LoopWorker:
             served.link = None
             if not self._connect(served) and link is not None:
                 line._link_lost(link)  # replaced by nothing (e.g. the id is contested)
+        if served.ll is None and _dialing(served):
+            self._connect(served)  # (the resolver has the host's addresses)
         ll = served.ll
         if ll is None:  # down: the jobs fail at once
             while True:
@@ -392,6 +410,18 @@ class LoopWorker:
         if link.is_open:
             link.close_reason = f"link failed: {os.strerror(err)}"
         self._lost(served)
+
+
+def _dialing(served: _Served) -> bool:
+    """A connect-mode line whose connect is under way."""
+    connector = served.line.connector
+    return isinstance(connector, Dialer) and connector.busy
+
+
+def _abort_dial(served: _Served) -> None:
+    connector = served.line.connector
+    if isinstance(connector, Dialer):
+        connector.abort()
 
 
 class LoopPool:

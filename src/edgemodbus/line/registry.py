@@ -11,6 +11,7 @@ from .dtu_slot import DtuSlot
 from .endpoint import DtuEndpoint, Endpoint, LineTiming, MqttDtuEndpoint, TcpEndpoint
 from .failover import Failover
 from .loop import LoopLine, loop_serves, pool
+from .loop_connect import Dialer
 from .mqtt_dtu import MqttDtuSlot, hubs
 from .worker import Connector, LineWorker
 
@@ -56,7 +57,11 @@ class LineRegistry:
     def _new_line(endpoint: Endpoint, timing: LineTiming | None,
                   connector: Callable[[], Connector] | None) -> LineWorker:
         """A started line worker with its connector: ``connector``'s, a DTU's on its
-        broker (mqtt-dtu), or a :class:`Failover` for a line with alternates."""
+        broker (mqtt-dtu), or a :class:`Failover` for a line with alternates; a
+        :class:`LoopLine` on a loop thread for a plain RTU DTU of a port with the
+        engine "loop", and for an RTU-over-TCP endpoint with ``engine`` "loop" (its
+        connector a non-blocking :class:`Dialer`; with alternates, echo or wrapped
+        frames it keeps a thread: :func:`loop_serves`)."""
         failover = slot = None
         if isinstance(endpoint, MqttDtuEndpoint):
             slot = hubs.acquire(endpoint)  # the DTU on its broker's connection
@@ -68,6 +73,11 @@ class LineRegistry:
         if isinstance(made, DtuSlot) and made.engine == "loop" and \
                 isinstance(endpoint, DtuEndpoint) and loop_serves(endpoint):
             line = LoopLine(endpoint, timing, made, pool)  # on a loop thread: line/loop.py
+        elif made is None and isinstance(endpoint, TcpEndpoint) and \
+                endpoint.engine == "loop" and loop_serves(endpoint):
+            if endpoint.loop_threads is not None:
+                pool.configure(endpoint.loop_threads)
+            line = LoopLine(endpoint, timing, Dialer(endpoint), pool)
         else:
             line = LineWorker(endpoint, timing, failover or slot or made)
         if slot is not None:
