@@ -81,7 +81,8 @@ class LoopLine(LineWorker):
     def __init__(self, endpoint: DtuEndpoint | TcpEndpoint, timing: LineTiming | None,
                  connector: Connector, workers: LoopPool) -> None:
         if not loop_serves(endpoint):
-            raise ValueError(f"{endpoint.describe()}: engine 'loop' serves DTUs that dial in "
+            raise ValueError(f"{endpoint.describe()}: framing {endpoint.framing!r}: engine "
+                             "'loop' serves DTUs that dial in "
                              "(framing rtu or wrapped-report) and plain rtu-over-tcp "
                              "endpoints (no alternates, no echo); use engine 'thread'")
         super().__init__(endpoint, timing, connector)

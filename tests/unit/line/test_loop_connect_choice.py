@@ -67,8 +67,8 @@ def test_an_endpoint_names_a_bad_engine() -> None:
 ])
 def test_lines_the_loop_cannot_serve_keep_a_thread(ep: TcpEndpoint) -> None:
     assert not loop_serves(ep)
-    with pytest.raises(ValueError, match="engine 'loop' serves plain RTU DTUs and "
-                                         "rtu-over-tcp endpoints only"):
+    with pytest.raises(ValueError, match=r"engine 'loop' serves DTUs that dial in .* and plain "
+                                         r"rtu-over-tcp endpoints"):
         LoopLine(ep, None, Dialer(TcpEndpoint("127.0.0.1", 1502)), None)  # type: ignore[arg-type]
 
 
