@@ -20,6 +20,7 @@ import edgemodbus as em
 from edgemodbus.datatypes import Area, DeviceDriverStatus, ItemStatus
 from edgemodbus.line import dtu_registry
 from edgemodbus.sim import Simulator, default_register
+from tests.engines import with_engine
 from tests.waiting import wait_for
 
 
@@ -38,11 +39,9 @@ def dtu_device(port: int, dtu_id: str, slave: int = 1, addresses: tuple[int, ...
         "byteTimeout": 50,
     }
     comm.update(extra)
-    if ENGINE and "engine" not in extra:
-        comm["engine"] = ENGINE[-1]
     return em.load_device_config({
         "organization": {"deviceCode": f"{dtu_id or 'dtu'}-{slave}"},
-        "communication": comm,
+        "communication": with_engine(comm),
         "addressList": [{"name": f"r{a}", "address": f"3:{a}", "deviceDataType": "UInt16"}
                         for a in addresses],
     })
@@ -68,21 +67,6 @@ def values(cfg: em.DeviceConfig) -> list[Any]:
 
 def ok(cfg: em.DeviceConfig) -> Callable[[], bool]:
     return lambda: all(it.status is ItemStatus.OK for it in cfg.address_list)
-
-
-ENGINE: list[str] = []
-"""The ``engine`` key dtu_device gives its devices while a test runs with the fixture."""
-
-
-@pytest.fixture(params=["thread", "loop"])
-def engine(request: pytest.FixtureRequest) -> Iterator[str]:
-    """The engine (the devices' ``engine`` key) serving the test's DTU lines
-    (line/loop.py for "loop")."""
-    ENGINE.append(str(request.param))
-    try:
-        yield str(request.param)
-    finally:
-        ENGINE.pop()
 
 
 @pytest.mark.usefixtures("engine")

@@ -230,10 +230,10 @@ class _CommunicationFields(Model):
         "compared in constant time, never shown nor logged",
     )
     engine: DtuEngine = Field(
-        default="thread",
-        description="rtu-over-tcp-server: what polls the port's DTUs: thread (a thread "
-        "per DTU) or loop (plain RTU DTUs on a few loop threads; wrapped or echoing ones "
-        "keep a thread; docs/scale.md); every device of a port must agree",
+        default="loop",
+        description="rtu-over-tcp-server: what polls the port's DTUs: loop (plain RTU DTUs "
+        "on a few loop threads; wrapped or echoing ones keep a thread; docs/scale.md) or "
+        "thread (a thread per DTU); every device of a port must agree",
     )
     loop_threads: Annotated[int | None, Range(1, 1024)] = Field(
         default=None,

@@ -26,7 +26,7 @@ class DtuRegistry:
         self._listeners: dict[tuple[str, int], DtuListener] = {}
         self._slots: dict[tuple[str, int, str], tuple[DtuSlot, int]] = {}
         self._balancers = Networks((), "fleet.loadBalancers")
-        self.engine = "thread"  # what serves the lines of DTUs acquired from now on
+        self.engine = "loop"  # what serves the lines of DTUs acquired from now on
 
     def set_engine(self, engine: str, loop_threads: int | None = None) -> None:
         """``engine``: "thread" (a thread per DTU line) or "loop" (plain RTU DTUs on
