@@ -238,7 +238,8 @@ class _CommunicationFields(Model):
     loop_threads: Annotated[int | None, Range(1, 1024)] = Field(
         default=None,
         description="rtu-over-tcp-server with engine loop: loop threads of the process "
-        "(unset = one per core); the last port opened sets it for threads started later",
+        "(unset = one per core); process-wide: the largest asked by the open DTUs wins, "
+        "for loop threads started later (docs/scale.md)",
     )
     framing: Framing = Field(
         default="rtu",
