@@ -68,8 +68,9 @@ def child_main() -> None:
 def _read_line(proc: subprocess.Popen[str], timeout: float, what: str) -> str:
     out = proc.stdout
     assert out is not None
-    ready, _, _ = select.select([out], [], [], timeout)
-    line = out.readline() if ready else ""
+    poller = select.poll()  # not select(): a gateway's fds are past 1024
+    poller.register(out, select.POLLIN)
+    line = out.readline() if poller.poll(timeout * 1000) else ""
     if not line:
         raise RuntimeError(f"DTU fleet process {proc.pid} did not {what} (exit code "
                            f"{proc.poll()})")
