@@ -42,7 +42,7 @@ from .worker import Connector, LineWorker
 log = logging.getLogger("edgemodbus.line")
 
 _MAX_IDLE = 3600.0  # the loop comes back at least once an hour
-DEFAULT_CAPACITY = 8192  # lines one worker serves at most
+DEFAULT_CAPACITY = 32768  # lines one worker serves at most (50,000 DTUs on two: docs/scale.md)
 
 
 def loop_serves(endpoint: DtuEndpoint) -> bool:
@@ -377,11 +377,13 @@ class LoopWorker:
 
 
 class LoopPool:
-    """The process's loop workers: at most ``threads`` (default: the cores), each line
-    on the least loaded; a worker starts with its first line, stops with its last."""
+    """The process's loop workers: ``threads`` (default: the cores), each line on the
+    least loaded with room (``capacity`` lines; when every worker is full, one more
+    starts, past ``threads``); a worker starts with its first line, stops with its last."""
 
-    def __init__(self, threads: int | None = None) -> None:
+    def __init__(self, threads: int | None = None, capacity: int = DEFAULT_CAPACITY) -> None:
         self.threads = threads or os.cpu_count() or 1
+        self.capacity = capacity
         self._workers: list[LoopWorker] = []
         self._lock = threading.Lock()
         self._made = 0
@@ -394,12 +396,16 @@ class LoopPool:
 
     def assign(self, line: LoopLine) -> LoopWorker:
         with self._lock:
-            if len(self._workers) < self.threads:
+            room = [w for w in self._workers if w.load < self.capacity]
+            if len(self._workers) < self.threads or not room:
+                if not room and self._workers:
+                    log.info("every loop thread serves %d lines: one more loop thread, "
+                             "past loopThreads %d", self.capacity, self.threads)
                 self._made += 1
-                worker = LoopWorker(f"edgemodbus-loop {self._made}")
+                worker = LoopWorker(f"edgemodbus-loop {self._made}", self.capacity)
                 self._workers.append(worker)
             else:
-                worker = min(self._workers, key=lambda w: w.load)
+                worker = min(room, key=lambda w: w.load)
             worker.load += 1
         worker.add(line).result()
         return worker

@@ -1,6 +1,6 @@
 """``loopThreads`` is process-wide (line/dtu_registry.py): the largest asked by the open
 DTUs wins, whatever order their devices start in, and the number falls back when they
-close."""
+close; a worker full of lines gets company (line/loop.py LoopPool)."""
 
 from __future__ import annotations
 
@@ -12,8 +12,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from edgemodbus.line import DtuEndpoint, DtuRegistry, PortSettings
-from edgemodbus.line.loop import pool
+from edgemodbus.line.loop import LoopLine, LoopPool, pool
 from tests.peers import free_port
+from tests.unit.line.test_loop_pool import Absent
 
 
 @pytest.fixture
@@ -51,3 +52,22 @@ def test_the_largest_loop_threads_of_the_open_dtus_wins(order: list[int | None],
             registry.release(slot)
     registry.set_engine("loop")
     assert pool.threads == (os.cpu_count() or 1)
+
+
+def test_lines_past_every_worker_s_capacity_get_one_more_worker() -> None:
+    """A worker serves ``capacity`` lines (its loop's slots): the next line starts one
+    more worker instead of failing in the full one (an IndexError from its free slots
+    stopped 19,000 DTUs on two loop threads of 8,192 each)."""
+    pool_ = LoopPool(1, capacity=2)
+    lines = [LoopLine(DtuEndpoint("127.0.0.1", 1, f"C{k}"), None, Absent(), pool_)
+             for k in range(5)]
+    try:
+        for line in lines:
+            line.start()
+        assert pool_.workers == 3
+        names = {line._thread.name for line in lines if line._thread is not None}
+        assert len(names) == 3
+    finally:
+        for line in lines:
+            line.stop()
+    assert pool_.workers == 0
