@@ -108,7 +108,8 @@ class LoopWorker:
     def __init__(self, name: str, capacity: int = DEFAULT_CAPACITY) -> None:
         self.loop = Loop(capacity)
         self.waker = Waker()  # the engines' (the loop link never waits on it)
-        self._free = list(range(capacity - 1, -1, -1))
+        self._free: list[int] = []  # slots given back; then the never used, from _unused
+        self._unused = 0  # (no list of every slot: 32,768 ints are 1.2 MB a worker)
         self._slots: dict[int, _Served] = {}
         self._by_line: dict[LoopLine, _Served] = {}
         self._inbox: queue.SimpleQueue[tuple[bool, LoopLine, Future[None]]] = \
@@ -197,6 +198,15 @@ class LoopWorker:
             served.failures = max(1, line._crashes)
             self._retry(served)
 
+    def _slot(self) -> int:
+        """A free slot of the loop (the pool gives a worker at most its capacity)."""
+        if self._free:
+            return self._free.pop()
+        if self._unused >= self.loop.capacity:
+            raise RuntimeError(f"loop worker full: {self.loop.capacity} lines")
+        self._unused += 1
+        return self._unused - 1
+
     def _take_inbox(self) -> None:
         while True:
             try:
@@ -205,7 +215,7 @@ class LoopWorker:
                 return
             try:
                 if add:
-                    served = _Served(line, self._free.pop())
+                    served = _Served(line, self._slot())
                     self._slots[served.slot] = served
                     self._by_line[line] = served
                     self._guarded(self._connect, served)
