@@ -1,95 +1,81 @@
-"""Listen mode at scale: 5,000 DTUs dialled in to one listen port of one process.
+"""Listen mode at scale: 5,000 DTUs dialled in to one listen port of one process, on
+both DTU engines in the same run (docs/scale.md "Many links on few threads").
 
-The target of issue 13 for DTUs that dial in (docs/architecture.md): 5,000 DTUs, each
-with 1 slave of 20 UInt16 tags read every 5 s, dial in to one port of this process (the
-gateway: one driver per DTU).  The DTUs are a :class:`DtuFleet` in a process of its own
-(one asyncio loop, so that its CPU is not ours).  Reported: the time from the first dial
-to every value Ok, what the listener accepted and registered, and the gateway's CPU per
-DTU per second, RSS per DTU and threads (one line worker per DTU).
+5,000 DTUs, each with 1 slave of 20 UInt16 tags read every 5 s, dial in to one port of
+the gateway process (one driver per DTU), once with ``engine: "thread"`` (a line worker
+thread per DTU) and once with ``engine: "loop"`` (the default: a few loop threads).
+Each engine runs in a fresh process of its own (``python -c``), so that neither inherits
+the other's threads, allocations or caches; the DTUs are a
+:class:`~edgemodbus.sim.FleetProcesses` (asyncio fleets in processes of their own,
+dialling from two or more loopback source addresses), so their CPU is not ours.
 
-Quick mode (``EDGEMODBUS_BENCH_QUICK=1``) uses 300 DTUs.  Environment knobs:
-``EDGEMODBUS_BENCH_DTUS`` any count (e.g. 1000); ``EDGEMODBUS_BENCH_DIAL_RATE`` the fleet's
-dials per second (1000); ``EDGEMODBUS_BENCH_CYCLE_MS`` the readCycle (5000; 1000 DTUs at
-1000 ms make the request rate of 5,000 at 5 s); ``EDGEMODBUS_BENCH_STACK_KB`` the stack
-size of the threads this process starts, the line workers (default: RLIMIT_STACK, 8 MB on
-Linux), to see what smaller stacks save; ``EDGEMODBUS_BENCH_CRLF=1`` ends each registration
-with CR LF (by default it has no end, so the listener takes it after its 0.5 s quiet gap,
-line/registration.py).  Memory is per DTU configured (every driver has its thread and
-objects, connected or not), CPU per DTU whose values are Ok.  The fleet dials from one
-address, so the caps on connections waiting to register (maxUnregistered and
-maxUnregisteredPerSource, made for the internet) are raised to the fleet's size.
+Measured per engine: the time to start the drivers, from the first dial to every value
+Ok, the wrong values (each DTU's slave holds its number in register 0: a value read
+through another DTU's link is wrong), the threads, RSS per DTU (configs and drivers), CPU
+per DTU per second; then the redial phase: every connection reset at once (RST), the
+DTUs dial again after about 1 s, and the time until every device read its values
+again through a new link, with the listener's refusals.  Issue 27's targets are for the
+loop engine (bench/gate.py: threads, RSS, CPU, time to Ok, time to Ok after the redial,
+and the loop against the thread engine).
 
-The run asserts, after its report, that every value became Ok and that no connection
-was turned away: the listener registered every connection it accepted (none unknown,
-silent or closed for another reason) and no DTU had to dial twice.
+Quick mode (``EDGEMODBUS_BENCH_QUICK=1``, in ``make bench-quick``) uses 300 DTUs.
+Environment knobs: ``EDGEMODBUS_BENCH_DTUS`` any count (20000, 50000: past the gateway's
+hard open-files limit the run says so and stops); ``EDGEMODBUS_BENCH_ENGINES`` which
+engines (``loop``, ``thread``, or both: ``thread,loop``, the default);
+``EDGEMODBUS_BENCH_CYCLE_MS`` the readCycle (5000); ``EDGEMODBUS_BENCH_DIAL_RATE`` the
+fleet's dials per second (1000); ``EDGEMODBUS_BENCH_FLEET_PROCS`` the fleet's processes
+(one per 2,500 DTUs); ``EDGEMODBUS_BENCH_STACK_KB`` the stack size of the threads the
+gateway process starts (default RLIMIT_STACK, 8 MB).
 """
 
 from __future__ import annotations
 
-import contextlib
+import json
 import logging
-import multiprocessing
 import os
-import re
-import resource
-import socket
+import subprocess
+import sys
 import threading
 import time
-from multiprocessing.connection import Connection
 from typing import Any
 
 import pytest
+from tests.integration.test_dtu_redial import REFUSALS
+from tests.peers import free_port
 
 import edgemodbus as em
+from bench import gate
 from bench.conftest import QUICK, cpu_seconds, report, scale
 from edgemodbus.datatypes import ItemStatus
 from edgemodbus.line import dtu_registry
-from edgemodbus.sim import DtuFleet, raise_open_files_limit
+from edgemodbus.sim import FleetProcesses, default_register, loopback_sources
+from edgemodbus.sim import raise_open_files_limit as raise_limit
 
 TAGS = 20
 SLAVE = 1
 CYCLE_MS = int(os.environ.get("EDGEMODBUS_BENCH_CYCLE_MS", "5000"))
-ID = "DTU{n:05d}"
+ID = "DTU{n:05d}\r\n"
 N_DTUS = int(os.environ.get("EDGEMODBUS_BENCH_DTUS", "0")) or scale(5000, 300)
+ENGINES = tuple(os.environ.get("EDGEMODBUS_BENCH_ENGINES", "thread,loop").split(","))
 DIAL_RATE = float(os.environ.get("EDGEMODBUS_BENCH_DIAL_RATE", "1000"))
-END = "\r\n" if os.environ.get("EDGEMODBUS_BENCH_CRLF") == "1" else ""
+FLEET_PROCS = int(os.environ.get("EDGEMODBUS_BENCH_FLEET_PROCS", "0")) or -(-N_DTUS // 2500)
 STACK_KB = int(os.environ.get("EDGEMODBUS_BENCH_STACK_KB", "0"))
+OK_DEADLINE = 300.0 if not QUICK else 60.0  # seconds from the first dial
 STALL = 30.0  # seconds without a new DTU Ok: the rest will not come
+WINDOW = 15.0 if not QUICK else 10.0  # 3 (2) read cycles of CPU measured
+_CHILD = "from bench.test_bench_dtu_5000 import child; child()"
 
 
-def _fleet(conn: Connection, port: int, n: int) -> None:
-    """The child: one DtuFleet (one thread, one event loop) until told to stop."""
-    logging.getLogger("edgemodbus").setLevel(logging.ERROR)
-    fleet = DtuFleet("127.0.0.1", port, n, registration=ID + END, slaves=[SLAVE], size=TAGS,
-                     dial_rate=DIAL_RATE, reconnect=1.0, reconnect_max=10.0,
-                     connect_timeout=10.0)
-    with fleet:
-        conn.send("dialling")
-        while True:
-            try:
-                command = conn.recv()
-            except EOFError:
-                return
-            if command == "stop":
-                return
-            conn.send((fleet.stats(), time.process_time()))
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-def _config(port: int, n: int) -> em.DeviceConfig:
+def _config(port: int, n: int, engine: str) -> em.DeviceConfig:
     return em.load_device_config({
         "organization": {"deviceCode": f"dtu{n:05d}"},
         "communication": {
             "transport": "rtu-over-tcp-server", "listenHost": "127.0.0.1", "listenPort": port,
-            "dtuId": ID.format(n=n), "registration": "text", "registrationTimeout": 10000,
-            "slaveId": SLAVE, "readCycle": CYCLE_MS, "readTimeout": 1000,
-            # the whole fleet dials from one address, and an unterminated registration
-            # waits the quiet gap: up to dial rate x 0.5 s connections wait at once
+            "dtuId": ID.format(n=n).strip(), "registration": "text",
+            "registrationTimeout": 10000, "slaveId": SLAVE, "readCycle": CYCLE_MS,
+            "readTimeout": 1000, "engine": engine,
+            # the whole fleet dials from a few addresses, and redials at once: the caps on
+            # connections waiting to register (made for the internet) sized for the fleet
             "maxUnregistered": N_DTUS, "maxUnregisteredPerSource": N_DTUS,
         },
         "addressList": [{"name": f"t{a}", "address": f"3:{a}", "deviceDataType": "UInt16"}
@@ -108,142 +94,198 @@ def _status() -> dict[str, int]:
     return out
 
 
-def _thread_stacks(stack_kb: int) -> tuple[int, int]:
-    """(count, resident kB) of the mappings that are pthread stacks of ``stack_kb`` (less
-    the guard page glibc takes from it)."""
-    count = rss = 0
-    size = 0
-    with open("/proc/self/smaps") as f:
-        for line in f:
-            if re.match(r"^[0-9a-f]+-[0-9a-f]+ ", line):
-                size = 0
-            elif line.startswith("Size:"):
-                size = int(line.split()[1])
-            elif line.startswith("Rss:") and stack_kb - 8 <= size <= stack_kb:
-                count += 1
-                rss += int(line.split()[1])
-    return count, rss
+def _want(n: int) -> list[int]:
+    return [n & 0xFFFF] + [default_register(SLAVE, a) for a in range(1, TAGS)]
 
 
-def _all_ok(cfg: em.DeviceConfig) -> bool:
+def _ok(cfg: em.DeviceConfig) -> bool:
     return all(it.status is ItemStatus.OK for it in cfg.address_list)
 
 
-@pytest.mark.timeout(900)  # 5,000 drivers start in about 20 s; dialling, 3 cycles, stop
-def test_5000_dtus_on_one_listen_port(benchmark: Any) -> None:
+def _wait_all(done: Any, n: int, deadline_s: float) -> tuple[int, float]:
+    """(how many of ``range(n)`` became ``done(k)``, seconds to the last of them),
+    polling every 0.2 s until all, the deadline, or STALL seconds without progress."""
+    pending = set(range(n))
+    started = last = time.monotonic()
+    while pending and time.monotonic() < started + deadline_s:
+        finished = {k for k in pending if done(k)}
+        if finished:
+            pending -= finished
+            last = time.monotonic()
+        elif time.monotonic() - last > STALL:
+            break
+        time.sleep(0.2)
+    return n - len(pending), last - started
+
+
+def _measure(engine: str, port: int) -> dict[str, Any]:
+    """One engine in this process: the figures (see the module)."""
     n = N_DTUS
-    window = 15.0 if not QUICK else 10.0  # 3 (2) read cycles
-    logging.getLogger("edgemodbus").setLevel(logging.CRITICAL)  # a warning per DTU at start
-    raise_open_files_limit(n + 256)
-    old_stack = threading.stack_size(STACK_KB * 1024)
-    port = _free_port()
+    raise_limit(n + 256)  # OSError naming the hard limit when it is too low
+    threading.stack_size(STACK_KB * 1024)
     base = _status()
-    configs = [_config(port, k) for k in range(n)]
-    with_configs = _status()
+    configs = [_config(port, k, engine) for k in range(n)]
     drivers = [em.DriverModbusRtu() for _ in configs]
-    ctx = multiprocessing.get_context("spawn")
-    parent, child = ctx.Pipe()
-    proc = ctx.Process(target=_fleet, args=(child, port, n), daemon=True)
+    sources = loopback_sources(n)
+    sources = sources if len(sources) > 1 else ("127.0.0.1", "127.0.0.2")
+    fleet = FleetProcesses("127.0.0.1", port, n, processes=FLEET_PROCS, registration=ID,
+                           slaves=[SLAVE], size=TAGS, mark=0, dial_rate=DIAL_RATE,
+                           reconnect=1.0, reconnect_max=10.0, connect_timeout=10.0,
+                           sources=sources)
+    out: dict[str, Any] = {"engine": engine, "dtus": n, "fleet_processes": FLEET_PROCS,
+                           "sources": len(sources)}
     try:
         started = time.monotonic()
         for drv, cfg in zip(drivers, configs, strict=True):
             assert drv.start_device(cfg.organization, cfg.communication, cfg.address_list)
-        start_s = time.monotonic() - started
+        out["start_s"] = time.monotonic() - started
         listener = dtu_registry.listener("127.0.0.1", port)
         assert listener is not None
-        proc.start()
-        assert parent.poll(120), "the DTU fleet did not start"
-        assert parent.recv() == "dialling"
-        dialled = time.monotonic()
-        pending = set(range(n))
-        last_progress = dialled
-        deadline = dialled + (300 if not QUICK else 60)
-        while pending and time.monotonic() < deadline:
-            done = {k for k in pending if _all_ok(configs[k])}
-            if done:
-                pending -= done
-                last_progress = time.monotonic()
-            elif time.monotonic() - last_progress > STALL:
-                break
-            time.sleep(0.2)
-        n_ok = n - len(pending)
-        to_all_ok = last_progress - dialled
-        listened = dict(listener.stats)
-
-        def fleet_stats() -> tuple[dict[str, int], float]:
-            parent.send("stats")
-            stats: tuple[dict[str, int], float] = parent.recv()
-            return stats
-
-        def responses() -> int:
-            return sum(d.stats()["responses"] for d in drivers)
-
-        def measure() -> tuple[float, float, float]:
-            """Our CPU seconds per second (all threads), the fleet's (its process), and
-            connections accepted per second meanwhile (DTUs dialling again)."""
-            cpu0, fleet0, reads0 = cpu_seconds(), fleet_stats()[1], responses()
-            accepted0, t0 = listener.stats["accepted"], time.monotonic()
-            time.sleep(window)
-            wall = time.monotonic() - t0
-            assert responses() > reads0
-            return ((cpu_seconds() - cpu0) / wall, (fleet_stats()[1] - fleet0) / wall,
-                    (listener.stats["accepted"] - accepted0) / wall)
-
-        cpu, fleet_cpu, churn = benchmark.pedantic(measure, rounds=1, iterations=1)
+        fleet.start()
+        out["dtus_ok"], out["to_all_ok_s"] = _wait_all(lambda k: _ok(configs[k]), n,
+                                                       OK_DEADLINE)
+        responses0 = sum(d.stats()["responses"] for d in drivers)
+        cpu0, fleet0, t0 = cpu_seconds(), fleet.cpu_seconds(), time.monotonic()
+        time.sleep(WINDOW)
+        wall = time.monotonic() - t0
+        out["cpu_us_per_dtu_s"] = 1e6 * (cpu_seconds() - cpu0) / wall / max(1, out["dtus_ok"])
+        out["fleet_cpu_us_per_dtu_s"] = 1e6 * (fleet.cpu_seconds() - fleet0) / wall / n
+        out["reads_in_window"] = sum(d.stats()["responses"] for d in drivers) - responses0
         status = _status()
-        stacks, stacks_kb = _thread_stacks(
-            STACK_KB or resource.getrlimit(resource.RLIMIT_STACK)[0] // 1024)
-        fstats = fleet_stats()[0]
-        timeouts = sum(d.stats()["timeouts"] for d in drivers)
+        out["threads"] = status["Threads"]
+        out["rss_kb_per_dtu"] = (status["VmRSS"] - base["VmRSS"]) / n
+        out["vm_kb_per_dtu"] = (status["VmSize"] - base["VmSize"]) / n
+        out["wrong"] = sum(1 for k, cfg in enumerate(configs)
+                           if _ok(cfg) and [it.value for it in cfg.address_list] != _want(k))
+        out["listener"] = dict(listener.stats)
+        out["fleet"] = fleet.stats()
+        # the redial: every connection reset at once; each device Ok again through a
+        # link made after it (a reconnect, then a reply more than at that moment)
+        fleet.reset_all()
+        reset_at = time.monotonic()
+        relinked: dict[int, int] = {}
+
+        def again(k: int) -> bool:
+            stats = drivers[k].stats()
+            if k not in relinked:
+                if stats["line"]["reconnects"] < 1:
+                    return False
+                relinked[k] = int(stats["responses"])
+                return False
+            return int(stats["responses"]) > relinked[k] and _ok(configs[k])
+
+        out["dtus_ok_again"], _ = _wait_all(again, n, OK_DEADLINE)
+        out["to_all_ok_again_s"] = time.monotonic() - reset_at if \
+            out["dtus_ok_again"] == n else float("inf")
+        out["wrong_after_redial"] = sum(
+            1 for k, cfg in enumerate(configs)
+            if _ok(cfg) and [it.value for it in cfg.address_list] != _want(k))
+        out["listener_after_redial"] = dict(listener.stats)
+        out["fleet_after_redial"] = fleet.stats()
     finally:
-        threading.stack_size(old_stack)
         for drv in drivers:
             drv.stop_device()
-        if proc.is_alive():
-            with contextlib.suppress(OSError):
-                parent.send("stop")
-            proc.join(30)
-        parent.close()
-        child.close()
-    threads = threading.active_count()
-    stack_kb = STACK_KB or resource.getrlimit(resource.RLIMIT_STACK)[0] // 1024
-    rss_kb = status["VmRSS"] - base["VmRSS"]
-    per_ok = 1e6 * cpu / max(1, n_ok)
-    benchmark.extra_info.update({
-        "dtus": n, "dtus_ok": n_ok, "seconds_to_all_ok": to_all_ok, "listener": listened,
-        "cpu_us_per_dtu_s": per_ok, "rss_kb_per_dtu": rss_kb / n,
-        "threads": status["Threads"], "stack_kb": stack_kb, "fleet": fstats})
-    report(
-        f"listen mode: {n} DTUs x 1 slave x {TAGS} tags on one port, readCycle {CYCLE_MS} ms "
-        f"(fleet dials {DIAL_RATE:g}/s, registration {(ID + END)!r}; thread stacks {stack_kb} kB)",
-        [
-            ("start the drivers", start_s, "s"),
-            ("DTUs with every value Ok", n_ok, f"of {n}"),
-            ("first dial to the last DTU Ok", to_all_ok, "s"),
-            ("listener: accepted", listened["accepted"], "connections"),
-            ("listener: registered", listened["registered"], ""),
-            ("listener: unknown or silent", listened["unknown"] + listened["silent"], ""),
-            ("  accepted per second while measuring", churn, "/s"),
-            ("fleet: connections made", fstats["connections"], ""),
-            ("fleet: dials failed", fstats["dial_failures"], ""),
-            ("timeouts while measuring", timeouts, ""),
-            ("our CPU, all threads", 100 * cpu, "% of one core"),
-            ("  per DTU Ok", per_ok, "us/s"),
-            ("  per tag read", per_ok * CYCLE_MS / 1000 / TAGS, "us"),
-            ("the fleet's CPU per DTU", 1e6 * fleet_cpu / n, "us/s (its own process)"),
-            ("RSS, configs + drivers", rss_kb / 1024, "MB"),
-            ("  per DTU", rss_kb / n, "kB"),
-            ("  of it the device configs", (with_configs["VmRSS"] - base["VmRSS"]) / n, "kB"),
-            ("virtual memory per DTU", (status["VmSize"] - base["VmSize"]) / n, "kB"),
-            ("threads (one line worker per DTU)", status["Threads"], ""),
-            ("thread stacks mapped", stacks, f"x {stack_kb} kB"),
-            ("  resident per stack", stacks_kb / max(1, stacks), "kB"),
-            ("threads left after stop", threads, ""),
-        ],
-    )
-    assert n_ok == n, f"{n - n_ok} of {n} DTUs never had every value Ok"
-    turned_away = listened["accepted"] - listened["registered"]
-    assert turned_away == 0, f"{turned_away} connections accepted but not registered"
-    assert fstats["connections"] == n and fstats["dial_failures"] == 0, (
-        f"{fstats['connections'] - n} DTUs had to dial again; {fstats['dial_failures']} dials "
-        "failed or timed out (a full listen backlog drops the DTUs' SYNs)")
+        fleet.stop()
+    out["threads_after_stop"] = threading.active_count()
+    return out
+
+
+def child() -> None:
+    """A run of one engine (``python -c`` of :data:`_CHILD`): the engine and the port on
+    stdin, the figures as the last line of stdout (JSON; ``{"error": ...}`` when the
+    process cannot hold the fleet)."""
+    logging.getLogger("edgemodbus").setLevel(logging.CRITICAL)  # a warning per DTU at start
+    engine, port = sys.stdin.readline().split()
+    try:
+        figures = _measure(engine, int(port))
+    except OSError as exc:
+        figures = {"error": str(exc)}
+    print(json.dumps(figures), flush=True)
+
+
+def _run(engine: str) -> dict[str, Any]:
+    proc = subprocess.run([sys.executable, "-c", _CHILD], input=f"{engine} {free_port()}\n",
+                          capture_output=True, text=True, timeout=1800, check=False)
+    lines = proc.stdout.strip().splitlines()
+    assert proc.returncode == 0 and lines, f"{engine}: exit {proc.returncode}\n{proc.stderr}"
+    figures: dict[str, Any] = json.loads(lines[-1])
+    return figures
+
+
+def _rows(f: dict[str, Any]) -> list[tuple[str, float, str]]:
+    e, li, again = f["engine"], f["listener"], f["listener_after_redial"]
+    refused = sum(again[k] for k in REFUSALS)
+    return [
+        (f"{e}: start the drivers", f["start_s"], "s"),
+        (f"{e}: DTUs with every value Ok", f["dtus_ok"], f"of {f['dtus']}"),
+        (f"{e}: first dial to the last DTU Ok", f["to_all_ok_s"], "s"),
+        (f"{e}: wrong values (devices)", f["wrong"], ""),
+        (f"{e}: listener accepted / registered", li["accepted"], f"/ {li['registered']}"),
+        (f"{e}: our CPU per DTU", f["cpu_us_per_dtu_s"], "us/s"),
+        (f"{e}:   per tag read", f["cpu_us_per_dtu_s"] * CYCLE_MS / 1000 / TAGS, "us"),
+        (f"{e}: the fleet's CPU per DTU", f["fleet_cpu_us_per_dtu_s"], "us/s (its processes)"),
+        (f"{e}: reads while measuring", f["reads_in_window"], f"in {WINDOW:g} s"),
+        (f"{e}: RSS per DTU", f["rss_kb_per_dtu"], "kB (configs + drivers)"),
+        (f"{e}: virtual memory per DTU", f["vm_kb_per_dtu"], "kB"),
+        (f"{e}: threads", f["threads"], ""),
+        (f"{e}: redial: DTUs Ok again", f["dtus_ok_again"], f"of {f['dtus']}"),
+        (f"{e}: redial: reset to the last DTU Ok", f["to_all_ok_again_s"], "s"),
+        (f"{e}: redial: wrong values", f["wrong_after_redial"], ""),
+        (f"{e}: redial: refused by the listener", refused, "connections"),
+        (f"{e}: redial: dials failed or timed out", f["fleet_after_redial"]["dial_failures"]
+         - f["fleet"]["dial_failures"], "(SYNs dropped by a full listen backlog)"),
+        (f"{e}: redial: accepted / registered", again["accepted"], f"/ {again['registered']}"),
+        (f"{e}: threads left after stop", f["threads_after_stop"], ""),
+    ]
+
+
+@pytest.mark.timeout(3600)
+def test_5000_dtus_on_one_listen_port_on_both_engines(benchmark: Any) -> None:
+    results: dict[str, dict[str, Any]] = {}
+
+    def measure() -> None:
+        for engine in ENGINES:
+            results[engine] = _run(engine)
+
+    benchmark.pedantic(measure, rounds=1, iterations=1)
+    errors = {e: f["error"] for e, f in results.items() if "error" in f}
+    if errors:
+        pytest.skip(f"{N_DTUS} DTUs in one process: " + "; ".join(
+            f"{e}: {why}" for e, why in errors.items()))
+    rows = [row for engine in ENGINES for row in _rows(results[engine])]
+    benchmark.extra_info.update(results)
+    report(f"listen mode: {N_DTUS} DTUs x 1 slave x {TAGS} tags on one port, readCycle "
+           f"{CYCLE_MS} ms, fleet in {FLEET_PROCS} process(es) dialling {DIAL_RATE:g}/s",
+           rows)
+    loop = results.get("loop")
+    if loop is not None:
+        gate.record("dtu_fleet.loop_threads", loop["threads"])
+        gate.record("dtu_fleet.loop_rss_kb_per_dtu", loop["rss_kb_per_dtu"])
+        gate.record("dtu_fleet.loop_cpu_us_per_dtu_s", loop["cpu_us_per_dtu_s"])
+        gate.record("dtu_fleet.loop_to_all_ok_s", loop["to_all_ok_s"])
+        gate.record("dtu_fleet.loop_redial_to_all_ok_s", loop["to_all_ok_again_s"])
+        thread = results.get("thread")
+        if thread is not None:
+            gate.record("dtu_fleet.loop_vs_thread_cpu",
+                        loop["cpu_us_per_dtu_s"] / thread["cpu_us_per_dtu_s"])
+    for engine, f in results.items():
+        n = f["dtus"]
+        assert f["dtus_ok"] == n, f"{engine}: {n - f['dtus_ok']} of {n} DTUs never Ok"
+        assert f["wrong"] == f["wrong_after_redial"] == 0, engine
+        li, again = f["listener"], f["listener_after_redial"]
+        assert li["accepted"] == li["registered"] == n, (engine, li)
+        assert f["dtus_ok_again"] == n, f"{engine}: {n - f['dtus_ok_again']} not Ok again"
+        assert f["fleet"]["dial_failures"] == 0, (engine, f["fleet"])
+    if loop is not None:
+        # The redial on the loop engine (issue 27's target): every connection the
+        # listener accepted registered, none refused.  Dials that time out are reported,
+        # not failed: with every DTU dialling within a second, SYNs beyond the listen
+        # backlog (SOMAXCONN) are dropped by the kernel and sent again by the DTU (0 at
+        # 5,000; 10,011 of 19,000 on a saturated machine, docs/scale.md), before the
+        # listener sees them.  The thread engine, the baseline, is reported only: on a
+        # saturated machine its 5,000 threads took 120 s to take the redial, and 14
+        # connections whose DTU had given up (its connect timed out while the
+        # connection waited in the backlog) were accepted later and closed as silent.
+        again = loop["listener_after_redial"]
+        assert again["accepted"] == again["registered"], again
+        assert sum(again[k] for k in REFUSALS) == 0, again

@@ -9,6 +9,9 @@ Fixtures
   `@pytest.mark.parametrize("rtu_tcp_slave", [{"response_delay": 0.3}], indirect=True)`.
 - `pty_pair`: a running PtyPair in the test's tmp dir.
 - `free_tcp_port`: a port nothing listens on (racy; for "connection refused" tests).
+- `engine`: runs the test once per DTU engine ("thread", "loop"); listen-mode devices
+  made through `tests.engines.with_engine` ask for it (use it as
+  `@pytest.mark.usefixtures("engine")` on tests that exercise a DTU's link).
 - `no_leaks` (autouse): fails the test if it leaves new threads, fds or child processes
   behind; opt out with `@pytest.mark.no_leak_check`.
 """
@@ -27,6 +30,7 @@ from typing import Any
 
 import pytest
 
+from tests import engines
 from tests.mosquitto import Mosquitto
 from tests.peers import PtyPair, PymodbusSlave, Transport, free_port
 
@@ -108,6 +112,13 @@ def broker(tmp_path: Path) -> Iterator[Mosquitto]:
 def free_tcp_port() -> int:
     """A 127.0.0.1 port that nothing listened on a moment ago."""
     return free_port()
+
+
+@pytest.fixture(params=engines.ENGINES)
+def engine(request: pytest.FixtureRequest) -> Iterator[str]:
+    """The engine serving the test's DTU lines (tests/engines.py)."""
+    with engines.chosen(str(request.param)) as chosen:
+        yield chosen
 
 
 # --------------------------------------------------------------------------- leaks

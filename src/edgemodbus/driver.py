@@ -488,8 +488,8 @@ def port_settings(params: DriverModbusRtuParameter) -> PortSettings:
         max_per_source=params.max_unregistered_per_source,
         allow_from=networks(params.listen_allow_from, "listenAllowFrom"),
         duplicate_id=params.duplicate_id,
-        flip_limit=params.id_flip_limit,
-        flip_window=params.id_flip_window / 1000, engine=params.engine,
+        flip_limit=params.id_flip_limit, flip_window=params.id_flip_window / 1000,
+        engine=None if params.engine == "auto" else params.engine,
         loop_threads=params.loop_threads)
 
 

@@ -20,6 +20,7 @@ import edgemodbus as em
 from edgemodbus.datatypes import Area, DeviceDriverStatus, ItemStatus
 from edgemodbus.line import dtu_registry
 from edgemodbus.sim import Simulator, default_register
+from tests.engines import with_engine
 from tests.waiting import wait_for
 
 
@@ -38,11 +39,9 @@ def dtu_device(port: int, dtu_id: str, slave: int = 1, addresses: tuple[int, ...
         "byteTimeout": 50,
     }
     comm.update(extra)
-    if ENGINE and "engine" not in extra:
-        comm["engine"] = ENGINE[-1]
     return em.load_device_config({
         "organization": {"deviceCode": f"{dtu_id or 'dtu'}-{slave}"},
-        "communication": comm,
+        "communication": with_engine(comm),
         "addressList": [{"name": f"r{a}", "address": f"3:{a}", "deviceDataType": "UInt16"}
                         for a in addresses],
     })
@@ -68,21 +67,6 @@ def values(cfg: em.DeviceConfig) -> list[Any]:
 
 def ok(cfg: em.DeviceConfig) -> Callable[[], bool]:
     return lambda: all(it.status is ItemStatus.OK for it in cfg.address_list)
-
-
-ENGINE: list[str] = []
-"""The ``engine`` key dtu_device gives its devices while a test runs with the fixture."""
-
-
-@pytest.fixture(params=["thread", "loop"])
-def engine(request: pytest.FixtureRequest) -> Iterator[str]:
-    """The engine (the devices' ``engine`` key) serving the test's DTU lines
-    (line/loop.py for "loop")."""
-    ENGINE.append(str(request.param))
-    try:
-        yield str(request.param)
-    finally:
-        ENGINE.pop()
 
 
 @pytest.mark.usefixtures("engine")
@@ -371,3 +355,31 @@ def test_the_port_s_engine_key_puts_its_dtus_on_a_loop_thread() -> None:
         with pytest.raises(ValueError, match=r"engine 'thread' \(the port has 'loop'\)"):
             em.DriverModbusRtu().start_device(other.organization, other.communication,
                                               other.address_list)
+
+
+def test_the_loop_is_the_default_thread_stays_selectable_and_wrapped_dtus_keep_a_thread(
+        ) -> None:
+    """No ``engine`` key: a plain DTU's line is on a loop thread; ``engine: "thread"``
+    (another port) gives it a line thread of its own; a wrapped-report DTU, which the
+    loop does not serve (line/loop.py loop_serves), keeps a line thread by default."""
+    plain_port, thread_port, wrapped_port = free_port(), free_port(), free_port()
+    plain = dtu_device(plain_port, "DEF-P", 1)
+    threaded = dtu_device(thread_port, "DEF-T", 1, engine="thread")
+    wrapped = dtu_device(wrapped_port, "DEF-W", 1, framing="wrapped-report")
+    assert plain.communication.engine == "loop"
+
+    def line_threads(dtu_id: str) -> list[str]:
+        return [t.name for t in threading.enumerate()
+                if t.name.startswith("edgemodbus-line") and dtu_id in t.name]
+
+    with ExitStack() as stack:
+        sims = [stack.enter_context(Simulator(slaves=[1])) for _ in range(2)]
+        stack.enter_context(running(plain, threaded, wrapped))
+        assert line_threads("DEF-P") == []
+        assert [t.name for t in threading.enumerate() if t.name.startswith("edgemodbus-loop")]
+        assert len(line_threads("DEF-T")) == 1 and len(line_threads("DEF-W")) == 1
+        sims[0].dial("127.0.0.1", plain_port, registration=b"DEF-P")
+        sims[1].dial("127.0.0.1", thread_port, registration=b"DEF-T")
+        for cfg in (plain, threaded):
+            wait_for(ok(cfg), what=f"{cfg.organization.device_code} Ok")
+            assert values(cfg) == [default_register(1, a) for a in (0, 1, 7)]

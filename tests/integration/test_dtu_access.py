@@ -18,6 +18,7 @@ from edgemodbus.datatypes import ItemStatus
 from edgemodbus.gateway import Gateway, GatewayConfig
 from edgemodbus.line import dtu_registry
 from edgemodbus.sim import Simulator, default_register
+from tests.engines import with_engine
 from tests.peers import free_port
 from tests.waiting import wait_for
 
@@ -28,13 +29,13 @@ KEY = "s3cretKey"
 def keyed_device(port: int, **extra: Any) -> em.DeviceConfig:
     return em.load_device_config({
         "organization": {"deviceCode": "keyed"},
-        "communication": {
+        "communication": with_engine({
             "transport": "rtu-over-tcp-server", "listenHost": "127.0.0.1",
             "listenPort": port, "dtuId": IMEI, "registration": "regex",
             "registrationPattern": r"ID:(\d+);KEY:(?P<key>\w+)", "registrationKey": KEY,
             "registrationTimeout": 2000, "readTimeout": 300, "readCycle": 100,
             "byteTimeout": 50, **extra,
-        },
+        }),
         "addressList": [{"name": "r0", "address": "3:0", "deviceDataType": "UInt16"}],
     })
 
@@ -43,6 +44,7 @@ def stats(port: int) -> dict[str, int]:
     return dtu_registry.stats()[f"127.0.0.1:{port}"]
 
 
+@pytest.mark.usefixtures("engine")
 def test_only_the_dtu_with_the_key_is_polled(caplog: pytest.LogCaptureFixture) -> None:
     port = free_port()
     cfg = keyed_device(port)
@@ -84,6 +86,7 @@ def test_a_source_outside_the_allow_list_is_refused(key: str, counter: str) -> N
         drv.stop_device()
 
 
+@pytest.mark.usefixtures("engine")
 def test_a_changed_key_restarts_the_device_on_reload(tmp_path: Path,
                                                       caplog: pytest.LogCaptureFixture) -> None:
     """to_dict() masks the key, so two keys look alike there: the reload compares the

@@ -14,6 +14,8 @@ import sys
 import threading
 import time
 
+import pytest
+
 import edgemodbus as em
 from edgemodbus.datatypes import Area, ItemStatus
 from edgemodbus.line import dtu_registry
@@ -53,6 +55,7 @@ def fleet_threads() -> list[str]:
     return [t.name for t in threading.enumerate() if "fleet" in t.name]
 
 
+@pytest.mark.usefixtures("engine")
 def test_fifty_dtus_each_answer_from_their_own_registers() -> None:
     port = free_port()
     n = 50
@@ -78,16 +81,18 @@ def test_fifty_dtus_each_answer_from_their_own_registers() -> None:
             assert stats["unknown_slave"] == stats["discarded_bytes"] == 0
             assert tcp_fds(port) == (n, n)
         # Stopped: the loop's thread is gone and so is every socket and fd of the fleet;
-        # the drivers' ends stay open until their workers see the close.
+        # the drivers close their ends as their lines see the hang-ups (a line worker at
+        # its next read, a loop worker at its next turn): waited for, not read once.
         assert fleet_threads() == []
         assert threading.active_count() == threads
         assert fleet.connected == 0
-        dtu_ends, driver_ends = tcp_fds(port)
-        assert dtu_ends == 0
-        assert open_fds() == fds + driver_ends
+        assert tcp_fds(port)[0] == 0  # the DTUs' ends
+        wait_for(lambda: tcp_fds(port) == (0, 0), timeout=30, what="the drivers' ends closed")
+        assert open_fds() == fds
         fleet.stop()  # idempotent
 
 
+@pytest.mark.usefixtures("engine")
 def test_the_fleet_dials_again_when_dropped_and_after_the_master_comes_back() -> None:
     port = free_port()
     cfgs = [dtu_device(port, f"R{k}", 1) for k in range(4)]
@@ -115,6 +120,7 @@ def test_the_fleet_dials_again_when_dropped_and_after_the_master_comes_back() ->
         assert fleet.stats()["reconnects"] >= 5
 
 
+@pytest.mark.usefixtures("engine")
 def test_heartbeats_go_out_between_replies() -> None:
     port = free_port()
     cfgs = [dtu_device(port, f"H{k}", 1, heartbeat="PING") for k in range(3)]
@@ -150,6 +156,7 @@ def test_stop_closes_connections_nobody_accepted_and_pending_dials() -> None:
         assert open_fds() == fds
 
 
+@pytest.mark.usefixtures("engine")
 def test_fault_knobs_act_on_one_dtu_only() -> None:
     """The fleet's slaves are the simulator's slaves: their fault knobs work per DTU."""
     port = free_port()

@@ -31,6 +31,7 @@ from edgemodbus.protocol.forward import (
 )
 from edgemodbus.sim import Simulator
 from tests.conftest import SlaveFactory
+from tests.engines import with_engine
 from tests.peers import ExceptionRange, PymodbusSlave
 from tests.waiting import wait_for
 
@@ -332,16 +333,17 @@ def test_a_forward_cancelled_while_queued_is_not_sent(started: Started,
     assert drv.stats()["line"]["forwarded"] == 2
 
 
+@pytest.mark.usefixtures("engine")
 def test_forward_to_a_slave_behind_a_dtu_that_dialled_in_with_heartbeats(
         started: Started) -> None:
     """Listen mode: the DTU's stream (heartbeats before the replies) frames the reply."""
     with socket.socket() as probe:
         probe.bind(("127.0.0.1", 0))
         port = int(probe.getsockname()[1])
-    drv = started({"transport": "rtu-over-tcp-server", "listenHost": "127.0.0.1",
-                   "listenPort": port, "dtuId": "DTU9", "registration": "text",
-                   "heartbeat": "HB", "slaveId": 1, "readTimeout": 1000, "readCycle": 50,
-                   "byteTimeout": 100, "reconnectInterval": 300})
+    drv = started(with_engine({
+        "transport": "rtu-over-tcp-server", "listenHost": "127.0.0.1", "listenPort": port,
+        "dtuId": "DTU9", "registration": "text", "heartbeat": "HB", "slaveId": 1,
+        "readTimeout": 1000, "readCycle": 50, "byteTimeout": 100, "reconnectInterval": 300}))
     with Simulator(slaves=[1]) as simulator:
         simulator.dial("127.0.0.1", port, registration=b"DTU9", heartbeat=b"HB",
                        heartbeat_interval=0.03, heartbeat_before_reply=True)

@@ -441,6 +441,7 @@ def test_guessed_keys_never_get_polled() -> None:
      "0.1"),
     ("slow-id", "GOOD", "--template", r"{id}\r\n", "--interval", "0.15", "--reconnect"),
 ], ids=["impostor", "slow-id"])
+@pytest.mark.usefixtures("engine")
 def test_keep_existing_refuses_a_second_connection_while_the_first_answers(
         how: tuple[str, ...]) -> None:
     """duplicateId keep-existing: an impostor (at once, or one byte at a time) is refused
@@ -461,6 +462,7 @@ def test_keep_existing_refuses_a_second_connection_while_the_first_answers(
     assert all(st is not ItemStatus.OK or v == real[n] for n, v, st in seen), seen
 
 
+@pytest.mark.usefixtures("engine")
 def test_without_registration_a_dtu_redialling_behind_a_silent_connection_gets_back_in(
         ) -> None:
     """registration none, duplicateId keep-existing (the default): the DTU's old
@@ -520,6 +522,7 @@ def test_challengers_of_a_connected_id_count_against_the_caps() -> None:
         assert values(cfg) == REAL
 
 
+@pytest.mark.usefixtures("engine")
 def test_an_id_that_flips_between_two_connections_becomes_contested(
         caplog: pytest.LogCaptureFixture) -> None:
     """duplicateId replace: the real DTU (re-dialling when replaced) and an
@@ -566,6 +569,7 @@ def test_the_impostor_values_are_distinct_from_the_real_ones() -> None:
         assert not set(values(cfg)) & set(REAL)
 
 
+@pytest.mark.usefixtures("engine")
 def test_a_second_dtu_with_its_own_values_is_not_affected_by_an_impostor() -> None:
     """Under keep-existing, the impostor of one DTU leaves another DTU of the port alone."""
     port = free_port()

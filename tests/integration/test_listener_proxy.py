@@ -8,6 +8,8 @@ from __future__ import annotations
 import contextlib
 from collections.abc import Iterator
 
+import pytest
+
 import edgemodbus as em
 from edgemodbus.datatypes import ItemStatus
 from edgemodbus.line.proxy_v2 import build
@@ -39,6 +41,7 @@ def peers(port: int) -> list[str]:
     return [str(d["peer"]) for d in held if d["connected"]]
 
 
+@pytest.mark.usefixtures("engine")
 def test_a_dtu_behind_the_balancer_is_seen_at_its_own_address() -> None:
     """listenAllowFrom and dtuAllowFrom admit the header's address, not 127.0.0.1 (which
     neither lists): without the header reader this DTU is refused."""
@@ -108,6 +111,7 @@ def test_refusals_and_the_health_check() -> None:
         assert counter(port, "registered") == 0
 
 
+@pytest.mark.usefixtures("engine")
 def test_a_port_without_registration_behind_the_balancer() -> None:
     """registration "none": the one DTU of the port is handed the connection once its
     header is read (before it, nothing was known of the DTU's address)."""

@@ -23,6 +23,8 @@ from edgemodbus.gateway import Gateway, GatewayConfig
 from edgemodbus.line.dtu_newcomer import COUNTERS
 from edgemodbus.northbound.metrics import DTU_LISTENER_EVENTS, MetricsExporter, MetricsSettings
 from edgemodbus.northbound.mqtt import MqttPublisher
+from edgemodbus.sim import Simulator
+from tests.engines import with_engine
 from tests.peers import ExceptionRange, PymodbusSlave, free_port
 from tests.waiting import wait_for
 
@@ -244,13 +246,15 @@ def test_a_failing_listener_source_never_fails_the_scrape(
     assert "DTU listener stats() failed" in caplog.text
 
 
+@pytest.mark.usefixtures("engine")
 def test_the_gateway_exports_its_drivers_dtu_listen_ports(tmp_path: Path) -> None:
     listen = free_port()
     (tmp_path / "dtu.json").write_text(json.dumps({
         "organization": {"deviceCode": "dtu1"},
-        "communication": {"transport": "rtu-over-tcp-server", "listenHost": "127.0.0.1",
-                          "listenPort": listen, "dtuId": "A1", "registration": "text",
-                          "registrationTimeout": 5000},
+        "communication": with_engine({
+            "transport": "rtu-over-tcp-server", "listenHost": "127.0.0.1",
+            "listenPort": listen, "dtuId": "A1", "registration": "text",
+            "registrationTimeout": 5000, "readCycle": 100}),
         "addressList": [{"name": "a", "address": "hr:0", "deviceDataType": "UInt16"}],
     }), "utf-8")
     gateway = Gateway(tmp_path, GatewayConfig.model_validate({"metrics": {"port": 0}}))
@@ -273,6 +277,12 @@ def test_the_gateway_exports_its_drivers_dtu_listen_ports(tmp_path: Path) -> Non
                 ("edgemodbus_dtu_listener_events_total", key)) == 1, what="accepted 1")
             assert scrape(exporter.port)[1][("edgemodbus_dtu_listener_unregistered", port)] \
                 == 1
+        with Simulator(slaves=[1]) as sim:  # a DTU registers: its line reads through it
+            sim.dial("127.0.0.1", listen, registration=b"A1\r\n")
+            wait_for(lambda: scrape(exporter.port)[1].get(
+                ("edgemodbus_dtu_listener_connected", port)) == 1, what="connected 1")
+            driver = gateway.devices[tmp_path / "dtu.json"].driver
+            wait_for(lambda: driver.stats()["responses"] >= 1, what="a reply via the DTU")
     finally:
         gateway.stop()
 

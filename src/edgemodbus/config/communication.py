@@ -60,7 +60,7 @@ AddressPrefixOption = Literal["function-code", "modicon", "entity"]
 ReportMode = Literal["change", "cycle"]
 Rs485Mode = Literal["none", "kernel", "rts-up", "rts-down"]
 DuplicateId = Literal["keep-existing", "replace"]
-DtuEngine = Literal["thread", "loop"]
+DtuEngine = Literal["auto", "thread", "loop"]
 AllowFrom = Annotated[tuple[Annotated[str, AfterValidator(network)], ...],
                       BeforeValidator(allow_list)]
 """A source-address allow-list: networks (CIDR) or single addresses, normalised."""
@@ -230,16 +230,16 @@ class _CommunicationFields(Model):
         "compared in constant time, never shown nor logged",
     )
     engine: DtuEngine = Field(
-        default="thread",
-        description="rtu-over-tcp-server, rtu-over-tcp: what polls the line: thread (a "
-        "thread per line) or loop (a few loop threads: DTUs that dial in, plain rtu-over-tcp "
-        "endpoints without alternates; not tcp yet; docs/scale.md); every device of a "
-        "listen port, or of an endpoint, must agree",
+        default="auto",
+        description="rtu-over-tcp-server, rtu-over-tcp: what polls the line: auto (loop for "
+        "DTUs that dial in, thread for endpoints), loop (a few loop threads: DTUs of any "
+        "framing, plain rtu-over-tcp endpoints without alternates; not tcp yet; "
+        "docs/scale.md) or thread (a thread per line); a port's devices must agree",
     )
     loop_threads: Annotated[int | None, Range(1, 1024)] = Field(
         default=None,
-        description="engine loop: loop threads of the process "
-        "(unset = one per core); the last port or line opened sets it for threads started later",
+        description="engine loop: loop threads of the process (unset = one per core); the "
+        "largest asked by the open lines wins, for threads started later (docs/scale.md)",
     )
     framing: Framing = Field(
         default="rtu",

@@ -63,8 +63,6 @@ class ListenParams(Protocol):
     def echo(self) -> bool: ...
     @property
     def engine(self) -> str: ...
-    @property
-    def model_fields_set(self) -> set[str]: ...
 
 
 # --------------------------------------------------------------------------- source lists
@@ -157,8 +155,7 @@ def listen_problems(p: ListenParams) -> list[Problem]:
     if p.echo and p.transport == "tcp":
         problems.append(Problem("echo", p.echo, "a Modbus TCP (MBAP) link has no "
                                 "request echo; the option is for RTU lines"))
-    if p.engine == "loop" and p.transport not in LOOP_TRANSPORTS and \
-            "engine" in p.model_fields_set:  # (a default of "loop" falls back to a thread)
+    if p.engine == "loop" and p.transport not in LOOP_TRANSPORTS:
         why = " (its MBAP framing is not on the loop yet)" if p.transport == "tcp" else ""
         problems.append(Problem("engine", p.engine, "the loop engine serves transports "
                                 f"{' and '.join(LOOP_TRANSPORTS)}, not {p.transport!r}"

@@ -5,6 +5,7 @@ it (:data:`registry` is the process's; the driver acquires from it)."""
 from __future__ import annotations
 
 import threading
+from collections import Counter
 from typing import Any
 
 from .admission import Networks
@@ -26,16 +27,30 @@ class DtuRegistry:
         self._listeners: dict[tuple[str, int], DtuListener] = {}
         self._slots: dict[tuple[str, int, str], tuple[DtuSlot, int]] = {}
         self._balancers = Networks((), "fleet.loadBalancers")
-        self.engine = "thread"  # what serves the lines of DTUs acquired from now on
+        self.engine = "loop"  # what serves the lines of DTUs acquired from now on
+        self._loop_threads: int | None = None  # set_engine's (None: one per core)
+        self._asked: Counter[int] = Counter()  # loopThreads of the open DTUs that set it
 
     def set_engine(self, engine: str, loop_threads: int | None = None) -> None:
         """``engine``: "thread" (a thread per DTU line) or "loop" (the DTU lines on
-        ``loop_threads`` loop threads, default the cores: line/loop.py), for the DTU
-        lines started from now on.  ValueError names a bad value."""
+        loop threads: line/loop.py), for the DTU lines started from now on, where the
+        port's settings name none; ``loop_threads``: the loop threads while no open DTU
+        asks for a number (None: one per core).  ValueError names a bad value."""
         if engine not in ENGINES:
             raise ValueError(f"engine {engine!r}: must be one of {', '.join(ENGINES)}")
-        pool.configure(loop_threads)
-        self.engine = engine
+        pool.configure(loop_threads)  # checks it
+        with self._lock:
+            self.engine = engine
+            self._loop_threads = loop_threads
+            self._size_pool()
+
+    def _size_pool(self) -> None:
+        """The loop threads of the process: the largest ``loopThreads`` among the open
+        DTUs (each DTU's as its first device asked), else set_engine's, else one per
+        core; for workers started from now on (running ones stay until their last line
+        leaves).  The largest wins, so the order devices start in does not matter."""
+        asked = [threads for threads, users in self._asked.items() if users > 0]
+        pool.configure(max(asked) if asked else self._loop_threads)
 
     def set_load_balancers(self, cidrs: tuple[str, ...]) -> None:
         """The load balancers whose connections start with a PROXY v2 header (the
@@ -79,8 +94,9 @@ class DtuRegistry:
                                  "registration packet a port serves one DTU")
             slot = DtuSlot(endpoint, settings, access)
             slot.engine = settings.engine or self.engine  # the port's key, else the default
-            if settings.engine == "loop" and settings.loop_threads is not None:
-                pool.configure(settings.loop_threads)
+            if slot.engine == "loop" and settings.loop_threads is not None:
+                self._asked[settings.loop_threads] += 1
+                self._size_pool()
             listener.add_slot(slot)
             self._slots[key] = (slot, 1)
             return slot
@@ -96,6 +112,9 @@ class DtuRegistry:
                 self._slots[key] = (slot, entry[1] - 1)
                 return
             del self._slots[key]
+            if slot.engine == "loop" and slot.port.loop_threads is not None:
+                self._asked[slot.port.loop_threads] -= 1
+                self._size_pool()
             listener = self._listeners[slot.port.key]
             listener.remove_slot(slot)
             if not listener.slot_count():

@@ -266,7 +266,9 @@ def endpoint_for(params: DriverModbusRtuParameter) -> Endpoint:
                        connections=connections, channel=channel % connections,
                        failover_after=params.failover_after,
                        failback_interval=params.failback_interval / 1000,
-                       engine=params.engine, loop_threads=params.loop_threads)
+                       engine="loop" if params.engine == "loop" else "thread",
+                       loop_threads=params.loop_threads)
+
 
 
 def mqtt_dtu_endpoint(params: DriverModbusRtuParameter) -> MqttDtuEndpoint:

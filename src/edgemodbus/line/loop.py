@@ -46,7 +46,7 @@ from .worker import Connector, LineWorker
 log = logging.getLogger("edgemodbus.line")
 
 _MAX_IDLE = 3600.0  # the loop comes back at least once an hour
-DEFAULT_CAPACITY = 8192  # lines one worker serves at most
+DEFAULT_CAPACITY = 32768  # lines one worker serves at most (50,000 DTUs on two: docs/scale.md)
 
 
 def loop_serves(endpoint: DtuEndpoint | TcpEndpoint) -> bool:
@@ -121,7 +121,8 @@ class LoopWorker:
     def __init__(self, name: str, capacity: int = DEFAULT_CAPACITY) -> None:
         self.loop = Loop(capacity)
         self.waker = Waker()  # the engines' (the loop link never waits on it)
-        self._free = list(range(capacity - 1, -1, -1))
+        self._free: list[int] = []  # slots given back; then the never used, from _unused
+        self._unused = 0  # (no list of every slot: 32,768 ints are 1.2 MB a worker)
         self._slots: dict[int, _Served] = {}
         self._by_line: dict[LoopLine, _Served] = {}
         self._inbox: queue.SimpleQueue[tuple[bool, LoopLine, Future[None]]] = \
@@ -211,6 +212,15 @@ class LoopWorker:
             served.failures = max(1, line._crashes)
             self._retry(served)
 
+    def _slot(self) -> int:
+        """A free slot of the loop (the pool gives a worker at most its capacity)."""
+        if self._free:
+            return self._free.pop()
+        if self._unused >= self.loop.capacity:
+            raise RuntimeError(f"loop worker full: {self.loop.capacity} lines")
+        self._unused += 1
+        return self._unused - 1
+
     def _take_inbox(self) -> None:
         while True:
             try:
@@ -219,7 +229,7 @@ class LoopWorker:
                 return
             try:
                 if add:
-                    served = _Served(line, self._free.pop())
+                    served = _Served(line, self._slot())
                     self._slots[served.slot] = served
                     self._by_line[line] = served
                     self._guarded(self._connect, served)
@@ -426,11 +436,13 @@ def _abort_dial(served: _Served) -> None:
 
 
 class LoopPool:
-    """The process's loop workers: at most ``threads`` (default: the cores), each line
-    on the least loaded; a worker starts with its first line, stops with its last."""
+    """The process's loop workers: ``threads`` (default: the cores), each line on the
+    least loaded with room (``capacity`` lines; when every worker is full, one more
+    starts, past ``threads``); a worker starts with its first line, stops with its last."""
 
-    def __init__(self, threads: int | None = None) -> None:
+    def __init__(self, threads: int | None = None, capacity: int = DEFAULT_CAPACITY) -> None:
         self.threads = threads or os.cpu_count() or 1
+        self.capacity = capacity
         self._workers: list[LoopWorker] = []
         self._lock = threading.Lock()
         self._made = 0
@@ -443,12 +455,16 @@ class LoopPool:
 
     def assign(self, line: LoopLine) -> LoopWorker:
         with self._lock:
-            if len(self._workers) < self.threads:
+            room = [w for w in self._workers if w.load < self.capacity]
+            if len(self._workers) < self.threads or not room:
+                if not room and self._workers:
+                    log.info("every loop thread serves %d lines: one more loop thread, "
+                             "past loopThreads %d", self.capacity, self.threads)
                 self._made += 1
-                worker = LoopWorker(f"edgemodbus-loop {self._made}")
+                worker = LoopWorker(f"edgemodbus-loop {self._made}", self.capacity)
                 self._workers.append(worker)
             else:
-                worker = min(self._workers, key=lambda w: w.load)
+                worker = min(room, key=lambda w: w.load)
             worker.load += 1
         worker.add(line).result()
         return worker

@@ -20,15 +20,19 @@ Modules: slave.py (a slave: data areas and request handling), faults.py (its fau
 knobs), movers.py (values that follow the clock), line.py and loop.py (lines and the
 loop thread), server.py (:class:`Simulator`), dtu_client.py (DTU-client mode and wrapped
 frames), fleet.py (:class:`DtuFleet`: thousands of DTUs dialling in, each with its own
-slaves, on one asyncio loop), cli.py (``edgemodbus simulate``).
+slaves, on one asyncio loop; dialling.py: the open files and source addresses it needs;
+fleet_procs.py: :class:`FleetProcesses`, a fleet shared out over processes), cli.py
+(``edgemodbus simulate``).
 """
 
 from __future__ import annotations
 
 from .cli import main
+from .dialling import loopback_sources, raise_open_files_limit
 from .dtu_client import DtuClient
 from .faults import ExceptionRange, Faults
-from .fleet import FLEET_SIZE, DtuFleet, FleetDtu, raise_open_files_limit
+from .fleet import FLEET_SIZE, DtuFleet, FleetDtu
+from .fleet_procs import FleetProcesses
 from .movers import (
     CounterMover,
     FloatSineMover,
@@ -50,6 +54,7 @@ __all__ = [
     "ExceptionRange",
     "Faults",
     "FleetDtu",
+    "FleetProcesses",
     "FloatSineMover",
     "Mover",
     "MoverHost",
@@ -60,6 +65,7 @@ __all__ = [
     "add_demo_movers",
     "default_bit",
     "default_register",
+    "loopback_sources",
     "main",
     "raise_open_files_limit",
 ]

@@ -17,25 +17,29 @@ event loop of yours (``await fleet.serve()`` until cancelled).
 
 A fleet needs one file descriptor per DTU: :func:`raise_open_files_limit` raises the
 soft ``RLIMIT_NOFILE`` to the hard limit when the soft one is too low, and says what to
-do when the hard one is.
+do when the hard one is.  And one ephemeral port per DTU of each source address: Linux
+gives a source address about 28,000 (``net.ipv4.ip_local_port_range``), so a fleet
+larger than that dials from several (``sources``, e.g. :func:`loopback_sources`: the
+DTUs bind to them in turn before they connect).  Several processes, each a fleet of its
+own, share larger fleets out (sim/fleet_procs.py).
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
-import errno
 import functools
 import logging
 import random
-import resource
 import socket
 import struct
 import threading
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
 
+from ..datatypes import Area
 from ..protocol import rtu
 from .actions import _Reset
+from .dialling import FD_MARGIN, check_sources, raise_open_files_limit
 from .slave import Slave, answer
 
 log = logging.getLogger("edgemodbus.simulator")
@@ -44,34 +48,7 @@ FLEET_SIZE = 1000
 """Points per data area of each slave of a fleet (a :class:`Simulator`'s are
 :data:`DEFAULT_SIZE`): 5,000 DTUs of 10,000-point slaves would take 300 MB."""
 
-FD_MARGIN = 64
-"""File descriptors a fleet needs besides one per DTU (stdio, the event loop, logs)."""
-
 _RX_LIMIT = 4096  # a request is at most 256 bytes (Serial Line 2.5.1); more is garbage
-
-
-def raise_open_files_limit(needed: int) -> int:
-    """Make room for ``needed`` open files: raise the soft ``RLIMIT_NOFILE`` to the hard
-    limit when the soft one is lower than ``needed``; returns the soft limit now.
-
-    OSError (EMFILE) when the hard limit itself is lower: only root (or the service
-    manager) can raise it."""
-    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
-    infinite = resource.RLIM_INFINITY
-    if soft == infinite or needed <= soft:
-        return soft
-    if hard != infinite and hard < needed:
-        raise OSError(
-            errno.EMFILE,
-            f"{needed} open files needed, but this process may open at most {hard} "
-            f"(the hard RLIMIT_NOFILE): raise it (`ulimit -Hn {needed}` as root, "
-            f"LimitNOFILE={needed} in a systemd unit, `--ulimit nofile={needed}` for "
-            "docker) or use fewer DTUs per process",
-        )
-    new = hard if hard != infinite else needed
-    resource.setrlimit(resource.RLIMIT_NOFILE, (new, hard))
-    log.info("open files limit raised from %d to %d", soft, new)
-    return new
 
 
 class FleetDtu:
@@ -218,6 +195,10 @@ class _Connection(asyncio.Protocol):
         if self.transport is not None:
             self.transport.abort()
 
+    def reset(self) -> None:
+        """Close with a reset (RST, not FIN), as a network that drops it would."""
+        self._act(_Reset())
+
 
 class DtuFleet:
     """``count`` DTUs, numbered from ``first``, that dial ``host:port``.
@@ -228,7 +209,11 @@ class DtuFleet:
     behind every DTU and the points per data area of each (their values derived from
     their address, as a :class:`Simulator`'s).  ``heartbeat`` is sent every
     ``heartbeat_interval`` seconds (0: never).  ``dial_rate``: new connections per
-    second for the whole fleet (0: no limit).
+    second for the whole fleet (0: no limit).  ``sources``: local addresses the DTUs
+    bind to before they connect, DTU ``n`` to ``sources[n % len(sources)]`` (empty: the
+    kernel picks; see the module for when a fleet needs several).  ``mark``: a holding
+    register address at which every slave holds its DTU's number (its low 16 bits), so
+    that a master can tell the DTUs apart (None: every DTU the same values).
 
     >>> with DtuFleet("127.0.0.1", 9502, 1000) as fleet:   # doctest: +SKIP
     ...     fleet.dtu(7).slave(1).set_registers(Area.HOLDING_REGISTER, 0, [7])
@@ -252,6 +237,8 @@ class DtuFleet:
         connect_timeout: float = 5.0,
         silence: float = 0.02,
         seed: int | None = None,
+        sources: Sequence[str] = (),
+        mark: int | None = None,
     ) -> None:
         if count < 1:
             raise ValueError(f"a fleet of {count} DTUs: must be at least 1")
@@ -260,6 +247,7 @@ class DtuFleet:
         if reconnect <= 0 or reconnect_max < reconnect:
             raise ValueError("reconnect must be > 0 and reconnect_max >= reconnect")
         self.host, self.port = host, port
+        self.sources = check_sources(sources, host)
         self.heartbeat, self.heartbeat_interval = heartbeat, heartbeat_interval
         self.dial_rate, self.reconnect, self.reconnect_max = dial_rate, reconnect, reconnect_max
         self.connect_timeout, self.silence = connect_timeout, silence
@@ -268,6 +256,12 @@ class DtuFleet:
         ids = list(slaves)
         self.dtus = [FleetDtu(n, packet(n), {sid: Slave(sid, size) for sid in ids})
                      for n in range(first, first + count)]
+        if mark is not None:
+            if not 0 <= mark < size:
+                raise ValueError(f"mark {mark}: must be a register address 0..{size - 1}")
+            for dtu in self.dtus:
+                for slave in dtu.slaves.values():
+                    slave.set_registers(Area.HOLDING_REGISTER, mark, [dtu.number & 0xFFFF])
         if count > 1 and self.dtus[0].registration == self.dtus[1].registration:
             raise ValueError(f"registration {registration!r} gives every DTU the same packet "
                              f"({self.dtus[0].registration!r}): put {{n}} in it")
@@ -345,6 +339,21 @@ class DtuFleet:
             if thread.is_alive():
                 raise RuntimeError(f"DTU fleet did not stop within {timeout} s")
 
+    def reset_all(self) -> None:
+        """Every DTU's connection is reset at once (any thread), as after a network
+        outage; each dials again after ``reconnect`` seconds (spread over its second
+        half).  Returns once the resets are done."""
+        loop = self._loop
+        if loop is None:
+            return
+
+        def reset() -> None:
+            for conn in list(self._live):
+                conn.reset()
+
+        with contextlib.suppress(RuntimeError):  # the loop already ended
+            asyncio.run_coroutine_threadsafe(_call(reset), loop).result(30.0)
+
     def drop(self, number: int) -> None:
         """DTU ``number`` loses its connection (any thread); it dials again after
         ``reconnect`` seconds."""
@@ -416,12 +425,14 @@ class DtuFleet:
         family, host = target
         delay = self.reconnect
         factory = functools.partial(_Connection, self, dtu, loop)
+        local = (self.sources[dtu.number % len(self.sources)], 0) if self.sources else None
         while not self._stopping:
             await self._dial_turn(loop)
             served = 0
             try:
                 _, conn = await asyncio.wait_for(
-                    loop.create_connection(factory, host, self.port, family=family),
+                    loop.create_connection(factory, host, self.port, family=family,
+                                           local_addr=local),
                     self.connect_timeout)
             except (OSError, asyncio.TimeoutError) as exc:
                 dtu.dial_failures += 1
@@ -452,6 +463,10 @@ class DtuFleet:
             await asyncio.sleep(at - now)
 
 
+async def _call(fn: Callable[[], None]) -> None:
+    fn()
+
+
 def _packet_maker(registration: str | Callable[[int], bytes]) -> Callable[[int], bytes]:
     if callable(registration):
         return registration
@@ -467,4 +482,4 @@ def _packet_maker(registration: str | Callable[[int], bytes]) -> Callable[[int],
     return packet
 
 
-__all__ = ["FD_MARGIN", "FLEET_SIZE", "DtuFleet", "FleetDtu", "raise_open_files_limit"]
+__all__ = ["FLEET_SIZE", "DtuFleet", "FleetDtu"]

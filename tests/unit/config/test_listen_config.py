@@ -297,14 +297,15 @@ def test_port_settings_carry_every_port_key() -> None:
         registrationMaxBytes=128, registrationByteRate=0, maxUnregistered=100,
         maxUnregisteredPerSource=4, listenAllowFrom=["2001:db8::/32", "10.0.0.9"],
         duplicateId="replace", idFlipLimit=3, idFlipWindow=1500,
-        registrationTimeout=2500, heartbeat="HB", engine="loop", loopThreads=3))
+        registrationTimeout=2500, heartbeat="HB", engine="thread", loopThreads=3))
     assert port_settings(p) == PortSettings(
         host="127.0.0.1", port=9502, registration="regex", pattern=PATTERN, length=None,
         timeout=2.5, heartbeat=b"HB", max_bytes=128, byte_rate=0, max_unregistered=100,
         max_per_source=4, allow_from=("10.0.0.9/32", "2001:db8::/32"),
-        duplicate_id="replace", flip_limit=3, flip_window=1.5, engine="loop", loop_threads=3)
+        duplicate_id="replace", flip_limit=3, flip_window=1.5, engine="thread", loop_threads=3)
     defaults = port_settings(DriverModbusRtuParameter.model_validate(server()))
-    assert (defaults.engine, defaults.loop_threads) == ("thread", None)
+    # auto: the registry's default engine, the loop (line/dtu_registry.py)
+    assert (defaults.engine, defaults.loop_threads) == (None, None)
     assert (defaults.max_bytes, defaults.byte_rate, defaults.max_unregistered,
             defaults.max_per_source, defaults.allow_from, defaults.duplicate_id,
             defaults.flip_limit, defaults.flip_window) == (256, 1024, 512, 64, (), "keep-existing",

@@ -13,6 +13,7 @@ import pytest
 
 from edgemodbus.codec import decoder
 from edgemodbus.gateway import Gateway, load_gateway_config
+from tests.engines import with_engine
 from tests.peers import free_port
 
 N = 40
@@ -21,9 +22,9 @@ N = 40
 def _device(port: int, n: int, code: str | None = None) -> dict[str, Any]:
     return {
         "organization": {"deviceCode": code or f"dtu{n:03d}"},
-        "communication": {"transport": "rtu-over-tcp-server", "listenHost": "127.0.0.1",
-                          "listenPort": port, "dtuId": f"DTU{n:03d}", "registration": "text",
-                          "slaveId": 1, "readCycle": 5000},
+        "communication": with_engine({
+            "transport": "rtu-over-tcp-server", "listenHost": "127.0.0.1", "listenPort": port,
+            "dtuId": f"DTU{n:03d}", "registration": "text", "slaveId": 1, "readCycle": 5000}),
         "addressList": [{"name": f"t{a}", "address": f"hr:{a}", "deviceDataType": "UInt16"}
                         for a in range(20)],
     }
@@ -35,6 +36,7 @@ def _gateway(folder: Path) -> Gateway:
     return Gateway(folder, load_gateway_config(gateway_file), gateway_file)
 
 
+@pytest.mark.usefixtures("engine")
 def test_a_folder_of_template_devices_starts_sharing_plans_and_reports_the_bad_file(
         tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
     port = free_port()

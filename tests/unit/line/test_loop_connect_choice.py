@@ -93,3 +93,14 @@ def test_the_registry_puts_a_loop_endpoint_on_a_loop_thread_and_devices_must_agr
         assert type(line).__name__ == "LineWorker"
     finally:
         registry.release(line)
+
+
+@pytest.mark.parametrize(("extra", "engine"), [({}, "thread"), ({"engine": "loop"}, "loop"),
+                                               ({"engine": "thread"}, "thread")])
+def test_a_connect_line_is_on_the_loop_only_when_its_device_says_so(
+        extra: dict[str, str], engine: str) -> None:
+    """The key's default ("loop") is the DTUs'; an rtu-over-tcp endpoint keeps a thread
+    unless its device sets the key."""
+    raw = {k: v for k, v in comm().items() if k != "engine"}
+    cfg = load_device_config({"communication": {**raw, **extra}})
+    assert endpoint_for(cfg.effective_parameters()).engine == engine
