@@ -162,11 +162,11 @@ class CodecLayout:
         ni, nu, nf, nb = sizes
         self.sizes = (ni, nu, nf, nb)
         # Item k's value is lists[src][idx]: src 0..3 the groups, 4 the post-processed items.
-        # Per item (a gateway holds one per tag) its group (0..3, or 4 for special[j],
-        # post-processed or bytes) and its slot in that group (or j), as a tuple and a
-        # list of the small ints Python keeps anyway (0..256), which
-        # :meth:`CodecPlan.value` reads fastest; larger slots (a block of many bits) go in
-        # an int array instead.
+        # Per item (a layout is held once per distinct block, but devices of distinct
+        # address lists hold one per tag) its group (0..3, or 4 for special[j],
+        # post-processed or bytes) in a bytes and its slot in that group (or j) in an
+        # int array: a byte and two or four bytes an item, no object of its own (only
+        # the special items have a tuple each, which values() reads fastest).
         special: list[tuple[int, int, int, Callable[[Any], object] | None, int]] = []
         place: list[tuple[int, int]] = []
         for k, group in enumerate(group_of):
@@ -178,13 +178,9 @@ class CodecLayout:
             else:
                 place.append((4, len(special)))
                 special.append((k, g, slots[k], post, aux))
-        self.group = tuple(src for src, _ in place)
-        slot_of = [idx for _, idx in place]
-        self.slot: list[int] | array[int] = (
-            slot_of if max(slot_of, default=0) <= 256 else array("H" if n <= 0xFFFF else "I",
-                                                                   slot_of)
-        )
-        self.special = special
+        self.group = bytes(src for src, _ in place)
+        self.slot = array("H" if n <= 0xFFFF else "I", [idx for _, idx in place])
+        self.special = special  # a tuple each: values() iterates them on every decode
         # Assemble the values list from runs of consecutive slots (a few list slices for
         # the usual blocks of same-typed items), or with one itemgetter when interleaved.
         runs: list[list[int]] = []

@@ -1,10 +1,12 @@
-"""A compiled block's per-device plan is small (src/edgemodbus/_ffi/codec.py CodecPlan):
-the C plan and all of its arrays are one allocation, with no instance dict, because a
-gateway holds one plan per read block (docs/item-store.md, "Memory")."""
+"""A compiled block is small: its per-device plan (src/edgemodbus/_ffi/codec.py CodecPlan)
+is one allocation, the C plan and all of its arrays, with no instance dict (a gateway
+holds one per read block); its layout and its cache key keep no object per item
+(docs/item-store.md, "Memory")."""
 
 from __future__ import annotations
 
 import itertools
+from array import array
 from typing import Any
 
 import pytest
@@ -14,6 +16,7 @@ from hypothesis import strategies as st
 from edgemodbus._ffi import Block, codec
 from edgemodbus._ffi.native import ffi
 from edgemodbus.codec import BlockDecoder, ValueSpec
+from edgemodbus.codec import decoder as decoder_module
 from edgemodbus.datatypes import Area, DataType
 
 
@@ -85,3 +88,28 @@ def test_the_arrays_of_a_plan_are_aligned_apart_and_inside_it(counts: list[int])
     assert spans[0][0] >= ffi.sizeof("emb_plan")  # the emb_plan comes first
     assert all(a_end <= b_start for (_, a_end), (b_start, _) in itertools.pairwise(spans))
     assert spans[-1][1] <= size
+
+
+def test_a_layout_keeps_no_object_per_item() -> None:
+    """Each item's group and slot are a byte and an int in arrays (a layout is one per
+    distinct block: devices of distinct address lists hold one per tag); only the
+    post-processed items (here the Float and the String) have a tuple each."""
+    layout = BlockDecoder(Area.HOLDING_REGISTER, 12, _items())._plan.layout
+    assert isinstance(layout.group, bytes) and len(layout.group) == 6
+    assert isinstance(layout.slot, array) and len(layout.slot) == 6
+    assert [k for k, *_ in layout.special] == [2, 4]
+
+
+def test_the_cache_key_of_a_block_holds_no_tuple_per_item() -> None:
+    items = _items()
+    key = decoder_module._shape_key(Area.HOLDING_REGISTER, 12, items)
+    assert key == (Area.HOLDING_REGISTER, 12, array("I", [0, 1, 5, 7, 8, 11]).tobytes(),
+                   tuple(spec for _, spec in items))
+    a = BlockDecoder(Area.HOLDING_REGISTER, 12, items)
+    b = BlockDecoder(Area.HOLDING_REGISTER, 12, list(items))
+    moved = [(offset + 1 if k == 5 else offset, spec) for k, (offset, spec) in enumerate(items)]
+    c = BlockDecoder(Area.HOLDING_REGISTER, 13, moved)
+    d = BlockDecoder(Area.HOLDING_REGISTER, 13, [*moved[:5], (11, items[5][1])])
+    assert a._shape is b._shape and c._shape is not d._shape
+    assert c.decode(Block.from_values([0] * 12 + [9], False))[-1] == (5, 4.5, None)
+    assert d.decode(Block.from_values([0] * 11 + [9, 0], False))[-1] == (5, 4.5, None)
