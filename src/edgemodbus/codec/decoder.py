@@ -121,15 +121,18 @@ _SHAPES: SharedCache[_Shape] = SharedCache(keep=256)
 
 
 def _shape_key(area: Area, count: int, items: Sequence[tuple[int, ValueSpec]]) -> Hashable:
-    """The cache key of a block: its offsets packed in an int array and its specs (which
-    the items of a kind share), not an (offset, spec) tuple per item, which a key held
-    for every distinct block costs (56 bytes an item: docs/item-store.md, "Memory").
-    Offsets that do not fit (the block is refused as it is built) key it as given."""
+    """The cache key of a block: its offsets and each item's spec (an index into the
+    block's distinct specs) packed in int arrays, not an (offset, spec) tuple per item,
+    which a key held for every distinct block costs (64 bytes an item:
+    docs/item-store.md, "Memory").  Offsets that do not fit (the block is refused as it
+    is built) key it as given."""
+    distinct: dict[ValueSpec, int] = {}
     try:
         offsets = array("I", [offset for offset, _ in items]).tobytes()
+        spec_of = array("I", [distinct.setdefault(spec, len(distinct)) for _, spec in items])
     except (OverflowError, TypeError):
         return (area, count, tuple(items))
-    return (area, count, offsets, tuple(spec for _, spec in items))
+    return (area, count, offsets, tuple(distinct), spec_of.tobytes())
 
 
 class BlockDecoder:

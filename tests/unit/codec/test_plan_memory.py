@@ -104,7 +104,10 @@ def test_the_cache_key_of_a_block_holds_no_tuple_per_item() -> None:
     items = _items()
     key = decoder_module._shape_key(Area.HOLDING_REGISTER, 12, items)
     assert key == (Area.HOLDING_REGISTER, 12, array("I", [0, 1, 5, 7, 8, 11]).tobytes(),
-                   tuple(spec for _, spec in items))
+                   tuple(spec for _, spec in items), array("I", range(6)).tobytes())
+    same_spec = [(0, items[0][1]), (1, items[1][1]), (2, items[0][1])]
+    assert decoder_module._shape_key(Area.HOLDING_REGISTER, 3, same_spec)[3:] == (
+        (items[0][1], items[1][1]), array("I", [0, 1, 0]).tobytes())
     a = BlockDecoder(Area.HOLDING_REGISTER, 12, items)
     b = BlockDecoder(Area.HOLDING_REGISTER, 12, list(items))
     moved = [(offset + 1 if k == 5 else offset, spec) for k, (offset, spec) in enumerate(items)]
