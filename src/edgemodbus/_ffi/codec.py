@@ -8,7 +8,7 @@ from __future__ import annotations
 import operator
 import struct
 from array import array
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any, NamedTuple
 
 from .block import Block
@@ -162,11 +162,11 @@ class CodecLayout:
         ni, nu, nf, nb = sizes
         self.sizes = (ni, nu, nf, nb)
         # Item k's value is lists[src][idx]: src 0..3 the groups, 4 the post-processed items.
-        # Per item (a gateway holds one per tag) its group (0..3, or 4 for special[j],
-        # post-processed or bytes) and its slot in that group (or j), as a tuple and a
-        # list of the small ints Python keeps anyway (0..256), which
-        # :meth:`CodecPlan.value` reads fastest; larger slots (a block of many bits) go in
-        # an int array instead.
+        # Per item (a layout is held once per distinct block, but devices of distinct
+        # address lists hold one per tag) its group (0..3, or 4 for special[j],
+        # post-processed or bytes) in a bytes and its slot in that group (or j) in an
+        # int array: a byte and two or four bytes an item, no object of its own (only
+        # the special items have a tuple each, which values() reads fastest).
         special: list[tuple[int, int, int, Callable[[Any], object] | None, int]] = []
         place: list[tuple[int, int]] = []
         for k, group in enumerate(group_of):
@@ -178,13 +178,9 @@ class CodecLayout:
             else:
                 place.append((4, len(special)))
                 special.append((k, g, slots[k], post, aux))
-        self.group = tuple(src for src, _ in place)
-        slot_of = [idx for _, idx in place]
-        self.slot: list[int] | array[int] = (
-            slot_of if max(slot_of, default=0) <= 256 else array("H" if n <= 0xFFFF else "I",
-                                                                   slot_of)
-        )
-        self.special = special
+        self.group = bytes(src for src, _ in place)
+        self.slot = array("H" if n <= 0xFFFF else "I", [idx for _, idx in place])
+        self.special = special  # a tuple each: values() iterates them on every decode
         # Assemble the values list from runs of consecutive slots (a few list slices for
         # the usual blocks of same-typed items), or with one itemgetter when interleaved.
         runs: list[list[int]] = []
@@ -245,7 +241,15 @@ class CodecPlan:
     ``CodecPlan(bits, items, posts, ...)`` compiles a layout of its own (see
     :class:`CodecLayout` for the arguments); :meth:`of` makes a plan over a layout that
     other plans may share.  Used by one thread at a time, like the block it decodes.
+
+    Small, as a gateway holds one per read block: the C plan and every array it points
+    at are one allocation (:data:`_REGIONS`), seen from Python through memoryviews of
+    that one buffer; no instance dict (docs/item-store.md, "Memory").
     """
+
+    __slots__ = ("_arrays", "_bytes_view", "_f64", "_getter", "_group", "_mem", "_plan",
+                 "_runs", "_sizes", "_slot", "_special", "_view_bool", "_view_i64",
+                 "_view_u64", "bits", "layout", "n_items", "status_view")
 
     def __init__(
         self,
@@ -267,51 +271,54 @@ class CodecPlan:
 
     def _bind(self, layout: CodecLayout) -> None:
         n = layout.n_items
-        n_bytes = layout.n_bytes
         ni, nu, nf, nb = self._sizes = layout.sizes
-        self.layout = layout
-        self.bits = layout.bits
-        self.n_items = n
-        self._i64 = ffi.new("int64_t[]", max(ni, 1))
-        self._u64 = ffi.new("uint64_t[]", max(nu, 1))
-        self._f64 = ffi.new("double[]", max(nf, 1))
-        self._bool = ffi.new("_Bool[]", max(nb, 1))
-        self._bytes = ffi.new("uint8_t[]", max(n_bytes, 1))
-        self._last_bytes = ffi.new("uint8_t[]", max(n_bytes, 1))
-        self._status = ffi.new("uint8_t[]", max(n, 1))
-        self._errval = ffi.new("emb_errval[]", max(n, 1))
-        self._errs = ffi.new("uint32_t[]", max(n, 1))
-        self._changed = ffi.new("uint32_t[]", max(n, 1))
-        self._last = ffi.new("uint64_t[]", max(n, 1))
-        self._last_status = ffi.new("uint8_t[]", max(n, 1))
-        plan = ffi.new("emb_plan *")
+        counts = {"i64": ni, "u64": nu, "f64": nf, "last": n, "errval": n, "errs": n,
+                  "changed": n, "bool": nb, "status": n, "last_status": n,
+                  "bytes": layout.n_bytes, "last_bytes": layout.n_bytes}
+        at, size = _regions(counts)
+        # one zeroed allocation, 8-byte aligned: the emb_plan first, then its arrays
+        mem = ffi.new("uint64_t[]", size // 8)
+        base = ffi.cast("uint8_t *", mem)
+        plan = ffi.cast("emb_plan *", mem)
         layout.bind(plan)
-        plan.out_i64, plan.n_i64 = self._i64, ni
-        plan.out_u64, plan.n_u64 = self._u64, nu
-        plan.out_f64, plan.n_f64 = self._f64, nf
-        plan.out_bool, plan.n_bool = self._bool, nb
-        plan.out_bytes, plan.n_bytes = self._bytes, n_bytes
-        plan.status, plan.errval = self._status, self._errval
-        plan.errs, plan.changed = self._errs, self._changed
-        plan.last, plan.last_status, plan.last_bytes = (
-            self._last,
-            self._last_status,
-            self._last_bytes,
-        )
+        ptr = {name: ffi.cast(_REGIONS[name][0] + " *", base + at[name]) for name in at}
+        plan.out_i64, plan.n_i64 = ptr["i64"], ni
+        plan.out_u64, plan.n_u64 = ptr["u64"], nu
+        plan.out_f64, plan.n_f64 = ptr["f64"], nf
+        plan.out_bool, plan.n_bool = ptr["bool"], nb
+        plan.out_bytes, plan.n_bytes = ptr["bytes"], layout.n_bytes
+        plan.status, plan.errval = ptr["status"], ptr["errval"]
+        plan.errs, plan.changed = ptr["errs"], ptr["changed"]
+        plan.last, plan.last_status = ptr["last"], ptr["last_status"]
+        plan.last_bytes = ptr["last_bytes"]
         bad = lib.emb_plan_check(plan)
         if bad:
             where = f"item {bad - 1}" if bad > 0 else "the plan"
             raise ValueError(f"codec: {where} is inconsistent (a bug in the item compiler)")
         lib.emb_reset(plan)
+        self._mem = mem  # owns the memory the plan and every pointer below point into
         self._plan = plan
-        self.status_view = memoryview(ffi.buffer(self._status, n))  # EMB_E_* of each item
+        self.layout = layout
+        self.bits = layout.bits
+        self.n_items = n
+        view = memoryview(ffi.buffer(mem))
+
+        def typed(name: str, code: str) -> memoryview:
+            count = counts[name]
+            if not count:
+                return _EMPTY_VIEWS[code]  # an empty group shares one empty view
+            start = at[name]
+            return view[start:start + count * _REGIONS[name][1]].cast(code)
+
+        self.status_view = typed("status", "B")  # EMB_E_* of each item
         # Typed views that turn the integer and bool arrays into lists at C speed (for
-        # doubles ffi.unpack is the faster one); an empty group shares one empty view.
-        self._view_i64 = _typed_view(self._i64, ni, "q")
-        self._view_u64 = _typed_view(self._u64, nu, "Q")
-        self._view_bool = _typed_view(self._bool, nb, "?")
-        self._bytes_buf = ffi.buffer(self._bytes)
-        self._arrays = (self._i64, self._u64, self._f64, self._bool)
+        # doubles ffi.unpack is the faster one: a pointer is kept for it).
+        self._view_i64 = typed("i64", "q")
+        self._view_u64 = typed("u64", "Q")
+        self._view_bool = typed("bool", "?")
+        self._f64 = ptr["f64"]
+        self._bytes_view = typed("bytes", "B")
+        self._arrays = (self._view_i64, self._view_u64, self._f64, self._view_bool)
         # the layout's, read by values() and value() on every decode
         self._group, self._slot, self._special = layout.group, layout.slot, layout.special
         self._runs, self._getter = layout.runs, layout.getter
@@ -329,19 +336,20 @@ class CodecPlan:
 
     def errors(self) -> list[int]:
         """Indices of the items that failed in the last decode."""
-        return ffi.unpack(self._errs, self._plan.n_errors)
+        plan = self._plan
+        return ffi.unpack(plan.errs, plan.n_errors)
 
     def changed(self, n: int) -> list[int]:
         """Indices of the ``n`` items reported by the last TRACK/ALL decode."""
-        return ffi.unpack(self._changed, n)
+        return ffi.unpack(self._plan.changed, n)
 
     def status(self, index: int) -> int:
-        return int(self._status[index])
+        return self.status_view[index]
 
     def errval(self, index: int) -> int | float | None:
         """The value item ``index`` failed for in the last decode, exact: an int (64-bit
         values are not rounded), a float, or None (a register missing from the reply)."""
-        ev = self._errval[index]
+        ev = self._plan.errval[index]
         bits, kind = int(ev.bits), int(ev.kind)
         if kind == lib.EMB_K_INT:
             return bits - (1 << 64) if bits >> 63 else bits
@@ -362,14 +370,14 @@ class CodecPlan:
         extra: list[object] = []
         if self._special:
             status = self.status_view
-            buf = self._bytes_buf
+            buf = self._bytes_view
             for k, g, slot, post, aux in self._special:
                 if status[k]:
                     extra.append(None)
                     continue
                 raw = lists[g][slot]
                 if aux >= 0:
-                    raw = buf[aux : aux + raw]
+                    raw = buf[aux : aux + raw].tobytes()
                 extra.append(raw if post is None else post(raw))
         lists.append(extra)
         out: list[object]
@@ -384,7 +392,7 @@ class CodecPlan:
                 for src, a, b, whole in runs:
                     out += lists[src] if whole else lists[src][a:b]
         if self._plan.n_errors:
-            for k in ffi.unpack(self._errs, self._plan.n_errors):
+            for k in self.errors():
                 out[k] = None
         return out
 
@@ -396,7 +404,7 @@ class CodecPlan:
         _, g, slot, post, aux = self._special[self._slot[index]]
         raw = self._arrays[g][slot]
         if aux >= 0:
-            raw = self._bytes_buf[aux : aux + raw]
+            raw = self._bytes_view[aux : aux + raw].tobytes()
         return raw if post is None else post(raw)
 
     def reset(self) -> None:
@@ -404,14 +412,31 @@ class CodecPlan:
         lib.emb_reset(self._plan)
 
 
-_EMPTY_VIEWS = {code: memoryview(b"").cast(code) for code in "qQ?"}
+# The arrays of a plan (csrc/emb_codec.h emb_plan), in the order they are laid out after
+# the emb_plan in its one allocation (widest first: each starts aligned): C type, size.
+_REGIONS: dict[str, tuple[str, int]] = {
+    "i64": ("int64_t", 8), "u64": ("uint64_t", 8), "f64": ("double", 8),
+    "last": ("uint64_t", 8), "errval": ("emb_errval", ffi.sizeof("emb_errval")),
+    "errs": ("uint32_t", 4), "changed": ("uint32_t", 4), "bool": ("_Bool", 1),
+    "status": ("uint8_t", 1), "last_status": ("uint8_t", 1), "bytes": ("uint8_t", 1),
+    "last_bytes": ("uint8_t", 1),
+}
 
 
-def _typed_view(data: Any, n: int, code: str) -> memoryview:
-    """A memoryview of the first ``n`` elements of a cdata array, as ``code`` values."""
-    if not n:
-        return _EMPTY_VIEWS[code]
-    return memoryview(ffi.buffer(data, n * ffi.sizeof(ffi.typeof(data).item))).cast(code)
+def _regions(counts: Mapping[str, int]) -> tuple[dict[str, int], int]:
+    """Where each array of :data:`_REGIONS` starts in a plan's allocation (``counts``
+    elements each; at least one, as C is never handed an empty array), and the
+    allocation's size (a multiple of 8)."""
+    at: dict[str, int] = {}
+    end = ffi.sizeof("emb_plan")
+    for name, (ctype, size) in _REGIONS.items():
+        end = -(-end // ffi.alignof(ctype)) * ffi.alignof(ctype)
+        at[name] = end
+        end += max(counts[name], 1) * size
+    return at, -(-end // 8) * 8
+
+
+_EMPTY_VIEWS = {code: memoryview(b"").cast(code) for code in "qQ?B"}
 
 
 def codec_encode(item: CodecItem, raw: int, fval: float, data: bytes) -> list[int]:

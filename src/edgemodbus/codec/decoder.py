@@ -7,7 +7,7 @@ import itertools
 import math
 import operator
 from array import array
-from collections.abc import Sequence
+from collections.abc import Hashable, Sequence
 
 from .. import _ffi
 from .._ffi import Block, CodecPlan
@@ -120,6 +120,21 @@ class _Shape:
 _SHAPES: SharedCache[_Shape] = SharedCache(keep=256)
 
 
+def _shape_key(area: Area, count: int, items: Sequence[tuple[int, ValueSpec]]) -> Hashable:
+    """The cache key of a block: its offsets and each item's spec (an index into the
+    block's distinct specs) packed in int arrays, not an (offset, spec) tuple per item,
+    which a key held for every distinct block costs (64 bytes an item:
+    docs/item-store.md, "Memory").  Offsets that do not fit (the block is refused as it
+    is built) key it as given."""
+    distinct: dict[ValueSpec, int] = {}
+    try:
+        offsets = array("I", [offset for offset, _ in items]).tobytes()
+        spec_of = array("I", [distinct.setdefault(spec, len(distinct)) for _, spec in items])
+    except (OverflowError, TypeError):
+        return (area, count, tuple(items))
+    return (area, count, offsets, tuple(distinct), spec_of.tobytes())
+
+
 class BlockDecoder:
     """Decodes every item of one read block in one C call, reporting only what changed.
 
@@ -143,7 +158,7 @@ class BlockDecoder:
     def __init__(self, area: Area, count: int, items: Sequence[tuple[int, ValueSpec]]) -> None:
         # the compiled block is shared by every decoder of the same items (a template's
         # devices): only the state below is this decoder's own
-        shape = _SHAPES.get((area, count, tuple(items)),
+        shape = _SHAPES.get(_shape_key(area, count, items),
                             lambda: _Shape(area, count, items))
         self._shape = shape
         self.area = area

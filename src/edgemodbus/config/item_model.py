@@ -50,10 +50,13 @@ STATUSES = (ItemStatus.UNKNOWN, ItemStatus.OK, ItemStatus.INVALID)
 
 class ValueStore(Protocol):
     """Where a polled item's state is (poll/store.py's ItemStore, as config sees it):
-    parallel arrays by index (statuses as codes into :data:`STATUSES`)."""
+    parallel arrays by index."""
 
-    arrays: tuple[list[Any], bytearray, list[datetime | None], list[str | None]]
-    """values, status codes, update times, error reasons (ItemReading's order)"""
+    values: list[Any]
+    status: bytearray
+    """codes into :data:`STATUSES`"""
+    marks: list[tuple[datetime | None, str | None]]
+    """(update time, error reason): one pair shared by the items set together"""
 
     def reading(self, index: int) -> ItemReading: ...
     def assign(self, index: int, which: int, value: Any) -> None: ...
@@ -117,8 +120,8 @@ class _Conf(Generic[T]):
 
 
 class _Runtime(Generic[T]):
-    """A runtime field: read from the item's store (its array ``at`` of ``arrays``) or,
-    unbound, from its own reading."""
+    """A runtime field (ItemReading's ``at``): read from the item's store (its values,
+    status codes or marks) or, unbound, from its own reading."""
 
     __slots__ = ("at",)
 
@@ -140,8 +143,14 @@ class _Runtime(Generic[T]):
         if store is None:
             own: T = index[self.at]
             return own
-        value = store.arrays[self.at][index]
-        return STATUSES[value] if self.at == 1 else value  # type: ignore[return-value]
+        at = self.at
+        if at == 0:
+            value: T = store.values[index]
+            return value
+        if at == 1:
+            return STATUSES[store.status[index]]  # type: ignore[return-value]
+        mark: T = store.marks[index][at - 2]
+        return mark
 
     def __set__(self, item: DeviceAddressItem, value: T) -> None:
         store, index = item.bound()

@@ -137,7 +137,7 @@ class Assembly:
         return first
 
 
-@dataclass(eq=False)
+@dataclass(eq=False, slots=True)
 class Slot:
     """One planned read and how to decode it: its whole items through one decoder, and
     the pieces of larger items into their assemblies; when it is read next (see

@@ -1,11 +1,12 @@
 """The runtime state of a device's items: one :class:`ItemStore` per poller.
 
 Parallel arrays indexed like the poller's items (``Poller.items[i]`` is index ``i``):
-values (a list), statuses (a bytearray of codes), update times and error reasons (lists of
-shared objects: one time per pass, a few reason texts).  The line worker writes them (one
-call per block read: :meth:`ItemStore.apply`); a bound :class:`DeviceAddressItem` reads
-its fields here (config/item_model.py), so the configuration is never written by the
-worker and nothing is copied per start.
+values (a list), statuses (a bytearray of codes) and marks (a list of ``(update time,
+error reason)`` pairs, shared: every item a block read set holds the one pair of that
+read, so the two fields cost one list entry per item, not two).  The line worker writes
+them (one call per block read: :meth:`ItemStore.apply`); a bound
+:class:`DeviceAddressItem` reads its fields here (config/item_model.py), so the
+configuration is never written by the worker and nothing is copied per start.
 
 Consistency: every write of an item's four fields, and every read of more than one field
 (:meth:`ItemStore.reading`, :meth:`ItemStore.snapshot`), holds the store's lock, so a
@@ -36,6 +37,9 @@ class StateLike(Protocol):
 _CODE = {status: code for code, status in enumerate(STATUSES)}
 UNKNOWN, OK, INVALID = 0, 1, 2  # codes of STATUSES
 _new = tuple.__new__  # a NamedTuple without its Python-level __new__
+Mark = tuple[datetime | None, str | None]
+"""An item's update time and error reason, one pair shared by the items set together."""
+_UNMARKED: Mark = (None, None)
 
 
 class ItemInUseError(ValueError):
@@ -48,8 +52,7 @@ S = TypeVar("S", bound=StateLike)
 class ItemStore(Generic[S]):
     """The values, statuses, times and reasons of one device's items (see above)."""
 
-    __slots__ = ("_names", "active", "arrays", "lock", "reasons", "stamps", "states", "status",
-                 "values")
+    __slots__ = ("_names", "active", "lock", "marks", "states", "status", "values")
 
     def __init__(self, states: Sequence[S]) -> None:
         n = len(states)
@@ -57,9 +60,7 @@ class ItemStore(Generic[S]):
         self.lock = threading.Lock()
         self.values: list[Any] = [None] * n
         self.status = bytearray(n)  # codes into STATUSES
-        self.stamps: list[datetime | None] = [None] * n
-        self.reasons: list[str | None] = [None] * n
-        self.arrays = (self.values, self.status, self.stamps, self.reasons)  # items read these
+        self.marks: list[Mark] = [_UNMARKED] * n  # (update time, error reason)
         self.active = False  # a running poller writes it
         self._names: dict[str, S] | None = None
 
@@ -83,7 +84,7 @@ class ItemStore(Generic[S]):
     def reading(self, index: int) -> ItemReading:
         with self.lock:
             return _new(ItemReading, (self.values[index], STATUSES[self.status[index]],
-                                      self.stamps[index], self.reasons[index]))
+                                      *self.marks[index]))
 
     def snapshot(self, states: Sequence[S] | None = None) -> dict[str, dict[str, Any]]:
         """Each item's entry of ``driver.snapshot()`` (Python values, as held: NaN,
@@ -92,9 +93,8 @@ class ItemStore(Generic[S]):
         if states is None:
             states = self.states
         with self.lock:
-            values, status, stamps, reasons = (self.values, self.status, self.stamps,
-                                               self.reasons)
-            entries = [(values[i], status[i], stamps[i], reasons[i])
+            values, status, marks = self.values, self.status, self.marks
+            entries = [(values[i], status[i], *marks[i])
                        for i in (state.index for state in states)]
         texts = [str(enum_value(s)) for s in STATUSES]
         return {
@@ -117,9 +117,9 @@ class ItemStore(Generic[S]):
             elif which == 1:
                 self.status[index] = _CODE[ItemStatus(value)]
             elif which == 2:
-                self.stamps[index] = value
+                self.marks[index] = (value, self.marks[index][1])
             else:
-                self.reasons[index] = value
+                self.marks[index] = (self.marks[index][0], value)
 
     def set(self, index: int, value: Any, error: str | None, now: datetime) -> None:
         """Store a result: the value and Ok, or Invalid with the reason (the last good
@@ -130,16 +130,17 @@ class ItemStore(Generic[S]):
                 self.status[index] = OK
             else:
                 self.status[index] = INVALID
-            self.reasons[index] = error
-            self.stamps[index] = now
+            self.marks[index] = (now, error)
 
     def apply(self, whole: Sequence[S],
               changes: Sequence[tuple[int, Any, str | None]], now: datetime,
               reported: list[DeviceAddressItem]) -> None:
         """Store a block's change records (``(k, value, error)``: of its k-th whole
         item), stamped ``now``; the items set are appended to ``reported``.  The hot
-        loop of a poll."""
-        values, status, stamps, reasons = self.values, self.status, self.stamps, self.reasons
+        loop of a poll: the items set share one mark per reason (``(now, None)``)."""
+        values, status, marks = self.values, self.status, self.marks
+        ok: Mark = (now, None)
+        failed: dict[str, Mark] = {}
         with self.lock:
             for k, value, error in changes:
                 state = whole[k]
@@ -147,10 +148,13 @@ class ItemStore(Generic[S]):
                 if error is None:
                     values[i] = value
                     status[i] = OK
+                    marks[i] = ok
                 else:
                     status[i] = INVALID
-                reasons[i] = error
-                stamps[i] = now
+                    mark = failed.get(error)
+                    if mark is None:
+                        mark = failed[error] = (now, error)
+                    marks[i] = mark
                 reported.append(state.item)
 
     # -- change tests (worker) ------------------------------------------------------------
@@ -164,7 +168,7 @@ class ItemStore(Generic[S]):
         for numbers with a deadband, more than the deadband away from it."""
         code = self.status[index]
         if error is not None:
-            return code != INVALID or self.reasons[index] != error
+            return code != INVALID or self.marks[index][1] != error
         if code != OK:
             return True
         held = self.values[index]
@@ -186,12 +190,16 @@ class ItemStore(Generic[S]):
         readings = [item.reading for item in items]
         for i, reading in (carry or {}).items():
             readings[i] = reading
+        # one pair per distinct time and reason (the very objects: ``readings`` holds them)
+        shared: dict[tuple[int, int], Mark] = {(id(None), id(None)): _UNMARKED}
         with self.lock:
             for i, (value, status, stamp, reason) in enumerate(readings):
                 self.values[i] = value
                 self.status[i] = _CODE[status]
-                self.stamps[i] = stamp
-                self.reasons[i] = reason
+                mark = shared.get((id(stamp), id(reason)))
+                if mark is None:
+                    mark = shared[id(stamp), id(reason)] = (stamp, reason)
+                self.marks[i] = mark
         for i, item in enumerate(items):  # the order a reader relies on (item.bound())
             item._store = MOVING
             item._index = shared_index(i)

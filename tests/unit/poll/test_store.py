@@ -96,9 +96,15 @@ def test_the_store_holds_what_the_model_holds(steps: list[tuple[str, Any]],
             for i, value, error in results:
                 _model_set(model, i, value, error, now)
         elif kind == "assign":  # a host's assignment, the compatibility path
-            for i, value, _ in results:
-                states[i].item.value = value
+            for i, value, error in results:
+                item = states[i].item
+                item.value = value
                 model[i] = model[i]._replace(value=value)
+                if error is not None:  # the time and the reason, one at a time
+                    item.error_reason = error
+                    model[i] = model[i]._replace(error_reason=error)
+                    item.update_ts = now
+                    model[i] = model[i]._replace(update_ts=now)
         else:  # a new plan of the same items: the state goes over with them
             previous, store = store, ItemStore(states)
             store.bind(previous=previous)
@@ -107,12 +113,31 @@ def test_the_store_holds_what_the_model_holds(steps: list[tuple[str, Any]],
             got, want = store.reading(i), model[i]
             assert got == want or (got[1:] == want[1:] and math.isnan(got.value)
                                    and math.isnan(want.value))
-            assert states[i].item.reading is not None
+            item = states[i].item  # each field alone, as the item reads it
+            assert (item.status, item.update_ts, item.error_reason) == (
+                want.status, want.update_ts, want.error_reason)
     snap = store.snapshot()
     for i in range(N):
         entry = snap[f"t{i}"]
         assert entry["status"] == model[i].status.value
         assert entry["errorReason"] == model[i].error_reason
+
+
+def test_the_items_a_block_read_sets_share_one_time_and_reason() -> None:
+    """Memory (docs/item-store.md): the update time and error reason of the items set
+    together are one shared pair, so they cost one list entry per item, not two."""
+    states = _states()
+    store = ItemStore(states)
+    store.bind()
+    store.apply(states, [(0, 1.0, None), (1, None, "timeout"), (2, 2.0, None),
+                         (3, None, "timeout")], T0, [])
+    assert store.marks[0] is store.marks[2]
+    assert store.marks[1] is store.marks[3]
+    assert [s.item.error_reason for s in states] == [None, "timeout", None, "timeout"]
+    assert {s.item.update_ts for s in states} == {T0}
+    previous, store = store, ItemStore(states)  # a new plan: the pairs go over as they are
+    store.bind(previous=previous)
+    assert len({id(mark) for mark in store.marks}) == 2
 
 
 def test_an_item_of_a_running_store_cannot_be_bound_to_another() -> None:
