@@ -150,6 +150,27 @@ ssize_t emb_read_some(int fd, uint8_t *p, size_t len)
     return (errno == EINTR || errno == EAGAIN) ? 0 : -1;
 }
 
+/* One recv(2) of at most len bytes that never waits (MSG_DONTWAIT, whatever the
+ * socket's blocking mode): the bytes read (> 0); 0 when nothing is waiting (EAGAIN);
+ * -1 with errno on an error (ENOTSOCK: fd is no socket), ECONNRESET when the peer
+ * closed the connection.  A read shorter than len took everything that was waiting
+ * (a stream socket's recv copies until its queue is empty or len is reached). */
+ssize_t emb_recv_now(int fd, uint8_t *p, size_t len)
+{
+    ssize_t n;
+
+    do
+        n = recv(fd, p, len, MSG_DONTWAIT);
+    while (n == -1 && errno == EINTR);
+    if (n > 0)
+        return n;
+    if (n == 0) {
+        errno = ECONNRESET;
+        return -1;
+    }
+    return (errno == EAGAIN || errno == EWOULDBLOCK) ? 0 : -1;
+}
+
 /* Bytes already received on fd and not read yet (0 if the driver cannot tell). */
 int emb_pending(int fd)
 {

@@ -148,6 +148,14 @@ class Context:
             self._link.discarded = 0
         return n
 
+    @property
+    def syscalls(self) -> int:
+        """System calls the plain RTU and Modbus TCP transactions made on this context
+        so far (csrc/emb_rtu.c counts them: stale input dropped, request sent, waits,
+        reads, the pending check); what one read costs the kernel, for tests and
+        bench/syscalls.py."""
+        return int(self._link.syscalls)
+
     def take_counters(self) -> StreamCounters | None:
         """Heartbeats, dropped frames and lost reports counted since the last call (None:
         nothing)."""
