@@ -85,7 +85,9 @@ void emb_sleep_until(int64_t t_ns)
 }
 
 /* Wait until fd is readable (or reports a hangup or an error, which the next read
- * returns) for up to ms: 1 readable, 0 timed out, -1 with errno. */
+ * returns) for up to ms: 1 readable, 0 timed out, -1 with errno.  What is left is
+ * rounded up to whole milliseconds, so a timeout never ends before its time (poll()
+ * never returns early; truncated, it ended up to 1 ms early). */
 int emb_wait_readable(int fd, int ms)
 {
     struct pollfd pfd;
@@ -95,7 +97,7 @@ int emb_wait_readable(int fd, int ms)
 
     pfd.fd = fd;
     for (;;) {
-        left = (end - emb_now_ns()) / 1000000;
+        left = (end - emb_now_ns() + 999999) / 1000000;
         pfd.events = POLLIN;
         pfd.revents = 0;
         rc = poll(&pfd, 1, left > 0 ? (int)left : 0);
