@@ -51,13 +51,14 @@ def read_blocks(port: int, reader: str, reads: int) -> int:
         sock.close()
 
 
-def strace_counts(port: int, reader: str, reads: int) -> Counter[str]:
-    """The syscalls of a child doing ``reads`` block reads, by name (strace -c -f)."""
+def strace_counts(port: int, reader: str, reads: int) -> tuple[Counter[str], int]:
+    """The syscalls of a child doing ``reads`` block reads, by name (strace -c -f), and
+    what our reader's counter said."""
     with tempfile.NamedTemporaryFile("r", suffix=".strace") as out:
-        subprocess.run(
+        child = subprocess.run(
             ["strace", "-c", "-f", "-U", "name,calls", "-o", out.name, sys.executable,
              "-m", "bench.syscalls", "--child", str(port), reader, str(reads)],
-            check=True, stdout=subprocess.DEVNULL,
+            check=True, stdout=subprocess.PIPE, text=True,
             cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
         )
         counts: Counter[str] = Counter()
@@ -65,16 +66,17 @@ def strace_counts(port: int, reader: str, reads: int) -> Counter[str]:
             parts = line.split()
             if len(parts) == 2 and parts[1].isdigit() and parts[0] != "total":
                 counts[parts[0]] = int(parts[1])
-        return counts
+        return counts, int(child.stdout.split()[-1])
 
 
-def per_read(port: int, reader: str, reads: int) -> dict[str, float]:
-    """Syscalls per block read by name: (run with ``reads``) - (run with none), / reads."""
-    base = strace_counts(port, reader, 0)
-    full = strace_counts(port, reader, reads)
+def per_read(port: int, reader: str, reads: int) -> tuple[dict[str, float], float]:
+    """Syscalls per block read by name: (run with ``reads``) - (run with none), / reads;
+    and our reader's own count per read."""
+    base, _ = strace_counts(port, reader, 0)
+    full, counted = strace_counts(port, reader, reads)
     names = set(base) | set(full)
     diff = {n: (full[n] - base[n]) / reads for n in names}
-    return {n: v for n, v in sorted(diff.items()) if v >= 0.05}
+    return {n: v for n, v in sorted(diff.items()) if v >= 0.05}, counted / reads
 
 
 def main() -> None:
@@ -85,15 +87,16 @@ def main() -> None:
     args = parser.parse_args()
     if args.child:
         port, reader, reads = int(args.child[0]), args.child[1], int(args.child[2])
-        counted = read_blocks(port, reader, reads)
-        print(counted)
+        print(read_blocks(port, reader, reads))
         return
     with SimulatorProcess([1], size=2000) as sim:
         for reader in READERS:
-            counts = per_read(sim.port, reader, args.reads)
+            counts, per = per_read(sim.port, reader, args.reads)
             total = sum(counts.values())
             shown = ", ".join(f"{n} {v:.2f}" for n, v in counts.items())
-            print(f"{reader:10s} {total:5.2f} syscalls per {COUNT}-register read: {shown}")
+            own = f" (the link counted {per:.2f})" if reader == "ours" else ""
+            print(f"{reader:10s} {total:5.2f} syscalls per {COUNT}-register read: "
+                  f"{shown}{own}")
 
 
 if __name__ == "__main__":
