@@ -4,9 +4,10 @@ Client CPU (this process, all threads: time.process_time) per tag read, with the
 played by our simulator in its own process, against references measured in the same run
 on the same slave and the same block list:
 
-* the floor (issue 26's "bare-libmodbus floor"): a bare loop issuing the driver's block
-  reads through libmodbus's own ``modbus_read_registers`` (``Context.read_libmodbus``:
-  its send, and a select() and a read() per phase of the reply), no decoding;
+* the floor (the "bare-libmodbus floor" of the targets in bench/gate.py): a bare loop
+  issuing the driver's block reads through libmodbus's own ``modbus_read_registers``
+  (``Context.read_libmodbus``: its send, then a select() and a read() per phase of the
+  reply), no decoding;
 * our bare reader, reported beside it and not gated: the same loop through our own C
   transaction (``Context.read``: csrc/emb_io.c ``emb_read`` over csrc/emb_rtu.c, which
   the driver's engine calls), no decoding: what the driver adds to its own reader;
@@ -26,7 +27,7 @@ configured tag for 100,000 tags; it runs in a fresh process so that earlier test
 hide allocations.  Nothing here asserts a speed: the figures go to the table and to
 ``benchmark.extra_info``, and the headline ratios (the paired medians of (a) / floor,
 (b) / floor and pymodbus / (a), and KB per tag) to the gate, whose targets are those of
-issues 13 and 26 (bench/gate.py).
+issue 13 (bench/gate.py).
 
 EDGEMODBUS_BENCH_PROFILE=1 adds a cProfile of the line worker during (a) and (b).
 """
