@@ -317,9 +317,11 @@ class Context:
 
     def read_libmodbus(self, slave: int, address: int, count: int) -> Block:
         """FC03 through libmodbus's own send and receive path (``modbus_read_registers``),
-        not ours.  The benchmark baseline only (bench/test_bench_serial.py): on a serial
-        line libmodbus wakes once per byte of the reply, and it checks less than
-        :meth:`read` does (see csrc/emb_io.c); the driver never calls this."""
+        not ours.  The benchmark baseline only (bench/test_bench_serial.py, the floor of
+        bench/test_bench_driver.py, bench/syscalls.py): on a serial line libmodbus wakes
+        once per byte of the reply, on a socket it makes a select() and a read() per
+        phase of the reply, and it checks less than :meth:`read` does (see
+        csrc/emb_io.c); the driver never calls this."""
         block = self.registers
         if lib.modbus_set_slave(self._ptr, slave) == -1:
             raise error_from_errno(ffi.errno, f"slave {slave}")
