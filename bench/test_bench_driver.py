@@ -1,11 +1,16 @@
 """Issue 5: the whole driver, 10,000 tags on 10 slaves over RTU-over-TCP.
 
 Client CPU (this process, all threads: time.process_time) per tag read, with the slaves
-played by our simulator in its own process, against two references measured in the
-same run on the same slave and the same block list:
+played by our simulator in its own process, against references measured in the same run
+on the same slave and the same block list:
 
-* the floor: a bare loop issuing the driver's block reads straight through libmodbus
-  (``_ffi.Context``), no decoding: the I/O cost nothing can avoid;
+* the floor (the "bare-libmodbus floor" of the targets in bench/gate.py): a bare loop
+  issuing the driver's block reads through libmodbus's own ``modbus_read_registers``
+  (``Context.read_libmodbus``: its send, then a select() and a read() per phase of the
+  reply), no decoding;
+* our bare reader, reported beside it and not gated: the same loop through our own C
+  transaction (``Context.read``: csrc/emb_io.c ``emb_read`` over csrc/emb_rtu.c, which
+  the driver's engine calls), no decoding: what the driver adds to its own reader;
 * pymodbus 3.16.1's sync client doing the same block reads plus
   ``convert_from_registers`` for every item.
 
@@ -300,7 +305,7 @@ def entries_per_round(drivers: Drivers, seconds: float) -> float:
         dispatch(*args)
 
     start = [drv.stats()["cycles"] for drv in drivers.drivers]
-    worker._dispatch = counted  # type: ignore[method-assign]
+    worker._dispatch = counted  # type: ignore[method-assign,assignment]
     try:
         time.sleep(seconds)
     finally:
@@ -317,28 +322,50 @@ def _connect(port: int) -> socket.socket:
     return sock
 
 
-def measure_floor(line: Line, passes: int) -> Window:
-    """The driver's block list read straight through libmodbus (a Context on a socket
-    of its own, as the line worker opens it), nothing decoded.  ``passes`` is made odd: with
-    the warm-up pass every block is read an even number of times, so the values the
-    driver reads next have flipped as usual."""
+def measure_bare(line: Line, passes: int, reader: Literal["libmodbus", "ours"]) -> Window:
+    """The driver's block list read in a bare loop (a Context on a socket of its own, as
+    the line worker opens it), nothing decoded: through libmodbus's own
+    ``modbus_read_registers`` (``reader="libmodbus"``, the floor) or through our C
+    transaction (``"ours"``, ``Context.read``).  ``passes`` is made odd: with the warm-up
+    pass every block is read an even number of times, so the values the driver reads
+    next have flipped as usual."""
     passes |= 1
     sock = _connect(line.sim.port)
-    ctx = Context.on_socket(sock.fileno(), "floor", mbap=False)
+    ctx = Context.on_socket(sock.fileno(), f"bare {reader}", mbap=False)
     try:
         ctx.set_timeouts(1.0, 0.2)
         plan = [(s, start, count) for s, start, count, _ in line.blocks]
-        read = ctx.read
-        for s, start, count in plan:  # warm-up pass
-            read(s, 3, start, count)
+        if reader == "libmodbus":
+            read_libmodbus = ctx.read_libmodbus
+
+            def one_pass() -> None:
+                for s, start, count in plan:
+                    read_libmodbus(s, start, count)
+        else:
+            read = ctx.read
+
+            def one_pass() -> None:
+                for s, start, count in plan:
+                    read(s, 3, start, count)
+
+        one_pass()  # warm-up
         cpu0 = cpu_seconds()
         for _ in range(passes):
-            for s, start, count in plan:
-                read(s, 3, start, count)
+            one_pass()
         return Window(cpu_seconds() - cpu0, passes * line.n_tags)
     finally:
         ctx.close()
         sock.close()
+
+
+def measure_floor(line: Line, passes: int) -> Window:
+    """The floor: the block list through libmodbus's ``modbus_read_registers``."""
+    return measure_bare(line, passes, "libmodbus")
+
+
+def measure_reader(line: Line, passes: int) -> Window:
+    """Our bare reader: the block list through ``Context.read`` (csrc/emb_io.c)."""
+    return measure_bare(line, passes, "ours")
 
 
 def _pymodbus_decoder(tag: Tag) -> Callable[[Sequence[int]], object]:
@@ -424,9 +451,11 @@ def test_driver_cpu_per_tag(line: Line, benchmark: Any) -> None:
     window = 2.0 if not QUICK else 0.6
     passes = scale(25, 5)  # ~20 ms of line time per pass
     pym_passes = scale(9, 3)
-    runs: dict[str, list[Window]] = {"floor": [], "pymodbus": [], "a": [], "b": []}
+    runs: dict[str, list[Window]] = {"floor": [], "reader": [], "pymodbus": [], "a": [],
+                                     "b": []}
     entries: list[float] = []  # Python entries per round, in (a)
-    pairs: dict[str, list[float]] = {"a": [], "b": [], "pym_a": []}
+    pairs: dict[str, list[float]] = {"a": [], "b": [], "pym_a": [], "reader": [],
+                                     "a_reader": []}
     profiles: dict[str, str] = {}
     try:
         for key, fraction in SCENARIOS:
@@ -436,13 +465,17 @@ def test_driver_cpu_per_tag(line: Line, benchmark: Any) -> None:
                     # the references run on the line worker, between two driver windows
                     floor = drivers.on_worker(lambda: measure_floor(line, passes))
                     ours = measure_driver(drivers, window)
+                    reader = drivers.on_worker(lambda: measure_reader(line, passes))
                     pym = drivers.on_worker(lambda: measure_pymodbus(line, pym_passes))
                     runs["floor"].append(floor)
+                    runs["reader"].append(reader)
                     runs[key].append(ours)
                     runs["pymodbus"].append(pym)
                     pairs[key].append(ours.us_per_tag / floor.us_per_tag)
+                    pairs["reader"].append(reader.us_per_tag / floor.us_per_tag)
                     if key == "a":
                         pairs["pym_a"].append(pym.us_per_tag / ours.us_per_tag)
+                        pairs["a_reader"].append(ours.us_per_tag / reader.us_per_tag)
                 if key == "a":
                     entries.append(entries_per_round(drivers, window))
                 if PROFILE:
@@ -456,7 +489,8 @@ def test_driver_cpu_per_tag(line: Line, benchmark: Any) -> None:
     def best(key: str) -> Window:
         return min(runs[key], key=lambda w: w.us_per_tag)
 
-    floor, pym, a, b = best("floor"), best("pymodbus"), best("a"), best("b")
+    floor, reader, pym = best("floor"), best("reader"), best("pymodbus")
+    a, b = best("a"), best("b")
     changed_a = statistics.mean(w.changed_fraction for w in runs["a"])
     changed_b = statistics.mean(w.changed_fraction for w in runs["b"])
     n_blocks = len(line.blocks)
@@ -467,6 +501,11 @@ def test_driver_cpu_per_tag(line: Line, benchmark: Any) -> None:
         "tags_per_block": per_block,
         "floor_us_per_tag": floor.us_per_tag,
         "floor_us_per_block": floor.us_per_tag * per_block,
+        "reader_us_per_tag": reader.us_per_tag,
+        "reader_us_per_block": reader.us_per_tag * per_block,
+        "ratio_reader_floor": reader.us_per_tag / floor.us_per_tag,
+        "paired_median_ratio_reader_floor": statistics.median(pairs["reader"]),
+        "paired_median_ratio_a_reader": statistics.median(pairs["a_reader"]),
         "pymodbus_us_per_tag": pym.us_per_tag,
         "a_us_per_tag": a.us_per_tag,
         "b_us_per_tag": b.us_per_tag,
@@ -489,8 +528,15 @@ def test_driver_cpu_per_tag(line: Line, benchmark: Any) -> None:
         f"client CPU per tag read: {line.n_tags} tags on 10 slaves, {n_blocks} blocks of "
         f"<= {BLOCK} registers, RTU over TCP (best of {len(runs['floor'])} / {repeats})",
         [
-            ("floor: bare libmodbus block reads, no decoding", floor.us_per_tag, "us/tag"),
+            ("floor: bare libmodbus (modbus_read_registers) block reads, no decoding",
+             floor.us_per_tag, "us/tag"),
             ("  the same, per block read", info["floor_us_per_block"], "us/block"),
+            ("our bare reader (Context.read, csrc/emb_io.c), no decoding",
+             reader.us_per_tag, "us/tag"),
+            ("  the same, per block read", info["reader_us_per_block"], "us/block"),
+            ("our bare reader / floor", info["ratio_reader_floor"], "x"),
+            ("    median of paired windows (not gated)",
+             info["paired_median_ratio_reader_floor"], "x"),
             ("pymodbus 3.16.1 reads + convert_from_registers", pym.us_per_tag, "us/tag"),
             ("(a) driver, 1% of values change", a.us_per_tag, "us/tag"),
             ("    changed per tag read (valuesChanged)", 100 * changed_a, "%"),
@@ -500,6 +546,8 @@ def test_driver_cpu_per_tag(line: Line, benchmark: Any) -> None:
             ("    median of paired windows (gated)", info["paired_median_ratio_a_floor"], "x"),
             ("(b) / floor", info["ratio_b_floor"], "x"),
             ("    median of paired windows (gated)", info["paired_median_ratio_b_floor"], "x"),
+            ("(a) / our bare reader, median of paired windows (not gated)",
+             info["paired_median_ratio_a_reader"], "x"),
             ("pymodbus / (a)", info["ratio_pymodbus_a"], "x"),
             ("    median of paired windows (gated)", info["paired_median_ratio_pymodbus_a"], "x"),
             ("pymodbus / (b)", info["ratio_pymodbus_b"], "x"),

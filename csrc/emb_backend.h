@@ -41,7 +41,10 @@ typedef struct emb_backend {
                      int byte_ms);
     /* Receive one reply frame into rsp (EMB_MAX_ADU bytes), its integrity checked (CRC):
      * its length, 0 for an RTU frame from another slave, -1 with errno (ETIMEDOUT,
-     * EMB_EPARTIAL, EMBBADDATA, EMBBADCRC, the link's).  *got: the bytes taken. */
+     * EMB_EPARTIAL, EMBBADDATA, EMBBADCRC, the link's).  *got: the bytes taken, which a
+     * receiver that reads past the frame (plain RTU and Modbus TCP on a socket,
+     * csrc/emb_rtu.c) leaves in rsp behind it; on entry, the bytes of such a read that
+     * the caller put back at rsp's start (0 else; the others ignore it). */
     int (*recv)(emb_link *lk, int fd, const emb_want *want, int first_ms, int byte_ms,
                 uint8_t *rsp, int *got);
     /* The header fields of a reply that are not in the PDU (MBAP: transaction id,

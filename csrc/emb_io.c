@@ -186,7 +186,7 @@ static int emb_exchange(modbus_t *ctx, emb_link *lk, int slave, const uint8_t *p
     int64_t start;
     emb_want want;
     int sent_len = 0;
-    int len, len2, err, err2, exc, exc2, got, got2, wait, skipped = 0;
+    int len, len2, err, err2, exc, exc2, got = 0, got2, extra, wait, skipped = 0;
 
     lk->rsp_len = 0;
     if (be->prepare(lk, fd) == -1)
@@ -222,9 +222,12 @@ static int emb_exchange(modbus_t *ctx, emb_link *lk, int slave, const uint8_t *p
         if (err != EMB_ETID)
             break;
         /* Modbus TCP: a reply to an earlier request (its transaction id says so) is
-         * skipped and ours is awaited for the rest of the response timeout. */
+         * skipped and ours is awaited for the rest of the response timeout; what was
+         * read behind it is the start of what came next (emb_backend.recv). */
         lk->discarded += len;
         skipped++;
+        got -= len;
+        memmove(rsp, rsp + len, (size_t)got);
         wait = emb_timeout_ms(ctx, 0) - (int)((emb_now_ns() - start) / 1000000);
         if (wait <= 0) {
             errno = EMB_ETID;
@@ -233,8 +236,14 @@ static int emb_exchange(modbus_t *ctx, emb_link *lk, int slave, const uint8_t *p
     }
     /* Another whole frame right behind this one (a DTU that held a late reply and sends
      * it with the next one, or repeats a reply): the last answer to this request wins,
-     * so a stale reply to an earlier request is never taken for this one. */
-    if (be->min_next > 0 && be->pending(lk, fd) >= be->min_next) {
+     * so a stale reply to an earlier request is never taken for this one.  Behind it:
+     * the bytes the receiver read past the frame (a socket's greedy read), else those
+     * waiting in the link (emb_backend.pending). */
+    extra = got > len ? got - len : 0;
+    if (be->min_next > 0 &&
+        (extra ? extra : be->pending(lk, fd)) >= be->min_next) {
+        memcpy(next, rsp + len, (size_t)extra);
+        got2 = extra;
         len2 = be->recv(lk, fd, &want, 0, byte_ms, next, &got2);
         emb_trace_put(lk, EMB_TRACE_RX, next, len2 > 0 ? len2 : got2);
         if (len2 > 0) {
@@ -248,9 +257,13 @@ static int emb_exchange(modbus_t *ctx, emb_link *lk, int slave, const uint8_t *p
             } else {
                 lk->discarded += len2;
             }
+            lk->discarded += got2 - len2; /* read past the second frame: stale input */
         } else {
             lk->discarded += got2; /* another slave's frame, or a bad one */
         }
+    } else {
+        lk->discarded += extra; /* too few to be a frame: stale input, as if dropped by
+                                 * the next request's prepare */
     }
     lk->rsp_len = len; /* also when rejected: the caller may show why */
     if (err && echo_seen)

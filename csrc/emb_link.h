@@ -52,6 +52,11 @@ typedef struct {
                        * parity and stop bits at the baud rate); 0 on sockets.  The
                        * reader then sleeps while the rest of a frame is on its way
                        * instead of waking for every byte. */
+    long syscalls;  /* system calls of the plain RTU and Modbus TCP transactions
+                     * (csrc/emb_rtu.c: stale input dropped, request sent, waits, reads,
+                     * the pending check); the caller reads it */
+    int rx_drained; /* private to csrc/emb_rtu.c: the socket reader's last read came
+                     * back short, so nothing more was waiting behind the reply */
     /* DTU streams (RTU over a socket; csrc/emb_stream.c frames them byte for byte) */
     int wrapped;            /* edge-MCU frames: FF AA | register address | RTU frame | 0D;
                              * frames other than the reply are unsolicited reports */

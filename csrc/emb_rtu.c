@@ -75,11 +75,11 @@ int emb_rtu_frame(int slave, const uint8_t *pdu, int pdu_len, uint8_t *sent, int
 int emb_rtu_send(modbus_t *ctx, emb_link *lk, int slave, const uint8_t *pdu, int pdu_len,
                  uint8_t *sent, int *sent_len)
 {
-    (void)lk;
     if (emb_rtu_frame(slave, pdu, pdu_len, sent, sent_len) == -1)
         return -1;
     if (modbus_set_slave(ctx, slave) == -1)
         return -1;
+    lk->syscalls++; /* one write(2) in libmodbus, with no RTS line to drive */
     return modbus_send_raw_request(ctx, sent, pdu_len + 1) == -1 ? -1 : 0;
 }
 
@@ -97,6 +97,7 @@ static int emb_mbap_send(modbus_t *ctx, emb_link *lk, int slave, const uint8_t *
     sent[6] = (uint8_t)slave;
     memcpy(sent + EMB_MBAP, pdu, (size_t)pdu_len);
     *sent_len = EMB_MBAP + pdu_len;
+    lk->syscalls++;
     return emb_write_all(modbus_get_socket(ctx), sent, *sent_len);
 }
 
@@ -137,26 +138,58 @@ static int emb_rtu_skip_echo(emb_link *lk, int fd, const uint8_t *sent, int sent
     return 0;
 }
 
-/* Receive one reply frame into rsp with poll() and read(), reading exactly what the
- * frame still needs (emb_reply_length), never a byte past its end: what follows stays in
- * the fd (another frame that csrc/emb_io.c looks at, or stale input that the next
- * request drops).  first_ms: the wait for the first byte; then byte_ms between bytes
+/* Receive one reply frame into rsp (EMB_MAX_ADU bytes): its length, 0 for an RTU frame
+ * from another slave (not CRC-checked, as libmodbus), -1 with errno; the contract of
+ * emb_backend.recv.  first_ms: the wait for the first byte; then byte_ms between bytes
  * (0: the whole frame within first_ms, as libmodbus), on a serial line counted from when
- * the bytes should have come (emb_pace).  The contract of emb_backend.recv; an RTU frame
- * from another slave is not CRC-checked (libmodbus does the same). */
+ * the bytes should have come (emb_pace).
+ *
+ * On a serial line (lk->char_ns) it reads exactly what the frame still needs
+ * (emb_reply_length), never a byte past its end: what follows stays in the fd (another
+ * frame that csrc/emb_io.c looks at, or stale input that the next request drops).
+ *
+ * On a socket it waits with poll() and then reads all that is there, up to the buffer
+ * (a greedy read): a reply that came whole costs one poll() and one read(), where
+ * libmodbus makes a select() and a read() per phase (function, byte count, data) and a
+ * reader of exact lengths two of each.  The bytes read past the frame come back in
+ * rsp after it (*got > the length): csrc/emb_io.c looks at them as it looks at the
+ * pending bytes of a serial line ("the last answer wins"), and hands them back as *got
+ * on entry when it calls again (a Modbus TCP reply to an earlier request skipped).  A
+ * read that came back short took everything that was waiting (emb_recv_now), so
+ * nothing is pending behind the frame then (lk->rx_drained) and emb_fd_pending makes
+ * no call to ask. */
 static int emb_fd_recv(emb_link *lk, int fd, int mbap, int slave, int first_ms,
                        int byte_ms, uint8_t *rsp, int *got)
 {
-    int need = emb_reply_length(rsp, 0, mbap);
-    int n_got = 0;
-    int rc;
+    int greedy = lk->char_ns == 0;
+    int n_got = greedy && *got > 0 ? *got : 0;
+    int need = emb_reply_length(rsp, n_got, mbap);
+    int want, rc;
     ssize_t n;
     uint16_t crc;
     emb_pacer pace;
 
-    *got = 0;
-    emb_pacer_start(&pace, first_ms);
-    for (;;) {
+    /* the last read filled the buffer: the rest is likely there already, so try a read
+     * that does not wait before waiting (a poll() saved when it is) */
+    int now = n_got > 0 && !lk->rx_drained;
+
+    *got = n_got;
+    if (!greedy)
+        lk->rx_drained = 0;
+    /* bytes carried over count as received just now: the byte timeout runs from here */
+    emb_pacer_start(&pace, n_got > 0 && byte_ms > 0 ? byte_ms : first_ms);
+    while (need >= 0 && n_got < need) {
+        want = (greedy ? EMB_MAX_ADU : need) - n_got;
+        if (now) {
+            now = 0;
+            lk->syscalls++;
+            n = emb_recv_now(fd, rsp + n_got, (size_t)want);
+            if (n == -1 && errno != ENOTSOCK)
+                return -1;
+            if (n > 0)
+                goto took;
+        }
+        lk->syscalls++;
         rc = emb_wait_until(fd, pace.deadline);
         if (rc == -1)
             return -1;
@@ -164,32 +197,34 @@ static int emb_fd_recv(emb_link *lk, int fd, int mbap, int slave, int first_ms,
             errno = n_got ? EMB_EPARTIAL : ETIMEDOUT;
             return -1;
         }
-        n = emb_read_some(fd, rsp + n_got, (size_t)(need - n_got));
+        lk->syscalls++;
+        n = emb_read_some(fd, rsp + n_got, (size_t)want);
         if (n < 0)
             return -1;
         if (n == 0)
             continue;
+took:
         n_got += (int)n;
         *got = n_got;
+        lk->rx_drained = greedy && n < want;
         need = emb_reply_length(rsp, n_got, mbap);
-        if (need < 0) {
-            errno = EMBBADDATA;
-            return -1;
-        }
-        if (n_got >= need)
-            break;
-        emb_pace(lk, &pace, (int)n, need - n_got, byte_ms);
+        if (need >= 0 && n_got < need)
+            emb_pace(lk, &pace, (int)n, need - n_got, byte_ms);
+    }
+    if (need < 0) {
+        errno = EMBBADDATA;
+        return -1;
     }
     if (mbap)
-        return n_got;
+        return need;
     if (rsp[0] != slave && rsp[0] != 0) /* 0: a broadcast address is checked, as libmodbus */
         return 0;
-    crc = emb_crc16(rsp, n_got - 2);
-    if (rsp[n_got - 2] != (crc & 0xFF) || rsp[n_got - 1] != (crc >> 8)) {
+    crc = emb_crc16(rsp, need - 2);
+    if (rsp[need - 2] != (crc & 0xFF) || rsp[need - 1] != (crc >> 8)) {
         errno = EMBBADCRC;
         return -1;
     }
-    return n_got;
+    return need;
 }
 
 static int emb_rtu_recv(emb_link *lk, int fd, const emb_want *want, int first_ms,
@@ -210,20 +245,51 @@ static int emb_mbap_check_header(const emb_link *lk, const uint8_t *rsp, int len
 }
 
 /* Drop whatever input is already pending (a reply we gave up on, noise, an answer to
- * a broadcast) so that it cannot be taken as the answer to the request we send next. */
+ * a broadcast) so that it cannot be taken as the answer to the request we send next.
+ * A socket: recv(MSG_DONTWAIT) until a read comes back short, one call when nothing
+ * waits; a serial line (or any fd that is no socket): poll(0) and read() until poll
+ * finds nothing, as emb_discard_input(fd, 0, 0, 0). */
 static int emb_fd_prepare(emb_link *lk, int fd)
 {
-    long n = emb_discard_input(fd, 0, 0, 0);
+    uint8_t sink[512];
+    ssize_t n;
+    int rc;
 
-    if (n == -1)
-        return -1;
-    lk->discarded += n;
-    return 0;
+    if (lk->char_ns == 0) {
+        for (;;) {
+            lk->syscalls++;
+            n = emb_recv_now(fd, sink, sizeof sink);
+            if (n == -1 && errno == ENOTSOCK)
+                break;
+            if (n == -1)
+                return -1;
+            lk->discarded += n;
+            if (n < (ssize_t)sizeof sink)
+                return 0;
+        }
+    }
+    for (;;) {
+        lk->syscalls++;
+        rc = emb_wait_readable(fd, 0);
+        if (rc == -1)
+            return -1;
+        if (rc == 0)
+            return 0;
+        lk->syscalls++;
+        n = emb_read_some(fd, sink, sizeof sink);
+        if (n < 0)
+            return -1;
+        lk->discarded += n;
+    }
 }
 
+/* Bytes received and not read yet: none without asking when the socket reader's last
+ * read came back short (emb_fd_recv), else FIONREAD. */
 static int emb_fd_pending(emb_link *lk, int fd)
 {
-    (void)lk;
+    if (lk->rx_drained)
+        return 0;
+    lk->syscalls++;
     return emb_pending(fd);
 }
 

@@ -15,6 +15,7 @@ int emb_wait_readable(int fd, int ms);
 int emb_wait_until(int fd, int64_t deadline_ns);
 int emb_eof_errno(int fd);
 ssize_t emb_read_some(int fd, uint8_t *p, size_t len);
+ssize_t emb_recv_now(int fd, uint8_t *p, size_t len);
 int emb_pending(int fd);
 int emb_write_all(int fd, const uint8_t *p, int n);
 long emb_discard_input(int fd, int total_ms, int quiet_ms, int limit_ms);

@@ -21,6 +21,7 @@ typedef struct {
     long discarded;
     int rsp_len;
     uint32_t char_ns;
+    long syscalls;
     int wrapped;
     uint32_t hb_len;
     uint8_t hb[64];

@@ -153,6 +153,14 @@ class Context:
             self._link.discarded = 0
         return n
 
+    @property
+    def syscalls(self) -> int:
+        """System calls the plain RTU and Modbus TCP transactions made on this context
+        so far (csrc/emb_rtu.c counts them: stale input dropped, request sent, waits,
+        reads, the pending check); what one read costs the kernel, for tests and
+        bench/syscalls.py."""
+        return int(self._link.syscalls)
+
     def take_counters(self) -> StreamCounters | None:
         """Heartbeats, dropped frames and lost reports counted since the last call (None:
         nothing)."""
@@ -314,9 +322,11 @@ class Context:
 
     def read_libmodbus(self, slave: int, address: int, count: int) -> Block:
         """FC03 through libmodbus's own send and receive path (``modbus_read_registers``),
-        not ours.  The benchmark baseline only (bench/test_bench_serial.py): on a serial
-        line libmodbus wakes once per byte of the reply, and it checks less than
-        :meth:`read` does (see csrc/emb_io.c); the driver never calls this."""
+        not ours.  The benchmark baseline only (bench/test_bench_serial.py, the floor of
+        bench/test_bench_driver.py, bench/syscalls.py): on a serial line libmodbus wakes
+        once per byte of the reply, on a socket it makes a select() and a read() per
+        phase of the reply, and it checks less than :meth:`read` does (see
+        csrc/emb_io.c); the driver never calls this."""
         block = self.registers
         if lib.modbus_set_slave(self._ptr, slave) == -1:
             raise error_from_errno(ffi.errno, f"slave {slave}")
