@@ -357,16 +357,16 @@ def test_the_port_s_engine_key_puts_its_dtus_on_a_loop_thread() -> None:
                                               other.address_list)
 
 
-def test_the_loop_is_the_default_thread_stays_selectable_and_wrapped_dtus_keep_a_thread(
+def test_the_loop_is_the_default_for_every_dtu_framing_and_thread_stays_selectable(
         ) -> None:
-    """No ``engine`` key: a plain DTU's line is on a loop thread; ``engine: "thread"``
-    (another port) gives it a line thread of its own; a wrapped-report DTU, which the
-    loop does not serve (line/loop.py loop_serves), keeps a line thread by default."""
+    """No ``engine`` key ("auto"): a plain DTU's line is on a loop thread, and so is a
+    wrapped-report DTU's; ``engine: "thread"`` (another port) gives a DTU a line
+    thread of its own."""
     plain_port, thread_port, wrapped_port = free_port(), free_port(), free_port()
     plain = dtu_device(plain_port, "DEF-P", 1)
     threaded = dtu_device(thread_port, "DEF-T", 1, engine="thread")
     wrapped = dtu_device(wrapped_port, "DEF-W", 1, framing="wrapped-report")
-    assert plain.communication.engine == "loop"
+    assert plain.communication.engine == "auto"
 
     def line_threads(dtu_id: str) -> list[str]:
         return [t.name for t in threading.enumerate()
@@ -375,9 +375,9 @@ def test_the_loop_is_the_default_thread_stays_selectable_and_wrapped_dtus_keep_a
     with ExitStack() as stack:
         sims = [stack.enter_context(Simulator(slaves=[1])) for _ in range(2)]
         stack.enter_context(running(plain, threaded, wrapped))
-        assert line_threads("DEF-P") == []
+        assert line_threads("DEF-P") == line_threads("DEF-W") == []
         assert [t.name for t in threading.enumerate() if t.name.startswith("edgemodbus-loop")]
-        assert len(line_threads("DEF-T")) == 1 and len(line_threads("DEF-W")) == 1
+        assert len(line_threads("DEF-T")) == 1
         sims[0].dial("127.0.0.1", plain_port, registration=b"DEF-P")
         sims[1].dial("127.0.0.1", thread_port, registration=b"DEF-T")
         for cfg in (plain, threaded):

@@ -79,7 +79,9 @@ def test_fifty_dtus_each_answer_from_their_own_registers() -> None:
             assert stats["connected"] == stats["connections"] == n
             assert stats["requests"] >= n and stats["dial_failures"] == 0
             assert stats["unknown_slave"] == stats["discarded_bytes"] == 0
-            assert tcp_fds(port) == (n, n)
+            # one end each side per DTU (waited for: an end another test's line closes at
+            # its next read may still hold a port number reused for this listener)
+            wait_for(lambda: tcp_fds(port) == (n, n), timeout=10, what="one end per DTU")
         # Stopped: the loop's thread is gone and so is every socket and fd of the fleet;
         # the drivers close their ends as their lines see the hang-ups (a line worker at
         # its next read, a loop worker at its next turn): waited for, not read once.
