@@ -7,8 +7,10 @@
  * its outcomes (a block's failure, a status change, a block to split).  Devices whose
  * pass ended with news are listed (ended_list) and handed over together, once nothing
  * more is due or before such a device begins its next pass.  Every link kind runs here,
- * DTU streams too (their heartbeats are skipped in C and counted live; a read that took
- * wrapped reports comes back to Python with them, EMB_EV_REPORTS). */
+ * DTU streams too (their heartbeats are skipped in C and counted live; the wrapped
+ * reports a read took, or that came while the link was idle, are applied in C to the
+ * devices' block decoders, csrc/emb_report.c, and taken by Python with the pass's
+ * changes; those C cannot apply come back to Python, EMB_EV_REPORTS / EMB_EV_INPUT). */
 #define _GNU_SOURCE /* ppoll */
 #include "emb_engine.h"
 
@@ -17,6 +19,8 @@
 #include <errno.h>
 #include <poll.h>
 #include <time.h>
+
+#include "emb_report.h"
 
 /* A block due this soon (at most a tenth of its period, and EMB_JOIN_NS) is read in the
  * pass that begins now: blocks whose rates are multiples of each other stay in step. */
@@ -160,6 +164,13 @@ int emb_dev_split(emb_device *d, emb_eblock *blocks, uint32_t *pass_list, uint32
         else
             pass_list[n++] = b + k - 1;
     }
+    for (i = j = 0; i < d->n_rep; i++) { /* the blocks holding a report, renumbered */
+        uint32_t b = d->rep_list[i];
+
+        if (b != at) /* (Python takes the reports before it splits: never the block) */
+            d->rep_list[j++] = b < at ? b : b + k - 1;
+    }
+    d->n_rep = j;
     d->blocks = blocks;
     d->pass_list = pass_list;
     d->n_blocks += k - 1;
@@ -167,8 +178,7 @@ int emb_dev_split(emb_device *d, emb_eblock *blocks, uint32_t *pass_list, uint32
     return 0;
 }
 
-/* A DTU stream's read left what only Python handles: wrapped reports (applied in the
- * order they came around the reply), dropped frames or lost reports (logged). */
+/* A DTU stream's read left wrapped reports, dropped frames or lost reports. */
 static int emb_has_reports(const emb_link *lk)
 {
     return lk->n_reports > 0 || lk->dropped > 0 || lk->reports_lost > 0;
@@ -281,6 +291,40 @@ static void emb_ended(emb_engine *e, emb_device *d, int which)
     e->ended_list[e->n_ended++] = (uint32_t)which;
 }
 
+/* The reports waiting in the link's ring, taken after a read of block cur of device
+ * `which` (-1, NULL: while idle): applied in C (csrc/emb_report.c) when they all can be,
+ * a device not in a pass that got news listed for Python (before its next pass, as a
+ * pass's end); 1 if so.  0: Python applies them, and logs dropped frames or lost
+ * reports (it reads those counts from the link). */
+static int emb_take_reports(emb_engine *e, int which, const emb_eblock *cur)
+{
+    uint32_t i;
+
+    if (e->lk->dropped > 0 || e->lk->reports_lost > 0 || !emb_reports_apply(e, which, cur))
+        return 0;
+    for (i = 0; i < e->n_devices; i++) {
+        emb_device *d = e->devices[i];
+
+        if (d->n_rep && !d->in_pass && !d->ended) {
+            d->taken = d->n_pass; /* its last pass, not listed: nothing there for Python */
+            emb_ended(e, d, (int)i);
+        }
+    }
+    return 1;
+}
+
+/* Input on an idle wrapped link (watch_fd): read and frame it, heartbeats and stale
+ * bytes counted live, the reports applied in C.  1 if that was all; 0: Python pumps
+ * (emb_pump failed: the link is lost, which Python's pump finds again) or takes the
+ * reports. */
+static int emb_idle_input(emb_engine *e)
+{
+    if (e->rep_regs == NULL || emb_pump(e->ctx, e->lk) == -1)
+        return 0;
+    emb_fault_took(e);
+    return emb_take_reports(e, -1, NULL);
+}
+
 /* Run the line until something needs Python (an EMB_EV_* code; event_device and
  * event_errno say more) or until until_ns.
  *
@@ -291,6 +335,7 @@ static void emb_ended(emb_engine *e, emb_device *d, int which)
  * the wake flag is seen at once, as without owed. */
 int emb_engine_run(emb_engine *e, int64_t until_ns)
 {
+    const emb_eblock *cur;
     emb_device *d;
     int64_t now, wait;
     int which = -1, ev;
@@ -320,6 +365,8 @@ int emb_engine_run(emb_engine *e, int64_t until_ns)
                 e->lk->trace->first_ns + EMB_TRACE_FLUSH_NS < wait)
                 wait = e->lk->trace->first_ns + EMB_TRACE_FLUSH_NS;
             ev = emb_sleep(e, wait, 1);
+            if (ev == EMB_EV_INPUT && emb_idle_input(e))
+                continue;
             if (ev >= 0)
                 return ev;
             continue;
@@ -334,17 +381,20 @@ int emb_engine_run(emb_engine *e, int64_t until_ns)
                 ev = EMB_EV_WAKE;
             else if (e->lk->trace && e->lk->trace->used > EMB_TRACE_SIZE / 2)
                 ev = EMB_EV_TRACE; /* a long pass: Python logs what the ring holds */
+            if (ev < 0 && d->blocks[d->pass_list[d->index]].rep_pending)
+                ev = EMB_EV_REPORTS; /* the block holds a report: Python takes it first */
             if (ev >= 0) {
                 e->event_device = which; /* interrupted mid-pass */
                 return ev;
             }
             e->owed = 0; /* this read pays for the job that ran before it */
+            cur = &d->blocks[d->pass_list[d->index]];
             ev = emb_step(e, d);
             if (ev != 0) {
                 e->event_device = which;
                 return ev;
             }
-            if (emb_has_reports(e->lk)) {
+            if (emb_has_reports(e->lk) && !emb_take_reports(e, which, cur)) {
                 e->event_device = which; /* the pass goes on when Python hands it back */
                 return EMB_EV_REPORTS;
             }
