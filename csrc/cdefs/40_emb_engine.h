@@ -155,6 +155,7 @@ void emb_dev_all_due(emb_device *d, int64_t at_ns);
 void emb_dev_due_at(emb_device *d, int64_t at_ns);
 int emb_dev_split(emb_device *d, emb_eblock *blocks, uint32_t *pass_list, uint32_t at,
                   uint32_t k);
+int emb_reports_apply(emb_engine *e, int cur_dev, const emb_eblock *cur);
 long emb_decode_range(emb_plan *p, const uint32_t *span, const void *data, uint32_t count,
                       uint32_t lo, uint32_t hi, uint32_t *found);
 

@@ -13,13 +13,15 @@ from typing import Any
 import pytest
 
 import edgemodbus as em
-from edgemodbus.datatypes import ItemStatus
+from edgemodbus.datatypes import Area, ItemStatus
 from edgemodbus.line.link import ContextLink
+from edgemodbus.poll.poller import Poller
 from edgemodbus.sim import Simulator, default_register
 from tests.integration.test_dtu import dtu_device, free_port, ok, running, values
 from tests.integration.test_engine import MasterCalls
 from tests.integration.test_wrapped_link import EagerMcu
 from tests.integration.test_wrapped_link import running as running_one
+from tests.integration.test_wrapped_link import wrapped_device
 from tests.waiting import wait_for
 
 
@@ -98,3 +100,43 @@ def test_wrapped_reports_around_the_reply_in_the_engine(python_reads: list[str],
             assert before != polled or after >= 9000, r1
         else:  # the report, then the reply
             assert before < 9000 or after == polled, r1
+
+
+def test_wrapped_reports_inside_a_block_are_applied_in_c(
+        python_reads: list[str], monkeypatch: pytest.MonkeyPatch) -> None:
+    """An edge MCU (our simulator) polled every 50 ms as one block pushes one-register
+    reports: the engine applies them in C (csrc/emb_report.c).  Those that bring no news
+    cost no Python at all; those that do reach the item with the pass's changes, never
+    through the Python path (Poller.on_report)."""
+    python_path: list[int] = []
+    monkeypatch.setattr(Poller, "on_report", lambda self, report: python_path.append(
+        report.address))
+    hr = Area.HOLDING_REGISTER
+    seen: list[tuple[str, Any]] = []
+    with Simulator(slaves=[1]) as sim, MasterCalls() as watch:
+        port = sim.serve_tcp("127.0.0.1", 0, wrapped=True)
+        cfg = wrapped_device({"transport": "rtu-over-tcp", "tcpHost": "127.0.0.1",
+                              "tcpPort": port, "readCycle": 50, "maxMergeAddressGap": 100})
+        with running_one(cfg, address_updated_callback=lambda it: seen.append(
+                (it.name, it.value))) as drv:
+            wait_for(lambda: all(it.status is ItemStatus.OK for it in cfg.address_list),
+                     what="the first poll")
+            (client,) = sim.clients()
+            before = drv.stats()
+            watch.counting = True
+            for k in range(20):  # the values the slave holds: no news
+                client.push_report(1, hr, (1, 2, 30)[k % 3], 1)
+            wait_for(lambda: drv.stats()["reports"] >= before["reports"] + 20,
+                     what="20 reports applied")
+            watch.counting = False
+            calls = watch.calls
+            for value in (4242, 4243):  # news, while the slave holds the polled value
+                sim.slave(1).set_registers(hr, 30, [value])
+                client.push_report(1, hr, 30, 1)
+                sim.slave(1).set_registers(hr, 30, [default_register(1, 30)])
+                wait_for(lambda v=value: ("r30", v) in seen, what=f"the report of {value}")
+            stats = drv.stats()
+    assert not python_reads and not python_path
+    assert calls < 20, calls  # the Python path: dozens of calls a report
+    assert stats["line"]["reports"] == stats["reports"] >= before["reports"] + 22
+    assert stats["timeouts"] == stats["protocolErrors"] == 0
