@@ -57,7 +57,6 @@ typedef struct emb_eblock {
     uint8_t rep_pending; /* a report's decode Python has not taken (rep_n items listed in
                           * the plan's `changed`); nothing else decodes into the plan
                           * until Python took it */
-    uint8_t rep_mark;    /* scratch of emb_reports_apply: a report of the batch goes here */
     uint32_t rep_n;
     const uint32_t *rep_span; /* with rep_ok, per item of the plan: its first register (or
                                * bit) in the block and how many it has (its quantity),

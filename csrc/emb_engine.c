@@ -292,16 +292,15 @@ static void emb_ended(emb_engine *e, emb_device *d, int which)
 }
 
 /* The reports waiting in the link's ring, taken after a read of block cur of device
- * `which` (-1, NULL: while idle): applied in C (csrc/emb_report.c) when they all can be,
- * a device not in a pass that got news listed for Python (before its next pass, as a
- * pass's end); 1 if so.  0: Python applies them, and logs dropped frames or lost
- * reports (it reads those counts from the link). */
+ * `which` (-1, NULL: while idle): applied in C (csrc/emb_report.c) up to the first that
+ * cannot be, a device not in a pass that got news listed for Python (before its next
+ * pass, as a pass's end).  1 if that was all; 0: Python applies the rest, and logs
+ * dropped frames or lost reports (it reads those counts from the link). */
 static int emb_take_reports(emb_engine *e, int which, const emb_eblock *cur)
 {
+    int all = emb_reports_apply(e, which, cur);
     uint32_t i;
 
-    if (e->lk->dropped > 0 || e->lk->reports_lost > 0 || !emb_reports_apply(e, which, cur))
-        return 0;
     for (i = 0; i < e->n_devices; i++) {
         emb_device *d = e->devices[i];
 
@@ -310,7 +309,7 @@ static int emb_take_reports(emb_engine *e, int which, const emb_eblock *cur)
             emb_ended(e, d, (int)i);
         }
     }
-    return 1;
+    return all && e->lk->dropped == 0 && e->lk->reports_lost == 0;
 }
 
 /* Input on an idle wrapped link (watch_fd): read and frame it, heartbeats and stale

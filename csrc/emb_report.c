@@ -14,17 +14,17 @@
  * holds one decode Python has not taken at a time, so a report is applied here only to
  * a block that holds none (no reply of the pass listed and not taken, no report, no new
  * failure), and never when it came before the reply of the block just read (the reply is
- * newer and was decoded already).  The reports waiting are applied all together or not
- * at all: when one of them cannot be applied here (a device that reports every item, a
- * report across blocks or outside every polled block, one that collides, ...) they all
- * go to Python in order, as before (EMB_EV_REPORTS, EMB_EV_INPUT).  No globals, no
- * allocation: the scratch buffers are the engine's. */
+ * newer and was decoded already).  The reports waiting are applied in order up to the
+ * first that cannot be applied here (a device that reports every item, a report across
+ * blocks or outside every polled block, one that collides, ...): it and those behind it
+ * go to Python, as before (EMB_EV_REPORTS, EMB_EV_INPUT), which takes what C applied
+ * before it applies them (Poller.take_reports).  No globals, no allocation: the scratch
+ * buffers are the engine's. */
 #include "emb_report.h"
 
 #include "emb_stream.h" /* emb_report_peek, emb_report_take */
 
 #define EMB_WRAP_PREFIX 4 /* FF AA and the register address */
-#define EMB_MARK_MAX 64   /* blocks one batch of reports may touch in C (more: Python) */
 
 /* One report, parsed from its wrapped frame (checked by csrc/emb_stream.c). */
 typedef struct {
@@ -83,10 +83,9 @@ static int emb_rep_untaken(const emb_device *d, uint32_t k)
 }
 
 /* Whether report r can be applied here to every device it concerns (active, its slave);
- * `before`: it came before the reply of block cur of device cur_dev.  The blocks it
- * goes to are marked (a second report of the batch for one of them cannot be). */
-static int emb_rep_check(emb_engine *e, const emb_rep *r, int before, int cur_dev,
-                         const emb_eblock *cur, emb_eblock **marked, uint32_t *n_marked)
+ * `before`: it came before the reply of block cur of device cur_dev. */
+static int emb_rep_check(const emb_engine *e, const emb_rep *r, int before, int cur_dev,
+                         const emb_eblock *cur)
 {
     uint32_t i, k;
 
@@ -101,12 +100,9 @@ static int emb_rep_check(emb_engine *e, const emb_rep *r, int before, int cur_de
         if (d->mode == EMB_MODE_ALL) /* every report of every item goes to the callbacks */
             return 0;
         b = emb_rep_block(d, r, &k);
-        if (b == NULL || b->rep_pending || b->rep_mark || b->fail_new ||
-            (before && (int)i == cur_dev && b == cur) || emb_rep_untaken(d, k) ||
-            *n_marked == EMB_MARK_MAX)
+        if (b == NULL || b->rep_pending || b->fail_new ||
+            (before && (int)i == cur_dev && b == cur) || emb_rep_untaken(d, k))
             return 0;
-        b->rep_mark = 1;
-        marked[(*n_marked)++] = b;
     }
     return 1;
 }
@@ -188,35 +184,27 @@ static void emb_rep_apply(emb_engine *e, const emb_rep *r)
     }
 }
 
-/* Apply every report waiting in the link's ring, in order, or none (then Python applies
- * them: the caller returns to it).  cur_dev, cur: the device and block just read (the
- * reports before its reply, lk->n_before, came before it), or -1 and NULL (idle).
- * Returns 1 if the ring was emptied here. */
+/* Apply the reports waiting in the link's ring, in order, up to the first that cannot be
+ * applied here (it stays, with those behind it, for Python: the caller returns to it).
+ * cur_dev, cur: the device and block just read (the reports before its reply,
+ * lk->n_before, came before it), or -1 and NULL (idle).  Returns 1 if the ring was
+ * emptied here. */
 int emb_reports_apply(emb_engine *e, int cur_dev, const emb_eblock *cur)
 {
     emb_link *lk = e->lk;
     uint8_t frame[EMB_REPORT_MAX];
-    emb_eblock *marked[EMB_MARK_MAX];
-    uint32_t i, at = 0, n_marked = 0;
+    uint32_t at;
     emb_rep r;
-    int ok;
 
-    if (lk->n_reports == 0)
-        return 1;
     if (e->rep_regs == NULL || e->rep_bits == NULL)
-        return 0;
-    ok = 1;
-    for (i = 0; ok && i < lk->n_reports; i++) {
+        return lk->n_reports == 0;
+    while (lk->n_reports > 0) {
+        at = 0;
         emb_report_peek(lk, &at, frame);
         emb_rep_parse(frame, &r);
-        ok = emb_rep_check(e, &r, i < lk->n_before, cur_dev, cur, marked, &n_marked);
-    }
-    for (i = 0; i < n_marked; i++)
-        marked[i]->rep_mark = 0;
-    if (!ok)
-        return 0;
-    while (emb_report_take(lk, frame) > 0) {
-        emb_rep_parse(frame, &r);
+        if (!emb_rep_check(e, &r, lk->n_before > 0, cur_dev, cur))
+            return 0;
+        emb_report_take(lk, frame);
         emb_rep_apply(e, &r);
     }
     return 1;

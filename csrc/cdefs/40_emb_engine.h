@@ -42,7 +42,6 @@ typedef struct emb_eblock {
     uint8_t fail_rsp[...];
     uint8_t rep_ok;
     uint8_t rep_pending;
-    uint8_t rep_mark;
     uint32_t rep_n;
     const uint32_t *rep_span;
 } emb_eblock;

@@ -6,7 +6,9 @@ path."""
 
 from __future__ import annotations
 
+import functools
 import itertools
+import operator
 from collections.abc import Iterator
 from typing import Any
 
@@ -19,9 +21,8 @@ from edgemodbus.poll.poller import Poller
 from edgemodbus.sim import Simulator, default_register
 from tests.integration.test_dtu import dtu_device, free_port, ok, running, values
 from tests.integration.test_engine import MasterCalls
-from tests.integration.test_wrapped_link import EagerMcu
+from tests.integration.test_wrapped_link import EagerMcu, wrapped_device
 from tests.integration.test_wrapped_link import running as running_one
-from tests.integration.test_wrapped_link import wrapped_device
 from tests.waiting import wait_for
 
 
@@ -134,7 +135,8 @@ def test_wrapped_reports_inside_a_block_are_applied_in_c(
                 sim.slave(1).set_registers(hr, 30, [value])
                 client.push_report(1, hr, 30, 1)
                 sim.slave(1).set_registers(hr, 30, [default_register(1, 30)])
-                wait_for(lambda v=value: ("r30", v) in seen, what=f"the report of {value}")
+                wait_for(functools.partial(operator.contains, seen, ("r30", value)),
+                         what=f"the report of {value}")
             stats = drv.stats()
     assert not python_reads and not python_path
     assert calls < 20, calls  # the Python path: dozens of calls a report

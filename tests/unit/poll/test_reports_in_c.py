@@ -103,7 +103,7 @@ def through_engine(ctx: Context, engine: Engine, poller: Poller, frame: bytes) -
 
 def state(poller: Poller) -> list[tuple[str, object, object, str | None]]:
     """Each item's name, status, value (floats by their bits, NaN too) and reason."""
-    out = []
+    out: list[tuple[str, object, object, str | None]] = []
     for s in poller.items:
         value, status, _, reason = s.item.reading
         if isinstance(value, float):
@@ -126,7 +126,8 @@ def coil_report(address: int, bits: list[int]) -> bytes:
 # -- the paths, by hand ----------------------------------------------------------------
 
 
-ITEMS = [{"name": f"r{a}", "address": f"3:{a}", "deviceDataType": "UInt16"} for a in range(10)]
+ITEMS: list[dict[str, Any]] = [{"name": f"r{a}", "address": f"3:{a}", "deviceDataType": "UInt16"}
+                               for a in range(10)]
 
 
 def test_a_report_inside_a_block_is_applied_in_c() -> None:
@@ -161,25 +162,27 @@ def test_what_c_does_not_apply_goes_to_python(frame: bytes, why: str) -> None:
 
 
 def test_a_block_holding_a_report_takes_no_second_one() -> None:
-    """Two reports for one block before the poller took the first: C leaves both to
-    Python (the first one's changes would be lost under the second), in order."""
+    """Two reports with news for one block before the poller took the first: C applies
+    the first and leaves the second to Python (its changes would overwrite the first's),
+    and the reports behind it too; Python takes the first before it applies them."""
     poller, sink = poller_of(ITEMS)
     with engine_of([poller.device]) as (ctx, engine):
         ctx.feed(register_report(1, [5]))
         ctx.feed(register_report(1, [6]))
+        ctx.feed(register_report(3, [8]))
         assert not lib.emb_reports_apply(engine.native, -1, ffi.NULL)
-        assert ctx.reports_waiting == 2  # all or none: the first one waits too
+        assert ctx.reports_waiting == 2
         ctx.feed(register_report(2, [7]))
         for raw in ctx.take_reports():
             poller.on_report(report_of(raw))
-    assert [it for it in sink.items] == ["r1", "r1", "r2"]
+    assert sink.items == ["r1", "r1", "r3", "r2"]
     assert poller.store.by_name()["r1"].item.value == 6
 
 
 def test_items_of_another_rate_inside_the_block_keep_reports_in_python() -> None:
     """r5 is read at its own rate in a block of its own inside [0, 10)'s range: a
     report there would set it too, so the big block takes no report in C."""
-    items = [dict(it) for it in ITEMS]
+    items: list[dict[str, Any]] = [dict(it) for it in ITEMS]
     items[5]["readCycle"] = 5000
     poller, _ = poller_of(items)
     reference, _ = poller_of(items)
