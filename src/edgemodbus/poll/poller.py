@@ -347,8 +347,9 @@ class Poller:
         """The engine ended a pass Python must see (news, failures, a status change, or
         one the poller asked for)."""
         self.device.take_end()
-        if not self.active:
-            return  # stopped while the engine ran
+        if not self.active:  # stopped while the engine ran: its reports dropped
+            self.device.take_reports()
+            return
         self.take_results()
         if not self.slots and self.status is not DeviceDriverStatus.RUNNING:
             # nothing to read (on-demand items only): a pass on an open link is Running
