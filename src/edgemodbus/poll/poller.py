@@ -293,8 +293,9 @@ class Poller:
         self.counters.reports += 1
         if news:
             now = datetime.now(timezone.utc)
-            self._deliver([set_state(self.store, s, v, e, now) for s, v, e in news])
+            reported = [set_state(self.store, s, v, e, now) for s, v, e in news]
             self._recheck([state for state, _, _ in news])
+            self._deliver(reported)
             self.delivery.flush()
 
     def take_reports(self) -> None:
