@@ -135,10 +135,20 @@ GATES: dict[str, Gate] = {
     # heartbeat every second, and of one whose edge MCUs push a one-register wrapped
     # report per cycle, over the same fleet with plain RTU frames, same run (100 DTUs x
     # 100 tags, readCycle 250 ms).  Issue 26: at most 1.1x (1.83x with a heartbeat every
-    # 5 s when such lines stepped in Python).  Heartbeats: 0.85-1.07 (the engine reads
-    # the stream).  Wrapped: NOT MET, 2.05-2.83: each report still comes back to Python
-    # (EV_REPORTS) and is decoded there (poll/reports.py), about 40 us a report; the limit
-    # guards against the step per block coming back, not the target.
+    # 5 s when such lines stepped in Python).  Measured with 20 DTUs
+    # (EDGEMODBUS_BENCH_QUICK=1) on the 2-core VM, load average 6 / 13-300 from other jobs:
+    # heartbeats 0.65-0.91 / 0.82-1.35 (0.85-1.07 before): no wake-up and no Python per
+    # heartbeat, they are skipped when the next request goes out.  Wrapped 0.94-1.15 /
+    # 1.23-1.85 (1.88-2.83 when each report came back to Python, EV_REPORTS/EV_INPUT, and
+    # was decoded there, about 40 us a report): the engine applies reports in C
+    # (csrc/emb_report.c) and such a fleet runs no Python at all.  NOT MET in substance:
+    # in those runs the plain phase cost 0.53-0.66 us per tag, 0.33-0.43 measured alone,
+    # and the same fleet with its reports switched on and off in one phase puts a report
+    # per cycle at +0.10-0.17 us per tag (1.3-1.45x plain): a report that comes between
+    # two polls still wakes its line's thread (a ppoll return and a recv).  Reading
+    # reports only with the next poll would hold them up to a cycle (docs/dtu.md "What a
+    # wrapped report costs").  The limit guards against the step per block coming back,
+    # not the target; tests/integration/test_stream_engine.py guards the C path itself.
     "stream.heartbeat_vs_plain": Gate(
         1.1, 1.5, "lower", "x", "CPU/tag read, DTU heartbeats / plain"),
     "stream.wrapped_vs_plain": Gate(

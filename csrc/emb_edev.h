@@ -50,6 +50,17 @@ typedef struct emb_eblock {
     uint16_t fail_rsp_len;  /* the rejected reply's length (what Python's reason quotes) */
     uint8_t fail_header;    /* its header: 1 (slave id) or 7 (MBAP) */
     uint8_t fail_rsp[EMB_FAIL_RSP]; /* its first bytes */
+    /* wrapped reports applied in C (csrc/emb_report.c) */
+    uint8_t rep_ok;      /* Python: a report inside the block's range updates exactly the
+                          * block's items inside it (no other item lies in the range, no
+                          * scale factor table), so the engine may apply it here */
+    uint8_t rep_pending; /* a report's decode Python has not taken (rep_n items listed in
+                          * the plan's `changed`); nothing else decodes into the plan
+                          * until Python took it */
+    uint32_t rep_n;
+    const uint32_t *rep_span; /* with rep_ok, per item of the plan: its first register (or
+                               * bit) in the block and how many it has (its quantity),
+                               * which a report must hold whole to update it */
 } emb_eblock;
 
 /* A device's counters (stats.py DeviceStats): only the engine's thread writes them. */
@@ -69,6 +80,7 @@ typedef struct emb_dev_counters {
     uint64_t failed_cycles;
     uint64_t skipped_blocks;
     uint64_t exceptions[EMB_N_EXC]; /* by exception code */
+    uint64_t reports;       /* wrapped reports that held items of the device, applied in C */
 } emb_dev_counters;
 
 /* A line's request counters (stats.py LineStats), kept by the engine; Python reads them
@@ -83,6 +95,7 @@ typedef struct emb_line_counters {
     uint64_t crc_errors;
     uint64_t protocol_errors;
     uint64_t exceptions[EMB_N_EXC];
+    uint64_t reports;     /* wrapped reports taken by the engine (csrc/emb_report.c) */
 } emb_line_counters;
 
 /* One polled slave: its blocks, its pass under way and its schedule. */
@@ -119,6 +132,9 @@ typedef struct emb_device {
     int64_t pass_start_ns;
     uint64_t passes;      /* passes begun */
     emb_dev_counters c;
+    uint32_t *rep_list;   /* blocks holding a report's decode for Python (rep_pending), in
+                           * the order the reports came (room for n_blocks) */
+    uint32_t n_rep;
 } emb_device;
 
 /* What emb_engine_run() came back for. */
@@ -129,9 +145,11 @@ typedef struct emb_device {
                            * with owed set, only once a due block was read */
 #define EMB_EV_INPUT 4    /* watch_fd is readable while idle (unsolicited frames) */
 #define EMB_EV_ERROR 5    /* poll() failed: event_errno */
-#define EMB_EV_REPORTS 7  /* a read of device event_device took wrapped reports or dropped
-                           * frames besides its reply (a DTU stream): Python applies those
-                           * before the reply (emb_link.n_before), the reply, the rest */
+#define EMB_EV_REPORTS 7  /* wrapped reports the engine could not apply in C (csrc/emb_report.c)
+                           * or dropped frames, after a read of device event_device (a DTU
+                           * stream): Python applies those before the reply
+                           * (emb_link.n_before), the reply, the rest; or the pass's next
+                           * block holds a report Python has not taken yet */
 #define EMB_EV_SPLIT 8    /* exception 02 on a splittable block of device event_device
                            * (its pass's next block): Python splits it (emb_dev_split) */
 #define EMB_EV_TRACE 6    /* the link's frame trace holds frames for Python to log: between
@@ -170,6 +188,10 @@ typedef struct emb_engine {
     int settle_limit_ms;
     int quiet_ms;          /* silence that ends a stray frame */
     int drain_limit_ms;    /* after a bad frame: its rest */
+    /* wrapped reports applied in C (csrc/emb_report.c): a block's registers or bits
+     * rebuilt from a report, 125 registers and 2000 bits */
+    uint16_t *rep_regs;
+    uint8_t *rep_bits;
 } emb_engine;
 
 #endif

@@ -7,8 +7,10 @@
  * its outcomes (a block's failure, a status change, a block to split).  Devices whose
  * pass ended with news are listed (ended_list) and handed over together, once nothing
  * more is due or before such a device begins its next pass.  Every link kind runs here,
- * DTU streams too (their heartbeats are skipped in C and counted live; a read that took
- * wrapped reports comes back to Python with them, EMB_EV_REPORTS). */
+ * DTU streams too (their heartbeats are skipped in C and counted live; the wrapped
+ * reports a read took, or that came while the link was idle, are applied in C to the
+ * devices' block decoders, csrc/emb_report.c, and taken by Python with the pass's
+ * changes; those C cannot apply come back to Python, EMB_EV_REPORTS / EMB_EV_INPUT). */
 #define _GNU_SOURCE /* ppoll */
 #include "emb_engine.h"
 
@@ -17,6 +19,8 @@
 #include <errno.h>
 #include <poll.h>
 #include <time.h>
+
+#include "emb_report.h"
 
 /* A block due this soon (at most a tenth of its period, and EMB_JOIN_NS) is read in the
  * pass that begins now: blocks whose rates are multiples of each other stay in step. */
@@ -160,6 +164,13 @@ int emb_dev_split(emb_device *d, emb_eblock *blocks, uint32_t *pass_list, uint32
         else
             pass_list[n++] = b + k - 1;
     }
+    for (i = j = 0; i < d->n_rep; i++) { /* the blocks holding a report, renumbered */
+        uint32_t b = d->rep_list[i];
+
+        if (b != at) /* (Python takes the reports before it splits: never the block) */
+            d->rep_list[j++] = b < at ? b : b + k - 1;
+    }
+    d->n_rep = j;
     d->blocks = blocks;
     d->pass_list = pass_list;
     d->n_blocks += k - 1;
@@ -167,15 +178,20 @@ int emb_dev_split(emb_device *d, emb_eblock *blocks, uint32_t *pass_list, uint32
     return 0;
 }
 
+/* A DTU stream's read left wrapped reports, dropped frames or lost reports. */
+static int emb_has_reports(const emb_link *lk)
+{
+    return lk->n_reports > 0 || lk->dropped > 0 || lk->reports_lost > 0;
+}
+
 /* After a read of device `which` (-1: none, the link was idle): EMB_EV_REPORTS when the
  * DTU stream took what only Python handles (wrapped reports, applied in the order they
  * came around the reply; dropped frames or lost reports, logged), event_device set;
- * else 0.  The one hand-over of both engines (the loop's links: csrc/emb_loop_link.c). */
+ * else 0.  The loop's links hand reports over with it (csrc/emb_loop_link.c); the
+ * blocking engine first applies in C what it can (emb_take_reports). */
 int emb_engine_reports(emb_engine *e, int which)
 {
-    const emb_link *lk = e->lk;
-
-    if (!(lk->n_reports > 0 || lk->dropped > 0 || lk->reports_lost > 0))
+    if (!emb_has_reports(e->lk))
         return 0;
     e->event_device = which;
     return EMB_EV_REPORTS;
@@ -288,6 +304,39 @@ static void emb_ended(emb_engine *e, emb_device *d, int which)
     e->ended_list[e->n_ended++] = (uint32_t)which;
 }
 
+/* The reports waiting in the link's ring, taken after a read of block cur of device
+ * `which` (-1, NULL: while idle): applied in C (csrc/emb_report.c) up to the first that
+ * cannot be, a device not in a pass that got news listed for Python (before its next
+ * pass, as a pass's end).  1 if that was all; 0: Python applies the rest, and logs
+ * dropped frames or lost reports (it reads those counts from the link). */
+static int emb_take_reports(emb_engine *e, int which, const emb_eblock *cur)
+{
+    int all = emb_reports_apply(e, which, cur);
+    uint32_t i;
+
+    for (i = 0; i < e->n_devices; i++) {
+        emb_device *d = e->devices[i];
+
+        if (d->n_rep && !d->in_pass && !d->ended) {
+            d->taken = d->n_pass; /* its last pass, not listed: nothing there for Python */
+            emb_ended(e, d, (int)i);
+        }
+    }
+    return all && e->lk->dropped == 0 && e->lk->reports_lost == 0;
+}
+
+/* Input on an idle wrapped link (watch_fd): read and frame it, heartbeats and stale
+ * bytes counted live, the reports applied in C.  1 if that was all; 0: Python pumps
+ * (emb_pump failed: the link is lost, which Python's pump finds again) or takes the
+ * reports. */
+static int emb_idle_input(emb_engine *e)
+{
+    if (e->rep_regs == NULL || emb_pump(e->ctx, e->lk) == -1)
+        return 0;
+    emb_fault_took(e);
+    return emb_take_reports(e, -1, NULL);
+}
+
 /* Run the line until something needs Python (an EMB_EV_* code; event_device and
  * event_errno say more) or until until_ns.
  *
@@ -298,6 +347,7 @@ static void emb_ended(emb_engine *e, emb_device *d, int which)
  * the wake flag is seen at once, as without owed. */
 int emb_engine_run(emb_engine *e, int64_t until_ns)
 {
+    const emb_eblock *cur;
     emb_device *d;
     int64_t now, wait;
     int which = -1, ev;
@@ -327,6 +377,8 @@ int emb_engine_run(emb_engine *e, int64_t until_ns)
                 e->lk->trace->first_ns + EMB_TRACE_FLUSH_NS < wait)
                 wait = e->lk->trace->first_ns + EMB_TRACE_FLUSH_NS;
             ev = emb_sleep(e, wait, 1);
+            if (ev == EMB_EV_INPUT && emb_idle_input(e))
+                continue;
             if (ev >= 0)
                 return ev;
             continue;
@@ -345,18 +397,23 @@ int emb_engine_run(emb_engine *e, int64_t until_ns)
                 ev = EMB_EV_DEADLINE; /* no request at or after until_ns (a pair's lease
                                        * ends there: line/worker.py); the pass goes on
                                        * at the next run */
+            if (ev < 0 && d->blocks[d->pass_list[d->index]].rep_pending)
+                ev = EMB_EV_REPORTS; /* the block holds a report: Python takes it first */
             if (ev >= 0) {
                 e->event_device = which; /* interrupted mid-pass */
                 return ev;
             }
             e->owed = 0; /* this read pays for the job that ran before it */
+            cur = &d->blocks[d->pass_list[d->index]];
             ev = emb_step(e, d, until_ns);
             if (ev != 0) {
                 e->event_device = which;
                 return ev;
             }
-            if (emb_engine_reports(e, which))
-                return EMB_EV_REPORTS; /* the pass goes on when Python hands it back */
+            if (emb_has_reports(e->lk) && !emb_take_reports(e, which, cur)) {
+                e->event_device = which; /* the pass goes on when Python hands it back */
+                return EMB_EV_REPORTS;
+            }
         }
         now = emb_now_ns();
         emb_dev_end_pass(d, now, e->bounds_ns, e->n_bounds);

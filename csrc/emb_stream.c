@@ -22,6 +22,7 @@
 
 #include <errno.h>
 #include <string.h>
+#include <sys/socket.h>
 #include <unistd.h>
 
 #include "emb_check.h"
@@ -96,6 +97,20 @@ int emb_report_take(emb_link *lk, uint8_t *out)
     lk->n_reports--;
     if (lk->n_before > 0)
         lk->n_before--;
+    return (int)n;
+}
+
+/* Copy the report *at bytes past the oldest one (0: the oldest) into out (at least
+ * EMB_REPORT_MAX bytes) without taking it; *at moves to the next.  Returns its length.
+ * The caller reads at most lk->n_reports of them (csrc/emb_report.c). */
+int emb_report_peek(const emb_link *lk, uint32_t *at, uint8_t *out)
+{
+    uint32_t pos = (lk->ring_head + *at) % EMB_RING_SIZE, n, i;
+
+    n = (uint32_t)(lk->sb->ring[pos] << 8 | lk->sb->ring[(pos + 1) % EMB_RING_SIZE]);
+    for (i = 0; i < n; i++)
+        out[i] = lk->sb->ring[(pos + 2 + i) % EMB_RING_SIZE];
+    *at += n + 2;
     return (int)n;
 }
 
@@ -331,20 +346,53 @@ static long emb_stream_idle(emb_link *lk)
 
 /* -- the backend functions (csrc/emb_backend.h) ---------------------------------------- */
 
+/* Read what fd holds now into rx without waiting: on a socket one recv(MSG_DONTWAIT)
+ * (a DTU's socket is blocking; the link is pumped mostly when poll() said it is
+ * readable, and one call then does what a poll and a read did), else a poll and a read
+ * (emb_rx_fill).  The bytes read (0: none, or rx is full), or -1 with errno (end of
+ * file: emb_eof_errno). */
+static int emb_rx_now(emb_link *lk, int fd)
+{
+    uint32_t space = EMB_RX_SIZE - lk->rx_len;
+    ssize_t n;
+
+    if (space == 0)
+        return 0;
+    do
+        n = recv(fd, lk->sb->rx + lk->rx_len, space, MSG_DONTWAIT);
+    while (n == -1 && errno == EINTR);
+    if (n > 0) {
+        lk->rx_len += (uint32_t)n;
+        return (int)n;
+    }
+    if (n == 0) {
+        errno = emb_eof_errno(fd);
+        return -1;
+    }
+    if (errno == EAGAIN || errno == EWOULDBLOCK)
+        return 0;
+    return errno == ENOTSOCK ? emb_rx_fill(lk, fd, 0) : -1;
+}
+
 /* Take in and frame what is readable on fd now, without waiting (at most
- * EMB_PUMP_READS reads: a peer that floods the link does not hold the worker).
- * Returns the reports waiting, or -1 with errno. */
+ * EMB_PUMP_READS reads: a peer that floods the link does not hold the worker; a read
+ * that did not fill what rx had free took all there was).  Returns the reports waiting,
+ * or -1 with errno. */
 static long emb_pump_fd(emb_link *lk, int fd)
 {
     int reads, rc;
+    uint32_t space;
 
     for (reads = 0; reads < EMB_PUMP_READS; reads++) {
-        rc = emb_rx_fill(lk, fd, 0);
+        space = EMB_RX_SIZE - lk->rx_len;
+        rc = emb_rx_now(lk, fd);
         if (rc == -1)
             return -1;
         if (rc == 0)
             break;
         lk->discarded += emb_stream_idle(lk);
+        if ((uint32_t)rc < space)
+            break;
     }
     return lk->n_reports;
 }

@@ -40,6 +40,10 @@ typedef struct emb_eblock {
     uint16_t fail_rsp_len;
     uint8_t fail_header;
     uint8_t fail_rsp[...];
+    uint8_t rep_ok;
+    uint8_t rep_pending;
+    uint32_t rep_n;
+    const uint32_t *rep_span;
 } emb_eblock;
 
 typedef struct emb_dev_counters {
@@ -58,6 +62,7 @@ typedef struct emb_dev_counters {
     uint64_t failed_cycles;
     uint64_t skipped_blocks;
     uint64_t exceptions[...];
+    uint64_t reports;
 } emb_dev_counters;
 
 typedef struct emb_line_counters {
@@ -70,6 +75,7 @@ typedef struct emb_line_counters {
     uint64_t crc_errors;
     uint64_t protocol_errors;
     uint64_t exceptions[...];
+    uint64_t reports;
 } emb_line_counters;
 
 typedef struct emb_device {
@@ -104,6 +110,8 @@ typedef struct emb_device {
     int64_t pass_start_ns;
     uint64_t passes;
     emb_dev_counters c;
+    uint32_t *rep_list;
+    uint32_t n_rep;
 } emb_device;
 
 typedef struct emb_engine {
@@ -134,6 +142,8 @@ typedef struct emb_engine {
     int settle_limit_ms;
     int quiet_ms;
     int drain_limit_ms;
+    uint16_t *rep_regs;
+    uint8_t *rep_bits;
 } emb_engine;
 
 int emb_engine_run(emb_engine *e, int64_t until_ns);
@@ -144,6 +154,9 @@ void emb_dev_all_due(emb_device *d, int64_t at_ns);
 void emb_dev_due_at(emb_device *d, int64_t at_ns);
 int emb_dev_split(emb_device *d, emb_eblock *blocks, uint32_t *pass_list, uint32_t at,
                   uint32_t k);
+int emb_reports_apply(emb_engine *e, int cur_dev, const emb_eblock *cur);
+long emb_decode_range(emb_plan *p, const uint32_t *span, const void *data, uint32_t count,
+                      uint32_t lo, uint32_t hi, uint32_t *found);
 
 /* csrc/emb_fault.h, for cffi (its tests drive the policy without I/O). */
 #define EMB_K_TIMEOUT ...

@@ -45,6 +45,7 @@ class NativeCounts(NamedTuple):
     retries: int = 0  # devices
     failed_cycles: int = 0
     skipped_blocks: int = 0
+    reports: int = 0  # wrapped reports applied in C (csrc/emb_report.c): lines, devices
 
 
 def _no_counts() -> NativeCounts:
@@ -80,7 +81,7 @@ class RequestStats:
             "crcErrors": self.crc_errors + native.crc_errors,
             "protocolErrors": self.protocol_errors + native.protocol_errors,
             "exceptions": exceptions,
-            "reports": self.reports,
+            "reports": self.reports + native.reports,
         }
 
 

@@ -6,19 +6,26 @@ path."""
 
 from __future__ import annotations
 
+import functools
 import itertools
+import operator
+import select
+import socket
+import struct
 from collections.abc import Iterator
 from typing import Any
 
 import pytest
 
 import edgemodbus as em
-from edgemodbus.datatypes import ItemStatus
+from edgemodbus.datatypes import Area, ItemStatus
 from edgemodbus.line.link import ContextLink
+from edgemodbus.poll.poller import Poller
+from edgemodbus.protocol.wrapped import wrap
 from edgemodbus.sim import Simulator, default_register
 from tests.integration.test_dtu import dtu_device, free_port, ok, running, values
 from tests.integration.test_engine import MasterCalls
-from tests.integration.test_wrapped_link import EagerMcu
+from tests.integration.test_wrapped_link import EagerMcu, wrapped_device
 from tests.integration.test_wrapped_link import running as running_one
 from tests.waiting import wait_for
 
@@ -98,3 +105,102 @@ def test_wrapped_reports_around_the_reply_in_the_engine(python_reads: list[str],
             assert before != polled or after >= 9000, r1
         else:  # the report, then the reply
             assert before < 9000 or after == polled, r1
+
+
+def test_wrapped_reports_inside_a_block_are_applied_in_c(
+        python_reads: list[str], monkeypatch: pytest.MonkeyPatch) -> None:
+    """An edge MCU (our simulator) polled every 50 ms as one block pushes one-register
+    reports: the engine applies them in C (csrc/emb_report.c).  Those that bring no news
+    cost no Python at all; those that do reach the item with the pass's changes, never
+    through the Python path (Poller.on_report)."""
+    python_path: list[int] = []
+    monkeypatch.setattr(Poller, "on_report", lambda self, report: python_path.append(
+        report.address))
+    hr = Area.HOLDING_REGISTER
+    seen: list[tuple[str, Any]] = []
+    with Simulator(slaves=[1]) as sim, MasterCalls() as watch:
+        port = sim.serve_tcp("127.0.0.1", 0, wrapped=True)
+        cfg = wrapped_device({"transport": "rtu-over-tcp", "tcpHost": "127.0.0.1",
+                              "tcpPort": port, "readCycle": 50, "maxMergeAddressGap": 100})
+        with running_one(cfg, address_updated_callback=lambda it: seen.append(
+                (it.name, it.value))) as drv:
+            wait_for(lambda: all(it.status is ItemStatus.OK for it in cfg.address_list),
+                     what="the first poll")
+            (client,) = sim.clients()
+            before = drv.stats()
+            watch.counting = True
+            for k in range(20):  # the values the slave holds: no news
+                client.push_report(1, hr, (1, 2, 30)[k % 3], 1)
+            wait_for(lambda: drv.stats()["reports"] >= before["reports"] + 20,
+                     what="20 reports applied")
+            watch.counting = False
+            calls = watch.calls
+            for value in (4242, 4243):  # news, while the slave holds the polled value
+                sim.slave(1).set_registers(hr, 30, [value])
+                client.push_report(1, hr, 30, 1)
+                sim.slave(1).set_registers(hr, 30, [default_register(1, 30)])
+                wait_for(functools.partial(operator.contains, seen, ("r30", value)),
+                         what=f"the report of {value}")
+            stats = drv.stats()
+    assert not python_reads and not python_path
+    assert calls < 20, calls  # the Python path: dozens of calls a report
+    assert stats["line"]["reports"] == stats["reports"] >= before["reports"] + 22
+    assert stats["timeouts"] == stats["protocolErrors"] == 0
+
+
+class CrossMcu(EagerMcu):
+    """An edge MCU that, on each read of holding register 1, first pushes a report of
+    register 3 (another block of the same pass, read next) with a new value each time,
+    then answers the read."""
+
+    def _serve(self, conn: socket.socket) -> None:
+        buf = b""
+        while not self._stop.is_set():
+            if not select.select([conn], [], [], 0.05)[0]:
+                continue
+            data = conn.recv(4096)
+            if not data:
+                return
+            buf += data
+            while len(buf) >= 13:
+                request, buf = buf[:13], buf[13:]
+                slave, fc, start, count = struct.unpack_from(">BBHH", request, 4)
+                assert fc == 3, request.hex()
+                regs = [self.polled(start + i) for i in range(count)]
+                if start == 1:
+                    self.reports += 1
+                    conn.sendall(wrap(3, slave, struct.pack(
+                        ">BBH", 3, 2, self.reported(self.reports, 3))))
+                conn.sendall(wrap(start, slave,
+                                  struct.pack(f">BB{count}H", 3, 2 * count, *regs)))
+                self.replies += 1
+
+
+def test_a_report_for_a_block_read_later_in_the_pass_goes_before_its_reply(
+        python_reads: list[str], monkeypatch: pytest.MonkeyPatch) -> None:
+    """Blocks [1] and [3], change mode: the read of [1] brings a report of 3 before its
+    reply.  The engine applies it in C to [3]'s plan; before it reads [3] it hands the
+    report to Python, so r3 sees the report, then the poll, every pass, and never
+    through the Python path."""
+    python_path: list[int] = []
+    monkeypatch.setattr(Poller, "on_report", lambda self, report: python_path.append(
+        report.address))
+    mcu = CrossMcu()
+    seen: list[tuple[str, Any]] = []
+    try:
+        cfg = _eager_config(mcu.port, readCycle=30, reportMode="change",
+                            maxBlockReadRegisterCount=2)
+        with running_one(cfg, address_updated_callback=lambda it: seen.append(
+                (it.name, it.value))) as drv:
+            assert [(b["start"], b["count"]) for b in drv.read_plan()] == [(1, 2), (3, 1)]
+            wait_for(lambda: mcu.reports >= 6, what="six reports before a reply")
+            stats = drv.stats()
+    finally:
+        mcu.close()
+    assert not python_reads and not python_path
+    assert stats["timeouts"] == stats["protocolErrors"] == 0
+    r3 = [v for n, v in seen if n == "r3"]
+    polled = EagerMcu.polled(3)
+    assert len([v for v in r3 if v != polled]) >= 5, r3
+    for before, after in itertools.pairwise(r3):  # report, poll, report, poll ...
+        assert (before == polled) != (after == polled), r3

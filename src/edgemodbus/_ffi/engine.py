@@ -1,5 +1,5 @@
-"""The line engine of csrc/emb_engine.c: a device's C state, the engine of one link, and
-the waker by which other threads interrupt it.
+"""The line engine of csrc/emb_engine.c: a device's C state and the engine of one link
+(the waker by which other threads interrupt it: waker.py).
 
 Times cross as ``time.monotonic()`` seconds (CLOCK_MONOTONIC, the clock C reads);
 counters are kept in C, where other threads read them live (:class:`NativeCounts`).
@@ -7,9 +7,6 @@ counters are kept in C, where other threads read them live (:class:`NativeCounts
 
 from __future__ import annotations
 
-import contextlib
-import os
-import weakref
 from collections.abc import Sequence
 from typing import Any, NamedTuple
 
@@ -17,8 +14,9 @@ from ..stats import CYCLE_BUCKETS, NativeCounts
 from .block import Block
 from .codec import CODEC_MODE_ALL, CODEC_MODE_TRACK, CodecPlan
 from .context import Context
-from .native import ffi, lib
+from .native import MAX_READ_BITS, MAX_READ_REGISTERS, ffi, lib
 from .outcomes import Clean, Failure, LineCounters, exception_counts
+from .waker import Waker as Waker  # the engine's: line/ imports it from here
 
 EV_DEADLINE: int = lib.EMB_EV_DEADLINE
 EV_CYCLE: int = lib.EMB_EV_CYCLE
@@ -26,7 +24,7 @@ EV_FAILED: int = lib.EMB_EV_FAILED
 EV_WAKE: int = lib.EMB_EV_WAKE
 EV_INPUT: int = lib.EMB_EV_INPUT
 EV_ERROR: int = lib.EMB_EV_ERROR
-EV_REPORTS: int = lib.EMB_EV_REPORTS  # a read took wrapped reports besides its reply
+EV_REPORTS: int = lib.EMB_EV_REPORTS  # wrapped reports C did not apply (csrc/emb_report.c)
 EV_TRACE: int = lib.EMB_EV_TRACE  # the frame trace has frames to log (Link.run_engine did)
 EV_SPLIT: int = lib.EMB_EV_SPLIT  # exception 02 on a splittable block: Python splits it
 
@@ -54,6 +52,10 @@ class BlockSpec(NamedTuple):
     plan: CodecPlan | None  # its whole items, or None
     keep: bool  # Python reads the block's data after every good read (pieces)
     splittable: bool = False  # more than one piece: exception 02 splits it (EV_SPLIT)
+    # wrapped reports inside the block may be applied in C (csrc/emb_report.c): per item
+    # of ``plan``, its first register (or bit) in the block and its quantity, flat; None:
+    # not here (a report of it goes to Python)
+    report_spans: tuple[int, ...] | None = None
 
 
 class EngineDevice:
@@ -75,6 +77,7 @@ class EngineDevice:
         self.set_policy(0, 1, cycle)
         self._specs: list[BlockSpec] = []
         self._buffers: list[Block | None] = []
+        self._spans: list[Any] = []  # the blocks' report spans, which C points at
         self.set_blocks([])
 
     @property
@@ -97,15 +100,19 @@ class EngineDevice:
         n = len(specs)
         blocks = ffi.new("emb_eblock[]", max(n, 1))
         buffers: list[Block | None] = []
+        self._spans = []
         for k, spec in enumerate(specs):
             buffers.append(self._fill(blocks[k], spec))
         self._blocks = blocks
         self._pass = ffi.new("uint32_t[]", max(n, 1))
+        self._reported_list = ffi.new("uint32_t[]", max(n, 1))
         self._specs = list(specs)  # keeps the plans alive while C points at them
         self._buffers = buffers
         dev = self._dev
         dev.blocks = blocks
         dev.pass_list = self._pass
+        dev.rep_list = self._reported_list
+        dev.n_rep = 0  # (the poller took the reports of the old plan)
         dev.n_blocks = n
         dev.n_pass = 0
         dev.index = 0
@@ -122,8 +129,13 @@ class EngineDevice:
         b.start = spec.start
         b.count = spec.size
         b.period_ns = _ns(spec.period)
-        b.plan = spec.plan._plan if spec.plan is not None else ffi.NULL
+        b.plan = plan = spec.plan._plan if spec.plan is not None else ffi.NULL
         b.splittable = 1 if spec.splittable else 0
+        spans = spec.report_spans  # (with a scale factor table, reports stay Python's)
+        if spans and plan and not (plan.n_sf or plan.n_sf_src) and len(spans) == 2 * plan.n_items:
+            b.rep_span = span = ffi.new("uint32_t[]", spans)
+            self._spans.append(span)
+            b.rep_ok = 1
         if not (spec.keep or self.coalesce > 0):
             return None
         bits = spec.function <= 2
@@ -143,6 +155,10 @@ class EngineDevice:
         new = [self._fill(blocks[at + j], spec) for j, spec in enumerate(specs)]
         if lib.emb_dev_split(self._dev, blocks, pass_list, at, len(specs)) == -1:
             raise ValueError(f"engine: no block {at} to split (of {len(self._specs)})")
+        reported = ffi.new("uint32_t[]", n)  # room for every block, as C renumbered them
+        dev = self._dev
+        reported[0:dev.n_rep] = ffi.unpack(dev.rep_list, int(dev.n_rep))
+        dev.rep_list = self._reported_list = reported
         self._blocks, self._pass = blocks, pass_list
         self._specs[at:at + 1] = list(specs)
         self._buffers[at:at + 1] = new
@@ -312,6 +328,17 @@ class EngineDevice:
                                length, int(b.fail_header)))
         return out
 
+    def take_reports(self) -> list[tuple[int, int]]:
+        """(block, count) of the wrapped reports the engine decoded into a block's plan
+        (csrc/emb_report.c), in the order they came: read each decode (its decoder's
+        ``finish(count)``) before the engine runs again."""
+        dev, blocks = self._dev, self._blocks
+        taken = ffi.unpack(self._reported_list, int(dev.n_rep)) if dev.n_rep else []
+        dev.n_rep = 0
+        for k in taken:
+            blocks[k].rep_pending = 0
+        return [(k, int(blocks[k].rep_n)) for k in taken]
+
     def forget_failures(self) -> None:
         """Items of the blocks were set from elsewhere (a write, a report): a failure of
         them is told again, as news."""
@@ -353,36 +380,8 @@ class EngineDevice:
             crc_errors=c.crc_errors, protocol_errors=c.protocol_errors,
             exceptions=exception_counts(c.exceptions), retries=c.retries,
             failed_cycles=c.failed_cycles, skipped_blocks=c.skipped_blocks,
+            reports=c.reports,
         )
-
-
-class Waker:
-    """How other threads interrupt a line's engine: a flag the engine reads between two
-    transactions and an eventfd it polls while it waits."""
-
-    def __init__(self) -> None:
-        self._flag = ffi.new("int *")
-        self.fd = os.eventfd(0, os.EFD_NONBLOCK | os.EFD_CLOEXEC)
-        self._close = weakref.finalize(self, os.close, self.fd)
-
-    def signal(self) -> None:
-        """Any thread: a job is queued."""
-        self._flag[0] = 1
-        if self._close.alive:
-            os.eventfd_write(self.fd, 1)
-
-    def clear(self) -> None:
-        """The worker, before it takes the queued jobs."""
-        self._flag[0] = 0
-        with contextlib.suppress(BlockingIOError):
-            os.eventfd_read(self.fd)
-
-    @property
-    def is_open(self) -> bool:
-        return self._close.alive
-
-    def close(self) -> None:
-        self._close()
 
 
 class Engine:
@@ -410,6 +409,10 @@ class Engine:
         e.settle_limit_ms = round(clean.settle_limit * 1000)
         e.quiet_ms = max(1, round(clean.quiet * 1000))
         e.drain_limit_ms = round(clean.drain_limit * 1000)
+        # where a wrapped report's registers or bits are rebuilt (csrc/emb_report.c)
+        self._scratch = (ffi.new("uint16_t[]", MAX_READ_REGISTERS),
+                         ffi.new("uint8_t[]", MAX_READ_BITS))
+        e.rep_regs, e.rep_bits = self._scratch
         self._e = e
         self._ctx = ctx
         self._counters = counters  # C points at them

@@ -63,4 +63,4 @@ class LineCounters:
                             rtt_total=lc.rtt_ns / 1e9, discarded_bytes=lc.discarded,
                             heartbeats=lc.heartbeats, timeouts=lc.timeouts,
                             crc_errors=lc.crc_errors, protocol_errors=lc.protocol_errors,
-                            exceptions=exception_counts(lc.exceptions))
+                            exceptions=exception_counts(lc.exceptions), reports=lc.reports)

@@ -204,10 +204,10 @@ class Link:
 
 class ContextLink(Link):
     """The link: the line's libmodbus context (and, on TCP, the socket we own) and our C
-    do the I/O; a poll step reads and decodes a block in one C call.  On a DTU stream
-    (``ctx.is_stream``) unsolicited wrapped reports go to ``on_report``: those that came
-    before a reply as soon as the transaction returns, the others by
-    :meth:`flush_reports` once the reply was applied (they are newer)."""
+    do the I/O.  On a DTU stream (``ctx.is_stream``) the wrapped reports the engine did
+    not apply in C (csrc/emb_report.c) go to ``on_report``: those that came before a
+    reply as soon as the transaction returns, the others by :meth:`flush_reports` once
+    the reply was applied (they are newer)."""
 
     def __init__(self, ctx: Context, endpoint: Endpoint, timing: LineTiming,
                  stats: LineStats, sock: socket.socket | None,

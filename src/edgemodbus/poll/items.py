@@ -8,6 +8,7 @@ its pieces; :func:`set_state` stores a result in the poller's store (store.py) a
 
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from datetime import datetime
 from typing import TYPE_CHECKING, Any
@@ -175,3 +176,20 @@ def is_news(store: ItemStore[ItemState], state: ItemState, value: Any, error: st
     """Whether a decoded result differs from what the item holds (ItemStore.is_news,
     with the item's deadband)."""
     return store.is_news(state.index, value, error, state.kind.spec.deadband)
+
+
+def owner_of(state: ItemState, slots: Sequence[Slot],
+             assemblies: Mapping[ItemState, Assembly]) -> Slot | Assembly | None:
+    """What decodes ``state`` in the plan of ``slots`` (its assembly, for an item read
+    in pieces; None: none).  A search, as only writes and reports ask: a dict would be a
+    tag's largest part."""
+    asm = assemblies.get(state)
+    if asm is not None:
+        return asm
+    area, offset = state.area, state.offset
+    for slot in slots:
+        block = slot.block
+        if block.area is area and block.start <= offset < block.start + block.count \
+                and any(s is state for s in slot.whole):
+            return slot
+    return None

@@ -32,11 +32,11 @@ from ..line import LineWorker, Link
 from ..line.link import READ_FC
 from ..stats import DeviceStats
 from .faults import reason_of, status_change
-from .items import Assembly, ItemState, Slot, is_news, set_state
+from .items import Assembly, ItemState, Slot, is_news, owner_of, set_state
 from .on_demand import answer, read_slots, slots_holding
 from .periodic import PeriodicReports, reports_all
 from .planner import Piece, ReadBlock, bisect_block
-from .reports import ReportDecoders
+from .reports import ReportDecoders, store_taken
 from .schedule import build_plan as build_plan  # the CLI's plan command uses it
 from .schedule import item_rate
 from .sink import Delivery, PollSink
@@ -98,20 +98,8 @@ class Poller:
         return self.store.by_name()
 
     def _owner(self, state: ItemState) -> Slot | Assembly | None:
-        """What decodes ``state`` in the plan in force (None: a state of an older plan).
-        A search, as only writes and reports ask: a dict would be a tag's largest part."""
-        if not self.store.owns(state):
-            return None
-        asm = self._assemblies.get(state)
-        if asm is not None:
-            return asm
-        area, offset = state.area, state.offset
-        for slot in self.slots:
-            block = slot.block
-            if block.area is area and block.start <= offset < block.start + block.count \
-                    and any(s is state for s in slot.whole):
-                return slot
-        return None
+        """What decodes ``state`` in the plan in force (None: a state of an older plan)."""
+        return owner_of(state, self.slots, self._assemblies) if self.store.owns(state) else None
 
     @property
     def plan(self) -> list[ReadBlock]:
@@ -153,6 +141,7 @@ class Poller:
             self.delivery.status(status, reason)
 
     def _install(self, parsed: Sequence[ParsedItem]) -> None:
+        self.take_reports()  # into the items they came for
         old_store = self.store
         old = old_store.by_name() if old_store.states else {}
         enabled = [p for p in parsed if p.item.is_enable]
@@ -194,8 +183,9 @@ class Poller:
         """What the engine reads for ``slot``, and the plan it decodes it with."""
         block = slot.block
         plan = slot.decoder.begin(self.report_all)[0] if slot.decoder is not None else None
+        spans = self._reports.spans(slot) if self.params.framing == "wrapped-report" else None
         return BlockSpec(READ_FC[block.area], block.start, block.count, block.rate / 1000,
-                         plan, bool(slot.partial), len(block.pieces) > 1)
+                         plan, bool(slot.partial), len(block.pieces) > 1, spans)
 
     def _make_slot(self, block: ReadBlock) -> Slot:
         whole: list[ItemState] = []
@@ -276,6 +266,7 @@ class Poller:
     def link_changed(self, up: bool, reason: str | None) -> None:
         if not self.active:
             return
+        self.take_reports()
         self._all_due_now()
         if self.report_only and up:
             self._set_status(DeviceDriverStatus.RUNNING, None)  # ready for reports
@@ -290,33 +281,40 @@ class Poller:
         self.delivery.flush()
 
     def on_report(self, report: Report) -> None:
-        """An unsolicited wrapped report (edge MCU): update the items of this slave whose
-        registers (or bits) lie inside it, through the same codec and callbacks as
-        polled values.  Worker thread."""
+        """An unsolicited wrapped report (edge MCU) the engine did not apply in C: update
+        the items of this slave whose registers (or bits) lie inside it, through the same
+        codec and callbacks as polled values (poll/reports.py).  Worker thread."""
         if not self.active or report.slave != self.slave:
             return
-        decoded = self._reports.decode(report)
-        if decoded is None:
+        self.take_reports()  # the reports the engine applied came before this one
+        news = self._reports.news(report, self.store, self.report_all)
+        if news is None:
             return
         self.counters.reports += 1
-        report_all = self.report_all
-        store = self.store
-        news = [(state, value, error) for state, (_, value, error) in decoded
-                if report_all or is_news(store, state, value, error)]
         if news:
             now = datetime.now(timezone.utc)
-            reported = [set_state(store, state, value, error, now)
-                        for state, value, error in news]
+            reported = [set_state(self.store, s, v, e, now) for s, v, e in news]
             self._recheck([state for state, _, _ in news])
-            self.counters.values_changed += len(reported)
-            self.delivery.report(reported)
+            self._deliver(reported)
             self.delivery.flush()
+
+    def take_reports(self) -> None:
+        """Store what the wrapped reports the engine applied in C changed (poll/reports.py
+        store_taken), before anything else sets the items: they came first."""
+        taken = self.device.take_reports()
+        if taken:
+            reported: list[DeviceAddressItem] = []
+            store_taken(taken, self.slots, self.store, datetime.now(timezone.utc), reported)
+            if reported:
+                self.device.forget_failures()  # a block failing again says so again
+                self._deliver(reported)
 
     # -- the engine's events ----------------------------------------------------------------
     def take_results(self) -> None:
         """Store what the blocks the engine read in this pass reported, those not taken
         yet (before Python acts on the device: a pass's end, a split, a job), and the
         failures the engine put on blocks (each told once)."""
+        self.take_reports()
         device = self.device
         order = device.pass_blocks()
         upto = device.index if device.in_pass else len(order)
@@ -350,8 +348,9 @@ class Poller:
         """The engine ended a pass Python must see (news, failures, a status change, or
         one the poller asked for)."""
         self.device.take_end()
-        if not self.active:
-            return  # stopped while the engine ran
+        if not self.active:  # stopped while the engine ran: its reports dropped
+            self.device.take_reports()
+            return
         self.take_results()
         if not self.slots and self.status is not DeviceDriverStatus.RUNNING:
             # nothing to read (on-demand items only): a pass on an open link is Running
@@ -492,6 +491,7 @@ class Poller:
                     whole: bool = False) -> tuple[bool, str | None]:
         if not self.active:
             return False, "device stopped before the write was sent"
+        self.take_reports()
         link.set_response_timeout(self.timeout)
         return self.writer.run(link, ops, self._recheck, self.store, whole)
 
