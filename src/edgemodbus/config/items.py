@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from ..codec import SMART_CAST_TYPES, ValueSpec, check_spec, smart_cast
+from ..codec.shared import SharedCache
 from ..datatypes import Area, DataFormat, DataFormat64, DataType
 from ..protocol.address import Address, check_span, parse_address
 from .base import MS_RANGE, field_checks, recheck
@@ -163,6 +164,40 @@ def _item_registers(
     return quantity
 
 
+COMM_KEYS = ("address_prefix", "address_base", "framing", "data_format", "byte_swap16",
+             "data_format64", "encoding", "read_cycle", "report_every", "report_mode")
+"""The communication fields :func:`validate_items` reads: with the items' own fields,
+the whole of its input (tests/unit/config/test_items_memo.py checks it reads no other)."""
+
+_Checked = tuple[tuple["ParsedItem", ...], tuple[tuple[Any, ...], ...]]
+_VALIDATED: SharedCache[_Checked] = SharedCache(keep=64, weak=False)
+"""Address lists validated before, by their whole input (:func:`_input_key`); with the
+results, the config tuples whose ids the key holds (alive, so no other tuple has them)."""
+
+
+def _input_key(items: Sequence[DeviceAddressItem],
+               comm: DriverModbusRtuParameter) -> tuple[Any, ...] | None:
+    """What :func:`validate_items` reads of its input, as a key: the communication
+    fields of :data:`COMM_KEYS` and each item's name, address, description (each a str)
+    and config tuple (every other field, item_model.py: by identity, as items of one
+    kind share one tuple, and equal values of other types, 1 and True, are not one
+    input).  None when the result is not one to share: a scaleFactor (the device's own
+    table), an item of another class, a value that is not hashable."""
+    try:
+        rows = tuple((it.name, it.address, it.description, id(it._conf)) for it in items
+                     if type(it) is DeviceAddressItem and it.scale_factor is None
+                     and type(it.name) is str and type(it.address) is str
+                     and type(it.description) is str)
+        if len(rows) != len(items):
+            return None
+        key = (tuple((type(v), v) for v in (getattr(comm, name) for name in COMM_KEYS)),
+               rows)
+        hash(key)
+    except (TypeError, AttributeError):
+        return None
+    return key
+
+
 def validate_items(
     items: Sequence[DeviceAddressItem], comm: DriverModbusRtuParameter
 ) -> list[ParsedItem]:
@@ -170,7 +205,32 @@ def validate_items(
     span, unique names), against its own field limits again (an item may have been
     changed after it was loaded) and against the codec's check of the spec the driver
     will build; return them parsed, in order.  Raises one ConfigError listing every
-    problem with its path (``addressList[3].address`` ...)."""
+    problem with its path (``addressList[3].address`` ...).
+
+    The check is a function of its input alone, so an input checked before (the same
+    fields and options: a template's 5,000 devices, or a file loaded then started)
+    takes that result, given these items (docs/scale.md, "Starting thousands of
+    devices"); an item changed since it was checked is a new input, checked."""
+    key = _input_key(items, comm)
+    if key is None:
+        return _validate(items, comm)
+    checked, _ = _VALIDATED.get(key, lambda: (tuple(_validate(items, comm)),
+                                              tuple(it._conf for it in items)))
+    return [one if one.item is item else _rebind(one, item)
+            for one, item in zip(checked, items, strict=True)]
+
+
+def _rebind(one: ParsedItem, item: DeviceAddressItem) -> ParsedItem:
+    """``one`` (checked for an equal item) for ``item``."""
+    return ParsedItem(item, one.address, one.data_type, one.converted_type, one.data_format,
+                      one.byte_swap16, one.data_format64, one.registers, one.quantity,
+                      one.multiplier, one.deadband, one.encoding, one.factors)
+
+
+def _validate(
+    items: Sequence[DeviceAddressItem], comm: DriverModbusRtuParameter
+) -> list[ParsedItem]:
+    """:func:`validate_items`, computed."""
     problems: list[Problem] = []
     parsed: list[ParsedItem] = []
     first_index: dict[str, int] = {}
