@@ -170,6 +170,14 @@ def load_device_config(source: str | os.PathLike[str] | Mapping[str, Any]) -> De
         return load_model(DeviceConfig, source)
 
 
+def load_device_file(path: str | os.PathLike[str], data: Mapping[str, Any]) -> DeviceConfig:
+    """:func:`load_device_config` of the file at ``path`` that the caller has read and
+    decoded (``data``, by config/jsonfile.py's rules): the same result and errors
+    (gateway/bulk.py reads a file once for its digest and its load)."""
+    with device_loading(os.fspath(path)), json_source(True):
+        return load_model(DeviceConfig, data, checked=True)
+
+
 def load_communication(
     source: str | os.PathLike[str] | Mapping[str, Any],
 ) -> DriverModbusRtuParameter:

@@ -3,8 +3,8 @@ started, reloaded (the gateway file, then the device files) and stopped."""
 
 from __future__ import annotations
 
-import hashlib
 import logging
+import stat
 import threading
 from dataclasses import dataclass
 from pathlib import Path
@@ -14,15 +14,13 @@ from ..config import (
     ConfigError,
     DeviceConfig,
     DriverModbusRtuParameter,
-    load_device_config,
 )
-from ..config.templates import template_bytes
 from ..console import console_key, start_console
 from ..driver import DriverModbusRtu
+from .bulk import file_id, read_device, starting_in_bulk, stop_each
 from .config import (
     GATEWAY_FILE,
     GatewayConfig,
-    file_bytes,
     gateway_digest,
     inherited_snapshot,
     load_gateway_config,
@@ -120,12 +118,7 @@ class Gateway:
         self.console = start_console(self.config.console, self)
 
     def _stop_all(self, devices: list[ServiceDevice]) -> None:
-        threads = [threading.Thread(target=self._stop_device, args=(dev,),
-                                    name=f"stop {dev.code}") for dev in devices]
-        for thread in threads:
-            thread.start()
-        for thread in threads:
-            thread.join()
+        stop_each(devices, self._stop_device)  # a few threads, not one per device
 
     def _leadership(self, leader: bool) -> None:
         """The lease was gained or lost (on the lease's thread): start or stop (every
@@ -345,41 +338,48 @@ class Gateway:
 
     # -- devices ---------------------------------------------------------------------
     def device_files(self) -> list[Path]:
+        """The folder's device files: regular files (or links to one) the pattern
+        matches, not hidden, not the gateway file (by device and inode: one stat a file)."""
+        gateway = file_id(self.gateway_file)
         files = []
         for path in sorted(self.dir.glob(self.config.device_pattern)):
-            if not path.is_file() or path.name.startswith("."):
+            if path.name.startswith("."):
                 continue
-            if path.resolve() == self.gateway_file:
+            try:
+                info = path.stat()
+            except OSError:
                 continue
-            files.append(path)
+            if stat.S_ISREG(info.st_mode) and (info.st_dev, info.st_ino) != gateway:
+                files.append(path)
         return files
 
     def reload_devices(self) -> None:
         """Bring the running devices in line with the folder (see gateway/__init__.py)."""
         files = self.device_files()
         present = set(files)  # thousands of files: no list scan per device
-        for path in [p for p in self.devices if p not in present]:
-            dev = self.devices.pop(path)
-            self._stop_device(dev)
-            log.info("%s: stopped (%s removed)", dev.code, path.name)
-        for path in files:
-            current = self.devices.get(path)
-            what = "keeping the running version" if current else "not started"
-            try:
-                self._reload_device(path, current, what)
-            except Exception as exc:  # e.g. RecursionError of a deeply nested file
-                log.error("%s: cannot load (%s); %s", path, one_line(exc), what)
+        gone = [self.devices.pop(path) for path in list(self.devices) if path not in present]
+        self._stop_all(gone)
+        for dev in gone:
+            log.info("%s: stopped (%s removed)", dev.code, dev.path.name)
+        with starting_in_bulk():  # thousands of devices made: gateway/bulk.py
+            for path in files:
+                current = self.devices.get(path)
+                what = "keeping the running version" if current else "not started"
+                try:
+                    self._reload_device(path, current, what)
+                except Exception as exc:  # e.g. RecursionError of a deeply nested file
+                    log.error("%s: cannot load (%s); %s", path, one_line(exc), what)
 
     def _reload_device(self, path: Path, current: ServiceDevice | None, what: str) -> None:
         try:
-            digest = _digest(path)
+            digest, load = read_device(path)  # the file read once (gateway/bulk.py)
         except OSError as exc:
             log.error("%s: cannot read: %s", path, exc)
             return
         if current is not None and current.digest == digest:
             return
         try:
-            cfg = load_device_config(path)
+            cfg = load()
         except (ConfigError, ValueError, OSError) as exc:
             log.error("%s: invalid, %s:\n%s", path, what, exc)
             return
@@ -491,7 +491,3 @@ def one_line(exc: BaseException, limit: int = 300) -> str:
         first = first[:limit] + "..."
     return f"{type(exc).__name__}: {first}" if first else type(exc).__name__
 
-
-def _digest(path: Path) -> str:
-    """The device file's digest, with the template it names (a changed template reloads)."""
-    return hashlib.sha256(file_bytes(path) + template_bytes(path)).hexdigest()

@@ -26,8 +26,9 @@ import os
 import queue
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from concurrent.futures import Future
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -107,6 +108,7 @@ class LoopWorker:
 
     def __init__(self, name: str, capacity: int = DEFAULT_CAPACITY) -> None:
         self.loop = Loop(capacity)
+        self.capacity = capacity
         self.waker = Waker()  # the engines' (the loop link never waits on it)
         self._free = list(range(capacity - 1, -1, -1))
         self._slots: dict[int, _Served] = {}
@@ -115,6 +117,7 @@ class LoopWorker:
             queue.SimpleQueue()
         self._news: set[LoopLine] = set()
         self._lock = threading.Lock()
+        self._woken = False  # a wake-up is on its way (_wake_once)
         self._stopping = False
         self.load = 0  # lines assigned (the pool's count)
         self.thread = threading.Thread(target=self._run, name=name, daemon=True)
@@ -130,13 +133,23 @@ class LoopWorker:
     def _ask(self, add: bool, line: LoopLine) -> Future[None]:
         future: Future[None] = Future()
         self._inbox.put((add, line, future))
-        self.loop.wake()
+        self._wake_once()
         return future
 
     def news(self, line: LoopLine) -> None:
         """``line`` has something queued (a job, a connection, new pollers)."""
         with self._lock:
             self._news.add(line)
+        self._wake_once()
+
+    def _wake_once(self) -> None:
+        """Wake the loop, once until its next turn takes the inbox and the news (after
+        what was put there: a start of 5,000 lines is not 10,000 wake-ups, each a
+        hand-over of the GIL to the loop thread)."""
+        with self._lock:
+            if self._woken:
+                return
+            self._woken = True
         try:
             self.loop.wake()
         except OSError:
@@ -160,9 +173,10 @@ class LoopWorker:
         while not self._stopping:
             try:
                 turn = self.loop.wait(time.monotonic() + _MAX_IDLE)
-                self._take_inbox()
-                with self._lock:
+                with self._lock:  # before the inbox: a line told of is in it by now
                     news, self._news = self._news, set()
+                    self._woken = False  # what comes after this wakes the loop again
+                self._take_inbox()
                 for line in news:
                     served = self._by_line.get(line)
                     if served is not None:
@@ -382,6 +396,7 @@ class LoopPool:
 
     def __init__(self, threads: int | None = None) -> None:
         self.threads = threads or os.cpu_count() or 1
+        self._deferred = threading.local()  # .pending: the adds of deferred()
         self._workers: list[LoopWorker] = []
         self._lock = threading.Lock()
         self._made = 0
@@ -400,9 +415,34 @@ class LoopPool:
                 self._workers.append(worker)
             else:
                 worker = min(self._workers, key=lambda w: w.load)
+            if worker.load >= worker.capacity:
+                raise ValueError(f"{line.endpoint.describe()}: the loop threads serve at "
+                                 f"most {worker.capacity} lines each and have "
+                                 f"{len(self._workers)} x that many (loopThreads)")
             worker.load += 1
-        worker.add(line).result()
+        added = worker.add(line)
+        pending: list[Future[None]] | None = getattr(self._deferred, "pending", None)
+        if pending is None:
+            added.result()
+        else:  # the worker takes its inbox before the news of a line: it is there first
+            pending.append(added)
         return worker
+
+    @contextmanager
+    def deferred(self) -> Iterator[None]:
+        """Lines started inside (on this thread) are not waited for one by one (a round
+        trip to their loop thread each): at the end, all at once; then the first
+        failure is raised (the lines stay started)."""
+        previous = getattr(self._deferred, "pending", None)
+        pending: list[Future[None]] = []
+        self._deferred.pending = pending
+        try:
+            yield
+        finally:
+            self._deferred.pending = previous
+            failures = [exc for f in pending if (exc := f.exception(30)) is not None]
+            if failures:
+                raise failures[0]
 
     def release(self, line: LoopLine, worker: LoopWorker, timeout: float | None) -> None:
         """Take ``line`` off ``worker`` (waited for, except on the loop thread itself: a

@@ -1,0 +1,120 @@
+"""A folder of thousands of device files started and stopped in bulk (docs/scale.md,
+"Starting thousands of devices").
+
+:func:`read_device` reads a file once for both its digest (what a reload compares) and
+its load; :func:`starting_in_bulk` keeps Python's cyclic garbage collector from
+walking the ever larger heap again and again while thousands of devices are made (a
+fifth of a 5,000-device start) and their loop-engine lines from a round trip each to
+a loop thread; :func:`stop_each` stops devices on a few threads, not
+one thread per device.
+"""
+
+from __future__ import annotations
+
+import gc
+import hashlib
+import logging
+import threading
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
+from pathlib import Path
+from typing import TypeVar
+
+from ..config import DeviceConfig, load_device_config
+from ..config.device import load_device_file
+from ..config.jsonfile import MAX_JSON_BYTES, parse_json
+from ..config.problems import ConfigError
+from ..config.templates import template_bytes
+from ..line.loop import pool as loop_pool
+from .config import file_bytes
+
+log = logging.getLogger("edgemodbus.service")
+
+T = TypeVar("T")
+
+STOP_THREADS = 16
+"""Threads that stop a folder's devices: a device on its own line worker waits for that
+thread to end, so a few stop at once; a thread per device cost a thread start each."""
+
+
+def read_device(path: Path) -> tuple[str, Callable[[], DeviceConfig]]:
+    """The file's digest (its bytes and its template's: a changed template reloads it)
+    and its loader (raises as :func:`~edgemodbus.config.load_device_config` does).
+    OSError when it cannot be read.  The file is read once; one that is not a regular
+    UTF-8 JSON object within config/jsonfile.py's limits is loaded from its path,
+    which says why."""
+    raw = file_bytes(path)
+    data = _decoded(raw, path)
+    digest = hashlib.sha256(raw + template_bytes(path, data)).hexdigest()
+    if data is None:
+        return digest, lambda: load_device_config(path)
+    return digest, lambda: load_device_file(path, data)
+
+
+def file_id(path: Path) -> tuple[int, int] | None:
+    """(device, inode) of the file ``path`` names, None when there is none."""
+    try:
+        info = path.stat()
+    except OSError:
+        return None
+    return info.st_dev, info.st_ino
+
+
+def _decoded(raw: bytes, path: Path) -> dict[str, object] | None:
+    """The JSON object of a file's bytes, or None when loading it from its path is to
+    say what is wrong with it (too large, not UTF-8, not JSON, too deep, no object; a
+    FIFO or a folder, which file_bytes describes instead of reading)."""
+    if len(raw) > MAX_JSON_BYTES:  # (no JSON: file_bytes' words for a FIFO or a folder)
+        return None
+    try:
+        data = parse_json(raw.decode("utf-8-sig"), str(path))
+    except (UnicodeDecodeError, ConfigError):
+        return None
+    return data if isinstance(data, dict) else None
+
+
+@contextmanager
+def starting_in_bulk() -> Iterator[None]:
+    """While a folder's devices start: Python's cyclic garbage collector off (each of
+    its passes walks every object, and thousands of devices made it run hundreds of
+    times; on again after, as it was), and the loop engine's lines handed to their
+    loop threads without a round trip each (line/loop.py ``LoopPool.deferred``; a
+    failure there, a bug, is logged)."""
+    was = gc.isenabled()
+    gc.disable()
+    try:
+        with loop_pool.deferred():
+            yield
+    except Exception:
+        log.exception("loop engine: a line was not taken by its loop thread")
+    finally:
+        if was:
+            gc.enable()
+
+
+def stop_each(devices: Sequence[T], stop: Callable[[T], None],
+              threads: int = STOP_THREADS) -> None:
+    """``stop(device)`` for every device, on at most ``threads`` threads at once (the
+    caller's when there is one device); returns when all are stopped.  ``stop`` logs
+    its own failures."""
+    if len(devices) <= 1:
+        for device in devices:
+            stop(device)
+        return
+    it = iter(devices)
+    lock = threading.Lock()
+
+    def work() -> None:
+        while True:
+            with lock:
+                device = next(it, None)
+            if device is None:
+                return
+            stop(device)
+
+    workers = [threading.Thread(target=work, name=f"edgemodbus-stop {k + 1}")
+               for k in range(min(threads, len(devices)))]
+    for worker in workers:
+        worker.start()
+    for worker in workers:
+        worker.join()
