@@ -1,17 +1,14 @@
 """A folder of thousands of device files started and stopped in bulk (docs/scale.md,
 "Starting thousands of devices").
 
-:func:`read_device` reads a file once for both its digest (what a reload compares) and
-its load; :func:`starting_in_bulk` keeps Python's cyclic garbage collector from
-walking the ever larger heap again and again while thousands of devices are made (a
-fifth of a 5,000-device start) and their loop-engine lines from a round trip each to
-a loop thread; :func:`stop_each` stops devices on a few threads, not
-one thread per device.
+:func:`read_device` reads a file once for both its digest (what a reload compares)
+and its load; :func:`starting_in_bulk` starts the devices inside edgemodbus/bulk.py's
+(the garbage collector paused, loop-engine lines handed over without a round trip
+each); :func:`stop_each` stops devices on a few threads, not one thread per device.
 """
 
 from __future__ import annotations
 
-import gc
 import hashlib
 import logging
 import threading
@@ -20,12 +17,12 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import TypeVar
 
+from ..bulk import starting_in_bulk as starting_drivers_in_bulk
 from ..config import DeviceConfig, load_device_config
 from ..config.device import load_device_file
 from ..config.jsonfile import MAX_JSON_BYTES, parse_json
 from ..config.problems import ConfigError
 from ..config.templates import template_bytes
-from ..line.loop import pool as loop_pool
 from .config import file_bytes
 
 log = logging.getLogger("edgemodbus.service")
@@ -75,21 +72,14 @@ def _decoded(raw: bytes, path: Path) -> dict[str, object] | None:
 
 @contextmanager
 def starting_in_bulk() -> Iterator[None]:
-    """While a folder's devices start: Python's cyclic garbage collector off (each of
-    its passes walks every object, and thousands of devices made it run hundreds of
-    times; on again after, as it was), and the loop engine's lines handed to their
-    loop threads without a round trip each (line/loop.py ``LoopPool.deferred``; a
-    failure there, a bug, is logged)."""
-    was = gc.isenabled()
-    gc.disable()
+    """A folder's devices start inside edgemodbus/bulk.py's :func:`starting_in_bulk`; a
+    line its loop thread did not take (a bug) is logged, not raised (a reload never
+    raises)."""
     try:
-        with loop_pool.deferred():
+        with starting_drivers_in_bulk():
             yield
     except Exception:
         log.exception("loop engine: a line was not taken by its loop thread")
-    finally:
-        if was:
-            gc.enable()
 
 
 def stop_each(devices: Sequence[T], stop: Callable[[T], None],

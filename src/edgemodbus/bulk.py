@@ -1,0 +1,36 @@
+"""Starting many drivers at once: :func:`starting_in_bulk` (docs/scale.md, "Starting
+thousands of devices").
+
+Inside it, ``DriverModbusRtu.start_device`` works as ever, but two costs that grow with
+a fleet are left out: Python's cyclic garbage collector is off (each of its full passes
+walks every object, and thousands of devices made it run hundreds of times during a
+start), and a loop-engine line is handed to its loop thread without waiting for it
+there (line/loop.py ``LoopPool.deferred``: a round trip and a hand-over of the GIL per
+device); the lines are waited for together at the end.  The gateway service starts a
+folder's devices inside it.
+"""
+
+from __future__ import annotations
+
+import gc
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+from .line.loop import pool as loop_pool
+
+__all__ = ["starting_in_bulk"]
+
+
+@contextmanager
+def starting_in_bulk() -> Iterator[None]:
+    """Start many drivers inside (on this thread): the collector paused (on again after,
+    if it was), loop-engine lines waited for together at the end, where the first
+    failure of one to be taken by its loop thread is raised (a bug: the others run)."""
+    was = gc.isenabled()
+    gc.disable()
+    try:
+        with loop_pool.deferred():
+            yield
+    finally:
+        if was:
+            gc.enable()
