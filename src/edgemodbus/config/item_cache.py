@@ -23,8 +23,9 @@ from typing import Any
 from ..codec.shared import SharedCache
 from .item_model import UNREAD, DeviceAddressItem
 
-MAX_KEY_CHARS = 1 << 20
-"""The longest list text kept (about 5,000 items): a larger list is validated each time."""
+MAX_KEY_CHARS = 1 << 18
+"""The longest list text kept (about 1,000 items; at most 16 lists are kept): a larger
+list is validated each time."""
 
 _LISTS: SharedCache[tuple[DeviceAddressItem, ...]] = SharedCache(keep=16, weak=False)
 

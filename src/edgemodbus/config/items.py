@@ -20,7 +20,7 @@ from ..protocol.address import Address, check_span, parse_address
 from .base import MS_RANGE, field_checks, recheck
 from .communication import DriverModbusRtuParameter
 from .item_fields import ON_DEMAND, ItemFields, _strip_echo
-from .item_model import MOVING, STATUSES, DeviceAddressItem, ItemReading
+from .item_model import CONF_FIELDS, MOVING, STATUSES, DeviceAddressItem, ItemReading
 from .problems import NO_VALUE, ConfigError, Problem
 from .scaling import (
     ScaleFactors,
@@ -182,20 +182,37 @@ def _input_key(items: Sequence[DeviceAddressItem],
     and config tuple (every other field, item_model.py: by identity, as items of one
     kind share one tuple, and equal values of other types, 1 and True, are not one
     input).  None when the result is not one to share: a scaleFactor (the device's own
-    table), an item of another class, a value that is not hashable."""
-    try:
-        rows = tuple((it.name, it.address, it.description, id(it._conf)) for it in items
-                     if type(it) is DeviceAddressItem and it.scale_factor is None
-                     and type(it.name) is str and type(it.address) is str
-                     and type(it.description) is str)
-        if len(rows) != len(items):
+    table), an item of another class, a value that is not hashable, a list longer than
+    :data:`MEMO_MAX_ITEMS`."""
+    if len(items) > MEMO_MAX_ITEMS:
+        return None
+    rows = []
+    for it in items:
+        if type(it) is not DeviceAddressItem:
             return None
-        key = (tuple((type(v), v) for v in (getattr(comm, name) for name in COMM_KEYS)),
-               rows)
+        name, address, description, conf = it.name, it.address, it.description, it._conf
+        if conf[_SCALE_FACTOR] is not None or type(name) is not str \
+                or type(address) is not str or type(description) is not str:
+            return None
+        rows.append((name, address, description, id(conf)))
+    key = (tuple([(type(v), v) for v in [getattr(comm, f) for f in COMM_KEYS]]),
+           tuple(rows))
+    try:
         hash(key)
-    except (TypeError, AttributeError):
+    except TypeError:
         return None
     return key
+
+
+_SCALE_FACTOR = CONF_FIELDS.index("scale_factor")
+MEMO_MAX_ITEMS = 500
+"""The longest list memoised: a key holds a row per item, and a template that many
+devices share is short (a device of thousands of tags is rarely one of thousands)."""
+
+# the last list validated: a gateway loads a file, then starts its device with the same
+# items (key, the items, their results, the config tuples whose ids the key holds)
+_last: tuple[tuple[Any, ...], tuple[DeviceAddressItem, ...], list[ParsedItem],
+             tuple[Any, ...]] | None = None
 
 
 def validate_items(
@@ -211,13 +228,20 @@ def validate_items(
     fields and options: a template's 5,000 devices, or a file loaded then started)
     takes that result, given these items (docs/scale.md, "Starting thousands of
     devices"); an item changed since it was checked is a new input, checked."""
+    global _last
     key = _input_key(items, comm)
     if key is None:
         return _validate(items, comm)
-    checked, _ = _VALIDATED.get(key, lambda: (tuple(_validate(items, comm)),
-                                              tuple(it._conf for it in items)))
-    return [one if one.item is item else _rebind(one, item)
-            for one, item in zip(checked, items, strict=True)]
+    last = _last
+    if last is not None and last[0] == key and len(last[1]) == len(items) \
+            and all(a is b for a, b in zip(last[1], items, strict=True)):
+        return list(last[2])
+    checked, confs = _VALIDATED.get(key, lambda: (tuple(_validate(items, comm)),
+                                                  tuple(it._conf for it in items)))
+    parsed = [one if one.item is item else _rebind(one, item)
+              for one, item in zip(checked, items, strict=True)]
+    _last = (key, tuple(items), parsed, confs)
+    return list(parsed)
 
 
 def _rebind(one: ParsedItem, item: DeviceAddressItem) -> ParsedItem:

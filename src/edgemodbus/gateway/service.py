@@ -405,7 +405,8 @@ class Gateway:
             self._code_paths[code] = path
             log.info("%s: standby (%s): polled by the pair's leader", code, path.name)
             return
-        org = cfg.organization.model_copy(update={"device_code": code})
+        org = cfg.organization if cfg.organization.device_code == code else \
+            cfg.organization.model_copy(update={"device_code": code})
         comm = cfg.communication
         snapshot_interval = inherited_snapshot(self.config)
         if snapshot_interval and "snapshot_interval" not in comm.model_fields_set:
