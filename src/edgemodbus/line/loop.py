@@ -416,9 +416,9 @@ class LoopPool:
             else:
                 worker = min(self._workers, key=lambda w: w.load)
             if worker.load >= worker.capacity:
-                raise ValueError(f"{line.endpoint.describe()}: the loop threads serve at "
-                                 f"most {worker.capacity} lines each and have "
-                                 f"{len(self._workers)} x that many (loopThreads)")
+                raise ValueError(f"{line.endpoint.describe()}: not started, the "
+                                 f"{len(self._workers)} loop threads (loopThreads) serve "
+                                 f"{worker.capacity} lines each and all are full")
             worker.load += 1
         added = worker.add(line)
         pending: list[Future[None]] | None = getattr(self._deferred, "pending", None)
@@ -441,8 +441,8 @@ class LoopPool:
         finally:
             self._deferred.pending = previous
             failures = [exc for f in pending if (exc := f.exception(30)) is not None]
-            if failures:
-                raise failures[0]
+        if failures:  # (not over an exception of the block's own)
+            raise failures[0]
 
     def release(self, line: LoopLine, worker: LoopWorker, timeout: float | None) -> None:
         """Take ``line`` off ``worker`` (waited for, except on the loop thread itself: a
