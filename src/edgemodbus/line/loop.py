@@ -99,8 +99,8 @@ class LoopLine(LineWorker):
     def _post(self, item: Any) -> None:
         self._queue.put(item)
         worker = self._worker
-        if worker is not None:
-            worker.news(self)
+        if worker is not None:  # None: a reschedule (attach, detach), not a job
+            worker.news(self, job=item is not None)
 
 
 class LoopWorker:
@@ -133,16 +133,32 @@ class LoopWorker:
     def _ask(self, add: bool, line: LoopLine) -> Future[None]:
         future: Future[None] = Future()
         self._inbox.put((add, line, future))
-        self._wake_once()
+        if add:
+            self._wake_once()
+        else:  # a stop waits for it
+            self.wake_now()
         return future
 
-    def news(self, line: LoopLine) -> None:
-        """``line`` has something queued (a job, a connection, new pollers)."""
+    def news(self, line: LoopLine, job: bool = True) -> None:
+        """``line`` has something queued: a ``job`` (someone may wait for it), or new
+        pollers, a connection."""
         with self._lock:
             self._news.add(line)
-        self._wake_once()
+        if job:
+            self.wake_now()
+        else:
+            self._wake_once()
 
     def _wake_once(self) -> None:
+        """:meth:`wake_now`, or inside ``LoopPool.deferred`` on this thread, at the
+        block's end (lines added and pollers attached: nothing waits for them)."""
+        held: set[LoopWorker] | None = getattr(_bulk, "workers", None)
+        if held is not None:
+            held.add(self)
+        else:
+            self.wake_now()
+
+    def wake_now(self) -> None:
         """Wake the loop, once until its next turn takes the inbox and the news (after
         what was put there: a start of 5,000 lines is not 10,000 wake-ups, each a
         hand-over of the GIL to the loop thread)."""
@@ -390,6 +406,10 @@ class LoopWorker:
         self._lost(served)
 
 
+# this thread's LoopPool.deferred block: .workers, the loop workers to wake at its end
+_bulk = threading.local()
+
+
 class LoopPool:
     """The process's loop workers: at most ``threads`` (default: the cores), each line
     on the least loaded; a worker starts with its first line, stops with its last."""
@@ -431,15 +451,24 @@ class LoopPool:
     @contextmanager
     def deferred(self) -> Iterator[None]:
         """Lines started inside (on this thread) are not waited for one by one (a round
-        trip to their loop thread each): at the end, all at once; then the first
-        failure is raised (the lines stay started)."""
+        trip to their loop thread each), and their loop threads are not woken while the
+        block runs (each wake-up hands them the GIL): at the end they are woken and the
+        lines waited for, all at once; then the first failure is raised (the lines stay
+        started).  A job (a write, a read, a new plan) or a stop inside wakes its loop
+        thread as ever."""
         previous = getattr(self._deferred, "pending", None)
         pending: list[Future[None]] = []
         self._deferred.pending = pending
+        outer: set[LoopWorker] | None = getattr(_bulk, "workers", None)
+        held: set[LoopWorker] = set()
+        _bulk.workers = held
         try:
             yield
         finally:
             self._deferred.pending = previous
+            _bulk.workers = outer
+            for worker in held:
+                worker.wake_now()
             failures = [exc for f in pending if (exc := f.exception(30)) is not None]
         if failures:  # (not over an exception of the block's own)
             raise failures[0]

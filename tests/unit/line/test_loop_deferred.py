@@ -97,3 +97,22 @@ def test_a_line_past_the_loop_threads_capacity_is_refused_at_its_start(
         for line in lines:
             line.stop()
     assert pool.workers == 0
+
+
+def test_a_job_or_a_stop_inside_a_bulk_block_is_not_held_to_its_end() -> None:
+    """Only the adds and attaches wait for the block's end: a job someone waits for
+    (here a write) and a stop wake the loop thread at once."""
+    pool = LoopPool(1)
+    lines = [LoopLine(DtuEndpoint("127.0.0.1", 1, f"J{k}"), None, Absent(), pool)
+             for k in range(3)]
+    try:
+        with pool.deferred():
+            for line in lines:
+                line.start()
+            with pytest.raises(ModbusConnectionError, match="link is down"):
+                lines[0].write_register(1, 0, 5).result(30)
+            lines[1].stop()  # waits for its loop thread: woken, not held
+    finally:
+        for line in lines:
+            line.stop()
+    assert pool.workers == 0
