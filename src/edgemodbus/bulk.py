@@ -5,9 +5,10 @@ Inside it, ``DriverModbusRtu.start_device`` works as ever, but two costs that gr
 a fleet are left out: Python's cyclic garbage collector is off (each of its full passes
 walks every object, and thousands of devices made it run hundreds of times during a
 start), and a loop-engine line is handed to its loop thread without waiting for it
-there (line/loop.py ``LoopPool.deferred``: a round trip and a hand-over of the GIL per
-device); the lines are waited for together at the end.  The gateway service starts a
-folder's devices inside it.
+there and without waking it (line/loop.py ``LoopPool.deferred``: a round trip and a
+hand-over of the GIL per device); the loop threads are woken and the lines waited for
+together at the end.  A job (a write, a read) or a stop inside wakes its loop thread at
+once, as outside.  The gateway service starts a folder's devices inside it.
 """
 
 from __future__ import annotations
