@@ -42,6 +42,7 @@ from bench.conftest import report, scale
 
 N = int(os.environ.get("EDGEMODBUS_BENCH_BULK", "0")) or scale(5000, 500)
 PROFILE = os.environ.get("EDGEMODBUS_BENCH_PROFILE") == "1"
+LINES_PER_LOOP = 8000  # a loop thread serves at most 8,192 lines (line/loop.py)
 
 
 def _device(k: int, port: int, n: int) -> dict[str, Any]:
@@ -50,8 +51,8 @@ def _device(k: int, port: int, n: int) -> dict[str, Any]:
         "communication": {
             "transport": "rtu-over-tcp-server", "listenHost": "127.0.0.1",
             "listenPort": port, "dtuId": f"DTU{k:05d}", "registration": "text",
-            "engine": "loop", "slaveId": 1, "readCycle": 5000, "maxUnregistered": n,
-            "maxUnregisteredPerSource": n},
+            "engine": "loop", "loopThreads": max(2, -(-n // LINES_PER_LOOP)), "slaveId": 1,
+            "readCycle": 5000, "maxUnregistered": n, "maxUnregisteredPerSource": n},
         "addressList": [{"name": f"t{a}", "address": f"3:{a}", "deviceDataType": "UInt16"}
                         for a in range(20)],
     }
@@ -80,7 +81,7 @@ def _run(conn: Connection, n: int, via: str, profile: bool) -> None:
     from edgemodbus.sim import raise_open_files_limit
 
     logging.getLogger("edgemodbus").setLevel(logging.CRITICAL)
-    raise_open_files_limit(n + 256)
+    raise_open_files_limit(min(n, 4096) + 256)  # (no connection: no socket per DTU)
     port = _free_port()
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
