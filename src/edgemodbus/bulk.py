@@ -14,7 +14,7 @@ once, as outside.  The gateway service starts a folder's devices inside it.
 from __future__ import annotations
 
 import gc
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
 from .line.loop import pool as loop_pool
@@ -23,15 +23,21 @@ __all__ = ["starting_in_bulk"]
 
 
 @contextmanager
-def starting_in_bulk() -> Iterator[None]:
+def starting_in_bulk(freeze: Callable[[], bool] | None = None) -> Iterator[None]:
     """Start many drivers inside (on this thread): the collector paused (on again after,
     if it was), loop-engine lines waited for together at the end, where the first
-    failure of one to be taken by its loop thread is raised (a bug: the others run)."""
+    failure of one to be taken by its loop thread is raised (a bug: the others run).
+    ``freeze()`` true at the end: then ``gc.freeze()`` what the process holds, before the
+    collector is on again (its first pass would walk every object the drivers are made
+    of; the caller calls ``gc.unfreeze()`` before it stops drivers, as gateway/bulk.py
+    does)."""
     was = gc.isenabled()
     gc.disable()
     try:
         with loop_pool.deferred():
             yield
     finally:
+        if freeze is not None and was and freeze():
+            gc.freeze()
         if was:
             gc.enable()

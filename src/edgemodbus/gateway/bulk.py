@@ -9,6 +9,7 @@ each); :func:`stop_each` stops devices on a few threads, not one thread per devi
 
 from __future__ import annotations
 
+import gc
 import hashlib
 import logging
 import threading
@@ -70,16 +71,36 @@ def _decoded(raw: bytes, path: Path) -> dict[str, object] | None:
     return data if isinstance(data, dict) else None
 
 
+class Thaws:
+    """How many times :func:`thaw` gave frozen objects back (``count``)."""
+
+    count = 0
+
+
 @contextmanager
-def starting_in_bulk() -> Iterator[None]:
+def starting_in_bulk(started: Callable[[], bool]) -> Iterator[None]:
     """A folder's devices start inside edgemodbus/bulk.py's :func:`starting_in_bulk`; a
     line its loop thread did not take (a bug) is logged, not raised (a reload never
-    raises)."""
+    raises).  When ``started()`` (devices were started) and no device stopped inside,
+    what the process holds is then frozen (``gc.freeze``): the devices live until they
+    are stopped, and the collector's first pass after the start walked every object
+    they are made of (a sixth of a 5,000-device start).  :func:`thaw` gives them back
+    to it before a device stops (its cycles are collected as before); a block in which
+    one stopped freezes nothing (that device's garbage is not to be kept)."""
+    thaws = Thaws.count
     try:
-        with starting_drivers_in_bulk():
+        with starting_drivers_in_bulk(freeze=lambda: started() and Thaws.count == thaws):
             yield
     except Exception:
         log.exception("loop engine: a line was not taken by its loop thread")
+
+
+def thaw() -> None:
+    """Give the objects :func:`starting_in_bulk` froze back to the collector (before a
+    device stops: what it leaves is collected as ever); cheap when nothing is frozen."""
+    Thaws.count += 1
+    if gc.get_freeze_count():
+        gc.unfreeze()
 
 
 def stop_each(devices: Sequence[T], stop: Callable[[T], None],

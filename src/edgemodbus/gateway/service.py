@@ -17,7 +17,7 @@ from ..config import (
 )
 from ..console import console_key, start_console
 from ..driver import DriverModbusRtu
-from .bulk import file_id, read_device, starting_in_bulk, stop_each
+from .bulk import file_id, read_device, starting_in_bulk, stop_each, thaw
 from .config import (
     GATEWAY_FILE,
     GatewayConfig,
@@ -361,7 +361,9 @@ class Gateway:
         self._stop_all(gone)
         for dev in gone:
             log.info("%s: stopped (%s removed)", dev.code, dev.path.name)
-        with starting_in_bulk():  # thousands of devices made: gateway/bulk.py
+        before = len(self.devices)
+        # frozen after when devices started and none stopped (gateway/bulk.py)
+        with starting_in_bulk(lambda: not gone and len(self.devices) > before):
             for path in files:
                 current = self.devices.get(path)
                 what = "keeping the running version" if current else "not started"
@@ -460,6 +462,7 @@ class Gateway:
     def _stop_device(self, dev: ServiceDevice) -> None:
         if dev.standby:
             return  # never started nor attached
+        thaw()  # the objects a bulk start froze: collected again (gateway/bulk.py)
         try:
             dev.driver.stop_device()
         except Exception:
