@@ -25,6 +25,7 @@ from edgemodbus.config import (
     validate_items,
 )
 from edgemodbus.config.item_model import DeviceAddressItem as Item
+from edgemodbus.datatypes import DataType
 from tests.peers import free_port
 
 
@@ -49,14 +50,15 @@ class _Recording:
     """A communication record that notes every field read."""
 
     def __init__(self, comm: DriverModbusRtuParameter) -> None:
-        self.comm, self.read = comm, set()
+        self.comm = comm
+        self.read: set[str] = set()
 
     def __getattr__(self, name: str) -> Any:
         self.read.add(name)
         return getattr(self.comm, name)
 
 
-_ITEM_KINDS = [
+_ITEM_KINDS: list[dict[str, Any]] = [
     {"address": "3:0", "deviceDataType": "UInt16"},
     {"address": "4:10", "deviceDataType": "Float", "dataFormat": "CDAB"},
     {"address": "hr:5.3", "deviceDataType": "Boolean"},
@@ -128,7 +130,7 @@ def test_an_item_changed_after_its_check_is_checked_again() -> None:
         _outcome(lambda: items._validate(listed, comm))
     listed[1].quantity = None
     listed[2].address = "3:65535"
-    listed[2].device_data_type = items.DataType.INT32  # type: ignore[misc]
+    listed[2].device_data_type = DataType.INT32
     with pytest.raises(ConfigError, match=r"addressList\[2\]\.address"):
         validate_items(listed, comm)
 
@@ -151,10 +153,17 @@ def test_files_of_one_template_are_validated_once_from_load_to_start(
     parsed_addresses: list[str] = []
     built: list[Any] = []
     real_parse, real_of = items.parse_address, Item.of.__func__  # type: ignore[attr-defined]
-    monkeypatch.setattr(items, "parse_address",
-                        lambda a, *r: parsed_addresses.append(a) or real_parse(a, *r))
-    monkeypatch.setattr(Item, "of", classmethod(
-        lambda cls, fields: built.append(fields) or real_of(cls, fields)))
+
+    def parse(address: str, *rest: Any) -> Any:
+        parsed_addresses.append(address)
+        return real_parse(address, *rest)
+
+    def of(cls: type[Item], fields: Any) -> Item:
+        built.append(fields)
+        return real_of(cls, fields)  # type: ignore[no-any-return]
+
+    monkeypatch.setattr(items, "parse_address", parse)
+    monkeypatch.setattr(Item, "of", classmethod(of))
     template = _template(20)
     template[0]["description"] = f"memo test {tmp_path}"  # a list no other test loaded
     port = free_port()
