@@ -6,6 +6,7 @@ from __future__ import annotations
 import os
 from collections.abc import Mapping
 from datetime import datetime
+from pathlib import Path
 from typing import Annotated, Any, ClassVar
 
 from pydantic import ConfigDict, Field, field_validator, model_validator
@@ -174,7 +175,7 @@ def load_device_file(path: str | os.PathLike[str], data: Mapping[str, Any]) -> D
     """:func:`load_device_config` of the file at ``path`` that the caller has read and
     decoded (``data``, by config/jsonfile.py's rules): the same result and errors
     (gateway/bulk.py reads a file once for its digest and its load)."""
-    with device_loading(os.fspath(path)), json_source(True):
+    with device_loading(Path(path)), json_source(True):  # a path, whatever its name
         return load_model(DeviceConfig, data, checked=True)
 
 

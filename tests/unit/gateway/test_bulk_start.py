@@ -186,3 +186,19 @@ def test_a_folder_started_is_frozen_for_the_collector_until_a_device_stops(
         gateway.stop()
         gc.unfreeze()
     assert gc.get_freeze_count() == 0
+
+
+def test_a_file_named_like_json_text_finds_its_templates_beside_it(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The file's folder is where its templateDirs are, also for a path that starts
+    with "{" (a str starting so is JSON text to load_device_config)."""
+    folder = tmp_path / "{site}"
+    (folder / "templates").mkdir(parents=True)
+    (folder / "templates" / "meter.json").write_text(json.dumps(
+        {"addressList": [{"name": "v", "address": "3:100", "deviceDataType": "UInt16"}]}))
+    device = _device(free_port(), 1)
+    device["template"], device["templateDirs"] = "meter", ["templates"]
+    (folder / "x.json").write_text(json.dumps(device))
+    monkeypatch.chdir(tmp_path)  # not the file's folder
+    _, load = read_device(Path("{site}/x.json"))
+    assert load().address_list[0].name == "v"
