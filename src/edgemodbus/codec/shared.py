@@ -72,6 +72,19 @@ class SharedCache(Generic[V]):
             self._hold(key, value)
         return value
 
+    def peek(self, key: Hashable) -> V | None:
+        """The value cached under ``key`` (counted as a hit), else None (not counted:
+        the caller makes it and :meth:`get` it later, or not at all)."""
+        key = _Key(key)
+        with self._lock:
+            value = self._recent.get(key)
+            if value is None and self._weak is not None:
+                value = self._weak.get(key)
+            if value is not None:
+                self.hits += 1
+                self._hold(key, value)
+            return value
+
     def _hold(self, key: Hashable, value: V) -> None:
         recent = self._recent
         recent[key] = value

@@ -343,10 +343,13 @@ def recheck(model: object, checks: Checks, path: str) -> list[Problem]:
 _M = TypeVar("_M", bound=Model)
 
 
-def _read_json(source: str | os.PathLike[str] | Mapping[str, Any]) -> tuple[Any, str]:
-    """(decoded JSON, name of the source for messages), within jsonfile.py's limits."""
+def _read_json(source: str | os.PathLike[str] | Mapping[str, Any],
+               checked: bool = False) -> tuple[Any, str]:
+    """(decoded JSON, name of the source for messages), within jsonfile.py's limits
+    (``checked``: a dict that parse_json or read_json_file decoded is within them)."""
     if isinstance(source, Mapping):
-        check_depth(source, "<dict>")
+        if not checked:
+            check_depth(source, "<dict>")
         return dict(source), "<dict>"
     if isinstance(source, str) and source.lstrip("\ufeff \t\r\n").startswith(("{", "[")):
         return parse_json(source, "<json text>"), "<json text>"
@@ -355,12 +358,14 @@ def _read_json(source: str | os.PathLike[str] | Mapping[str, Any]) -> tuple[Any,
     raise TypeError(f"config source {source!r}: use a path, a str of JSON or a dict")
 
 
-def load_model(model: type[_M], source: str | os.PathLike[str] | Mapping[str, Any]) -> _M:
+def load_model(model: type[_M], source: str | os.PathLike[str] | Mapping[str, Any],
+               checked: bool = False) -> _M:
     """Load ``model`` from a path, a str of JSON text, or a dict; raises ConfigError.
     Unknown keys are logged once the load succeeded, or else become lines of the
     ConfigError (one line per problem, not a warning and then an error), a bounded
-    number of them and a line counting the rest (keys.py)."""
-    data, name = _read_json(source)
+    number of them and a line counting the rest (keys.py).  ``checked``: ``source`` is
+    a dict decoded by config/jsonfile.py (within its limits: not walked again)."""
+    data, name = _read_json(source, checked)
     if not isinstance(data, Mapping):
         raise ConfigError([Problem(name, NO_VALUE, "the file must hold a JSON object")])
     error: ConfigError | None

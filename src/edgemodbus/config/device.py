@@ -6,6 +6,7 @@ from __future__ import annotations
 import os
 from collections.abc import Mapping
 from datetime import datetime
+from pathlib import Path
 from typing import Annotated, Any, ClassVar
 
 from pydantic import ConfigDict, Field, field_validator, model_validator
@@ -14,7 +15,9 @@ from .actions import DeviceAction, validate_actions
 from .base import READ_CYCLE_RANGE, Model, OptionalMs, field_checks, load_model, recheck
 from .communication import DriverModbusRtuParameter
 from .compat import NG_DEVICE_KEYS, iso_timestamp, ng_batch_defaults, ng_device
+from .item_cache import cached_items, expect, json_source, keep, list_key
 from .items import DeviceAddressItem, ParsedItem, validate_items
+from .keys import unknown_count
 from .limits import MAX_NAME
 from .problems import ConfigError
 from .templates import apply_template, device_loading
@@ -123,13 +126,20 @@ class DeviceConfig(Model):
                 "maxBatch" not in data["communication"]:
             ng_batch_defaults(data["communication"])  # NG's points: NG's read sizes
         items = data.get("addressList")
-        if isinstance(items, list):
+        text = list_key(items) if isinstance(items, list) else None
+        cached = None if text is None else cached_items(text)
+        if cached is not None:  # the same list validated before (item_cache.py)
+            data["addressList"] = cached
+        elif isinstance(items, list):
+            before = unknown_count()
             data["addressList"] = [
                 DeviceAddressItem.normalize_keys(it, f"addressList[{i}]", f"addressList[{i}]")
                 if isinstance(it, Mapping)
                 else it
                 for i, it in enumerate(items)
             ]
+            # a list with unknown keys is not kept: a file loading it again is told them
+            expect(text if before is not None and unknown_count() == before else None)
         return data
 
     @model_validator(mode="after")
@@ -137,6 +147,7 @@ class DeviceConfig(Model):
         parsed = validate_items(self.address_list, self.communication)
         if self.actions:
             validate_actions(self.actions, parsed)
+        keep(self.address_list)  # the file is valid: its list is one to share
         return self
 
     def parsed_items(self) -> list[ParsedItem]:
@@ -156,8 +167,16 @@ def load_device_config(source: str | os.PathLike[str] | Mapping[str, Any]) -> De
     """Load a device file: a path, a str of JSON text, or a dict.  Raises ConfigError.
     A ``template`` is applied (templates.py; ``templateDirs`` are relative to the
     file's folder)."""
-    with device_loading(source):
+    with device_loading(source), json_source(not isinstance(source, Mapping)):
         return load_model(DeviceConfig, source)
+
+
+def load_device_file(path: str | os.PathLike[str], data: Mapping[str, Any]) -> DeviceConfig:
+    """:func:`load_device_config` of the file at ``path`` that the caller has read and
+    decoded (``data``, by config/jsonfile.py's rules): the same result and errors
+    (gateway/bulk.py reads a file once for its digest and its load)."""
+    with device_loading(Path(path)), json_source(True):  # a path, whatever its name
+        return load_model(DeviceConfig, data, checked=True)
 
 
 def load_communication(

@@ -14,12 +14,13 @@ from dataclasses import dataclass
 from typing import Any
 
 from ..codec import SMART_CAST_TYPES, ValueSpec, check_spec, smart_cast
+from ..codec.shared import SharedCache
 from ..datatypes import Area, DataFormat, DataFormat64, DataType
 from ..protocol.address import Address, check_span, parse_address
 from .base import MS_RANGE, field_checks, recheck
 from .communication import DriverModbusRtuParameter
 from .item_fields import ON_DEMAND, ItemFields, _strip_echo
-from .item_model import MOVING, STATUSES, DeviceAddressItem, ItemReading
+from .item_model import CONF_FIELDS, MOVING, STATUSES, DeviceAddressItem, ItemReading
 from .problems import NO_VALUE, ConfigError, Problem
 from .scaling import (
     ScaleFactors,
@@ -163,6 +164,57 @@ def _item_registers(
     return quantity
 
 
+COMM_KEYS = ("address_prefix", "address_base", "framing", "data_format", "byte_swap16",
+             "data_format64", "encoding", "read_cycle", "report_every", "report_mode")
+"""The communication fields :func:`validate_items` reads: with the items' own fields,
+the whole of its input (tests/unit/config/test_items_memo.py checks it reads no other)."""
+
+_Checked = tuple[tuple["ParsedItem", ...], tuple[tuple[Any, ...], ...]]
+_VALIDATED: SharedCache[_Checked] = SharedCache(keep=64, weak=False)
+"""Address lists validated before, by their whole input (:func:`_input_key`); with the
+results, the config tuples whose ids the key holds (alive, so no other tuple has them)."""
+
+
+def _input_key(items: Sequence[DeviceAddressItem],
+               comm: DriverModbusRtuParameter) -> tuple[Any, ...] | None:
+    """What :func:`validate_items` reads of its input, as a key: the communication
+    fields of :data:`COMM_KEYS` and each item's name, address, description (each a str)
+    and config tuple (every other field, item_model.py: by identity, as items of one
+    kind share one tuple, and equal values of other types, 1 and True, are not one
+    input).  None when the result is not one to share: a scaleFactor (the device's own
+    table), an item of another class, a value that is not hashable, a list longer than
+    :data:`MEMO_MAX_ITEMS`."""
+    if len(items) > MEMO_MAX_ITEMS:
+        return None
+    rows = []
+    for it in items:
+        if type(it) is not DeviceAddressItem:
+            return None
+        name, address, description, conf = it.name, it.address, it.description, it._conf
+        if conf[_SCALE_FACTOR] is not None or type(name) is not str \
+                or type(address) is not str or type(description) is not str:
+            return None
+        rows.append((name, address, description, id(conf)))
+    key = (tuple([(type(v), v) for v in [getattr(comm, f) for f in COMM_KEYS]]),
+           tuple(rows))
+    try:
+        hash(key)
+    except TypeError:
+        return None
+    return key
+
+
+_SCALE_FACTOR = CONF_FIELDS.index("scale_factor")
+MEMO_MAX_ITEMS = 500
+"""The longest list memoised: a key holds a row per item, and a template that many
+devices share is short (a device of thousands of tags is rarely one of thousands)."""
+
+# the last list validated: a gateway loads a file, then starts its device with the same
+# items (key, the items, their results, the config tuples whose ids the key holds)
+_last: tuple[tuple[Any, ...], tuple[DeviceAddressItem, ...], list[ParsedItem],
+             tuple[Any, ...]] | None = None
+
+
 def validate_items(
     items: Sequence[DeviceAddressItem], comm: DriverModbusRtuParameter
 ) -> list[ParsedItem]:
@@ -170,7 +222,39 @@ def validate_items(
     span, unique names), against its own field limits again (an item may have been
     changed after it was loaded) and against the codec's check of the spec the driver
     will build; return them parsed, in order.  Raises one ConfigError listing every
-    problem with its path (``addressList[3].address`` ...)."""
+    problem with its path (``addressList[3].address`` ...).
+
+    The check is a function of its input alone, so an input checked before (the same
+    fields and options: a template's 5,000 devices, or a file loaded then started)
+    takes that result, given these items (docs/scale.md, "Starting thousands of
+    devices"); an item changed since it was checked is a new input, checked."""
+    global _last
+    key = _input_key(items, comm)
+    if key is None:
+        return _validate(items, comm)
+    last = _last
+    if last is not None and last[0] == key and len(last[1]) == len(items) \
+            and all(a is b for a, b in zip(last[1], items, strict=True)):
+        return list(last[2])
+    checked, confs = _VALIDATED.get(key, lambda: (tuple(_validate(items, comm)),
+                                                  tuple(it._conf for it in items)))
+    parsed = [one if one.item is item else _rebind(one, item)
+              for one, item in zip(checked, items, strict=True)]
+    _last = (key, tuple(items), parsed, confs)
+    return list(parsed)
+
+
+def _rebind(one: ParsedItem, item: DeviceAddressItem) -> ParsedItem:
+    """``one`` (checked for an equal item) for ``item``."""
+    return ParsedItem(item, one.address, one.data_type, one.converted_type, one.data_format,
+                      one.byte_swap16, one.data_format64, one.registers, one.quantity,
+                      one.multiplier, one.deadband, one.encoding, one.factors)
+
+
+def _validate(
+    items: Sequence[DeviceAddressItem], comm: DriverModbusRtuParameter
+) -> list[ParsedItem]:
+    """:func:`validate_items`, computed."""
     problems: list[Problem] = []
     parsed: list[ParsedItem] = []
     first_index: dict[str, int] = {}

@@ -71,6 +71,8 @@ def parse_json(text: str, name: str) -> Any:
 def check_depth(data: Any, name: str) -> None:
     """ConfigError naming the first place in ``data`` nested more than
     :data:`MAX_JSON_DEPTH` levels (walked without recursion)."""
+    if _within_depth(data):
+        return
     stack: list[tuple[Any, int, tuple[Any, ...]]] = [(data, 1, ())]
     while stack:
         value, depth, parents = stack.pop()
@@ -87,6 +89,28 @@ def check_depth(data: Any, name: str) -> None:
         for key, child in children:
             if isinstance(child, (Mapping, list, tuple)):
                 stack.append((child, depth + 1, (*parents, key)))
+
+
+def _within_depth(data: Any) -> bool:
+    """Whether ``data`` is nested at most :data:`MAX_JSON_DEPTH` levels: the walk of
+    :func:`check_depth` without the paths (a device file is thousands of containers;
+    the path is made only for the error)."""
+    level: list[Any] = [data]
+    for _ in range(MAX_JSON_DEPTH):
+        deeper: list[Any] = []
+        for value in level:
+            if isinstance(value, dict):
+                value = value.values()
+            elif not isinstance(value, (list, tuple)):
+                if isinstance(value, Mapping):
+                    value = value.values()
+                else:
+                    continue
+            deeper += [v for v in value if isinstance(v, (dict, list, tuple, Mapping))]
+        if not deeper:
+            return True
+        level = deeper
+    return False
 
 
 def _path(parents: tuple[Any, ...]) -> str:

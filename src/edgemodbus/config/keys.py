@@ -215,6 +215,12 @@ def unknown_key(where: str, key: Any) -> None:
         sink.append(problem)
 
 
+def unknown_count() -> int | None:
+    """Unknown keys met so far by the load under way (None: no load collects them)."""
+    sink = _unknown_keys.get()
+    return None if sink is None else len(sink)
+
+
 @contextmanager
 def collecting() -> Iterator[list[Problem]]:
     """Collect the unknown keys met inside (instead of logging each at once)."""

@@ -192,12 +192,14 @@ def load_template(name: str, dirs: Sequence[str | os.PathLike[str]] = ()) -> dic
     return _read(template_file(name, dirs), name)
 
 
-def template_bytes(device_file: str | os.PathLike[str]) -> bytes:
+def template_bytes(device_file: str | os.PathLike[str], data: Any = None) -> bytes:
     """The bytes of the template a device file names (b"" if none, or if it cannot be
-    found: loading the file says why), so that a reload notices a changed template."""
+    found: loading the file says why), so that a reload notices a changed template.
+    ``data``: the file's decoded JSON when the caller has read it (else it is read)."""
     try:
         path = Path(os.fspath(device_file))
-        data = read_json_file(path)
+        if data is None:
+            data = read_json_file(path)
         keys = {norm_key(k): v for k, v in data.items()} if isinstance(data, dict) else {}
         name, dirs = keys.get("template"), keys.get("templatedirs") or []
         if not isinstance(name, str):

@@ -3,8 +3,8 @@ started, reloaded (the gateway file, then the device files) and stopped."""
 
 from __future__ import annotations
 
-import hashlib
 import logging
+import stat
 import threading
 from dataclasses import dataclass
 from pathlib import Path
@@ -14,15 +14,13 @@ from ..config import (
     ConfigError,
     DeviceConfig,
     DriverModbusRtuParameter,
-    load_device_config,
 )
-from ..config.templates import template_bytes
 from ..console import console_key, start_console
 from ..driver import DriverModbusRtu
+from .bulk import file_id, read_device, starting_in_bulk, stop_each, thaw
 from .config import (
     GATEWAY_FILE,
     GatewayConfig,
-    file_bytes,
     gateway_digest,
     inherited_snapshot,
     load_gateway_config,
@@ -121,12 +119,7 @@ class Gateway:
         self.console = start_console(self.config.console, self)
 
     def _stop_all(self, devices: list[ServiceDevice]) -> None:
-        threads = [threading.Thread(target=self._stop_device, args=(dev,),
-                                    name=f"stop {dev.code}") for dev in devices]
-        for thread in threads:
-            thread.start()
-        for thread in threads:
-            thread.join()
+        stop_each(devices, self._stop_device)  # a few threads, not one per device
 
     def _leadership(self, leader: bool) -> None:
         """The lease was gained or lost (on the lease's thread): start or stop (every
@@ -346,41 +339,50 @@ class Gateway:
 
     # -- devices ---------------------------------------------------------------------
     def device_files(self) -> list[Path]:
+        """The folder's device files: regular files (or links to one) the pattern
+        matches, not hidden, not the gateway file (by device and inode: one stat a file)."""
+        gateway = file_id(self.gateway_file)
         files = []
         for path in sorted(self.dir.glob(self.config.device_pattern)):
-            if not path.is_file() or path.name.startswith("."):
+            if path.name.startswith("."):
                 continue
-            if path.resolve() == self.gateway_file:
+            try:
+                info = path.stat()
+            except OSError:
                 continue
-            files.append(path)
+            if stat.S_ISREG(info.st_mode) and (info.st_dev, info.st_ino) != gateway:
+                files.append(path)
         return files
 
     def reload_devices(self) -> None:
         """Bring the running devices in line with the folder (see gateway/__init__.py)."""
         files = self.device_files()
         present = set(files)  # thousands of files: no list scan per device
-        for path in [p for p in self.devices if p not in present]:
-            dev = self.devices.pop(path)
-            self._stop_device(dev)
-            log.info("%s: stopped (%s removed)", dev.code, path.name)
-        for path in files:
-            current = self.devices.get(path)
-            what = "keeping the running version" if current else "not started"
-            try:
-                self._reload_device(path, current, what)
-            except Exception as exc:  # e.g. RecursionError of a deeply nested file
-                log.error("%s: cannot load (%s); %s", path, one_line(exc), what)
+        gone = [self.devices.pop(path) for path in list(self.devices) if path not in present]
+        self._stop_all(gone)
+        for dev in gone:
+            log.info("%s: stopped (%s removed)", dev.code, dev.path.name)
+        before = len(self.devices)
+        # frozen after when devices started and none stopped (gateway/bulk.py)
+        with starting_in_bulk(lambda: not gone and len(self.devices) > before):
+            for path in files:
+                current = self.devices.get(path)
+                what = "keeping the running version" if current else "not started"
+                try:
+                    self._reload_device(path, current, what)
+                except Exception as exc:  # e.g. RecursionError of a deeply nested file
+                    log.error("%s: cannot load (%s); %s", path, one_line(exc), what)
 
     def _reload_device(self, path: Path, current: ServiceDevice | None, what: str) -> None:
         try:
-            digest = _digest(path)
+            digest, load = read_device(path)  # the file read once (gateway/bulk.py)
         except OSError as exc:
             log.error("%s: cannot read: %s", path, exc)
             return
         if current is not None and current.digest == digest:
             return
         try:
-            cfg = load_device_config(path)
+            cfg = load()
         except (ConfigError, ValueError, OSError) as exc:
             log.error("%s: invalid, %s:\n%s", path, what, exc)
             return
@@ -406,7 +408,8 @@ class Gateway:
             self._code_paths[code] = path
             log.info("%s: standby (%s): polled by the pair's leader", code, path.name)
             return
-        org = cfg.organization.model_copy(update={"device_code": code})
+        org = cfg.organization if cfg.organization.device_code == code else \
+            cfg.organization.model_copy(update={"device_code": code})
         comm = cfg.communication
         snapshot_interval = inherited_snapshot(self.config)
         if snapshot_interval and "snapshot_interval" not in comm.model_fields_set:
@@ -460,6 +463,7 @@ class Gateway:
     def _stop_device(self, dev: ServiceDevice) -> None:
         if dev.standby:
             return  # never started nor attached
+        thaw()  # the objects a bulk start froze: collected again (gateway/bulk.py)
         try:
             dev.driver.stop_device()
         except Exception:
@@ -492,7 +496,3 @@ def one_line(exc: BaseException, limit: int = 300) -> str:
         first = first[:limit] + "..."
     return f"{type(exc).__name__}: {first}" if first else type(exc).__name__
 
-
-def _digest(path: Path) -> str:
-    """The device file's digest, with the template it names (a changed template reloads)."""
-    return hashlib.sha256(file_bytes(path) + template_bytes(path)).hexdigest()

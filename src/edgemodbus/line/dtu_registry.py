@@ -12,7 +12,7 @@ from .admission import Networks
 from .dtu_listener import DtuListener
 from .dtu_slot import DtuSlot
 from .endpoint import DtuEndpoint
-from .loop import pool
+from .loop_pool import pool
 from .registration import DtuAccess, PortSettings
 
 ENGINES = ("thread", "loop")

@@ -17,8 +17,9 @@ connect-mode line (an RTU-over-TCP endpoint the gateway connects to) connects ag
 after the line worker's reconnect backoff, without blocking the loop: its connector is a
 :class:`~edgemodbus.line.loop_connect.Dialer`, a non-blocking connect on the same slot.
 
-:data:`pool` spreads the lines over ``loopThreads`` workers (least loaded first); a
-worker starts with its first line and stops with its last.
+:data:`~edgemodbus.line.loop_pool.pool` (line/loop_pool.py) spreads the lines over
+``loopThreads`` workers (least loaded first); a worker starts with its first line and
+stops with its last.
 """
 
 from __future__ import annotations
@@ -32,7 +33,7 @@ import time
 from collections.abc import Callable
 from concurrent.futures import Future
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Protocol
 
 from .._ffi.engine import Engine, Waker
 from .._ffi.loop import EV_CYCLE, EV_FAILED, EV_REPORTS, EV_SPLIT, EV_WAITS, LS_IDLE, Loop, LoopLink
@@ -60,6 +61,14 @@ def loop_serves(endpoint: DtuEndpoint | TcpEndpoint) -> bool:
     return endpoint.framing in ("rtu", "wrapped-report")
 
 
+class Workers(Protocol):
+    """What a loop line needs of its pool (line/loop_pool.py ``LoopPool``)."""
+
+    def assign(self, line: LoopLine) -> LoopWorker: ...
+
+    def release(self, line: LoopLine, worker: LoopWorker, timeout: float | None) -> None: ...
+
+
 @dataclass(eq=False)
 class _Served:
     """A line on a worker: its slot, and while up its link, engine and loop link."""
@@ -79,7 +88,7 @@ class LoopLine(LineWorker):
     (see the module)."""
 
     def __init__(self, endpoint: DtuEndpoint | TcpEndpoint, timing: LineTiming | None,
-                 connector: Connector, workers: LoopPool) -> None:
+                 connector: Connector, workers: Workers) -> None:
         if not loop_serves(endpoint):
             raise ValueError(f"{endpoint.describe()}: framing {endpoint.framing!r}: engine "
                              "'loop' serves DTUs that dial in "
@@ -111,8 +120,8 @@ class LoopLine(LineWorker):
     def _post(self, item: Any) -> None:
         self._queue.put(item)
         worker = self._worker
-        if worker is not None:
-            worker.news(self)
+        if worker is not None:  # None: a reschedule (attach, detach), not a job
+            worker.news(self, job=item is not None)
 
 
 class LoopWorker:
@@ -120,6 +129,7 @@ class LoopWorker:
 
     def __init__(self, name: str, capacity: int = DEFAULT_CAPACITY) -> None:
         self.loop = Loop(capacity)
+        self.capacity = capacity
         self.waker = Waker()  # the engines' (the loop link never waits on it)
         self._free: list[int] = []  # slots given back; then the never used, from _unused
         self._unused = 0  # (no list of every slot: 32,768 ints are 1.2 MB a worker)
@@ -129,6 +139,7 @@ class LoopWorker:
             queue.SimpleQueue()
         self._news: set[LoopLine] = set()
         self._lock = threading.Lock()
+        self._woken = False  # a wake-up is on its way (_wake_once)
         self._stopping = False
         self.load = 0  # lines assigned (the pool's count)
         self.thread = threading.Thread(target=self._run, name=name, daemon=True)
@@ -144,13 +155,39 @@ class LoopWorker:
     def _ask(self, add: bool, line: LoopLine) -> Future[None]:
         future: Future[None] = Future()
         self._inbox.put((add, line, future))
-        self.loop.wake()
+        if add:
+            self._wake_once()
+        else:  # a stop waits for it
+            self.wake_now()
         return future
 
-    def news(self, line: LoopLine) -> None:
-        """``line`` has something queued (a job, a connection, new pollers)."""
+    def news(self, line: LoopLine, job: bool = True) -> None:
+        """``line`` has something queued: a ``job`` (someone may wait for it), or new
+        pollers, a connection."""
         with self._lock:
             self._news.add(line)
+        if job:
+            self.wake_now()
+        else:
+            self._wake_once()
+
+    def _wake_once(self) -> None:
+        """:meth:`wake_now`, or inside ``LoopPool.deferred`` on this thread, at the
+        block's end (lines added and pollers attached: nothing waits for them)."""
+        held: set[LoopWorker] | None = getattr(held_wakeups, "workers", None)
+        if held is not None:
+            held.add(self)
+        else:
+            self.wake_now()
+
+    def wake_now(self) -> None:
+        """Wake the loop, once until its next turn takes the inbox and the news (after
+        what was put there: a start of 5,000 lines is not 10,000 wake-ups, each a
+        hand-over of the GIL to the loop thread)."""
+        with self._lock:
+            if self._woken:
+                return
+            self._woken = True
         try:
             self.loop.wake()
         except OSError:
@@ -174,9 +211,10 @@ class LoopWorker:
         while not self._stopping:
             try:
                 turn = self.loop.wait(time.monotonic() + _MAX_IDLE)
-                self._take_inbox()
-                with self._lock:
+                with self._lock:  # before the inbox: a line told of is in it by now
                     news, self._news = self._news, set()
+                    self._woken = False  # what comes after this wakes the loop again
+                self._take_inbox()
                 for line in news:
                     served = self._by_line.get(line)
                     if served is not None:
@@ -429,66 +467,15 @@ def _dialing(served: _Served) -> bool:
     return isinstance(connector, Dialer) and connector.busy
 
 
+# this thread's LoopPool.deferred block (line/loop_pool.py): .workers, the loop workers
+# to wake at its end
+held_wakeups = threading.local()
+
+
 def _abort_dial(served: _Served) -> None:
     connector = served.line.connector
     if isinstance(connector, Dialer):
         connector.abort()
 
 
-class LoopPool:
-    """The process's loop workers: ``threads`` (default: the cores), each line on the
-    least loaded with room (``capacity`` lines; when every worker is full, one more
-    starts, past ``threads``); a worker starts with its first line, stops with its last."""
-
-    def __init__(self, threads: int | None = None, capacity: int = DEFAULT_CAPACITY) -> None:
-        self.threads = threads or os.cpu_count() or 1
-        self.capacity = capacity
-        self._workers: list[LoopWorker] = []
-        self._lock = threading.Lock()
-        self._made = 0
-
-    def configure(self, threads: int | None) -> None:
-        """``loopThreads`` (None: the cores); for workers started from now on."""
-        if threads is not None and not (isinstance(threads, int) and 1 <= threads <= 1024):
-            raise ValueError(f"loopThreads {threads!r}: must be an integer 1..1024")
-        self.threads = threads or os.cpu_count() or 1
-
-    def assign(self, line: LoopLine) -> LoopWorker:
-        with self._lock:
-            room = [w for w in self._workers if w.load < self.capacity]
-            if len(self._workers) < self.threads or not room:
-                if not room and self._workers:
-                    log.info("every loop thread serves %d lines: one more loop thread, "
-                             "past loopThreads %d", self.capacity, self.threads)
-                self._made += 1
-                worker = LoopWorker(f"edgemodbus-loop {self._made}", self.capacity)
-                self._workers.append(worker)
-            else:
-                worker = min(room, key=lambda w: w.load)
-            worker.load += 1
-        worker.add(line).result()
-        return worker
-
-    def release(self, line: LoopLine, worker: LoopWorker, timeout: float | None) -> None:
-        """Take ``line`` off ``worker`` (waited for, except on the loop thread itself: a
-        poller's callback, where the line goes at the next turn)."""
-        removed = worker.remove(line)
-        if worker.thread is not threading.current_thread():
-            removed.result(timeout if timeout is not None else 30)
-        with self._lock:
-            worker.load -= 1
-            last = worker.load == 0
-            if last:
-                self._workers.remove(worker)
-        if last:
-            worker.stop()
-
-    @property
-    def workers(self) -> int:
-        with self._lock:
-            return len(self._workers)
-
-
-pool = LoopPool()
-
-__all__ = ["LoopLine", "LoopPool", "LoopWorker", "loop_serves", "pool"]
+__all__ = ["DEFAULT_CAPACITY", "LoopLine", "LoopWorker", "held_wakeups", "loop_serves"]

@@ -10,8 +10,9 @@ from dataclasses import fields
 from .dtu_slot import DtuSlot
 from .endpoint import DtuEndpoint, Endpoint, LineTiming, MqttDtuEndpoint, TcpEndpoint
 from .failover import Failover
-from .loop import LoopLine, loop_serves, pool
+from .loop import LoopLine, loop_serves
 from .loop_connect import Dialer
+from .loop_pool import pool
 from .mqtt_dtu import MqttDtuSlot, hubs
 from .worker import Connector, LineWorker
 

@@ -1,7 +1,7 @@
 """Read plans shared between devices with the same address list and planner options.
 
 :func:`shared_plan` is :func:`~edgemodbus.poll.planner.plan_reads` behind a bounded
-cache (codec/shared.py), keyed by its whole input: every planned item (its index, area,
+cache (codec/shared.py), keyed by its whole input: every planned item (its key, area,
 offset, size and rate) and the four planner options.  A template used by 5,000 DTUs is
 planned once; the :class:`~edgemodbus.poll.planner.ReadBlock` objects are immutable, so
 the devices share them (docs/scale.md, "Starting thousands of devices").  The cache

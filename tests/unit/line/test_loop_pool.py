@@ -12,7 +12,8 @@ from edgemodbus.errors import ModbusConnectionError
 from edgemodbus.line import DtuRegistry
 from edgemodbus.line.endpoint import DtuEndpoint, LineTiming
 from edgemodbus.line.link import Link
-from edgemodbus.line.loop import LoopLine, LoopPool, loop_serves
+from edgemodbus.line.loop import LoopLine, loop_serves
+from edgemodbus.line.loop_pool import LoopPool
 from edgemodbus.line.worker import LineWorker
 from tests.waiting import wait_for
 

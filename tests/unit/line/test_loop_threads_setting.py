@@ -1,6 +1,6 @@
 """``loopThreads`` is process-wide (line/dtu_registry.py): the largest asked by the open
 DTUs wins, whatever order their devices start in, and the number falls back when they
-close; a worker full of lines gets company (line/loop.py LoopPool)."""
+close; a worker full of lines gets company (line/loop_pool.py LoopPool)."""
 
 from __future__ import annotations
 
@@ -12,7 +12,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from edgemodbus.line import DtuEndpoint, DtuRegistry, PortSettings
-from edgemodbus.line.loop import LoopLine, LoopPool, pool
+from edgemodbus.line.loop import LoopLine
+from edgemodbus.line.loop_pool import LoopPool, pool
 from tests.peers import free_port
 from tests.unit.line.test_loop_pool import Absent
 
