@@ -14,7 +14,7 @@ from edgemodbus.bulk import starting_in_bulk
 from edgemodbus.errors import ModbusConnectionError
 from edgemodbus.line.endpoint import DtuEndpoint
 from edgemodbus.line.link import Link
-from edgemodbus.line.loop import LoopLine, LoopWorker
+from edgemodbus.line.loop import LoopLine
 from edgemodbus.line.loop_pool import LoopPool
 from edgemodbus.line.worker import LineWorker
 
@@ -78,22 +78,18 @@ def test_a_start_outside_a_bulk_block_still_waits_for_its_loop_thread() -> None:
         line.stop()
 
 
-def test_a_line_past_the_loop_threads_capacity_is_refused_at_its_start(
-        monkeypatch: pytest.MonkeyPatch) -> None:
-    """Refused at once, by the pool (before, the loop thread failed the add and the
-    start raised IndexError 'pop from empty list'; in a bulk block it would have come
-    at the end)."""
-    monkeypatch.setattr(LoopWorker.__init__, "__defaults__", (2,))  # 2 lines a thread
-    pool = LoopPool(1)
+def test_a_line_past_the_loop_threads_capacity_gets_a_worker_of_its_own_in_bulk() -> None:
+    """Inside a bulk block too, a line past every worker's capacity starts one more
+    worker (before, the loop thread failed the add: IndexError 'pop from empty list',
+    raised at the block's end)."""
+    pool = LoopPool(1, capacity=2)
     lines = [LoopLine(DtuEndpoint("127.0.0.1", 1, f"C{k}"), None, Absent(), pool)
              for k in range(3)]
     try:
         with pool.deferred():
-            lines[0].start()
-            lines[1].start()
-            with pytest.raises(ValueError, match=r"C2.*not started, the 1 loop threads "
-                                                 r"\(loopThreads\) serve 2 lines each"):
-                lines[2].start()
+            for line in lines:
+                line.start()
+        assert pool.workers == 2
     finally:
         for line in lines:
             line.stop()
