@@ -128,6 +128,20 @@ class MqttDtuSlot:
                 "no link" if end is None else "the link's stream is full",
                 hex_prefix(payload))
 
+    def retained(self, payload: bytes) -> None:
+        """A retained message on the uplink topic (the broker hands it over at every
+        subscribe, before any request): never a reply, so dropped, counted, logged."""
+        line = self.line
+        if line is not None:
+            line.stats.uplink_messages += 1
+            line.stats.uplink_dropped_bytes += len(payload)
+        self.hub.limiter.event(
+            logging.WARNING, "retained uplink messages dropped", self.endpoint.dtu_id,
+            "%s: a retained message on the uplink topic %r dropped (%d bytes: %s): a "
+            "reply is never retained; clear it (publish an empty retained message there)",
+            self.endpoint.describe(), self.endpoint.uplink, len(payload),
+            hex_prefix(payload))
+
     def set_online(self, online: bool, reason: str) -> None:
         """The DTU (or the broker) came or went: close its end when it went, reconnect
         its line at once when it came."""
@@ -146,12 +160,23 @@ class MqttDtuSlot:
             line.connect_now()
 
     def on_status(self, payload: bytes) -> None:
-        self.status = payload
+        """A message on the status topic: ``offline`` takes the DTU down, ``online``
+        brings it back; anything else changes nothing (logged, bounded: untrusted)."""
         if payload == self.endpoint.offline:
+            self.status = self.endpoint.offline
             self.set_online(False, f"the DTU is offline (its status topic "
                                    f"{self.endpoint.status!r} says {payload[:32]!r})")
-        elif payload == self.endpoint.online and self.hub.connected:
-            self.set_online(True, "online")
+        elif payload == self.endpoint.online:
+            self.status = self.endpoint.online
+            if self.hub.connected:
+                self.set_online(True, "online")
+        else:  # (not kept: only the two known texts are, so a huge one costs nothing)
+            self.hub.limiter.event(
+                logging.WARNING, "unknown status messages", self.endpoint.dtu_id,
+                "%s: a message on the status topic %r that is neither %r nor %r (%d "
+                "bytes: %s); the DTU's state is unchanged", self.endpoint.describe(),
+                self.endpoint.status, self.endpoint.online, self.endpoint.offline,
+                len(payload), hex_prefix(payload))
 
 
 class MqttDtuHub:
@@ -304,6 +329,8 @@ class MqttDtuHub:
         slot, status = entry
         if status:
             slot.on_status(bytes(msg.payload))
+        elif msg.retain:  # from the broker's store at subscribe time, not from the DTU now
+            slot.retained(bytes(msg.payload))
         else:
             slot.uplink(bytes(msg.payload))
 
