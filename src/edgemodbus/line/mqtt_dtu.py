@@ -31,6 +31,7 @@ import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
+from ..config.tls import connect_error_text
 from ..errors import ModbusConnectionError
 from .connect import open_socket_link
 from .endpoint import MqttBroker, MqttDtuEndpoint
@@ -363,13 +364,14 @@ class MqttDtuHub:
         except (OSError, ValueError) as exc:
             self._failures += 1
             level = logging.WARNING if self._failures == 1 else logging.DEBUG
-            log.log(level, "MQTT DTUs: cannot connect to %s: %s", self.broker.describe(),
-                    exc)
+            why = connect_error_text(exc, "mqttTls" if self.broker.tls else None,
+                                     f"{_CONNECT_TIMEOUT:.0f} s")
+            log.log(level, "MQTT DTUs: cannot connect to %s: %s", self.broker.describe(), why)
             with self._lock:
                 slots = list(self._slots.values())
             for slot in slots:
                 slot.set_online(False, f"cannot connect to the broker "
-                                       f"{self.broker.describe()}: {exc}")
+                                       f"{self.broker.describe()}: {why}")
             return min(10.0, 2.0 ** min(self._failures - 1, 4))
 
     def _select(self, selector: selectors.BaseSelector, timeout: float) -> None:
