@@ -6,12 +6,16 @@ simulated DTUs (tests/mqtt_dtu_peer.py) and the flooding publisher
 
 from __future__ import annotations
 
+import json
 import logging
 import os
+import subprocess
+import sys
 import threading
 import time
 from contextlib import ExitStack
 from functools import partial
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -211,3 +215,83 @@ def test_the_broker_going_away_says_why_without_a_spin_and_polling_resumes(
         dtu.start()
         wait_for(lambda: drv.device_driver_status is em.DeviceDriverStatus.RUNNING
                  and values(drv) == expected(1), 30, "running again")
+
+
+class Child:
+    """tests/mqtt_dtu_proc.py in a child process: one command, one JSON answer."""
+
+    def __init__(self, devices: list[dict[str, Any]]) -> None:
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "tests.mqtt_dtu_proc", json.dumps(devices)],
+            stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
+            cwd=Path(__file__).resolve().parents[2])
+        assert self.proc.stdout is not None and self.proc.stdin is not None
+        self.out, self.inp = self.proc.stdout, self.proc.stdin
+        assert self.out.readline().strip() == "READY"
+
+    def ask(self, command: str) -> Any:
+        self.inp.write(command + "\n")
+        self.inp.flush()
+        return json.loads(self.out.readline())
+
+    def close(self) -> None:
+        self.inp.close()
+        try:
+            self.proc.wait(30)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait()
+        self.out.close()
+
+
+def device(broker: Mosquitto, dtu: str, slave: int) -> dict[str, Any]:
+    cfg = config(broker, dtu, slave)
+    return {"organization": {"deviceCode": dtu},
+            "communication": cfg.communication.model_dump(by_alias=True, mode="json"),
+            "addressList": [{"name": "a", "address": "hr:3", "deviceDataType": "UInt16"},
+                            {"name": "b", "address": "hr:4", "deviceDataType": "UInt16"}]}
+
+
+def test_no_fd_for_a_dtus_socketpair_is_told_on_its_line_without_a_spin(
+        broker: Mosquitto, slave_factory: SlaveFactory) -> None:
+    """EMFILE at socket.socketpair() when a DTU comes online: its devices say why, the
+    line retries at its reconnect interval (no spin), the other DTU on the broker keeps
+    polling, and the DTU is polled again once fds are free."""
+    slave = slave_factory("rtu-over-tcp", units=(1, 2))
+    with MqttDtu("e1", broker.port, slave.port), MqttDtu("e2", broker.port, slave.port), \
+            MqttProbe(broker.port, topics=("probe/none",)) as other:
+        child = Child([device(broker, "e1", 1), device(broker, "e2", 2)])
+        try:
+            def state(dtu: str) -> dict[str, Any]:
+                return child.ask("stats")["devices"][dtu]  # type: ignore[no-any-return]
+
+            wait_for(lambda: [it["value"] for it in state("e1")["items"]] == expected(1)
+                     and [it["value"] for it in state("e2")["items"]] == expected(2), 20,
+                     "both DTUs' values")
+            other.publish("dtu/e2/status", b"offline")  # its link (and its fds) gone
+            wait_for(lambda: state("e2")["status"] == "Reconnecting", 20, "e2 offline")
+            assert child.ask("fill")["held"] > 0
+            other.publish("dtu/e2/status", b"online")  # a new socketpair: no fd for it
+            wait_for(lambda: "Too many open files" in (
+                state("e2")["items"][0]["errorReason"] or ""), 20, "EMFILE told")
+            reason = state("e2")["items"][0]["errorReason"]
+            assert "mqtt-dtu e2@127.0.0.1" in reason and "cannot open the line" in reason
+            first = child.ask("stats")
+            time.sleep(3.0)  # a measuring window while no fd is left
+            last = child.ask("stats")
+            spent = {name: used - first["cpu"].get(name, 0.0)
+                     for name, used in last["cpu"].items()
+                     if name.startswith(("edgemodbus-line", "edgemodbus-mqtt-dtu"))}
+            assert spent and max(spent.values()) < 0.15, spent  # below 5 % of a core
+            failures = (last["devices"]["e2"]["connectFailures"]
+                        - first["devices"]["e2"]["connectFailures"])
+            assert 1 <= failures <= 20, failures  # its reconnect interval, not a spin
+            polled = last["devices"]["e1"]["cycles"] - first["devices"]["e1"]["cycles"]
+            assert polled >= 15, polled  # e1 kept its 100 ms cycle (30 in 3 s when quiet)
+            assert last["devices"]["e1"]["status"] == "Running"
+            child.ask("free")
+            wait_for(lambda: state("e2")["status"] == "Running"
+                     and [it["value"] for it in state("e2")["items"]] == expected(2), 20,
+                     "e2 polled again")
+        finally:
+            child.close()
