@@ -12,6 +12,7 @@ from pathlib import Path
 import pytest
 
 import edgemodbus as em
+from tests.coalescing_broker import CoalescingBroker, register
 from tests.conftest import SlaveFactory
 from tests.fake_brokers import self_signed_cert
 from tests.integration.test_driver import Running
@@ -83,4 +84,28 @@ def test_a_wrong_ca_is_told_on_the_devices_status(
     with Running(config(broker, "w1", 1, mqttTls=True)) as drv:
         wait_for(lambda: "mqttTls is on: does this port speak TLS?" in
                  (drv.address_items[0].error_reason or ""), 20, "the plain-port hint")
+    assert not hub_threads()
+
+
+def test_packets_that_share_a_tls_record_are_all_handed_on_at_once(
+        tmp_path: Path) -> None:
+    """A broker that writes two PUBLISH packets in one TLS record: select() sees the
+    first, the second waits decrypted inside the TLS layer; the hub reads on while the
+    TLS layer holds bytes, so each reply is whole within the read timeout."""
+    cert, key = self_signed_cert(tmp_path / "tls")
+    with CoalescingBroker(cert, key, "c1") as peer:
+        cfg = em.load_device_config({
+            "organization": {"deviceCode": "c1"},
+            "communication": {"transport": "mqtt-dtu", "mqttHost": "127.0.0.1",
+                              "mqttPort": peer.port, "mqttTls": True,
+                              "mqttCaFile": str(cert), "dtuId": "c1", "statusTopic": "",
+                              "slaveId": 1, "readCycle": 50, "readTimeout": 500,
+                              "retries": 0},
+            "addressList": [{"name": "a", "address": "hr:3", "deviceDataType": "UInt16"},
+                            {"name": "b", "address": "hr:4", "deviceDataType": "UInt16"}]})
+        with Running(cfg) as drv:
+            wait_for(lambda: drv.stats()["cycles"] >= 20, 30, "20 cycles")
+            assert values(drv) == [register(3), register(4)]
+            line = drv.stats()["line"]
+            assert line["timeouts"] == 0, line
     assert not hub_threads()

@@ -391,7 +391,13 @@ class MqttDtuHub:
                 self._take_actions(selector)
             elif key.fileobj is mqtt:
                 if mask & selectors.EVENT_READ:
-                    self.client.loop_read()
+                    self.client.loop_read()  # (one packet)
+                    # TLS: packets decrypted with that one wait in the TLS layer, unseen
+                    # by select(): read them now (a coalescing broker's replies)
+                    pending = getattr(mqtt, "pending", None)
+                    while pending is not None and self.client.socket() is mqtt and \
+                            pending() > 0:
+                        self.client.loop_read()
                 if mask & selectors.EVENT_WRITE and self.client.socket() is not None:
                     self.client.loop_write()
             else:
