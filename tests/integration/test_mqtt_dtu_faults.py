@@ -211,7 +211,7 @@ def test_the_broker_going_away_says_why_without_a_spin_and_polling_resumes(
         used = thread_cpu("edgemodbus-mqtt-dtu") + thread_cpu("edgemodbus-line") - cpu
         assert used < 0.15, used  # below 5 % of a core
         broker.restart()
-        dtu.stop()  # its client gave up on the old broker: a new one connects
+        dtu.kill()  # its client lost the old broker (nothing to say goodbye to)
         dtu.start()
         wait_for(lambda: drv.device_driver_status is em.DeviceDriverStatus.RUNNING
                  and values(drv) == expected(1), 30, "running again")
