@@ -12,7 +12,6 @@ ignored, each value's own form checked whatever the transport).
 
 from __future__ import annotations
 
-import os
 from typing import Annotated, Protocol
 
 from pydantic import Field, SecretStr, field_validator
@@ -21,11 +20,13 @@ from .base import Choice, Model, Range
 from .limits import check_host
 from .problems import Problem
 from .secret import Secret
+from .tls import tls_file_problems
 
 TOPIC_FORBIDDEN = ("+", "#", "\0")  # MQTT wildcards and NUL: never in a topic we use
 DEFAULT_UPLINK = "dtu/{dtuId}/up"
 DEFAULT_DOWNLINK = "dtu/{dtuId}/down"
 DEFAULT_STATUS = "dtu/{dtuId}/status"
+_TLS_KEYS = ("mqttCaFile", "mqttCertFile", "mqttKeyFile")
 
 
 class MqttDtuFields(Model):
@@ -192,14 +193,9 @@ def mqtt_dtu_problems(p: MqttDtuParams) -> list[Problem]:
                                     "must differ from onlinePayload"))
     if p.mqtt_password.get_secret_value() and not p.mqtt_username:
         problems.append(Problem("mqttPassword", p.mqtt_password, "needs mqttUsername"))
-    if p.mqtt_tls:
-        for key, path in (("mqttCaFile", p.mqtt_ca_file), ("mqttCertFile", p.mqtt_cert_file),
-                          ("mqttKeyFile", p.mqtt_key_file)):
-            if path and not (os.path.isfile(path) and os.access(path, os.R_OK)):
-                problems.append(Problem(key, path, "no readable file there"))
-        if p.mqtt_key_file and not p.mqtt_cert_file:
-            problems.append(Problem("mqttKeyFile", p.mqtt_key_file,
-                                    "needs mqttCertFile (the client certificate of this key)"))
+    if p.mqtt_tls:  # the files' checks of the northbound's mqtt.tls (config/tls.py)
+        problems += tls_file_problems(p.mqtt_ca_file or None, p.mqtt_cert_file or None,
+                                      p.mqtt_key_file or None, keys=_TLS_KEYS)
     return problems
 
 

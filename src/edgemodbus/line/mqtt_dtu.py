@@ -31,6 +31,7 @@ import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
+from ..config.tls import connect_error_text
 from ..errors import ModbusConnectionError
 from .connect import open_socket_link
 from .endpoint import MqttBroker, MqttDtuEndpoint
@@ -128,6 +129,20 @@ class MqttDtuSlot:
                 "no link" if end is None else "the link's stream is full",
                 hex_prefix(payload))
 
+    def retained(self, payload: bytes) -> None:
+        """A retained message on the uplink topic (the broker hands it over at every
+        subscribe, before any request): never a reply, so dropped, counted, logged."""
+        line = self.line
+        if line is not None:
+            line.stats.uplink_messages += 1
+            line.stats.uplink_dropped_bytes += len(payload)
+        self.hub.limiter.event(
+            logging.WARNING, "retained uplink messages dropped", self.endpoint.dtu_id,
+            "%s: a retained message on the uplink topic %r dropped (%d bytes: %s): a "
+            "reply is never retained; clear it (publish an empty retained message there)",
+            self.endpoint.describe(), self.endpoint.uplink, len(payload),
+            hex_prefix(payload))
+
     def set_online(self, online: bool, reason: str) -> None:
         """The DTU (or the broker) came or went: close its end when it went, reconnect
         its line at once when it came."""
@@ -146,12 +161,23 @@ class MqttDtuSlot:
             line.connect_now()
 
     def on_status(self, payload: bytes) -> None:
-        self.status = payload
+        """A message on the status topic: ``offline`` takes the DTU down, ``online``
+        brings it back; anything else changes nothing (logged, bounded: untrusted)."""
         if payload == self.endpoint.offline:
+            self.status = self.endpoint.offline
             self.set_online(False, f"the DTU is offline (its status topic "
                                    f"{self.endpoint.status!r} says {payload[:32]!r})")
-        elif payload == self.endpoint.online and self.hub.connected:
-            self.set_online(True, "online")
+        elif payload == self.endpoint.online:
+            self.status = self.endpoint.online
+            if self.hub.connected:
+                self.set_online(True, "online")
+        else:  # (not kept: only the two known texts are, so a huge one costs nothing)
+            self.hub.limiter.event(
+                logging.WARNING, "unknown status messages", self.endpoint.dtu_id,
+                "%s: a message on the status topic %r that is neither %r nor %r (%d "
+                "bytes: %s); the DTU's state is unchanged", self.endpoint.describe(),
+                self.endpoint.status, self.endpoint.online, self.endpoint.offline,
+                len(payload), hex_prefix(payload))
 
 
 class MqttDtuHub:
@@ -304,6 +330,8 @@ class MqttDtuHub:
         slot, status = entry
         if status:
             slot.on_status(bytes(msg.payload))
+        elif msg.retain:  # from the broker's store at subscribe time, not from the DTU now
+            slot.retained(bytes(msg.payload))
         else:
             slot.uplink(bytes(msg.payload))
 
@@ -336,13 +364,14 @@ class MqttDtuHub:
         except (OSError, ValueError) as exc:
             self._failures += 1
             level = logging.WARNING if self._failures == 1 else logging.DEBUG
-            log.log(level, "MQTT DTUs: cannot connect to %s: %s", self.broker.describe(),
-                    exc)
+            why = connect_error_text(exc, "mqttTls" if self.broker.tls else None,
+                                     f"{_CONNECT_TIMEOUT:.0f} s")
+            log.log(level, "MQTT DTUs: cannot connect to %s: %s", self.broker.describe(), why)
             with self._lock:
                 slots = list(self._slots.values())
             for slot in slots:
                 slot.set_online(False, f"cannot connect to the broker "
-                                       f"{self.broker.describe()}: {exc}")
+                                       f"{self.broker.describe()}: {why}")
             return min(10.0, 2.0 ** min(self._failures - 1, 4))
 
     def _select(self, selector: selectors.BaseSelector, timeout: float) -> None:
@@ -362,7 +391,13 @@ class MqttDtuHub:
                 self._take_actions(selector)
             elif key.fileobj is mqtt:
                 if mask & selectors.EVENT_READ:
-                    self.client.loop_read()
+                    self.client.loop_read()  # (one packet)
+                    # TLS: packets decrypted with that one wait in the TLS layer, unseen
+                    # by select(): read them now (a coalescing broker's replies)
+                    pending = getattr(mqtt, "pending", None)
+                    while pending is not None and self.client.socket() is mqtt and \
+                            pending() > 0:
+                        self.client.loop_read()
                 if mask & selectors.EVENT_WRITE and self.client.socket() is not None:
                     self.client.loop_write()
             else:

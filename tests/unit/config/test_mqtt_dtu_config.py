@@ -54,7 +54,7 @@ def test_the_endpoint_has_the_broker_and_the_dtu_s_topics() -> None:
     ({"dtuId": "d", "mqttPassword": "pw"}, "communication.mqttPassword '**********': needs "
      "mqttUsername"),
     ({"dtuId": "d", "mqttTls": True, "mqttCaFile": "/nonexistent/ca.pem"},
-     "communication.mqttCaFile '/nonexistent/ca.pem': no readable file there"),
+     "communication.mqttCaFile '/nonexistent/ca.pem': no such file"),
     ({"dtuId": "d", "alternates": ["h:1"]}, "communication.alternates ['h:1']: a DTU that "
      "dials in (mqtt-dtu) picks its own path; alternates are for lines we open (rtu, "
      "rtu-over-tcp, tcp)"),

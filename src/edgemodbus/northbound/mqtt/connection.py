@@ -7,8 +7,9 @@ from __future__ import annotations
 import contextlib
 import logging
 import socket
-import ssl
 from typing import TYPE_CHECKING, Any
+
+from ...config.tls import connect_error_text
 
 if TYPE_CHECKING:
     from paho.mqtt.client import Client
@@ -69,24 +70,8 @@ class FailureLog:
 
 
 def error_text(exc: BaseException, tls: bool) -> str:
-    """A connect error in words: ``connection refused``, ``timed out``, the TLS error;
-    with ``tls``, a handshake cut short hints at a port that does not speak TLS."""
-    if tls and isinstance(exc, (ConnectionResetError, BrokenPipeError, ssl.SSLError)) and (
-            not isinstance(exc, ssl.CertificateError)):
-        return f"{error_text(exc, False)} (mqtt.tls is on: does this port speak TLS?)"
-    if isinstance(exc, ssl.SSLCertVerificationError):
-        return f"TLS certificate check failed: {exc.verify_message or exc}"
-    if isinstance(exc, ssl.CertificateError):  # paho's own host name check
-        return f"TLS certificate check failed: {exc}"
-    if isinstance(exc, ssl.SSLError):
-        return f"TLS handshake failed: {exc.reason or exc}"
-    if isinstance(exc, socket.gaierror):
-        return f"cannot resolve the host name: {exc.strerror or exc}"
-    if isinstance(exc, TimeoutError) and not exc.strerror:
-        return "timed out (connectTimeout)"
-    if isinstance(exc, OSError) and exc.strerror:
-        return exc.strerror.lower() if exc.strerror[:1].isupper() else exc.strerror
-    return str(exc) or type(exc).__name__
+    """A connect error in words (config/tls.py, shared with the mqtt-dtu links)."""
+    return connect_error_text(exc, "mqtt.tls" if tls else None)
 
 
 def abandon(client: Client) -> None:

@@ -6,18 +6,17 @@ checked by :meth:`TlsSettings.problems` before anything connects."""
 from __future__ import annotations
 
 import os
-import ssl
 import string
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Annotated, Any, ClassVar, Literal
 
 from pydantic import ValidationError, field_validator, model_validator
 
 from ...config import MAX_MS, Choice, ConfigError, Model, Ms, Problem, Range
-from ...config.files import path_kind
 from ...config.limits import MAX_HOST, MAX_NAME, check_host
 from ...config.secret import Secret
+from ...config.tls import tls_file_problems
 from ..sparkplug.settings import SparkplugSettings
 from .spool import MIN_FILE_BYTES, SYNCHRONOUS, path_problem
 
@@ -56,98 +55,15 @@ class TlsSettings(Model):
 
     def problems(self, where: str = "mqtt.tls") -> list[Problem]:
         """What is wrong with the files (missing, unreadable, not PEM, key without its
-        certificate), each named by its field; [] when TLS can be set up from them."""
+        certificate), each named by its field; [] when TLS can be set up from them
+        (config/tls.py, shared with the mqtt-dtu keys)."""
         if not self.enabled:
             return []
-        found: list[Problem] = []
-        for field, path in self.files().items():
-            message = _file_problem(path)
-            if message is None and field == "caFile":
-                message = _ssl_problem(ssl.create_default_context, cafile=path)
-            if message is not None:
-                found.append(Problem(f"{where}.{field}", path, message))
-        if self.key_file is not None and self.cert_file is None:
-            found.append(Problem(f"{where}.keyFile", self.key_file,
-                                 "needs certFile (the client certificate of this key)"))
-        cert, key = self.cert_file, self.key_file
-        if not found and cert is not None:
-            found += _pem_problems(f"{where}.certFile", cert, "CERTIFICATE", "certificate")
-            key_field, key_path = (("keyFile", key) if key is not None else
-                                   ("certFile", cert))  # no keyFile: the key is in certFile
-            found += _pem_problems(f"{where}.{key_field}", key_path, "PRIVATE KEY",
-                                   "private key", "" if key is not None else
-                                   " (keyFile is not set, so the key must be in certFile)")
-        if not found and cert is not None:
-            chain = ssl.create_default_context().load_cert_chain
-            problem = _ssl_problem(chain, cert, key, password=_no_password)
-            if problem is not None:
-                found.append(Problem(f"{where}.certFile/keyFile", f"{cert}, {key}", problem))
-        return found
+        return tls_file_problems(self.ca_file, self.cert_file, self.key_file,
+                                 where=f"{where}.")
 
 
 _SNAKE = {"caFile": "ca_file", "certFile": "cert_file", "keyFile": "key_file"}
-
-
-def _file_problem(path: str) -> str | None:
-    """Why ``path`` cannot be read as a file by this process, or None."""
-    kind = not_a_file(path)
-    if kind is not None:
-        return kind
-    try:
-        with open(path, "rb") as file:
-            file.read(1)
-    except FileNotFoundError:
-        return "no such file"
-    except IsADirectoryError:
-        return "is a directory, not a file"
-    except PermissionError:
-        return f"not readable by this process (uid {os.geteuid()}): permission denied"
-    except OSError as exc:
-        return f"cannot be read: {exc.strerror or exc}"
-    return None
-
-
-def not_a_file(path: str) -> str | None:
-    """Why an existing ``path`` is no regular file (a FIFO would block the load, a
-    device or socket is no file to keep), or None (a regular file, or nothing there)."""
-    kind = path_kind(path)
-    if kind is None:
-        return None
-    return "is a directory, not a file" if kind == "a directory" else \
-        f"is {kind}, not a regular file"
-
-
-def _no_password() -> bytes:
-    raise ValueError("the key is encrypted; give an unencrypted key file")
-
-
-def _pem_problems(field: str, path: str, label: str, what: str,
-                  hint: str = "") -> list[Problem]:
-    """[] if the file holds a PEM block ``-----BEGIN ...{label}-----``."""
-    with open(path, "rb") as file:
-        text = file.read(1 << 20)
-    if f"{label}-----".encode() in text and b"-----BEGIN " in text:
-        return []
-    return [Problem(field, path, f"no PEM {what} in it{hint}")]
-
-
-_SSL_REASONS = {
-    "NO_CERTIFICATE_OR_CRL_FOUND": "no PEM certificate in it",
-    "KEY_VALUES_MISMATCH": "the key does not belong to the certificate",
-}
-
-
-def _ssl_problem(load: Callable[..., object], *args: Any, **kwargs: Any) -> str | None:
-    """Why OpenSSL refuses the files ``load(*args, **kwargs)`` reads (not PEM, key and
-    certificate do not match...), or None."""
-    try:
-        load(*args, **kwargs)
-    except ssl.SSLError as exc:
-        reason = str(exc.reason or exc)
-        return _SSL_REASONS.get(reason, f"not usable for TLS: {reason}")
-    except (ValueError, OSError) as exc:
-        return f"not usable for TLS: {exc}"
-    return None
 
 
 def _template_fields(template: str) -> list[str]:
