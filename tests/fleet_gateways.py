@@ -65,9 +65,10 @@ class Timing:
 
     @property
     def load_timeout(self) -> float:
-        """Seconds for an instance to load every device file (about 20 ms each on a
-        loaded 2-core machine)."""
-        return 60 + self.dtus / 20
+        """Seconds for an instance to load every device file (17 ms each with the loop
+        engine, three instances starting together on a 2-core machine; about 70 ms
+        with the thread engine, a thread per file)."""
+        return 60 + self.dtus / 10
 
     @property
     def settle_timeout(self) -> float:
