@@ -166,11 +166,14 @@ soak-gateway: build
 
 # The dial-in fleet behind HAProxy at a larger size (docs/deploy.md; not in CI): three
 # gateway instances, FLEET_DTUS simulated DTUs, a kill -9 of one instance.  Needs an
-# open-files limit of about four times FLEET_DTUS and a machine of its own.
-FLEET_DTUS ?= 3000
+# open-files limit of about four times FLEET_DTUS.  FLEET_ENGINE=loop|thread picks the
+# listen-mode engine (empty: the gateway's default); FLEET_TIMEOUT bounds the run (s).
+FLEET_DTUS    ?= 3000
+FLEET_ENGINE  ?=
+FLEET_TIMEOUT ?= 1800
 soak-fleet: build
-	FLEET_DTUS=$(FLEET_DTUS) $(BIN)/python -m pytest -p no:cacheprovider -q -s \
-	  tests/integration/test_fleet_haproxy.py
+	FLEET_DTUS=$(FLEET_DTUS) FLEET_ENGINE=$(FLEET_ENGINE) $(BIN)/python -m pytest \
+	  -p no:cacheprovider -q -s --timeout=$(FLEET_TIMEOUT) tests/integration/test_fleet_haproxy.py
 
 # The loop engine's links against the thread engine at size (bench/test_bench_loop_links.py,
 # docs/scale.md; not in CI): LOOP_LINKS DTU streams on one pymodbus slave, both engines in

@@ -299,6 +299,18 @@ GATES: dict[str, Gate] = {
     # round trip per line or a thread per device coming back.
     "bulk.gateway_start_vs_read": Gate(
         25.0, 75.0, "lower", "x", "gateway start CPU per device / read+decode per file"),
+    # bench/test_bench_fleet.py: the gateway processes' CPU per DTU per second, three
+    # instances behind HAProxy (every instance with every device file, a third of the
+    # DTUs each) over one lone gateway with the same DTUs, same run.  Issue 28: the fleet
+    # costs what one process costs, per DTU (target 1.0).  NOT MET: 1.5-2.9 quick (300
+    # DTUs, thread engine, 1 s cycle) and 2.94 full (3,000, loop engine, 6 s cycle),
+    # 2026-11-27: each instance pays for every device file, held or not (an idle
+    # instance with 3,000 files: 4.5% of a core, the lone gateway polling them all:
+    # 5.5%; docs/deploy.md "What the fleet costs").  The limit is not the target: 3.5
+    # fails an instance that costs more than a lone gateway with the whole fleet (3.0
+    # plus this machine's noise), e.g. lines of DTUs held elsewhere that poll or spin.
+    "fleet.cpu_three_vs_one": Gate(
+        1.0, 3.5, "lower", "x", "fleet CPU/DTU/s, 3 instances / 1 gateway"),
     "cli.import_vs_pass": Gate(
         5.0, 5.0, "lower", "x", "python -c 'import edgemodbus' / python -c pass"),
     "cli.read_vs_pass": Gate(

@@ -15,13 +15,10 @@ import time
 from contextlib import ExitStack
 from pathlib import Path
 
-import pytest
-
 from edgemodbus.datatypes import Area
 from edgemodbus.sim import DtuFleet
-from tests.gateway_proc import GatewayProcess, write_json
+from tests.fleet_gateways import INSTANCES, Fleet, held, paced, value_of
 from tests.haproxy import HAProxy, local_config
-from tests.integration.test_fleet_haproxy import INSTANCES, device, held, value_of
 from tests.mosquitto import Mosquitto, MqttProbe, Received
 from tests.peers import free_port
 from tests.sparkplug_wire import decode, encode, encode_metric
@@ -64,39 +61,23 @@ class Host:
                 if born.get(n, ("", None))[0] not in nodes or born[n][1] != value_of(n)]
 
 
-def test_sparkplug_nodes_of_a_fleet_behind_haproxy(
-        tmp_path: Path, broker: Mosquitto, monkeypatch: pytest.MonkeyPatch) -> None:
-    listen = {name: free_port() for name in INSTANCES}
-    metrics = {name: free_port() for name in INSTANCES}
-    frontend = free_port()
+def test_sparkplug_nodes_of_a_fleet_behind_haproxy(tmp_path: Path, broker: Mosquitto) -> None:
+    fleet = Fleet(tmp_path, broker.port, DTUS,
+                  mqtt={"mode": "sparkplug", "sparkplug": {"groupId": G}})
+    listen, metrics, frontend = fleet.listen, fleet.metrics, free_port()
     with ExitStack() as stack:
         probe = stack.enter_context(MqttProbe(broker.port, topics=(f"{BASE}/#",)))
         host = Host(probe)
-        procs: dict[str, GatewayProcess] = {}
-        for name in INSTANCES:
-            folder = tmp_path / name
-            folder.mkdir()
-            write_json(folder / "gateway.json", {
-                "gatewayId": "fleet",
-                "mqtt": {"mode": "sparkplug", "port": broker.port, "reconnectMin": 100,
-                         "reconnectMax": 1000, "statusCheckInterval": 200,
-                         "sparkplug": {"groupId": G}},
-                "metrics": {"host": "127.0.0.1", "port": metrics[name]},
-                "fleet": {"loadBalancers": ["127.0.0.1"]}})
-            for n in range(DTUS):
-                write_json(folder / f"m{n}.json", device(n, listen[name]))
-            monkeypatch.setenv("EDGEMODBUS_INSTANCE", name)
-            procs[name] = stack.enter_context(GatewayProcess(folder, folder / "gateway.log"))
-        monkeypatch.delenv("EDGEMODBUS_INSTANCE")
+        fleet.start(stack, ready=rf"edge node {G}/\S+ connected")
+        procs = fleet.procs
         bd_seq = {}
-        for node, name in NODES.items():
-            procs[name].wait_log(rf"edge node {G}/{node} connected", timeout=60)
+        for node in NODES:
             nbirth = decode(probe.wait_for(f"{BASE}/NBIRTH/{node}", timeout=30).payload)
             bd_seq[node] = nbirth.by_name()["bdSeq"].value
         config = local_config(frontend, [listen[name] for name in INSTANCES])
         stack.enter_context(HAProxy(config, tmp_path / "haproxy.cfg", frontend))
         sim = DtuFleet("127.0.0.1", frontend, DTUS, registration="FL{n:06d}", size=128,
-                       reconnect=0.5, reconnect_max=2.0, dial_rate=100.0)
+                       reconnect=0.5, reconnect_max=2.0, dial_rate=fleet.timing.dial_rate)
         for dtu in sim.dtus:
             dtu.slave(1).set_registers(Area.HOLDING_REGISTER, 0, [value_of(dtu.number)])
         stack.enter_context(sim)
@@ -110,7 +91,7 @@ def test_sparkplug_nodes_of_a_fleet_behind_haproxy(
             return {node: held(metrics[name]) or 0 for node, name in NODES.items()
                     if procs[name].alive()}
 
-        wait_for(lambda: sum(gauges().values()) == DTUS, timeout=30,
+        wait_for(paced(lambda: sum(gauges().values()) == DTUS), timeout=30,
                  what=f"edgemodbus_dtu_held summing to {DTUS} ({gauges()})")
         born = host.born()
         per_node = {node: sum(1 for b in born.values() if b[0] == node) for node in NODES}
@@ -137,7 +118,7 @@ def test_sparkplug_nodes_of_a_fleet_behind_haproxy(
         assert after.index(death) < first_birth  # the host sees the node die first
         assert not any(m.topic.split("/")[3] == victim for m in after
                        if "/NDEATH/" not in m.topic), "the killed node spoke after its death"
-        wait_for(lambda: sum(gauges().values()) == DTUS, timeout=30,
+        wait_for(paced(lambda: sum(gauges().values()) == DTUS), timeout=30,
                  what=f"the survivors holding all {DTUS} ({gauges()})")
 
         # a DCMD to a moved device, sent to its new node, lands on its slave
