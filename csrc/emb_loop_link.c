@@ -204,7 +204,8 @@ static int emb_ll_await(emb_loop *lp, emb_loop_link *k, int64_t now)
  * device is polled); EMB_EV_CYCLE: passes ended with news (e->ended_list); EMB_EV_SPLIT:
  * exception 02 on a splittable block of device e->event_device; EMB_EV_REPORTS: a wrapped
  * link took reports (e->event_device: the device whose read took them, -1: taken while
- * idle), which Python takes before it runs the link again; EMB_EV_FAILED: the link
+ * idle), which Python takes before it runs the link again; EMB_EV_WAKE: the link is
+ * idle and k->jobs is set (Python runs the jobs, clears it); EMB_EV_FAILED: the link
  * failed (e->event_errno).  Python acts, then runs the link again. */
 int emb_loop_link_run(emb_loop *lp, emb_loop_link *k)
 {
@@ -227,6 +228,8 @@ int emb_loop_link_run(emb_loop *lp, emb_loop_link *k)
             emb_fault_took(e);
             if (emb_engine_reports(e, k->which))
                 return EMB_EV_REPORTS;
+            if (k->jobs)
+                return EMB_EV_WAKE; /* Python runs the link's jobs while it is idle */
             if (k->which >= 0) {
                 d = e->devices[k->which];
                 if (d->index >= d->n_pass) {

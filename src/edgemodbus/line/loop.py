@@ -35,7 +35,20 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from .._ffi.engine import Engine, Waker
-from .._ffi.loop import EV_CYCLE, EV_FAILED, EV_REPORTS, EV_SPLIT, EV_WAITS, LS_IDLE, Loop, LoopLink
+from .._ffi.loop import (
+    EV_COLLECT,
+    EV_CYCLE,
+    EV_FAILED,
+    EV_REPORTS,
+    EV_SPLIT,
+    EV_WAITS,
+    EV_WAKE,
+    LS_IDLE,
+    SLOT_DUE,
+    SLOT_READY,
+    Loop,
+    LoopLink,
+)
 from ..errors import ModbusConnectionError
 from .endpoint import DtuEndpoint, LineTiming, TcpEndpoint
 from .link import ContextLink
@@ -171,7 +184,16 @@ class LoopWorker:
     def _run(self) -> None:
         while not self._stopping:
             try:
-                turn = self.loop.wait(time.monotonic() + _MAX_IDLE)
+                turn = self.loop.turn(time.monotonic() + _MAX_IDLE)
+                for slot, ev in turn.events:  # before the news: a held link's event
+                    served = self._slots.get(slot)
+                    if served is None:
+                        continue
+                    if served.ll is not None:
+                        if ev not in (SLOT_READY, SLOT_DUE):
+                            self._guarded(self._step, served, ev)
+                    elif ev == SLOT_DUE or _dialing(served):  # down: the reconnect
+                        self._guarded(self._connect, served)  # delay ran out, or a connect
                 self._take_inbox()
                 with self._lock:
                     news, self._news = self._news, set()
@@ -179,15 +201,6 @@ class LoopWorker:
                     served = self._by_line.get(line)
                     if served is not None:
                         self._guarded(self._serve_queue, served)
-                expired = set(turn.expired)
-                for slot in sorted({s for s, _ in turn.ready} | expired):
-                    served = self._slots.get(slot)
-                    if served is None:
-                        continue
-                    if served.ll is not None:
-                        self._guarded(self._step, served)
-                    elif slot in expired or _dialing(served):  # down: the reconnect
-                        self._guarded(self._connect, served)  # delay ran out, or a connect
             except Exception:  # a bug must not stop the other lines
                 log.exception("%s: loop turn failed", self.thread.name)
         for served in list(self._by_line.values()):
@@ -195,12 +208,12 @@ class LoopWorker:
         self.loop.close()
         self.waker.close()
 
-    def _guarded(self, step: Callable[[_Served], object], served: _Served) -> None:
+    def _guarded(self, step: Callable[..., object], served: _Served, *args: int) -> None:
         """Run ``step`` for one line; an unexpected error costs that line only, as on a
         line worker (LineWorker._recover: logged, link closed, devices told, jobs
         failed) and it tries again after the reconnect backoff."""
         try:
-            step(served)
+            step(served, *args)
         except Exception as exc:
             self._detach(served)
             _abort_dial(served)
@@ -321,8 +334,10 @@ class LoopWorker:
                 except queue.Empty:
                     return
                 line._handle(item, None)
-        if ll.state == LS_IDLE:  # else the link comes back to its jobs once idle (_step)
+        if ll.state == LS_IDLE:
             self._step(served)
+        else:  # it comes back EV_WAKE once idle (Loop.turn), and _step runs them
+            ll.jobs = True
 
     def _run_jobs(self, served: _Served) -> bool:
         """Run the jobs queued for the line's idle link, on its socket made blocking for
@@ -344,19 +359,23 @@ class LoopWorker:
                 self._lost(served)
                 return False
 
-    def _step(self, served: _Served) -> None:
-        """Run the line's link as far as it goes now; hand the ended passes to the
-        pollers, a split or a failure to the poller concerned."""
+    def _step(self, served: _Served, ev: int | None = None) -> None:
+        """Run the line's link as far as it goes now, beginning with the event ``ev``
+        it came back with in the turn (None: run it first); hand the ended passes to
+        the pollers, a split or a failure to the poller concerned, its jobs run while
+        it is idle."""
         ll, engine, line = served.ll, served.engine, served.line
         assert ll is not None and engine is not None
         while True:
-            if ll.state == LS_IDLE:  # jobs go ahead of the next read
-                if not line._queue.empty() and not self._run_jobs(served):
-                    return
-                if served.pollers != line._pollers:
-                    served.pollers = list(line._pollers)
-                    engine.set_devices([p.device for p in served.pollers])
-            ev = ll.run()
+            if ev is None:
+                if ll.state == LS_IDLE:  # jobs go ahead of the next read
+                    ll.jobs = False
+                    if not line._queue.empty() and not self._run_jobs(served):
+                        return
+                    if served.pollers != line._pollers:
+                        served.pollers = list(line._pollers)
+                        engine.set_devices([p.device for p in served.pollers])
+                ev = ll.run()
             pollers = served.pollers
             for ended in engine.take_ended():
                 try:
@@ -375,8 +394,9 @@ class LoopWorker:
             elif ev == EV_FAILED:
                 self._failed(served, engine.event_device, engine.event_errno)
                 return
-            elif ev != EV_CYCLE:
+            elif ev not in (EV_CYCLE, EV_WAKE, EV_COLLECT):
                 raise RuntimeError(f"loop link: unexpected event {ev}")
+            ev = None
         link = served.link
         if link is not None:
             link.collect()  # the stream's counters (heartbeats, drops) into the stats
