@@ -231,9 +231,9 @@ class _CommunicationFields(Model):
     )
     engine: DtuEngine = Field(
         default="thread",
-        description="rtu-over-tcp-server, rtu-over-tcp: what polls the line: thread (a "
+        description="rtu-over-tcp-server, rtu-over-tcp, tcp: what polls the line: thread (a "
         "thread per line) or loop (a few loop threads: DTUs that dial in, plain rtu-over-tcp "
-        "endpoints without alternates; not tcp yet; docs/scale.md); every device of a "
+        "and tcp endpoints without alternates; docs/scale.md); every device of a "
         "listen port, or of an endpoint, must agree",
     )
     loop_threads: Annotated[int | None, Range(1, 1024)] = Field(

@@ -1,21 +1,18 @@
 """The loop engine's workers: a few threads, each running one
-:class:`~edgemodbus._ffi.loop.Loop`, serve many DTU lines instead of a thread per line.
+:class:`~edgemodbus._ffi.loop.Loop`, serve many lines instead of a thread per line.
 
 A :class:`LoopLine` is a :class:`~edgemodbus.line.worker.LineWorker` without a thread of
-its own: its pollers, jobs, link-up and link-down reports and stats are the line
-worker's, but its link is a :class:`~edgemodbus._ffi.loop.LoopLink` (a non-blocking
-state machine in C, csrc/emb_loop_link.c) on the epoll set of a :class:`LoopWorker`.
-Other threads reach it as they reach a line worker: jobs go on the line's queue and
-the worker's one eventfd wakes the loop (wake-ups coalesce).  Each turn the worker
-runs every link that had news (a ready socket, a deadline, a job) and hands the passes
-that ended to the pollers; a link's jobs run while that link is idle, one after the
-other, blocking the loop for the job's own transaction (writes are rare and short;
-the fairness rule of csrc/emb_engine.c, one job between two reads, is not kept yet).
-A link failure closes that link only: its devices go down with the reason and the
-line waits for the DTU to dial in again (:meth:`LineWorker.connect_now`).  A
-connect-mode line (an RTU-over-TCP endpoint the gateway connects to) connects again
-after the line worker's reconnect backoff, without blocking the loop: its connector is a
-:class:`~edgemodbus.line.loop_connect.Dialer`, a non-blocking connect on the same slot.
+its own (its pollers, jobs, link reports and stats are the line worker's); its link is a
+:class:`~edgemodbus._ffi.loop.LoopLink` (a state machine in C, csrc/emb_loop_link.c) on
+a :class:`LoopWorker`'s epoll set.  Jobs go on the line's queue and the worker's one
+eventfd wakes the loop.  One turn is one C call (``Loop.turn``, csrc/emb_loop_turn.c):
+it runs every ready or expired link and comes back only with the links Python must see
+(passes with news, a split, reports, a failure, jobs flagged for an idle link).  A
+link's jobs run while it is idle, blocking the loop for their transaction (the fairness
+rule of csrc/emb_engine.c, ``owed``, is not kept yet).  A failed link closes that link
+only; a DTU line waits for the DTU to dial in again, a connect-mode line (RTU over TCP
+or Modbus TCP) connects again after the reconnect backoff through a non-blocking
+:class:`~edgemodbus.line.loop_connect.Dialer` on the same slot.
 
 :data:`pool` spreads the lines over ``loopThreads`` workers (least loaded first); a
 worker starts with its first line and stops with its last.
@@ -53,6 +50,7 @@ from ..errors import ModbusConnectionError
 from .endpoint import DtuEndpoint, LineTiming, TcpEndpoint
 from .link import ContextLink
 from .loop_connect import Dialer
+from .loop_scope import loop_serves, why_not
 from .poller_api import Poller
 from .worker import Connector, LineWorker
 
@@ -60,17 +58,6 @@ log = logging.getLogger("edgemodbus.line")
 
 _MAX_IDLE = 3600.0  # the loop comes back at least once an hour
 DEFAULT_CAPACITY = 8192  # lines one worker serves at most
-
-
-def loop_serves(endpoint: DtuEndpoint | TcpEndpoint) -> bool:
-    """Whether the loop engine serves this line: a DTU that dials in, with every stream
-    framing csrc/emb_loop_link.c serves (plain RTU, with heartbeats or the echo option,
-    and wrapped frames with their reports), or an RTU-over-TCP endpoint the gateway
-    connects to, plain, without alternates (failover.py's watcher drives a line worker)."""
-    if isinstance(endpoint, TcpEndpoint):
-        return (endpoint.transport == "rtu-over-tcp" and not endpoint.alternates
-                and not endpoint.echo and endpoint.framing == "rtu")
-    return endpoint.framing in ("rtu", "wrapped-report")
 
 
 @dataclass(eq=False)
@@ -87,16 +74,15 @@ class _Served:
 
 
 class LoopLine(LineWorker):
-    """A DTU line, or a connect-mode RTU-over-TCP line (its connector a
+    """A DTU line, or a connect-mode line, RTU over TCP or Modbus TCP (its connector a
     :class:`~edgemodbus.line.loop_connect.Dialer`), served by a :class:`LoopWorker`
     (see the module)."""
 
     def __init__(self, endpoint: DtuEndpoint | TcpEndpoint, timing: LineTiming | None,
                  connector: Connector, workers: LoopPool) -> None:
         if not loop_serves(endpoint):
-            raise ValueError(f"{endpoint.describe()}: engine 'loop' serves DTUs that dial in "
-                             "(framing rtu or wrapped-report) and plain rtu-over-tcp "
-                             "endpoints (no alternates, no echo); use engine 'thread'")
+            raise ValueError(f"{endpoint.describe()}: {why_not(endpoint)}; use engine "
+                             "'thread'")
         super().__init__(endpoint, timing, connector)
         self._workers = workers
         self._worker: LoopWorker | None = None
