@@ -55,6 +55,7 @@ typedef struct {
     uint32_t slot;
     int state;
     int jobs;
+    int owed;
     int held;
     int which;
     int byte_ms;

@@ -31,16 +31,17 @@ from tests.peers import PymodbusSlave, default_register
 from tests.waiting import wait_for
 
 
-def take(d: Dtu, ev: int) -> None:
+def take(d: Dtu, ev: int) -> int:
     """Python's part after the turn listed link d with event ev: the passes, then the
-    link run again until it waits (as line/loop.py LoopWorker._step does)."""
+    link run again until it waits (as line/loop.py LoopWorker._step does) or comes
+    back EV_WAKE (its jobs flagged: left to the caller); that last event."""
     while True:
         for _ in d.engine.take_ended():
             d.passes += 1
             d.status |= d.device.take_status()
-        if ev == EV_WAITS:
-            return
-        assert ev in (EV_CYCLE, EV_WAKE), ev
+        if ev in (EV_WAITS, EV_WAKE):
+            return ev
+        assert ev == EV_CYCLE, ev
         ev = d.link.run()
 
 
@@ -93,11 +94,9 @@ def test_jobs_flag_brings_an_idle_link_back_before_its_next_request() -> None:
         seen: list[tuple[int, int]] = []
         until = time.monotonic() + 30
         while time.monotonic() < until and not seen:
-            events = loop.turn(until).events
-            seen = [e for e in events if e[1] == EV_WAKE]
-            for slot, ev in events:
-                if ev != EV_WAKE:
-                    take(links[slot], ev)
+            for slot, ev in loop.turn(until).events:
+                if take(links[slot], ev) == EV_WAKE:
+                    seen.append((slot, EV_WAKE))
         assert seen == [(1, EV_WAKE)]
         assert job.link.state == LS_IDLE
         requests = job.counters.counts().requests
@@ -162,3 +161,36 @@ def test_a_loop_worker_runs_unchanged_passes_without_python(
             runs, made = calls[0] - before, reads(drivers) - first
             assert runs < made / 2, (runs, made)
             assert exact(cfgs[0], 1) and exact(cfgs[1], 2)
+
+
+def test_a_job_owed_a_read_waits_for_one_due_read_then_has_the_link() -> None:
+    """The fairness rule of csrc/emb_engine.c on a loop link: with a job run since the
+    last read (``owed``) and a read due, the link sends that one read before it comes
+    back for the next job; with nothing due, the job has the link at once."""
+    with PymodbusSlave("rtu-over-tcp", units=(1, 2)) as slave, Loop(8) as loop, \
+            three_links(loop, slave.port) as links:
+        job = links[0]
+        wait_for(lambda: turn_and_take(loop, links, time.monotonic() + 0.05) is not None
+                 and job.link.state == LS_IDLE and job.passes >= 2, timeout=30)
+        requests = job.counters.counts().requests
+        job.device.all_due(time.monotonic())  # a read due now
+        job.link.jobs = job.link.owed = True
+        assert job.link.run() == EV_WAITS  # not EV_WAKE: the read went out first
+        assert job.counters.counts().requests == requests + 1 and not job.link.owed
+        woke = False
+        until = time.monotonic() + 30
+        while not woke and time.monotonic() < until:
+            for slot, ev in loop.turn(until).events:
+                if slot != 0:
+                    take(links[slot], ev)
+                    continue
+                woke = take(job, ev) == EV_WAKE  # the read's pass, then the job's turn
+        assert woke and job.link.state == LS_IDLE
+        assert job.counters.counts().requests == requests + 1  # one read, no more
+        job.device.all_due(time.monotonic() + 60)  # nothing due
+        job.link.owed = True
+        assert job.link.run() == EV_WAKE and not job.link.owed
+        assert job.counters.counts().requests == requests + 1
+        job.link.jobs = False
+        job.device.all_due(time.monotonic())
+        take(job, job.link.run())

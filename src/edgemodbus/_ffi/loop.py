@@ -229,6 +229,17 @@ class LoopLink:
         self._k.jobs = 1 if value else 0
 
     @property
+    def owed(self) -> bool:
+        """A job ran since the link's last read: with :attr:`jobs` set, it comes back
+        ``EV_WAKE`` only after sending its next due read, or when nothing is due (one
+        job between two reads while polling is due, as csrc/emb_engine.c keeps it)."""
+        return bool(self._k.owed)
+
+    @owed.setter
+    def owed(self, value: bool) -> None:
+        self._k.owed = 1 if value else 0
+
+    @property
     def state(self) -> int:
         return int(self._k.state)
 

@@ -8,11 +8,12 @@ a :class:`LoopWorker`'s epoll set.  Jobs go on the line's queue and the worker's
 eventfd wakes the loop.  One turn is one C call (``Loop.turn``, csrc/emb_loop_turn.c):
 it runs every ready or expired link and comes back only with the links Python must see
 (passes with news, a split, reports, a failure, jobs flagged for an idle link).  A
-link's jobs run while it is idle, blocking the loop for their transaction (the fairness
-rule of csrc/emb_engine.c, ``owed``, is not kept yet).  A failed link closes that link
-only; a DTU line waits for the DTU to dial in again, a connect-mode line (RTU over TCP
-or Modbus TCP) connects again after the reconnect backoff through a non-blocking
-:class:`~edgemodbus.line.loop_connect.Dialer` on the same slot.
+link's jobs run while it is idle, blocking the loop for their transaction, one between
+two reads while polling is due (``owed``, the fairness rule of csrc/emb_engine.c).  A
+failed link closes that link only; a DTU line waits for the DTU to dial in again, a
+connect-mode line (RTU over TCP or Modbus TCP) connects again after the reconnect
+backoff through a non-blocking :class:`~edgemodbus.line.loop_connect.Dialer` on the
+same slot.
 
 :data:`pool` spreads the lines over ``loopThreads`` workers (least loaded first); a
 worker starts with its first line and stops with its last.
@@ -325,25 +326,27 @@ class LoopWorker:
         else:  # it comes back EV_WAKE once idle (Loop.turn), and _step runs them
             ll.jobs = True
 
-    def _run_jobs(self, served: _Served) -> bool:
-        """Run the jobs queued for the line's idle link, on its socket made blocking for
-        their transactions; False if the link was lost meanwhile."""
+    def _run_job(self, served: _Served) -> bool:
+        """Run the next job queued for the line's idle link, on its socket made blocking
+        for its transactions; then, with more queued, the link reads what is due first
+        (``owed``).  False if the link was lost meanwhile."""
         line, link, ll = served.line, served.link, served.ll
         assert link is not None and ll is not None
-        while True:
-            try:
-                item = line._queue.get_nowait()
-            except queue.Empty:
-                return True
-            os.set_blocking(ll.ctx.fd, True)
-            try:
-                line._handle(item, link)
-            finally:
-                if link.is_open:
-                    os.set_blocking(ll.ctx.fd, False)
-            if not link.is_open:
-                self._lost(served)
-                return False
+        try:
+            item = line._queue.get_nowait()
+        except queue.Empty:
+            return True
+        os.set_blocking(ll.ctx.fd, True)
+        try:
+            line._handle(item, link)
+        finally:
+            if link.is_open:
+                os.set_blocking(ll.ctx.fd, False)
+        if not link.is_open:
+            self._lost(served)
+            return False
+        ll.jobs = ll.owed = not line._queue.empty()
+        return True
 
     def _step(self, served: _Served, ev: int | None = None) -> None:
         """Run the line's link as far as it goes now, beginning with the event ``ev``
@@ -354,9 +357,9 @@ class LoopWorker:
         assert ll is not None and engine is not None
         while True:
             if ev is None:
-                if ll.state == LS_IDLE:  # jobs go ahead of the next read
+                if ll.state == LS_IDLE:  # a job goes ahead of the next read
                     ll.jobs = False
-                    if not line._queue.empty() and not self._run_jobs(served):
+                    if not line._queue.empty() and not self._run_job(served):
                         return
                     if served.pollers != line._pollers:
                         served.pollers = list(line._pollers)
