@@ -8,6 +8,7 @@ import socket
 import threading
 import time
 from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
 from contextlib import ExitStack, contextmanager
 
 import pytest
@@ -194,3 +195,30 @@ def test_a_job_owed_a_read_waits_for_one_due_read_then_has_the_link() -> None:
         job.link.jobs = False
         job.device.all_due(time.monotonic())
         take(job, job.link.run())
+
+
+def test_writes_queued_while_the_link_awaits_a_reply_run_once_it_is_idle() -> None:
+    """Every reply comes 0.2 s late and a pass (two reads) is due again before it ends,
+    so the link is awaiting a reply when the writes are queued: the worker flags the
+    jobs (``LoopLink.jobs``), the turn brings the link back once idle, and each write
+    reaches the slave.  Without the flag the writes would wait for a pass with news."""
+    writes = {"h2": 11, "h3": 12, "h4": 13}
+    pool = ThreadPoolExecutor(3)  # the writes queued together, from three threads
+    try:
+        with PymodbusSlave("rtu-over-tcp", units=(1,)) as slave:
+            cfg = device(slave.port, 1, readTimeout=2000)
+            with running(cfg) as (drv,):
+                wait_for(lambda: all(it.status is ItemStatus.OK
+                                     for it in cfg.address_list), timeout=60)
+                slave.set_response_delay(0.2)
+                cycles = drv.stats()["cycles"]
+                wait_for(lambda: drv.stats()["cycles"] >= cycles + 2, timeout=60)  # late now
+                futures = [pool.submit(drv.write_address, k, v) for k, v in writes.items()]
+                assert [f.result(30) for f in futures] == [(True, None)] * 3
+                assert slave.registers(1, "hr", 2, 3) == [11, 12, 13]
+                slave.set_response_delay(0.0)
+                item = {it.name: it for it in cfg.address_list}
+                wait_for(lambda: all(item[k].value == v for k, v in writes.items()),
+                         timeout=60)
+    finally:
+        pool.shutdown(wait=True)  # after stop_device: a write still queued has failed
