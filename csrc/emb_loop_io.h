@@ -27,6 +27,12 @@ typedef struct {
     int fd;          /* the link's socket (non-blocking) */
     uint32_t slot;   /* its slot on the loop */
     int state;       /* EMB_LS_* */
+    int jobs;        /* Python has jobs queued for it: once idle, emb_loop_link_run comes
+                      * back EMB_EV_WAKE before the next request (Python clears it) */
+    int owed;        /* a job ran since the last read: with jobs set, the link sends its
+                      * next due read first (the fairness rule of csrc/emb_engine.c) */
+    int held;        /* it came back with an event Python has not taken yet
+                      * (csrc/emb_loop_turn.c runs it no more until Python clears it) */
     int which;       /* the device in its pass, -1: none */
     int tries;       /* retries left for the block under way */
     int first;       /* ... of emb_fault_tries */

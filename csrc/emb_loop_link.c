@@ -35,6 +35,7 @@ static int emb_ll_send(emb_loop *lp, emb_loop_link *k, int64_t now)
         return -1;
     e->lk->rsp_len = 0;
     emb_fault_sent(e, d);
+    k->owed = 0; /* this read pays for the job that ran before it */
     k->sent = 0;
     k->start_ns = now; /* the request must be out within the reply timeout */
     k->state = EMB_LS_SEND;
@@ -204,7 +205,10 @@ static int emb_ll_await(emb_loop *lp, emb_loop_link *k, int64_t now)
  * device is polled); EMB_EV_CYCLE: passes ended with news (e->ended_list); EMB_EV_SPLIT:
  * exception 02 on a splittable block of device e->event_device; EMB_EV_REPORTS: a wrapped
  * link took reports (e->event_device: the device whose read took them, -1: taken while
- * idle), which Python takes before it runs the link again; EMB_EV_FAILED: the link
+ * idle), which Python takes before it runs the link again; EMB_EV_WAKE: the link is
+ * idle and k->jobs is set (Python runs a job; with k->owed set, only once the link sent
+ * its next due read, or nothing is due: one job between two reads while polling is
+ * due, as csrc/emb_engine.c keeps it); EMB_EV_FAILED: the link
  * failed (e->event_errno).  Python acts, then runs the link again. */
 int emb_loop_link_run(emb_loop *lp, emb_loop_link *k)
 {
@@ -238,6 +242,8 @@ int emb_loop_link_run(emb_loop *lp, emb_loop_link *k)
                         return EMB_EV_CYCLE;
                     break;
                 }
+                if (k->jobs && !k->owed)
+                    return EMB_EV_WAKE; /* a job between two blocks of the pass */
                 if (e->ready_ns > now) {
                     emb_timer_set(lp, k->slot, e->ready_ns);
                     return 0;
@@ -249,15 +255,19 @@ int emb_loop_link_run(emb_loop *lp, emb_loop_link *k)
                     emb_ll_lost(k, errno);
                 break;
             }
+            if (k->jobs && !k->owed)
+                return EMB_EV_WAKE; /* Python runs the link's jobs while it is idle */
             d = emb_engine_pick(e, &k->which);
-            if (d == NULL) {
+            if (d == NULL || d->due_ns > now) {
                 k->which = -1;
-                emb_timer_clear(lp, k->slot);
-                return 0;
-            }
-            if (d->due_ns > now) {
-                k->which = -1;
-                emb_timer_set(lp, k->slot, d->due_ns);
+                if (k->jobs) { /* nothing due: the jobs may have the link */
+                    k->owed = 0;
+                    return EMB_EV_WAKE;
+                }
+                if (d == NULL)
+                    emb_timer_clear(lp, k->slot);
+                else
+                    emb_timer_set(lp, k->slot, d->due_ns);
                 return 0;
             }
             if (!d->in_pass && emb_dev_begin_pass(d, now) == 0 && d->n_blocks > 0)

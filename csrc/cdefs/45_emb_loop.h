@@ -54,6 +54,9 @@ typedef struct {
     int fd;
     uint32_t slot;
     int state;
+    int jobs;
+    int owed;
+    int held;
     int which;
     int byte_ms;
     int echo_left;
@@ -61,3 +64,11 @@ typedef struct {
     ...;
 } emb_loop_link;
 int emb_loop_link_run(emb_loop *lp, emb_loop_link *k);
+
+/* csrc/emb_loop_turn.h: one turn of a loop thread in one C call */
+#define EMB_LT_COLLECT ...
+#define EMB_LT_READY ...
+#define EMB_LT_DUE ...
+int emb_loop_turn(emb_loop *lp, emb_loop_link **links, int64_t until_ns, uint32_t *ready,
+                  uint32_t *ready_events, int max_ready, uint32_t *expired,
+                  uint32_t *out_slot, int *out_ev, int *woken);

@@ -94,6 +94,7 @@ def test_abort_drops_a_connect_under_way(loop: Loop) -> None:
         assert not dialer.busy
 
 
-def test_only_rtu_over_tcp_is_dialled() -> None:
-    with pytest.raises(ValueError, match="connects rtu-over-tcp endpoints only"):
-        Dialer(TcpEndpoint("127.0.0.1", 502, "tcp"))
+def test_rtu_over_tcp_and_modbus_tcp_are_dialled() -> None:
+    for transport in ("rtu-over-tcp", "tcp"):  # (TcpEndpoint refuses any other)
+        dialer = Dialer(TcpEndpoint("127.0.0.1", 502, transport))
+        assert dialer.endpoint.transport == transport and not dialer.busy

@@ -148,7 +148,8 @@ def test_a_late_reply_is_waited_out_and_dropped() -> None:
 
 def _counts_after(engine: str, port: int, passes: int) -> list[tuple[object, ...]]:
     """Per link, the device's fault counters and state after exactly ``passes`` passes
-    on the loop engine or on the blocking engine (csrc/emb_engine.c)."""
+    on the loop engine (each link run from Python: "loop"; one C call per turn: "turn")
+    or on the blocking engine (csrc/emb_engine.c: "thread")."""
     specs = [(1, 0), (1, 100), (9, 0)]  # good; exception 02 on every read; silent
     with Loop(4) as loop, dtus(loop, port, specs, timeout=0.1, offline_after=2) as links:
         for d in links:
@@ -156,6 +157,18 @@ def _counts_after(engine: str, port: int, passes: int) -> list[tuple[object, ...
         if engine == "loop":
             serve(loop, links, time.monotonic() + 60,
                   lambda: all(d.passes >= passes for d in links), limit=passes)
+        elif engine == "turn":  # one C call per turn (Loop.turn); a link at its limit
+            for d in links:      # stays held, so the turn runs it no more
+                drive(d, passes)
+            until = time.monotonic() + 60
+            while time.monotonic() < until and not all(d.passes >= passes for d in links):
+                for slot, ev in loop.turn(min(until, time.monotonic() + 0.5)).events:
+                    d = links[slot]
+                    assert ev == EV_CYCLE, (slot, ev)
+                    for _ in d.engine.take_ended():
+                        d.passes += 1
+                        d.status |= d.device.take_status()
+                    drive(d, passes)
         else:
             for d in links:
                 d.link.detach()
@@ -178,12 +191,14 @@ def _counts_after(engine: str, port: int, passes: int) -> list[tuple[object, ...
 def test_the_fault_counts_match_the_blocking_engine() -> None:
     """Differential: the same devices, pass for pass, on both engines (a good slave, an
     exception on every read, a silent slave with a retry that goes offline) end with
-    the same counters, status and failures."""
+    the same counters, status and failures; the loop also with one C call per turn."""
     with PymodbusSlave("rtu-over-tcp", units=(1,), exception_ranges=[
             ExceptionRange(100, 110, code=2, unit=1)]) as slave:
         loop = _counts_after("loop", slave.port, 6)
+        turn = _counts_after("turn", slave.port, 6)
         blocking = _counts_after("thread", slave.port, 6)
     assert loop == blocking
+    assert turn == blocking
     assert loop[1][4] == ((2, 6),) and loop[2][9] is True  # the cases happened
 
 

@@ -11,7 +11,7 @@ reads).  :meth:`Loop.wait` runs without the GIL.
 from __future__ import annotations
 
 import os
-from typing import TYPE_CHECKING, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 from .native import ffi, lib
 
@@ -42,6 +42,14 @@ class Turn(NamedTuple):
     woken: bool
 
 
+class LinkTurn(NamedTuple):
+    """What one :meth:`Loop.turn` hands back: ``(slot, event)`` per link or slot Python
+    must see, and whether another thread woke the loop."""
+
+    events: list[tuple[int, int]]
+    woken: bool
+
+
 class Loop:
     """One loop thread's epoll set, eventfd and deadlines for ``capacity`` slots."""
 
@@ -58,6 +66,10 @@ class Loop:
         self._ready = ffi.new("uint32_t[]", _BATCH)
         self._events = ffi.new("uint32_t[]", _BATCH)
         self._expired = ffi.new("uint32_t[]", capacity)
+        self._links = ffi.new("emb_loop_link *[]", capacity)  # by slot (LoopLink)
+        self._kept: dict[int, Any] = {}  # each emb_loop_link in _links, kept alive
+        self._out_slot = ffi.new("uint32_t[]", _BATCH + capacity)
+        self._out_ev = ffi.new("int[]", _BATCH + capacity)
         self._n_expired = ffi.new("int *")
         self._woken = ffi.new("int *")
         if lib.emb_loop_open(self._lp) == -1:
@@ -133,6 +145,27 @@ class Loop:
         expired = [int(self._expired[i]) for i in range(self._n_expired[0])]
         return Turn(ready, expired, bool(self._woken[0]))
 
+    def turn(self, until: float) -> LinkTurn:
+        """One turn in one C call (csrc/emb_loop_turn.c, GIL released): wait, run every
+        ready or expired link (:class:`LoopLink`), and again, until a link has an event
+        for Python, another thread woke the loop or ``until`` (monotonic seconds).
+
+        The events are ``(slot, event)``: a link's (``EV_CYCLE``, ``EV_SPLIT``,
+        ``EV_REPORTS``, ``EV_FAILED``, ``EV_WAKE``: idle with :attr:`LoopLink.jobs`
+        set, ``EV_COLLECT``: its trace or stream counters hold something), each link
+        held until :meth:`LoopLink.run` runs it again; for a slot without a link,
+        ``SLOT_READY`` (its socket, a connect under way) or ``SLOT_DUE`` (its
+        deadline)."""
+        n = lib.emb_loop_turn(self._lp, self._links, _ns(until), self._ready, self._events,
+                              _BATCH, self._expired, self._out_slot, self._out_ev,
+                              self._woken)
+        if n == -1:
+            err = ffi.errno
+            raise OSError(err, f"loop: turn failed: {os.strerror(err)}")
+        out_slot, out_ev = self._out_slot, self._out_ev
+        return LinkTurn([(int(out_slot[i]), int(out_ev[i])) for i in range(n)],
+                        bool(self._woken[0]))
+
 
 # the link's states (csrc/emb_loop_link.h) and what its run hands back (csrc/emb_edev.h)
 LS_IDLE: int = lib.EMB_LS_IDLE
@@ -146,6 +179,10 @@ EV_CYCLE: int = lib.EMB_EV_CYCLE
 EV_FAILED: int = lib.EMB_EV_FAILED
 EV_SPLIT: int = lib.EMB_EV_SPLIT
 EV_REPORTS: int = lib.EMB_EV_REPORTS
+EV_WAKE: int = lib.EMB_EV_WAKE  # idle, with jobs flagged (LoopLink.jobs)
+EV_COLLECT: int = lib.EMB_LT_COLLECT  # Loop.turn: the trace or stream counters to take
+SLOT_READY: int = lib.EMB_LT_READY  # Loop.turn: a slot without a link is ready
+SLOT_DUE: int = lib.EMB_LT_DUE  # Loop.turn: a slot without a link reached its deadline
 
 
 class LoopLink:
@@ -178,6 +215,29 @@ class LoopLink:
         k.byte_ms = round(byte_timeout * 1000)
         self._k = k
         loop.watch(fd, slot)
+        loop._links[slot] = k  # Loop.turn runs it from now on
+        loop._kept[slot] = k
+
+    @property
+    def jobs(self) -> bool:
+        """Python has jobs for the link: once idle, it comes back ``EV_WAKE`` before
+        its next request (set by the loop thread; cleared before running it again)."""
+        return bool(self._k.jobs)
+
+    @jobs.setter
+    def jobs(self, value: bool) -> None:
+        self._k.jobs = 1 if value else 0
+
+    @property
+    def owed(self) -> bool:
+        """A job ran since the link's last read: with :attr:`jobs` set, it comes back
+        ``EV_WAKE`` only after sending its next due read, or when nothing is due (one
+        job between two reads while polling is due, as csrc/emb_engine.c keeps it)."""
+        return bool(self._k.owed)
+
+    @owed.setter
+    def owed(self, value: bool) -> None:
+        self._k.owed = 1 if value else 0
 
     @property
     def state(self) -> int:
@@ -190,10 +250,14 @@ class LoopLink:
         runs again, as after the blocking engine's EV_REPORTS; ``engine.event_device``:
         the device whose read took them, -1 while idle) or ``EV_FAILED`` for Python,
         which acts and must run it again: only ``EV_WAITS`` leaves a deadline set or a
-        socket to wake it."""
+        socket to wake it.  ``EV_WAKE``: idle with :attr:`jobs` set.  It lets
+        :meth:`Loop.turn` run the link again (an event it came back with is taken)."""
+        self._k.held = 0
         return int(lib.emb_loop_link_run(self.loop._lp, self._k))
 
     def detach(self) -> None:
         """Leave the loop (its deadline and its socket); the socket stays the caller's."""
+        self.loop._links[self.slot] = ffi.NULL
+        self.loop._kept.pop(self.slot, None)
         self.loop.clear_timer(self.slot)
         self.loop.unwatch(self.ctx.fd)

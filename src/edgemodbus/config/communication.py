@@ -231,10 +231,10 @@ class _CommunicationFields(Model):
     )
     engine: DtuEngine = Field(
         default="auto",
-        description="rtu-over-tcp-server, rtu-over-tcp: what polls the line: auto (loop for "
-        "DTUs that dial in, thread for endpoints), loop (a few loop threads: DTUs of any "
-        "framing, plain rtu-over-tcp endpoints without alternates; not tcp yet; "
-        "docs/scale.md) or thread (a thread per line); a port's devices must agree",
+        description="rtu-over-tcp-server, rtu-over-tcp, tcp: what polls the line: auto (loop "
+        "for DTUs that dial in, thread for endpoints), loop (a few loop threads: DTUs of any "
+        "framing, plain rtu-over-tcp and tcp endpoints without alternates; docs/scale.md) "
+        "or thread (a thread per line); a port's or endpoint's devices must agree",
     )
     loop_threads: Annotated[int | None, Range(1, 1024)] = Field(
         default=None,

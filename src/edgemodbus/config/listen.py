@@ -27,7 +27,7 @@ NETWORKS_ALLOWED = ("an IPv4 or IPv6 network in CIDR notation or a single addres
 KEY_EXAMPLE = r"ID:(\d+);KEY:(?P<key>\w+)"
 STREAMS = ("rtu-over-tcp", "rtu-over-tcp-server", "mqtt-dtu")
 """The transports whose link is a DTU stream: heartbeats and wrapped frames apply."""
-LOOP_TRANSPORTS = ("rtu-over-tcp-server", "rtu-over-tcp")
+LOOP_TRANSPORTS = ("rtu-over-tcp-server", "rtu-over-tcp", "tcp")
 """The transports the loop engine serves (engine "loop": line/loop.py)."""
 
 
@@ -156,10 +156,9 @@ def listen_problems(p: ListenParams) -> list[Problem]:
         problems.append(Problem("echo", p.echo, "a Modbus TCP (MBAP) link has no "
                                 "request echo; the option is for RTU lines"))
     if p.engine == "loop" and p.transport not in LOOP_TRANSPORTS:
-        why = " (its MBAP framing is not on the loop yet)" if p.transport == "tcp" else ""
         problems.append(Problem("engine", p.engine, "the loop engine serves transports "
-                                f"{' and '.join(LOOP_TRANSPORTS)}, not {p.transport!r}"
-                                f"{why}; use engine 'thread'"))
+                                f"{', '.join(LOOP_TRANSPORTS)}, not {p.transport!r}; "
+                                "use engine 'thread'"))
     return problems
 
 

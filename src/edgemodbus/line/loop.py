@@ -1,21 +1,19 @@
 """The loop engine's workers: a few threads, each running one
-:class:`~edgemodbus._ffi.loop.Loop`, serve many DTU lines instead of a thread per line.
+:class:`~edgemodbus._ffi.loop.Loop`, serve many lines instead of a thread per line.
 
 A :class:`LoopLine` is a :class:`~edgemodbus.line.worker.LineWorker` without a thread of
-its own: its pollers, jobs, link-up and link-down reports and stats are the line
-worker's, but its link is a :class:`~edgemodbus._ffi.loop.LoopLink` (a non-blocking
-state machine in C, csrc/emb_loop_link.c) on the epoll set of a :class:`LoopWorker`.
-Other threads reach it as they reach a line worker: jobs go on the line's queue and
-the worker's one eventfd wakes the loop (wake-ups coalesce).  Each turn the worker
-runs every link that had news (a ready socket, a deadline, a job) and hands the passes
-that ended to the pollers; a link's jobs run while that link is idle, one after the
-other, blocking the loop for the job's own transaction (writes are rare and short;
-the fairness rule of csrc/emb_engine.c, one job between two reads, is not kept yet).
-A link failure closes that link only: its devices go down with the reason and the
-line waits for the DTU to dial in again (:meth:`LineWorker.connect_now`).  A
-connect-mode line (an RTU-over-TCP endpoint the gateway connects to) connects again
-after the line worker's reconnect backoff, without blocking the loop: its connector is a
-:class:`~edgemodbus.line.loop_connect.Dialer`, a non-blocking connect on the same slot.
+its own (its pollers, jobs, link reports and stats are the line worker's); its link is a
+:class:`~edgemodbus._ffi.loop.LoopLink` (a state machine in C, csrc/emb_loop_link.c) on
+a :class:`LoopWorker`'s epoll set.  Jobs go on the line's queue and the worker's one
+eventfd wakes the loop.  One turn is one C call (``Loop.turn``, csrc/emb_loop_turn.c):
+it runs every ready or expired link and comes back only with the links Python must see
+(passes with news, a split, reports, a failure, jobs flagged for an idle link).  A
+link's jobs run while it is idle, blocking the loop for their transaction, one between
+two reads while polling is due (``owed``, the fairness rule of csrc/emb_engine.c).  A
+failed link closes that link only; a DTU line waits for the DTU to dial in again, a
+connect-mode line (RTU over TCP or Modbus TCP) connects again after the reconnect
+backoff through a non-blocking :class:`~edgemodbus.line.loop_connect.Dialer` on the
+same slot.
 
 :data:`~edgemodbus.line.loop_pool.pool` (line/loop_pool.py) spreads the lines over
 ``loopThreads`` workers (least loaded first); a worker starts with its first line and
@@ -36,11 +34,25 @@ from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 from .._ffi.engine import Engine, Waker
-from .._ffi.loop import EV_CYCLE, EV_FAILED, EV_REPORTS, EV_SPLIT, EV_WAITS, LS_IDLE, Loop, LoopLink
+from .._ffi.loop import (
+    EV_COLLECT,
+    EV_CYCLE,
+    EV_FAILED,
+    EV_REPORTS,
+    EV_SPLIT,
+    EV_WAITS,
+    EV_WAKE,
+    LS_IDLE,
+    SLOT_DUE,
+    SLOT_READY,
+    Loop,
+    LoopLink,
+)
 from ..errors import ModbusConnectionError
 from .endpoint import DtuEndpoint, LineTiming, TcpEndpoint
 from .link import ContextLink
 from .loop_connect import Dialer
+from .loop_scope import loop_serves, why_not
 from .poller_api import Poller
 from .worker import Connector, LineWorker
 
@@ -48,17 +60,6 @@ log = logging.getLogger("edgemodbus.line")
 
 _MAX_IDLE = 3600.0  # the loop comes back at least once an hour
 DEFAULT_CAPACITY = 32768  # lines one worker serves at most (50,000 DTUs on two: docs/scale.md)
-
-
-def loop_serves(endpoint: DtuEndpoint | TcpEndpoint) -> bool:
-    """Whether the loop engine serves this line: a DTU that dials in, with every stream
-    framing csrc/emb_loop_link.c serves (plain RTU, with heartbeats or the echo option,
-    and wrapped frames with their reports), or an RTU-over-TCP endpoint the gateway
-    connects to, plain, without alternates (failover.py's watcher drives a line worker)."""
-    if isinstance(endpoint, TcpEndpoint):
-        return (endpoint.transport == "rtu-over-tcp" and not endpoint.alternates
-                and not endpoint.echo and endpoint.framing == "rtu")
-    return endpoint.framing in ("rtu", "wrapped-report")
 
 
 class Workers(Protocol):
@@ -83,17 +84,15 @@ class _Served:
 
 
 class LoopLine(LineWorker):
-    """A DTU line, or a connect-mode RTU-over-TCP line (its connector a
+    """A DTU line, or a connect-mode line, RTU over TCP or Modbus TCP (its connector a
     :class:`~edgemodbus.line.loop_connect.Dialer`), served by a :class:`LoopWorker`
     (see the module)."""
 
     def __init__(self, endpoint: DtuEndpoint | TcpEndpoint, timing: LineTiming | None,
                  connector: Connector, workers: Workers) -> None:
         if not loop_serves(endpoint):
-            raise ValueError(f"{endpoint.describe()}: framing {endpoint.framing!r}: engine "
-                             "'loop' serves DTUs that dial in "
-                             "(framing rtu or wrapped-report) and plain rtu-over-tcp "
-                             "endpoints (no alternates, no echo); use engine 'thread'")
+            raise ValueError(f"{endpoint.describe()}: {why_not(endpoint)}; use engine "
+                             "'thread'")
         super().__init__(endpoint, timing, connector)
         self._workers = workers
         self._worker: LoopWorker | None = None
@@ -210,7 +209,16 @@ class LoopWorker:
     def _run(self) -> None:
         while not self._stopping:
             try:
-                turn = self.loop.wait(time.monotonic() + _MAX_IDLE)
+                turn = self.loop.turn(time.monotonic() + _MAX_IDLE)
+                for slot, ev in turn.events:  # before the news: a held link's event
+                    served = self._slots.get(slot)
+                    if served is None:
+                        continue
+                    if served.ll is not None:
+                        if ev not in (SLOT_READY, SLOT_DUE):
+                            self._guarded(self._step, served, ev)
+                    elif ev == SLOT_DUE or _dialing(served):  # down: the reconnect
+                        self._guarded(self._connect, served)  # delay ran out, or a connect
                 with self._lock:  # before the inbox: a line told of is in it by now
                     news, self._news = self._news, set()
                     self._woken = False  # what comes after this wakes the loop again
@@ -219,15 +227,6 @@ class LoopWorker:
                     served = self._by_line.get(line)
                     if served is not None:
                         self._guarded(self._serve_queue, served)
-                expired = set(turn.expired)
-                for slot in sorted({s for s, _ in turn.ready} | expired):
-                    served = self._slots.get(slot)
-                    if served is None:
-                        continue
-                    if served.ll is not None:
-                        self._guarded(self._step, served)
-                    elif slot in expired or _dialing(served):  # down: the reconnect
-                        self._guarded(self._connect, served)  # delay ran out, or a connect
             except Exception:  # a bug must not stop the other lines
                 log.exception("%s: loop turn failed", self.thread.name)
         for served in list(self._by_line.values()):
@@ -235,12 +234,12 @@ class LoopWorker:
         self.loop.close()
         self.waker.close()
 
-    def _guarded(self, step: Callable[[_Served], object], served: _Served) -> None:
+    def _guarded(self, step: Callable[..., object], served: _Served, *args: int) -> None:
         """Run ``step`` for one line; an unexpected error costs that line only, as on a
         line worker (LineWorker._recover: logged, link closed, devices told, jobs
         failed) and it tries again after the reconnect backoff."""
         try:
-            step(served)
+            step(served, *args)
         except Exception as exc:
             self._detach(served)
             _abort_dial(served)
@@ -370,42 +369,50 @@ class LoopWorker:
                 except queue.Empty:
                     return
                 line._handle(item, None)
-        if ll.state == LS_IDLE:  # else the link comes back to its jobs once idle (_step)
+        if ll.state == LS_IDLE:
             self._step(served)
+        else:  # it comes back EV_WAKE once idle (Loop.turn), and _step runs them
+            ll.jobs = True
 
-    def _run_jobs(self, served: _Served) -> bool:
-        """Run the jobs queued for the line's idle link, on its socket made blocking for
-        their transactions; False if the link was lost meanwhile."""
+    def _run_job(self, served: _Served) -> bool:
+        """Run the next job queued for the line's idle link, on its socket made blocking
+        for its transactions; then, with more queued, the link reads what is due first
+        (``owed``).  False if the link was lost meanwhile."""
         line, link, ll = served.line, served.link, served.ll
         assert link is not None and ll is not None
-        while True:
-            try:
-                item = line._queue.get_nowait()
-            except queue.Empty:
-                return True
-            os.set_blocking(ll.ctx.fd, True)
-            try:
-                line._handle(item, link)
-            finally:
-                if link.is_open:
-                    os.set_blocking(ll.ctx.fd, False)
-            if not link.is_open:
-                self._lost(served)
-                return False
+        try:
+            item = line._queue.get_nowait()
+        except queue.Empty:
+            return True
+        os.set_blocking(ll.ctx.fd, True)
+        try:
+            line._handle(item, link)
+        finally:
+            if link.is_open:
+                os.set_blocking(ll.ctx.fd, False)
+        if not link.is_open:
+            self._lost(served)
+            return False
+        ll.jobs = ll.owed = not line._queue.empty()
+        return True
 
-    def _step(self, served: _Served) -> None:
-        """Run the line's link as far as it goes now; hand the ended passes to the
-        pollers, a split or a failure to the poller concerned."""
+    def _step(self, served: _Served, ev: int | None = None) -> None:
+        """Run the line's link as far as it goes now, beginning with the event ``ev``
+        it came back with in the turn (None: run it first); hand the ended passes to
+        the pollers, a split or a failure to the poller concerned, its jobs run while
+        it is idle."""
         ll, engine, line = served.ll, served.engine, served.line
         assert ll is not None and engine is not None
         while True:
-            if ll.state == LS_IDLE:  # jobs go ahead of the next read
-                if not line._queue.empty() and not self._run_jobs(served):
-                    return
-                if served.pollers != line._pollers:
-                    served.pollers = list(line._pollers)
-                    engine.set_devices([p.device for p in served.pollers])
-            ev = ll.run()
+            if ev is None:
+                if ll.state == LS_IDLE:  # a job goes ahead of the next read
+                    ll.jobs = False
+                    if not line._queue.empty() and not self._run_job(served):
+                        return
+                    if served.pollers != line._pollers:
+                        served.pollers = list(line._pollers)
+                        engine.set_devices([p.device for p in served.pollers])
+                ev = ll.run()
             pollers = served.pollers
             for ended in engine.take_ended():
                 try:
@@ -424,8 +431,9 @@ class LoopWorker:
             elif ev == EV_FAILED:
                 self._failed(served, engine.event_device, engine.event_errno)
                 return
-            elif ev != EV_CYCLE:
+            elif ev not in (EV_CYCLE, EV_WAKE, EV_COLLECT):
                 raise RuntimeError(f"loop link: unexpected event {ev}")
+            ev = None
         link = served.link
         if link is not None:
             link.collect()  # the stream's counters (heartbeats, drops) into the stats

@@ -1,5 +1,5 @@
-"""Connect-mode lines on the loop engine: the TCP connect of an RTU-over-TCP endpoint
-that never blocks the loop thread.
+"""Connect-mode lines on the loop engine: the TCP connect of an RTU-over-TCP or Modbus
+TCP endpoint that never blocks the loop thread.
 
 A :class:`Dialer` is the connector of a connect-mode :class:`~edgemodbus.line.loop.LoopLine`.
 The loop worker calls :meth:`Dialer.step` when the line is due to connect and again
@@ -31,9 +31,10 @@ from collections.abc import Callable
 from concurrent.futures import Future
 from typing import TYPE_CHECKING, Any
 
+from .._ffi.context import Context
 from .._ffi.loop import Loop
 from ..errors import ModbusConnectionError
-from .connect import open_socket_link
+from .connect import context_link, open_socket_link
 from .endpoint import TcpEndpoint
 from .link import Link
 
@@ -101,9 +102,9 @@ class Dialer:
     two wake-ups of the slot; loop thread only, but :meth:`open` on the same thread."""
 
     def __init__(self, endpoint: TcpEndpoint) -> None:
-        if endpoint.transport != "rtu-over-tcp":
-            raise ValueError(f"{endpoint.describe()}: the loop engine connects "
-                             "rtu-over-tcp endpoints only")
+        if endpoint.transport not in ("rtu-over-tcp", "tcp"):
+            raise ValueError(f"{endpoint.describe()}: transport {endpoint.transport!r}: "
+                             "the loop engine connects rtu-over-tcp and tcp endpoints only")
         self.endpoint = endpoint
         self._sock: socket.socket | None = None  # a connect under way
         self._watched: tuple[Loop, int] | None = None  # (loop, fd) while watched
@@ -275,6 +276,13 @@ class Dialer:
         if isinstance(result, ModbusConnectionError):
             raise result
         try:
+            if self.endpoint.transport == "tcp":  # Modbus TCP: the loop link frames MBAP
+                ctx = Context.on_socket(result.fileno(), self.endpoint.describe(), mbap=True)
+                try:
+                    return context_link(ctx, self.endpoint, line.timing, line.stats, result)
+                except BaseException:
+                    ctx.close()
+                    raise
             return open_socket_link(result, self.endpoint, line.timing, line.stats,
                                     on_report=line.dispatch_report)
         except BaseException:

@@ -30,14 +30,20 @@ def problems(raw: dict[str, Any]) -> list[str]:
     return [str(p) for p in info.value.problems]
 
 
-@pytest.mark.parametrize("transport", ["tcp", "rtu", "mqtt-dtu"])
+@pytest.mark.parametrize("transport", ["rtu", "mqtt-dtu"])
 def test_engine_loop_is_refused_where_the_loop_does_not_serve(transport: str) -> None:
     raw = comm(transport=transport, comPort="/dev/ttyS0", mqttHost="127.0.0.1", dtuId="d1")
     found = [p for p in problems(raw) if p.startswith("communication.engine")]
     assert found == [f"communication.engine 'loop': the loop engine serves transports "
-                     f"rtu-over-tcp-server and rtu-over-tcp, not {transport!r}"
-                     + (" (its MBAP framing is not on the loop yet)" if transport == "tcp"
-                        else "") + "; use engine 'thread'"], found
+                     f"rtu-over-tcp-server, rtu-over-tcp, tcp, not {transport!r}; "
+                     "use engine 'thread'"], found
+
+
+def test_engine_loop_on_modbus_tcp_reaches_a_loop_line() -> None:
+    cfg = load_device_config({"communication": comm(transport="tcp")})
+    ep = endpoint_for(cfg.communication)
+    assert isinstance(ep, TcpEndpoint) and ep.transport == "tcp" and ep.engine == "loop"
+    assert loop_serves(ep)
 
 
 def test_engine_loop_on_rtu_over_tcp_reaches_the_endpoint() -> None:
@@ -59,16 +65,19 @@ def test_an_endpoint_names_a_bad_engine() -> None:
         TcpEndpoint("127.0.0.1", 1502, engine="fast")
 
 
-@pytest.mark.parametrize("ep", [
-    TcpEndpoint("127.0.0.1", 1502, "tcp", engine="loop"),
-    TcpEndpoint("127.0.0.1", 1502, echo=True, engine="loop"),
-    TcpEndpoint("127.0.0.1", 1502, framing="wrapped-report", engine="loop"),
-    TcpEndpoint("127.0.0.1", 1502, alternates=(("127.0.0.2", 1502),), engine="loop"),
+@pytest.mark.parametrize(("ep", "why"), [
+    (TcpEndpoint("127.0.0.1", 1502, echo=True, engine="loop"),
+     "echo: engine 'loop' serves rtu-over-tcp endpoints without the echo option"),
+    (TcpEndpoint("127.0.0.1", 1502, framing="wrapped-report", engine="loop"),
+     "framing 'wrapped-report': engine 'loop' serves rtu-over-tcp endpoints with framing rtu"),
+    (TcpEndpoint("127.0.0.1", 1502, alternates=(("127.0.0.2", 1502),), engine="loop"),
+     "alternates: engine 'loop' serves endpoints without alternates"),
+    (TcpEndpoint("127.0.0.1", 1502, "tcp", alternates=(("127.0.0.2", 1502),), engine="loop"),
+     "alternates: engine 'loop' serves endpoints without alternates"),
 ])
-def test_lines_the_loop_cannot_serve_keep_a_thread(ep: TcpEndpoint) -> None:
+def test_lines_the_loop_cannot_serve_keep_a_thread(ep: TcpEndpoint, why: str) -> None:
     assert not loop_serves(ep)
-    with pytest.raises(ValueError, match=r"engine 'loop' serves DTUs that dial in .* and plain "
-                                         r"rtu-over-tcp endpoints"):
+    with pytest.raises(ValueError, match=f"{why}; use engine 'thread'"):
         LoopLine(ep, None, Dialer(TcpEndpoint("127.0.0.1", 1502)), None)  # type: ignore[arg-type]
 
 
