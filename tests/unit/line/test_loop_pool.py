@@ -49,8 +49,8 @@ def test_every_dtu_stream_kind_goes_to_the_loop() -> None:
     assert loop_serves(plain) and loop_serves(wrapped) and loop_serves(echo)
     other = DtuEndpoint("127.0.0.1", 1, "D", framing="ascii")
     assert not loop_serves(other)
-    with pytest.raises(ValueError, match=r"framing 'ascii': engine 'loop' serves DTUs that dial in "
-                                         r"\(framing rtu or wrapped-report\)"):
+    with pytest.raises(ValueError, match=r"framing 'ascii': engine 'loop' serves framing rtu "
+                                         r"and wrapped-report; use engine 'thread'"):
         LoopLine(other, None, Absent(), LoopPool(1))
 
 
