@@ -54,7 +54,7 @@ def _no_counts() -> NativeCounts:
 _NONE = NativeCounts()
 
 
-@dataclass
+@dataclass(slots=True)
 class RequestStats:
     """How requests ended: the counters a line and a device both keep."""
 
@@ -84,7 +84,7 @@ class RequestStats:
         }
 
 
-@dataclass
+@dataclass(slots=True)
 class LineStats(RequestStats):
     """Counters of one line, updated by its worker only."""
 
@@ -131,7 +131,7 @@ class LineStats(RequestStats):
         responses = self.responses + native.responses
         rtt = self.rtt_total + native.rtt_total
         return {
-            **super().as_dict(),
+            **RequestStats.as_dict(self),  # (no zero-argument super in a slots dataclass)
             "linkErrors": self.link_errors,
             "connects": self.connects,
             "reconnects": self.reconnects,
@@ -160,7 +160,7 @@ class LineStats(RequestStats):
         }
 
 
-@dataclass
+@dataclass(slots=True)
 class DeviceStats(RequestStats):
     """Counters of one device (a slave's poller), updated on its line's worker."""
 
@@ -175,7 +175,7 @@ class DeviceStats(RequestStats):
         are the engine's alone (the fault policy runs in C)."""
         c = self.native()
         return {
-            **super().as_dict(),
+            **RequestStats.as_dict(self),  # (no zero-argument super in a slots dataclass)
             "retries": c.retries,
             "cycles": c.cycles,
             "failedCycles": c.failed_cycles,

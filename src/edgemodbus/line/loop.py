@@ -103,7 +103,7 @@ class LoopLine(LineWorker):
         worker = self._worker
         if worker is None:
             return
-        self._stopping.set()
+        self._stopping = True
         self._worker = None
         self._workers.release(self, worker, timeout)
         self._thread = None

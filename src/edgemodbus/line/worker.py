@@ -81,7 +81,7 @@ class LineWorker(LineRequests):
         self._pollers: list[Poller] = []
         self._pollers_lock = threading.Lock()
         self._thread: threading.Thread | None = None
-        self._stopping = threading.Event()
+        self._stopping = False  # stop() was called (a flag: nothing waits on it)
         self._link: Link | None = None
         self.link_up = False
         self.last_link_error: str | None = None
@@ -119,7 +119,7 @@ class LineWorker(LineRequests):
         thread = self._thread
         if thread is None:
             return
-        self._stopping.set()
+        self._stopping = True
         self._post(STOP)
         if thread is not threading.current_thread():
             wait = timeout if timeout is not None else (
@@ -134,7 +134,7 @@ class LineWorker(LineRequests):
 
     @property
     def running(self) -> bool:
-        return self._thread is not None and not self._stopping.is_set()
+        return self._thread is not None and not self._stopping
 
     def on_worker(self) -> bool:
         """True on this line's worker thread (in a callback), where waiting for a queued
@@ -190,7 +190,7 @@ class LineWorker(LineRequests):
         for the target backoff after a timeout; such a job's future fails with
         :class:`LineBusyError` when :attr:`max_pending` jobs are already waiting."""
         future: Future[T] = Future()
-        if self._stopping.is_set() or self._thread is None:
+        if self._stopping or self._thread is None:
             future.set_exception(
                 ModbusConnectionError(f"line {self.endpoint.describe()} is not running")
             )
@@ -217,7 +217,7 @@ class LineWorker(LineRequests):
         self._next_connect = 0.0
         self._failures = 0  # failed connects in a row
         try:
-            while not self._stopping.is_set():
+            while not self._stopping:
                 try:
                     self._turn()
                 except Exception as exc:  # a bug or an unforeseen error: never die of it
@@ -395,7 +395,7 @@ class LineWorker(LineRequests):
 
     def _serve_queue_while_down(self, until: float) -> None:
         """While disconnected: fail queued requests at once, sleep until the next try."""
-        while not self._stopping.is_set() and not self._connect_now:
+        while not self._stopping and not self._connect_now:
             wait = until - time.monotonic()
             if wait <= 0:
                 return
