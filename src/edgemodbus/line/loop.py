@@ -60,7 +60,7 @@ def loop_serves(endpoint: DtuEndpoint | TcpEndpoint) -> bool:
     return endpoint.framing in ("rtu", "wrapped-report")
 
 
-@dataclass(eq=False)
+@dataclass(eq=False, slots=True)
 class _Served:
     """A line on a worker: its slot, and while up its link, engine and loop link."""
 
@@ -77,6 +77,8 @@ class LoopLine(LineWorker):
     """A DTU line, or a connect-mode RTU-over-TCP line (its connector a
     :class:`~edgemodbus.line.loop_connect.Dialer`), served by a :class:`LoopWorker`
     (see the module)."""
+
+    __slots__ = ("_worker", "_workers")
 
     def __init__(self, endpoint: DtuEndpoint | TcpEndpoint, timing: LineTiming | None,
                  connector: Connector, workers: LoopPool) -> None:

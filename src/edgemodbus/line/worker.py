@@ -68,6 +68,15 @@ class LineWorker(LineRequests):
     """A line and its worker thread.  Created by :class:`LineRegistry` (shared by every
     user of the same endpoint) or directly; ``start()`` then ``stop()``."""
 
+    # one per line, thousands on a loop: slots, not a dict of 30 keys (docs/scale.md
+    # "Memory per DTU")
+    __slots__ = ("__weakref__", "_backoff", "_changed", "_connect_now", "_counters",
+                 "_crashes", "_failures", "_lag", "_last_crash", "_link", "_next_connect",
+                 "_owed", "_pending", "_pending_lock", "_pollers", "_pollers_lock",
+                 "_queue", "_stopping", "_thread", "_up_since", "_waker", "connector",
+                 "endpoint", "last_link_error", "lease", "link_up", "max_pending", "stats",
+                 "timing")
+
     def __init__(self, endpoint: Endpoint, timing: LineTiming | None = None,
                  connector: Connector | None = None) -> None:
         self.endpoint = endpoint
