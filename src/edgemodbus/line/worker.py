@@ -68,8 +68,7 @@ class LineWorker(LineRequests):
     """A line and its worker thread.  Created by :class:`LineRegistry` (shared by every
     user of the same endpoint) or directly; ``start()`` then ``stop()``."""
 
-    # one per line, thousands on a loop: slots, not a dict of 30 keys (docs/scale.md
-    # "Memory per DTU")
+    # thousands of lines on a loop: slots, no dict of 30 keys (docs/scale.md "Memory per DTU")
     __slots__ = ("__weakref__", "_backoff", "_changed", "_connect_now", "_counters",
                  "_crashes", "_failures", "_lag", "_last_crash", "_link", "_next_connect",
                  "_owed", "_pending", "_pending_lock", "_pollers", "_pollers_lock",
@@ -83,9 +82,8 @@ class LineWorker(LineRequests):
         self.timing = timing or LineTiming()
         self.connector = connector
         self._connect_now = False  # a connector has a new link ready: take it at once
-        self.stats = LineStats()
         self._counters = LineCounters()  # what the engine counts, across links
-        self.stats.native = self._counters.counts
+        self.stats = LineStats(native=self._counters.counts)
         self._queue: queue.SimpleQueue[Any] = queue.SimpleQueue()
         self._pollers: list[Poller] = []
         self._pollers_lock = threading.Lock()
