@@ -251,11 +251,12 @@ GATES: dict[str, Gate] = {
     # per serial line (none here); measured 4 (main, two loop threads, the listener).
     "dtu_fleet.loop_threads": Gate(
         8, 8, "lower", "threads", "5,000 DTUs, loop engine: threads of the process"),
-    # RSS per DTU, its 20 tags, config and driver included.  NOT MET: 43.3 kB at 5,000,
-    # 43.6 at 300 (2026-11-27; the thread engine 54.8 and 51.6 in the same runs): the
-    # threads' stacks are gone, the Python objects per device and item remain
-    # (docs/item-store.md).  The limit is about the thread engine's figure: a loop that
-    # costs as much memory as a thread per DTU fails.
+    # RSS per DTU, its 20 tags, config and driver included.  NOT MET: 35.8 kB at 5,000,
+    # 34.1-35.8 at 300 (2026-11-27, after slots on the per-line objects and no copy of
+    # the parameters; 43.3-43.9 and 42.1-43.6 before; the thread engine 54.8 and 44-52):
+    # config 5-7, started driver 17, link and values 12 (docs/scale.md "Memory per DTU"
+    # says where it goes and what is left).  The limit is about the thread engine's
+    # figure: a loop that costs as much memory as a thread per DTU fails.
     "dtu_fleet.loop_rss_kb_per_dtu": Gate(
         20.0, 55.0, "lower", "kB", "5,000 DTUs, loop engine: RSS per DTU (its tags included)"),
     # CPU per DTU per second (our process, all threads, 5 s cycle).  Issue 27: at most

@@ -125,6 +125,7 @@ def _measure(engine: str, port: int) -> dict[str, Any]:
     threading.stack_size(STACK_KB * 1024)
     base = _status()
     configs = [_config(port, k, engine) for k in range(n)]
+    after_configs = _status()
     drivers = [em.DriverModbusRtu() for _ in configs]
     sources = loopback_sources(n)
     sources = sources if len(sources) > 1 else ("127.0.0.1", "127.0.0.2")
@@ -139,6 +140,12 @@ def _measure(engine: str, port: int) -> dict[str, Any]:
         for drv, cfg in zip(drivers, configs, strict=True):
             assert drv.start_device(cfg.organization, cfg.communication, cfg.address_list)
         out["start_s"] = time.monotonic() - started
+        # RSS per DTU in three parts (docs/scale.md "Memory per DTU"): the validated
+        # configs, the started drivers (none dialled in yet), and the rest measured with
+        # the CPU below (the links, values read, what the fleet's traffic left behind)
+        after_start = _status()
+        out["rss_kb_per_dtu_configs"] = (after_configs["VmRSS"] - base["VmRSS"]) / n
+        out["rss_kb_per_dtu_started"] = (after_start["VmRSS"] - after_configs["VmRSS"]) / n
         listener = dtu_registry.listener("127.0.0.1", port)
         assert listener is not None
         fleet.start()
@@ -154,6 +161,7 @@ def _measure(engine: str, port: int) -> dict[str, Any]:
         status = _status()
         out["threads"] = status["Threads"]
         out["rss_kb_per_dtu"] = (status["VmRSS"] - base["VmRSS"]) / n
+        out["rss_kb_per_dtu_dialled"] = (status["VmRSS"] - after_start["VmRSS"]) / n
         out["vm_kb_per_dtu"] = (status["VmSize"] - base["VmSize"]) / n
         out["wrong"] = sum(1 for k, cfg in enumerate(configs)
                            if _ok(cfg) and [it.value for it in cfg.address_list] != _want(k))
@@ -226,6 +234,9 @@ def _rows(f: dict[str, Any]) -> list[tuple[str, float, str]]:
         (f"{e}: the fleet's CPU per DTU", f["fleet_cpu_us_per_dtu_s"], "us/s (its processes)"),
         (f"{e}: reads while measuring", f["reads_in_window"], f"in {WINDOW:g} s"),
         (f"{e}: RSS per DTU", f["rss_kb_per_dtu"], "kB (configs + drivers)"),
+        (f"{e}:   the configs", f["rss_kb_per_dtu_configs"], "kB"),
+        (f"{e}:   the drivers started", f["rss_kb_per_dtu_started"], "kB (none dialled in)"),
+        (f"{e}:   dialled in and polled", f["rss_kb_per_dtu_dialled"], "kB (links, values)"),
         (f"{e}: virtual memory per DTU", f["vm_kb_per_dtu"], "kB"),
         (f"{e}: threads", f["threads"], ""),
         (f"{e}: redial: DTUs Ok again", f["dtus_ok_again"], f"of {f['dtus']}"),

@@ -55,7 +55,7 @@ def _no_counts() -> NativeCounts:
 _NONE = NativeCounts()
 
 
-@dataclass
+@dataclass(slots=True)
 class RequestStats:
     """How requests ended: the counters a line and a device both keep."""
 
@@ -85,7 +85,7 @@ class RequestStats:
         }
 
 
-@dataclass
+@dataclass(slots=True)
 class LineStats(RequestStats):
     """Counters of one line, updated by its worker only."""
 
@@ -132,7 +132,7 @@ class LineStats(RequestStats):
         responses = self.responses + native.responses
         rtt = self.rtt_total + native.rtt_total
         return {
-            **super().as_dict(),
+            **RequestStats.as_dict(self),  # (no zero-argument super in a slots dataclass)
             "linkErrors": self.link_errors,
             "connects": self.connects,
             "reconnects": self.reconnects,
@@ -161,7 +161,7 @@ class LineStats(RequestStats):
         }
 
 
-@dataclass
+@dataclass(slots=True)
 class DeviceStats(RequestStats):
     """Counters of one device (a slave's poller), updated on its line's worker."""
 
@@ -176,7 +176,7 @@ class DeviceStats(RequestStats):
         are the engine's alone (the fault policy runs in C)."""
         c = self.native()
         return {
-            **super().as_dict(),
+            **RequestStats.as_dict(self),  # (no zero-argument super in a slots dataclass)
             "retries": c.retries,
             "cycles": c.cycles,
             "failedCycles": c.failed_cycles,

@@ -63,13 +63,14 @@ class Context:
         self._rsp = ffi.new("uint8_t[]", MAX_ADU_LENGTH)
         self._req = ffi.new("uint8_t[]", MAX_ADU_LENGTH)
         self._link = ffi.new("emb_link *")  # per-line state of csrc/emb_io.c
-        self._report = ffi.new("uint8_t[]", lib.EMB_REPORT_MAX)
+        self._report: Any = None  # a taken report: made at the first (wrapped links only)
         self._stream_buf: Any = None  # a DTU stream's buffers, which _link.sb points at
         self._header = 1  # bytes before the PDU in a reply: slave id, or the MBAP header
         self._trace: Any = None  # the frame trace ring, which _link.trace points at when on
-        self._trace_out = ffi.new("uint8_t[]", MAX_ADU_LENGTH)
-        self._trace_dir = ffi.new("int *")
-        self._trace_ns = ffi.new("int64_t *")
+        # a taken frame, made with the ring (a link per DTU: docs/scale.md "Memory per DTU")
+        self._trace_out: Any = None
+        self._trace_dir: Any = None
+        self._trace_ns: Any = None
 
     # -- construction ----------------------------------------------------------------
     @classmethod
@@ -187,6 +188,8 @@ class Context:
         """The oldest reports (whole wrapped frames, checked), at most ``limit``."""
         out: list[bytes] = []
         n = self.reports_waiting if limit is None else min(limit, self.reports_waiting)
+        if n and self._report is None:
+            self._report = ffi.new("uint8_t[]", lib.EMB_REPORT_MAX)
         for _ in range(n):
             size = lib.emb_report_take(self._link, self._report)
             if not size:
@@ -227,6 +230,9 @@ class Context:
         writes it, in the line engine too); :meth:`take_trace` empties it."""
         if on and self._trace is None:
             self._trace = ffi.new("emb_trace *")
+            self._trace_out = ffi.new("uint8_t[]", MAX_ADU_LENGTH)
+            self._trace_dir = ffi.new("int *")
+            self._trace_ns = ffi.new("int64_t *")
         self._link.trace = self._trace if on else ffi.NULL
 
     @property

@@ -63,7 +63,8 @@ class DtuSlot:
         self.peer: str | None = None
         self.connections = 0
         self.replaced = 0
-        self._flips: deque[float] = deque()  # when the id changed hands, in the window
+        # when the id changed hands, in the window (made at the first change: 760 B)
+        self._flips: deque[float] | None = None
         self.contested_until = 0.0  # monotonic time; refused before it
         self.contested_reason = ""
 
@@ -103,10 +104,10 @@ class DtuSlot:
                 self.contested_until = now + self.port.flip_window
                 self.contested_reason = (
                     f"DTU id {self.dtu_id!r} is contested: it changed hands "
-                    f"{len(self._flips)} times within {self.port.flip_window:g} s, last "
+                    f"{len(self._flips or ())} times within {self.port.flip_window:g} s, last "
                     f"between {self.peer} and {peer}; refused for {self.port.flip_window:g} s "
                     "(values could come from either device)")
-                self._flips.clear()
+                self._flips = None
                 stale = self._drop_connections()
                 line = self.line
                 outcome: Offer = "contested"
@@ -156,6 +157,8 @@ class DtuSlot:
     def _flipped(self, now: float) -> bool:
         """Count a change of hands (lock held); True past idFlipLimit in the window."""
         flips = self._flips
+        if flips is None:
+            flips = self._flips = deque()
         flips.append(now)
         while flips[0] <= now - self.port.flip_window:
             flips.popleft()

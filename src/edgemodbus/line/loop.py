@@ -70,7 +70,7 @@ class Workers(Protocol):
     def release(self, line: LoopLine, worker: LoopWorker, timeout: float | None) -> None: ...
 
 
-@dataclass(eq=False)
+@dataclass(eq=False, slots=True)
 class _Served:
     """A line on a worker: its slot, and while up its link, engine and loop link."""
 
@@ -87,6 +87,8 @@ class LoopLine(LineWorker):
     """A DTU line, or a connect-mode line, RTU over TCP or Modbus TCP (its connector a
     :class:`~edgemodbus.line.loop_connect.Dialer`), served by a :class:`LoopWorker`
     (see the module)."""
+
+    __slots__ = ("_worker", "_workers")
 
     def __init__(self, endpoint: DtuEndpoint | TcpEndpoint, timing: LineTiming | None,
                  connector: Connector, workers: Workers) -> None:
@@ -111,7 +113,7 @@ class LoopLine(LineWorker):
         worker = self._worker
         if worker is None:
             return
-        self._stopping.set()
+        self._stopping = True
         self._worker = None
         self._workers.release(self, worker, timeout)
         self._thread = None

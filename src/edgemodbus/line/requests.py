@@ -20,6 +20,8 @@ class LineRequests:
     """Mixed into :class:`~edgemodbus.line.worker.LineWorker`: what other threads ask of
     the line, through its :meth:`submit`."""
 
+    __slots__ = ()
+
     timing: LineTiming
     _pollers: list[Poller]
     _changed: float  # monotonic end of the last job that may have written a slave

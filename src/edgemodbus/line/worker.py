@@ -68,20 +68,27 @@ class LineWorker(LineRequests):
     """A line and its worker thread.  Created by :class:`LineRegistry` (shared by every
     user of the same endpoint) or directly; ``start()`` then ``stop()``."""
 
+    # thousands of lines on a loop: slots, no dict of 30 keys (docs/scale.md "Memory per DTU")
+    __slots__ = ("__weakref__", "_backoff", "_changed", "_connect_now", "_counters",
+                 "_crashes", "_failures", "_lag", "_last_crash", "_link", "_next_connect",
+                 "_owed", "_pending", "_pending_lock", "_pollers", "_pollers_lock",
+                 "_queue", "_stopping", "_thread", "_up_since", "_waker", "connector",
+                 "endpoint", "last_link_error", "lease", "link_up", "max_pending", "stats",
+                 "timing")
+
     def __init__(self, endpoint: Endpoint, timing: LineTiming | None = None,
                  connector: Connector | None = None) -> None:
         self.endpoint = endpoint
         self.timing = timing or LineTiming()
         self.connector = connector
         self._connect_now = False  # a connector has a new link ready: take it at once
-        self.stats = LineStats()
         self._counters = LineCounters()  # what the engine counts, across links
-        self.stats.native = self._counters.counts
+        self.stats = LineStats(native=self._counters.counts)
         self._queue: queue.SimpleQueue[Any] = queue.SimpleQueue()
         self._pollers: list[Poller] = []
         self._pollers_lock = threading.Lock()
         self._thread: threading.Thread | None = None
-        self._stopping = threading.Event()
+        self._stopping = False  # stop() was called (a flag: nothing waits on it)
         self._link: Link | None = None
         self.link_up = False
         self.last_link_error: str | None = None
@@ -119,7 +126,7 @@ class LineWorker(LineRequests):
         thread = self._thread
         if thread is None:
             return
-        self._stopping.set()
+        self._stopping = True
         self._post(STOP)
         if thread is not threading.current_thread():
             wait = timeout if timeout is not None else (
@@ -134,7 +141,7 @@ class LineWorker(LineRequests):
 
     @property
     def running(self) -> bool:
-        return self._thread is not None and not self._stopping.is_set()
+        return self._thread is not None and not self._stopping
 
     def on_worker(self) -> bool:
         """True on this line's worker thread (in a callback), where waiting for a queued
@@ -190,7 +197,7 @@ class LineWorker(LineRequests):
         for the target backoff after a timeout; such a job's future fails with
         :class:`LineBusyError` when :attr:`max_pending` jobs are already waiting."""
         future: Future[T] = Future()
-        if self._stopping.is_set() or self._thread is None:
+        if self._stopping or self._thread is None:
             future.set_exception(
                 ModbusConnectionError(f"line {self.endpoint.describe()} is not running")
             )
@@ -217,7 +224,7 @@ class LineWorker(LineRequests):
         self._next_connect = 0.0
         self._failures = 0  # failed connects in a row
         try:
-            while not self._stopping.is_set():
+            while not self._stopping:
                 try:
                     self._turn()
                 except Exception as exc:  # a bug or an unforeseen error: never die of it
@@ -395,7 +402,7 @@ class LineWorker(LineRequests):
 
     def _serve_queue_while_down(self, until: float) -> None:
         """While disconnected: fail queued requests at once, sleep until the next try."""
-        while not self._stopping.is_set() and not self._connect_now:
+        while not self._stopping and not self._connect_now:
             wait = until - time.monotonic()
             if wait <= 0:
                 return
