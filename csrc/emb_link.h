@@ -17,11 +17,12 @@
 #define EMB_TRACE_RX 2      /* a frame we received (a reply, also one refused) */
 #define EMB_TRACE_FLUSH_NS 1000000000LL /* the engine hands frames to Python this soon */
 
-/* The buffers of a DTU stream link (emb_link.sb): bytes received and not framed yet, and
- * the reports waiting.  The caller allocates them, for stream links only. */
+/* The receive buffer of a DTU stream link (emb_link.sb): bytes received and not framed
+ * yet.  The caller allocates it, for stream links only.  The report ring (emb_link.ring,
+ * EMB_RING_SIZE bytes) is apart: only a wrapped link queues reports, so a plain DTU does
+ * without its 4 kB (docs/scale.md "Memory per DTU"). */
 typedef struct {
     uint8_t rx[EMB_RX_SIZE];
-    uint8_t ring[EMB_RING_SIZE];
 } emb_stream_buf;
 
 /* The frame trace of a link (on while the line's logger is at DEBUG): every frame the
@@ -71,6 +72,8 @@ typedef struct {
     uint32_t n_before;      /* the first n_before of them came before the last reply: the
                              * caller applies them first, the others after the reply */
     emb_stream_buf *sb;     /* a stream link's buffers (required with wrapped or hb_len) */
+    uint8_t *ring;          /* the reports waiting, EMB_RING_SIZE bytes (required with
+                             * wrapped; NULL on other links) */
     emb_trace *trace;       /* the frame trace, NULL: off */
     /* private to csrc/emb_stream.c */
     int32_t absorb;         /* bytes of the last dropped frame still to skip, -1: up to the

@@ -34,10 +34,11 @@
 #define EMB_PUMP_READS 64
 #define EMB_WRAPPED_REQ_MAX (4 + EMB_MAX_RTU + 1) /* FF AA, address, RTU frame, 0D */ /* emb_pump: at most this many reads (a flooding peer) */
 
-/* A stream link needs its buffers (lk->sb): 0 with errno EINVAL if they are missing. */
+/* A stream link needs its buffers (lk->sb, and lk->ring when wrapped): 0 with errno
+ * EINVAL if they are missing. */
 static int emb_has_buffers(const emb_link *lk)
 {
-    if (lk->sb != NULL)
+    if (lk->sb != NULL && (!lk->wrapped || lk->ring != NULL))
         return 1;
     errno = EINVAL;
     return 0;
@@ -50,8 +51,8 @@ static void emb_ring_put(emb_link *lk, const uint8_t *p, uint32_t n)
     uint32_t at = (lk->ring_head + lk->ring_used) % EMB_RING_SIZE;
     uint32_t first = n < EMB_RING_SIZE - at ? n : EMB_RING_SIZE - at;
 
-    memcpy(lk->sb->ring + at, p, first);
-    memcpy(lk->sb->ring, p + first, n - first);
+    memcpy(lk->ring + at, p, first);
+    memcpy(lk->ring, p + first, n - first);
     lk->ring_used += n;
 }
 
@@ -59,8 +60,8 @@ static void emb_ring_get(emb_link *lk, uint8_t *p, uint32_t n)
 {
     uint32_t first = n < EMB_RING_SIZE - lk->ring_head ? n : EMB_RING_SIZE - lk->ring_head;
 
-    memcpy(p, lk->sb->ring + lk->ring_head, first);
-    memcpy(p + first, lk->sb->ring, n - first);
+    memcpy(p, lk->ring + lk->ring_head, first);
+    memcpy(p + first, lk->ring, n - first);
     lk->ring_head = (lk->ring_head + n) % EMB_RING_SIZE;
     lk->ring_used -= n;
 }
@@ -107,9 +108,9 @@ int emb_report_peek(const emb_link *lk, uint32_t *at, uint8_t *out)
 {
     uint32_t pos = (lk->ring_head + *at) % EMB_RING_SIZE, n, i;
 
-    n = (uint32_t)(lk->sb->ring[pos] << 8 | lk->sb->ring[(pos + 1) % EMB_RING_SIZE]);
+    n = (uint32_t)(lk->ring[pos] << 8 | lk->ring[(pos + 1) % EMB_RING_SIZE]);
     for (i = 0; i < n; i++)
-        out[i] = lk->sb->ring[(pos + 2 + i) % EMB_RING_SIZE];
+        out[i] = lk->ring[(pos + 2 + i) % EMB_RING_SIZE];
     *at += n + 2;
     return (int)n;
 }

@@ -65,6 +65,7 @@ class Context:
         self._link = ffi.new("emb_link *")  # per-line state of csrc/emb_io.c
         self._report: Any = None  # a taken report: made at the first (wrapped links only)
         self._stream_buf: Any = None  # a DTU stream's buffers, which _link.sb points at
+        self._ring: Any = None  # a wrapped link's report ring, which _link.ring points at
         self._header = 1  # bytes before the PDU in a reply: slave id, or the MBAP header
         self._trace: Any = None  # the frame trace ring, which _link.trace points at when on
         # a taken frame, made with the ring (a link per DTU: docs/scale.md "Memory per DTU")
@@ -109,10 +110,11 @@ class Context:
         if len(heartbeat) > MAX_HEARTBEAT:
             raise ValueError(f"{self.label}: a heartbeat of {len(heartbeat)} bytes; at most "
                              f"{MAX_HEARTBEAT}")
-        if heartbeat or wrapped:  # 4.6 KB (receive buffer, report ring): stream links only
-            if self._stream_buf is None:
-                self._stream_buf = ffi.new("emb_stream_buf *")
-            self._link.sb = self._stream_buf
+        if heartbeat or wrapped:  # the 512 B receive buffer: stream links only
+            self.ensure_stream_buffers()
+        if wrapped and self._ring is None:  # the 4 KB report ring: wrapped links only
+            self._ring = ffi.new("uint8_t[]", int(lib.EMB_RING_SIZE))
+            self._link.ring = self._ring
         ffi.memmove(self._link.hb, heartbeat, len(heartbeat))
         self._link.hb_len = len(heartbeat)
         self._link.wrapped = 1 if wrapped else 0

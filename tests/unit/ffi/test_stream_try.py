@@ -12,6 +12,7 @@ import socket
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from edgemodbus._ffi.context import Context
 from edgemodbus._ffi.native import ffi, lib
 from edgemodbus.protocol import rtu
 
@@ -160,5 +161,38 @@ def test_bytes_with_nothing_asked_are_dropped_and_heartbeats_counted() -> None:
         got = ffi.new("int *")
         assert lib.emb_stream_try(link, SLAVE, rsp, got) == MORE  # nothing left
     finally:
+        a.close()
+        b.close()
+
+
+def test_a_wrapped_link_needs_its_report_ring_and_a_plain_one_goes_without() -> None:
+    """The report ring (4 kB) is apart from the receive buffer: a plain DTU stream
+    allocates only the 512 B buffer (docs/scale.md "Memory per DTU"); a wrapped link
+    without its ring is refused (EINVAL) rather than written through a NULL pointer."""
+    assert ffi.sizeof("emb_stream_buf") <= 512
+    link = ffi.new("emb_link *")
+    buf = ffi.new("emb_stream_buf *")
+    link.sb = buf
+    link.wrapped = 1
+    assert lib.emb_stream_take_idle(link) == -1  # no ring
+    ring = ffi.new("uint8_t[]", int(lib.EMB_RING_SIZE))
+    link.ring = ring
+    assert lib.emb_stream_take_idle(link) == 0
+
+
+def test_a_context_allocates_the_ring_for_wrapped_streams_only() -> None:
+    a, b = socket.socketpair()
+    plain = Context.on_socket(a.fileno(), "plain", mbap=False)
+    wrapped = Context.on_socket(b.fileno(), "wrapped", mbap=False)
+    try:
+        plain.set_stream(b"HB", False)
+        plain.ensure_stream_buffers()
+        wrapped.set_stream(b"", True)
+        assert plain.is_stream and wrapped.is_stream
+        assert plain._link.ring == ffi.NULL
+        assert wrapped._link.ring != ffi.NULL
+    finally:
+        plain.close()
+        wrapped.close()
         a.close()
         b.close()
