@@ -14,7 +14,7 @@
 #define EMB_LATEST_NS 1000000000LL /* ... and at most this long on a busy line */
 #define EMB_NEVER INT64_MAX
 #define EMB_FAIL_RSP 12   /* bytes of a rejected reply kept for its reason */
-#define EMB_N_EXC 256     /* exception codes counted */
+#define EMB_EXC_SLOTS 8   /* exception codes counted apart (emb_exc_counts) */
 
 #define EMB_FAIL_NONE 0   /* the block's last read was good */
 #define EMB_FAIL_OWN 1    /* its own read failed (an exception, CRC or protocol error) */
@@ -23,6 +23,17 @@
 #define EMB_ST_BACK 1     /* the slave answers (again): Running */
 #define EMB_ST_OFFLINE 2  /* the slave went offline */
 #define EMB_ST_AGAIN 4    /* with EMB_ST_BACK: it had been offline */
+
+/* Exception responses by code, for the codes that occurred: the first EMB_EXC_SLOTS
+ * distinct codes each in a slot (in order of first occurrence), any later code in
+ * `other`.  The Modbus Application Protocol 1.1b3, section 7, defines nine codes
+ * (01-06, 08, 0A, 0B), and a slave answers few of them, so 80 bytes replace an array of
+ * 256 counts (2 kB) per device and per line (docs/scale.md "Memory per DTU"). */
+typedef struct emb_exc_counts {
+    uint64_t n[EMB_EXC_SLOTS];   /* the count of code[i]; 0: the slot is free */
+    uint8_t code[EMB_EXC_SLOTS];
+    uint64_t other;              /* codes that found every slot taken */
+} emb_exc_counts;
 
 /* One planned read (a block) of a device. */
 typedef struct emb_eblock {
@@ -79,7 +90,7 @@ typedef struct emb_dev_counters {
     uint64_t protocol_errors;
     uint64_t failed_cycles;
     uint64_t skipped_blocks;
-    uint64_t exceptions[EMB_N_EXC]; /* by exception code */
+    emb_exc_counts exceptions; /* by exception code */
     uint64_t reports;       /* wrapped reports that held items of the device, applied in C */
 } emb_dev_counters;
 
@@ -94,7 +105,7 @@ typedef struct emb_line_counters {
     uint64_t timeouts;
     uint64_t crc_errors;
     uint64_t protocol_errors;
-    uint64_t exceptions[EMB_N_EXC];
+    emb_exc_counts exceptions;
     uint64_t reports;     /* wrapped reports taken by the engine (csrc/emb_report.c) */
 } emb_line_counters;
 

@@ -31,7 +31,7 @@ int emb_fault_kind(int err, int *code)
     *code = 0;
     if (err == ETIMEDOUT || err == EMB_EPARTIAL)
         return EMB_K_TIMEOUT;
-    if (err >= EMB_EEXCEPTION && err < EMB_EEXCEPTION + EMB_N_EXC) {
+    if (err >= EMB_EEXCEPTION && err < EMB_EEXCEPTION + 256) { /* a code is one byte */
         *code = err - EMB_EEXCEPTION;
         return EMB_K_EXCEPTION;
     }
@@ -44,6 +44,26 @@ int emb_fault_kind(int err, int *code)
     if ((err >= EMB_EECHO && err <= EMB_ELENGTH) || (err > EMBBADCRC && err <= EMBBADSLAVE))
         return EMB_K_PROTOCOL;
     return EMB_K_LINK;
+}
+
+/* Count one exception response of `code` (0..255) in x: its slot, a free one, or
+ * x->other when every slot holds another code.  No allocation (the engine's loop). */
+void emb_exc_count(emb_exc_counts *x, int code)
+{
+    int i;
+
+    for (i = 0; i < EMB_EXC_SLOTS; i++) {
+        if (x->n[i] == 0) {
+            x->code[i] = (uint8_t)code;
+            x->n[i] = 1;
+            return;
+        }
+        if (x->code[i] == (uint8_t)code) {
+            x->n[i]++;
+            return;
+        }
+    }
+    x->other++;
 }
 
 /* Count a failed request once, for the device and for the line. */
@@ -67,8 +87,8 @@ void emb_fault_count(emb_engine *e, emb_device *d, int kind, int code)
         lc->responses++;
         break;
     case EMB_K_EXCEPTION:
-        d->c.exceptions[code]++;
-        lc->exceptions[code]++;
+        emb_exc_count(&d->c.exceptions, code);
+        emb_exc_count(&lc->exceptions, code);
         lc->responses++;
         break;
     default:

@@ -20,6 +20,7 @@
 #define EMB_FAULT_RETRY (-2)
 
 int emb_fault_kind(int err, int *code);
+void emb_exc_count(emb_exc_counts *x, int code);
 /* the policy as pure steps, for an engine that does the I/O itself (csrc/emb_loop.c):
  * sent, the I/O, took; then answered, or count, clean_of + the cleaning + cleaned,
  * failed (the blocking emb_fault_read composes them) */

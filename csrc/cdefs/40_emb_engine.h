@@ -10,13 +10,19 @@
 #define EMB_EV_REPORTS ...
 #define EMB_EV_SPLIT ...
 #define EMB_FAIL_RSP ...
-#define EMB_N_EXC ...
+#define EMB_EXC_SLOTS ...
 #define EMB_FAIL_NONE ...
 #define EMB_FAIL_OWN ...
 #define EMB_FAIL_SILENT ...
 #define EMB_ST_BACK ...
 #define EMB_ST_OFFLINE ...
 #define EMB_ST_AGAIN ...
+
+typedef struct emb_exc_counts {
+    uint64_t n[...];
+    uint8_t code[...];
+    uint64_t other;
+} emb_exc_counts;
 
 typedef struct emb_eblock {
     emb_plan *plan;
@@ -61,7 +67,7 @@ typedef struct emb_dev_counters {
     uint64_t protocol_errors;
     uint64_t failed_cycles;
     uint64_t skipped_blocks;
-    uint64_t exceptions[...];
+    emb_exc_counts exceptions;
     uint64_t reports;
 } emb_dev_counters;
 
@@ -74,7 +80,7 @@ typedef struct emb_line_counters {
     uint64_t timeouts;
     uint64_t crc_errors;
     uint64_t protocol_errors;
-    uint64_t exceptions[...];
+    emb_exc_counts exceptions;
     uint64_t reports;
 } emb_line_counters;
 
@@ -165,4 +171,5 @@ long emb_decode_range(emb_plan *p, const uint32_t *span, const void *data, uint3
 #define EMB_K_EXCEPTION ...
 #define EMB_K_LINK ...
 int emb_fault_kind(int err, int *code);
+void emb_exc_count(emb_exc_counts *x, int code);
 void emb_fault_end_pass(emb_device *d, int64_t now_ns);

@@ -42,6 +42,7 @@ class NativeCounts(NamedTuple):
     crc_errors: int = 0
     protocol_errors: int = 0
     exceptions: tuple[tuple[int, int], ...] = ()  # (code, count)
+    exceptions_other: int = 0  # codes past the engine's EMB_EXC_SLOTS distinct ones
     retries: int = 0  # devices
     failed_cycles: int = 0
     skipped_blocks: int = 0
@@ -81,6 +82,9 @@ class RequestStats:
             "crcErrors": self.crc_errors + native.crc_errors,
             "protocolErrors": self.protocol_errors + native.protocol_errors,
             "exceptions": exceptions,
+            # exception responses whose code the engine could not count apart: it keeps
+            # the first 8 distinct codes (csrc/emb_edev.h emb_exc_counts)
+            "exceptionsOther": native.exceptions_other,
             "reports": self.reports + native.reports,
         }
 

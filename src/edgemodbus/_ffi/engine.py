@@ -378,7 +378,8 @@ class EngineDevice:
             total_cycle_time=c.total_cycle_ns / 1e9, max_cycle_time=c.max_cycle_ns / 1e9,
             cycle_hist=tuple(c.hist[0:_N_HIST]), timeouts=c.timeouts,
             crc_errors=c.crc_errors, protocol_errors=c.protocol_errors,
-            exceptions=exception_counts(c.exceptions), retries=c.retries,
+            exceptions=exception_counts(c.exceptions),
+            exceptions_other=c.exceptions.other, retries=c.retries,
             failed_cycles=c.failed_cycles, skipped_blocks=c.skipped_blocks,
             reports=c.reports,
         )

@@ -3,7 +3,7 @@ failure, the status changes, the counters of a line; and how it cleans the line.
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 from ..stats import NativeCounts
 from .native import ffi, lib
@@ -43,10 +43,11 @@ class Failure(NamedTuple):
     header: int
 
 
-def exception_counts(counts: object) -> tuple[tuple[int, int], ...]:
-    """(code, count) of the exception codes counted."""
-    values = ffi.unpack(counts, lib.EMB_N_EXC)
-    return tuple((code, n) for code, n in enumerate(values) if n)
+def exception_counts(counts: Any) -> tuple[tuple[int, int], ...]:
+    """(code, count) of the exception codes counted apart (an ``emb_exc_counts``), in
+    order of code."""
+    return tuple(sorted((counts.code[i], counts.n[i]) for i in range(lib.EMB_EXC_SLOTS)
+                        if counts.n[i]))
 
 
 class LineCounters:
@@ -63,4 +64,5 @@ class LineCounters:
                             rtt_total=lc.rtt_ns / 1e9, discarded_bytes=lc.discarded,
                             heartbeats=lc.heartbeats, timeouts=lc.timeouts,
                             crc_errors=lc.crc_errors, protocol_errors=lc.protocol_errors,
-                            exceptions=exception_counts(lc.exceptions), reports=lc.reports)
+                            exceptions=exception_counts(lc.exceptions),
+                            exceptions_other=lc.exceptions.other, reports=lc.reports)
