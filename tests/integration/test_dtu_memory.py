@@ -13,19 +13,27 @@ import pytest
 from edgemodbus.config import effective_parameters
 from edgemodbus.config.device import DeviceOrganizationParameter
 from edgemodbus.line.loop import LoopLine
+from edgemodbus.sim import Simulator
 from edgemodbus.stats import DeviceStats, LineStats
-from tests.integration.test_dtu import dtu_device, free_port, running
+from tests.integration.test_dtu import dtu_device, free_port, ok, running
+from tests.waiting import wait_for
 
 N = 200
 TAGS = 20  # the bench's device (bench/test_bench_dtu_5000.py): 1 slave x 20 UInt16 tags
 # Python bytes per started DTU driver, none dialled in (tracemalloc, every thread, here:
 # reconnectInterval 300 ms, so the items' "not connected" reasons are written): 21.2-21.4 kB
 # before the per-line objects took slots and the parameters stopped being copied, 14.1 kB
-# after (docs/scale.md "Memory per DTU").
-MAX_BYTES_PER_DTU = 16_000
+# after (docs/scale.md "Memory per DTU"); 13.7 kB with the engine's exception counters
+# in 80 bytes (csrc/emb_edev.h emb_exc_counts).
+MAX_BYTES_PER_DTU = 15_000
+DIALLED = 20
+# What dialling in adds per plain DTU in the binding's allocations (src/edgemodbus/_ffi:
+# the context, its link and stream buffers, the decoder's state): 1.66 kB, where every
+# stream link's 4 kB report ring alone put it above 5.7 kB before.
+MAX_FFI_BYTES_PER_DIALLED_DTU = 2_500
 
 
-def test_a_started_loop_dtu_driver_costs_at_most_16_kB_of_python_objects(
+def test_a_started_loop_dtu_driver_costs_at_most_15_kB_of_python_objects(
         caplog: pytest.LogCaptureFixture) -> None:
     caplog.set_level(logging.CRITICAL, logger="edgemodbus")  # kept log records are not ours
     port = free_port()
@@ -42,6 +50,36 @@ def test_a_started_loop_dtu_driver_costs_at_most_16_kB_of_python_objects(
     finally:
         tracemalloc.stop()
     assert per_dtu <= MAX_BYTES_PER_DTU, f"{per_dtu:.0f} B per DTU"
+
+
+def test_a_dialled_in_plain_dtu_allocates_little_in_the_binding(
+        caplog: pytest.LogCaptureFixture) -> None:
+    """A plain DTU stream gets its 512 B receive buffer and no report ring; the engine's
+    exception counters are 80 B, not 2 kB, per device and per line.  Counted from the
+    allocation sites in src/edgemodbus/_ffi (cffi's buffers are traced where made), so
+    the simulator's own objects stay out of it."""
+    caplog.set_level(logging.CRITICAL, logger="edgemodbus")
+    port = free_port()
+    cfgs = [dtu_device(port, f"D{k:04d}", 1, addresses=tuple(range(TAGS)), readCycle=5000,
+                       engine="loop") for k in range(DIALLED)]
+    ffi_only = [tracemalloc.Filter(True, "*/edgemodbus/_ffi/*")]
+    gc.collect()
+    tracemalloc.start()
+    try:
+        with Simulator(slaves=[1]) as sim, running(*cfgs):
+            gc.collect()
+            before = tracemalloc.take_snapshot().filter_traces(ffi_only)
+            for cfg in cfgs:
+                sim.dial("127.0.0.1", port, registration=cfg.communication.dtu_id.encode())
+            for cfg in cfgs:
+                wait_for(ok(cfg), what=f"{cfg.organization.device_code} Ok")
+            gc.collect()
+            after = tracemalloc.take_snapshot().filter_traces(ffi_only)
+    finally:
+        tracemalloc.stop()
+    grown = sum(d.size_diff for d in after.compare_to(before, "filename"))
+    per_dtu = grown / DIALLED
+    assert per_dtu <= MAX_FFI_BYTES_PER_DIALLED_DTU, f"{per_dtu:.0f} B per dialled DTU"
 
 
 def test_per_line_objects_have_no_instance_dict() -> None:
