@@ -55,7 +55,9 @@ void emb_exc_count(emb_exc_counts *x, int code)
     for (i = 0; i < EMB_EXC_SLOTS; i++) {
         if (x->n[i] == 0) {
             x->code[i] = (uint8_t)code;
-            x->n[i] = 1;
+            /* the code before its count: Python reads the slots live from another
+             * thread (stats()), and a count of 0 marks a free slot */
+            __atomic_store_n(&x->n[i], 1, __ATOMIC_RELEASE);
             return;
         }
         if (x->code[i] == (uint8_t)code) {
