@@ -187,3 +187,41 @@ def test_change_mode_reports_exactly_the_changed_results(
             k = report[0]
             assert equal_reports(report, fresh[k]), (report, fresh[k])
             last[k] = report
+
+
+@settings(max_examples=400, deadline=None)
+@given(scenario=scenarios())
+def test_finish_every_gives_the_values_of_a_report_of_every_item(
+    scenario: tuple[Items, int, Steps],
+) -> None:
+    """BlockDecoder.finish_every (the poller's store by slices) against finish() of a
+    second decoder fed the same blocks: it returns the values exactly when finish()
+    would report every item, all good (String texts already reported left out by
+    finish), those values in item order; otherwise None, leaving the tracking as
+    finish() then leaves it."""
+    items, count, steps = scenario
+    fast = BlockDecoder(HR, count, items)
+    reference = BlockDecoder(HR, count, items)
+    for mode, registers in steps:
+        block = Block.from_values(registers, bits=False)
+        if mode == "reset":
+            fast.reset()
+            reference.reset()
+        if mode == "cycle":
+            fast.decode(block, report_all=True)
+            reference.decode(block, report_all=True)
+            continue
+        want = reference.decode(block)
+        plan, plan_mode = fast.begin(False)
+        n = plan.decode(block, plan_mode)
+        values = fast.finish_every(n)
+        every = len(want) == len(items) and all(e is None for _, _, e in want)
+        if values is None:
+            assert not every, (registers, want)
+            got = fast.finish(n, False)
+            assert len(got) == len(want)
+            assert all(equal_reports(a, b) for a, b in zip(got, want, strict=True))
+        else:
+            assert every, (registers, want, values)
+            assert len(values) == len(items)
+            assert all(same(v, w[1]) for v, w in zip(values, want, strict=True))
