@@ -170,11 +170,12 @@ def store_changes(store: ItemStore[ItemState], slot: Slot, decoder: BlockDecoder
     recheck) whose decode returned ``n``, stamped ``now``; the items set are appended
     to ``reported``.  A read that changed every item, all good, is stored by slices
     when the items' indices run on (Slot.first): no tuple per item."""
-    values = decoder.finish_every(n) if slot.first >= 0 else None
+    whole = slot.whole  # the decoder's items, in its order
+    values = decoder.finish_every(n) if n == len(whole) and slot.first >= 0 else None
     if values is not None:
-        store.apply_run(slot.first, values, now, slot.whole, reported)
+        store.apply_run(slot.first, values, now, whole, reported)
     else:
-        store.apply(slot.whole, decoder.finish(n, False), now, reported)
+        store.apply(whole, decoder.finish(n, False), now, reported)
 
 
 def set_state(store: ItemStore[ItemState], state: ItemState, value: Any, error: str | None,
