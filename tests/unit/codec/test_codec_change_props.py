@@ -225,3 +225,30 @@ def test_finish_every_gives_the_values_of_a_report_of_every_item(
             assert every, (registers, want, values)
             assert len(values) == len(items)
             assert all(same(v, w[1]) for v, w in zip(values, want, strict=True))
+
+
+@settings(max_examples=400, deadline=None)
+@given(specs=st.lists(SPECS, min_size=1, max_size=12), data=st.data())
+def test_the_values_list_is_each_items_value(specs: list[ValueSpec],
+                                             data: st.DataObject) -> None:
+    """CodecPlan.values() (the special items of one group and post step converted a run
+    at a time when no item failed, _ffi/codec.py CodecLayout._group_special) against
+    value(k) item by item (each special item's own tuple), for interleaved item types."""
+    items: Items = []
+    offset = 0
+    for k, spec in enumerate(specs):
+        items.append((offset, ValueSpec(f"i{k}", spec.data_type, spec.data_format,
+                                        spec.quantity, spec.bit, spec.multiplier,
+                                        spec.converted_type, spec.deadband, spec.encoding)))
+        offset += spec.registers
+    registers = data.draw(st.lists(REGISTER, min_size=offset, max_size=offset))
+    decoder = BlockDecoder(HR, offset, items)
+    plan, mode = decoder.begin(False)
+    plan.decode(Block.from_values(registers, bits=False), mode)
+    values = plan.values()
+    assert len(values) == len(items)
+    for k, value in enumerate(values):
+        if plan.status(k):
+            assert value is None
+        else:
+            assert same(value, plan.value(k)), (k, value, plan.value(k))
