@@ -257,3 +257,16 @@ def test_the_values_list_is_each_items_value(specs: list[ValueSpec],
             assert alone[2] is None
             assert same(value, alone[1]), (k, value, alone)
             assert same(plan.value(k), alone[1]), (k, plan.value(k), alone)
+
+
+def test_finish_every_leaves_a_text_already_reported_to_finish() -> None:
+    """Other bytes, the same text (undecodable bytes read as U+FFFD): C reports the item,
+    finish() leaves it out, so finish_every must give way (None), not report it."""
+    items = [(0, ValueSpec("s", T.STRING, quantity=1, encoding="utf-8"))]
+    decoder = BlockDecoder(HR, 1, items)
+    for registers, want in (([0xFF41], ["\ufffdA"]), ([0xFE41], None)):
+        plan, mode = decoder.begin(False)
+        n = plan.decode(Block.from_values(registers, bits=False), mode)
+        assert n == 1  # C compares bytes: both reads changed
+        assert decoder.finish_every(n) == want
+    assert decoder.finish(1, False) == []  # the text was reported already
