@@ -117,7 +117,7 @@ class CodecLayout:
 
     __slots__ = ("__weakref__", "_citems", "_scales", "_sources", "bits", "factors",
                  "getter", "group", "n_bytes", "n_items", "runs", "sizes", "slot",
-                 "special")
+                 "special", "special_rest", "special_runs")
 
     def __init__(
         self,
@@ -178,6 +178,7 @@ class CodecLayout:
             else:
                 place.append((4, len(special)))
                 special.append((k, g, slots[k], post, aux))
+        special, place = self._group_special(special, place)
         self.group = bytes(src for src, _ in place)
         self.slot = array("H" if n <= 0xFFFF else "I", [idx for _, idx in place])
         self.special = special  # a tuple each: values() iterates them on every decode
@@ -197,6 +198,32 @@ class CodecLayout:
             self.getter = operator.itemgetter(*[base[src] + idx for src, idx in place])
         else:
             self.runs = [(src, a, b, a == 0 and b == lengths[src]) for src, a, b in runs]
+
+    def _group_special(
+        self, special: list[tuple[int, int, int, Callable[[Any], object] | None, int]],
+        place: list[tuple[int, int]],
+    ) -> tuple[list[tuple[int, int, int, Callable[[Any], object] | None, int]],
+               list[tuple[int, int]]]:
+        """Order the special items so that those of one group and one post step (no
+        bytes) come together, first: ``special_runs`` holds each such run (group, post
+        step, the slots in the group), which values() converts with two maps when no item
+        failed, not a loop step per item (the Float items' Float32, mostly); the bytes
+        items follow (``special_rest``).  ``place`` renumbered to the new order."""
+        runs: dict[tuple[int, int], tuple[Callable[[Any], object] | None, list[int]]] = {}
+        rest: list[int] = []
+        for j, (_, g, _, post, aux) in enumerate(special):
+            if aux < 0:
+                runs.setdefault((g, id(post)), (post, []))[1].append(j)
+            else:
+                rest.append(j)
+        order = [j for _, js in runs.values() for j in js] + rest
+        new_of = {old: new for new, old in enumerate(order)}
+        self.special_runs = [
+            ((g, post, array("H", [special[j][2] for j in js])))
+            for (g, _), (post, js) in runs.items()]
+        ordered = [special[j] for j in order]
+        self.special_rest = ordered[len(order) - len(rest):]
+        return ordered, [(4, new_of[idx]) if src == 4 else (src, idx) for src, idx in place]
 
     def _lay_out(self, scales: Sequence[CodecScale | None],
                  sources: Sequence[tuple[int, int]]) -> None:
@@ -371,7 +398,13 @@ class CodecPlan:
         if self._special:
             status = self.status_view
             buf = self._bytes_view
-            for k, g, slot, post, aux in self._special:
+            special = self._special
+            if not self._plan.n_errors:  # every item good: a run of special items at once
+                for g, post, slots in self.layout.special_runs:
+                    got = map(lists[g].__getitem__, slots)
+                    extra += got if post is None else map(post, got)
+                special = self.layout.special_rest
+            for k, g, slot, post, aux in special:
                 if status[k]:
                     extra.append(None)
                     continue
