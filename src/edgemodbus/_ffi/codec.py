@@ -116,8 +116,8 @@ class CodecLayout:
     per-device arrays and change-tracking state."""
 
     __slots__ = ("__weakref__", "_citems", "_scales", "_sources", "bits", "factors",
-                 "getter", "group", "n_bytes", "n_items", "runs", "sizes", "slot",
-                 "special", "special_rest", "special_runs")
+                 "getter", "group", "n_bytes", "n_items", "raw_bytes", "runs", "sizes",
+                 "slot", "special", "special_rest", "special_runs")
 
     def __init__(
         self,
@@ -149,6 +149,11 @@ class CodecLayout:
         self.bits = bits
         self.n_items = n
         self.n_bytes = n_bytes
+        # the data bytes the items read: the plan's raw image (csrc/emb_codec.h
+        # raw_last); none past any Modbus read (items C will refuse, or no block)
+        reach = max((it.offset + it.nregs for it in items), default=0)
+        reach = reach if bits else 2 * reach
+        self.raw_bytes = reach if reach <= _RAW_MAX else 0
         self.factors = factors
         self._citems = ffi.new("emb_item[]", max(n, 1))
         for k, it in enumerate(items):
@@ -301,7 +306,8 @@ class CodecPlan:
         ni, nu, nf, nb = self._sizes = layout.sizes
         counts = {"i64": ni, "u64": nu, "f64": nf, "last": n, "errval": n, "errs": n,
                   "changed": n, "bool": nb, "status": n, "last_status": n,
-                  "bytes": layout.n_bytes, "last_bytes": layout.n_bytes}
+                  "bytes": layout.n_bytes, "last_bytes": layout.n_bytes,
+                  "raw": layout.raw_bytes}
         at, size = _regions(counts)
         # one zeroed allocation, 8-byte aligned: the emb_plan first, then its arrays
         mem = ffi.new("uint64_t[]", size // 8)
@@ -318,6 +324,8 @@ class CodecPlan:
         plan.errs, plan.changed = ptr["errs"], ptr["changed"]
         plan.last, plan.last_status = ptr["last"], ptr["last_status"]
         plan.last_bytes = ptr["last_bytes"]
+        if layout.raw_bytes:
+            plan.raw_last, plan.raw_cap = ptr["raw"], layout.raw_bytes
         bad = lib.emb_plan_check(plan)
         if bad:
             where = f"item {bad - 1}" if bad > 0 else "the plan"
@@ -452,7 +460,7 @@ _REGIONS: dict[str, tuple[str, int]] = {
     "last": ("uint64_t", 8), "errval": ("emb_errval", ffi.sizeof("emb_errval")),
     "errs": ("uint32_t", 4), "changed": ("uint32_t", 4), "bool": ("_Bool", 1),
     "status": ("uint8_t", 1), "last_status": ("uint8_t", 1), "bytes": ("uint8_t", 1),
-    "last_bytes": ("uint8_t", 1),
+    "last_bytes": ("uint8_t", 1), "raw": ("uint8_t", 1),
 }
 
 
@@ -468,6 +476,10 @@ def _regions(counts: Mapping[str, int]) -> tuple[dict[str, int], int]:
         end += max(counts[name], 1) * size
     return at, -(-end // 8) * 8
 
+
+# The largest raw image a plan keeps, in bytes: above the largest read's data (2000 bits
+# as a byte each, 125 registers: Modbus Application Protocol v1.1b3, 6.1-6.4).
+_RAW_MAX = 4096
 
 _EMPTY_VIEWS = {code: memoryview(b"").cast(code) for code in "qQ?B"}
 
