@@ -513,8 +513,12 @@ long emb_decode(emb_plan *p, const void *data, uint32_t count, int mode)
      * decodes as it did then, and that decode left it either reported (its state now
      * this value) or within its deadband of the state: it is not reported, its outputs
      * and status stay what they are.  The same bytes in all: nothing to do. */
-    if (was && (n_raw == 0 || memcmp(data, was, n_raw) == 0))
+    if (was && (n_raw == 0 || memcmp(data, was, n_raw) == 0)) {
+        p->raw_reported = 0;
         return 0;
+    }
+    if (was && 2 * (uint64_t)p->raw_reported > p->n_items)
+        was = NULL; /* most items moved last time: decode them all */
     p->raw_valid = 0;
     if (__builtin_expect(p->n_sf_src != 0, 0) && mode != EMB_MODE_VALUES)
         store_factors(p, regs, count);
@@ -602,6 +606,7 @@ long emb_decode(emb_plan *p, const void *data, uint32_t count, int mode)
             memcpy(p->raw_last, data, n_raw);
         p->raw_count = count;
         p->raw_valid = 1;
+        p->raw_reported = n_chg;
     }
     return mode == EMB_MODE_VALUES ? (long)n_err : (long)n_chg;
 }

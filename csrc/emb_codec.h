@@ -214,6 +214,9 @@ typedef struct emb_plan {
     uint32_t raw_cap;
     uint32_t raw_count;
     uint32_t raw_valid;
+    uint32_t raw_reported; /* items the last TRACK decode reported: when more than half
+                            * were, the next one decodes every item without comparing
+                            * (every value moving: the compare would only cost) */
 } emb_plan;
 
 /* 0 if every item fits the plan's arrays and is coherent; else 1 + the first bad item's

@@ -138,6 +138,7 @@ typedef struct emb_plan {
     uint32_t raw_cap;
     uint32_t raw_count;
     uint32_t raw_valid;
+    uint32_t raw_reported;
 } emb_plan;
 
 long emb_plan_check(const emb_plan *plan);
