@@ -474,11 +474,52 @@ static inline uint64_t err_key(int st, const emb_errval *ev)
             || st == EMB_E_SF_RANGE) ? ev->bits : 0;
 }
 
+/* Whether n bytes at a and b are equal: inline, 8 bytes at a time (an item is 1 to 8
+ * bytes but for BYTES; a libc memcmp call per item cost more than the compare). */
+static inline bool same_bytes(const uint8_t *a, const uint8_t *b, uint32_t n)
+{
+    uint64_t x, y;
+
+    for (; n >= 8; a += 8, b += 8, n -= 8) {
+        memcpy(&x, a, 8);
+        memcpy(&y, b, 8);
+        if (x != y)
+            return false;
+    }
+    for (; n > 0; n--)
+        if (*a++ != *b++)
+            return false;
+    return true;
+}
+
+/* The bytes of a decode's data (count registers or bits) that the raw image keeps. */
+static uint32_t raw_bytes(const emb_plan *p, uint32_t count)
+{
+    uint64_t n = p->bits ? count : 2u * (uint64_t)count;
+    return n < p->raw_cap ? (uint32_t)n : p->raw_cap;
+}
+
 long emb_decode(emb_plan *p, const void *data, uint32_t count, int mode)
 {
     const uint16_t *regs = data;
     uint32_t n_err = 0, n_chg = 0;
+    /* the raw image (emb_codec.h): TRACK only, no factor table (a factor another block
+     * read moves a value whose own registers did not) */
+    int image = p->raw_last != NULL && mode == EMB_MODE_TRACK && p->n_sf == 0;
+    uint32_t n_raw = image ? raw_bytes(p, count) : 0, unit = p->bits ? 1u : 2u;
+    const uint8_t *was = image && p->raw_valid && count == p->raw_count ? p->raw_last : NULL;
 
+    /* An item whose bytes are those of the last decode (a TRACK one, of the same count)
+     * decodes as it did then, and that decode left it either reported (its state now
+     * this value) or within its deadband of the state: it is not reported, its outputs
+     * and status stay what they are.  The same bytes in all: nothing to do. */
+    if (was && (n_raw == 0 || memcmp(data, was, n_raw) == 0)) {
+        p->raw_reported = 0;
+        return 0;
+    }
+    if (was && 2 * (uint64_t)p->raw_reported > p->n_items)
+        was = NULL; /* most items moved last time: decode them all */
+    p->raw_valid = 0;
     if (__builtin_expect(p->n_sf_src != 0, 0) && mode != EMB_MODE_VALUES)
         store_factors(p, regs, count);
 
@@ -486,6 +527,14 @@ long emb_decode(emb_plan *p, const void *data, uint32_t count, int mode)
         const emb_item *it = &p->items[i];
         uint64_t now = 0;
         int st;
+
+        if (was && ((uint64_t)it->offset + it->nregs > count ||
+                    same_bytes((const uint8_t *)data + unit * it->offset,
+                               was + unit * it->offset, unit * it->nregs))) {
+            if (p->status[i] != EMB_E_OK) /* missing then too, or the same failure */
+                p->errs[n_err++] = i;
+            continue;
+        }
         /* nregs is the wire width for fixed-size items (emb_plan_check enforces it) */
         if ((uint64_t)it->offset + it->nregs > count) {
             st = EMB_E_MISSING;
@@ -552,11 +601,19 @@ long emb_decode(emb_plan *p, const void *data, uint32_t count, int mode)
         }
     }
     p->n_errors = n_err;
+    if (image) {
+        if (n_raw)
+            memcpy(p->raw_last, data, n_raw);
+        p->raw_count = count;
+        p->raw_valid = 1;
+        p->raw_reported = n_chg;
+    }
     return mode == EMB_MODE_VALUES ? (long)n_err : (long)n_chg;
 }
 
 void emb_reset(emb_plan *p)
 {
+    p->raw_valid = 0;
     if (p->n_items) /* memset(NULL, .., 0) is undefined: an empty plan may have no array */
         memset(p->last_status, EMB_E_UNREPORTED, p->n_items);
 }
@@ -608,6 +665,8 @@ long emb_plan_check(const emb_plan *p)
             ok = isfinite(it->scale) && it->scale != 0.0;
         if (ok && (it->flags & EMB_F_EXT))
             ok = (it->flags & (EMB_F_MULTIPLY | EMB_F_DIVIDE)) && scale_fits(p, it);
+        if (ok && p->raw_last) /* the raw image holds every byte the item reads */
+            ok = ((uint64_t)it->offset + it->nregs) * (p->bits ? 1u : 2u) <= p->raw_cap;
         if (!ok)
             return (long)i + 1;
     }

@@ -202,13 +202,29 @@ typedef struct emb_plan {
                                * plans (a block read later in the pass, or in an earlier
                                * pass, sees what this one stored); EMB_SF_UNKNOWN unread */
     uint32_t n_sf;
+    /* the raw image (optional: NULL, no skip): the data bytes the items read (raw_cap:
+     * their reach, 2 bytes a register, 1 a bit) of the last decode, kept by a TRACK
+     * decode; raw_valid: it is the data of the last decode, a TRACK one, and the state
+     * is what that decode left.  A TRACK decode of the same count and the same bytes
+     * would report nothing and leave every output as it is, so emb_decode skips it (a
+     * block none of whose registers moved costs one memcmp, not a decode per item);
+     * never for a plan whose items are scaled by a factor (another block's read may
+     * have moved the factor) */
+    uint8_t *raw_last;
+    uint32_t raw_cap;
+    uint32_t raw_count;
+    uint32_t raw_valid;
+    uint32_t raw_reported; /* items the last TRACK decode reported: when more than half
+                            * were, the next one decodes every item without comparing
+                            * (every value moving: the compare would only cost) */
 } emb_plan;
 
 /* 0 if every item fits the plan's arrays and is coherent; else 1 + the first bad item's
  * index (or -1 when the plan itself is unusable).  Call once per plan, not per decode. */
 long emb_plan_check(const emb_plan *plan);
 
-/* Decode `count` registers (or bits) at `data` for every item of a checked plan.
+/* Decode `count` registers (or bits) at `data` for every item of a checked plan (a
+ * TRACK decode of the raw image's data returns 0 at once: see emb_plan.raw_last).
  * Returns the number of items listed in plan->changed (TRACK: the reported ones, whose
  * status changed, whose value moved past the deadband (any NaN equals any NaN; 64-bit
  * integers compare exactly), or which still fail but for another offending value, so

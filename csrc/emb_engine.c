@@ -387,13 +387,17 @@ int emb_engine_run(emb_engine *e, int64_t until_ns)
             continue; /* woken early: nothing due yet */
         while (d->index < d->n_pass) {
             ev = -1;
-            if (e->ready_ns > emb_now_ns())
+            now = emb_now_ns(); /* one clock read per block for both checks, unless
+                                 * it slept for the pacing */
+            if (e->ready_ns > now) {
                 ev = emb_sleep(e, e->ready_ns, 0);
-            else if (!e->owed && emb_woken(e))
+                now = emb_now_ns();
+            } else if (!e->owed && emb_woken(e)) {
                 ev = EMB_EV_WAKE;
-            else if (e->lk->trace && e->lk->trace->used > EMB_TRACE_SIZE / 2)
+            } else if (e->lk->trace && e->lk->trace->used > EMB_TRACE_SIZE / 2) {
                 ev = EMB_EV_TRACE; /* a long pass: Python logs what the ring holds */
-            if (ev < 0 && emb_now_ns() >= until_ns)
+            }
+            if (ev < 0 && now >= until_ns)
                 ev = EMB_EV_DEADLINE; /* no request at or after until_ns (a pair's lease
                                        * ends there: line/worker.py); the pass goes on
                                        * at the next run */

@@ -123,6 +123,8 @@ long emb_decode_range(emb_plan *p, const uint32_t *span, const void *data, uint3
     v.errs = &failed;
     v.sf_src = NULL; /* scale factors: rep_ok excludes their plans */
     v.n_sf_src = 0;
+    v.raw_last = NULL; /* one item: no raw image; the block's no longer says its state */
+    p->raw_valid = 0;
     *found = 0;
     for (i = 0; i < p->n_items; i++) {
         if (span[2 * i] < lo || (uint64_t)span[2 * i] + span[2 * i + 1] > hi)

@@ -134,6 +134,11 @@ typedef struct emb_plan {
     uint32_t n_sf_src;
     int32_t *sf;
     uint32_t n_sf;
+    uint8_t *raw_last;
+    uint32_t raw_cap;
+    uint32_t raw_count;
+    uint32_t raw_valid;
+    uint32_t raw_reported;
 } emb_plan;
 
 long emb_plan_check(const emb_plan *plan);

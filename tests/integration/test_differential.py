@@ -465,6 +465,10 @@ RATES = st.one_of(st.none(), st.integers(10, 60))  # an item's own scan rate, so
 def address_lists(draw: st.DrawFn, first: int = 0, rated: bool = False) -> list[Spec]:
     count = draw(st.integers(1, 24))
     specs = [draw(item_specs(f"i{first + k}")) for k in range(count)]
+    if draw(st.booleans()):  # in address order: a block's items are stored side by side,
+        # so a read that changes them all takes the store's slices (poll/items.py
+        # store_changes); in the drawn order they mostly are not
+        specs.sort(key=lambda s: (s.area, s.offset, s.bit or 0))
     return [replace(s, rate=draw(RATES)) for s in specs] if rated else specs
 
 

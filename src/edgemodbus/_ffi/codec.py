@@ -116,8 +116,8 @@ class CodecLayout:
     per-device arrays and change-tracking state."""
 
     __slots__ = ("__weakref__", "_citems", "_scales", "_sources", "bits", "factors",
-                 "getter", "group", "n_bytes", "n_items", "runs", "sizes", "slot",
-                 "special")
+                 "getter", "group", "n_bytes", "n_items", "raw_bytes", "runs", "sizes",
+                 "slot", "special", "special_rest", "special_runs")
 
     def __init__(
         self,
@@ -149,6 +149,11 @@ class CodecLayout:
         self.bits = bits
         self.n_items = n
         self.n_bytes = n_bytes
+        # the data bytes the items read: the plan's raw image (csrc/emb_codec.h
+        # raw_last); none past any Modbus read (items C will refuse, or no block)
+        reach = max((it.offset + it.nregs for it in items), default=0)
+        reach = reach if bits else 2 * reach
+        self.raw_bytes = reach if reach <= _RAW_MAX else 0
         self.factors = factors
         self._citems = ffi.new("emb_item[]", max(n, 1))
         for k, it in enumerate(items):
@@ -178,6 +183,7 @@ class CodecLayout:
             else:
                 place.append((4, len(special)))
                 special.append((k, g, slots[k], post, aux))
+        special, place = self._group_special(special, place)
         self.group = bytes(src for src, _ in place)
         self.slot = array("H" if n <= 0xFFFF else "I", [idx for _, idx in place])
         self.special = special  # a tuple each: values() iterates them on every decode
@@ -197,6 +203,32 @@ class CodecLayout:
             self.getter = operator.itemgetter(*[base[src] + idx for src, idx in place])
         else:
             self.runs = [(src, a, b, a == 0 and b == lengths[src]) for src, a, b in runs]
+
+    def _group_special(
+        self, special: list[tuple[int, int, int, Callable[[Any], object] | None, int]],
+        place: list[tuple[int, int]],
+    ) -> tuple[list[tuple[int, int, int, Callable[[Any], object] | None, int]],
+               list[tuple[int, int]]]:
+        """Order the special items so that those of one group and one post step (no
+        bytes) come together, first: ``special_runs`` holds each such run (group, post
+        step, the slots in the group), which values() converts with two maps when no item
+        failed, not a loop step per item (the Float items' Float32, mostly); the bytes
+        items follow (``special_rest``).  ``place`` renumbered to the new order."""
+        runs: dict[tuple[int, int], tuple[Callable[[Any], object] | None, list[int]]] = {}
+        rest: list[int] = []
+        for j, (_, g, _, post, aux) in enumerate(special):
+            if aux < 0:
+                runs.setdefault((g, id(post)), (post, []))[1].append(j)
+            else:
+                rest.append(j)
+        order = [j for _, js in runs.values() for j in js] + rest
+        new_of = {old: new for new, old in enumerate(order)}
+        self.special_runs = [
+            ((g, post, array("H", [special[j][2] for j in js])))
+            for (g, _), (post, js) in runs.items()]
+        ordered = [special[j] for j in order]
+        self.special_rest = ordered[len(order) - len(rest):]
+        return ordered, [(4, new_of[idx]) if src == 4 else (src, idx) for src, idx in place]
 
     def _lay_out(self, scales: Sequence[CodecScale | None],
                  sources: Sequence[tuple[int, int]]) -> None:
@@ -274,7 +306,8 @@ class CodecPlan:
         ni, nu, nf, nb = self._sizes = layout.sizes
         counts = {"i64": ni, "u64": nu, "f64": nf, "last": n, "errval": n, "errs": n,
                   "changed": n, "bool": nb, "status": n, "last_status": n,
-                  "bytes": layout.n_bytes, "last_bytes": layout.n_bytes}
+                  "bytes": layout.n_bytes, "last_bytes": layout.n_bytes,
+                  "raw": layout.raw_bytes}
         at, size = _regions(counts)
         # one zeroed allocation, 8-byte aligned: the emb_plan first, then its arrays
         mem = ffi.new("uint64_t[]", size // 8)
@@ -291,6 +324,8 @@ class CodecPlan:
         plan.errs, plan.changed = ptr["errs"], ptr["changed"]
         plan.last, plan.last_status = ptr["last"], ptr["last_status"]
         plan.last_bytes = ptr["last_bytes"]
+        if layout.raw_bytes:
+            plan.raw_last, plan.raw_cap = ptr["raw"], layout.raw_bytes
         bad = lib.emb_plan_check(plan)
         if bad:
             where = f"item {bad - 1}" if bad > 0 else "the plan"
@@ -371,7 +406,13 @@ class CodecPlan:
         if self._special:
             status = self.status_view
             buf = self._bytes_view
-            for k, g, slot, post, aux in self._special:
+            special = self._special
+            if not self._plan.n_errors:  # every item good: a run of special items at once
+                for g, post, slots in self.layout.special_runs:
+                    got = map(lists[g].__getitem__, slots)
+                    extra += got if post is None else map(post, got)
+                special = self.layout.special_rest
+            for k, g, slot, post, aux in special:
                 if status[k]:
                     extra.append(None)
                     continue
@@ -419,7 +460,7 @@ _REGIONS: dict[str, tuple[str, int]] = {
     "last": ("uint64_t", 8), "errval": ("emb_errval", ffi.sizeof("emb_errval")),
     "errs": ("uint32_t", 4), "changed": ("uint32_t", 4), "bool": ("_Bool", 1),
     "status": ("uint8_t", 1), "last_status": ("uint8_t", 1), "bytes": ("uint8_t", 1),
-    "last_bytes": ("uint8_t", 1),
+    "last_bytes": ("uint8_t", 1), "raw": ("uint8_t", 1),
 }
 
 
@@ -435,6 +476,10 @@ def _regions(counts: Mapping[str, int]) -> tuple[dict[str, int], int]:
         end += max(counts[name], 1) * size
     return at, -(-end // 8) * 8
 
+
+# The largest raw image a plan keeps, in bytes: above the largest read's data (2000 bits
+# as a byte each, 125 registers: Modbus Application Protocol v1.1b3, 6.1-6.4).
+_RAW_MAX = 4096
 
 _EMPTY_VIEWS = {code: memoryview(b"").cast(code) for code in "qQ?B"}
 

@@ -261,11 +261,39 @@ class BlockDecoder:
             ]
         return self._new_texts_only(reports) if self._texts else reports
 
+    def finish_every(self, n: int) -> list[object] | None:
+        """Every item's value, in item order, when a TRACK decode returned ``n`` and that
+        is every item, all good, each one news (a String item's text too): the same
+        reports as ``finish(n, False)`` without a tuple per item.  None otherwise, and
+        then nothing is changed: call :meth:`finish`."""
+        plan = self._plan
+        if n != plan.n_items or plan.n_errors:
+            return None
+        values = plan.values()
+        texts = self._texts
+        if texts:
+            if any(texts[k] == values[k] for k in texts):
+                return None  # a text already reported: finish() leaves it out
+            for k in texts:
+                texts[k] = values[k]
+        return values
+
     def _new_texts_only(self, reports: list[Change]) -> list[Change]:
         """``reports`` (in item order) without the String items whose text is the one
         last reported; only the String items are looked at."""
         texts = self._texts
         drop: list[int] = []
+        if len(reports) < len(texts):  # few reports (1% change): look only at those
+            for at, (k, value, error) in enumerate(reports):
+                if k not in texts:
+                    continue
+                last = texts[k]
+                texts[k] = _NO_TEXT if error is not None else value
+                if error is None and last == value:
+                    drop.append(at)
+            for at in reversed(drop):
+                del reports[at]
+            return reports
         for k in texts:
             at = bisect.bisect_left(reports, k, key=_INDEX)
             if at == len(reports) or reports[at][0] != k:

@@ -151,11 +151,32 @@ class Slot:
     # the decoder was reset because an item was set from outside it (a write, a report):
     # its next reports are filtered by what the items hold (is_news)
     recheck: bool = field(default=False, init=False)
+    # the store index of whole[0] when the whole items' indices run on from it
+    # (whole[k].index == first + k), else -1: a read that changed every item is then
+    # stored by slices (ItemStore.apply_run), not item by item
+    first: int = field(default=-1, init=False)
     period: float = field(init=False)  # the block's scan rate, in seconds
     due: float = field(default=0.0, init=False)  # monotonic time of its next read
 
     def __post_init__(self) -> None:
         self.period = self.block.rate / 1000
+        whole = self.whole
+        if whole and all(state.index == whole[0].index + k for k, state in enumerate(whole)):
+            self.first = whole[0].index
+
+
+def store_changes(store: ItemStore[ItemState], slot: Slot, decoder: BlockDecoder, n: int,
+                  now: datetime, reported: list[DeviceAddressItem]) -> None:
+    """Store the changes of the usual read of ``slot`` (change mode, no pieces, no
+    recheck) whose decode returned ``n``, stamped ``now``; the items set are appended
+    to ``reported``.  A read that changed every item, all good, is stored by slices
+    when the items' indices run on (Slot.first): no tuple per item."""
+    whole = slot.whole  # the decoder's items, in its order
+    values = decoder.finish_every(n) if n == len(whole) and slot.first >= 0 else None
+    if values is not None:
+        store.apply_run(slot.first, values, now, whole, reported)
+    else:
+        store.apply(whole, decoder.finish(n, False), now, reported)
 
 
 def set_state(store: ItemStore[ItemState], state: ItemState, value: Any, error: str | None,

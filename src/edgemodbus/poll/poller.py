@@ -32,7 +32,7 @@ from ..line import LineWorker, Link
 from ..line.link import READ_FC
 from ..stats import DeviceStats
 from .faults import reason_of, status_change
-from .items import Assembly, ItemState, Slot, is_news, owner_of, set_state
+from .items import Assembly, ItemState, Slot, is_news, owner_of, set_state, store_changes
 from .on_demand import answer, read_slots, slots_holding
 from .periodic import PeriodicReports, reports_all
 from .planner import Piece, ReadBlock, bisect_block
@@ -315,19 +315,21 @@ class Poller:
         yet (before Python acts on the device: a pass's end, a split, a job), and the
         failures the engine put on blocks (each told once)."""
         self.take_reports()
-        device = self.device
+        device, report_all, slots = self.device, self.report_all, self.slots
         order = device.pass_blocks()
         upto = device.index if device.in_pass else len(order)
-        report_all = self.report_all
-        slots = self.slots
         reported: list[DeviceAddressItem] = []
         now = datetime.now(timezone.utc)  # one time stamp for the pass's reports
         for k in order[device.taken:upto]:
             slot = slots[k]
             n = device.reported(k)  # 0 after a failure
-            if not n and (not (report_all or slot.partial or slot.recheck) or device.failed(k)):
+            plain = not (report_all or slot.partial or slot.recheck)
+            if not n and (plain or device.failed(k)):
                 continue  # the usual block: nothing changed (a failed one: below)
             decoder = slot.decoder
+            if plain and decoder is not None:  # the usual block that changed
+                store_changes(self.store, slot, decoder, n, now, reported)
+                continue
             changes = decoder.finish(n, report_all) if decoder else []
             self._apply(slot, device.data(k) if slot.partial else None, changes, now,
                         reported)

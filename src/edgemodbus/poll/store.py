@@ -20,6 +20,7 @@ from __future__ import annotations
 import threading
 from collections.abc import Mapping, Sequence
 from datetime import datetime
+from operator import attrgetter
 from typing import Any, Generic, Protocol, TypeVar
 
 from ..config import MOVING, STATUSES, DeviceAddressItem, ItemReading
@@ -36,6 +37,8 @@ class StateLike(Protocol):
 
 _CODE = {status: code for code, status in enumerate(STATUSES)}
 UNKNOWN, OK, INVALID = 0, 1, 2  # codes of STATUSES
+_ITEM = attrgetter("item")  # a state's DeviceAddressItem
+_OKS = bytes((OK,)) * 2000  # the status of a block's items all Ok (a block's most: 2000 bits)
 _new = tuple.__new__  # a NamedTuple without its Python-level __new__
 Mark = tuple[datetime | None, str | None]
 """An item's update time and error reason, one pair shared by the items set together."""
@@ -156,6 +159,24 @@ class ItemStore(Generic[S]):
                         mark = failed[error] = (now, error)
                     marks[i] = mark
                 reported.append(state.item)
+
+    def apply_run(self, first: int, values: list[Any], now: datetime, whole: Sequence[S],
+                  reported: list[DeviceAddressItem]) -> None:
+        """Store good values of the items ``first``, ``first + 1``, ... (``whole``: a
+        block read that changed every item, whose items' indices run on: Slot.first),
+        stamped ``now``; their items are appended to ``reported``.  What :meth:`apply`
+        does with ``(k, values[k], None)`` for every k, by slices (at C speed, one
+        shared mark)."""
+        end = first + len(values)
+        if first < 0 or end > len(self.values):
+            raise IndexError(f"items {first}..{end - 1} are outside the store of "
+                             f"{len(self.values)} items")
+        with self.lock:
+            self.values[first:end] = values
+            self.status[first:end] = _OKS[:len(values)] if len(values) <= len(_OKS) \
+                else bytes((OK,)) * len(values)
+            self.marks[first:end] = [(now, None)] * len(values)
+        reported.extend(map(_ITEM, whole))
 
     # -- change tests (worker) ------------------------------------------------------------
     def holds(self, index: int, value: Any) -> bool:

@@ -187,3 +187,86 @@ def test_change_mode_reports_exactly_the_changed_results(
             k = report[0]
             assert equal_reports(report, fresh[k]), (report, fresh[k])
             last[k] = report
+
+
+@settings(max_examples=400, deadline=None)
+@given(scenario=scenarios())
+def test_finish_every_gives_the_values_of_a_report_of_every_item(
+    scenario: tuple[Items, int, Steps],
+) -> None:
+    """BlockDecoder.finish_every (the poller's store by slices) against finish() of a
+    second decoder fed the same blocks: it returns the values exactly when finish()
+    would report every item, all good (String texts already reported left out by
+    finish), those values in item order; otherwise None, leaving the tracking as
+    finish() then leaves it."""
+    items, count, steps = scenario
+    fast = BlockDecoder(HR, count, items)
+    reference = BlockDecoder(HR, count, items)
+    for mode, registers in steps:
+        block = Block.from_values(registers, bits=False)
+        if mode == "reset":
+            fast.reset()
+            reference.reset()
+        if mode == "cycle":
+            fast.decode(block, report_all=True)
+            reference.decode(block, report_all=True)
+            continue
+        want = reference.decode(block)
+        plan, plan_mode = fast.begin(False)
+        n = plan.decode(block, plan_mode)
+        values = fast.finish_every(n)
+        every = len(want) == len(items) and all(e is None for _, _, e in want)
+        if values is None:
+            assert not every, (registers, want)
+            got = fast.finish(n, False)
+            assert len(got) == len(want)
+            assert all(equal_reports(a, b) for a, b in zip(got, want, strict=True))
+        else:
+            assert every, (registers, want, values)
+            assert len(values) == len(items)
+            assert all(same(v, w[1]) for v, w in zip(values, want, strict=True))
+
+
+@settings(max_examples=400, deadline=None)
+@given(specs=st.lists(SPECS, min_size=1, max_size=12), data=st.data())
+def test_the_values_list_is_each_items_value(specs: list[ValueSpec],
+                                             data: st.DataObject) -> None:
+    """CodecPlan.values() (the special items of one group and post step converted a run
+    at a time when no item failed, _ffi/codec.py CodecLayout._group_special) and
+    value(k) against a decoder of each item alone (nothing to group), for interleaved
+    item types."""
+    items: Items = []
+    offset = 0
+    for k, spec in enumerate(specs):
+        items.append((offset, ValueSpec(f"i{k}", spec.data_type, spec.data_format,
+                                        spec.quantity, spec.bit, spec.multiplier,
+                                        spec.converted_type, spec.deadband, spec.encoding)))
+        offset += spec.registers
+    registers = data.draw(st.lists(REGISTER, min_size=offset, max_size=offset))
+    decoder = BlockDecoder(HR, offset, items)
+    plan, mode = decoder.begin(False)
+    plan.decode(Block.from_values(registers, bits=False), mode)
+    values = plan.values()
+    assert len(values) == len(items)
+    block = Block.from_values(registers, bits=False)
+    for k, value in enumerate(values):
+        alone = BlockDecoder(HR, offset, [items[k]]).decode(block, report_all=True)[0]
+        if plan.status(k):
+            assert value is None and alone[2] is not None
+        else:
+            assert alone[2] is None
+            assert same(value, alone[1]), (k, value, alone)
+            assert same(plan.value(k), alone[1]), (k, plan.value(k), alone)
+
+
+def test_finish_every_leaves_a_text_already_reported_to_finish() -> None:
+    """Other bytes, the same text (undecodable bytes read as U+FFFD): C reports the item,
+    finish() leaves it out, so finish_every must give way (None), not report it."""
+    items = [(0, ValueSpec("s", T.STRING, quantity=1, encoding="utf-8"))]
+    decoder = BlockDecoder(HR, 1, items)
+    for registers, want in (([0xFF41], ["\ufffdA"]), ([0xFE41], None)):
+        plan, mode = decoder.begin(False)
+        n = plan.decode(Block.from_values(registers, bits=False), mode)
+        assert n == 1  # C compares bytes: both reads changed
+        assert decoder.finish_every(n) == want
+    assert decoder.finish(1, False) == []  # the text was reported already

@@ -73,7 +73,8 @@ def test_a_plan_in_one_allocation_decodes_as_before() -> None:
     assert [k for k, _, _ in dec.decode(Block.from_values(regs, False))] == [0, 1, 2, 3, 4, 5]
 
 
-@given(st.lists(st.integers(0, 3000), min_size=12, max_size=12))
+@given(st.lists(st.integers(0, 3000), min_size=len(codec._REGIONS),
+                max_size=len(codec._REGIONS)))
 def test_the_arrays_of_a_plan_are_aligned_apart_and_inside_it(counts: list[int]) -> None:
     sizes = dict(zip(codec._REGIONS, counts, strict=True))
     at, size = codec._regions(sizes)

@@ -206,3 +206,37 @@ def test_a_reader_never_mixes_the_store_of_one_binding_with_the_index_of_another
         reader.join()
         sys.setswitchinterval(interval)
     assert seen == {"x"}
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.integers(0, N - 1), st.data())
+def test_a_run_of_good_values_is_stored_as_apply_stores_it(first: int,
+                                                            data: st.DataObject) -> None:
+    """ItemStore.apply_run (a read that changed every item of a block whose items'
+    indices run on) against apply() with a (k, value, None) record per item."""
+    run = data.draw(st.lists(values, min_size=1, max_size=N - first))
+    before = data.draw(st.lists(st.tuples(values, errors), min_size=N, max_size=N))
+    states = _states()
+    stores = [ItemStore(states), ItemStore(_states())]
+    for store in stores:
+        store.apply(store.states, [(k, v, e) for k, (v, e) in enumerate(before)], T0, [])
+    now = T0 + timedelta(seconds=1)
+    by_run: list[DeviceAddressItem] = []
+    stores[0].apply_run(first, run, now, states[first:first + len(run)], by_run)
+    by_record: list[DeviceAddressItem] = []
+    whole = stores[1].states[first:first + len(run)]
+    stores[1].apply(whole, [(k, v, None) for k, v in enumerate(run)], now, by_record)
+    assert by_run == [s.item for s in states[first:first + len(run)]]
+    assert len(by_record) == len(by_run)
+    for i in range(N):
+        got, want = stores[0].reading(i), stores[1].reading(i)
+        assert got[1:] == want[1:]
+        assert got.value is want.value or (math.isnan(got.value) and math.isnan(want.value))
+    assert len({id(mark) for mark in stores[0].marks[first:first + len(run)]}) == 1
+
+
+def test_a_run_outside_the_store_is_refused() -> None:
+    store = ItemStore(_states())
+    with pytest.raises(IndexError, match=r"items 3\.\.4 are outside the store of 4 items"):
+        store.apply_run(3, [1.0, 2.0], T0, store.states[3:], [])
+    assert store.values == [None] * N  # nothing stored
