@@ -31,6 +31,7 @@ from .fleet import apply_fleet, attach_device
 from .pair import Pair, gated
 from .serving import GatewayServer
 from .starting import make_publisher, start_exporter
+from .status_log import StatusLog
 
 if TYPE_CHECKING:
     from collections.abc import Callable
@@ -93,6 +94,7 @@ class Gateway:
         self._gateway_digest = gateway_digest(self.gateway_file, config)
         self.pair: Pair | None = None  # fleet.lease: a redundant pair (gateway/pair.py)
         self._devices_lock = threading.RLock()  # the lease's thread starts/stops devices
+        self.status_log = StatusLog()  # the devices whose status changed (status_log.py)
 
     # -- lifecycle -------------------------------------------------------------------
     def start(self) -> None:
@@ -417,6 +419,7 @@ class Gateway:
         items = cfg.address_list  # the driver's store holds their state: no copy
         driver = DriverModbusRtu() if self.pair is None else self.pair.driver(cfg)
         try:
+            self.status_log.watch(driver, path)
             if self.publisher is not None:
                 self.publisher.check_item_names(code, [it.name for it in items])
                 attach_device(self.publisher, driver, code, cfg, self.config.instance)
@@ -471,21 +474,15 @@ class Gateway:
         self._detach(dev.driver)
 
     def _detach(self, driver: DriverModbusRtu) -> None:
+        self.status_log.unwatch(driver)
         if self.publisher is not None:
             self.publisher.detach(driver)
         if self.exporter is not None:
             self.exporter.detach(driver)
 
     def check_statuses(self) -> None:
-        """Log each device status change, once."""
-        for dev in self.devices.values():
-            if dev.standby:
-                continue
-            status = dev.driver.device_driver_status.value
-            if status != dev.status:
-                level = logging.WARNING if status in ("Offline", "Reconnecting") else logging.INFO
-                log.log(level, "%s: %s -> %s", dev.code, dev.status, status)
-                dev.status = status
+        """Log each device status change, once (status_log.py: events, not a poll)."""
+        self.status_log.log_changes(self.devices)
 
 
 def one_line(exc: BaseException, limit: int = 300) -> str:
