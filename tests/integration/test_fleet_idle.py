@@ -19,9 +19,11 @@ from typing import Any
 
 import pytest
 
+from edgemodbus.datatypes import DeviceDriverStatus
 from edgemodbus.driver import DriverModbusRtu
 from edgemodbus.gateway import Gateway, load_gateway_config
 from edgemodbus.line.dtu_registry import DtuRegistry
+from edgemodbus.northbound.metrics import MetricsExporter
 from tests.fleet_gateways import Timing, device
 from tests.gateway_proc import write_json
 from tests.mosquitto import Mosquitto
@@ -63,10 +65,10 @@ def counting(monkeypatch: pytest.MonkeyPatch) -> Iterator[Counts]:
     yield counts
 
 
-def idle_calls(folder: Path, broker: int, files: int, counts: Counts) -> int:
+def idle_calls(folder: Path, broker: int, files: int, counts: Counts) -> tuple[int, bytes]:
     """Calls of the per-device functions in WINDOW seconds of an idle instance with
     ``files`` listen-mode DTU files (none connected), its main loop run as run.py runs
-    it (check_statuses every tick)."""
+    it (check_statuses every tick); and then its metrics text."""
     folder.mkdir()
     listen, timing = free_port(), Timing(files)
     write_json(folder / "gateway.json", {
@@ -74,6 +76,7 @@ def idle_calls(folder: Path, broker: int, files: int, counts: Counts) -> int:
         "mqtt": {"port": broker, "reconnectMin": 100, "reconnectMax": 1000,
                  "statusCheckInterval": int(TICK * 1000)},
         "fleet": {"instanceId": "gw-1", "loadBalancers": ["127.0.0.1"]},
+        "metrics": {"host": "127.0.0.1", "port": 0},
         "statusCheckInterval": int(TICK * 1000)})
     for n in range(files):
         write_json(folder / f"m{n}.json", device(n, listen, timing))
@@ -103,7 +106,9 @@ def idle_calls(folder: Path, broker: int, files: int, counts: Counts) -> int:
         while time.monotonic() < end:  # run.py's loop: a wait, then check_statuses
             time.sleep(TICK)
             gateway.check_statuses()
-        return counts.total() - before
+        calls = counts.total() - before
+        assert gateway.exporter is not None
+        return calls, gateway.exporter.render()
     finally:
         gateway.stop()
 
@@ -111,9 +116,38 @@ def idle_calls(folder: Path, broker: int, files: int, counts: Counts) -> int:
 def test_an_idle_fleet_instance_does_no_work_per_device_file(
         tmp_path: Path, broker: Mosquitto, monkeypatch: pytest.MonkeyPatch) -> None:
     with counting(monkeypatch) as counts:
-        few = idle_calls(tmp_path / "few", broker.port, 40, counts)
-        many = idle_calls(tmp_path / "many", broker.port, 400, counts)
+        few, few_text = idle_calls(tmp_path / "few", broker.port, 40, counts)
+        many, many_text = idle_calls(tmp_path / "many", broker.port, 400, counts)
     # per-tick looks: 2 x 15 reads per file in the window (1,200 and 12,000); events:
     # none while idle.  A few stray calls are allowed, none that grow with the files.
     assert many <= few + 40, (few, many)
     assert many < 400, (few, many)
+    # a scrape: no series of a device held elsewhere (was ~6 kB a file), the held gauge
+    assert len(many_text) <= len(few_text) + 100, (len(few_text), len(many_text))  # counts' digits
+    assert b'device="m1"' not in many_text
+    assert b'edgemodbus_dtu_held{instance="gw-1"} 0.0' in many_text
+    assert b"edgemodbus_dtu_listener_dtus" in many_text
+
+
+class Source:
+    """A driver's face to the exporter (northbound/metrics.py StatsSource)."""
+
+    device_driver_status = DeviceDriverStatus.RUNNING
+    data_item_count = 2
+
+    def stats(self) -> dict[str, Any]:
+        return {"cycles": 3, "responses": 6}
+
+
+def test_a_fleet_device_exports_its_series_only_while_held() -> None:
+    exporter = MetricsExporter({"port": 0}, gateway_id="gw")
+    here = [False]
+    exporter.attach(Source(), "held", "dtu", held=lambda: here[0])
+    exporter.attach(Source(), "lone", "com1")  # not in a fleet: always exported
+    text = exporter.render().decode()
+    assert 'device="held"' not in text
+    assert 'edgemodbus_items{device="lone",line="com1"} 2.0' in text
+    here[0] = True
+    text = exporter.render().decode()
+    assert 'edgemodbus_items{device="held",line="dtu"} 2.0' in text
+    assert 'edgemodbus_device_status{device="held",line="dtu",status="Running"} 1.0' in text

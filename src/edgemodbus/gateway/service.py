@@ -28,6 +28,7 @@ from .config import (
     mqtt_key,
 )
 from .fleet import apply_fleet, attach_device
+from .fleet import holder as fleet_holder
 from .pair import Pair, gated
 from .serving import GatewayServer
 from .starting import make_publisher, start_exporter
@@ -308,7 +309,9 @@ class Gateway:
             raise
         if exporter is not None:
             for dev in self.devices.values():
-                exporter.attach(dev.driver, dev.code, line_label(dev.cfg.effective_parameters()))
+                params = dev.cfg.effective_parameters()
+                exporter.attach(dev.driver, dev.code, line_label(params),
+                                held=fleet_holder(params, self.config.instance))
             exporter.set_publisher(self.publisher)
         self.exporter = exporter
 
@@ -424,7 +427,9 @@ class Gateway:
                 self.publisher.check_item_names(code, [it.name for it in items])
                 attach_device(self.publisher, driver, code, cfg, self.config.instance)
             if self.exporter is not None:
-                self.exporter.attach(driver, code, line_label(cfg.effective_parameters()))
+                params = cfg.effective_parameters()
+                self.exporter.attach(driver, code, line_label(params),
+                                     held=fleet_holder(params, self.config.instance))
             running = driver.start_device(org, comm, items, cfg.actions)
         except (ValueError, OSError) as exc:
             self._detach(driver)
