@@ -7,7 +7,7 @@ import contextlib
 import socket
 import threading
 from collections import deque
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Iterable, MutableMapping
 from typing import TYPE_CHECKING, Any, NamedTuple
 
 from .devices import AttachedDevice
@@ -198,12 +198,18 @@ class Outbox:
             self.status_due[dev.code] = dev
         self.wake()
 
-    def take_status_due(self, held: Mapping[str, AttachedDevice]) -> list[AttachedDevice]:
+    def take_status_due(self, held: MutableMapping[str, AttachedDevice]
+                        ) -> list[AttachedDevice]:
         """The devices to look at: those :meth:`status_changed` named since the last
-        call, then the ``held`` ones (a fleet's DTUs connected here) not among them."""
+        call, then the ``held`` ones (a fleet's DTUs connected here) not among them; only
+        attached ones (a device detached while held leaves ``held`` here: the MQTT
+        thread's, as is this call)."""
         with self.lock:
             due, self.status_due = self.status_due, {}
-        return [*due.values(), *(d for code, d in list(held.items()) if code not in due)]
+            for code in [code for code, dev in held.items() if not dev.attached]:
+                del held[code]
+            return [dev for dev in (*due.values(), *(d for code, d in held.items()
+                                                     if code not in due)) if dev.attached]
 
     def look_at(self, devices: Iterable[AttachedDevice]) -> None:
         """Have the MQTT thread look at each of ``devices`` (a connection, an arrival)."""
