@@ -175,8 +175,8 @@ DESCRIPTIONS: dict[str, str] = {
     "(top level).metrics": "The section `metrics` below; left out: no exporter",
     "(top level).serve": "The section `serve` below; left out: no Modbus TCP server",
     "(top level).devicePattern": "Which files of the folder are device files",
-    "(top level).statusCheckInterval": "How often device statuses are checked for changes "
-                                       "(ms)",
+    "(top level).statusCheckInterval": "How often the service logs the status changes "
+                                       "its devices reported (ms)",
     "mqtt.enabled": "false: the section is kept but nothing connects",
     "mqtt.mode": "per-item: a message per changed item; batch: a message per device cycle; "
                  "sparkplug: a Sparkplug B edge node",
@@ -213,7 +213,8 @@ DESCRIPTIONS: dict[str, str] = {
     "mqtt.reconnectMin": "First reconnect delay (ms; doubles, with jitter)",
     "mqtt.reconnectMax": "Longest reconnect delay (ms; at least reconnectMin)",
     "mqtt.failureLogInterval": "A failed connect is logged at once, then once per this (ms)",
-    "mqtt.statusCheckInterval": "How often device statuses are compared for `$status` (ms)",
+    "mqtt.statusCheckInterval": "How often a fleet's held devices are looked at for "
+                                "`$status` (ms); other changes are published as they happen",
     "mqtt.storeAndForward": "The section `mqtt.storeAndForward`; left out: no spool",
     "mqtt.tls.enabled": "false: the section is kept but TLS is off",
     "mqtt.tls.caFile": "CA certificates (PEM) to check the broker with; left out: the "

@@ -31,17 +31,29 @@ class Instance:
                  mode: str = "per-item") -> None:
         cfg = device(port)  # items of its own
         self.name = name
-        self.holds = False
+        self._holds = False
         self.pub = MqttPublisher({"port": broker, "reconnectMin": 100, "reconnectMax": 400,
                                   "statusCheckInterval": 100, "mode": mode},
                                  gateway_id="gw1", instance=name)
         self.drv = em.DriverModbusRtu()
         self.pub.start()
         stack.callback(self.pub.stop)
-        self.pub.attach(self.drv, "dev1", held=lambda: self.holds)
+        self.pub.attach(self.drv, "dev1", held=lambda: self._holds)
         assert self.drv.start_device(cfg.organization, cfg.communication, cfg.address_list)
         stack.callback(self.drv.stop_device)
         assert self.pub.wait_connected(10)
+
+    @property
+    def holds(self) -> bool:
+        return self._holds
+
+    @holds.setter
+    def holds(self, value: bool) -> None:
+        """As the gateway's DTU arrives (its reads report, or held_changed); a departure
+        is seen at the publisher's next look at the devices it holds."""
+        self._holds = value
+        if value:
+            self.pub.held_changed(self.drv)
 
     def stats(self, key: str) -> int:
         return int(self.pub.stats()[key])

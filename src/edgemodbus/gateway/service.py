@@ -28,9 +28,11 @@ from .config import (
     mqtt_key,
 )
 from .fleet import apply_fleet, attach_device
+from .fleet import holder as fleet_holder
 from .pair import Pair, gated
 from .serving import GatewayServer
 from .starting import make_publisher, start_exporter
+from .status_log import StatusLog
 
 if TYPE_CHECKING:
     from collections.abc import Callable
@@ -93,6 +95,7 @@ class Gateway:
         self._gateway_digest = gateway_digest(self.gateway_file, config)
         self.pair: Pair | None = None  # fleet.lease: a redundant pair (gateway/pair.py)
         self._devices_lock = threading.RLock()  # the lease's thread starts/stops devices
+        self.status_log = StatusLog()  # the devices whose status changed (status_log.py)
 
     # -- lifecycle -------------------------------------------------------------------
     def start(self) -> None:
@@ -306,7 +309,9 @@ class Gateway:
             raise
         if exporter is not None:
             for dev in self.devices.values():
-                exporter.attach(dev.driver, dev.code, line_label(dev.cfg.effective_parameters()))
+                params = dev.cfg.effective_parameters()
+                exporter.attach(dev.driver, dev.code, line_label(params),
+                                held=fleet_holder(params, self.config.instance))
             exporter.set_publisher(self.publisher)
         self.exporter = exporter
 
@@ -417,11 +422,14 @@ class Gateway:
         items = cfg.address_list  # the driver's store holds their state: no copy
         driver = DriverModbusRtu() if self.pair is None else self.pair.driver(cfg)
         try:
+            self.status_log.watch(driver, path)
             if self.publisher is not None:
                 self.publisher.check_item_names(code, [it.name for it in items])
                 attach_device(self.publisher, driver, code, cfg, self.config.instance)
             if self.exporter is not None:
-                self.exporter.attach(driver, code, line_label(cfg.effective_parameters()))
+                params = cfg.effective_parameters()
+                self.exporter.attach(driver, code, line_label(params),
+                                     held=fleet_holder(params, self.config.instance))
             running = driver.start_device(org, comm, items, cfg.actions)
         except (ValueError, OSError) as exc:
             self._detach(driver)
@@ -471,21 +479,15 @@ class Gateway:
         self._detach(dev.driver)
 
     def _detach(self, driver: DriverModbusRtu) -> None:
+        self.status_log.unwatch(driver)
         if self.publisher is not None:
             self.publisher.detach(driver)
         if self.exporter is not None:
             self.exporter.detach(driver)
 
     def check_statuses(self) -> None:
-        """Log each device status change, once."""
-        for dev in self.devices.values():
-            if dev.standby:
-                continue
-            status = dev.driver.device_driver_status.value
-            if status != dev.status:
-                level = logging.WARNING if status in ("Offline", "Reconnecting") else logging.INFO
-                log.log(level, "%s: %s -> %s", dev.code, dev.status, status)
-                dev.status = status
+        """Log each device status change, once (status_log.py: events, not a poll)."""
+        self.status_log.log_changes(self.devices)
 
 
 def one_line(exc: BaseException, limit: int = 300) -> str:

@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import logging
 import threading
-from collections.abc import Iterable, Iterator, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from typing import TYPE_CHECKING, Annotated, Any, ClassVar, Protocol
 
 from pydantic import AfterValidator, ValidationError
@@ -198,7 +198,7 @@ class MetricsExporter:
         self.gateway_id = gateway_id
         self.instance = gateway_id or "edgemodbus"  # edgemodbus_dtu_held label (fleet.py)
         self._lock = threading.Lock()
-        self._drivers: dict[str, tuple[StatsSource, str]] = {}
+        self._drivers: dict[str, tuple[StatsSource, str, Callable[[], bool] | None]] = {}
         self._publisher: PublisherStats | None = None
         self._listeners: ListenerStats | None = None
         self._serve: ServerStats | None = None  # the Modbus TCP server (gateway)
@@ -209,20 +209,24 @@ class MetricsExporter:
 
     # -- sources -----------------------------------------------------------------------
     def attach(self, driver: StatsSource, device_code: str | None = None,
-               line: str | None = None) -> None:
+               line: str | None = None, held: Callable[[], bool] | None = None) -> None:
         """Export ``driver``'s counters under ``device_code`` (default: the driver's)
-        and ``line`` (a name for its serial port or TCP endpoint; default "")."""
+        and ``line`` (a name for its serial port or TCP endpoint; default "").  In a
+        dial-in fleet ``held`` says whether the device's DTU is connected here: a device
+        not held exports no series at all (the holder exports them; an instance's
+        ``edgemodbus_dtu_held`` counts what it holds), so a scrape costs only what the
+        instance holds (docs/deploy.md "What the fleet costs")."""
         if device_code is None:
             snapshot = getattr(driver, "snapshot", None)
             device_code = str(snapshot()["deviceCode"]) if snapshot is not None else "device"
         with self._lock:
             if device_code in self._drivers:
                 raise ValueError(f"deviceCode {device_code!r} is already exported")
-            self._drivers[device_code] = (driver, line or "")
+            self._drivers[device_code] = (driver, line or "", held)
 
     def detach(self, driver: StatsSource) -> None:
         with self._lock:
-            for code in [c for c, (d, _) in self._drivers.items() if d is driver]:
+            for code in [c for c, (d, _, _) in self._drivers.items() if d is driver]:
                 del self._drivers[code]
 
     def set_publisher(self, publisher: PublisherStats | None) -> None:
@@ -339,7 +343,9 @@ class MetricsExporter:
             labels=["line"])
         seen_lines: set[str] = set()
         statuses = [s.value for s in DeviceDriverStatus]
-        for code, (driver, line) in drivers:
+        for code, (driver, line, held) in drivers:
+            if held is not None and not held():
+                continue  # a fleet's device held by another instance: its series are there
             try:
                 stats = driver.stats()
                 current = driver.device_driver_status
@@ -415,7 +421,8 @@ class MetricsExporter:
         for key, name, doc in MQTT_DEVICE_COUNTERS:
             family = CounterMetricFamily(f"{NAMESPACE}_{name}", doc, labels=["device"])
             for code, dev in sorted(per_device.items()):
-                family.add_metric([code], float(dev.get(key, 0)))
+                if dev.get("held") is not False:  # False: a fleet's device held elsewhere
+                    family.add_metric([code], float(dev.get(key, 0)))
             yield family
         yield from sparkplug_metrics(stats)
         yield from spool_metrics(stats)

@@ -50,6 +50,13 @@ class AttachedDevice:
         self.seen_status: Any = None
         self.fleet: Holding | None = None  # in a fleet: published only while held here
 
+    def stats(self) -> dict[str, Any]:
+        """Its counters in the publisher's stats()."""
+        return {"published": self.published, "dropped": self.dropped,
+                "snapshotsPublished": self.snapshots,
+                "snapshotsCoalesced": self.snapshots_coalesced,
+                "held": self.fleet.holding if self.fleet is not None else None}
+
     def filters(self, writes: bool = True) -> list[str]:
         """Subscriptions for this device's commands (none unless ``writes``), without
         overlaps (an overlap would deliver one command twice)."""

@@ -7,7 +7,7 @@ import contextlib
 import socket
 import threading
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, MutableMapping
 from typing import TYPE_CHECKING, Any, NamedTuple
 
 from .devices import AttachedDevice
@@ -70,7 +70,9 @@ class Outbox:
         self.wake_r.setblocking(False)
         self._wake_w.setblocking(False)
         self._wake_pending = False
-        self.status_dirty = False  # a device's status changed: check the statuses now
+        # devices whose status changed (or whose DTU arrived): the MQTT thread looks at
+        # these only, never at every device per tick (an idle fleet instance costs nothing)
+        self.status_due: dict[str, AttachedDevice] = {}
 
     def limit(self) -> int:
         """How many item updates may wait (under the lock).  During an outage,
@@ -93,7 +95,7 @@ class Outbox:
         with self.lock:
             if status is not dev.seen_status:
                 dev.seen_status = status
-                self.status_dirty = True
+                self.status_due[dev.code] = dev
             if len(rows) > dev.largest and dev.attached:
                 self.burst += len(rows) - dev.largest
                 dev.largest = len(rows)
@@ -136,6 +138,7 @@ class Outbox:
         """A detached device's burst no longer counts (under the lock)."""
         dev.attached = False
         self.burst -= dev.largest
+        self.status_due.pop(dev.code, None)
 
     def take_reports(self, room: int, split: bool) -> list[Report]:
         """The oldest reports (under the lock), at most ``room`` messages' worth: one
@@ -188,6 +191,31 @@ class Outbox:
     def count(self, key: str, n: int = 1) -> None:
         with self.lock:
             self.counts[key] += n
+
+    def status_changed(self, dev: AttachedDevice) -> None:
+        """Have the MQTT thread look at ``dev``'s status (any thread)."""
+        with self.lock:
+            self.status_due[dev.code] = dev
+        self.wake()
+
+    def take_status_due(self, held: MutableMapping[str, AttachedDevice]
+                        ) -> list[AttachedDevice]:
+        """The devices to look at: those :meth:`status_changed` named since the last
+        call, then the ``held`` ones (a fleet's DTUs connected here) not among them; only
+        attached ones (a device detached while held leaves ``held`` here: the MQTT
+        thread's, as is this call)."""
+        with self.lock:
+            due, self.status_due = self.status_due, {}
+            for code in [code for code, dev in held.items() if not dev.attached]:
+                del held[code]
+            return [dev for dev in (*due.values(), *(d for code, d in held.items()
+                                                     if code not in due)) if dev.attached]
+
+    def look_at(self, devices: Iterable[AttachedDevice]) -> None:
+        """Have the MQTT thread look at each of ``devices`` (a connection, an arrival)."""
+        with self.lock:
+            self.status_due.update((dev.code, dev) for dev in devices)
+        self.wake()
 
     def act(self, action: Callable[[], None]) -> None:
         with self.lock:

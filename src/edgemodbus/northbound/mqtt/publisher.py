@@ -62,6 +62,7 @@ class MqttPublisher:
         self._outbox = Outbox(settings.queue_size)
         self._lock = self._outbox.lock  # one lock: the devices, the queues, the counters
         self._devices: dict[str, AttachedDevice] = {}
+        self._held: dict[str, AttachedDevice] = {}  # fleet devices held here (MQTT thread)
         self._stopping = threading.Event()
         self._thread: threading.Thread | None = None
         self._client: Client | None = None
@@ -76,8 +77,7 @@ class MqttPublisher:
         self._commands = CommandRunner(self._outbox)
         self._linger = settings.linger / 1000
         self._linger_until = 0.0  # no blocking wait before this: let messages gather
-        self._flush_timeout = 1.0
-        self._stop_reason = "shutdown"
+        self._flush_timeout, self._stop_reason = 1.0, "shutdown"
         self.instance = instance
         self.client_id = settings.client_id or f"edgemodbus-{self.gateway_id}" + (
             f"-{instance}" if instance else "")
@@ -163,17 +163,10 @@ class MqttPublisher:
         and per device ``published``, ``dropped``, ``snapshotsCoalesced``, ``held``."""
         with self._lock:
             result: dict[str, Any] = dict(self._outbox.counts)
-            result["queued"] = self._outbox.queued
-            result["queueLimit"] = self._outbox.limit()
-            result["queueSize"] = self.settings.queue_size
-            result["pendingSnapshots"] = len(self._outbox.snapshots)
-            result["devices"] = {
-                d.code: {"published": d.published, "dropped": d.dropped,
-                         "snapshotsPublished": d.snapshots,
-                         "snapshotsCoalesced": d.snapshots_coalesced,
-                         "held": d.fleet.holding if d.fleet is not None else None}
-                for d in self._devices.values()
-            }
+            result.update(queued=self._outbox.queued, queueLimit=self._outbox.limit(),
+                          queueSize=self.settings.queue_size,
+                          pendingSnapshots=len(self._outbox.snapshots))
+            result["devices"] = {d.code: d.stats() for d in self._devices.values()}
             result["pendingCommands"] = self._commands.pending
         if self._sender.forwarder is not None:
             result["spool"] = self._sender.forwarder.stats()
@@ -204,6 +197,11 @@ class MqttPublisher:
                 del self._devices[code]
             raise
         self._outbox.act(lambda: self._subscribe(dev))
+        self._outbox.look_at((dev,))  # its first status
+
+    def held_changed(self, driver: DriverModbusRtu) -> None:
+        """In a fleet: ``driver``'s DTU may have come or gone; look now (any thread)."""
+        self._outbox.look_at([d for d in list(self._devices.values()) if d.driver is driver])
 
     def detach(self, driver: DriverModbusRtu) -> None:
         """Stop publishing ``driver``: its last status is published (retained), its
@@ -279,10 +277,9 @@ class MqttPublisher:
             if self._connected.is_set():
                 delay = s.reconnect_min / 1000
                 self._run_actions()
-                if now >= next_status_check or self._outbox.status_dirty:
+                if now >= next_status_check or self._outbox.status_due:
                     next_status_check = now + s.status_check_interval / 1000
-                    self._outbox.status_dirty = False
-                    self._check_statuses()
+                    self._check_statuses(self._outbox.take_status_due(self._held))
                 self._sender.pump(client)
             else:
                 self._run_actions(connected=False)
@@ -300,8 +297,7 @@ class MqttPublisher:
             self._wait(client, sock, timeout)
         self._shutdown(client)
 
-    def _connect_failed(self, reason: str) -> None:
-        """One failed connection attempt: counted always, logged rate-limited."""
+    def _connect_failed(self, reason: str) -> None:  # counted always, logged rate-limited
         self._attempt = None
         self._outbox.set_outage(True)
         self._outbox.count("connectFailures")
@@ -358,6 +354,7 @@ class MqttPublisher:
         for dev in devices:
             dev.published_status = None  # republish every status (retained) below
             self._subscribe(dev)
+        self._outbox.look_at(devices)
 
     def _on_disconnect(self, _client: Client, _userdata: Any, _flags: Any, reason: Any,
                        _props: Any) -> None:
@@ -388,6 +385,7 @@ class MqttPublisher:
             client.subscribe(topic_filter, qos=1)
 
     def _unsubscribe(self, dev: AttachedDevice) -> None:
+        self._held.pop(dev.code, None)  # on the MQTT thread, as ever (detach: an action)
         client = self._client
         if client is None or not self._connected.is_set() or not (
                 self.settings.writes or dev.fleet is not None):
@@ -405,9 +403,11 @@ class MqttPublisher:
                     log.exception("MQTT action failed")
         # when not connected, subscriptions are made on (re)connect anyway
 
-    def _check_statuses(self) -> None:
-        with self._lock:
-            devices = list(self._devices.values())
+    def _check_statuses(self, devices: list[AttachedDevice] | None = None) -> None:
+        """Publish the statuses that changed, of ``devices`` (None: every device)."""
+        if devices is None:
+            with self._lock:
+                devices = list(self._devices.values())
         for dev in devices:
             status = status_text(dev.driver.device_driver_status)
             if dev.fleet is not None and not self._fleet_turn(dev):
@@ -420,8 +420,8 @@ class MqttPublisher:
                                                         1, True))
 
     def _status(self, dev: AttachedDevice, status: str) -> bytes:
-        held = (str(self.instance), dev.fleet.since) if dev.fleet is not None else None
-        return status_payload(self.gateway_id, dev.code, status, held)
+        return status_payload(self.gateway_id, dev.code, status, (str(self.instance),
+                              dev.fleet.since) if dev.fleet is not None else None)
 
     def _fleet_turn(self, dev: AttachedDevice) -> bool:
         """A fleet device's arrival or departure (holding.py); whether it is held."""
@@ -429,7 +429,7 @@ class MqttPublisher:
         assert fleet is not None
         turn = fleet.turn(time.time())
         if turn == "arrived":
-            dev.published_status = None
+            dev.published_status, self._held[dev.code] = None, dev
             self._subscribe(dev)
         elif turn == "left":
             self._unsubscribe(dev)
@@ -484,7 +484,7 @@ class MqttPublisher:
             if dev.fleet is not None and topic == dev.status_topic:
                 if dev.fleet.read_back(payload, str(self.instance)):
                     dev.published_status = None  # publish ours again (holding.py)
-                    self._outbox.status_dirty = True
+                    self._outbox.status_changed(dev)
                 return
             if topic == dev.action_topic:
                 self._commands.dispatch(dev, None, payload, action=True)
