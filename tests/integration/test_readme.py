@@ -68,6 +68,17 @@ SKIP: dict[tuple[str, ...], str] = {
         "that venv; the test environment has the package and its extras",
     ("pip", "install", ".[mqtt,metrics]"): "installs the package; the test environment has the "
                                            "package and its extras",
+    # docs/links.md's TLS broker for an MQTT DTU: tests/integration/test_mqtt_dtu_tls.py
+    # makes the same certificate and broker (and polls through it)
+    ("openssl", "req", "-x509", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1",
+     "-nodes", "-keyout", "key.pem", "-out", "cert.pem", "-days", "365", "-subj",
+     "/CN=localhost", "-addext", "subjectAltName=IP:127.0.0.1,DNS:localhost"):
+        "writes a key and certificate into the current folder; test_mqtt_dtu_tls.py does it",
+    ("printf", "listener 8883 127.0.0.1\\ncertfile cert.pem\\nkeyfile key.pem\\n"
+     "allow_anonymous true\\n", ">", "tls.conf"):
+        "writes a broker config into the current folder; test_mqtt_dtu_tls.py does it",
+    ("mosquitto", "-c", "tls.conf"): "a TLS broker that runs until stopped, on a fixed port; "
+                                     "test_mqtt_dtu_tls.py runs one on an ephemeral port",
     ("mosquitto_sub", "-h", "127.0.0.1", "-t", "plant1/#", "-v"): "a subscriber that runs "
         "until Ctrl-C; what it shows is checked by the runner of `run --config-dir examples/...`",
 }
