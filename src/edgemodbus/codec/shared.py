@@ -57,12 +57,8 @@ class SharedCache(Generic[V]):
     def get(self, key: Hashable, make: Callable[[], V]) -> V:
         key = _Key(key)  # hashed once here, not at each of the dicts below
         with self._lock:
-            value = self._recent.get(key)
-            if value is None and self._weak is not None:
-                value = self._weak.get(key)
+            value = self._found(key)
             if value is not None:
-                self.hits += 1
-                self._hold(key, value)
                 return value
             self.misses += 1
         value = make()
@@ -75,15 +71,19 @@ class SharedCache(Generic[V]):
     def peek(self, key: Hashable) -> V | None:
         """The value cached under ``key`` (counted as a hit), else None (not counted:
         the caller makes it and :meth:`get` it later, or not at all)."""
-        key = _Key(key)
         with self._lock:
-            value = self._recent.get(key)
-            if value is None and self._weak is not None:
-                value = self._weak.get(key)
-            if value is not None:
-                self.hits += 1
-                self._hold(key, value)
-            return value
+            return self._found(_Key(key))
+
+    def _found(self, key: Hashable) -> V | None:
+        """The value under ``key``, held as the most recent and counted as a hit; else
+        None (under the lock)."""
+        value = self._recent.get(key)
+        if value is None and self._weak is not None:
+            value = self._weak.get(key)
+        if value is not None:
+            self.hits += 1
+            self._hold(key, value)
+        return value
 
     def _hold(self, key: Hashable, value: V) -> None:
         recent = self._recent

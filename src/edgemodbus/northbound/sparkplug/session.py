@@ -90,6 +90,12 @@ class NodeSession:
             if leader:
                 self._connect(client)
                 return
+        self._disconnect(client)
+        log.info("Sparkplug: edge node %s: standby, disconnected", self.node_name)
+
+    def _disconnect(self, client: Client) -> None:
+        """End the session on purpose (no will: not taken for a lost link) and wait for
+        paho's thread."""
         self._leaving = True
         try:
             client.disconnect()
@@ -97,7 +103,6 @@ class NodeSession:
         finally:
             self._leaving = False
         self.connected.clear()
-        log.info("Sparkplug: edge node %s: standby, disconnected", self.node_name)
 
     def _connect(self, client: Client) -> None:
         if self._store.shared:  # the other instance may have used numbers since
@@ -136,13 +141,7 @@ class NodeSession:
         client = self.client
         if client is None:
             return
-        self._leaving = True
-        try:
-            client.disconnect()
-            client.loop_stop()
-        finally:
-            self._leaving = False
-        self.connected.clear()
+        self._disconnect(client)
         log.info("Sparkplug: reconnecting to %s:%d for a new session (bdSeq %d)",
                  self.settings.host, self.settings.port, self.next_bd_seq)
         self._connect(client)
