@@ -14,7 +14,6 @@ import sys
 import threading
 import time
 from contextlib import ExitStack
-from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -60,13 +59,6 @@ def rate(drv: em.DriverModbusRtu, seconds: float) -> float:
     before, start = drv.stats()["cycles"], time.monotonic()
     time.sleep(seconds)  # a measuring window, not a wait for an event
     return float(drv.stats()["cycles"] - before) / (time.monotonic() - start)
-
-
-def polling_again(drv: em.DriverModbusRtu, reconnects: int) -> bool:
-    """The line reconnected since ``reconnects`` and reads slave 1's values again."""
-    return bool(drv.stats()["line"]["reconnects"] > reconnects
-                and drv.device_driver_status is em.DeviceDriverStatus.RUNNING
-                and values(drv) == expected(1))
 
 
 def line_logs(caplog: pytest.LogCaptureFixture, since: int = 0) -> list[str]:
@@ -140,25 +132,24 @@ def test_retained_junk_and_a_stale_reply_on_the_uplink_are_never_taken_as_answer
 
     caplog.set_level(logging.INFO, logger="edgemodbus.line")
     fake = frame(1, bytes([3, 4, 0x12, 0x34, 0x56, 0x78]))  # hr:3, hr:4 = 0x1234, 0x5678
-    flood(broker.port, "dtu/r1/up", fake, rate=0, seconds=0, retain=True)
     slave = slave_factory("rtu-over-tcp", units=(1,))
     seen: list[Any] = []
     cfg = config(broker, "r1", 1)
-    with MqttDtu("r1", broker.port, slave.port) as dtu, \
-            Running(cfg, address_updated_callback=lambda it: seen.append(it.value)) as drv:
-        wait_for(lambda: values(drv) == expected(1), 20, "the slave's values")
-        for _ in range(3):  # the broker connection again: the retained message again
-            reconnects = drv.stats()["line"]["reconnects"]
-            dtu.stop()
-            broker.restart()  # (no persistence: publish it again)
+    with MqttDtu("r1", broker.port, slave.port):
+        for _ in range(3):
+            # published while no driver subscribes (the last one stopped: its hub
+            # unsubscribed), so it reaches the next subscribe as a retained message; a
+            # retained publish to a live subscription is a live message, which no one
+            # can tell from the DTU's reply
             flood(broker.port, "dtu/r1/up", fake, rate=0, seconds=0, retain=True)
-            dtu.start()
-            wait_for(partial(polling_again, drv, reconnects), 30, "polling again")
+            with Running(cfg, address_updated_callback=lambda it: seen.append(it.value)) \
+                    as drv:
+                wait_for(lambda: values(drv) == expected(1), 30, "the slave's values")
         assert 0x1234 not in seen and 0x5678 not in seen, seen
-        line = drv.stats()["line"]
-        assert line["uplinkDroppedBytes"] >= 3 * len(fake), line
+    # logged through line/log_limit.py (a burst, then a summary per window): a line or
+    # two per round at most, however many times the broker hands the message over
     lines = [m for m in line_logs(caplog) if "retained" in m]
-    assert 1 <= len(lines) <= 4 and "'dtu/r1/up'" in lines[0], lines  # line/log_limit.py
+    assert 1 <= len(lines) <= 6 and "'dtu/r1/up'" in lines[0], lines
 
 
 @pytest.mark.parametrize("payload", [b"maybe", b"\xff\x00junk", b"x" * (2 << 20)],
