@@ -209,6 +209,8 @@ static int item_ok(const emb_plan *p, const emb_item *it)
     default: return 0;
     }
     int scaled = (it->flags & (EMB_F_MULTIPLY | EMB_F_DIVIDE)) != 0;
+    if (it->flags & EMB_F_EXT)
+        return 0; /* engineering units need plan->scales, which this harness never sets */
     if (it->wire == EMB_W_BYTES) {
         if (it->nregs == 0 || it->target != EMB_C_NONE || scaled)
             return 0;
