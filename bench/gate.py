@@ -167,6 +167,10 @@ GATES: dict[str, Gate] = {
     # reports only with the next poll would hold them up to a cycle (docs/dtu.md "What a
     # wrapped report costs").  The limit guards against the step per block coming back,
     # not the target; tests/integration/test_stream_engine.py guards the C path itself.
+    # Since DTUs run on the loop by default the plain fleet is on a loop thread and the
+    # wrapped one (engine "auto" keeps wrapped DTUs on a line thread, where reports are
+    # applied in C) on line threads: 2.5 quick (2026-11-27); with the wrapped fleet on
+    # the loop too, where each report still goes to Python, 3.44.
     "stream.heartbeat_vs_plain": Gate(
         1.1, 1.5, "lower", "x", "CPU/tag read, DTU heartbeats / plain"),
     "stream.wrapped_vs_plain": Gate(

@@ -294,22 +294,25 @@ def measure_driver(drivers: Drivers, seconds: float) -> Window:
 
 def entries_per_round(drivers: Drivers, seconds: float) -> float:
     """How often the line worker came back from the engine to Python (its ``_dispatch``,
-    counted on the worker's instance) per round of the line's devices (their cycles over
-    ``seconds``, divided by how many they are).  Issue 26: once per round with changes."""
+    counted for the bench's worker) per round of the line's devices (their cycles over
+    ``seconds``, divided by how many they are).  The target: once per round with
+    changes."""
     worker = drivers.line
+    cls = type(worker)  # (a line worker has __slots__: its class's method is wrapped)
     calls = [0]
-    dispatch = worker._dispatch
+    dispatch = cls._dispatch
 
-    def counted(*args: Any) -> None:
-        calls[0] += 1
-        dispatch(*args)
+    def counted(self: Any, *args: Any) -> None:
+        if self is worker:
+            calls[0] += 1
+        dispatch(self, *args)
 
     start = [drv.stats()["cycles"] for drv in drivers.drivers]
-    worker._dispatch = counted  # type: ignore[method-assign,assignment]
+    cls._dispatch = counted  # type: ignore[method-assign]
     try:
         time.sleep(seconds)
     finally:
-        del worker._dispatch  # the class's again
+        cls._dispatch = dispatch  # type: ignore[method-assign]
     cycles = sum(drv.stats()["cycles"] - c for drv, c in zip(drivers.drivers, start,
                                                                  strict=True))
     return calls[0] / (cycles / len(drivers.drivers)) if cycles else float("inf")

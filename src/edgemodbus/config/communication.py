@@ -232,9 +232,9 @@ class _CommunicationFields(Model):
     engine: DtuEngine = Field(
         default="auto",
         description="rtu-over-tcp-server, rtu-over-tcp, tcp: what polls the line: auto (loop "
-        "for DTUs that dial in, thread for endpoints), loop (a few loop threads: DTUs of any "
-        "framing, plain rtu-over-tcp and tcp endpoints without alternates; docs/scale.md) "
-        "or thread (a thread per line); a port's or endpoint's devices must agree",
+        "for plain DTUs, thread for wrapped ones and endpoints), loop (a few loop threads: any "
+        "DTU, plain rtu-over-tcp and tcp endpoints without alternates; docs/scale.md) or "
+        "thread (a thread per line); a port's or endpoint's devices must agree",
     )
     loop_threads: Annotated[int | None, Range(1, 1024)] = Field(
         default=None,

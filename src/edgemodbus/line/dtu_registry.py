@@ -94,6 +94,10 @@ class DtuRegistry:
                                  "registration packet a port serves one DTU")
             slot = DtuSlot(endpoint, settings, access)
             slot.engine = settings.engine or self.engine  # the port's key, else the default
+            if settings.engine is None and endpoint.framing == "wrapped-report":
+                # auto: a wrapped DTU's reports are applied in C by a line thread's engine
+                # (csrc/emb_report.c); on a loop link each still goes to Python
+                slot.engine = "thread"
             if slot.engine == "loop" and settings.loop_threads is not None:
                 self._asked[settings.loop_threads] += 1
                 self._size_pool()
