@@ -20,6 +20,7 @@ from edgemodbus.config import load_device_config
 from edgemodbus.errors import ModbusConnectionError
 from edgemodbus.gateway.lease import Lease
 from edgemodbus.gateway.pair import LeaderDriver
+from tests.lease_switch import Switch
 from tests.peers import PymodbusSlave
 from tests.waiting import wait_for
 
@@ -35,22 +36,6 @@ class ShiftedClock:
 
     def __call__(self) -> float:
         return time.monotonic() + self.offset
-
-
-class Switch:
-    """The lease's engine reduced to a switch."""
-
-    def __init__(self) -> None:
-        self.free = True
-
-    def acquire(self, token: str, ttl_ms: int) -> int | None:
-        return 1 if self.free else None
-
-    def renew(self, token: str, ttl_ms: int) -> bool:
-        return self.free
-
-    def release(self, token: str) -> None:
-        pass
 
 
 class Rig:

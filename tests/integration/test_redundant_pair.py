@@ -16,6 +16,7 @@ from pathlib import Path
 import pytest
 
 from tests.gateway_proc import GatewayProcess, device_file, write_json
+from tests.lease_switch import Switch
 from tests.mosquitto import Mosquitto, MqttProbe, Received
 from tests.peers import PymodbusSlave
 from tests.redis_server import RedisServer, redis_binary
@@ -167,22 +168,6 @@ class _Clock:
         return self.now
 
 
-class _Engine:
-    """The lease's engine reduced to a switch (the Redis protocol is tested above)."""
-
-    def __init__(self) -> None:
-        self.free = True
-
-    def acquire(self, token: str, ttl_ms: int) -> int | None:
-        return 1 if self.free else None
-
-    def renew(self, token: str, ttl_ms: int) -> bool:
-        return self.free
-
-    def release(self, token: str) -> None:
-        pass
-
-
 def test_writes_go_out_only_while_the_lease_holds_for_their_time() -> None:
     """A LeaderDriver polling a real slave: a write reaches it while the lease holds;
     near the lease's end, or once it is lost, the write, the action path and a forwarded
@@ -191,7 +176,7 @@ def test_writes_go_out_only_while_the_lease_holds_for_their_time() -> None:
     from edgemodbus.gateway.lease import Lease, NotLeaderError
     from edgemodbus.gateway.pair import LeaderDriver
 
-    clock, engine = _Clock(), _Engine()
+    clock, engine = _Clock(), Switch()
     lease = Lease(engine, 10_000, 3_000, clock=clock)
     with PymodbusSlave("rtu-over-tcp", units=(1,)) as slave:
         cfg = load_device_config(device_file(slave.port, 1, "plc", read_cycle=CYCLE_MS))
