@@ -214,6 +214,7 @@ class LoopLink:
         k.which = -1
         k.byte_ms = round(byte_timeout * 1000)
         self._k = k
+        self._paused = False
         loop.watch(fd, slot)
         loop._links[slot] = k  # Loop.turn runs it from now on
         loop._kept[slot] = k
@@ -255,9 +256,37 @@ class LoopLink:
         self._k.held = 0
         return int(lib.emb_loop_link_run(self.loop._lp, self._k))
 
+    @property
+    def paused(self) -> bool:
+        return self._paused
+
+    def pause(self) -> None:
+        """Step out of the loop while another thread uses the socket (a job of the
+        line, line/loop_jobs.py): not run by :meth:`Loop.turn`, no deadline, the socket
+        not watched; its state (idle, a pass under way) is kept for :meth:`resume`.
+        Loop thread only."""
+        if self._paused:
+            return
+        self.loop.unwatch(self.ctx.fd)
+        self.loop._links[self.slot] = ffi.NULL
+        self.loop.clear_timer(self.slot)
+        self._paused = True
+
+    def resume(self) -> None:
+        """Back in the loop after :meth:`pause` (the socket watched again); Python
+        runs it next (:meth:`run`).  Loop thread only."""
+        if not self._paused:
+            return
+        self.loop.watch(self.ctx.fd, self.slot)
+        self.loop._links[self.slot] = self._k
+        self._paused = False
+
     def detach(self) -> None:
-        """Leave the loop (its deadline and its socket); the socket stays the caller's."""
+        """Leave the loop (its deadline and its socket); the socket stays the caller's
+        (a paused link's socket is not watched: it may be closed already)."""
         self.loop._links[self.slot] = ffi.NULL
         self.loop._kept.pop(self.slot, None)
         self.loop.clear_timer(self.slot)
-        self.loop.unwatch(self.ctx.fd)
+        if not self._paused:
+            self.loop.unwatch(self.ctx.fd)
+        self._paused = False

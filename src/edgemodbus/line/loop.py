@@ -8,12 +8,12 @@ a :class:`LoopWorker`'s epoll set.  Jobs go on the line's queue and the worker's
 eventfd wakes the loop.  One turn is one C call (``Loop.turn``, csrc/emb_loop_turn.c):
 it runs every ready or expired link and comes back only with the links Python must see
 (passes with news, a split, reports, a failure, jobs flagged for an idle link).  A
-link's jobs run while it is idle, blocking the loop for their transaction, one between
-two reads while polling is due (``owed``, the fairness rule of csrc/emb_engine.c).  A
-failed link closes that link only; a DTU line waits for the DTU to dial in again, a
-connect-mode line (RTU over TCP or Modbus TCP) connects again after the reconnect
-backoff through a non-blocking :class:`~edgemodbus.line.loop_connect.Dialer` on the
-same slot.
+link's jobs run while it is idle, on a job thread, the link out of the loop meanwhile
+(line/loop_jobs.py), one between two reads while polling is due (``owed``, the
+fairness rule of csrc/emb_engine.c).  A failed link closes that link only; a DTU line
+waits for the DTU to dial in again, a connect-mode line (RTU over TCP or Modbus TCP)
+connects again after the reconnect backoff through a non-blocking
+:class:`~edgemodbus.line.loop_connect.Dialer` on the same slot.
 
 :data:`~edgemodbus.line.loop_pool.pool` (line/loop_pool.py) spreads the lines over
 ``loopThreads`` workers (least loaded first); a worker starts with its first line and
@@ -48,10 +48,12 @@ from .._ffi.loop import (
     Loop,
     LoopLink,
 )
-from ..errors import ModbusConnectionError
 from .endpoint import DtuEndpoint, LineTiming, TcpEndpoint
+from .jobs import Job
 from .link import ContextLink
-from .loop_connect import Dialer
+from .loop_connect import Dialer, abort_dial, dialing
+from .loop_events import hand_ended, hand_failure, hand_reports, hand_split
+from .loop_jobs import JobThreads, next_job, run_jobs
 from .loop_scope import loop_serves, why_not
 from .poller_api import Poller
 from .worker import Connector, LineWorker
@@ -81,6 +83,8 @@ class _Served:
     ll: LoopLink | None = None
     failures: int = 0  # connects failed in a row (the reconnect backoff)
     pollers: list[Poller] = field(default_factory=list)
+    busy: bool = False  # its jobs run on a job thread, its link out of the loop
+    leaving: Future[None] | None = None  # removed while busy: done once it is back
 
 
 class LoopLine(LineWorker):
@@ -88,7 +92,7 @@ class LoopLine(LineWorker):
     :class:`~edgemodbus.line.loop_connect.Dialer`), served by a :class:`LoopWorker`
     (see the module)."""
 
-    __slots__ = ("_worker", "_workers")
+    __slots__ = ("_job_thread", "_worker", "_workers")
 
     def __init__(self, endpoint: DtuEndpoint | TcpEndpoint, timing: LineTiming | None,
                  connector: Connector, workers: Workers) -> None:
@@ -98,6 +102,13 @@ class LoopLine(LineWorker):
         super().__init__(endpoint, timing, connector)
         self._workers = workers
         self._worker: LoopWorker | None = None
+        self._job_thread: threading.Thread | None = None  # running its jobs now
+
+    def on_worker(self) -> bool:
+        """True on its loop thread, or the job thread running its jobs (in a callback
+        of one), where waiting for a queued job of the line would wait forever."""
+        current = threading.current_thread()
+        return current is self._thread or current is self._job_thread
 
     def start(self) -> None:
         if self._worker is not None:
@@ -139,6 +150,8 @@ class LoopWorker:
         self._inbox: queue.SimpleQueue[tuple[bool, LoopLine, Future[None]]] = \
             queue.SimpleQueue()
         self._news: set[LoopLine] = set()
+        self._back: list[_Served] = []  # lines whose jobs ended on a job thread
+        self.jobs = JobThreads(name)
         self._lock = threading.Lock()
         self._woken = False  # a wake-up is on its way (_wake_once)
         self._stopping = False
@@ -219,20 +232,26 @@ class LoopWorker:
                     if served.ll is not None:
                         if ev not in (SLOT_READY, SLOT_DUE):
                             self._guarded(self._step, served, ev)
-                    elif ev == SLOT_DUE or _dialing(served):  # down: the reconnect
+                    elif ev == SLOT_DUE or dialing(served.line.connector):  # down: the reconnect
                         self._guarded(self._connect, served)  # delay ran out, or a connect
                 with self._lock:  # before the inbox: a line told of is in it by now
                     news, self._news = self._news, set()
+                    back, self._back = self._back, []
                     self._woken = False  # what comes after this wakes the loop again
                 self._take_inbox()
+                for served in back:
+                    self._guarded(self._returned, served)
                 for line in news:
                     served = self._by_line.get(line)
                     if served is not None:
                         self._guarded(self._serve_queue, served)
             except Exception:  # a bug must not stop the other lines
                 log.exception("%s: loop turn failed", self.thread.name)
+        self.jobs.stop()  # (a line's link is its own again once its jobs ended)
         for served in list(self._by_line.values()):
             self._drop(served)
+            if served.leaving is not None:
+                served.leaving.set_result(None)
         self.loop.close()
         self.waker.close()
 
@@ -243,8 +262,11 @@ class LoopWorker:
         try:
             step(served, *args)
         except Exception as exc:
+            if served.busy:  # a job thread has the link: this waits until it is back
+                log.exception("%s: loop step failed", served.line.endpoint.describe())
+                return
             self._detach(served)
-            _abort_dial(served)
+            abort_dial(served.line.connector)
             served.link = None
             line = served.line
             line._recover(exc)
@@ -274,6 +296,9 @@ class LoopWorker:
                     self._guarded(self._connect, served)
                 else:
                     served_or_none = self._by_line.get(line)
+                    if served_or_none is not None and served_or_none.busy:
+                        served_or_none.leaving = future  # once its job is back
+                        continue
                     if served_or_none is not None:
                         self._drop(served_or_none)
                 future.set_result(None)
@@ -283,7 +308,7 @@ class LoopWorker:
     def _drop(self, served: _Served) -> None:
         """Take a line off this worker: its link closed, its jobs failed."""
         self._detach(served)
-        _abort_dial(served)
+        abort_dial(served.line.connector)
         self.loop.clear_timer(served.slot)  # a reconnect delay
         del self._slots[served.slot], self._by_line[served.line]
         self._free.append(served.slot)
@@ -294,7 +319,8 @@ class LoopWorker:
         if served.ll is not None:
             with contextlib.suppress(OSError):  # (a socket closed already is unwatched)
                 served.ll.detach()
-                os.set_blocking(served.ll.ctx.fd, True)
+                if served.link is not None and served.link.is_open:
+                    os.set_blocking(served.ll.ctx.fd, True)
         served.ll = served.engine = None
 
     def _connect(self, served: _Served) -> bool:
@@ -352,6 +378,8 @@ class LoopWorker:
     def _serve_queue(self, served: _Served) -> None:
         """Run what the line queued, while its link is idle (or down: jobs fail)."""
         line = served.line
+        if served.busy:  # a job thread has the link: all this once it is back
+            return
         if line._connect_now:
             link = served.link
             if link is not None and link.is_open:
@@ -361,7 +389,7 @@ class LoopWorker:
             served.link = None
             if not self._connect(served) and link is not None:
                 line._link_lost(link)  # replaced by nothing (e.g. the id is contested)
-        if served.ll is None and _dialing(served):
+        if served.ll is None and dialing(served.line.connector):
             self._connect(served)  # (the resolver has the host's addresses)
         ll = served.ll
         if ll is None:  # down: the jobs fail at once
@@ -376,27 +404,46 @@ class LoopWorker:
         else:  # it comes back EV_WAKE once idle (Loop.turn), and _step runs them
             ll.jobs = True
 
-    def _run_job(self, served: _Served) -> bool:
-        """Run the next job queued for the line's idle link, on its socket made blocking
-        for its transactions; then, with more queued, the link reads what is due first
-        (``owed``).  False if the link was lost meanwhile."""
+    def _hand_off(self, served: _Served, job: Job) -> None:
+        """Run ``job`` and the next ones on a job thread (line/loop_jobs.py), the idle
+        link out of the loop and its socket blocking meanwhile."""
         line, link, ll = served.line, served.link, served.ll
         assert link is not None and ll is not None
-        try:
-            item = line._queue.get_nowait()
-        except queue.Empty:
-            return True
+        ll.pause()
         os.set_blocking(ll.ctx.fd, True)
-        try:
-            line._handle(item, link)
-        finally:
-            if link.is_open:
-                os.set_blocking(ll.ctx.fd, False)
-        if not link.is_open:
+        devices = [p.device for p in served.pollers]
+
+        def task() -> None:
+            line._job_thread = threading.current_thread()
+            try:
+                run_jobs(line, link, job, devices,
+                         lambda: line._stopping or served.leaving is not None)
+            finally:
+                line._job_thread = None
+                with self._lock:
+                    self._back.append(served)
+                self.wake_now()
+
+        self.jobs.submit(task)  # (it raises only once this thread ended its loop)
+        served.busy = True
+
+    def _returned(self, served: _Served) -> None:
+        """The line's jobs ended on a job thread: its link back in the loop (or lost,
+        or the line gone), owing a read while more are queued."""
+        served.busy = False
+        line, link, ll = served.line, served.link, served.ll
+        if served.leaving is not None:
+            future, served.leaving = served.leaving, None
+            self._drop(served)
+            future.set_result(None)
+            return
+        if link is None or ll is None or not link.is_open:
             self._lost(served)
-            return False
+            return
+        os.set_blocking(ll.ctx.fd, False)
+        ll.resume()
         ll.jobs = ll.owed = not line._queue.empty()
-        return True
+        self._serve_queue(served)
 
     def _step(self, served: _Served, ev: int | None = None) -> None:
         """Run the line's link as far as it goes now, beginning with the event ``ev``
@@ -407,85 +454,40 @@ class LoopWorker:
         assert ll is not None and engine is not None
         while True:
             if ev is None:
-                if ll.state == LS_IDLE:  # a job goes ahead of the next read
-                    ll.jobs = False
-                    if not line._queue.empty() and not self._run_job(served):
+                if ll.state == LS_IDLE:  # a job goes ahead of the next read, unless owed
+                    job = None if ll.owed else next_job(line)
+                    if job is not None:
+                        self._hand_off(served, job)
                         return
+                    ll.jobs = not line._queue.empty()
                     if served.pollers != line._pollers:
                         served.pollers = list(line._pollers)
                         engine.set_devices([p.device for p in served.pollers])
                 ev = ll.run()
-            pollers = served.pollers
-            for ended in engine.take_ended():
-                try:
-                    pollers[ended].engine_cycle()
-                except Exception:
-                    log.exception("%s: poller failed", line.endpoint.describe())
+            pollers, where, link = served.pollers, line.endpoint.describe(), served.link
+            hand_ended(engine, pollers, where)
             if ev == EV_WAITS:
                 break
+            assert link is not None
             if ev == EV_SPLIT:
-                try:
-                    pollers[engine.event_device].engine_split()
-                except Exception:
-                    log.exception("%s: poller failed", line.endpoint.describe())
+                hand_split(pollers, engine.event_device, where)
             elif ev == EV_REPORTS:
-                self._reports(served, engine.event_device)
+                hand_reports(link, pollers, engine.event_device, where)
             elif ev == EV_FAILED:
-                self._failed(served, engine.event_device, engine.event_errno)
+                self._detach(served)
+                hand_failure(link, pollers, engine.event_device, engine.event_errno, where)
+                self._lost(served)
                 return
             elif ev not in (EV_CYCLE, EV_WAKE, EV_COLLECT):
                 raise RuntimeError(f"loop link: unexpected event {ev}")
             ev = None
-        link = served.link
         if link is not None:
             link.collect()  # the stream's counters (heartbeats, drops) into the stats
-
-    def _reports(self, served: _Served, which: int) -> None:
-        """A wrapped link took reports: handed over as the line worker hands them after
-        the blocking engine's EV_REPORTS (line/worker.py ``_dispatch``): those that came
-        before the reply, then the reply's results (device ``which``), then the rest."""
-        link = served.link
-        assert link is not None
-        link.collect()
-        if 0 <= which < len(served.pollers):
-            try:
-                served.pollers[which].take_results()
-            except Exception:
-                log.exception("%s: poller failed", served.line.endpoint.describe())
-        link.flush_reports()
-
-    def _failed(self, served: _Served, which: int, err: int) -> None:
-        link = served.link
-        assert link is not None
-        self._detach(served)
-        link.collect()
-        try:
-            if 0 <= which < len(served.pollers):
-                served.pollers[which].engine_failed(link, err)
-        except ModbusConnectionError:
-            pass
-        except Exception:
-            log.exception("%s: poller failed", served.line.endpoint.describe())
-        if link.is_open:
-            link.close_reason = f"link failed: {os.strerror(err)}"
-        self._lost(served)
-
-
-def _dialing(served: _Served) -> bool:
-    """A connect-mode line whose connect is under way."""
-    connector = served.line.connector
-    return isinstance(connector, Dialer) and connector.busy
 
 
 # this thread's LoopPool.deferred block (line/loop_pool.py): .workers, the loop workers
 # to wake at its end
 held_wakeups = threading.local()
-
-
-def _abort_dial(served: _Served) -> None:
-    connector = served.line.connector
-    if isinstance(connector, Dialer):
-        connector.abort()
 
 
 __all__ = ["DEFAULT_CAPACITY", "LoopLine", "LoopWorker", "held_wakeups", "loop_serves"]

@@ -290,4 +290,15 @@ class Dialer:
             raise
 
 
-__all__ = ["Dialer"]
+def dialing(connector: object) -> bool:
+    """``connector`` is a :class:`Dialer` whose connect is under way."""
+    return isinstance(connector, Dialer) and connector.busy
+
+
+def abort_dial(connector: object) -> None:
+    """Abort ``connector``'s connect under way, if it is a :class:`Dialer`."""
+    if isinstance(connector, Dialer):
+        connector.abort()
+
+
+__all__ = ["Dialer", "abort_dial", "dialing"]

@@ -1,0 +1,194 @@
+"""A job on a loop line never blocks its loop thread (issue #25 "a bad device never
+stalls the good ones", on the loop engine: line/loop_jobs.py).
+
+Several DTUs dial in to one listen port and are served by ONE loop thread
+(``loopThreads`` 1); each DTU is a relay (tests/integration/test_dtu.py SegmentedDtu)
+in front of a pymodbus slave in its own process.  Writes and forwards (the gateway's
+Modbus TCP server, raw-socket masters) flood one DTU: to slaves that never answer, or to
+a live but slow one; the bystander DTUs on the same thread keep at least half the
+polling rate they had before the flood (counted over windows, against the quiet rate
+measured in the same test: a loaded machine slows both alike)."""
+
+from __future__ import annotations
+
+import struct
+import threading
+import time
+from collections.abc import Iterator
+from contextlib import ExitStack
+from typing import Any
+
+import pytest
+
+import edgemodbus as em
+from edgemodbus.line.loop_pool import pool
+from edgemodbus.serve import ModbusTcpServer
+from tests.conftest import SlaveFactory
+from tests.integration.test_dtu import SegmentedDtu, free_port
+from tests.integration.test_line_fairness import Flood
+from tests.peers import PymodbusSlave
+from tests.waiting import wait_for
+
+WINDOW = 3.0  # seconds a rate is counted over
+BYSTANDERS = 3
+DEAD_SLAVES = (7, 8, 9, 10)  # slave ids nobody answers (pymodbus serves unit 1 only)
+
+
+def dtu_config(port: int, dtu_id: str, slave: int, **extra: Any) -> em.DeviceConfig:
+    comm: dict[str, Any] = {
+        "transport": "rtu-over-tcp-server", "listenHost": "127.0.0.1", "listenPort": port,
+        "dtuId": dtu_id, "registration": "text", "registrationTimeout": 2000,
+        "slaveId": slave, "readTimeout": 500, "readCycle": 100, "reconnectInterval": 300,
+        "byteTimeout": 50, "retries": 0, "offlineAfterFailedCycles": 1000,
+        "engine": "loop", "loopThreads": 1,
+    }
+    comm.update(extra)
+    return em.load_device_config({
+        "organization": {"deviceCode": f"{dtu_id}-{slave}"},
+        "communication": comm,
+        "addressList": [{"name": f"r{a}", "address": f"hr:{a}", "deviceDataType": "UInt16"}
+                        for a in range(4)],
+    })
+
+
+class Site:
+    """The bystander DTUs (slave 1 each, polled every 100 ms) and one flooded DTU with
+    the devices ``flooded`` gives (slave id and extra settings), all on one port and
+    one loop thread; a Modbus TCP server in front, each flooded device's slave id its
+    forward unit."""
+
+    def __init__(self, stack: ExitStack, fast: PymodbusSlave, flooded_peer: PymodbusSlave,
+                 flooded: list[tuple[int, dict[str, Any]]]) -> None:
+        port = free_port()
+        self.drivers: list[em.DriverModbusRtu] = []
+        stack.callback(self._stop_drivers)
+        self.bystanders = [self._start(dtu_config(port, f"BY{k}", 1))
+                           for k in range(BYSTANDERS)]
+        self.flooded = [self._start(dtu_config(port, "FLOOD", slave, **extra))
+                        for slave, extra in flooded]
+        self.server = ModbusTcpServer("127.0.0.1", 0, max_connections=16, idle_timeout=0)
+        stack.callback(self.server.stop)
+        for (slave, _extra), drv in zip(flooded, self.flooded, strict=True):
+            self.server.forward_device(slave, drv, timeout=2.0)
+        self.server.start()
+        for k in range(BYSTANDERS):
+            stack.callback(SegmentedDtu(port, [f"BY{k}".encode()], fast.port).close)
+        stack.callback(SegmentedDtu(port, [b"FLOOD"], flooded_peer.port).close)
+        for drv in self.bystanders:
+            wait_for(lambda d=drv: d.device_driver_status is em.DeviceDriverStatus.RUNNING,
+                     30, "the bystanders polled")
+        wait_for(lambda: all(d.stats()["requests"] >= 1 for d in self.flooded), 30,
+                 "the flooded DTU polled")
+        assert pool.workers == 1  # every line on one loop thread
+
+    def _start(self, cfg: em.DeviceConfig) -> em.DriverModbusRtu:
+        drv = em.DriverModbusRtu()
+        self.drivers.append(drv)
+        assert drv.start_device(cfg.organization, cfg.communication, cfg.address_list)
+        return drv
+
+    def _stop_drivers(self) -> None:
+        for drv in reversed(self.drivers):
+            drv.stop_device()
+
+    def cycles(self) -> list[int]:
+        return [d.stats()["cycles"] for d in self.bystanders]
+
+    def rate(self, seconds: float = WINDOW) -> float:
+        """The slowest bystander's cycles per second over a window of ``seconds``."""
+        before, start = self.cycles(), time.monotonic()
+        time.sleep(seconds)  # a measuring window, not a wait for an event
+        elapsed = time.monotonic() - start
+        return min(b - a for a, b in zip(before, self.cycles(), strict=True)) / elapsed
+
+
+class Writes:
+    """One thread per driver writing register 1 in a closed loop (the next write as
+    soon as the last one ended); outcomes counted."""
+
+    def __init__(self, drivers: list[em.DriverModbusRtu]) -> None:
+        self.done = 0
+        self.failed = 0
+        self._stop = threading.Event()
+        self._lock = threading.Lock()
+        self._threads = [threading.Thread(target=self._run, args=(drv,), name=f"test-writer-{k}")
+                         for k, drv in enumerate(drivers)]
+
+    def __enter__(self) -> Writes:
+        for thread in self._threads:
+            thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        for thread in self._threads:
+            thread.join(30)
+        assert not any(t.is_alive() for t in self._threads), "a writer did not stop"
+
+    def _run(self, drv: em.DriverModbusRtu) -> None:
+        value = 0
+        while not self._stop.is_set():
+            value = (value + 1) & 0xFFFF
+            try:
+                ok = drv.submit_writes([("r1", value)]).result(30)[0]
+            except em.ModbusError:  # a timeout, or refused by the target backoff
+                ok = False
+            with self._lock:
+                self.done += 1
+                self.failed += not ok
+
+
+@pytest.fixture
+def fast(slave_factory: SlaveFactory) -> PymodbusSlave:
+    peer: PymodbusSlave = slave_factory("rtu-over-tcp", units=(1,), size=100)
+    return peer
+
+
+@pytest.fixture
+def site_stack() -> Iterator[ExitStack]:
+    with ExitStack() as stack:
+        yield stack
+
+
+def check(quiet: float, flooded: float, what: str) -> None:
+    print(f"bystanders ({what}): quiet {quiet:.2f} cycles/s, flooded {flooded:.2f} cycles/s")
+    assert flooded >= 0.5 * quiet, (what, quiet, flooded)
+
+
+def test_writes_and_forwards_to_dead_slaves_leave_the_thread_s_other_dtus_their_rate(
+        fast: PymodbusSlave, site_stack: ExitStack) -> None:
+    # each dead slave has its own target backoff: four of them cost the old loop thread
+    # a timeout and a settle (1 s) every few seconds each
+    site = Site(site_stack, fast, fast,
+                [(s, {"readCycle": 3_600_000, "maxBackoff": 1000}) for s in DEAD_SLAVES])
+    quiet = site.rate()
+    assert quiet >= 3, quiet
+    with Writes(site.flooded[:2]) as writes, \
+            Flood(site.server.port, DEAD_SLAVES[2], struct.pack(">BHH", 3, 0, 1), 1) as f1, \
+            Flood(site.server.port, DEAD_SLAVES[3], struct.pack(">BHH", 6, 1, 5), 1) as f2:
+        wait_for(lambda: writes.failed >= 2 and f1.total() >= 1 and f2.total() >= 1, 30,
+                 "the first answers to the flood")
+        flooded = site.rate()
+    check(quiet, flooded, "dead slaves flooded")
+    assert not f1.errors and not f2.errors, (f1.errors, f2.errors)
+    assert writes.failed == writes.done  # nobody answers them
+    assert set(f1.answers) | set(f2.answers) <= {"exception 0B"}
+    line = site.flooded[0].stats()["line"]
+    assert line["targetBackoffs"] >= 1 and line["jobs"] >= 4, line
+
+
+def test_a_forward_flood_to_a_live_slave_leaves_the_thread_s_other_dtus_their_rate(
+        fast: PymodbusSlave, slave_factory: SlaveFactory, site_stack: ExitStack) -> None:
+    slow: PymodbusSlave = slave_factory("rtu-over-tcp", units=(5,), size=100,
+                                        response_delay=0.05)
+    site = Site(site_stack, fast, slow, [(5, {"readCycle": 60_000})])
+    quiet = site.rate()
+    assert quiet >= 3, quiet
+    with Flood(site.server.port, 5, struct.pack(">BHH", 3, 0, 4), masters=2) as flood:
+        wait_for(lambda: flood.total() >= 5, 30, "the masters' first answers")
+        flooded = site.rate()
+        answered = flood.total()
+    check(quiet, flooded, "a live slave flooded")
+    assert not flood.errors and set(flood.answers) == {"ok"}, (flood.errors, flood.answers)
+    assert answered >= 10
+    assert site.flooded[0].stats()["line"]["forwarded"] >= answered
