@@ -3,6 +3,9 @@ polling share a line so that neither starves; a forward target that timed out ba
 off; a forward's timeout counts from its arrival; a line with too many jobs waiting
 answers exception 06.  Real libmodbus on our side, pymodbus (own process) as the slaves
 of an RTU-over-TCP line, raw-socket masters against the gateway's Modbus TCP server.
+Every test runs on both engines (the ``engine`` fixture, tests/engines.py): a line
+thread, and a loop thread where the line's jobs run on a job thread
+(line/loop_jobs.py) under the same rule.
 
 Rates are counted over windows (cycles of a bystander device) and compared with the
 quiet rate measured in the same test: a loaded machine slows both alike."""
@@ -26,6 +29,7 @@ from edgemodbus.errors import TargetBackoffError
 from edgemodbus.serve import ModbusTcpServer
 from edgemodbus.sim import Simulator
 from tests.conftest import SlaveFactory
+from tests.engines import with_engine
 from tests.integration.test_driver import Running, all_ok, device
 from tests.peers import PymodbusSlave
 from tests.waiting import wait_for
@@ -34,13 +38,15 @@ WINDOW = 3.0  # seconds a rate is counted over
 BYSTANDER, TARGET, SERVED, DEAD = 1, 2, 3, 7  # slave ids on the line (7 answers nothing)
 FORWARD_UNIT, SERVED_UNIT, DEAD_UNIT = 9, 3, 7  # the server's unit ids
 
+pytestmark = pytest.mark.usefixtures("engine")
+
 
 def comm(peer: PymodbusSlave, slave: int, **extra: Any) -> dict[str, Any]:
     base = {"transport": "rtu-over-tcp", "tcpHost": "127.0.0.1", "tcpPort": peer.port,
             "slaveId": slave, "readTimeout": 700, "readCycle": 100, "retries": 0,
             "reconnectInterval": 300, "offlineAfterFailedCycles": 1000}
     base.update(extra)
-    return base
+    return with_engine(base)
 
 
 def mbap(tid: int, unit: int, pdu: bytes) -> bytes:
@@ -290,7 +296,8 @@ def test_writes_to_a_silent_served_slave_back_off(peer: PymodbusSlave) -> None:
         gw.close()
 
 
-def test_jobs_and_reads_alternate_while_blocks_are_due(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_jobs_and_reads_alternate_while_blocks_are_due(monkeypatch: pytest.MonkeyPatch,
+                                                       engine: str) -> None:
     """The rule at the request level (csrc/emb_engine.c): 12 writes queued at once on a
     line whose 20 blocks are always due go out with a read between each two, and the
     first one waits for the read in flight only."""
@@ -308,7 +315,8 @@ def test_jobs_and_reads_alternate_while_blocks_are_due(monkeypatch: pytest.Monke
         port = sim.serve_tcp("127.0.0.1", 0)
         items = [{"name": f"t{k}", "address": f"hr:{10 * k}", "deviceDataType": "UInt16"}
                  for k in range(20)]
-        cfg = device(port, items, readCycle=10, maxMergeAddressGap=0, readTimeout=1000)
+        cfg = device(port, items, readCycle=10, maxMergeAddressGap=0, readTimeout=1000,
+                     engine=engine)
         with Running(cfg) as drv:
             wait_for(all_ok(cfg), 15, "every item read")
             mark = len(seen)

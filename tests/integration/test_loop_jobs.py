@@ -192,3 +192,79 @@ def test_a_forward_flood_to_a_live_slave_leaves_the_thread_s_other_dtus_their_ra
     assert not flood.errors and set(flood.answers) == {"ok"}, (flood.errors, flood.answers)
     assert answered >= 10
     assert site.flooded[0].stats()["line"]["forwarded"] >= answered
+
+
+def _job_threads() -> list[str]:
+    return [t.name for t in threading.enumerate() if " job " in t.name]
+
+
+def test_a_line_stopped_while_its_job_waits_for_a_dead_slave_fails_it_cleanly(
+        fast: PymodbusSlave) -> None:
+    """The stop cuts the socket of the job in flight (it fails at once, not after its
+    timeout and settle), fails the jobs queued behind it, and leaves no job thread
+    behind; the other DTU of the thread polls on."""
+    port = free_port()
+    with ExitStack() as stack:
+        drivers: list[em.DriverModbusRtu] = []
+        for cfg in (dtu_config(port, "BY0", 1),
+                    dtu_config(port, "DEAD", 7, readTimeout=3000, readCycle=3_600_000)):
+            drv = em.DriverModbusRtu()
+            assert drv.start_device(cfg.organization, cfg.communication, cfg.address_list)
+            drivers.append(drv)
+            stack.callback(drv.stop_device)
+        good, dead = drivers
+        stack.callback(SegmentedDtu(port, [b"BY0"], fast.port).close)
+        stack.callback(SegmentedDtu(port, [b"DEAD"], fast.port).close)
+        wait_for(lambda: good.device_driver_status is em.DeviceDriverStatus.RUNNING, 30,
+                 "the good DTU polled")
+        wait_for(lambda: dead.stats()["requests"] >= 1, 30, "the dead DTU polled")
+        in_flight = dead.submit_writes([("r1", 1)])
+        queued = [dead.submit_writes([("r2", k)]) for k in range(3)]
+        wait_for(lambda: _job_threads() != [], 15, "the write on a job thread")
+        cycles = good.stats()["cycles"]
+        wait_for(lambda: good.stats()["cycles"] >= cycles + 3, 15,
+                 "the good DTU polled while the write waits")
+        start = time.monotonic()
+        dead.stop_device()
+        elapsed = time.monotonic() - start
+        print(f"stopped after {elapsed:.2f} s (readTimeout 3 s)")
+        assert elapsed < 2.0, elapsed
+        for future in (in_flight, *queued):  # none left hanging, none confirmed
+            assert future.done()
+            assert future.exception() is not None or future.result()[0] is False
+        print(f"the write in flight: {in_flight.exception() or in_flight.result()}; "
+              f"the first queued: {queued[0].exception() or queued[0].result()}")
+        cycles = good.stats()["cycles"]
+        wait_for(lambda: good.stats()["cycles"] >= cycles + 3, 15, "the good DTU polling on")
+    wait_for(lambda: _job_threads() == [], 15, "no job thread left")
+
+
+def test_a_dtu_lost_during_a_job_fails_the_job_and_is_polled_again_when_it_redials(
+        fast: PymodbusSlave) -> None:
+    port = free_port()
+    cfg = dtu_config(port, "LOST", 7, readTimeout=3000, readCycle=3_600_000)
+    drv = em.DriverModbusRtu()
+    assert drv.start_device(cfg.organization, cfg.communication, cfg.address_list)
+    try:
+        dtu = SegmentedDtu(port, [b"LOST"], fast.port)
+        try:
+            wait_for(lambda: drv.stats()["requests"] >= 1, 30, "the DTU polled")
+            future = drv.forward(struct.pack(">BHH", 3, 0, 1), 10.0)
+            wait_for(lambda: _job_threads() != [], 15, "the forward on a job thread")
+            start = time.monotonic()
+        finally:
+            dtu.close()  # the DTU hangs up while the forward waits for its slave
+        with pytest.raises(em.ModbusError):
+            future.result(15)
+        print(f"the forward failed {time.monotonic() - start:.2f} s after the hang-up")
+        assert time.monotonic() - start < 2.5  # at the hang-up, not after readTimeout
+        dtu = SegmentedDtu(port, [b"LOST"], fast.port)
+        try:
+            wait_for(lambda: drv.stats()["line"]["reconnects"] >= 1, 30,
+                     "the DTU's link up again")
+            with pytest.raises(em.ModbusTimeoutError):  # slave 7 still answers nothing
+                drv.forward(struct.pack(">BHH", 3, 0, 1), 10.0).result(15)
+        finally:
+            dtu.close()
+    finally:
+        drv.stop_device()

@@ -53,7 +53,7 @@ from .jobs import Job
 from .link import ContextLink
 from .loop_connect import Dialer, abort_dial, dialing
 from .loop_events import hand_ended, hand_failure, hand_reports, hand_split
-from .loop_jobs import JobThreads, next_job, run_jobs
+from .loop_jobs import JobThreads, cut_off, next_job, run_jobs
 from .loop_scope import loop_serves, why_not
 from .poller_api import Poller
 from .worker import Connector, LineWorker
@@ -84,6 +84,7 @@ class _Served:
     failures: int = 0  # connects failed in a row (the reconnect backoff)
     pollers: list[Poller] = field(default_factory=list)
     busy: bool = False  # its jobs run on a job thread, its link out of the loop
+    hold: int = -1  # meanwhile a dup of its socket (cut_off: the line stops)
     leaving: Future[None] | None = None  # removed while busy: done once it is back
 
 
@@ -297,7 +298,8 @@ class LoopWorker:
                 else:
                     served_or_none = self._by_line.get(line)
                     if served_or_none is not None and served_or_none.busy:
-                        served_or_none.leaving = future  # once its job is back
+                        served_or_none.leaving = future  # once its job is back,
+                        cut_off(served_or_none.hold)  # at once: it fails on the socket
                         continue
                     if served_or_none is not None:
                         self._drop(served_or_none)
@@ -424,13 +426,16 @@ class LoopWorker:
                     self._back.append(served)
                 self.wake_now()
 
+        # hold: the socket, even once the job closed the link's fd (cut_off)
+        served.busy, served.hold = True, os.dup(ll.ctx.fd)
         self.jobs.submit(task)  # (it raises only once this thread ended its loop)
-        served.busy = True
 
     def _returned(self, served: _Served) -> None:
         """The line's jobs ended on a job thread: its link back in the loop (or lost,
         or the line gone), owing a read while more are queued."""
         served.busy = False
+        os.close(served.hold)
+        served.hold = -1
         line, link, ll = served.line, served.link, served.ll
         if served.leaving is not None:
             future, served.leaving = served.leaving, None
