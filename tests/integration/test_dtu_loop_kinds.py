@@ -1,7 +1,7 @@
 """Wrapped and echoing DTUs on the loop engine, end to end (listen mode, ``engine:
 "loop"``): the line is a LoopLine on a loop thread (no line thread of its own), polled
 values are exact, and wrapped reports reach the items as on a line worker (the same
-hand-over: line/loop.py LoopWorker._reports).  The DTUs are our simulator in DTU-client
+hand-over: line/loop_events.py hand_reports).  The DTUs are our simulator in DTU-client
 mode; the blocking engine's behaviour for the same cases is in test_wrapped_link.py and
 test_faults.py."""
 
