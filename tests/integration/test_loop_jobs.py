@@ -268,3 +268,31 @@ def test_a_dtu_lost_during_a_job_fails_the_job_and_is_polled_again_when_it_redia
             dtu.close()
     finally:
         drv.stop_device()
+
+
+def test_a_job_runs_on_a_job_thread_that_counts_as_its_line_s_worker(
+        fast: PymodbusSlave) -> None:
+    """A job's callbacks may not wait for a job of their own line (it would wait for
+    itself): on the job thread the line says it is on its worker, as on its loop thread;
+    another line's job thread is not its worker."""
+    port = free_port()
+    cfgs = [dtu_config(port, f"W{k}", 1) for k in range(2)]
+    with ExitStack() as stack:
+        drivers = []
+        for cfg in cfgs:
+            drv = em.DriverModbusRtu()
+            assert drv.start_device(cfg.organization, cfg.communication, cfg.address_list)
+            stack.callback(drv.stop_device)
+            drivers.append(drv)
+        for k in range(2):
+            stack.callback(SegmentedDtu(port, [f"W{k}".encode()], fast.port).close)
+        for drv in drivers:
+            wait_for(lambda d=drv: d.stats()["requests"] >= 1, 30, "the DTUs polled")
+        mine, other = (drv._line for drv in drivers)
+        assert mine is not None and other is not None
+        seen = mine.submit(lambda _link: (threading.current_thread().name, mine.on_worker(),
+                                          other.on_worker())).result(15)
+    name, on_mine, on_other = seen
+    assert " job " in name and name.startswith("edgemodbus-loop"), name
+    assert on_mine and not on_other
+    assert not mine.on_worker()  # (this thread)

@@ -48,12 +48,12 @@ from .._ffi.loop import (
     Loop,
     LoopLink,
 )
+from . import loop_jobs
 from .endpoint import DtuEndpoint, LineTiming, TcpEndpoint
 from .jobs import Job
 from .link import ContextLink
 from .loop_connect import Dialer, abort_dial, dialing
 from .loop_events import hand_ended, hand_failure, hand_reports, hand_split
-from .loop_jobs import JobThreads, cut_off, next_job, run_jobs
 from .loop_scope import loop_serves, why_not
 from .poller_api import Poller
 from .worker import Connector, LineWorker
@@ -93,7 +93,7 @@ class LoopLine(LineWorker):
     :class:`~edgemodbus.line.loop_connect.Dialer`), served by a :class:`LoopWorker`
     (see the module)."""
 
-    __slots__ = ("_job_thread", "_worker", "_workers")
+    __slots__ = ("_worker", "_workers")
 
     def __init__(self, endpoint: DtuEndpoint | TcpEndpoint, timing: LineTiming | None,
                  connector: Connector, workers: Workers) -> None:
@@ -103,13 +103,10 @@ class LoopLine(LineWorker):
         super().__init__(endpoint, timing, connector)
         self._workers = workers
         self._worker: LoopWorker | None = None
-        self._job_thread: threading.Thread | None = None  # running its jobs now
 
     def on_worker(self) -> bool:
-        """True on its loop thread, or the job thread running its jobs (in a callback
-        of one), where waiting for a queued job of the line would wait forever."""
-        current = threading.current_thread()
-        return current is self._thread or current is self._job_thread
+        """On its loop thread or the job thread running its jobs: no waiting for a job."""
+        return threading.current_thread() is self._thread or loop_jobs.running_jobs_of() is self
 
     def start(self) -> None:
         if self._worker is not None:
@@ -152,7 +149,7 @@ class LoopWorker:
             queue.SimpleQueue()
         self._news: set[LoopLine] = set()
         self._back: list[_Served] = []  # lines whose jobs ended on a job thread
-        self.jobs = JobThreads(name)
+        self.jobs = loop_jobs.JobThreads(name)
         self._lock = threading.Lock()
         self._woken = False  # a wake-up is on its way (_wake_once)
         self._stopping = False
@@ -296,13 +293,13 @@ class LoopWorker:
                     self._by_line[line] = served
                     self._guarded(self._connect, served)
                 else:
-                    served_or_none = self._by_line.get(line)
-                    if served_or_none is not None and served_or_none.busy:
-                        served_or_none.leaving = future  # once its job is back,
-                        cut_off(served_or_none.hold)  # at once: it fails on the socket
+                    gone = self._by_line.get(line)
+                    if gone is not None and gone.busy:  # done once its job is back,
+                        gone.leaving = future  # at once: the job fails on its socket
+                        loop_jobs.cut_off(gone.hold)
                         continue
-                    if served_or_none is not None:
-                        self._drop(served_or_none)
+                    if gone is not None:
+                        self._drop(gone)
                 future.set_result(None)
             except Exception as exc:
                 future.set_exception(exc)
@@ -311,6 +308,7 @@ class LoopWorker:
         """Take a line off this worker: its link closed, its jobs failed."""
         self._detach(served)
         abort_dial(served.line.connector)
+        served.hold = loop_jobs.let_go(served.hold)
         self.loop.clear_timer(served.slot)  # a reconnect delay
         del self._slots[served.slot], self._by_line[served.line]
         self._free.append(served.slot)
@@ -407,35 +405,34 @@ class LoopWorker:
             ll.jobs = True
 
     def _hand_off(self, served: _Served, job: Job) -> None:
-        """Run ``job`` and the next ones on a job thread (line/loop_jobs.py), the idle
-        link out of the loop and its socket blocking meanwhile."""
+        """Run ``job`` and the next ones on a job thread, the link out of the loop."""
         line, link, ll = served.line, served.link, served.ll
         assert link is not None and ll is not None
         ll.pause()
         os.set_blocking(ll.ctx.fd, True)
-        devices = [p.device for p in served.pollers]
 
-        def task() -> None:
-            line._job_thread = threading.current_thread()
+        def task() -> None:  # (the engine's devices: none changes while the line is busy)
             try:
-                run_jobs(line, link, job, devices,
+                loop_jobs.run_jobs(line, link, job, [p.device for p in served.pollers],
                          lambda: line._stopping or served.leaving is not None)
             finally:
-                line._job_thread = None
                 with self._lock:
                     self._back.append(served)
                 self.wake_now()
 
-        # hold: the socket, even once the job closed the link's fd (cut_off)
-        served.busy, served.hold = True, os.dup(ll.ctx.fd)
-        self.jobs.submit(task)  # (it raises only once this thread ended its loop)
+        served.busy, served.hold = True, loop_jobs.hold_of(ll.ctx.fd)
+        try:
+            self.jobs.submit(task)
+        except Exception:  # no thread to be had: the recovery fails it with the rest
+            served.busy = False
+            served.hold = loop_jobs.let_go(served.hold)
+            line._queue.put(job)
+            raise
 
     def _returned(self, served: _Served) -> None:
-        """The line's jobs ended on a job thread: its link back in the loop (or lost,
-        or the line gone), owing a read while more are queued."""
+        """Its jobs ended: the link back in the loop (owing a read), lost, or dropped."""
         served.busy = False
-        os.close(served.hold)
-        served.hold = -1
+        served.hold = loop_jobs.let_go(served.hold)
         line, link, ll = served.line, served.link, served.ll
         if served.leaving is not None:
             future, served.leaving = served.leaving, None
@@ -460,7 +457,7 @@ class LoopWorker:
         while True:
             if ev is None:
                 if ll.state == LS_IDLE:  # a job goes ahead of the next read, unless owed
-                    job = None if ll.owed else next_job(line)
+                    job = None if ll.owed else loop_jobs.next_job(line)
                     if job is not None:
                         self._hand_off(served, job)
                         return

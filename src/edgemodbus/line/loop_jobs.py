@@ -42,6 +42,30 @@ JOB_THREADS = 8
 IDLE_SECONDS = 5.0
 
 
+_running = threading.local()  # .line: the line whose jobs this job thread runs now
+
+
+def running_jobs_of() -> object | None:
+    """The line whose jobs this thread runs now (None: none; see :func:`run_jobs`)."""
+    return getattr(_running, "line", None)
+
+
+def hold_of(fd: int) -> int:
+    """A dup of socket ``fd`` for :func:`cut_off`, -1 without an fd to spare (then a
+    stop waits for the job in flight)."""
+    try:
+        return os.dup(fd)
+    except OSError:
+        return -1
+
+
+def let_go(hold: int) -> int:
+    """Close a :func:`hold_of` dup (-1: none); -1, for the holder to keep."""
+    if hold >= 0:
+        os.close(hold)
+    return -1
+
+
 def next_job(line: LineWorker) -> Job | None:
     """The line's next queued job, past the reschedules (None items: a poller attached,
     a new connection) that need no link; None when none is queued."""
@@ -61,12 +85,16 @@ def run_jobs(line: LineWorker, link: Link, first: Job, devices: Sequence[EngineD
     stays open and ``leave()`` is false.  Job thread.  Returns how many ran."""
     job: Job | None = first
     ran = 0
-    while job is not None:
-        line._handle(job, link, late_by(devices, time.monotonic()))
-        ran += 1
-        if leave() or not link.is_open or late_by(devices, time.monotonic()) is not None:
-            break  # the loop reads what is due first (owed), or closes the line
-        job = next_job(line)
+    _running.line = line  # (a callback of a job is on the line's worker: on_worker)
+    try:
+        while job is not None:
+            line._handle(job, link, late_by(devices, time.monotonic()))
+            ran += 1
+            if leave() or not link.is_open or late_by(devices, time.monotonic()) is not None:
+                break  # the loop reads what is due first (owed), or closes the line
+            job = next_job(line)
+    finally:
+        _running.line = None
     return ran
 
 
@@ -113,7 +141,13 @@ class JobThreads:
                 thread = threading.Thread(target=self._run, daemon=True,
                                           name=f"{self.name} job {self._made}")
                 self._threads.add(thread)
-                thread.start()
+                try:
+                    thread.start()
+                except RuntimeError:  # no thread to be had: the others take it, if any
+                    self._threads.discard(thread)
+                    if not self._threads:
+                        self._tasks.pop()
+                        raise
             else:
                 self._cond.notify()
 
@@ -156,4 +190,5 @@ class JobThreads:
                 log.exception("%s: a job task failed", me.name)
 
 
-__all__ = ["IDLE_SECONDS", "JOB_THREADS", "JobThreads", "cut_off", "next_job", "run_jobs"]
+__all__ = ["IDLE_SECONDS", "JOB_THREADS", "JobThreads", "cut_off", "hold_of", "let_go", "next_job",
+           "run_jobs", "running_jobs_of"]
