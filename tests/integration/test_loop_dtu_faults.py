@@ -110,7 +110,7 @@ def test_a_registered_peer_flooding_bytes_costs_the_loop_per_byte_only() -> None
 
 
 def test_a_one_megabyte_frame_and_a_reset_mid_reply_and_the_dtu_polled_again() -> None:
-    with site() as (port, bystanders, victim, d_victim):
+    with site() as (port, bystanders, victim, _driver):
         sock = registered(port)
 
         def big_frame_then_reset() -> None:
