@@ -14,6 +14,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from contextlib import ExitStack, contextmanager
+from typing import Any
 
 import edgemodbus as em
 from edgemodbus.sim import Simulator
@@ -47,8 +48,9 @@ def site() -> Iterator[tuple[int, list[em.DriverModbusRtu], em.DeviceConfig,
     """A listen port with BYSTANDERS simulated DTUs polled at 10 cycles/s and one more
     DTU, "VICTIM", whose connection the test plays; all on one loop thread."""
     port = free_port()
-    extra = {"engine": "loop", "loopThreads": 1, "registrationTimeout": 2000,
-             "readTimeout": 200, "reconnectInterval": 200, "offlineAfterFailedCycles": 2}
+    extra: dict[str, Any] = {"engine": "loop", "loopThreads": 1, "registrationTimeout": 2000,
+                             "readTimeout": 200, "reconnectInterval": 200,
+                             "offlineAfterFailedCycles": 2}
     cfgs = [dtu_device(port, f"B{i}", **extra) for i in range(BYSTANDERS)]
     victim = dtu_device(port, "VICTIM", **extra)
     with ExitStack() as stack:
