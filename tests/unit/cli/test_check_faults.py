@@ -109,3 +109,44 @@ def test_thousands_of_files_in_bounded_time_and_memory(tmp_path: Path) -> None:
     assert (code, lines) == (0, ["ok: 2000 device files (20000 items, 2000 requests per "
                                  "cycle), 0 gateway files"])
     assert took < 60 and peak < 200, (took, peak)
+
+
+def test_a_fifo_put_in_place_after_the_stat_never_blocks_a_read(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """config/jsonfile.py and gateway/config.py's file_bytes stat a file, then open it:
+    a FIFO put there in between blocked the open forever (the reload thread, a check).
+    The stat is played here by one of a regular file; the open must not block."""
+    import threading
+
+    from edgemodbus.config import ConfigError, load_device_config
+    from edgemodbus.gateway.config import file_bytes
+
+    regular = tmp_path / "regular.json"
+    regular.write_text("{}")
+    fifo = tmp_path / "dev.json"
+    os.mkfifo(fifo)
+    real_stat = os.stat
+
+    def stat_before_the_swap(path: Any, *args: Any, **kwargs: Any) -> os.stat_result:
+        return real_stat(regular if os.fspath(path) == str(fifo) else path, *args, **kwargs)
+
+    monkeypatch.setattr(os, "stat", stat_before_the_swap)
+    outcomes: list[object] = []
+
+    def read() -> None:
+        try:
+            load_device_config(fifo)
+        except ConfigError as exc:
+            outcomes.append(str(exc))
+        outcomes.append(file_bytes(fifo))
+
+    reader = threading.Thread(target=read, daemon=True)
+    reader.start()
+    reader.join(20)
+    if reader.is_alive():  # let the blocked open go, then fail
+        with open(fifo, "wb"):
+            pass
+        reader.join(5)
+        raise AssertionError("a read of the FIFO blocked")
+    assert outcomes[0] == f"{fifo}: is a FIFO: give a JSON file", outcomes
+    assert isinstance(outcomes[1], bytes) and outcomes[1].startswith(b"not a regular file")
