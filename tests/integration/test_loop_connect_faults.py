@@ -9,6 +9,7 @@ import errno
 import os
 import socket
 import threading
+import time
 import types
 from collections.abc import Iterator
 from typing import Any
@@ -18,6 +19,7 @@ import pytest
 from edgemodbus.datatypes import ItemStatus
 from edgemodbus.line import loop_connect
 from tests.integration.test_loop_connect import all_ok, device, exact, running
+from tests.integration.test_loop_dtu_faults import loop_thread, thread_cpu
 from tests.peers import PymodbusSlave
 from tests.waiting import wait_for
 
@@ -98,8 +100,11 @@ def test_no_fd_for_the_connect_is_told_and_retried_without_a_spin(
             wait_for(lambda: all_ok(good), what="the good line polled")
             wait_for(lambda: "Too many open files" in
                      (starved.address_list[0].error_reason or ""), what="the reason")
-            first = tries["n"]
-            wait_for(lambda: d_starved.stats()["line"]["connectFailures"] >= 4,
-                     what="four failed connects")
-            assert tries["n"] - first <= 8  # one try per reconnect interval, not a spin
+            first, loop = tries["n"], loop_thread()
+            cpu0, wall0 = thread_cpu(loop), time.monotonic()
+            wait_for(lambda: d_starved.stats()["line"]["connectFailures"] >= 6,
+                     what="six failed connects")
+            cpu = (thread_cpu(loop) - cpu0) / (time.monotonic() - wall0)
+            assert tries["n"] - first <= 10  # one try per reconnect interval, not a spin
+            assert cpu < 0.05, cpu  # the loop thread while the fault holds
             assert exact(good, 1)
