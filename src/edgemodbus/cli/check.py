@@ -18,6 +18,7 @@ not fail.  With no problem the last line sums up what was checked, exit code 0.
 from __future__ import annotations
 
 import argparse
+import os
 import stat
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -154,7 +155,7 @@ def _folder(folder: Path, report: Report) -> None:
     device files it would start, their device codes and the serve units' targets."""
     gateway_file = folder / GATEWAY_FILE
     config = GatewayConfig()
-    if gateway_file.is_file():
+    if os.path.lexists(gateway_file):  # a FIFO or a broken link: a problem, not "none"
         loaded = _gateway_file(gateway_file, report)
         if loaded is None:
             return  # without its devicePattern the device files are not known

@@ -150,3 +150,27 @@ def test_a_fifo_put_in_place_after_the_stat_never_blocks_a_read(
         raise AssertionError("a read of the FIFO blocked")
     assert outcomes[0] == f"{fifo}: is a FIFO: give a JSON file", outcomes
     assert isinstance(outcomes[1], bytes) and outcomes[1].startswith(b"not a regular file")
+
+
+@pytest.mark.parametrize("kind", ["fifo", "broken link", "symlink loop", "directory"])
+def test_a_gateway_file_that_is_no_regular_file_is_a_problem_not_none(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str], kind: str) -> None:
+    """gateway.json as a FIFO, a broken link, a symlink loop or a folder: the gateway
+    and check took it as no gateway file (defaults: no MQTT, no console) without a word.
+    Now check says what it is (exit 2) and the gateway does not start (exit 2)."""
+    from edgemodbus.gateway.run import run_service
+
+    gateway = tmp_path / "gateway.json"
+    if kind == "fifo":
+        os.mkfifo(gateway)
+    elif kind == "broken link":
+        gateway.symlink_to(tmp_path / "nowhere")
+    elif kind == "symlink loop":
+        gateway.symlink_to("gateway.json")
+    else:
+        gateway.mkdir()
+    assert main(["check", str(tmp_path)]) == 2
+    lines = capsys.readouterr().out.splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"{gateway}: "), lines
+    assert run_service(tmp_path, seconds=0.1) == 2
+    assert str(gateway) in capsys.readouterr().err
