@@ -132,3 +132,34 @@ def test_a_one_megabyte_frame_and_a_reset_mid_reply_and_the_dtu_polled_again() -
         with Simulator(slaves=[1]) as sim:  # the real DTU dials in again
             sim.dial("127.0.0.1", port, registration=b"VICTIM\r\n")
             wait_for(ok(victim), what="the victim polled again")
+
+
+def test_a_registered_peer_that_stops_reading_goes_offline_without_cost() -> None:
+    """It registers, then never reads (its receive buffer at the minimum) nor answers:
+    each request times out, the DTU goes offline after two failed cycles and is probed
+    with backoff, so the few bytes sent never fill the send buffer (measured: 9 requests
+    in 8 s); the loop thread below 5 %, the bystanders at their rate."""
+    with site() as (port, bystanders, victim, d_victim):
+        sock = socket.socket()
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1)
+        sock.connect(("127.0.0.1", port))
+        try:
+            sock.sendall(b"VICTIM\r\n")
+            wait_for(lambda: d_victim.device_driver_status is
+                     em.DeviceDriverStatus.OFFLINE, what="the victim offline")
+            line = d_victim.stats()["line"]
+
+            def stalled() -> None:
+                end = time.monotonic() + ATTACK_S
+                wait_for(lambda: time.monotonic() >= end, timeout=ATTACK_S + 5,
+                         what="the attack's span")
+
+            cpu, quiet, during = measured(stalled, bystanders)
+            sent = d_victim.stats()["line"]["requests"] - line["requests"]
+            reason = victim.address_list[0].error_reason or ""
+        finally:
+            sock.close()
+        assert cpu < 0.05, cpu
+        assert during >= 0.7 * quiet, (quiet, during)
+        assert sent <= 4 * (ATTACK_S + 1), sent  # probes with backoff, not every cycle
+        assert "no response (timeout)" in reason, reason
