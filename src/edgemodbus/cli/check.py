@@ -7,7 +7,8 @@ communication options and its read plan built; a gateway file (``gateway.json``,
 file given with ``--gateway``) is loaded with its TLS, Sparkplug and spool paths checked;
 a folder is its gateway file and every device file the gateway would start (its
 ``devicePattern``), and then two devices with one deviceCode and a ``serve`` unit that
-names no device are problems too.
+names no device are problems too; a name the pattern matches that the gateway skips (a
+FIFO, a folder, a broken link, a symlink loop) is a warning.
 
 Each problem is one line on stdout, ``PATH: field value: what is allowed``, and the exit
 code is 2 when there is any; warnings (an unknown key) are ``PATH: warning: ...`` and do
@@ -17,10 +18,14 @@ not fail.  With no problem the last line sums up what was checked, exit code 0.
 from __future__ import annotations
 
 import argparse
+import os
+import stat
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from ..config import ConfigError, DeviceConfig, load_device_config
+from ..config.files import mode_kind
+from ..gateway.bulk import file_id
 from ..gateway.config import GATEWAY_FILE, GatewayConfig, load_gateway_config
 from ..gateway.service import Gateway
 from ..line.endpoint import endpoint_for
@@ -77,14 +82,24 @@ def run(args: argparse.Namespace) -> int:
 
 def check_path(path: Path, report: Report) -> None:
     """Check what ``path`` is (a folder, a gateway file or a device file) into ``report``."""
-    if path.is_dir():
+    try:
+        info = path.stat()
+    except OSError as exc:  # missing, a broken link, a symlink loop, no permission
+        report.problem(path, _os_words(exc))
+        return
+    if stat.S_ISDIR(info.st_mode):
         _folder(path, report)
     elif path.name == GATEWAY_FILE:
         _gateway_file(path, report)
-    elif not path.exists():
-        report.problem(path, "no such file or directory")
     else:
         _device_file(path, report)
+
+
+def _os_words(exc: OSError) -> str:
+    """An OSError as the line of its path says it ("too many levels of symbolic links":
+    a symlink loop was "no such file or directory" before)."""
+    words = exc.strerror or str(exc)
+    return words[:1].lower() + words[1:]
 
 
 def _device_file(path: Path, report: Report) -> DeviceConfig | None:
@@ -102,7 +117,7 @@ def _device_file(path: Path, report: Report) -> DeviceConfig | None:
             report.problem(path, str(problem))
         return None
     except OSError as exc:
-        report.problem(path, exc.strerror or str(exc))
+        report.problem(path, _os_words(exc))
         return None
     except ValueError as exc:
         report.problem(path, str(exc))
@@ -127,7 +142,7 @@ def _gateway_file(path: Path, report: Report) -> GatewayConfig | None:
         for problem in exc.problems:
             report.problem(path, str(problem))
     except OSError as exc:
-        report.problem(path, exc.strerror or str(exc))
+        report.problem(path, _os_words(exc))
     except RecursionError:
         report.problem(path, "JSON nested too deeply to read")
     finally:
@@ -140,14 +155,16 @@ def _folder(folder: Path, report: Report) -> None:
     device files it would start, their device codes and the serve units' targets."""
     gateway_file = folder / GATEWAY_FILE
     config = GatewayConfig()
-    if gateway_file.is_file():
+    if os.path.lexists(gateway_file):  # a FIFO or a broken link: a problem, not "none"
         loaded = _gateway_file(gateway_file, report)
         if loaded is None:
             return  # without its devicePattern the device files are not known
         config = loaded
     codes: dict[str, Path] = {}
     failed = False
-    for path in Gateway(folder, config, gateway_file).device_files():
+    files = Gateway(folder, config, gateway_file).device_files()
+    _skipped(folder, config.device_pattern, files, gateway_file, report)
+    for path in files:
         cfg = _device_file(path, report)
         if cfg is None:
             failed = True
@@ -161,3 +178,25 @@ def _folder(folder: Path, report: Report) -> None:
     if config.serve is not None and not failed:  # a unit may name a file that failed
         for problem in unknown_devices(config.serve, list(codes)):
             report.problem(gateway_file, str(problem))
+
+
+def _skipped(folder: Path, pattern: str, files: list[Path], gateway_file: Path,
+             report: Report) -> None:
+    """A warning for each name the folder's ``devicePattern`` matches that the gateway
+    does not start (it skips them without a word): a FIFO, a device, a folder, a broken
+    link, a symlink loop.  One stat each, no open (a FIFO's open blocks)."""
+    taken = set(files)
+    gateway = file_id(gateway_file)
+    for path in sorted(folder.glob(pattern)):
+        if path in taken or path.name.startswith("."):
+            continue
+        try:
+            info = path.stat()
+        except OSError as exc:
+            why = _os_words(exc)
+        else:
+            if (info.st_dev, info.st_ino) == gateway:
+                continue
+            why = f"is {mode_kind(info.st_mode) or 'a regular file'}"
+        report.warnings.append(in_file(path, f"warning: {why}: not a device file, the "
+                                             "gateway skips it"))

@@ -8,7 +8,7 @@ from __future__ import annotations
 import os
 import stat
 
-__all__ = ["mode_kind", "path_kind"]
+__all__ = ["mode_kind", "open_regular", "path_kind"]
 
 _KINDS = ((stat.S_ISDIR, "a directory"), (stat.S_ISFIFO, "a FIFO"),
           (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"),
@@ -32,3 +32,19 @@ def path_kind(path: str | os.PathLike[str]) -> str | None:
         return mode_kind(os.stat(path).st_mode)
     except OSError:
         return None
+
+
+def open_regular(path: str | os.PathLike[str]) -> tuple[int, os.stat_result]:
+    """An fd open for reading on what ``path`` names, and its fstat (the caller closes
+    the fd and checks the kind: :func:`mode_kind` of its ``st_mode``).  Opened without
+    blocking: a FIFO put in place of a regular file between a caller's ``stat`` and its
+    open blocked that ``open()`` forever (the reload thread of a gateway, a CLI check);
+    the fd is blocking again before it is returned."""
+    fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC | os.O_NOCTTY)
+    try:
+        info = os.fstat(fd)
+        os.set_blocking(fd, True)
+    except BaseException:
+        os.close(fd)
+        raise
+    return fd, info

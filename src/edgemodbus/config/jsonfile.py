@@ -11,7 +11,7 @@ import os
 from collections.abc import Iterable, Mapping
 from typing import Any
 
-from .files import mode_kind
+from .files import mode_kind, open_regular
 from .keys import quote_key
 from .problems import NO_VALUE, ConfigError, Problem
 
@@ -38,7 +38,11 @@ def read_json_file(path: str | os.PathLike[str]) -> Any:
     if info.st_size > MAX_JSON_BYTES:
         raise _error(name, f"{info.st_size:,} bytes: a JSON file we read has at most "
                            f"{MAX_JSON_BYTES:,}")
-    with open(name, "rb") as file:
+    fd, info = open_regular(name)  # the same kind and size as the stat said
+    with os.fdopen(fd, "rb") as file:
+        kind = mode_kind(info.st_mode)
+        if kind is not None:  # it was replaced since the stat
+            raise _error(name, f"is {kind}: give a JSON file")
         data = file.read(MAX_JSON_BYTES + 1)
     if len(data) > MAX_JSON_BYTES:  # it grew after the stat
         raise _error(name, f"more than {MAX_JSON_BYTES:,} bytes: a JSON file we read has "

@@ -4,7 +4,9 @@
 
 The value is wrapped by :func:`hide_secrets` as soon as its key is known, before any
 validation, so that no error later (not even pydantic's own text) shows it; a secret
-given as anything but text is refused without being shown.
+given as anything but text is refused without being shown, and so is one longer than
+:data:`~.limits.MAX_TEXT` (the length check of other strings runs after the wrap and
+did not see a secret: a 30 MB ``console.token`` was taken).
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ from typing import Annotated, Any
 from pydantic import PlainSerializer, SecretStr, SerializationInfo
 
 from .compat import norm_key
+from .limits import MAX_TEXT
 from .problems import NO_VALUE, ConfigError, Problem, join_path
 
 SECRETS_CONTEXT = "edgemodbus.secrets"
@@ -59,7 +62,11 @@ def hide_secrets(data: Mapping[Any, Any], table: Mapping[str, str], keys: frozen
         canon = table.get(norm_key(key)) if isinstance(key, str) else None
         if canon not in keys or value is None or isinstance(value, SecretStr):
             continue
-        if isinstance(value, str):
+        if isinstance(value, str) and len(value) > MAX_TEXT:
+            problems.append(Problem(join_path(prefix, canon), NO_VALUE,
+                                    f"{len(value):,} characters: at most {MAX_TEXT:,} "
+                                    "(the value is not shown: a secret)"))
+        elif isinstance(value, str):
             out[key] = SecretStr(value)
         else:
             problems.append(Problem(join_path(prefix, canon), NO_VALUE,

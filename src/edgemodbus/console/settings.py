@@ -97,6 +97,16 @@ class ConsoleSettings(Model):
     max_connections: Annotated[int, Range(2, 4096)] = Field(
         default=64, description="Connections open at once; more are closed at accept")
 
+    @field_validator("host")
+    @classmethod
+    def _listen_host(cls, value: str) -> str:
+        """An empty host passed the host rule (it means "required elsewhere") and the
+        start failed with getaddrinfo's "Name or service not known"."""
+        if not value.strip():
+            raise ValueError("empty: give the address to listen on (127.0.0.1 for this "
+                             "machine only; another with a token or users)")
+        return value
+
     @model_validator(mode="after")
     def _checks(self) -> ConsoleSettings:
         token = self.token.get_secret_value() if self.token is not None else None

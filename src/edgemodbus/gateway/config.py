@@ -13,6 +13,7 @@ from typing import Any, ClassVar, Literal
 from pydantic import Field
 
 from ..config import ConfigError, Model, Ms, Problem, load_model
+from ..config.files import open_regular
 from ..config.jsonfile import MAX_JSON_BYTES
 from ..config.limits import MAX_NAME
 from ..console import ConsoleSettings
@@ -131,10 +132,12 @@ def file_bytes(path: Path) -> bytes:
     folder a description of it (reading would block: loading it says why).  OSError when
     it cannot be read."""
     info = path.stat()
-    if not stat.S_ISREG(info.st_mode):
-        return f"not a regular file: {info.st_mode:o} {info.st_ino}".encode()
-    with open(path, "rb") as file:
-        return file.read(MAX_JSON_BYTES + 1)
+    if stat.S_ISREG(info.st_mode):
+        fd, info = open_regular(path)  # a FIFO put there since: not a blocking open
+        with os.fdopen(fd, "rb") as file:
+            if stat.S_ISREG(info.st_mode):
+                return file.read(MAX_JSON_BYTES + 1)
+    return f"not a regular file: {info.st_mode:o} {info.st_ino}".encode()
 
 
 def _tls_digest(config: GatewayConfig) -> str:

@@ -25,7 +25,7 @@ from urllib.parse import urlsplit
 
 from pydantic import AfterValidator, BeforeValidator, Field, field_validator, model_validator
 
-from ..config import DeviceConfig, DriverModbusRtuParameter, Model
+from ..config import DeviceConfig, DriverModbusRtuParameter, Model, Range
 from ..config.limits import MAX_NAME
 from ..config.listen import allow_list, network
 from ..driver import DriverModbusRtu
@@ -53,6 +53,7 @@ Balancers = Annotated[tuple[Annotated[str, AfterValidator(network)], ...],
 
 
 LEASE_SCHEMES = ("redis", "rediss", "unix")
+MAX_LEASE_MS = 600_000
 
 
 class LeaseSettings(Model):
@@ -67,11 +68,15 @@ class LeaseSettings(Model):
                      "(TLS) or unix:///path")
     key_prefix: str = Field(default="edgemodbus:pair:", description="Prefix of the "
                             "lease's keys (<prefix>leader, <prefix>fence); one per pair")
-    lease_ms: int = Field(default=10_000, ge=1_000, le=600_000, description="Lease time: "
-                          "the standby takes over within it plus a cycle")
-    renew_ms: int | None = Field(default=None, ge=100, description="Renewal period; left "
-                                 "out: leaseMs/3; at most leaseMs/3")
-    margin_ms: int | None = Field(default=None, ge=0, description="No request to a "
+    # Range, not ge/le: true, 1.5 or [] are refused naming what is allowed (pydantic's
+    # own bounds took true as 1 and spoke of "less than or equal to")
+    lease_ms: Annotated[int, Range(1_000, MAX_LEASE_MS)] = Field(
+        default=10_000, description="Lease time: the standby takes over within it plus a "
+        "cycle")
+    renew_ms: Annotated[int | None, Range(100, MAX_LEASE_MS // 3)] = Field(
+        default=None, description="Renewal period; left out: leaseMs/3; at most leaseMs/3")
+    margin_ms: Annotated[int | None, Range(0, MAX_LEASE_MS // 2)] = Field(
+        default=None, description="No request to a "
                                   "connect-mode device starts later than this before the "
                                   "lease's known end (the frame's time on the wire, the "
                                   "clocks' rates); left out: leaseMs/10, at least 100; at "

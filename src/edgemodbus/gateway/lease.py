@@ -33,8 +33,13 @@ from collections.abc import Callable
 from typing import Any, Protocol
 
 from ..errors import ModbusConnectionError
+from ..line.log_limit import LogLimiter, short_text
 
 log = logging.getLogger("edgemodbus.lease")
+
+LOG_INTERVAL = 10.0
+"""Seconds per line of a kind of failure to reach the lease engine (a standby retries
+every renewMs/2, as often as 20 times a second: one line each flooded the log)."""
 
 _ACQUIRE = """
 if redis.call('SET', KEYS[1], ARGV[1], 'NX', 'PX', ARGV[2]) then
@@ -135,6 +140,11 @@ class Lease:
         self._until = (False, 0.0)  # (held, expires - margin): what deadline() reads
         self._lock = threading.Lock()
         self._watchers: list[Callable[[], None]] = []  # told of a loss: watch()
+        self._logs = LogLimiter(log, interval=LOG_INTERVAL, burst=1, clock=clock)
+        self._failing = False  # the last attempt could not reach the engine
+        self.counts = {"gained": 0, "lost": 0, "engineErrors": 0}
+        """Leaderships gained and lost, attempts that could not reach the engine (its
+        errors: refused, timed out, a reply that is not RESP or not the script's)."""
 
     def deadline(self) -> float:
         """The time (on the lease's clock, the monotonic one) before which a request to a
@@ -184,13 +194,16 @@ class Lease:
     def step(self) -> float:
         """One acquire or renewal; the seconds until the next step."""
         self.check()
+        self._logs.flush()
         start = self.clock()
         if self.held:
             try:
                 ok = self.engine.renew(self.token, self.ttl_ms)
             except Exception as exc:
-                self._lose(f"renewal failed: {exc}")
+                self._unreachable(exc)
+                self._lose(f"renewal failed: {short_text(str(exc), 200)}")
                 return self.retry_period
+            self._reachable()
             if not ok:
                 self._lose("another instance holds the lease")
                 return self.retry_period
@@ -202,8 +215,9 @@ class Lease:
         try:
             fence = self.engine.acquire(self.token, self.ttl_ms)
         except Exception as exc:
-            log.warning("lease: cannot reach the lease engine: %s", exc)
+            self._unreachable(exc)
             return self.retry_period
+        self._reachable()
         if fence is None:
             return self.retry_period
         with self._lock:
@@ -211,9 +225,26 @@ class Lease:
             self._until = (True, self.expires - self.margin)
         if not self.check():
             return self.retry_period
+        self.counts["gained"] += 1
         log.info("lease: leader (fencing token %d)", fence)
         self.on_gain(fence)
         return self.renew_period
+
+    def _unreachable(self, exc: Exception) -> None:
+        """One failed attempt: counted, one line per kind of error and interval (the
+        error's words bounded: a fake server's garbage is quoted in them)."""
+        self.counts["engineErrors"] += 1
+        self._failing = True
+        self._logs.event(logging.WARNING, "failed attempts to reach the lease engine",
+                         type(exc).__name__, "lease: cannot reach the lease engine: %s",
+                         short_text(str(exc), 200))
+
+    def _reachable(self) -> None:
+        """An attempt the engine answered: one line when it follows failures."""
+        if self._failing:
+            self._failing = False
+            self._logs.flush(force=True)
+            log.info("lease: the lease engine answers again")
 
     @property
     def retry_period(self) -> float:
@@ -236,6 +267,7 @@ class Lease:
             was, self.held, self.fence = self.held, False, None
             self._until = (False, 0.0)
         if was:
+            self.counts["lost"] += 1
             log.warning("lease: no longer the leader: %s", reason)
             for watcher in self._watchers:
                 watcher()

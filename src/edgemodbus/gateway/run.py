@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import logging
 import math
+import os
 import signal
 import sys
 import threading
@@ -38,8 +39,8 @@ def run_service(config_dir: Path, gateway_config: Path | None = None, *,
         print(f"edgemodbus service: --config-dir {str(config_dir)!r}: not a directory",
               file=sys.stderr)
         return 2
-    if gateway_config is None and (config_dir / GATEWAY_FILE).is_file():
-        gateway_config = config_dir / GATEWAY_FILE
+    if gateway_config is None and os.path.lexists(config_dir / GATEWAY_FILE):
+        gateway_config = config_dir / GATEWAY_FILE  # a FIFO or a broken link: said so
     try:
         config = (load_gateway_config(gateway_config) if gateway_config is not None
                   else GatewayConfig())

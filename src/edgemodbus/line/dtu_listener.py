@@ -45,13 +45,12 @@ import threading
 import time
 from typing import Any
 
+from . import proxy_v2
 from .accept_pause import ACCEPT_ERRORS, AcceptPause
 from .admission import ByteBudget, Networks, Unregistered, key_matches
 from .dtu_newcomer import ACCEPT_BATCH, BUDGET_BURST, COUNTERS, RESET, Newcomer, evictable
 from .dtu_slot import DtuSlot
 from .log_limit import LogLimiter, hex_prefix, short_text
-from .proxy_v2 import HEADER_FIXED, MAX_PAYLOAD
-from .proxy_v2 import step as proxy_step
 from .registration import Identified, IdIndex, PortSettings, identify
 
 log = logging.getLogger("edgemodbus.dtu")
@@ -328,7 +327,7 @@ class DtuListener:
             newcomer.waiting = False
 
     def _on_data(self, newcomer: Newcomer) -> None:
-        limit = HEADER_FIXED + MAX_PAYLOAD if newcomer.proxied else self.settings.max_bytes
+        limit = proxy_v2.MAX_HEADER if newcomer.proxied else self.settings.max_bytes
         room = limit - len(newcomer.buf)
         try:
             data = newcomer.sock.recv(max(1, min(room, 4096)))
@@ -360,7 +359,7 @@ class DtuListener:
         """Read a balancer's PROXY v2 header, then admit the connection as from the DTU's
         address; refuse a header from elsewhere.  True: it left the listener's reading,
         or waits for the rest of its header."""
-        step = proxy_step(bytes(newcomer.buf), newcomer.proxied)
+        step = proxy_v2.step(bytes(newcomer.buf), newcomer.proxied)
         if isinstance(step, tuple):
             return self._drop(newcomer, *step)
         if step is None or isinstance(step, bool):
@@ -461,6 +460,8 @@ class DtuListener:
             elif newcomer.quiet_at <= now and newcomer.deadline > now:
                 newcomer.quiet_at = math.inf  # looked at again when the next byte comes
                 self._decide(newcomer, settled=True)
+            elif newcomer.deadline <= now and newcomer.proxied and newcomer.buf:
+                self._drop(newcomer, *proxy_v2.unfinished(bytes(newcomer.buf)))  # cut short
             elif newcomer.deadline <= now:
                 self._expire(newcomer)
 

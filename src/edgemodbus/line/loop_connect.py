@@ -14,8 +14,9 @@ ended, the worker calls the line's ``_connect()`` as a line worker does, which c
 reports, device statuses and the reconnect backoff are the line worker's.
 
 A numeric host (an IPv4 or IPv6 address) is connected at once; a host name is resolved
-on one resolver thread (``edgemodbus-resolve``, while names wait to be resolved), since
-getaddrinfo(3) blocks; the connect deadline counts from the start of that.
+on a resolver thread (``edgemodbus-resolve``, up to :data:`MAX_RESOLVERS` while names
+wait to be resolved, one lookup per name at a time), since getaddrinfo(3) blocks; the
+connect deadline counts from the start of that.
 """
 
 from __future__ import annotations
@@ -59,39 +60,56 @@ def _numeric(host: str, port: int) -> list[Address] | None:
     return [(family, addr) for family, _, _, _, addr in infos]
 
 
+MAX_RESOLVERS = 4
+"""Threads that resolve host names at once.  One thread did them in turn: a name whose
+DNS answer took 30 s held every other line's name behind it, and each retry of the slow
+line queued one more lookup of it, so the others' connects timed out "resolving"."""
+
+
 class _Resolver:
-    """One thread that resolves host names in turn, started when a name is asked for
-    and ended once none waits (names are rare beside addresses, and resolved once per
-    connect)."""
+    """Host names resolved on up to :data:`MAX_RESOLVERS` threads, started when a name is
+    asked for and ended once none waits (names are rare beside addresses, and resolved
+    once per connect).  A name already waiting or being resolved is not queued again:
+    its lookup is shared (a slow name's retries cost no thread or queue entry each)."""
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
-        self._waiting: deque[tuple[str, int, Future[list[Address]]]] = deque()
-        self._thread: threading.Thread | None = None
+        self._waiting: deque[tuple[str, int]] = deque()
+        self._futures: dict[tuple[str, int], Future[list[Address]]] = {}
+        self._threads = 0
 
     def submit(self, host: str, port: int) -> Future[list[Address]]:
-        future: Future[list[Address]] = Future()
+        key = (host, port)
         with self._lock:
-            self._waiting.append((host, port, future))
-            if self._thread is None:
-                self._thread = threading.Thread(target=self._run, daemon=True,
-                                                name="edgemodbus-resolve")
-                self._thread.start()
+            future = self._futures.get(key)
+            if future is None:
+                future = self._futures[key] = Future()
+                self._waiting.append(key)
+                if self._threads < MAX_RESOLVERS:
+                    self._threads += 1
+                    threading.Thread(target=self._run, daemon=True,
+                                     name="edgemodbus-resolve").start()
         return future
 
     def _run(self) -> None:
         while True:
             with self._lock:
                 if not self._waiting:
-                    self._thread = None
+                    self._threads -= 1
                     return
-                host, port, future = self._waiting.popleft()
-            if not future.set_running_or_notify_cancel():
-                continue
+                key = self._waiting.popleft()
+                future = self._futures[key]
+            future.set_running_or_notify_cancel()
             try:
-                future.set_result(_resolve(host, port))
-            except BaseException as exc:  # handed to the dialer (gaierror, UnicodeError)
+                addresses = _resolve(*key)
+            except BaseException as exc:  # handed to the dialers (gaierror, UnicodeError)
+                with self._lock:
+                    del self._futures[key]
                 future.set_exception(exc)
+            else:
+                with self._lock:
+                    del self._futures[key]
+                future.set_result(addresses)
 
 
 resolver = _Resolver()
@@ -301,4 +319,4 @@ def abort_dial(connector: object) -> None:
         connector.abort()
 
 
-__all__ = ["Dialer", "abort_dial", "dialing"]
+__all__ = ["MAX_RESOLVERS", "Dialer", "abort_dial", "dialing"]

@@ -21,6 +21,8 @@ HEADER_FIXED = 16  # signature, version/command, family/transport, length
 MAX_PAYLOAD = 512
 """Longest address block plus TLVs accepted (HAProxy sends 12 or 36 bytes of addresses
 and a few TLVs at most; the spec asks receivers to take at least 216 bytes)."""
+MAX_HEADER = HEADER_FIXED + MAX_PAYLOAD
+"""The most bytes a balancer's connection is read for before its header is complete."""
 
 _TCP4, _TCP6, _UNSPEC = 0x11, 0x21, 0x00
 
@@ -107,6 +109,17 @@ def step(buf: bytes, proxied: bool) -> tuple[str, str] | ProxyHeader | bool | No
                 "(fleet.loadBalancers)")
 
 
+def unfinished(buf: bytes) -> tuple[str, str]:
+    """(counter, reason) for a balancer's connection whose header was not complete at
+    its registration timeout (a header sent a byte at a time, or cut short): refused as
+    malformed, saying how far it got (it was counted as a silent peer before, which does
+    not point at the balancer)."""
+    need = f"{HEADER_FIXED + struct.unpack_from('!H', buf, 14)[0]}" \
+        if len(buf) >= HEADER_FIXED else f"at least {HEADER_FIXED}"
+    return ("proxyMalformed", f"a PROXY v2 header not complete within "
+            f"registrationTimeout ({len(buf)} bytes of {need})")
+
+
 def build(source: str | None, source_port: int = 0, dest: str | None = None,
           dest_port: int = 0, *, local: bool = False, tlv: bytes = b"") -> bytes:
     """A PROXY v2 header as a balancer sends it (tests and the simulator use it)."""
@@ -120,5 +133,5 @@ def build(source: str | None, source_port: int = 0, dest: str | None = None,
     return SIGNATURE + bytes([0x21, family]) + struct.pack("!H", len(body)) + body
 
 
-__all__ = ["HEADER_FIXED", "MAX_PAYLOAD", "SIGNATURE", "ProxyError", "ProxyHeader", "build",
-           "maybe_header", "parse", "step"]
+__all__ = ["HEADER_FIXED", "MAX_HEADER", "MAX_PAYLOAD", "SIGNATURE", "ProxyError",
+           "ProxyHeader", "build", "maybe_header", "parse", "step", "unfinished"]

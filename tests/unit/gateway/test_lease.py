@@ -248,3 +248,27 @@ def test_watchers_hear_of_a_loss_before_the_gateway() -> None:
     clock.now += 3.5
     lease.check()
     assert events == ["line", "gateway", "gateway"]
+
+
+def test_an_unreachable_engine_is_one_line_per_interval_and_counted(
+        caplog: pytest.LogCaptureFixture) -> None:
+    """A standby retries every renewMs/2 (50 ms at the smallest): each failure used to
+    log a line. Now one per kind of error and 10 s, a summary, one line at recovery."""
+    clock = Clock()
+    engine = FakeEngine(clock)
+    a, _b, _events = pair(clock, engine)
+    engine.down = True
+    caplog.set_level("INFO", logger="edgemodbus.lease")
+    start = clock.now
+    for _ in range(200):  # an attempt every 0.5 s (renewMs 1000 / 2)
+        clock.now += a.step()
+    intervals = (clock.now - start) / 10.0  # 100 s: ten of the limiter's intervals
+    lines = [r.getMessage() for r in caplog.records]
+    assert sum("cannot reach the lease engine" in line for line in lines) <= intervals
+    assert sum("more failed attempts" in line for line in lines) <= intervals
+    assert a.counts["engineErrors"] == 200 and not a.held
+    caplog.clear()
+    engine.down = False
+    a.step()
+    assert a.held and a.counts["gained"] == 1
+    assert "lease: the lease engine answers again" in [r.getMessage() for r in caplog.records]

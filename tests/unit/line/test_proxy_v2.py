@@ -107,3 +107,86 @@ def test_no_bytes_after_the_signature_crash_the_reader(tail: bytes) -> None:
     except ProxyError:
         return
     assert header is None or header.size <= len(SIG) + len(tail)
+
+
+# An encoder written from the spec's layout (HAProxy's doc/proxy-protocol.txt, 2.2), not
+# from proxy_v2.build: each field drawn on its own, lengths that may lie, and an oracle of
+# what a receiver must conclude from those fields.
+_ADDRESS_BYTES = {0x1: 12, 0x2: 36, 0x3: 216}  # the address block of INET, INET6, UNIX
+
+
+@st.composite
+def spec_headers(draw: st.DrawFn) -> tuple[bytes, str, tuple[bool, str | None, int | None,
+                                                              int] | None]:
+    """(bytes, what they are, the header expected or None for an error): version,
+    command, family, transport drawn from valid and invalid nibbles; the address block
+    of the family, TLVs (type, 2-byte length, value), and a length field that is
+    honest, short by some bytes, or any 16-bit number."""
+    version = draw(st.sampled_from([2, 2, 2, 1, 3, 0xF]))
+    command = draw(st.sampled_from([0, 1, 1, 1, 2, 0xF]))
+    family = draw(st.sampled_from([0x0, 0x1, 0x1, 0x2, 0x3, 0x4]))
+    transport = draw(st.sampled_from([0x1, 0x1, 0x0, 0x2]))
+    if family == 0x1:
+        src = draw(st.ip_addresses(v=4))
+        addresses = src.packed + draw(st.binary(min_size=4, max_size=4))
+    elif family == 0x2:
+        src = draw(st.ip_addresses(v=6))
+        addresses = src.packed + draw(st.binary(min_size=16, max_size=16))
+    else:
+        src = None
+        addresses = draw(st.binary(min_size=_ADDRESS_BYTES.get(family, 0),
+                                   max_size=_ADDRESS_BYTES.get(family, 0)))
+    sport = draw(st.integers(0, 65535))
+    if family in (0x1, 0x2):
+        addresses += struct.pack("!HH", sport, draw(st.integers(0, 65535)))
+    tlvs = b"".join(bytes([t]) + struct.pack("!H", len(v)) + v for t, v in draw(
+        st.lists(st.tuples(st.integers(0, 255), st.binary(max_size=40)), max_size=4)))
+    body = addresses + tlvs
+    honest = len(body)
+    length = draw(st.sampled_from(["honest", "short", "any"]))
+    declared = {"honest": honest, "short": max(0, honest - draw(st.integers(1, 40))),
+                "any": draw(st.integers(0, 65535))}[length]
+    raw = SIG + bytes([version << 4 | command, family << 4 | transport]) + \
+        struct.pack("!H", declared) + body
+    what = f"v{version} cmd{command} fam{family:x}{transport:x} len {declared}/{honest}"
+    expected: tuple[bool, str | None, int | None, int] | None
+    size = 16 + declared
+    if version != 2 or command not in (0, 1) or declared > proxy_v2.MAX_PAYLOAD:
+        expected = None
+    elif command == 0:
+        expected = (True, None, None, size)
+    elif family == 0 and transport == 0:
+        expected = (False, None, None, size)
+    elif (family, transport) not in ((0x1, 0x1), (0x2, 0x1)) or \
+            declared < _ADDRESS_BYTES[family]:
+        expected = None
+    else:
+        assert src is not None
+        expected = (False, str(src), sport, size)
+    return raw, what, expected
+
+
+@given(spec_headers())
+def test_the_reader_agrees_with_an_encoder_from_the_spec(
+        case: tuple[bytes, str, tuple[bool, str | None, int | None, int] | None]) -> None:
+    raw, what, expected = case
+    declared = struct.unpack_from("!H", raw, 14)[0]
+    if expected is not None and len(raw) < 16 + declared:  # a length beyond the bytes:
+        assert parse(raw) is None, what  # it waits (the deadline ends it: the listener)
+        return
+    if expected is None:
+        with pytest.raises(ProxyError):
+            header = parse(raw + bytes(70_000))  # enough bytes for any length
+            raise AssertionError(f"{what}: read as {header}")
+        return
+    header = parse(raw)
+    assert header is not None, what
+    assert (header.local, header.source, header.source_port, header.size) == expected, what
+
+
+def test_unfinished_says_how_far_the_header_got() -> None:
+    raw = build("203.0.113.7", 1)
+    assert proxy_v2.unfinished(raw[:20]) == (
+        "proxyMalformed", "a PROXY v2 header not complete within registrationTimeout "
+        "(20 bytes of 28)")
+    assert proxy_v2.unfinished(raw[:5])[1].endswith("(5 bytes of at least 16)")
