@@ -271,7 +271,7 @@ class CommandRunner:
                 self._reply(dev, request_id_of(payload), False, str(exc), [])
                 return
             names = [n for n, _ in items]
-            ok, error = await dev.driver.write_addresses_async(items)
+            ok, error = await dev.driver.write_addresses_async(items, exact=True)
             self._reply(dev, request_id, ok, error, names)
         except Exception as exc:  # never let a command kill the loop
             log.exception("%s: MQTT write failed", dev.code)
