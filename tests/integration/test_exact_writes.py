@@ -2,9 +2,9 @@
 (``write_addresses_async(..., exact=True)``, poll/writes.py ``exact_problem``): the MQTT
 per-item and batch commands and Sparkplug DCMD use it.  A property test against a real
 pymodbus slave: for each item kind (engineering units over a UInt16 and an Int16, Float,
-Int24, a coil, a String), any value whose conversion to the item's raw form is not exact
-is refused naming the item and why, and nothing is written; any exact one is written and
-the slave holds what an independent encoding below says."""
+Int24, a coil, a register bit, a String), any value whose conversion to the item's raw
+form is not exact is refused naming the item and why, and nothing is written; any exact
+one is written and the slave holds what an independent encoding below says."""
 
 from __future__ import annotations
 
@@ -32,6 +32,7 @@ ITEMS: list[dict[str, Any]] = [
     {"name": "i24", "address": "hr:4", "deviceDataType": "Int24"},
     {"name": "s", "address": "hr:6", "deviceDataType": "String", "quantity": 2},
     {"name": "coil", "address": "coil:0", "deviceDataType": "Boolean"},
+    {"name": "bit", "address": "hr:8.3", "deviceDataType": "Boolean"},
 ]
 
 
@@ -124,7 +125,7 @@ def from_text(name: str, value: Any) -> Any:
     that reads as nothing stays text (refused)."""
     if not isinstance(value, str) or name == "s":
         return value
-    if name == "coil" and value.strip().lower() in ("true", "on", "yes", "false", "off",
+    if name in ("coil", "bit") and value.strip().lower() in ("true", "on", "yes", "false", "off",
                                                     "no"):
         return value.strip().lower() in ("true", "on", "yes")
     try:
@@ -135,7 +136,7 @@ def from_text(name: str, value: Any) -> Any:
 
 EXPECT: dict[str, Callable[[Any], list[int] | None]] = {
     "half": expect_half, "tenth": expect_tenth, "f": expect_f, "i24": expect_i24,
-    "s": expect_s, "coil": expect_coil,
+    "s": expect_s, "coil": expect_coil, "bit": expect_coil,
 }
 ADDRESS = {"half": (0, 1), "tenth": (1, 1), "f": (2, 2), "i24": (4, 2), "s": (6, 2)}
 
@@ -173,6 +174,8 @@ def driver() -> Iterator[tuple[em.DriverModbusRtu, PymodbusSlave]]:
 def held(slave: PymodbusSlave, name: str) -> list[int]:
     if name == "coil":
         return [int(b) for b in slave.bits(1, "co", 0, 1)]
+    if name == "bit":
+        return [slave.registers(1, "hr", 8)[0] >> 3 & 1]
     address, count = ADDRESS[name]
     return slave.registers(1, "hr", address, count)
 
