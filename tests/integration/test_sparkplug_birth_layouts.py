@@ -139,23 +139,23 @@ def test_the_first_dbirth_of_any_layout_carries_the_first_cycle(
             pub.stop()
 
 
+@pytest.mark.usefixtures("engine")
 def test_a_dtu_that_comes_back_is_born_with_the_values_of_its_new_connection(
         tmp_path: Path) -> None:
     """A dial-in DTU (20 one-register blocks behind it, 20 ms a reply) hangs up: DDEATH;
     its registers all change while it is away; it dials again: the DBIRTH carries the
     values read through the new connection, every one of them (none from before, none
-    null).  On the thread engine: on the loop engine the same holds (checked by hand),
-    but the run leaves a socket pair open after stop, which the leak check reports (the
-    lead has the finding; with the ``engine`` fixture this test would run both)."""
+    null), on both DTU engines."""
     from edgemodbus.datatypes import Area
     from edgemodbus.sim import Simulator
+    from tests.engines import with_engine
     from tests.peers import free_port
 
     port = free_port()
-    comm = {"transport": "rtu-over-tcp-server", "listenHost": "127.0.0.1",
-            "listenPort": port, "dtuId": "D1", "registration": "text",
-            "registrationTimeout": 400, "slaveId": 1, "readTimeout": 500,
-            "readCycle": 100, "reconnectInterval": 300, "engine": "thread"}
+    comm = with_engine({"transport": "rtu-over-tcp-server", "listenHost": "127.0.0.1",
+                        "listenPort": port, "dtuId": "D1", "registration": "text",
+                        "registrationTimeout": 400, "slaveId": 1, "readTimeout": 500,
+                        "readCycle": 100, "reconnectInterval": 300})
     cfg = em.load_device_config({
         "organization": {"deviceCode": "dev1"}, "communication": comm,
         "addressList": [{"name": f"r{i}", "address": f"hr:{SPACING * i}",
