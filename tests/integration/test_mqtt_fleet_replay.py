@@ -1,11 +1,13 @@
-"""Store-and-forward in a fleet: a device that moved to another instance during the
-outage.  Instance A spooled the device's retained values while the broker was away;
-meanwhile the device's DTU moved to instance B, which published its current value,
-retained, once the broker was back.  A's replay then carried the outage's values with
-retain on and replaced B's current retained value with an older one: a subscriber that
-came later read a stale value left by us.  Now a device not held here is replayed with
-retain off (northbound/mqtt/sender.py ``_replay``): its history still reaches the
-subscribers, the retained value stays the holder's.
+"""Retained values after a store-and-forward replay: with report-mode items (below), and
+in a fleet, for a device that moved to another instance during the outage.
+
+Instance A spooled the device's retained values while the broker was away; meanwhile
+the device's DTU moved to instance B, which published its current value, retained, once
+the broker was back.  A's replay then carried the outage's values with retain on and
+replaced B's current retained value with an older one: a subscriber that came later
+read a stale value left by us.  Now a device not held here is replayed with retain off
+(northbound/mqtt/sender.py ``_replay``): its history still reaches the subscribers, the
+retained value stays the holder's.
 
 The value changes only during the outage.  Deterministic: A reconnects only every 4-5 s
 (reconnectMin/Max), so B's retained message (a plain paho client here) is on the broker
@@ -90,6 +92,61 @@ def test_a_device_that_moved_away_during_an_outage_keeps_its_holders_retained_va
             with MqttProbe(broker.port, [f"{P}/dev1/+"]) as late:
                 got = late.wait_for(f"{P}/dev1/{leaf}", lambda m: m.retain)
                 assert got.payload == current, got.payload[:200]
+        finally:
+            drv.stop_device()
+            pub.stop()
+
+
+@pytest.mark.parametrize("mode", ["per-item", "batch"])
+def test_after_a_replay_of_report_mode_items_the_retained_value_is_the_last_read(
+        broker: Mosquitto, tmp_path: Path, mode: str) -> None:
+    """Issue #24's retained rule with the report modes: every cycle reported
+    (``reportMode: "cycle"``) and a period report (``reportEvery``) spool unchanged
+    values between the changes; after the replay the retained value of the item (and of
+    the batch topic) is still the last value the driver read."""
+    with Simulator([1], size=10) as peer:
+        port = peer.serve_tcp("127.0.0.1", 0)
+        cfg = em.load_device_config({
+            "organization": {"deviceCode": "dev1"},
+            "communication": {"transport": "rtu-over-tcp", "tcpHost": "127.0.0.1",
+                              "tcpPort": port, "slaveId": 1, "readCycle": 50,
+                              "readTimeout": 1000, "reportMode": "cycle"},
+            "addressList": [
+                {"name": "t0", "address": "hr:0", "deviceDataType": "UInt16"},
+                {"name": "t1", "address": "hr:1", "deviceDataType": "UInt16",
+                 "reportMode": "change", "reportEvery": 200}]})
+        settings = {"port": broker.port, "mode": mode, "qos": 1, "retain": True,
+                    "reconnectMin": 100, "reconnectMax": 400,
+                    "storeAndForward": {"path": str(tmp_path / "spool.db")}}
+        pub = MqttPublisher(settings, gateway_id="gw-report").start()
+        drv = em.DriverModbusRtu()
+        try:
+            assert pub.wait_connected(10)
+            pub.attach(drv, "dev1")
+            assert drv.start_device(cfg.organization, cfg.communication, cfg.address_list)
+            wait_for(lambda: pub.stats()["published"] > 0, timeout=30,
+                     what="the first values published")
+            broker.stop()
+            peer.slave(1).add_mover(CounterMover(Area.HOLDING_REGISTER, 0, 2,
+                                                 interval_ms=40, start=5000))
+            wait_for(lambda: not pub.connected, what="the publisher sees the broker go")
+            spooled = pub.stats()["spool"]["appended"]
+            wait_for(lambda: pub.stats()["spool"]["appended"] >= spooled + 20, timeout=60,
+                     what="reports spooled during the outage")
+            drv.stop_device()  # the last values read stay the items' values
+            last = {item.name: item.value for item in cfg.address_list}
+            broker.restart()
+            assert pub.wait_connected(10)
+            wait_for(lambda: pub.stats()["spool"]["stored"] == 0, timeout=60,
+                     what="the backlog replayed and acknowledged")
+            with MqttProbe(broker.port, [f"{P}/dev1/+"]) as late:
+                if mode == "batch":
+                    body = late.wait_for(f"{P}/dev1/$batch", lambda m: m.retain).json()
+                    assert body["values"]["t0"] == last["t0"], (body, last)
+                else:
+                    for name in ("t0", "t1"):
+                        got = late.wait_for(f"{P}/dev1/{name}", lambda m: m.retain).json()
+                        assert got["value"] == last[name], (name, got, last)
         finally:
             drv.stop_device()
             pub.stop()
