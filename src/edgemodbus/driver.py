@@ -322,10 +322,9 @@ class DriverModbusRtu:
     async def write_address_async(self, name: str, value: Any) -> tuple[bool, str | None]:
         return await self.write_addresses_async([(name, value)])
 
-    async def write_addresses_async(
-        self, items: Iterable[tuple[str, Any]]
-    ) -> tuple[bool, str | None]:
-        prepared = self._prepare_writes(items)
+    async def write_addresses_async(self, items: Iterable[tuple[str, Any]], exact: bool = False
+                                    ) -> tuple[bool, str | None]:
+        prepared = self._prepare_writes(items, exact)  # exact: poll/writes.py exact_problem
         if isinstance(prepared, str):
             return False, prepared
         import asyncio  # here: 25 ms of every start otherwise (`edgemodbus read`)
@@ -334,12 +333,13 @@ class DriverModbusRtu:
         except Exception as exc:
             return False, str(exc)
 
-    def _prepare_writes(self, items: Iterable[tuple[str, Any]]) -> Future[Any] | str:
+    def _prepare_writes(self, items: Iterable[tuple[str, Any]],
+                        exact: bool = False) -> Future[Any] | str:
         poller = self._poller
         if poller is None:
             return "device is not running"
         try:
-            ops: list[WriteOp] = plan_writes(poller.by_name, list(items))
+            ops: list[WriteOp] = plan_writes(poller.by_name, list(items), exact)
         except ValueError as exc:
             return str(exc)
         return poller.submit_writes(ops)

@@ -174,6 +174,7 @@ class DeviceStats(RequestStats):
     values_changed: int = 0
     writes: int = 0
     write_errors: int = 0
+    reads_coalesced: int = 0  # reads on demand that joined a waiting one (poll/on_demand.py)
 
     def as_dict(self) -> dict[str, Any]:
         """The counters; cycles, their times, retries, failed cycles and skipped blocks
@@ -196,4 +197,5 @@ class DeviceStats(RequestStats):
             "valuesChanged": self.values_changed,
             "writes": self.writes,
             "writeErrors": self.write_errors,
+            "readsCoalesced": self.reads_coalesced,
         }

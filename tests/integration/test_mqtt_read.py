@@ -102,6 +102,11 @@ def test_bad_read_commands_get_error_replies(broker: Mosquitto, slave: PymodbusS
             (b"\xff\xfe", None, "not JSON"),
             (b"[" * 30_000 + b"]" * 30_000, None, "nested too deeply"),
             (b'{"items": ["' + b"x" * 70_000 + b'"]}', None, "too large"),
+            # a huge or structured id is never echoed: null, and the error says why
+            (b'{"id": "' + b"i" * 5000 + b'"}', None, '"id" is a string of 5000 characters'),
+            (b'{"id": {"a": [1]}, "items": ["d"]}', None, '"id" must be a number or a string'),
+            (b'{"items": [["d"]], "id": "b9"}', "b9", "must be a non-empty list of item names"),
+            (b'{"items": ["' + b"y" * 60_000 + b'"], "id": "b10"}', "b10", "no item named"),
         ]
         for payload, request, reason in cases:
             body = read(probe, payload, request)

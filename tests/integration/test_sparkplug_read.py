@@ -91,3 +91,40 @@ def test_report_every_goes_out_in_ddata(broker: Mosquitto, slave: PymodbusSlave)
 
         wait_for(lambda: ddata_with(slow) >= 3, timeout=15, what="3 period reports")
         assert ddata_with(p) == 0  # unchanged, no period: only in the DBIRTH
+
+
+def test_a_storm_of_read_commands_joins_waiting_reads_and_polling_goes_on(
+        broker: Mosquitto) -> None:
+    """500 DCMD reads of one item, and NCMD reads, as fast as a client sends them, to a
+    slave that takes 20 ms a request: each joins a read still waiting on the line
+    (poll/on_demand.py), so none is refused (past the line's 64 jobs they were), few reach
+    the slave, and the device goes on polling.  Hostile read metrics (a 200-character
+    item name, a read of a name the DBIRTH did not have) are refused and counted."""
+    n = 500
+    with PymodbusSlave("rtu-over-tcp", units=(1,), size=200, fill="zero",
+                       response_delay=0.02) as slow, \
+            MqttProbe(broker.port, [f"{BASE}/#"]) as probe, \
+            Node(broker.port, device(slow.port, readTimeout=2000)) as node:
+        wait_payload(probe, f"{BASE}/DBIRTH/{N}/dev1", timeout=30)
+        cycles = node.drv.stats()["cycles"]
+        requests = slow.request_count(1)
+        read_d = encode([encode_metric(name="Device Control/Read", datatype="String",
+                                       value="d")])
+        for k in range(n):
+            probe.publish(f"{BASE}/DCMD/{N}/dev1", read_d, qos=0)
+            if k % 100 == 0:
+                probe.publish(f"{BASE}/NCMD/{N}", encode([encode_metric(
+                    name="Node Control/Read", datatype="Boolean", value=True)]), qos=0)
+        wait_for(lambda: node.pub.stats()["reads"] == n + 5, timeout=60,
+                 what=f"{n + 5} reads started")
+        stats = node.pub.stats()
+        assert stats["readsRefused"] == 0, stats
+        wait_for(lambda: node.drv.stats()["cycles"] >= cycles + 5, timeout=30,
+                 what="polling goes on")
+        coalesced = node.drv.stats()["readsCoalesced"]
+        assert coalesced > n // 2, coalesced
+        assert slow.request_count(1) - requests < n // 2
+        for name in ("x" * 200, "nosuch"):
+            dcmd(probe, "dev1", encode_metric(name="Device Control/Read", datatype="String",
+                                              value=name))
+        wait_for(lambda: node.pub.stats()["readsRefused"] == 2, what="2 refusals")

@@ -164,10 +164,10 @@ class LeaderDriver(DriverModbusRtu):
         why = self.refusal()
         return (False, why) if why else super().write_addresses(items)
 
-    async def write_addresses_async(
-            self, items: Iterable[tuple[str, Any]]) -> tuple[bool, str | None]:
+    async def write_addresses_async(self, items: Iterable[tuple[str, Any]],
+                                    exact: bool = False) -> tuple[bool, str | None]:
         why = self.refusal()
-        return (False, why) if why else await super().write_addresses_async(items)
+        return (False, why) if why else await super().write_addresses_async(items, exact)
 
     def submit_writes(self, items: Iterable[tuple[str, Any]]) -> Future[tuple[bool, str | None]]:
         why = self.refusal()

@@ -12,11 +12,19 @@ asked for are reported in one batch through the normal delivery (poll/sink.py), 
 callbacks, MQTT and Sparkplug publish them; other items of the same blocks are
 reported only when they changed.  A failed read sets the items Invalid with the reason,
 as a failed poll does, and the job still answers with them.
+
+Reads are commands from a broker too, so a storm of them is bounded here before the line
+(which bounds its jobs) sees it: a read of items that a queued read (not started yet) of
+the same device will read anyway joins that one (:class:`DemandReads`): a thousand
+``$read`` of one item cost the line one job, and each joined read answers with the
+values of that job, read after it was asked for.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import threading
+from collections.abc import Callable, Sequence
+from concurrent.futures import Future
 from datetime import datetime, timezone
 from typing import TYPE_CHECKING, Any
 
@@ -115,3 +123,63 @@ def answer(store: ItemStore[ItemState],
     errorReason), by name, read at one moment."""
     return store.snapshot(states)
 
+
+
+Answer = dict[str, dict[str, Any]]
+"""What a read answers: each item's snapshot entry by name."""
+
+
+class DemandReads:
+    """One device's reads on demand that wait on its line, not started yet, by the items
+    they read (None: every item).  A new read joins a waiting read of the same items or
+    of every item (its future answers with its own items only), counted in the
+    device's ``readsCoalesced``; else it queues a job.  ``token`` numbers the reads for
+    the assemblies of large items (read_slots)."""
+
+    def __init__(self, counters: DeviceStats) -> None:
+        self._counters = counters
+        self._lock = threading.RLock()  # (an RLock: queueing never waits for the worker)
+        self._waiting: dict[frozenset[str] | None, Future[Answer]] = {}
+        self.token = 0
+
+    def submit(self, names: Sequence[str] | None,
+               queue: Callable[[Callable[[], None]], Future[Answer]]) -> Future[Answer]:
+        """A future of the read of ``names``: a waiting read's, or the one ``queue``
+        makes (``queue(started)`` queues the job, which calls ``started()`` first: from
+        then on a new read needs a new job, its values read after it was asked)."""
+        key = None if names is None else frozenset(names)
+        with self._lock:
+            for held in (key, None):
+                base = self._waiting.get(held)
+                if base is not None and not base.done():
+                    self._counters.reads_coalesced += 1
+                    return _part(base, names)
+            base = queue(lambda: self._started(key))
+            if not base.done():
+                self._waiting[key] = base
+            return _part(base, names)
+
+    def _started(self, key: frozenset[str] | None) -> None:
+        with self._lock:
+            self._waiting.pop(key, None)
+
+
+def _part(base: Future[Answer], names: Sequence[str] | None) -> Future[Answer]:
+    """A future of ``base``'s answer for ``names`` (None: all of it), its own (a caller
+    that cancels it cancels no other's)."""
+    part: Future[Answer] = Future()
+
+    def done(finished: Future[Answer]) -> None:
+        if not part.set_running_or_notify_cancel():
+            return
+        if finished.cancelled():
+            part.set_exception(ModbusError("the read was cancelled"))
+        elif (exc := finished.exception()) is not None:
+            part.set_exception(exc)
+        else:
+            result = finished.result()
+            part.set_result(result if names is None else
+                            {n: result[n] for n in dict.fromkeys(names) if n in result})
+
+    base.add_done_callback(done)
+    return part

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from concurrent.futures import Future
 from datetime import datetime, timezone
 from typing import TYPE_CHECKING, Any, cast
@@ -33,7 +33,7 @@ from ..line.link import READ_FC
 from ..stats import DeviceStats
 from .faults import reason_of, status_change
 from .items import Assembly, ItemState, Slot, is_news, owner_of, set_state, store_changes
-from .on_demand import answer, read_slots, slots_holding
+from .on_demand import DemandReads, answer, read_slots, slots_holding
 from .periodic import PeriodicReports, reports_all
 from .planner import Piece, ReadBlock, bisect_block
 from .reports import ReportDecoders, store_taken
@@ -81,7 +81,7 @@ class Poller:
         self.store: ItemStore[ItemState] = ItemStore([])
         self.demand_slots: list[Slot] = []  # on-demand items' blocks (poll/on_demand.py)
         self.periodic: PeriodicReports | None = None  # poll/periodic.py
-        self._demand_reads = 0
+        self.reads = DemandReads(self.counters)  # poll/on_demand.py
         self.device = EngineDevice(self.slave, self.timeout, self.report_all, 0.0,
                                    coalesce=params.forward_coalesce / 1000)
         self.device.set_policy(params.retries, params.offline_after_failed_cycles,
@@ -228,34 +228,34 @@ class Poller:
         return self.line.submit(swap)
 
     def submit_read(self, names: Sequence[str] | None) -> Future[dict[str, dict[str, Any]]]:
-        """Read these items (None: every item) now, as a job on the line's queue:
-        the future's result is each item's snapshot entry by name (poll/on_demand.py).
-        KeyError names an item the device does not have."""
-        assert self.line is not None
-        if names is not None:
-            missing = [n for n in names if n not in self.by_name]
-            if missing:
-                raise KeyError(f"no item named {missing[0]!r} on device {self.code} "
-                               f"({len(self.by_name)} items)")
+        """Read these items (None: all) now, by a job on the line's queue or a waiting one
+        (poll/on_demand.py): their snapshot entries by name.  KeyError: an unknown item."""
+        line = cast(LineWorker, self.line)  # (set at start; reads come after it)
+        missing = [n for n in names or () if n not in self.by_name]
+        if missing:
+            raise KeyError(f"no item named {missing[0]!r} on device {self.code} "
+                           f"({len(self.by_name)} items)")
 
-        def run(link: Link) -> dict[str, dict[str, Any]]:
+        def run(link: Link, started: Callable[[], None]) -> dict[str, dict[str, Any]]:
+            started()
             if not self.active:
                 raise ModbusConnectionError(f"{self.code}: device stopped before the read")
             self.take_results()  # what the pass under way read first
             states = self.items if names is None else [
                 self.by_name[n] for n in dict.fromkeys(names) if n in self.by_name]
             wanted = set(states)
-            self._demand_reads -= 1  # the assemblies' "cycle" of this read: never a pass's
+            self.reads.token -= 1  # the assemblies' "cycle" of this read: never a pass's
             link.set_response_timeout(self.timeout)
             reported = read_slots(link, self.slave, self.store,
                                   slots_holding(self.slots + self.demand_slots, wanted),
-                                  wanted, self.counters, self._demand_reads)
+                                  wanted, self.counters, self.reads.token)
             if reported:
                 self.delivery.report(reported)
                 self.delivery.flush()
             return answer(self.store, states)
 
-        return self.line.submit(run, reads=True, slave=self.slave)
+        return self.reads.submit(names, lambda started: line.submit(
+            lambda link: run(link, started), reads=True, slave=self.slave))
 
     def submit_snapshot(self) -> Future[None]:
         """Publish the snapshot now, on the worker (Delivery.snapshot_due)."""

@@ -10,13 +10,14 @@ forces (remembered once seen): FC16 refused -> FC06 register by register; FC22 r
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from typing import TYPE_CHECKING, Any
 
 from .._ffi import Block
-from ..codec import BlockDecoder, encode, normalize_value, register_bit
+from ..codec import BlockDecoder, Float32, encode, float32_short, normalize_value, register_bit
 from ..config import DriverModbusRtuParameter
 from ..datatypes import Area
 from ..errors import IllegalFunction, ModbusConnectionError, ModbusError, ModbusTimeoutError
@@ -51,21 +52,50 @@ class WriteOp:
             f"{self.area.short_name}:{self.address}"
 
 
-def plan_writes(by_name: Mapping[str, ItemState], items: list[tuple[str, Any]]) -> list[WriteOp]:
+def plan_writes(by_name: Mapping[str, ItemState], items: list[tuple[str, Any]],
+                exact: bool = False) -> list[WriteOp]:
     """Normalize, encode and group a batch of writes (raises ValueError naming the item).
 
     ``by_name`` holds the device's items (``Poller.by_name``).  Contiguous registers (or
     coils) of one area are merged into one request, up to the protocol's limits;
-    bit-in-register items are written one by one.
+    bit-in-register items are written one by one.  ``exact`` (commands from a broker):
+    a value the item cannot hold as given is refused (:func:`exact_problem`) instead of
+    rounded, cut or converted.
     """
-    return merge_writes(prepare_writes(by_name, items))
+    return merge_writes(prepare_writes(by_name, items, exact))
+
+
+def exact_problem(asked: Any, held: Any) -> str | None:
+    """Why the value an item would hold after a write (``held``: its encoded registers
+    decoded) is not the value ``asked`` (normalized), or None when it is: numbers equal
+    exactly (12.5 to a UInt16 with dataMultiplier 0.5 is 25 on the wire, 12.5 back;
+    12.3 would be 12.5), a Float (32-bit) item's value when its shortest float32 text is
+    the number asked (0.1 is taken, 0.1000000001 is not: the float32 of both is one
+    value), text, bytes and times unchanged (no cut, no rounded seconds)."""
+    numbers = all(isinstance(x, (int, float)) and not isinstance(x, bool)
+                  for x in (asked, held))
+    if numbers and isinstance(held, float) and math.isnan(held):
+        same = isinstance(asked, float) and math.isnan(asked)
+    elif numbers and isinstance(held, Float32) and math.isfinite(held):
+        same = held == asked or float32_short(held) == asked
+    else:  # numbers compare exactly (an int with a float too); bools, text, bytes, times
+        same = bool(asked == held)
+    if same:
+        return None
+    return f"it would hold {short_value(held)}, not {short_value(asked)}"
+
+
+def short_value(value: Any) -> str:
+    """A value for a message: a long text or bytes cut to a short prefix."""
+    text = repr(value)
+    return text if len(text) <= 40 else f"{text[:40]}... ({len(text)} characters)"
 
 
 def prepare_writes(
-    by_name: Mapping[str, ItemState], items: list[tuple[str, Any]]
+    by_name: Mapping[str, ItemState], items: list[tuple[str, Any]], exact: bool = False
 ) -> list[WriteOp]:
     """Normalize and encode a batch of writes, one request per item (not merged yet);
-    raises ValueError naming the item."""
+    raises ValueError naming the item (``exact``: see :func:`plan_writes`)."""
     if not items:
         raise ValueError("nothing to write")
     seen: set[str] = set()
@@ -85,8 +115,14 @@ def prepare_writes(
             )
         spec = state.spec
         value = normalize_value(name, spec.converted_type or spec.data_type, raw)
+        if exact and isinstance(raw, bool) and not isinstance(value, bool):
+            raise ValueError(f"{name}: cannot write {raw!r} exactly: a boolean for a "
+                             f"{(spec.converted_type or spec.data_type).value} item")
         if state.area is Area.COIL or state.bit is not None:
             on = bool(encode(spec, value)[0])
+            problem = exact_problem(value, on) if exact else None
+            if problem is not None:
+                raise ValueError(f"{name}: cannot write {short_value(raw)} exactly: {problem}")
             raw_bit = None if state.bit is None else register_bit(spec)
             single.append(WriteOp(state.area, state.offset, bits=[on], bit=raw_bit,
                                   updates=[(state, on)]))
@@ -95,6 +131,9 @@ def prepare_writes(
         decoded = BlockDecoder(state.area, len(registers), [(0, spec)]).decode_values(
             Block.from_values(registers, bits=False)
         )[0]
+        problem = exact_problem(value, decoded) if exact else None
+        if problem is not None:
+            raise ValueError(f"{name}: cannot write {short_value(raw)} exactly: {problem}")
         single.append(WriteOp(state.area, state.offset, registers=registers,
                               updates=[(state, decoded)]))
     return single

@@ -208,7 +208,7 @@ class CommandRunner:
                 self.pending += 1
         if busy:
             self._reply(dev, request_id_of(payload), False,
-                        "too many writes pending; try again later", [])
+                        f"{_MAX_PENDING_COMMANDS} commands already pending; try again later", [])
             return
         if not self._runner.spawn(lambda: self._action(dev, payload) if action
                                   else self._read(dev, payload) if read
@@ -271,7 +271,7 @@ class CommandRunner:
                 self._reply(dev, request_id_of(payload), False, str(exc), [])
                 return
             names = [n for n, _ in items]
-            ok, error = await dev.driver.write_addresses_async(items)
+            ok, error = await dev.driver.write_addresses_async(items, exact=True)
             self._reply(dev, request_id, ok, error, names)
         except Exception as exc:  # never let a command kill the loop
             log.exception("%s: MQTT write failed", dev.code)

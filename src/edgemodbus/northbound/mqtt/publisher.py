@@ -73,7 +73,7 @@ class MqttPublisher:
                                     settings.failure_log_interval / 1000,
                                     settings.reconnect_max / 1000)
         self._sender = Sender(self._outbox, settings, paho, self.gateway_id, self.item_topic,
-                              self._connected)
+                              self._connected, self._devices)
         self._commands = CommandRunner(self._outbox)
         self._linger = settings.linger / 1000
         self._linger_until = 0.0  # no blocking wait before this: let messages gather

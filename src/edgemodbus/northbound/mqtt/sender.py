@@ -16,7 +16,7 @@ from __future__ import annotations
 import logging
 import threading
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from types import ModuleType
 from typing import TYPE_CHECKING, Any
 
@@ -45,8 +45,10 @@ class Sender:
 
     def __init__(self, outbox: Outbox, settings: MqttSettings, paho: ModuleType,
                  gateway_id: str, item_topic: Callable[[str, str], str],
-                 connected: threading.Event) -> None:
+                 connected: threading.Event,
+                 devices: Mapping[str, AttachedDevice] | None = None) -> None:
         self._outbox = outbox
+        self._devices: Mapping[str, AttachedDevice] = {} if devices is None else devices
         self.settings = settings
         self._paho = paho
         self.gateway_id = gateway_id
@@ -329,12 +331,16 @@ class Sender:
         """Spooled messages to paho with the window's room, at the pacer's rate, oldest
         first, with the retain flag they were kept with: a device's live messages queue
         behind its backlog (store_forward.py), so the last one replayed for a topic is
-        its newest and the broker's retained value ends up the current one."""
+        its newest and the broker's retained value ends up the current one.  A fleet
+        device whose DTU is not connected here now (it moved to another instance during
+        the outage) is replayed with retain off: the retained value is its holder's."""
         batch = forwarder.replay_batch(self.room())
         sent = nbytes = 0
+        away: dict[str, bool] = {}
         for stored in batch:
+            retain = stored.retain and not self._away(stored.device, away)
             message = Message(stored.device or None, stored.topic, stored.payload,
-                              stored.qos, stored.retain)
+                              stored.qos, retain)
             if not self.hand_over(client, message, stored.id):
                 forwarder.unsent(batch[sent:])
                 break
@@ -342,3 +348,11 @@ class Sender:
             nbytes += len(stored.payload)
         if batch:
             forwarder.replayed_batch(sent, nbytes)
+
+    def _away(self, code: str, seen: dict[str, bool]) -> bool:
+        """Whether device ``code`` is a fleet device not held here now (looked at once
+        per replay batch, in ``seen``)."""
+        if code not in seen:
+            dev = self._devices.get(code)
+            seen[code] = dev is not None and dev.fleet is not None and dev.fleet.quiet()
+        return seen[code]

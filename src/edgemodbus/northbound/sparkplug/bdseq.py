@@ -120,12 +120,41 @@ class BdSeqStore:
                 tmp.unlink()
 
 
+_SAVE_IF_OURS = """
+local v = redis.call('GET', KEYS[1])
+if v == false or (string.match(v, '^%d%d?%d?$') and tonumber(v) <= 255) then
+  redis.call('SET', KEYS[1], ARGV[1])
+  return false
+end
+return v
+"""
+"""Set the key only while it is absent or holds a bdSeq (the check and the write in one
+atomic script); else return what it holds."""
+
+
+def redis_bd_seq(key: str, raw: Any) -> int | None:
+    """The bdSeq a Redis value holds (None: no value); ValueError naming the key and
+    (a short prefix of) what was found for anything else (the key prefix of another
+    application?): only the ASCII digits of 0-255, as :meth:`RedisBdSeqStore.save`
+    writes them."""
+    if raw is None:
+        return None
+    text = raw.decode("utf-8", "replace") if isinstance(raw, bytes) else str(raw)
+    if 0 < len(text) <= 3 and text.isascii() and text.isdigit() and int(text) <= 255:
+        return int(text)
+    shown = repr(text[:40]) + (f"... ({len(text)} characters)" if len(text) > 40 else "")
+    raise ValueError(f"Redis key {key} holds {shown}, not a bdSeq 0-255; it is left as "
+                     "it is: delete it, or give the pair another keyPrefix")
+
+
 class RedisBdSeqStore:
     """The next session's bdSeq of an edge node that a redundant pair shares, in the
     pair's Redis (``client``: the lease's, gateway/lease.py) under ``key``; read before
     each connect (:attr:`shared`: the other instance may have used numbers since);
     ``leading``: whether this instance holds the pair's lease now (a session that paho
-    opens again after it lost it is left at once)."""
+    opens again after it lost it is left at once).  Like the bdSeq file, the key is
+    ours only while it holds a bdSeq: anything else is refused with what was found and
+    never overwritten (the write checks it in the same atomic script)."""
 
     shared = True
 
@@ -137,19 +166,21 @@ class RedisBdSeqStore:
     def load(self) -> int:
         """The stored next bdSeq (0 when none is stored); ValueError when the key holds
         anything else (the key prefix of another application?); a Redis error raises."""
-        raw = self.client.get(self.key)
-        if raw is None:
-            return 0
-        text = raw.decode("utf-8", "replace") if isinstance(raw, bytes) else str(raw)
-        if text.isdecimal() and int(text) <= 255:
-            return int(text)
-        raise ValueError(f"Redis key {self.key} holds {text[:40]!r}, not a bdSeq 0-255")
+        value = redis_bd_seq(self.key, self.client.get(self.key))
+        return 0 if value is None else value
 
     def save(self, value: int) -> None:
-        """Keep ``value`` as the next session's bdSeq; a failure is logged, not raised
-        (the next leader may then reuse this session's number, and a host would take
-        this session's late NDEATH for the new one's)."""
+        """Keep ``value`` as the next session's bdSeq, unless the key holds something
+        that is not a bdSeq (then it is left, and an error says what it holds); a
+        failure is logged, not raised (the next leader may then reuse this session's
+        number, and a host would take this session's late NDEATH for the new one's)."""
         try:
-            self.client.set(self.key, value)
+            found = self.client.eval(_SAVE_IF_OURS, 1, self.key, value)
         except Exception as exc:
             log.warning("Redis %s: cannot keep bdSeq %d: %s", self.key, value, exc)
+            return
+        if found is not None:
+            try:
+                redis_bd_seq(self.key, found)
+            except ValueError as exc:
+                log.error("Sparkplug: bdSeq %d not kept: %s", value, exc)

@@ -7,7 +7,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
-from ...config import DeviceAddressItem
+from ...config import ON_DEMAND, DeviceAddressItem
 from ...datatypes import DataType, ItemStatus
 from ...driver import DriverModbusRtu
 from ...poll.listeners import Listener
@@ -17,10 +17,17 @@ if TYPE_CHECKING:
     from ..mqtt.holding import Holding
 
 
+DEMAND_ONLY = "read on demand only (Device Control/Read): not read yet"
+"""The reason of an on-demand item (``readCycle`` -1) never read: a DBIRTH must give one."""
+
+
 def sample_of(item: DeviceAddressItem) -> Sample:
-    """An item's report as a metric carries it (its fields copied now)."""
-    return Sample(item.name, item.value, item.status, epoch_ms(item.update_ts),
-                  item.error_reason)
+    """An item's report as a metric carries it (its fields copied now); an on-demand
+    item not read yet says so (else it would look like a poll that has not come yet)."""
+    reason = item.error_reason
+    if reason is None and item.status is ItemStatus.UNKNOWN and item.read_cycle == ON_DEMAND:
+        reason = DEMAND_ONLY
+    return Sample(item.name, item.value, item.status, epoch_ms(item.update_ts), reason)
 
 
 def is_good(sample: Sample) -> bool:

@@ -147,11 +147,15 @@ class NodeSession:
         self._connect(client)
 
     def close(self) -> None:
-        """Disconnect and stop paho's thread (the publisher's thread has ended)."""
+        """Disconnect and stop paho's thread (the publisher's thread has ended), then
+        close paho's wake-up socket pair: loop_start() opens it and only the client's
+        __del__ or reinitialise() closes it, so a stopped publisher still referenced
+        (a gateway's, until its reload is done) kept two sockets open."""
         client = self.client
         if client is not None:
             client.disconnect()
             client.loop_stop()
+            client.reinitialise()
         self.connected.clear()
 
     # -- paho's network thread -----------------------------------------------------------

@@ -97,7 +97,7 @@ class WriteRunner:
 
     async def _write(self, dev: NodeDevice, items: list[tuple[str, Any]], what: str) -> None:
         try:
-            ok, error = await dev.driver.write_addresses_async(items)
+            ok, error = await dev.driver.write_addresses_async(items, exact=True)
             if ok:
                 self._count("writes")
                 self._logs.event(logging.INFO, "DCMD writes confirmed", dev.code,
