@@ -186,7 +186,8 @@ def line_cases() -> list[Case]:
              ready=lambda run: bool(run.gw.lines(r"dev7: \w+ -> Offline"))),
         Case("line-dcmd-storm", "line scheduling: a Sparkplug DCMD storm to a device on "
              "the bystanders' line", dcmd_storm, served_and_scraped,
-             prep=sparkplug_broker, min_rate=FLOOD_RATE, max_thread_cpu=1.0),
+             prep=sparkplug_broker, min_rate=FLOOD_RATE, max_thread_cpu=1.0,
+             log_kinds=3),  # writes confirmed, refused (06: line busy), polling delayed
         Case("worker-bad-host", 'line worker: "tcpHost": "plc..local" and a 64-character '
              "label, forwards to both", bad_host_flood, served_and_scraped,
              prep=bad_host_prep, verdict=answered_at_once, max_thread_cpu=1.0,

@@ -1,30 +1,41 @@
 """Gateway soak (`make soak-gateway`, not in CI): the gateway service under the faults of
-issue #25, run through its public CLI (``python -m edgemodbus.gateway``) in a child
-process whose costs /proc shows (tests/gateway_proc.py).
+issue #25, one case per row of its table, run through its public CLI (``python -m
+edgemodbus.gateway``) in a child process whose costs /proc shows (tests/gateway_proc.py).
 
 Three bystander devices (slaves 1-3 of a pymodbus peer, rtu-over-tcp, readCycle 100 ms)
 are polled throughout; device 1 is served as unit 1 by the gateway's Modbus TCP server
-and every device is exported on /metrics.  Per case, with a fresh gateway:
+and every device is exported on /metrics.  A case may set up more first (its ``prep``:
+a mosquitto, a 2 MB tmpfs, a device of its own on the bystanders' line, a fleet of DTUs
+that dial in, which are then its bystanders).  Per case, with a fresh gateway:
 
-1. a quiet window (--quiet seconds): the bystanders' polling rate (requests the peer
-   answered per second) and the gateway's CPU;
+1. a quiet window (--quiet seconds), once the case is ``ready``: the bystanders' polling
+   rate (requests the peer answered per second, or the polls /metrics counts answered),
+   each bystander's own, and the gateway's CPU;
 2. the fault for --seconds (the case's ``attack``), sampled every 0.2 s: CPU (process,
    and its busiest thread: a spinning loop), highest RSS, fds and threads, the log lines
-   written and the longest, the bystanders' polling rate relative to the quiet window;
+   written and the longest, tracebacks, the bystanders' polling rate relative to the
+   quiet window (all of them, and the worst one);
 3. the fault ends; the case's ``recover`` check must pass within RECOVER_S (a master
-   served, a scrape answered, the process alive), then SIGTERM: exit status 0.
+   served, a scrape answered, the process alive; every value at the subscriber), the
+   fds and threads are looked at again, then SIGTERM: exit status 0; the case's
+   ``verdict`` looks at what it left (a file moved aside, births, replies, values).
 
-A case is a :class:`Case` in :func:`cases`: a name, the row it stands for, the open-files
-limit, the server's connection cap, an attack (a context manager factory given
-the :class:`Run`) and a recovery check; add a row by adding one.  Bounds (exit status 1
-when a case breaks one): the busiest thread's CPU below MAX_THREAD_CPU, log lines at most
-LOG_BASE + LOG_PER_S x seconds and none longer than MAX_LINE characters, bystander rate
-at least MIN_RATE of the quiet one, threads at most MAX_EXTRA_THREADS over the quiet
-window, recovery, no failed read of a bystander (timeouts, CRC or protocol errors
-in /metrics: "values lost"), exit status 0.
+A case is a :class:`Case` (tools/soak_gw_base.py) in a list of tools/soak_cases_*.py;
+add a row by adding one.  Bounds (exit status 1 when a case breaks one): the busiest
+thread's CPU below the case's ``max_thread_cpu`` (MAX_THREAD_CPU: no spin; a flood's
+own cost is reported, not bounded), log lines at most LOG_BASE + LOG_PER_S x seconds
+(+ ``log_per_event`` per event of the attack), none longer than MAX_LINE characters, no
+traceback, the bystanders' rate and the worst bystander's at least the case's
+``min_rate`` of the quiet one (MIN_RATE; FLOOD_RATE, a half, for floods of jobs on their
+line), threads at most MAX_EXTRA_THREADS over the quiet window meanwhile and none more
+after, fds back to the quiet figure after (MAX_EXTRA_FDS), recovery, no failed read of
+a bystander (timeouts, CRC or protocol errors in /metrics: "values lost"), exit status 0.
+A :class:`StartCase` (tools/soak_cases_config.py) is a hostile folder the gateway must
+refuse at start: exit 2 with one short line naming the field, files untouched.
 
     python tools/soak_gateway.py --seconds 20
     python tools/soak_gateway.py --quick --cases metrics-slowloris --json out.json
+    python tools/soak_gateway.py --quick --cases spool-disk-full --keep /tmp/soak  # logs
 """
 
 from __future__ import annotations
@@ -33,6 +44,7 @@ import argparse
 import contextlib
 import json
 import logging
+import math
 import os
 import sys
 import tempfile
@@ -51,8 +63,10 @@ from tools.soak_cases_loop import loop_cases
 from tools.soak_cases_north import north_cases
 from tools.soak_gw_base import (
     DEVICES,
+    LINES_PER_KIND,
     LOG_BASE,
     LOG_PER_S,
+    LOG_WINDOW_S,
     MAX_EXTRA_THREADS,
     MAX_LINE,
     RECOVER_S,
@@ -143,11 +157,18 @@ def run_case(case: Case, seconds: float, quiet: float, workdir: Path) -> dict[st
         quiet_rate = (polled() - count) / (q_last.at - q_first.at)
         quiet_each = per_second(each, answered_each(run), q_last.at - q_first.at)
         log_at = len(gw.log)
+        # each bystander's rate from just before the fault to just after it (a scrape
+        # may not be answered inside the window: the fd limit cases)
+        each, each_at = answered_each(run), time.monotonic()
         with case.attack(run, seconds):
-            count, each = polled(), answered_each(run)
+            count = polled()
             first, last, peak = sample(gw, seconds)
             rate = (polled() - count) / (last.at - first.at)
-            attacked_each = per_second(each, answered_each(run), last.at - first.at)
+        each_after = answered_each(run)
+        while each_after is None and time.monotonic() - last.at < RECOVER_S and gw.alive():
+            time.sleep(0.2)
+            each_after = answered_each(run)
+        attacked_each = per_second(each, each_after, time.monotonic() - each_at)
         lines = gw.log[log_at:].splitlines()
         started = time.monotonic()
         recovered = None
@@ -181,17 +202,20 @@ def run_case(case: Case, seconds: float, quiet: float, workdir: Path) -> dict[st
                        else failed_after - failed_before),
         **run.notes,
     }
-    figures["failures"] = check(figures, seconds, case.log_per_event) + verdict
+    figures["maxLogLines"] = int(
+        LOG_BASE + LOG_PER_S * seconds + case.log_per_event * figures.get("events", 0)
+        + case.log_kinds * LINES_PER_KIND * (math.ceil(seconds / LOG_WINDOW_S) + 1))
+    figures["failures"] = check(figures) + verdict
     return figures
 
 
-def check(f: dict[str, Any], seconds: float, log_per_event: int) -> list[str]:
+def check(f: dict[str, Any]) -> list[str]:
     bad = []
     if f["threadCpu"] > f["maxThreadCpu"]:
         bad.append(f"thread CPU {f['threadCpu']} > {f['maxThreadCpu']}")
     if f["valuesLost"] != 0:
         bad.append(f"values lost: {f['valuesLost']}")
-    if f["logLines"] > LOG_BASE + LOG_PER_S * seconds + log_per_event * f.get("events", 0):
+    if f["logLines"] > f["maxLogLines"]:
         bad.append(f"{f['logLines']} log lines")
     if f["longestLine"] > MAX_LINE:
         bad.append(f"a log line of {f['longestLine']} characters")

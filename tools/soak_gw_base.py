@@ -36,6 +36,9 @@ MAX_THREAD_CPU = 0.05
 MIN_RATE = 0.80  # of the quiet rate, while a fault does not touch the bystanders' line
 FLOOD_RATE = 0.50  # the issue's bound under a flood of jobs on the bystanders' line
 LOG_BASE, LOG_PER_S = 10, 0.5
+# a kind of event the gateway logs through its limiter (line/log_limit.py): three lines
+# and a summary per window
+LINES_PER_KIND, LOG_WINDOW_S = 4, 10.0
 MAX_LINE = 1024
 MAX_EXTRA_THREADS = 2
 RECOVER_S = 30.0
@@ -89,6 +92,7 @@ class Case:
     nofile: int = 0  # the gateway's soft RLIMIT_NOFILE (0: unchanged)
     serve_max_connections: int = 32
     log_per_event: int = 0  # log lines each of the attack's own events may write
+    log_kinds: int = 0  # kinds of rate-limited lines the attack may cause
     prep: Callable[[Prep], None] | None = None
     verdict: Callable[[Run], list[str]] | None = None
     min_rate: float = MIN_RATE  # the bystanders' polling rate at least this of quiet
@@ -233,7 +237,9 @@ def server_cases() -> list[Case]:
              metrics_slowloris, scraped, nofile=64),
         Case("reload-nested", "reload: deeply nested device and gateway files, SIGHUP",
              reload_nested, served_and_scraped,
-             log_per_event=3),  # per SIGHUP: "reloading" and one line per nested file
+             # per SIGHUP: "reloading" and an error of two lines per nested file (which
+             # file and what is kept, then why)
+             log_per_event=5),
     ]
 
 
