@@ -12,7 +12,6 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-
 from tools.soak_cases_config import StartCase, run_start_case, start_cases
 
 
