@@ -185,7 +185,7 @@ def line_cases() -> list[Case]:
              prep=dead_prep, min_rate=FLOOD_RATE, max_thread_cpu=1.0,
              ready=lambda run: bool(run.gw.lines(r"dev7: \w+ -> Offline"))),
         Case("line-dcmd-storm", "line scheduling: a Sparkplug DCMD storm to a device on "
-             "the bystanders' line", dcmd_storm, served_and_scraped,
+             "the bystanders' line", dcmd_storm("dev4"), served_and_scraped,
              prep=sparkplug_broker, min_rate=FLOOD_RATE, max_thread_cpu=1.0,
              log_kinds=3),  # writes confirmed, refused (06: line busy), polling delayed
         Case("worker-bad-host", 'line worker: "tcpHost": "plc..local" and a 64-character '

@@ -16,6 +16,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from tests.peers import free_port
 from tools.soak_cases_line import dead_flood, forward_flood, write_flood
+from tools.soak_cases_north import dcmd_storm, sparkplug_broker
 from tools.soak_gw_base import (
     FLOOD_RATE,
     Case,
@@ -62,6 +63,11 @@ def loop_prep(prep: Prep) -> None:
         size=200, reconnect=0.5, reconnect_max=2.0))
 
 
+def loop_sparkplug_prep(prep: Prep) -> None:
+    loop_prep(prep)
+    sparkplug_broker(prep, own=False)
+
+
 def all_polled(run: Run) -> bool:
     """Every bystander DTU answered, and the dead slave is Offline (its probes, not its
     first timeouts, are in the quiet window)."""
@@ -69,9 +75,11 @@ def all_polled(run: Run) -> bool:
         run.gw.lines(rf"l{n}: \w+ -> Running") for n in range(DTUS))
 
 
-def loop_case(name: str, row: str, attack: Any) -> Case:
-    return Case(name, row, attack, served_and_scraped, prep=loop_prep, ready=all_polled,
-                polled=answered, min_rate=FLOOD_RATE, max_thread_cpu=1.0)
+def loop_case(name: str, row: str, attack: Any, prep: Any = loop_prep,
+              log_kinds: int = 0) -> Case:
+    return Case(name, row, attack, served_and_scraped, prep=prep, ready=all_polled,
+                polled=answered, min_rate=FLOOD_RATE, max_thread_cpu=1.0,
+                log_kinds=log_kinds)
 
 
 def loop_cases() -> list[Case]:
@@ -84,4 +92,7 @@ def loop_cases() -> list[Case]:
         loop_case("loop-dead-forward", "loop engine: one master forwarding back-to-back "
                   "to a dead slave behind a DTU (timeout 0.7 s)" + where,
                   dead_flood(DEAD_UNIT)),
+        loop_case("loop-dcmd-storm", "loop engine: a Sparkplug DCMD storm to a slave "
+                  "behind a DTU" + where, dcmd_storm("lf"), loop_sparkplug_prep,
+                  log_kinds=3),  # writes confirmed, refused (line busy), polling delayed
     ]

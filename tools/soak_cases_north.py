@@ -21,6 +21,7 @@ from tests import sparkplug_wire as wire
 from tests.mosquitto import Mosquitto, MqttProbe
 from tools.soak_gw_base import (
     OWN,
+    Attack,
     Case,
     Prep,
     Run,
@@ -45,11 +46,13 @@ def broker(prep: Prep, **extra: Any) -> Mosquitto:
     return started
 
 
-def sparkplug_broker(prep: Prep) -> None:
+def sparkplug_broker(prep: Prep, own: bool = True) -> None:
     """A broker, the gateway a Sparkplug edge node on it (group G, node n1), device
-    dev4 (slave 4) on the bystanders' line for the commands, and a probe of births."""
+    dev4 (slave 4) on the bystanders' line for the commands (``own``), and a probe of
+    births."""
     port = broker(prep).port
-    own_device(prep)
+    if own:
+        own_device(prep)
     prep.gateway["mqtt"] = {"port": port, "mode": "sparkplug", "sparkplug": {
         "groupId": GROUP, "edgeNodeId": NODE, "bdSeqFile": "bdseq"}}
     prep.extras["probe"] = prep.stack.enter_context(
@@ -112,14 +115,14 @@ def forever(payload: bytes) -> Iterator[bytes]:
         yield payload
 
 
-def dcmd_storm(run: Run, seconds: float) -> Any:
-    """DCMD writes of dev4's t0 back-to-back (each waits for the broker's PUBACK)."""
+def dcmd_storm(device: str) -> Attack:
+    """DCMD writes of ``device``'s t0 back-to-back (each waits for the broker's PUBACK)."""
     def values() -> Iterator[bytes]:
         n = 0
         while True:
             n = (n + 1) & 0xFFFF
             yield wire.encode([wire.encode_metric(name="t0", datatype="UInt16", value=n)])
-    return publishing(run, f"{SP}/DCMD/{NODE}/dev4", values())
+    return lambda run, seconds: publishing(run, f"{SP}/DCMD/{NODE}/{device}", values())
 
 
 def ncmd_metrics(run: Run, seconds: float) -> Any:
