@@ -153,12 +153,18 @@ SOAK_LISTENER_ARGS    ?=
 soak-listener: build
 	$(BIN)/python tools/soak_listener.py --seconds $(SOAK_LISTENER_SECONDS) $(SOAK_LISTENER_ARGS)
 
-# The gateway service under the faults of issue #25 (tools/soak_gateway.py; not in CI),
+# The gateway service under the faults of issue #25 (tools/soak_gateway.py and
+# tools/soak_cases_*.py; not in CI: about 15 minutes), one case per row of its table,
 # through its CLI in a child process: the Modbus TCP server at the fd limit, the metrics
-# exporter against slow-header connections, SIGHUP with deeply nested files; three
-# bystander devices polled throughout.  Prints a markdown table of the figures and fails
-# when a case breaks a bound (a spinning thread, a log flood, polling below 80 % of the
-# quiet rate, threads that grow, no recovery, an exit status other than 0).
+# exporter against slow-header connections, SIGHUP with deeply nested files, the spool's
+# disk full during a broker outage (a 2 MB tmpfs) and a damaged spool, hostile Sparkplug
+# and MQTT commands, SCADA floods on the bystanders' line (thread engine, and DTUs that
+# dial in on the loop engine), a bad host name, hostile gateway files at start; three
+# bystander devices polled throughout.  Prints markdown tables of the figures and fails
+# when a case breaks a bound (a spinning thread, a log flood or a long line, a traceback,
+# polling below 80 % of the quiet rate, or 50 % under a flood of jobs, threads or fds
+# that grow, a value the subscriber never got, no recovery, an exit status other than 0).
+# The start cases also run in CI: tests/integration/test_soak_gateway_start.py.
 SOAK_GATEWAY_SECONDS ?= 20
 SOAK_GATEWAY_ARGS    ?=
 soak-gateway: build
