@@ -58,6 +58,7 @@ from ..datatypes import Area, DeviceDriverStatus, ItemStatus
 from ..driver import DriverModbusRtu
 from ..errors import LineBusyError
 from ..line.forward import ForwardFuture
+from ..line.jobs import LineWorkerError
 from ..poll.listeners import Listener
 from ..protocol.forward import (
     GATEWAY_TARGET_FAILED,
@@ -341,7 +342,10 @@ class ModbusTcpServer:
             exc = f.exception()
             if exc is not None:
                 self.busy += isinstance(exc, LineBusyError)
-                self._answer(request, exception_code_for(exc))
+                # the line's worker failed with the request queued: its target did not
+                # answer (0B, issue #25), not a path that is down (0A)
+                self._answer(request, GATEWAY_TARGET_FAILED if isinstance(
+                    exc, LineWorkerError) else exception_code_for(exc))
             else:
                 self.core.post(request.conn, request.gen, POST_PDU, f.result())
 
