@@ -124,20 +124,25 @@ class TargetBackoff:
 
 
 class PollLag:
-    """Jobs that ran while polling was due: counted in the line's stats, and a WARNING
-    (a few per 10 s, then a summary) when polling was already late by more than its
-    own scan rate."""
+    """Jobs and polling: a job that starts while polling is due counts in the line's
+    ``jobsAheadOfPolls``; one that leaves polling late by more than its own scan rate
+    when it ends (the time it took included: one 200 ms forward between two polls of a
+    100 ms device delays it past its cycle) counts in ``pollsDelayed`` and logs a
+    WARNING (a few per 10 s, then a summary)."""
 
     def __init__(self, logger: logging.Logger, line: str) -> None:
         self._limiter = LogLimiter(logger)
         self._line = line
 
     def job_ran(self, stats: Any, late: float | None, period: float) -> None:
-        """A job ran; ``late``: how long polling had been due then (None: not due)."""
-        if late is None:
-            return
-        stats.jobs_ahead_of_polls += 1
-        if late > period > 0:
+        """A job starts; ``late``: how long polling had been due then (None: not due)."""
+        if late is not None:
+            stats.jobs_ahead_of_polls += 1
+
+    def job_ended(self, stats: Any, devices: Sequence[EngineDevice], now: float) -> None:
+        """A job ended at ``now``: is polling (of ``devices``) late past its cycle?"""
+        late, period = late_by(devices, now), period_of(devices)
+        if late is not None and late > period > 0:
             stats.polls_delayed += 1
             self._limiter.event(logging.WARNING, "polls delayed by queued jobs", self._line,
                                 "%s: queued jobs delay polling: %.2f s late (scan rate "

@@ -396,6 +396,7 @@ class LineWorker(LineRequests):
         finally:
             if not job.reads:
                 self._changed = time.monotonic()
+        self._lag.job_ended(self.stats, devices, time.monotonic())
         link.flush_reports()
 
     def _serve_queue_while_down(self, until: float) -> None:
