@@ -174,6 +174,27 @@ def reconnect_delay(timing: LineTiming, failures: int) -> float:
     return base * random.uniform(0.8, 1.2)
 
 
+def job_gate(devices: Sequence[EngineDevice], now: float, owed: int,
+             share_until: float) -> tuple[float | None, float | None]:
+    """May a queued job run at ``now``?  Returns how long polling has been due (None:
+    not due) and, when the job must wait, until when at most (None: run it now).  The
+    last job made ``owed`` transactions (a forward one, a read on demand of 24 blocks
+    24) and ended at ``share_until`` minus the time it took: while poll transactions are
+    owed, a job waits for the next one, if a block is due now (inf: until it is read)
+    or falls due before ``share_until`` (until then).  So a flood of short jobs gets
+    one job between two poll transactions, and a flood of long ones about half the line
+    time while polling is due, never the line: a 300 ms job costs a 100 ms device
+    three cycles, and its next three polls go before the next job."""
+    late = late_by(devices, now)
+    if not owed:
+        return late, None
+    if late is not None:
+        return late, float("inf")
+    if now < share_until and late_by(devices, share_until) is not None:
+        return late, share_until
+    return late, None
+
+
 def late_by(devices: Sequence[EngineDevice], now: float) -> float | None:
     """How long polling of ``devices`` has been due at ``now`` (None: nothing due)."""
     due = min((d.due for d in devices if d.active), default=float("inf"))

@@ -36,6 +36,7 @@ from ..errors import LineBusyError, ModbusConnectionError, ModbusError
 from ..stats import LineStats
 from .connect import open_link
 from .endpoint import DtuEndpoint, Endpoint, LineTiming, MqttDtuEndpoint
+from .job_runner import JobRunner
 from .jobs import (
     MAX_PENDING,
     STOP,
@@ -43,10 +44,8 @@ from .jobs import (
     LineWorkerError,
     PollLag,
     TargetBackoff,
-    answers_of,
     crash_reason,
-    late_by,
-    period_of,
+    job_gate,
     reconnect_delay,
 )
 from .link import Link
@@ -71,17 +70,16 @@ class Connector(Protocol):
         ...
 
 
-class LineWorker(LineRequests):
+class LineWorker(LineRequests, JobRunner):
     """A line and its worker thread.  Created by :class:`LineRegistry` (shared by every
     user of the same endpoint) or directly; ``start()`` then ``stop()``."""
 
     # thousands of lines on a loop: slots, no dict of 30 keys (docs/scale.md "Memory per DTU")
-    __slots__ = ("__weakref__", "_backoff", "_changed", "_connect_now", "_counters",
-                 "_crashes", "_failures", "_lag", "_last_crash", "_link", "_next_connect",
-                 "_owed", "_pending", "_pending_lock", "_pollers", "_pollers_lock",
-                 "_queue", "_stopping", "_thread", "_up_since", "_waker", "connector",
-                 "endpoint", "last_link_error", "lease", "link_up", "max_pending", "stats",
-                 "timing")
+    __slots__ = ("__weakref__", "_backoff", "_connect_now", "_counters", "_crashes", "_failures",
+                 "_lag", "_last_crash", "_link", "_next_connect", "_pending_lock",
+                 "_pollers", "_pollers_lock", "_queue", "_stopping", "_thread", "_up_since",
+                 "_waker", "connector", "endpoint", "last_link_error", "lease", "link_up",
+                 "max_pending", "stats", "timing")
 
     def __init__(self, endpoint: Endpoint, timing: LineTiming | None = None,
                  connector: Connector | None = None) -> None:
@@ -104,7 +102,8 @@ class LineWorker(LineRequests):
         self.max_pending = MAX_PENDING  # jobs queued at most; more: LineBusyError
         self._pending = 0  # jobs queued, not yet taken
         self._pending_lock = threading.Lock()
-        self._owed = False  # a job ran since the last poll transaction
+        self._owed = 0  # poll transactions owed while polling is due: the last job's count
+        self._share_until = 0.0  # polling's share of the line after the last job ends
         self._backoff = TargetBackoff(self.timing.max_backoff)
         self._lag = PollLag(log, endpoint.describe())
         self._last_crash: str | None = None  # the last unexpected error, logged once
@@ -151,8 +150,7 @@ class LineWorker(LineRequests):
         return self._thread is not None and not self._stopping
 
     def on_worker(self) -> bool:
-        """True on this line's worker thread (in a callback), where waiting for a queued
-        job would wait forever."""
+        """True on the line's worker thread, where waiting for a queued job never ends."""
         return threading.current_thread() is self._thread
 
     # -- pollers ---------------------------------------------------------------------
@@ -300,27 +298,33 @@ class LineWorker(LineRequests):
         return reconnect_delay(self.timing, failures)
 
     def _serve(self, link: Link) -> None:
-        """One step while the link is up: a queued request (unless a job already ran
-        since the last poll transaction and a block is due: fairness), else the
-        engine's run until it needs Python (EV_DEADLINE: an hour went by, or the link
-        is closed)."""
+        """One step while the link is up: a queued request (unless polling is owed its
+        share of the line: line/jobs.py job_gate), else the engine's run until it needs
+        Python (EV_DEADLINE: an hour went by, polling's share ended, the link closed)."""
         pollers = self._pollers
+        until = time.monotonic() + _MAX_IDLE
         if not self._queue.empty():
-            late = late_by([p.device for p in pollers], time.monotonic())
-            if not (self._owed and late is not None):
+            late, wait = job_gate([p.device for p in pollers], time.monotonic(), self._owed,
+                                  self._share_until)
+            if wait is None:
                 self._waker.clear()
                 self._handle(self._queue.get_nowait(), link, late)
                 return
-            self._waker.signal()  # the engine comes back once it made the owed read
+            if wait == float("inf"):  # due now: the engine comes back once it read it
+                self._waker.signal()
+            else:  # falls due before polling's share ends: the engine runs until then
+                self._waker.clear()
+                until = wait
         if not pollers:
             self._handle(self._queue.get(), link)
             return
-        until = time.monotonic() + _MAX_IDLE
         if self.lease is not None:  # the engine starts no request at or after it
             until = min(until, self.lease())
+        polled = self._counters.counts().requests if self._owed else 0
         event = link.run_engine(self._waker, self._counters, [p.device for p in pollers],
-                                until, self._owed)
-        self._owed = link.owed
+                                until, self._owed > 0)
+        if self._owed:  # the poll transactions made pay for the last job's
+            self._owed = max(0, self._owed - (self._counters.counts().requests - polled))
         self._dispatch(link, event, pollers)
 
     def _dispatch(self, link: Link, event: tuple[int, int, int], pollers: list[Poller]) -> None:
@@ -351,52 +355,6 @@ class LineWorker(LineRequests):
                 time.sleep(_IDLE_SLICE)
         except Exception:  # a poller bug must not kill the line
             log.exception("%s: poller failed", self.endpoint.describe())
-        link.flush_reports()
-
-    def _handle(self, item: Any, link: Link | None, late: float | None = None) -> None:
-        """Run a queued job (``late``: how long polling has been due meanwhile)."""
-        if item is None or item is STOP:
-            return
-        job: Job = item
-        with self._pending_lock:
-            self._pending -= 1
-        if job.future.set_running_or_notify_cancel():
-            try:
-                self._run_job(job, link, late)
-            except Exception as exc:  # the worker fails with the job taken: so does the job
-                if not job.future.done():
-                    job.future.set_exception(LineWorkerError(
-                        f"{self.endpoint.describe()}: {crash_reason(exc)}"))
-                raise
-
-    def _run_job(self, job: Job, link: Link | None, late: float | None) -> None:
-        if link is None or not link.is_open:
-            job.future.set_exception(ModbusConnectionError(
-                f"{self.endpoint.describe()}: link is down ({self.last_link_error})"
-            ))
-            return
-        self.stats.jobs += 1
-        devices = [p.device for p in self._pollers]
-        self._lag.job_ran(self.stats, late, period_of(devices))
-        start, timeouts = time.monotonic(), link.stats.timeouts
-        slave = job.slave
-        try:
-            if slave is not None:
-                self._backoff.check(slave, start, answers_of(devices, slave))
-            self._owed = True
-            result = job.fn(link)
-        except BaseException as exc:
-            self._backoff.ended(self.stats, slave, exc, start, link.stats.timeouts > timeouts,
-                                devices, self.endpoint.describe())
-            job.future.set_exception(exc)
-        else:
-            self._backoff.ended(self.stats, slave, None, start, link.stats.timeouts > timeouts,
-                                devices, self.endpoint.describe())
-            job.future.set_result(result)
-        finally:
-            if not job.reads:
-                self._changed = time.monotonic()
-        self._lag.job_ended(self.stats, devices, time.monotonic())
         link.flush_reports()
 
     def _serve_queue_while_down(self, until: float) -> None:
