@@ -86,8 +86,9 @@ class JobRunner:
                                 devices, self.endpoint.describe())
             job.future.set_result(result)
         finally:  # a job of k transactions owes polling k, and as much line time after it
-            self._owed = max(self._owed, link.stats.requests - sent)
-            self._share_until = 2 * time.monotonic() - start
+            self._owed = max(self._owed, link.stats.requests - sent)  # (unless it timed out)
+            end = time.monotonic()
+            self._share_until = 2 * end - start if link.stats.timeouts == timeouts else end
             if not job.reads:
                 self._changed = time.monotonic()
         self._lag.job_ended(self.stats, devices, time.monotonic())

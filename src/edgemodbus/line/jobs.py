@@ -177,21 +177,24 @@ def reconnect_delay(timing: LineTiming, failures: int) -> float:
 def job_gate(devices: Sequence[EngineDevice], now: float, owed: int,
              share_until: float) -> tuple[float | None, float | None]:
     """May a queued job run at ``now``?  Returns how long polling has been due (None:
-    not due) and, when the job must wait, until when at most (None: run it now).  The
-    last job made ``owed`` transactions (a forward one, a read on demand of 24 blocks
-    24) and ended at ``share_until`` minus the time it took: while poll transactions are
-    owed, a job waits for the next one, if a block is due now (inf: until it is read)
-    or falls due before ``share_until`` (until then).  So a flood of short jobs gets
-    one job between two poll transactions, and a flood of long ones about half the line
-    time while polling is due, never the line: a 300 ms job costs a 100 ms device
-    three cycles, and its next three polls go before the next job."""
+    not due) and, when the job must wait, until when at most (None: run it now):
+
+    * ``share_until`` (polling's share: the last job got its answers and ended as long
+      before it as it took) while a block falls due before then: a 300 ms job costs a
+      100 ms device three cycles, and its next three polls go before the next job;
+    * inf, while a block is due now and ``owed`` poll transactions are owed (the last
+      job made that many): the engine comes back once it read one.
+
+    So a flood of short jobs gets one job between two poll transactions, and a flood of
+    long ones (reads on demand of many blocks, a slow slave's forwards) about half the
+    line while polling is due.  A job that timed out gives no share (its slave's
+    backoff, :class:`TargetBackoff`, bounds what it costs): the answers 0B of the
+    backoff go at once."""
     late = late_by(devices, now)
-    if not owed:
-        return late, None
-    if late is not None:
-        return late, float("inf")
     if now < share_until and late_by(devices, share_until) is not None:
         return late, share_until
+    if owed and late is not None:
+        return late, float("inf")
     return late, None
 
 
