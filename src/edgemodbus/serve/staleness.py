@@ -9,8 +9,9 @@ The C server counts a unit's reads answered 0B by what it saw (csrc/emb_serve.c
 acts on:
 
 * ``pollingDelayed``: the line's jobs (forwards, served writes, commands, reads on
-  demand) made polling late by more than its cycle within the unit's max age (the
-  line's ``pollsDelayed`` grew: line/jobs.py ``PollLag``);
+  demand) made polling late by more than its cycle within the unit's max age and a
+  second (the server's ticks) before (the line's ``pollsDelayed`` grew: line/jobs.py
+  ``PollLag``);
 * ``deviceDown``: the device is not Running (Offline, Reconnecting, Connecting);
 * ``old``: neither (a ``readCycle`` longer than ``maxAgeMs``, a slow slave);
 * ``invalid``: an item of the read is Invalid or not read yet (its own reason says why).
