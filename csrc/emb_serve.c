@@ -242,6 +242,17 @@ void emb_sv_unit_fresh(emb_server *s, int unit, int64_t until_ns)
     pthread_mutex_unlock(&s->lock);
 }
 
+void emb_sv_unit_stale(emb_server *s, int unit, uint64_t *out)
+{
+    out[EMB_SV_STALE_AGE] = out[EMB_SV_STALE_INVALID] = 0;
+    if (unit < 0 || unit >= EMB_SV_UNITS)
+        return;
+    pthread_mutex_lock(&s->lock);
+    out[EMB_SV_STALE_AGE] = s->units[unit].stale[EMB_SV_STALE_AGE];
+    out[EMB_SV_STALE_INVALID] = s->units[unit].stale[EMB_SV_STALE_INVALID];
+    pthread_mutex_unlock(&s->lock);
+}
+
 void emb_sv_update(emb_server *s, const emb_sv_run_op *ops, uint32_t n_ops,
                    const uint16_t *values)
 {
@@ -371,8 +382,9 @@ static int emb_sv_exception(emb_server *s, emb_sv_conn *c, int code)
 }
 
 /* the lock is held: 0 if every address of [addr, addr + nb) of the unit's area may be
- * read (or written), else the exception code */
-static int emb_sv_check(const emb_sv_unit *u, int area, uint32_t addr, uint32_t nb,
+ * read (or written), else the exception code; a read answered 0B is counted by why (an
+ * item Invalid first: its own reason says more than the unit's age) */
+static int emb_sv_check(emb_sv_unit *u, int area, uint32_t addr, uint32_t nb,
                         int writing, int64_t now)
 {
     int start, count;
@@ -390,14 +402,16 @@ static int emb_sv_check(const emb_sv_unit *u, int area, uint32_t addr, uint32_t 
             return MODBUS_EXCEPTION_ILLEGAL_DATA_ADDRESS;
         invalid |= (st & 3) == EMB_SV_INVALID;
     }
-    if (!writing && (invalid || now > u->fresh_until_ns))
+    if (!writing && (invalid || now > u->fresh_until_ns)) {
+        u->stale[invalid ? EMB_SV_STALE_INVALID : EMB_SV_STALE_AGE]++;
         return MODBUS_EXCEPTION_GATEWAY_TARGET;
+    }
     return 0;
 }
 
 /* the lock is held.  A request of a cached unit: the exception code to answer, 0 for a
  * read to answer from the image, -2 for a write to hand to Python. */
-static int emb_sv_cached(const emb_sv_unit *u, const uint8_t *adu, uint32_t n, int64_t now)
+static int emb_sv_cached(emb_sv_unit *u, const uint8_t *adu, uint32_t n, int64_t now)
 {
     const uint8_t *pdu = adu + EMB_SV_HDR;
     uint32_t len = n - EMB_SV_HDR;
@@ -472,6 +486,7 @@ static int emb_sv_request(emb_server *s, emb_sv_conn *c, uint32_t conn, uint32_t
         s->ev_conn = (int)conn;
         s->ev_gen = c->gen;
         s->ev_len = (int)n;
+        s->ev_src = c->src;
         memcpy(s->ev_adu, c->buf, n);
         s->c.to_python++;
         pthread_mutex_unlock(&s->lock);

@@ -43,6 +43,10 @@
 #define EMB_SV_POST_WRITTEN 2   /* the write was confirmed: modbus_reply applies it to the
                                  * image and answers the echo */
 
+/* emb_sv_unit.stale's indexes: why a cached read was answered 0B */
+#define EMB_SV_STALE_AGE 0
+#define EMB_SV_STALE_INVALID 1
+
 /* the areas, in libmodbus's mapping order */
 #define EMB_SV_COILS 0
 #define EMB_SV_DISCRETE 1
@@ -54,6 +58,8 @@ typedef struct {
     uint8_t *state[4];     /* per address of each area's span: EMB_SV_* */
     int64_t fresh_until_ns; /* reads after it (emb_now_ns) get 0B */
     int mode;
+    uint64_t stale[2];     /* reads answered 0B: [EMB_SV_STALE_AGE] older than its max
+                            * age, [EMB_SV_STALE_INVALID] an item Invalid or not read yet */
 } emb_sv_unit;
 
 /* an IPv4 network of an allow-list, host byte order: a source is in it when
@@ -122,6 +128,7 @@ typedef struct {
     int ev_conn;
     uint32_t ev_gen;
     int ev_len;
+    uint32_t ev_src;   /* the master's IPv4 address (host byte order; 0: not IPv4) */
     uint8_t ev_adu[EMB_SV_ADU];
 } emb_server;
 
@@ -143,6 +150,8 @@ int emb_sv_allow(emb_server *s, int unit, const uint32_t *nets, uint32_t n);
 void emb_sv_free(emb_server *s);
 int emb_sv_unit_set(emb_server *s, int unit, int mode, const int *spans);
 void emb_sv_unit_fresh(emb_server *s, int unit, int64_t until_ns);
+/* the unit's reads answered 0B since it was set, by reason (EMB_SV_STALE_*): out[2] */
+void emb_sv_unit_stale(emb_server *s, int unit, uint64_t *out);
 void emb_sv_update(emb_server *s, const emb_sv_run_op *ops, uint32_t n_ops,
                    const uint16_t *values);
 /* data: len bytes (NULL when len is 0) */

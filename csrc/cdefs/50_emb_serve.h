@@ -16,6 +16,8 @@
 #define EMB_SV_POST_PDU ...
 #define EMB_SV_POST_EXCEPTION ...
 #define EMB_SV_POST_WRITTEN ...
+#define EMB_SV_STALE_AGE ...
+#define EMB_SV_STALE_INVALID ...
 
 typedef struct {
     uint64_t accepted;
@@ -38,6 +40,7 @@ typedef struct {
     int ev_conn;
     uint32_t ev_gen;
     int ev_len;
+    uint32_t ev_src;
     uint8_t ev_adu[260];
     ...;
 } emb_server;
@@ -58,6 +61,7 @@ int emb_sv_allow(emb_server *s, int unit, const uint32_t *nets, uint32_t n);
 void emb_sv_free(emb_server *s);
 int emb_sv_unit_set(emb_server *s, int unit, int mode, const int *spans);
 void emb_sv_unit_fresh(emb_server *s, int unit, int64_t until_ns);
+void emb_sv_unit_stale(emb_server *s, int unit, uint64_t *out);
 void emb_sv_update(emb_server *s, const emb_sv_run_op *ops, uint32_t n_ops,
                    const uint16_t *values);
 int emb_sv_post(emb_server *s, int conn, uint32_t gen, int kind, const uint8_t *data,

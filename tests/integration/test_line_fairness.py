@@ -69,17 +69,19 @@ class Line:
     slave 3 and, with ``dead``, a forward unit for slave 7, which never answers."""
 
     def __init__(self, peer: PymodbusSlave, dead: bool = False, forward_timeout: float = 0.7,
-                 served_cycle: int = 1000, **extra: Any) -> None:
+                 served_cycle: int = 1000, max_age: float | None = None,
+                 server_args: dict[str, Any] | None = None, **extra: Any) -> None:
         self.peer = peer
         self.drivers: list[em.DriverModbusRtu] = []
-        self.server = ModbusTcpServer("127.0.0.1", 0, max_connections=16, idle_timeout=0)
+        self.server = ModbusTcpServer("127.0.0.1", 0, **{
+            "max_connections": 16, "idle_timeout": 0, **(server_args or {})})
         try:
             self.bystander = self._start(comm(peer, BYSTANDER, **extra))
             self.target = self._start(comm(peer, TARGET, readCycle=1000, **extra))
             served_cfg = self._config(comm(peer, SERVED, readCycle=served_cycle, **extra))
             self.served = self._start_cfg(served_cfg)
             self.server.forward_device(FORWARD_UNIT, self.target, timeout=forward_timeout)
-            self.server.serve_device(SERVED_UNIT, self.served, served_cfg)
+            self.server.serve_device(SERVED_UNIT, self.served, served_cfg, max_age=max_age)
             if dead:
                 self.dead = self._start(comm(peer, DEAD, readCycle=3_600_000, **extra))
                 self.server.forward_device(DEAD_UNIT, self.dead, timeout=forward_timeout)

@@ -5,8 +5,10 @@ line restarts with backoff.  Real libmodbus, pymodbus (own process) as the slave
 from __future__ import annotations
 
 import logging
+import socket
 import struct
 import threading
+import time
 from collections.abc import Iterator
 from typing import Any
 
@@ -18,10 +20,19 @@ from edgemodbus.datatypes import Area
 from edgemodbus.errors import ModbusConnectionError
 from edgemodbus.line.connect import open_link
 from edgemodbus.line.endpoint import LineTiming, TcpEndpoint
+from edgemodbus.line.jobs import PollLag
 from edgemodbus.line.link import ContextLink
 from edgemodbus.line.worker import LineWorker
 from tests.conftest import SlaveFactory
-from tests.integration.test_line_fairness import BYSTANDER, SERVED, TARGET, Line
+from tests.integration.test_line_fairness import (
+    BYSTANDER,
+    SERVED,
+    SERVED_UNIT,
+    TARGET,
+    Line,
+    mbap,
+    recv_adu,
+)
 from tests.peers import PymodbusSlave
 from tests.waiting import wait_for
 
@@ -158,3 +169,76 @@ def test_a_repeated_error_is_logged_once_and_jobs_fail_with_it(
         assert len(errors) == 1, errors  # logged once while it repeats
     finally:
         worker.stop()
+
+
+class StatusLog(em.Listener[em.DriverModbusRtu]):
+    """A device's status changes, timed (``time.monotonic()``)."""
+
+    def __init__(self) -> None:
+        self.seen: list[tuple[float, em.DeviceDriverStatus, str | None]] = []
+
+    def on_changes(self, source: em.DriverModbusRtu, items: list[Any]) -> None:
+        return None
+
+    def on_status(self, source: em.DriverModbusRtu, status: em.DeviceDriverStatus,
+                  reason: str | None) -> None:
+        self.seen.append((time.monotonic(), status, reason))
+
+
+def offline_since(status: StatusLog) -> list[tuple[float, str | None]]:
+    return [(t, r) for t, s, r in status.seen if s is em.DeviceDriverStatus.OFFLINE]
+
+
+@pytest.mark.parametrize("engine", ["thread", "loop"])
+def test_a_worker_error_sets_the_devices_offline_and_fails_the_job_it_took(
+        peer: PymodbusSlave, engine: str, monkeypatch: pytest.MonkeyPatch,
+        caplog: pytest.LogCaptureFixture) -> None:
+    """Issue #25: the devices are Offline with the error's one-line reason until the
+    line is back (not Reconnecting); the job the worker had taken fails at once (a
+    served write answered 0B, not never); the error logged once while it repeats; the
+    line restarts after the reconnect backoff, on both engines (line/loop.py calls the
+    same recovery)."""
+    gw = Line(peer, engine=engine)
+    try:
+        status = StatusLog()
+        gw.bystander.subscribe(status)
+        job_ran = PollLag.job_ran
+        crashes: list[float] = []
+
+        def failing(self: PollLag, *args: Any) -> None:  # a bug in the worker's own code
+            if len(crashes) < 2:
+                crashes.append(time.monotonic())
+                raise RuntimeError("injected\nsecond line of the message")
+            job_ran(self, *args)
+
+        monkeypatch.setattr(PollLag, "job_ran", failing)  # (class level: __slots__)
+        with socket.create_connection(("127.0.0.1", gw.port), timeout=15) as master:
+            for tid in (1, 2):  # each crashes the worker once, with the same reason
+                start = time.monotonic()
+                master.sendall(mbap(tid, SERVED_UNIT, struct.pack(">BHH", 6, 1, 4321)))
+                assert recv_adu(master)[7:] == b"\x86\x0b"  # answered, at once
+                assert time.monotonic() - start < 5.0
+                wait_for(lambda n=tid: len(offline_since(status)) == n, 15, "Offline")
+                wait_for(lambda: gw.bystander.device_driver_status
+                         is em.DeviceDriverStatus.RUNNING, 15, "the line back, polling")
+            master.sendall(mbap(3, SERVED_UNIT, struct.pack(">BHH", 6, 1, 4321)))
+            assert recv_adu(master)[7:] == struct.pack(">BHH", 6, 1, 4321)
+        reason = "line worker error: RuntimeError: injected"
+        offline = offline_since(status)
+        assert [r for _, r in offline] == [reason, reason], status.seen
+        assert not any(s is em.DeviceDriverStatus.RECONNECTING for _, s, _ in status.seen)
+        item = gw.bystander.address_items[0]
+        # each Offline lasts until the line is back: at least the reconnect backoff
+        # (reconnectInterval 300 ms, +-20 %), Running again after it
+        for when, _ in offline:
+            back = [t for t, s, _ in status.seen
+                    if s is em.DeviceDriverStatus.RUNNING and t > when]
+            assert back and back[0] - when >= 0.8 * 0.3, status.seen
+        assert item.status is em.ItemStatus.OK
+        assert gw.line_stats()["workerErrors"] == 2
+        logged = [r for r in caplog.records
+                  if r.levelno >= logging.ERROR and "injected" in r.getMessage()]
+        assert len(logged) == 1, logged  # once while it repeats
+        assert peer.registers(SERVED, "hr", 1) == [4321]
+    finally:
+        gw.close()

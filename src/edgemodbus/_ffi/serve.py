@@ -49,11 +49,13 @@ class ImageRun(NamedTuple):
 
 class Request(NamedTuple):
     """A request the C loop hands to Python: the connection (slot and generation, for
-    :meth:`ServerCore.post`) and the request ADU (MBAP header, unit id, PDU)."""
+    :meth:`ServerCore.post`), the request ADU (MBAP header, unit id, PDU) and the
+    master's IPv4 address (an int, host byte order)."""
 
     conn: int
     gen: int
     adu: bytes
+    src: int = 0
 
 
 class ServerCounters(NamedTuple):
@@ -146,7 +148,17 @@ class ServerCore:
     def request(self) -> Request:
         """The request of the last EV_REQUEST."""
         ptr = self._live()
-        return Request(ptr.ev_conn, ptr.ev_gen, bytes(ffi.buffer(ptr.ev_adu, ptr.ev_len)))
+        return Request(ptr.ev_conn, ptr.ev_gen, bytes(ffi.buffer(ptr.ev_adu, ptr.ev_len)),
+                       ptr.ev_src)
+
+    def stale(self, unit: int) -> tuple[int, int]:
+        """``unit``'s reads answered 0B since it was set: (older than its max age, an
+        item Invalid or not read yet); (0, 0) once the server is closed."""
+        out = ffi.new("uint64_t[2]")
+        with self._lock:
+            if self._ptr is not None:
+                lib.emb_sv_unit_stale(self._ptr, unit, out)
+        return int(out[lib.EMB_SV_STALE_AGE]), int(out[lib.EMB_SV_STALE_INVALID])
 
     def counters(self) -> ServerCounters:
         """The C loop's counters, read live."""

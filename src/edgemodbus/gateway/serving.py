@@ -41,7 +41,9 @@ class GatewayServer:
                 self.server = ModbusTcpServer(settings.host, settings.port,
                                               max_connections=settings.max_connections,
                                               idle_timeout=settings.idle_timeout_s,
-                                              allow_from=settings.allow_from).start()
+                                              allow_from=settings.allow_from,
+                                              max_pending_per_master=settings
+                                              .max_pending_per_master).start()
                 self._key = key
                 done.append(f"Modbus TCP server on {settings.host}:{self.server.port}")
             else:

@@ -9,6 +9,8 @@
   failure cost the line (so a dead target takes at most a fifth of the line), doubling
   per failure in a row up to the line's maxBackoff, and ends early when the slave
   answers anything (a poll of a device on that slave counts);
+* :class:`LineWorkerError`, :func:`crash_reason`, :func:`reconnect_delay`: what a line
+  worker that recovers from an unexpected error tells and when it tries again;
 * :class:`PollLag`: the counters and the rate-limited WARNING of jobs that run while
   polling is due (the fairness rule itself is in the worker and csrc/emb_engine.c: while
   a block is due, at most one job between two poll transactions).
@@ -17,13 +19,16 @@
 from __future__ import annotations
 
 import logging
+import random
+import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import Future
 from dataclasses import dataclass
 from typing import Any
 
 from .._ffi.engine import EngineDevice
-from ..errors import TargetBackoffError
+from ..errors import ModbusConnectionError, TargetBackoffError
+from .endpoint import LineTiming
 from .forward import QueuedTooLongError
 from .log_limit import LogLimiter
 
@@ -32,6 +37,10 @@ from .log_limit import LogLimiter
 MAX_PENDING = 64
 #: A failed target's backoff is this many times what the failure cost the line.
 BACKOFF_FACTOR = 4.0
+#: Characters of an unexpected error's message in the reason the devices show.
+MAX_REASON = 200
+
+log = logging.getLogger("edgemodbus.line")
 
 STOP = object()
 """Queued to end the worker."""
@@ -96,30 +105,97 @@ class TargetBackoff:
             self._dead.pop(slave, None)
         return None
 
+    def ended(self, stats: Any, slave: int | None, exc: BaseException | None, start: float,
+              timed_out: bool, devices: Sequence[EngineDevice], line: str) -> None:
+        """A job to ``slave`` on ``line`` ended (``timed_out``: a request of it got no
+        answer): count a backoff (``stats``), or start or end one."""
+        if isinstance(exc, TargetBackoffError):
+            stats.target_backoffs += 1
+        elif slave is not None:
+            now = time.monotonic()
+            backoff = self.settled(slave, exc, timed_out, now, now - start,
+                                   answers_of(devices, slave))
+            if backoff is not None:
+                log.info("%s: slave %d did not answer: requests to it fail at once for "
+                         "%.1f s", line, slave, backoff)
+
     def backing_off(self) -> list[int]:
         return sorted(self._dead)
 
 
 class PollLag:
-    """Jobs that ran while polling was due: counted in the line's stats, and a WARNING
-    (a few per 10 s, then a summary) when polling was already late by more than its
-    own scan rate."""
+    """Jobs and polling: a job that starts while polling is due counts in the line's
+    ``jobsAheadOfPolls``; one that leaves polling late by more than its own scan rate
+    when it ends (the time it took included: one 200 ms forward between two polls of a
+    100 ms device delays it past its cycle) counts in ``pollsDelayed`` and logs a
+    WARNING (a few per 10 s, then a summary)."""
 
     def __init__(self, logger: logging.Logger, line: str) -> None:
         self._limiter = LogLimiter(logger)
         self._line = line
 
     def job_ran(self, stats: Any, late: float | None, period: float) -> None:
-        """A job ran; ``late``: how long polling had been due then (None: not due)."""
-        if late is None:
-            return
-        stats.jobs_ahead_of_polls += 1
-        if late > period > 0:
+        """A job starts; ``late``: how long polling had been due then (None: not due)."""
+        if late is not None:
+            stats.jobs_ahead_of_polls += 1
+
+    def job_ended(self, stats: Any, devices: Sequence[EngineDevice], now: float) -> None:
+        """A job ended at ``now``: is polling (of ``devices``) late past its cycle?"""
+        late, period = late_by(devices, now), period_of(devices)
+        if late is not None and late > period > 0:
             stats.polls_delayed += 1
             self._limiter.event(logging.WARNING, "polls delayed by queued jobs", self._line,
                                 "%s: queued jobs delay polling: %.2f s late (scan rate "
                                 "%.2f s); jobs waiting on the line", self._line, late, period)
         self._limiter.flush()
+
+
+class LineWorkerError(ModbusConnectionError):
+    """A job failed because its line's worker failed (an unexpected error: the line
+    restarts); a gateway answers a forwarded request 0B (serve/server.py), as issue #25
+    asks, not 0A (a path that is down)."""
+
+
+def crash_reason(exc: BaseException) -> str:
+    """The one-line reason of a worker's unexpected error: the devices' status and the
+    jobs' failure say it (the log line has the traceback)."""
+    text = str(exc).strip().splitlines()
+    first = text[0] if text else ""
+    if len(first) > MAX_REASON:
+        first = first[:MAX_REASON - 3] + "..."
+    return f"line worker error: {type(exc).__name__}" + (f": {first}" if first else "")
+
+
+def reconnect_delay(timing: LineTiming, failures: int) -> float:
+    """Wait before the next connect: reconnectInterval, doubled per failed connect in
+    a row up to maxBackoff, with +-20 % jitter so that lines do not reconnect in step."""
+    base = timing.reconnect_interval * 2.0 ** max(0, min(failures - 1, 30))
+    base = max(timing.reconnect_interval, min(base, timing.max_backoff))
+    return base * random.uniform(0.8, 1.2)
+
+
+def job_gate(devices: Sequence[EngineDevice], now: float, owed: int,
+             share_until: float) -> tuple[float | None, float | None]:
+    """May a queued job run at ``now``?  Returns how long polling has been due (None:
+    not due) and, when the job must wait, until when at most (None: run it now):
+
+    * ``share_until`` (polling's share: the last job got its answers and ended as long
+      before it as it took) while a block falls due before then: a 300 ms job costs a
+      100 ms device three cycles, and its next three polls go before the next job;
+    * inf, while a block is due now and ``owed`` poll transactions are owed (the last
+      job made that many): the engine comes back once it read one.
+
+    So a flood of short jobs gets one job between two poll transactions, and a flood of
+    long ones (reads on demand of many blocks, a slow slave's forwards) about half the
+    line while polling is due.  A job that timed out gives no share (its slave's
+    backoff, :class:`TargetBackoff`, bounds what it costs): the answers 0B of the
+    backoff go at once."""
+    late = late_by(devices, now)
+    if now < share_until and late_by(devices, share_until) is not None:
+        return late, share_until
+    if owed and late is not None:
+        return late, float("inf")
+    return late, None
 
 
 def late_by(devices: Sequence[EngineDevice], now: float) -> float | None:

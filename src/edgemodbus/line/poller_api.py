@@ -40,6 +40,9 @@ class Poller(Protocol):
         ...
 
 
-    def link_changed(self, up: bool, reason: str | None) -> None:
-        """The line went up or down (called on the worker thread)."""
+    def link_changed(self, up: bool, reason: str | None, offline: bool = False) -> None:
+        """The line went up or down (called on the worker thread); ``offline``: down
+        because the line's worker failed (an unexpected error, LineWorker._recover), not
+        its link: the device is Offline with ``reason`` until the line is back, rather
+        than Reconnecting."""
         ...

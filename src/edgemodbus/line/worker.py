@@ -1,17 +1,14 @@
 """One line (a serial port, a TCP endpoint, or a DTU behind a listener) served by one
-worker thread.
-
-The worker thread creates, uses and frees the line's libmodbus context: libmodbus
-contexts are not thread-safe.  Other threads reach the line through a queue
-(:meth:`LineWorker.submit` and the request helpers, which return
-``concurrent.futures.Future`` objects), and pollers (the driver's devices) are called on
-the worker when they are due.  Queued requests (writes) run before the next poll step, so
-they jump ahead of reads, but while a block is due at most one job runs between two poll
+worker thread, which creates, uses and frees the line's libmodbus context (contexts are
+not thread-safe).  Other threads reach the line through a queue (:meth:`LineWorker.submit`
+and the request helpers: ``concurrent.futures.Future`` objects); pollers (the driver's
+devices) are called on the worker when they are due.  Queued requests (writes) run before
+the next poll step, but while a block is due at most one job runs between two poll
 transactions, so that no flood of jobs starves polling (:mod:`edgemodbus.line.jobs`).
-The link itself (:mod:`edgemodbus.line.link`) settles the line after timeouts and
-drains it after other errors.  An unexpected exception on the worker is logged, the link
-closed, the pollers told, the queued jobs failed, and the line restarts with backoff:
-the worker never dies of it.
+The link (:mod:`edgemodbus.line.link`) settles the line after timeouts and drains it
+after other errors.  An unexpected exception on the worker is logged, the link closed,
+the devices set Offline with the reason, the jobs failed, and the line restarts with
+backoff: the worker never dies of it (:meth:`LineWorker._recover`).
 """
 
 from __future__ import annotations
@@ -19,7 +16,6 @@ from __future__ import annotations
 import logging
 import os
 import queue
-import random
 import threading
 import time
 from collections.abc import Callable
@@ -33,15 +29,25 @@ from .._ffi.engine import (
     EV_REPORTS,
     EV_SPLIT,
     EV_WAKE,
-    EngineDevice,
     Waker,
 )
 from .._ffi.outcomes import LineCounters
-from ..errors import LineBusyError, ModbusConnectionError, ModbusError, TargetBackoffError
+from ..errors import LineBusyError, ModbusConnectionError, ModbusError
 from ..stats import LineStats
 from .connect import open_link
 from .endpoint import DtuEndpoint, Endpoint, LineTiming, MqttDtuEndpoint
-from .jobs import MAX_PENDING, STOP, Job, PollLag, TargetBackoff, answers_of, late_by, period_of
+from .job_runner import JobRunner
+from .jobs import (
+    MAX_PENDING,
+    STOP,
+    Job,
+    LineWorkerError,
+    PollLag,
+    TargetBackoff,
+    crash_reason,
+    job_gate,
+    reconnect_delay,
+)
 from .link import Link
 from .poller_api import Poller
 from .requests import LineRequests
@@ -64,17 +70,16 @@ class Connector(Protocol):
         ...
 
 
-class LineWorker(LineRequests):
+class LineWorker(LineRequests, JobRunner):
     """A line and its worker thread.  Created by :class:`LineRegistry` (shared by every
     user of the same endpoint) or directly; ``start()`` then ``stop()``."""
 
     # thousands of lines on a loop: slots, no dict of 30 keys (docs/scale.md "Memory per DTU")
-    __slots__ = ("__weakref__", "_backoff", "_changed", "_connect_now", "_counters",
-                 "_crashes", "_failures", "_lag", "_last_crash", "_link", "_next_connect",
-                 "_owed", "_pending", "_pending_lock", "_pollers", "_pollers_lock",
-                 "_queue", "_stopping", "_thread", "_up_since", "_waker", "connector",
-                 "endpoint", "last_link_error", "lease", "link_up", "max_pending", "stats",
-                 "timing")
+    __slots__ = ("__weakref__", "_backoff", "_connect_now", "_counters", "_crashes", "_failures",
+                 "_lag", "_last_crash", "_link", "_next_connect", "_pending_lock",
+                 "_pollers", "_pollers_lock", "_queue", "_stopping", "_thread", "_up_since",
+                 "_waker", "connector", "endpoint", "last_link_error", "lease", "link_up",
+                 "max_pending", "stats", "timing")
 
     def __init__(self, endpoint: Endpoint, timing: LineTiming | None = None,
                  connector: Connector | None = None) -> None:
@@ -97,7 +102,8 @@ class LineWorker(LineRequests):
         self.max_pending = MAX_PENDING  # jobs queued at most; more: LineBusyError
         self._pending = 0  # jobs queued, not yet taken
         self._pending_lock = threading.Lock()
-        self._owed = False  # a job ran since the last poll transaction
+        self._owed = 0  # poll transactions owed while polling is due: the last job's count
+        self._share_until = 0.0  # polling's share of the line after the last job ends
         self._backoff = TargetBackoff(self.timing.max_backoff)
         self._lag = PollLag(log, endpoint.describe())
         self._last_crash: str | None = None  # the last unexpected error, logged once
@@ -144,8 +150,7 @@ class LineWorker(LineRequests):
         return self._thread is not None and not self._stopping
 
     def on_worker(self) -> bool:
-        """True on this line's worker thread (in a callback), where waiting for a queued
-        job would wait forever."""
+        """True on the line's worker thread, where waiting for a queued job never ends."""
         return threading.current_thread() is self._thread
 
     # -- pollers ---------------------------------------------------------------------
@@ -262,10 +267,11 @@ class LineWorker(LineRequests):
         self._serve(link)
 
     def _recover(self, exc: Exception) -> None:
-        """An unexpected exception on the worker: log it (once while it repeats), close
-        the link, tell the pollers why, fail the jobs waiting, and try again after the
-        reconnect backoff."""
-        reason = f"line worker error: {type(exc).__name__}: {exc}"
+        """An unexpected exception on the worker (or on its loop, line/loop.py): log it
+        (once while it repeats), close the link, set the devices Offline with the reason
+        until the line is back, fail the jobs waiting (LineWorkerError: a forward is
+        answered 0B), and try again after the reconnect backoff."""
+        reason = crash_reason(exc)
         self.stats.worker_errors += 1
         if reason != self._last_crash:
             log.error("%s: %s; the line restarts", self.endpoint.describe(), reason,
@@ -283,42 +289,42 @@ class LineWorker(LineRequests):
                           exc_info=True)
         self.link_up = False
         self.last_link_error = reason
-        self._notify(False, reason)
-        self._fail_queued(f"{self.endpoint.describe()}: {reason}")
+        self._notify(False, reason, offline=True)
+        self._fail_queued(f"{self.endpoint.describe()}: {reason}", LineWorkerError)
         self._crashes += 1
         self._next_connect = time.monotonic() + self._reconnect_delay(self._crashes)
 
     def _reconnect_delay(self, failures: int) -> float:
-        """Wait before the next connect: reconnectInterval, doubled per failed connect
-        in a row up to maxBackoff, with +-20 % jitter so that lines do not reconnect
-        in step."""
-        timing = self.timing
-        base = timing.reconnect_interval * 2.0 ** max(0, min(failures - 1, 30))
-        base = max(timing.reconnect_interval, min(base, timing.max_backoff))
-        return base * random.uniform(0.8, 1.2)
+        return reconnect_delay(self.timing, failures)
 
     def _serve(self, link: Link) -> None:
-        """One step while the link is up: a queued request (unless a job already ran
-        since the last poll transaction and a block is due: fairness), else the
-        engine's run until it needs Python (EV_DEADLINE: an hour went by, or the link
-        is closed)."""
+        """One step while the link is up: a queued request (unless polling is owed its
+        share of the line: line/jobs.py job_gate), else the engine's run until it needs
+        Python (EV_DEADLINE: an hour went by, polling's share ended, the link closed)."""
         pollers = self._pollers
+        until = time.monotonic() + _MAX_IDLE
         if not self._queue.empty():
-            late = late_by([p.device for p in pollers], time.monotonic())
-            if not (self._owed and late is not None):
+            late, wait = job_gate([p.device for p in pollers], time.monotonic(), self._owed,
+                                  self._share_until)
+            if wait is None:
                 self._waker.clear()
                 self._handle(self._queue.get_nowait(), link, late)
                 return
-            self._waker.signal()  # the engine comes back once it made the owed read
+            if wait == float("inf"):  # due now: the engine comes back once it read it
+                self._waker.signal()
+            else:  # falls due before polling's share ends: the engine runs until then
+                self._waker.clear()
+                until = wait
         if not pollers:
             self._handle(self._queue.get(), link)
             return
-        until = time.monotonic() + _MAX_IDLE
         if self.lease is not None:  # the engine starts no request at or after it
             until = min(until, self.lease())
+        polled = self._counters.counts().requests if self._owed else 0
         event = link.run_engine(self._waker, self._counters, [p.device for p in pollers],
-                                until, self._owed)
-        self._owed = link.owed
+                                until, self._owed > 0)
+        if self._owed:  # the poll transactions made pay for the last job's
+            self._owed = max(0, self._owed - (self._counters.counts().requests - polled))
         self._dispatch(link, event, pollers)
 
     def _dispatch(self, link: Link, event: tuple[int, int, int], pollers: list[Poller]) -> None:
@@ -350,55 +356,6 @@ class LineWorker(LineRequests):
         except Exception:  # a poller bug must not kill the line
             log.exception("%s: poller failed", self.endpoint.describe())
         link.flush_reports()
-
-    def _handle(self, item: Any, link: Link | None, late: float | None = None) -> None:
-        """Run a queued job (``late``: how long polling has been due meanwhile)."""
-        if item is None or item is STOP:
-            return
-        job: Job = item
-        with self._pending_lock:
-            self._pending -= 1
-        if not job.future.set_running_or_notify_cancel():
-            return
-        if link is None or not link.is_open:
-            job.future.set_exception(ModbusConnectionError(
-                f"{self.endpoint.describe()}: link is down ({self.last_link_error})"
-            ))
-            return
-        self.stats.jobs += 1
-        devices = [p.device for p in self._pollers]
-        self._lag.job_ran(self.stats, late, period_of(devices))
-        start, timeouts = time.monotonic(), link.stats.timeouts
-        slave = job.slave
-        try:
-            if slave is not None:
-                self._backoff.check(slave, start, answers_of(devices, slave))
-            self._owed = True
-            result = job.fn(link)
-        except BaseException as exc:
-            self._after(slave, exc, start, link.stats.timeouts > timeouts, devices)
-            job.future.set_exception(exc)
-        else:
-            self._after(slave, None, start, link.stats.timeouts > timeouts, devices)
-            job.future.set_result(result)
-        finally:
-            if not job.reads:
-                self._changed = time.monotonic()
-        link.flush_reports()
-
-    def _after(self, slave: int | None, exc: BaseException | None, start: float,
-               timed_out: bool, devices: list[EngineDevice]) -> None:
-        """A job to ``slave`` ended (``timed_out``: a request of it got no answer):
-        count a backoff, or start or end one."""
-        if isinstance(exc, TargetBackoffError):
-            self.stats.target_backoffs += 1
-        elif slave is not None:
-            now = time.monotonic()
-            backoff = self._backoff.settled(slave, exc, timed_out, now, now - start,
-                                            answers_of(devices, slave))
-            if backoff is not None:
-                log.info("%s: slave %d did not answer: requests to it fail at once for "
-                         "%.1f s", self.endpoint.describe(), slave, backoff)
 
     def _serve_queue_while_down(self, until: float) -> None:
         """While disconnected: fail queued requests at once, sleep until the next try."""
@@ -471,10 +428,10 @@ class LineWorker(LineRequests):
         log.warning("%s: link down: %s", self.endpoint.describe(), reason)
         self._notify(False, reason)
 
-    def _notify(self, up: bool, reason: str | None) -> None:
+    def _notify(self, up: bool, reason: str | None, offline: bool = False) -> None:
         for poller in self._pollers:
             try:
-                poller.link_changed(up, reason)
+                poller.link_changed(up, reason, offline)
             except Exception:
                 log.exception("%s: poller link_changed failed", self.endpoint.describe())
 
@@ -485,9 +442,10 @@ class LineWorker(LineRequests):
         self.link_up = False
         self._fail_queued(f"line {self.endpoint.describe()} stopped")
 
-    def _fail_queued(self, reason: str) -> None:
-        """Fail every job waiting on the queue with ``reason`` (the line stops, or its
-        worker recovers from an error)."""
+    def _fail_queued(self, reason: str,
+                     error: type[ModbusConnectionError] = ModbusConnectionError) -> None:
+        """Fail every job waiting on the queue with ``error(reason)`` (the line stops,
+        or its worker recovers from an error)."""
         while True:
             try:
                 item = self._queue.get_nowait()
@@ -497,4 +455,4 @@ class LineWorker(LineRequests):
                 with self._pending_lock:
                     self._pending -= 1
                 if item.future.set_running_or_notify_cancel():
-                    item.future.set_exception(ModbusConnectionError(reason))
+                    item.future.set_exception(error(reason))

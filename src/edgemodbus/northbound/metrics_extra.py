@@ -21,7 +21,8 @@ the replay), ``_inflight`` and ``_bytes`` (what counts against ``maxBytes``).
 
 Modbus TCP server (label ``listen``, ``host:port``): ``edgemodbus_serve_<counter>_total``
 for its connection and request counters, ``edgemodbus_serve_exceptions_total`` by
-exception ``code``, and the gauge ``edgemodbus_serve_connections``
+exception ``code``, ``edgemodbus_serve_stale_replies_total`` by ``unit`` and ``reason``
+(a served unit's reads answered 0B), and the gauge ``edgemodbus_serve_connections``
 (the masters' connections open now).
 
 The exporter's own HTTP server (metrics_http.py): ``edgemodbus_metrics_http_<counter>_total``
@@ -103,6 +104,8 @@ SERVE_COUNTERS: tuple[tuple[str, str, str], ...] = (
     ("forwardExpired", "serve_forward_expired",
      "Forwarded requests answered 0B when their timeout ran out (counted from arrival)"),
     ("busy", "serve_busy", "Requests answered 06 (server busy): the line had too many waiting"),
+    ("busyMaster", "serve_busy_master",
+     "Requests answered 06 (server busy): their master had maxPendingPerMaster waiting"),
     ("acceptErrors", "serve_accept_errors",
      "accept() failures (EMFILE, ENFILE, ENOBUFS, ENOMEM): accepting paused, 50 ms doubling "
      "to 2 s"),
@@ -177,6 +180,14 @@ def server_metrics(source: ServerStats) -> list[Metric]:
     for code, n in sorted(dict(stats.get("exceptions", {})).items()):
         exceptions.add_metric([*listen, str(code)], float(n))
     families.append(exceptions)
+    stale = CounterMetricFamily(
+        f"{NAMESPACE}_serve_stale_replies", "Reads of a served unit answered 0B, by unit and "
+        "reason (pollingDelayed, deviceDown, old, invalid: docs/gateway.md)",
+        labels=["listen", "unit", "reason"])
+    for unit, counts in sorted(dict(stats.get("staleReplies", {})).items()):
+        for reason, n in dict(counts).items():
+            stale.add_metric([*listen, str(unit), str(reason)], float(n))
+    families.append(stale)
     gauge = GaugeMetricFamily(f"{NAMESPACE}_serve_connections",
                               "Connections of Modbus TCP masters open now", labels=["listen"])
     gauge.add_metric(listen, float(stats.get("connections", 0)))

@@ -263,7 +263,7 @@ class Poller:
         return self.line.submit(lambda _link: self.delivery.snapshot_due())
 
     # -- the Poller protocol -----------------------------------------------------------
-    def link_changed(self, up: bool, reason: str | None) -> None:
+    def link_changed(self, up: bool, reason: str | None, offline: bool = False) -> None:
         if not self.active:
             return
         self.take_reports()
@@ -273,7 +273,8 @@ class Poller:
             return
         if up:
             return
-        self._set_status(DeviceDriverStatus.RECONNECTING, f"link down: {reason}")
+        status = DeviceDriverStatus.OFFLINE if offline else DeviceDriverStatus.RECONNECTING
+        self._set_status(status, reason if offline else f"link down: {reason}")
         self.device.link_lost()
         self.device.forget_failures()  # its items now say "link down"
         for slot in self.slots:

@@ -35,7 +35,7 @@ import os
 import re
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from concurrent.futures import Future
 from dataclasses import dataclass
 from typing import Any
@@ -58,6 +58,7 @@ from ..datatypes import Area, DeviceDriverStatus, ItemStatus
 from ..driver import DriverModbusRtu
 from ..errors import LineBusyError
 from ..line.forward import ForwardFuture
+from ..line.jobs import LineWorkerError
 from ..poll.listeners import Listener
 from ..protocol.forward import (
     GATEWAY_TARGET_FAILED,
@@ -67,7 +68,8 @@ from ..protocol.forward import (
     exception_code_for,
 )
 from .image import ILLEGAL_DATA_VALUE, UnitImage
-from .settings import ipv4_masks
+from .settings import DEFAULT_PENDING_PER_MASTER, ipv4_masks
+from .staleness import StaleWatch, stale_limiter
 
 log = logging.getLogger("edgemodbus.serve")
 
@@ -84,10 +86,12 @@ class _Hook(Listener[DriverModbusRtu]):
     image.  Inactive once the unit is removed (a delivery under way while it is
     unsubscribed writes nothing)."""
 
-    def __init__(self, image: UnitImage, core: ServerCore, max_age_ns: int | None) -> None:
+    def __init__(self, image: UnitImage, core: ServerCore, max_age_ns: int | None,
+                 watch: StaleWatch) -> None:
         self.image = image
         self.core = core
         self.max_age_ns = max_age_ns
+        self.watch = watch
         self.active = True
 
     def on_changes(self, source: DriverModbusRtu, items: list[DeviceAddressItem]) -> None:
@@ -96,7 +100,8 @@ class _Hook(Listener[DriverModbusRtu]):
         self.core.update(self.image.runs(items))
         if self.max_age_ns is not None and any(it.status is ItemStatus.OK for it in items):
             # the slave just answered: fresh from now (between the server's checks)
-            self.core.set_fresh(self.image.unit, time.monotonic_ns() + self.max_age_ns)
+            now = self.watch.answered_ns = time.monotonic_ns()
+            self.core.set_fresh(self.image.unit, now + self.max_age_ns)
 
 
 @dataclass(eq=False)
@@ -108,17 +113,24 @@ class _Unit:
     max_age: float | None = None
     timeout: float | None = None  # forward: None is the device's readTimeout
     responses: int = -1
+    watch: StaleWatch | None = None  # a served device: its reads answered 0B, and why
 
 
 class ModbusTcpServer:
     """A Modbus TCP server on ``host:port`` (port 0: any free one, see :attr:`port`)
     with at most ``max_connections`` masters at once (one more is closed at once) and
-    an idle timeout (seconds; 0: none).  Add units, then :meth:`start`; :meth:`stop`
-    closes every socket and unsubscribes from the drivers."""
+    an idle timeout (seconds; 0: none); one master (a source address) has at most
+    ``max_pending_per_master`` requests waiting for a line across its connections
+    (forwards, writes; one more is answered 06).  Add units, then :meth:`start`;
+    :meth:`stop` closes every socket and unsubscribes from the drivers."""
 
     def __init__(self, host: str = "127.0.0.1", port: int = 502, *,
                  max_connections: int = 32, idle_timeout: float = 60.0,
-                 tick: float = 0.1, allow_from: Sequence[str] = ()) -> None:
+                 tick: float = 0.1, allow_from: Sequence[str] = (),
+                 max_pending_per_master: int = DEFAULT_PENDING_PER_MASTER) -> None:
+        if max_pending_per_master < 1:
+            raise ValueError(f"max_pending_per_master {max_pending_per_master}: must be at "
+                             "least 1")
         self.core = ServerCore(host, port, max_connections=max_connections,
                                idle_timeout=idle_timeout)
         try:  # connections from other sources are reset at once (settings.py allowFrom)
@@ -139,6 +151,10 @@ class ModbusTcpServer:
         self._accept_log_at = 0.0  # the next accept-failure line not before (monotonic)
         self.forward_expired = 0
         self.busy = 0
+        self.busy_master = 0  # answered 06: their master had max_pending_per_master waiting
+        self.max_pending_per_master = max_pending_per_master
+        self._pending: dict[int, int] = {}  # source address -> its requests waiting
+        self._stale_log = stale_limiter()
         # forwards waiting for an answer, by deadline (time.monotonic())
         self._deadlines: list[tuple[float, int, Future[bytes]]] = []
         self._seq = itertools.count()
@@ -161,10 +177,11 @@ class ModbusTcpServer:
         core.set_unit(unit_id, MODE_CACHED, image.spans())
         core.update(image.mapping())
         core.set_fresh(unit_id, 0 if max_age is not None else _NEVER_STALE)
-        hook = _Hook(image, core, None if max_age is None else int(max_age * 1e9))
+        watch = StaleWatch(unit_id, code, driver, max_age)
+        hook = _Hook(image, core, None if max_age is None else int(max_age * 1e9), watch)
         driver.subscribe(hook)
         core.update(image.seed(driver.snapshot()["items"]))
-        unit = _Unit(unit_id, driver, image, hook, max_age)
+        unit = _Unit(unit_id, driver, image, hook, max_age, watch=watch)
         with self._lock:
             self._units[unit_id] = unit
         self._refresh(unit, time.monotonic_ns())
@@ -221,8 +238,11 @@ class ModbusTcpServer:
         self.core.close()
 
     def stats(self) -> dict[str, Any]:
-        """The server's counters (camelCase keys)."""
+        """The server's counters (camelCase keys); ``staleReplies``: per served unit id,
+        its reads answered 0B by reason (serve/staleness.py)."""
         c = self.core.counters()
+        with self._lock:
+            units = list(self._units.values())
         return {
             "listen": f"{self.host}:{self.port}",
             "connections": self.core.open_connections(),
@@ -234,6 +254,9 @@ class ModbusTcpServer:
             "acceptErrors": c.accept_errors,
             "refusedSource": c.refused_source, "refusedUnit": c.refused_unit,
             "forwardExpired": self.forward_expired, "busy": self.busy,
+            "busyMaster": self.busy_master,
+            "staleReplies": {u.unit_id: dict(u.watch.counts) for u in units
+                             if u.watch is not None},
         }
 
     # -- the server's thread -----------------------------------------------------------
@@ -246,9 +269,11 @@ class ModbusTcpServer:
             if now >= next_check:
                 next_check = now + tick
                 with self._lock:
-                    units = [u for u in self._units.values() if u.max_age is not None]
+                    units = list(self._units.values())
                 for unit in units:
                     self._refresh(unit, now)
+                    if unit.watch is not None:
+                        unit.watch.look(core.stale(unit.unit_id), now, self._stale_log)
             event = core.run(min(next_check, self._expire()))
             self._log_accept_errors()
             if event == EV_STOP:
@@ -302,14 +327,16 @@ class ModbusTcpServer:
     def _refresh(self, unit: _Unit, now: int) -> None:
         """A unit with a max age stays fresh for max_age past each check that saw the
         slave answer (its ``responses`` grew) while the device was Running."""
-        if unit.max_age is None or unit.image is None:
+        if unit.max_age is None or unit.watch is None:
             return
         driver = unit.driver
         stats = driver.stats()
+        unit.watch.lag_seen(stats, now)
         answered = int(stats.get("responses", 0))
         if answered != unit.responses and driver.device_driver_status is DeviceDriverStatus.RUNNING:
             # (the first look, when the unit is added, trusts a device Running with
             # answers: its items are as fresh as its last cycle)
+            unit.watch.answered_ns = now
             self.core.set_fresh(unit.unit_id, now + int(unit.max_age * 1e9))
         unit.responses = answered
 
@@ -320,19 +347,43 @@ class ModbusTcpServer:
         if unit is None:  # removed meanwhile
             self._answer(request, 0x0A)
             return
-        if unit.image is None:
-            self._forward(unit, request)
-        else:
-            self._write(unit, unit.image, request)
+        src = request.src
+        with self._lock:
+            waiting = self._pending.get(src, 0)
+            if waiting < self.max_pending_per_master:
+                self._pending[src] = waiting + 1
+        if waiting >= self.max_pending_per_master:  # other masters keep their share
+            self.busy_master += 1
+            self._answer(request, SERVER_DEVICE_BUSY)
+            return
+        future: Future[Any] | None = None
+        release: Callable[[object], None] = lambda _: self._release(src)  # noqa: E731
+        try:  # (released before the answer is posted: the master's next request counts it)
+            if unit.image is None:
+                future = self._forward(unit, request, release)
+            else:
+                future = self._write(unit, unit.image, request, release)
+        finally:
+            if future is None:
+                self._release(src)
 
-    def _forward(self, unit: _Unit, request: Request) -> None:
+    def _release(self, src: int) -> None:
+        """A request of the master at ``src`` was answered: one less waiting."""
+        with self._lock:
+            left = self._pending.pop(src, 1) - 1
+            if left > 0:
+                self._pending[src] = left
+
+    def _forward(self, unit: _Unit, request: Request,
+                 release: Callable[[object], None]) -> Future[bytes] | None:
+        """Hand a request to a forward unit's line; its future (None: answered now)."""
         pdu = request.adu[7:]
         self.forwarded += 1
         try:
             future = unit.driver.forward(pdu, unit.timeout)
         except ForwardRequestError as exc:
             self._answer(request, exc.exception_code)
-            return
+            return None
 
         def done(f: Future[bytes]) -> None:
             if f.cancelled():
@@ -341,18 +392,25 @@ class ModbusTcpServer:
             exc = f.exception()
             if exc is not None:
                 self.busy += isinstance(exc, LineBusyError)
-                self._answer(request, exception_code_for(exc))
+                # the line's worker failed with the request queued: its target did not
+                # answer (0B, issue #25), not a path that is down (0A)
+                self._answer(request, GATEWAY_TARGET_FAILED if isinstance(
+                    exc, LineWorkerError) else exception_code_for(exc))
             else:
                 self.core.post(request.conn, request.gen, POST_PDU, f.result())
 
         if isinstance(future, ForwardFuture) and not future.done():
             with self._lock:
                 heapq.heappush(self._deadlines, (future.deadline, next(self._seq), future))
+        future.add_done_callback(release)
         future.add_done_callback(done)
+        return future
 
-    def _write(self, unit: _Unit, image: UnitImage, request: Request) -> None:
+    def _write(self, unit: _Unit, image: UnitImage, request: Request,
+               release: Callable[[object], None]) -> Future[tuple[bool, str | None]] | None:
         """A write (FC05/06/0F/10; csrc/emb_serve.c checked its form and addresses) to
-        a served device: through write_addresses, answered once the slave confirmed."""
+        a served device: through write_addresses, answered once the slave confirmed;
+        its future (None: answered now)."""
         adu = request.adu
         fc, address = adu[7], int.from_bytes(adu[8:10], "big")
         if fc == 0x05:
@@ -371,17 +429,17 @@ class ModbusTcpServer:
         if isinstance(writes, int):
             self.write_errors += 1
             self._answer(request, writes)
-            return
+            return None
         try:
             future = unit.driver.submit_writes(writes)
         except ValueError:
             self.write_errors += 1
             self._answer(request, ILLEGAL_DATA_VALUE)
-            return
+            return None
         except Exception as exc:
             self.write_errors += 1
             self._answer(request, exception_code_for(exc))
-            return
+            return None
 
         def done(f: Future[tuple[bool, str | None]]) -> None:
             if f.cancelled() or f.exception() is not None:
@@ -399,7 +457,9 @@ class ModbusTcpServer:
                      ", ".join(name for name, _ in writes), why)
             self._answer(request, write_exception_code(why or ""))
 
+        future.add_done_callback(release)
         future.add_done_callback(done)
+        return future
 
     def _answer(self, request: Request, code: int) -> None:
         self.core.post(request.conn, request.gen, POST_EXCEPTION, bytes((code,)))

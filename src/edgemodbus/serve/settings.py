@@ -3,6 +3,7 @@ limits, and its units (a device served from the cache, or a device forwarded to)
 
 ```json
 "serve": {"listen": "127.0.0.1:1502", "maxConnections": 16, "idleTimeoutS": 60,
+          "maxPendingPerMaster": 8,
           "allowFrom": ["10.0.0.0/8", "127.0.0.1"],
           "units": [{"unitId": 1, "device": "meter1", "offset": 0, "maxAgeMs": 5000},
                     {"unitId": 9, "forward": "meter2", "timeoutMs": 1000,
@@ -36,6 +37,9 @@ from ..config.listen import allow_list, network
 from ..protocol.limits import MAX_UNIT_ID
 
 DEFAULT_PORT = 502
+#: Requests of one master (source address) waiting for a line at most, across its
+#: connections (forwards, writes to served devices); one more is answered 06.
+DEFAULT_PENDING_PER_MASTER = 8
 
 
 def ipv4_network(text: str) -> str:
@@ -120,6 +124,10 @@ class ServeSettings(Model):
     # 0: never closed for idling; else at least 1 ms (a shorter one rounded to 0: never)
     idle_timeout_s: Annotated[float, Range(0, 86400), AfterValidator(check_seconds)] = 60.0
     allow_from: AllowFrom = ()  # sources that may connect (empty: any)
+    max_pending_per_master: Annotated[int, Range(1, 64)] = Field(
+        DEFAULT_PENDING_PER_MASTER, description="Requests of one master (source address) "
+        "waiting for lines at most, across its connections (forwards, writes); one more is "
+        "answered 06 (server busy), other masters are still served")
     units: list[ServeUnit] = Field(default_factory=list)
 
     @field_validator("listen")
