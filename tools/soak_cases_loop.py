@@ -26,6 +26,7 @@ from tools.soak_gw_base import (
     served_and_scraped,
 )
 
+from edgemodbus.line.loop_jobs import JOB_THREADS
 from edgemodbus.sim.fleet_procs import FleetProcesses
 
 DTUS = 6
@@ -79,7 +80,7 @@ def loop_case(name: str, row: str, attack: Any, prep: Any = loop_prep,
               log_kinds: int = 0) -> Case:
     return Case(name, row, attack, served_and_scraped, prep=prep, ready=all_polled,
                 polled=answered, min_rate=FLOOD_RATE, max_thread_cpu=1.0,
-                log_kinds=log_kinds)
+                log_kinds=log_kinds, extra_threads=JOB_THREADS)  # a job flood's threads
 
 
 def loop_cases() -> list[Case]:

@@ -27,7 +27,8 @@ own cost is reported, not bounded), log lines at most LOG_BASE + LOG_PER_S x sec
 (+ ``log_per_event`` per event of the attack), none longer than MAX_LINE characters, no
 traceback, the bystanders' rate and the worst bystander's at least the case's
 ``min_rate`` of the quiet one (MIN_RATE; FLOOD_RATE, a half, for floods of jobs on their
-line), threads at most MAX_EXTRA_THREADS over the quiet window meanwhile and none more
+line), threads at most the case's ``extra_threads`` over the quiet window meanwhile
+(MAX_EXTRA_THREADS; the loop's job-thread cap for a job flood there) and none more
 after, fds back to the quiet figure after (MAX_EXTRA_FDS), recovery, no failed read of
 a bystander (timeouts, CRC or protocol errors in /metrics: "values lost"), exit status 0.
 A :class:`StartCase` (tools/soak_cases_config.py) is a hostile folder the gateway must
@@ -67,7 +68,6 @@ from tools.soak_gw_base import (
     LOG_BASE,
     LOG_PER_S,
     LOG_WINDOW_S,
-    MAX_EXTRA_THREADS,
     MAX_LINE,
     RECOVER_S,
     Case,
@@ -177,7 +177,13 @@ def run_case(case: Case, seconds: float, quiet: float, workdir: Path) -> dict[st
                 recovered = time.monotonic() - started
                 break
             time.sleep(0.2)
+        # threads and fds back to the quiet figure (the loop engine's job threads end
+        # after IDLE_SECONDS without a job)
         after = gw.usage() if gw.alive() else None
+        while (after is not None and time.monotonic() - started < RECOVER_S
+               and (after.threads > q_last.threads or after.fds > q_last.fds + MAX_EXTRA_FDS)):
+            time.sleep(0.2)
+            after = gw.usage() if gw.alive() else None
         failed_after = failed_reads(run) if gw.alive() else None
         rc = gw.stop() if gw.alive() else gw.proc.returncode if gw.proc else None
         verdict = case.verdict(run) if case.verdict is not None else []
@@ -197,6 +203,7 @@ def run_case(case: Case, seconds: float, quiet: float, workdir: Path) -> dict[st
         "bystanderRate": round(rate / quiet_rate, 3) if quiet_rate else 0.0,
         "worstBystander": round(worst_ratio(quiet_each, attacked_each), 3),
         "minRate": case.min_rate, "maxThreadCpu": case.max_thread_cpu,
+        "extraThreads": case.extra_threads,
         "recoveredS": None if recovered is None else round(recovered, 2), "exit": rc,
         "valuesLost": (None if failed_before is None or failed_after is None
                        else failed_after - failed_before),
@@ -225,7 +232,7 @@ def check(f: dict[str, Any]) -> list[str]:
         bad.append(f"bystander polling at {f['bystanderRate']:.0%} of the quiet rate")
     if f["worstBystander"] < f["minRate"]:
         bad.append(f"a bystander polled at {f['worstBystander']:.0%} of its quiet rate")
-    if f["threads"][1] > f["threads"][0] + MAX_EXTRA_THREADS:
+    if f["threads"][1] > f["threads"][0] + f["extraThreads"]:
         bad.append(f"threads {f['threads'][0]} -> {f['threads'][1]}")
     if f["threadsAfter"] is not None and f["threadsAfter"] > f["threads"][0]:
         bad.append(f"threads after the fault {f['threadsAfter']} (quiet {f['threads'][0]})")

@@ -96,6 +96,7 @@ class Case:
     prep: Callable[[Prep], None] | None = None
     verdict: Callable[[Run], list[str]] | None = None
     min_rate: float = MIN_RATE  # the bystanders' polling rate at least this of quiet
+    extra_threads: int = MAX_EXTRA_THREADS  # threads over the quiet figure while it lasts
     peer_delay: float = 0.0  # the bystanders' peer answers every request this late (s)
     # the busiest thread's CPU share at most (a spin); a flood's own cost is not a spin
     max_thread_cpu: float = MAX_THREAD_CPU
