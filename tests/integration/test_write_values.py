@@ -1,7 +1,7 @@
 """Writes are the exact inverse of reads on every path (docs/device-files.md "Byte
 order": "Writes are the exact inverse of reads"; docs/engineering-units.md "Writes"):
-random values written through the driver (``write_address``) and through the web
-console's write (POST /api/devices/{code}/write) to a pymodbus slave, whose registers
+random values written through the driver (``write_address``), the MQTT write command
+and the web console's write (POST /api/devices/{code}/write) to a pymodbus slave, whose registers
 are then decoded by tests/value_reference.py (not our codec).  The items cover the byte
 orders per device and per item (dataFormat, byteSwap16, dataFormat64), Int24, and the
 engineering-unit keys (dataMultiplier with offset, a range map), whose raw value must be
@@ -9,6 +9,7 @@ the exact decimal inverse."""
 
 from __future__ import annotations
 
+import json
 import math
 from collections.abc import Iterator
 from decimal import Decimal
@@ -20,7 +21,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import edgemodbus as em
+from edgemodbus.codec import jsonable
 from tests.console_gateway import Client, console_gateway
+from tests.integration.test_mqtt import Gateway as MqttGateway
+from tests.integration.test_mqtt import P
+from tests.mosquitto import Mosquitto, MqttProbe
 from tests.peers import PymodbusSlave
 from tests.value_reference import SIZES, decode, raw_value, same
 from tests.waiting import wait_for
@@ -136,3 +141,28 @@ def test_a_console_write_is_the_exact_inverse(tmp_path: Path, slave: PymodbusSla
             check(slave, name, value, raw)
 
         through_console()
+
+
+def test_an_mqtt_write_is_the_exact_inverse(broker: Mosquitto, slave: PymodbusSlave) -> None:
+    """The MQTT write command (``<prefix>/<device>/set/<item>``, a JSON value; NaN and
+    the infinities as the strings the JSON outputs write, codec/jsonable.py)."""
+    cfg = em.load_device_config({"organization": {"deviceCode": "dev1"},
+                                 "communication": _comm(slave), "addressList": ITEMS})
+    with MqttProbe(broker.port) as probe, MqttGateway(broker.port, cfg):
+        probe.wait_for(f"{P}/dev1/u16")
+        count = iter(range(10**9))
+
+        @settings(max_examples=40, deadline=None)
+        @given(write=writes())
+        def through_mqtt(write: tuple[str, Any, int | None]) -> None:
+            name, value, raw = write
+            request = f"w{next(count)}"
+            mark = probe.mark()
+            probe.publish(f"{P}/dev1/set/{name}",
+                          json.dumps({"value": jsonable(value), "id": request}))
+            reply = probe.wait_for(f"{P}/dev1/$reply", lambda m: m.json()["id"] == request,
+                                   after=mark).json()
+            assert reply["ok"] is True, (name, value, reply)
+            check(slave, name, value, raw)
+
+        through_mqtt()
