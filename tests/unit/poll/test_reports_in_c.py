@@ -36,7 +36,7 @@ from edgemodbus.poll.poller import Poller
 from edgemodbus.poll.sink import ItemCallback, SnapshotPublisher
 from edgemodbus.protocol.wrapped import report_of, wrap
 from tests.unit.ffi.test_stream_framing import EXAMPLES, stream_context
-from tests.value_reference import SIZES, decode, same
+from tests.value_reference import SIZES, decode, float32_text, same
 
 
 class Sink:
@@ -383,3 +383,6 @@ def test_reports_in_c_read_what_the_contract_says(
                     continue
                 assert status is ItemStatus.OK, (it, comm, frame.hex(), reason)
                 assert same(value, expected), (it, comm, frame.hex(), value, expected)
+                if it["deviceDataType"] == "Float" and "rawMin" not in it and \
+                        "dataMultiplier" not in it:  # written as its float32 (Float32)
+                    assert repr(value) == float32_text(value), (it, value)
