@@ -181,8 +181,8 @@ def test_a_one_edit_typo_of_any_key_of_any_section_is_an_error(
     ("addressList[0]", "scaleFacter", "scaleFactor"),
 ])
 def test_the_newer_keys_by_hand(path: str, typo: str, meant: str) -> None:
-    load = _load_gateway if path.split(".")[0].split("[")[0] in GatewayConfig.key_table() \
-        and path.split(".")[0] not in ("communication", "addressList[0]") else _load_device
+    device = path.split(".")[0] in ("communication", "addressList[0]")
+    load = _load_device if device else _load_gateway
     with pytest.raises(ConfigError) as info:
         load(placed(path, typo))
     assert f"{path}.{typo}: unknown key: did you mean {meant}?" in str(info.value)
