@@ -84,9 +84,7 @@ def test_tags_and_stream_carry_float32_nan_and_infinities_as_strict_json(
         try:
             # a new float32 with a long double form: the stream writes its short one
             slave.set_registers(1, "hr", 0, [0x3DCC, 0xCCCD])  # float32 0.1
-            line = read_event(sock, '"name":"level"', timeout=30)
-            while '"value":0.1,' not in line:
-                line = read_event(sock, '"name":"level"', timeout=30)
+            line = read_event(sock, '"name":"level","value":0.1,', timeout=30)
             event = strict(line[5:].encode())
             level = next(r for r in event["rows"] if r["name"] == "level")
             assert level["value"] == 0.1 and level["status"] == "Ok"
