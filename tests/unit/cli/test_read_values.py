@@ -33,7 +33,7 @@ SPECIAL = [0x7FC0, 0x7F80, 0xFF80, 0x8000, 0x0000, 0x0001, 0xFFFF, 0x7FF8, 0xFFF
 START = 30  # holding register offset 30 = Modicon entity 40031
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture
 def slave() -> Iterator[PymodbusSlave]:
     with PymodbusSlave("tcp", units=(1,)) as peer:
         yield peer
