@@ -385,7 +385,10 @@ __attribute__((noinline)) static emb_scaled scale_ext(const emb_plan *p, const e
 {
     emb_scaled r = {0.0, EMB_E_OK};
     const emb_scale *s = &p->scales[it->aux];
-    if (s->range == EMB_R_INVALID && !(x >= s->raw_lo && x <= s->raw_hi)) {
+    /* NaN is outside every range, and clamping has no nearest bound for it: Invalid
+     * either way (docs/engineering-units.md: clamped values are held in engMin..engMax) */
+    if ((s->range == EMB_R_INVALID && !(x >= s->raw_lo && x <= s->raw_hi)) ||
+        (s->range == EMB_R_CLAMP && x != x)) {
         r.status = EMB_E_RAW_RANGE;
         return r;
     }
@@ -411,7 +414,7 @@ __attribute__((noinline)) static emb_scaled scale_ext(const emb_plan *p, const e
     else if (it->flags & EMB_F_MULTIPLY)
         x *= it->scale;
     x = (x - s->sub) * s->mul + s->add;
-    if (s->range == EMB_R_CLAMP) { /* NaN stays NaN */
+    if (s->range == EMB_R_CLAMP) { /* x is no NaN here (refused above) */
         if (x < s->eng_lo)
             x = s->eng_lo;
         else if (x > s->eng_hi)

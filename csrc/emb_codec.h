@@ -124,7 +124,7 @@
  * rounded); x *= scale (EMB_F_MULTIPLY) or x /= scale (EMB_F_DIVIDE);
  * x = (x - sub) * mul + add; with EMB_R_CLAMP x is then held in [eng_lo, eng_hi].  With a
  * range (EMB_R_INVALID or EMB_R_CLAMP) a raw value outside [raw_lo, raw_hi] (or NaN) is
- * EMB_E_RAW_RANGE under EMB_R_INVALID.  The result goes through the target conversion
+ * EMB_E_RAW_RANGE under EMB_R_INVALID; under EMB_R_CLAMP a NaN is (no bound is nearest).  The result goes through the target conversion
  * as any value does. */
 #define EMB_R_NONE 0
 #define EMB_R_INVALID 1

@@ -51,6 +51,7 @@ import edgemodbus as em
 from edgemodbus.codec import Float32
 from edgemodbus.datatypes import ItemStatus
 from edgemodbus.sim import Simulator
+from tests.peers import free_port
 from tests.waiting import wait_for
 
 EXAMPLES = int(os.environ.get("EDGEMODBUS_DIFF_EXAMPLES", "20"))
@@ -586,8 +587,23 @@ class Checker:
                               f"{sorted(item.name for item in items)}")
 
 
-def _config(setup: Setup, port: int, specs: list[Spec]) -> em.DeviceConfig:
-    comm = {"transport": "rtu-over-tcp", "tcpHost": "127.0.0.1", "tcpPort": port,
+LINKS = {
+    # the gateway connects to the slave, a line worker thread of its own
+    "connect": {"transport": "rtu-over-tcp", "tcpHost": "127.0.0.1"},
+    # the same on the loop engine (line/loop.py, csrc/emb_loop_link.c)
+    "connect-loop": {"transport": "rtu-over-tcp", "tcpHost": "127.0.0.1", "engine": "loop",
+                     "loopThreads": 1},
+    # a DTU that dials in (the simulator's DtuClient), on the loop engine
+    "dtu-loop": {"transport": "rtu-over-tcp-server", "listenHost": "127.0.0.1",
+                 "dtuId": "DIFF1", "registration": "text", "engine": "loop",
+                 "loopThreads": 1},
+}
+
+
+def _config(setup: Setup, port: int, specs: list[Spec], link: str = "connect"
+            ) -> em.DeviceConfig:
+    where = {"listenPort": port} if link == "dtu-loop" else {"tcpPort": port}
+    comm = {**LINKS[link], **where,
             "slaveId": 1, "readTimeout": 100, "settleTimeout": 50, "maxBackoff": 200,
             "offlineAfterFailedCycles": 3, "snapshotInterval": 1, **setup.comm}
     return em.load_device_config({"organization": {"deviceCode": "diff"},
@@ -595,8 +611,9 @@ def _config(setup: Setup, port: int, specs: list[Spec]) -> em.DeviceConfig:
                                   "addressList": [s.as_json() for s in specs]})
 
 
-def run(setup: Setup, sim: Simulator, port: int) -> Checker:
-    """Poll the slave for CYCLES cycles, checking every item and callback on the way."""
+def run(setup: Setup, sim: Simulator, port: int, link: str = "connect") -> Checker:
+    """Poll the slave for CYCLES cycles, checking every item and callback on the way;
+    ``link``: how the driver reaches it (:data:`LINKS`)."""
     rng = random.Random(setup.seed)
     truth = fresh_truth(rng)
     truth.refused = [(area, start, end) for area, start, end, _ in setup.refused]
@@ -608,7 +625,9 @@ def run(setup: Setup, sim: Simulator, port: int) -> Checker:
     for knob, every in setup.faults.items():
         setattr(slave.faults, knob, every)
     clean = not setup.refused and not setup.faults
-    cfg = _config(setup, port, setup.specs)
+    if link == "dtu-loop":
+        port = free_port()  # the driver listens, the simulator dials in
+    cfg = _config(setup, port, setup.specs, link)
     checker = Checker(setup, truth)
     checker.adopt(cfg.address_list, setup.specs)
     items, specs = cfg.address_list, setup.specs  # the list in force
@@ -626,7 +645,7 @@ def run(setup: Setup, sim: Simulator, port: int) -> Checker:
                 checker.missing.append(f"end of cycle {checker.cycles}: {spec} is "
                                        f"{item.status.value} ({item.error_reason})")
         if checker.cycles == 2 and setup.later is not None:
-            new = _config(setup, port, setup.later).address_list
+            new = _config(setup, port, setup.later, link).address_list
             checker.adopt(new, setup.later)
             drv.update_addresses(new)  # on the worker: swapped at once, between two reads
             items, specs = new, setup.later
@@ -640,10 +659,15 @@ def run(setup: Setup, sim: Simulator, port: int) -> Checker:
     drv.addresses_updated_callback = checker.on_batch
     drv.snapshot_publisher = cycle_ended
     assert drv.start_device(cfg.organization, cfg.communication, cfg.address_list)
+    client = None
     try:
+        if link == "dtu-loop":
+            client = sim.dial("127.0.0.1", port, registration=b"DIFF1")
         wait_for(lambda: checker.cycles >= CYCLES, timeout=60, what=f"{CYCLES} cycles")
     finally:
         drv.stop_device()
+        if client is not None:
+            client.close()
     return checker
 
 
@@ -679,6 +703,21 @@ def test_ok_values_equal_an_independent_decode(
 ) -> None:
     _describe(setup)
     checker = run(setup, *sim)
+    assert not checker.wrong, "\n".join(checker.wrong[:5])
+    assert not checker.missing, "\n".join(checker.missing[:5])
+
+
+@pytest.mark.timeout(max(120, 6 * EXAMPLES))
+@pytest.mark.parametrize("link", ["connect-loop", "dtu-loop"])
+@settings(DIFF, max_examples=max(4, EXAMPLES // 2))
+@given(setup=setups())
+def test_ok_values_equal_an_independent_decode_on_the_loop_engine(
+    setup: Setup, sim: tuple[Simulator, int], link: str
+) -> None:
+    """The same on the loop engine (engine "loop", also what "auto" picks for a DTU that
+    dials in): a connect-mode line and a DTU that dialled in."""
+    _describe(setup)
+    checker = run(setup, *sim, link=link)
     assert not checker.wrong, "\n".join(checker.wrong[:5])
     assert not checker.missing, "\n".join(checker.missing[:5])
 

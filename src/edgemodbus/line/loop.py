@@ -212,7 +212,9 @@ class LoopWorker:
         self._stopping = True
         if not self.thread.is_alive():
             return
-        self.loop.wake()
+        # the thread may have closed its loop since is_alive() (another stop's): quiet
+        with contextlib.suppress(OSError):
+            self.loop.wake()
         if self.thread is not threading.current_thread():
             self.thread.join(30)
             if self.thread.is_alive():

@@ -203,3 +203,20 @@ def test_items_without_scaling_get_no_step() -> None:
 
     assert scale_step(ValueSpec("a", DataType.INT16, multiplier=0.1)) is None
     assert scale_step(ValueSpec("a", DataType.INT16, offset=1)) is not None
+
+
+@pytest.mark.parametrize("clamp", [False, True])
+@pytest.mark.parametrize(("dtype", "registers"), [
+    (DataType.FLOAT, [0x7FC0, 0x0000]),  # the quiet NaN a sensor fault often reads
+    (DataType.FLOAT, [0xFFFF, 0x0000]),
+    (DataType.DOUBLE, [0x7FF8, 0, 0, 0]),
+])
+def test_a_nan_raw_value_is_invalid_clamped_or_not(dtype: DataType, registers: list[int],
+                                                   clamp: bool) -> None:
+    """NaN is outside rawMin..rawMax, and has no nearest bound to be clamped to: Invalid
+    in both modes (it was a NaN with status Ok under clamp, outside engMin..engMax)."""
+    spec = ValueSpec("x", dtype, raw_range=(0, 27648), eng_range=(0, 100), clamp=clamp)
+    decoder = BlockDecoder(HR, len(registers), [(0, spec)])
+    [(_, value, error)] = decoder.decode(Block.from_values(registers, bits=False))
+    assert value is None
+    assert error == "raw value nan outside rawMin..rawMax (0..27648)"

@@ -126,3 +126,30 @@ def test_an_unexpected_error_costs_its_line_only_and_the_line_tries_again() -> N
     finally:
         for line in lines:
             line.stop()
+
+
+class _EndingThread:
+    """A worker's thread seen alive by stop() that then ends (its loop closed by then):
+    what a second stop() meets while the first one's thread finishes."""
+
+    def __init__(self) -> None:
+        self.asked = 0
+
+    def is_alive(self) -> bool:
+        self.asked += 1
+        return self.asked == 1
+
+    def join(self, timeout: float | None = None) -> None:
+        return None
+
+
+def test_a_stop_racing_the_thread_that_closes_the_loop_is_quiet() -> None:
+    """It raised OSError (loop: cannot wake: Bad file descriptor) out of
+    driver.stop_device (found by tests/integration/test_differential.py on the loop)."""
+    from edgemodbus.line.loop import LoopWorker
+
+    worker = LoopWorker("test-loop-stop")
+    worker.stop()
+    assert not worker.thread.is_alive()
+    worker.thread = _EndingThread()  # type: ignore[assignment]
+    worker.stop()
