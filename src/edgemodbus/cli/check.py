@@ -7,7 +7,7 @@ communication options and its read plan built; a gateway file (``gateway.json``,
 file given with ``--gateway``) is loaded with its TLS, Sparkplug and spool paths checked;
 a folder is its gateway file and every device file the gateway would start (its
 ``devicePattern``), and then two devices with one deviceCode and a ``serve`` unit that
-names no device are problems too.
+names no device are problems too, as is a folder with neither.
 
 Each problem is one line on stdout, ``PATH: field value: what is allowed``, and the exit
 code is 2 when there is any; warnings (an unknown key) are ``PATH: warning: ...`` and do
@@ -26,16 +26,17 @@ from ..gateway.service import Gateway
 from ..line.endpoint import endpoint_for
 from ..poll.schedule import build_plan
 from ..serve import unknown_devices
+from .arg_types import path_text
 from .exits import OK, USAGE
-from .output import config_warnings, emit, in_file, one_line
+from .output import config_warnings, emit, in_file, one_line, shortened
 
 __all__ = ["Report", "add_arguments", "check_path", "run"]
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("paths", nargs="+", type=Path, metavar="PATH",
+    p.add_argument("paths", nargs="+", type=path_text, metavar="PATH",
                    help=f"a device file, a gateway file ({GATEWAY_FILE}) or a config folder")
-    p.add_argument("--gateway", action="append", default=[], type=Path, metavar="FILE",
+    p.add_argument("--gateway", action="append", default=[], type=path_text, metavar="FILE",
                    help=f"a gateway file with a name other than {GATEWAY_FILE} (repeatable)")
 
 
@@ -68,7 +69,7 @@ def run(args: argparse.Namespace) -> int:
     for path in args.paths:
         check_path(path, report)
     for line in report.warnings + report.problems:
-        emit(line)
+        emit(shortened(line))
     if report.problems:
         return USAGE
     emit(report.summary())
@@ -147,7 +148,11 @@ def _folder(folder: Path, report: Report) -> None:
         config = loaded
     codes: dict[str, Path] = {}
     failed = False
-    for path in Gateway(folder, config, gateway_file).device_files():
+    files = Gateway(folder, config, gateway_file).device_files()
+    if not files and not gateway_file.is_file():  # a wrong folder, not an empty gateway
+        report.problem(folder, f"nothing to check: no {GATEWAY_FILE} and no device file "
+                               f"(devicePattern {config.device_pattern!r})")
+    for path in files:
         cfg = _device_file(path, report)
         if cfg is None:
             failed = True

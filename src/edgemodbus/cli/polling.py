@@ -83,6 +83,9 @@ def run(args: argparse.Namespace) -> int:
         return run_service(args.config_dir, args.gateway, seconds=args.seconds)
     if not args.files:
         raise CliError("give device files, or --config-dir DIR")
+    if args.gateway is not None:
+        raise CliError(f"--gateway {args.gateway}: applies to --config-dir (a gateway file "
+                       "configures the service)")
     drivers: list[tuple[Path, DriverModbusRtu]] = []
     try:
         for file in args.files:

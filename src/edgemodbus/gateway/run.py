@@ -108,16 +108,39 @@ def run_service(config_dir: Path, gateway_config: Path | None = None, *,
     return 130 if flags["interrupted"] else 0
 
 
+def _path(text: str) -> Path:
+    """A path option's value: not empty (``Path("")`` is the current folder)."""
+    if not text.strip() or "\0" in text:
+        raise argparse.ArgumentTypeError(f"{text!r}: not a path (give a file or folder)")
+    return Path(text)
+
+
+MAX_SECONDS = 10 * 365 * 86400
+"""The longest --seconds: ten years (threading's waits overflow at 1e20 s)."""
+
+
+def _seconds(text: str) -> float:
+    """A duration in seconds: finite, 0 or more (-5 ran until SIGTERM, as 0 does)."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not 0 <= value <= MAX_SECONDS:  # NaN too; a larger wait overflowed the clock
+        raise argparse.ArgumentTypeError(f"{text!r}: not a number of seconds (0..{MAX_SECONDS:,}"
+                                         "; 0: until stopped)")
+    return value
+
+
 def add_arguments(parser: argparse.ArgumentParser, *, config_dir_required: bool) -> None:
     """The service's options (``python -m edgemodbus.gateway``; ``edgemodbus run
     --config-dir`` takes the same ones)."""
-    parser.add_argument("--config-dir", type=Path, required=config_dir_required,
+    parser.add_argument("--config-dir", type=_path, required=config_dir_required,
                         default=None, help="gateway service: every device file (*.json) in "
                         "DIR; MQTT/metrics from DIR/gateway.json or --gateway; SIGHUP "
                         "reloads, SIGTERM stops")
-    parser.add_argument("--gateway", type=Path, default=None,
+    parser.add_argument("--gateway", type=_path, default=None,
                         help=f"gateway file (default: DIR/{GATEWAY_FILE} if present)")
-    parser.add_argument("--seconds", type=float, default=0.0,
+    parser.add_argument("--seconds", type=_seconds, default=0.0,
                         help="stop after N s (0: run until SIGTERM or SIGINT)")
     parser.add_argument("-q", "--quiet", action="store_true", help="warnings and errors only")
 
