@@ -339,7 +339,7 @@ def values(command: str, action: argparse.Action, f: Files) -> st.SearchStrategy
                      st.floats().map(repr))
 
 
-@pytest.mark.timeout(900)
+@pytest.mark.timeout(600)
 @pytest.mark.parametrize("command", COMMANDS)
 def test_every_option_refuses_bad_values_in_one_line(command: str, files: Files) -> None:
     """Every known-bad value of every option, then random ones (hypothesis)."""

@@ -269,7 +269,29 @@ def run(args: argparse.Namespace) -> int:
     if report.error is not None:
         print(f"edgemodbus scan: {report.error}", file=sys.stderr)
         return 1
+    hint = _other_framing_hint(endpoints, report)
+    if hint is not None:
+        print(f"edgemodbus scan: {hint}", file=sys.stderr)
     return 130 if report.interrupted else 0
+
+
+_OTHER_FRAMING = {
+    "tcp": "nothing answered Modbus TCP; a serial server or a DTU speaks raw RTU frames: "
+           "scan with --transport tcp,rtu-over-tcp",
+    "rtu-over-tcp": "nothing answered raw RTU frames over TCP; a Modbus TCP device speaks "
+                    "MBAP: scan with --transport tcp,rtu-over-tcp",
+}
+
+
+def _other_framing_hint(endpoints: Sequence[ScanEndpoint], report: Report) -> str | None:
+    """After a complete TCP scan of one framing that found nothing, the flag of the other
+    (the line layer's framing hint of read and write, for a whole scan: one probe in the
+    other framing would not tell an empty id from the wrong framing)."""
+    transports = {e.transport for e in endpoints if isinstance(e, TcpEndpoint)}
+    if report.found or report.interrupted or len(transports) != 1 or \
+            len(endpoints) != len(transports):
+        return None
+    return _OTHER_FRAMING.get(transports.pop())
 
 
 @contextlib.contextmanager
