@@ -10,8 +10,10 @@ a folder is its gateway file and every device file the gateway would start (its
 names no device are problems too, as is a folder with neither.
 
 Each problem is one line on stdout, ``PATH: field value: what is allowed``, and the exit
-code is 2 when there is any; warnings (an unknown key) are ``PATH: warning: ...`` and do
-not fail.  With no problem the last line sums up what was checked, exit code 0.
+code is 2 when there is any; warnings (an unknown key) are ``PATH: warning: ...`` and
+notices (``40001`` without ``addressPrefix: entity``, read as holding register 40001) are
+``PATH: notice: ...``; neither fails.  With no problem the last line sums up what was
+checked, exit code 0.
 """
 
 from __future__ import annotations
@@ -24,7 +26,7 @@ from ..config import ConfigError, DeviceConfig, load_device_config
 from ..gateway.config import GATEWAY_FILE, GatewayConfig, load_gateway_config
 from ..gateway.service import Gateway
 from ..line.endpoint import endpoint_for
-from ..poll.schedule import build_plan
+from ..poll.schedule import build_plan, entity_numbers_notice
 from ..serve import unknown_devices
 from .arg_types import path_text
 from .exits import OK, USAGE
@@ -46,6 +48,7 @@ class Report:
 
     problems: list[str] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
+    notices: list[str] = field(default_factory=list)
     device_files: int = 0
     gateway_files: int = 0
     items: int = 0
@@ -58,6 +61,7 @@ class Report:
         files = f"{self.device_files} device file{'s' * (self.device_files != 1)}"
         gateways = f"{self.gateway_files} gateway file{'s' * (self.gateway_files != 1)}"
         warned = f", {len(self.warnings)} warnings" if self.warnings else ""
+        warned += f", {len(self.notices)} notices" if self.notices else ""
         return (f"ok: {files} ({self.items} items, {self.requests} requests per cycle), "
                 f"{gateways}{warned}")
 
@@ -68,7 +72,7 @@ def run(args: argparse.Namespace) -> int:
         _gateway_file(path, report)
     for path in args.paths:
         check_path(path, report)
-    for line in report.warnings + report.problems:
+    for line in report.notices + report.warnings + report.problems:
         emit(shortened(line))
     if report.problems:
         return USAGE
@@ -96,8 +100,10 @@ def _device_file(path: Path, report: Report) -> DeviceConfig | None:
         with config_warnings(warnings):
             cfg = load_device_config(path)
             params = cfg.effective_parameters()
-            blocks = build_plan(cfg.parsed_items(), params)
+            parsed = cfg.parsed_items()
+            blocks = build_plan(parsed, params)
             endpoint_for(params)  # the line's settings hang together
+            notice = entity_numbers_notice(parsed, params)
     except ConfigError as exc:
         for problem in exc.problems:
             report.problem(path, str(problem))
@@ -113,6 +119,8 @@ def _device_file(path: Path, report: Report) -> DeviceConfig | None:
         return None
     finally:
         report.warnings += [in_file(path, f"warning: {one_line(w)}") for w in warnings]
+    if notice is not None:  # as the gateway logs it, once per device (not a problem)
+        report.notices.append(in_file(path, f"notice: {one_line(notice)}"))
     report.items += len(cfg.address_list)
     report.requests += len(blocks)
     return cfg
