@@ -20,7 +20,7 @@ from pathlib import Path
 
 from ..protocol.hosts import check_host
 
-__all__ = ["MAX_TEXT_FILE_BYTES", "folder", "host_name", "input_file", "output_file",
+__all__ = ["MAX_SECONDS", "MAX_TEXT_FILE_BYTES", "folder", "host_name", "input_file", "output_file",
            "path_text", "seconds", "serial_device", "word"]
 
 MAX_TEXT_FILE_BYTES = 32 * 1024 * 1024
