@@ -217,3 +217,22 @@ def test_progress_bar_on_a_terminal(sim: Simulator) -> None:
     assert "rtu-over-tcp (1/1)" in text  # the bar's description
     assert "slave 1: FC03 ok" in text  # found devices are shown as they come
     assert "rtu-over-tcp      1  FC03 ok" in out  # the table still goes to stdout
+
+
+def test_a_scan_in_the_wrong_framing_names_the_flag() -> None:
+    """``scan --host`` speaks Modbus TCP (as read does); against a slave that answers raw
+    RTU frames (pymodbus's RTU framer over TCP) nothing answers, and stderr says which
+    flag scans the other framing; with both framings the slave is found, no hint."""
+    with PymodbusSlave("rtu-over-tcp", units=(1,)) as slave:
+        where = ["--host", "127.0.0.1", "--port", str(slave.port), "--slaves", "1",
+                 "--timeout", "300"]
+        out = cli(*where)
+        assert out.returncode == 0, out.stderr
+        assert "nothing answered" in out.stdout
+        assert out.stderr.splitlines() == [
+            "edgemodbus scan: nothing answered Modbus TCP; a serial server or a DTU speaks "
+            "raw RTU frames: scan with --transport tcp,rtu-over-tcp"]
+        out = cli(*where, "--transport", "tcp,rtu-over-tcp", "--json")
+        assert out.returncode == 0 and out.stderr == "", out.stderr
+        found = json.loads(out.stdout)["found"]
+        assert [(f["transport"], f["slaveId"]) for f in found] == [("rtu-over-tcp", 1)]

@@ -24,7 +24,7 @@ from typing import Any, NoReturn
 
 from ..logs import LOG_FORMATS, configure_logging
 from .exits import FAILED, INTERRUPTED, USAGE, CommandFailed
-from .output import CliError, json_line, one_line, problem_lines, value_text
+from .output import CliError, json_line, one_line, problem_lines, shortened, value_text
 
 __all__ = ["build_parser", "json_line", "main", "value_text"]
 
@@ -42,7 +42,7 @@ class _Parser(argparse.ArgumentParser):
     """argparse with a one-line error (the usage is one ``-h`` away)."""
 
     def error(self, message: str) -> NoReturn:
-        self.exit(2, f"{self.prog}: {one_line(message)} (see {self.prog} -h)\n")
+        self.exit(2, f"{self.prog}: {shortened(one_line(message))} (see {self.prog} -h)\n")
 
 
 def _version() -> str:
@@ -97,11 +97,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         return result
     except (CliError, ValueError, OSError) as exc:
         for line in problem_lines(exc):
-            print(f"edgemodbus {args.command}: {line}", file=sys.stderr)
+            print(f"edgemodbus {args.command}: {shortened(line)}", file=sys.stderr)
         return USAGE
     except CommandFailed as exc:
         for line in exc.lines:
-            print(f"edgemodbus {args.command}: {line}", file=sys.stderr)
+            print(f"edgemodbus {args.command}: {shortened(line)}", file=sys.stderr)
         return FAILED
     except RecursionError:  # a backstop: config/ bounds the JSON depth it reads
         print(f"edgemodbus {args.command}: input nested too deeply to read", file=sys.stderr)
@@ -150,19 +150,19 @@ def _module(name: str) -> Any:
 # -- the commands' options ---------------------------------------------------------------
 def _demo(p: argparse.ArgumentParser) -> None:
     from ..sim.cli import slave_ids
+    from .arg_types import seconds
 
-    p.add_argument("--seconds", type=float, default=10.0, help="how long (10; 0 = until ^C)")
+    p.add_argument("--seconds", type=seconds, default=10.0, help="how long (10; 0 = until ^C)")
     p.add_argument("--slaves", type=slave_ids, default=[1, 2, 3],
                    help="slave ids on the line (1,2,3)")
     p.set_defaults(func=_call("polling", "demo"))
 
 
 def _run(p: argparse.ArgumentParser) -> None:
-    from pathlib import Path
-
     from ..gateway.run import add_arguments as add_service_arguments
+    from .arg_types import path_text
 
-    p.add_argument("files", nargs="*", type=Path)
+    p.add_argument("files", nargs="*", type=path_text)
     add_service_arguments(p, config_dir_required=False)
     p.add_argument("--json", action="store_true", help=_JSON_HELP)
     p.set_defaults(func=_call("polling", "run"))
@@ -181,9 +181,9 @@ def _read_or_write(name: str) -> Callable[[argparse.ArgumentParser], None]:
 
 
 def _plan(p: argparse.ArgumentParser) -> None:
-    from pathlib import Path
+    from .arg_types import path_text
 
-    p.add_argument("file", type=Path)
+    p.add_argument("file", type=path_text)
     p.set_defaults(func=_call("polling", "plan"))
 
 

@@ -16,6 +16,7 @@ from typing import Any
 from ..config import ConfigError, DeviceConfig, load_device_config
 from ..driver import DriverModbusRtu
 from ..poll.actions import describe_parameter
+from .arg_types import path_text
 from .exits import CommandFailed
 from .output import CliError, one_line
 
@@ -23,7 +24,7 @@ __all__ = ["add_arguments", "run"]
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("file", type=Path, help="the device file (with its \"actions\")")
+    p.add_argument("file", type=path_text, help="the device file (with its \"actions\")")
     p.add_argument("name", nargs="?", help="the action to run (none: list the actions)")
     p.add_argument("params", nargs="*", metavar="param=value",
                    help="parameter values; a parameter left out takes its default")

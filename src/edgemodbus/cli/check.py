@@ -7,12 +7,14 @@ communication options and its read plan built; a gateway file (``gateway.json``,
 file given with ``--gateway``) is loaded with its TLS, Sparkplug and spool paths checked;
 a folder is its gateway file and every device file the gateway would start (its
 ``devicePattern``), and then two devices with one deviceCode and a ``serve`` unit that
-names no device are problems too; a name the pattern matches that the gateway skips (a
-FIFO, a folder, a broken link, a symlink loop) is a warning.
+names no device are problems too, as is a folder with neither; a name the pattern matches
+that the gateway skips (a FIFO, a folder, a broken link, a symlink loop) is a warning.
 
 Each problem is one line on stdout, ``PATH: field value: what is allowed``, and the exit
-code is 2 when there is any; warnings (an unknown key) are ``PATH: warning: ...`` and do
-not fail.  With no problem the last line sums up what was checked, exit code 0.
+code is 2 when there is any; warnings (an unknown key) are ``PATH: warning: ...`` and
+notices (``40001`` without ``addressPrefix: entity``, read as holding register 40001) are
+``PATH: notice: ...``; neither fails.  With no problem the last line sums up what was
+checked, exit code 0.
 """
 
 from __future__ import annotations
@@ -29,18 +31,19 @@ from ..gateway.bulk import file_id
 from ..gateway.config import GATEWAY_FILE, GatewayConfig, load_gateway_config
 from ..gateway.service import Gateway
 from ..line.endpoint import endpoint_for
-from ..poll.schedule import build_plan
+from ..poll.schedule import build_plan, entity_numbers_notice
 from ..serve import unknown_devices
+from .arg_types import path_text
 from .exits import OK, USAGE
-from .output import config_warnings, emit, in_file, one_line
+from .output import config_warnings, emit, in_file, one_line, shortened
 
 __all__ = ["Report", "add_arguments", "check_path", "run"]
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("paths", nargs="+", type=Path, metavar="PATH",
+    p.add_argument("paths", nargs="+", type=path_text, metavar="PATH",
                    help=f"a device file, a gateway file ({GATEWAY_FILE}) or a config folder")
-    p.add_argument("--gateway", action="append", default=[], type=Path, metavar="FILE",
+    p.add_argument("--gateway", action="append", default=[], type=path_text, metavar="FILE",
                    help=f"a gateway file with a name other than {GATEWAY_FILE} (repeatable)")
 
 
@@ -50,6 +53,7 @@ class Report:
 
     problems: list[str] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
+    notices: list[str] = field(default_factory=list)
     device_files: int = 0
     gateway_files: int = 0
     items: int = 0
@@ -62,6 +66,7 @@ class Report:
         files = f"{self.device_files} device file{'s' * (self.device_files != 1)}"
         gateways = f"{self.gateway_files} gateway file{'s' * (self.gateway_files != 1)}"
         warned = f", {len(self.warnings)} warnings" if self.warnings else ""
+        warned += f", {len(self.notices)} notices" if self.notices else ""
         return (f"ok: {files} ({self.items} items, {self.requests} requests per cycle), "
                 f"{gateways}{warned}")
 
@@ -72,8 +77,8 @@ def run(args: argparse.Namespace) -> int:
         _gateway_file(path, report)
     for path in args.paths:
         check_path(path, report)
-    for line in report.warnings + report.problems:
-        emit(line)
+    for line in report.notices + report.warnings + report.problems:
+        emit(shortened(line))
     if report.problems:
         return USAGE
     emit(report.summary())
@@ -110,8 +115,10 @@ def _device_file(path: Path, report: Report) -> DeviceConfig | None:
         with config_warnings(warnings):
             cfg = load_device_config(path)
             params = cfg.effective_parameters()
-            blocks = build_plan(cfg.parsed_items(), params)
+            parsed = cfg.parsed_items()
+            blocks = build_plan(parsed, params)
             endpoint_for(params)  # the line's settings hang together
+            notice = entity_numbers_notice(parsed, params)
     except ConfigError as exc:
         for problem in exc.problems:
             report.problem(path, str(problem))
@@ -127,6 +134,8 @@ def _device_file(path: Path, report: Report) -> DeviceConfig | None:
         return None
     finally:
         report.warnings += [in_file(path, f"warning: {one_line(w)}") for w in warnings]
+    if notice is not None:  # as the gateway logs it, once per device (not a problem)
+        report.notices.append(in_file(path, f"notice: {one_line(notice)}"))
     report.items += len(cfg.address_list)
     report.requests += len(blocks)
     return cfg
@@ -164,6 +173,9 @@ def _folder(folder: Path, report: Report) -> None:
     failed = False
     files = Gateway(folder, config, gateway_file).device_files()
     _skipped(folder, config.device_pattern, files, gateway_file, report)
+    if not files and not gateway_file.is_file():  # a wrong folder, not an empty gateway
+        report.problem(folder, f"nothing to check: no {GATEWAY_FILE} and no device file "
+                               f"(devicePattern {config.device_pattern!r})")
     for path in files:
         cfg = _device_file(path, report)
         if cfg is None:

@@ -11,30 +11,65 @@ nothing is written unless ``--partial`` (which writes the converted rows and exi
 from __future__ import annotations
 
 import argparse
+import codecs
 import sys
-from pathlib import Path
 
 from ..codec import json_text
 from ..commission.tag_import import import_tags
 from ..config import ConfigError, load_device_config
 from ..protocol.address import PREFIXES
+from ..protocol.limits import MAX_UNIT_ID
+from .arg_types import input_file, output_file
 from .output import CliError, one_line
 
 __all__ = ["add_arguments", "run"]
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("file", type=Path, help="the CSV tag list")
-    p.add_argument("-o", "--output", type=Path, default=None,
-                   help="the device file to write (default: stdout)")
+    p.add_argument("file", type=input_file, help="the CSV tag list")
+    p.add_argument("-o", "--output", type=output_file, default=None,
+                   help="the device file to write (default and -: stdout)")
     p.add_argument("--partial", action="store_true",
                    help="write the rows that converted even if others were refused (exit 0)")
     p.add_argument("--address-prefix", choices=PREFIXES, default="function-code",
                    help="how the generic form's addresses are read (Kepware's are entity "
                    "numbers)")
-    p.add_argument("--slave", type=int, default=None, help="slaveId of the device file")
+    p.add_argument("--slave", type=_slave_id, default=None,
+                   help=f"slaveId of the device file (0..{MAX_UNIT_ID})")
     p.add_argument("--device-code", default=None, help="organization.deviceCode")
-    p.add_argument("--encoding", default="utf-8-sig", help="the file's text encoding")
+    p.add_argument("--encoding", type=_encoding, default="utf-8-sig",
+                   help="the file's text encoding (utf-8-sig, cp1252, gbk, ...)")
+
+
+def _slave_id(text: str) -> int:
+    """A slaveId the device file can hold (config/ checks it against its transport)."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if not 0 <= value <= MAX_UNIT_ID:
+        raise argparse.ArgumentTypeError(f"{text!r}: not a slave id (0..{MAX_UNIT_ID})")
+    return value
+
+
+def _encoding(text: str) -> str:
+    """A text encoding Python knows (codecs.lookup), named as given."""
+    try:
+        codecs.lookup(text)
+    except LookupError:
+        raise argparse.ArgumentTypeError(f"{text!r}: not a known text encoding (e.g. "
+                                         "utf-8-sig, cp1252, gbk)") from None
+    return text
+
+
+_OPTION_OF_FIELD = {"organization.deviceCode": "--device-code",
+                    "communication.slaveId": "--slave"}
+
+
+def _option_problem(text: str, path: str) -> str:
+    """A problem of the device file made, told as the option that gave the field."""
+    option = _OPTION_OF_FIELD.get(path)
+    return one_line(text if option is None else f"{option}: {text}")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -59,7 +94,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         load_device_config(device)  # what we write must load
     except ConfigError as exc:
-        raise CliError(*(one_line(str(p)) for p in exc.problems)) from None
+        raise CliError(*(_option_problem(str(p), p.path) for p in exc.problems)) from None
     print(f"edgemodbus import: {args.file}: {result.form} form, {len(result.items)} rows "
           f"converted, {len(result.refused)} refused", file=sys.stderr)
     if result.refused and not args.partial:

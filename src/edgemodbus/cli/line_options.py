@@ -7,14 +7,17 @@ from __future__ import annotations
 import argparse
 
 from ..protocol.address import PREFIXES, entity_lookalike, entity_notice, parse_address
+from .arg_types import host_name, serial_device, word
 
 __all__ = [
     "HOST_TRANSPORTS",
+    "SERIAL_DEFAULTS",
     "add_line_options",
     "add_transport_options",
     "entity_notice_line",
     "host_transport",
     "other_framing_hint",
+    "serial_options_given",
 ]
 
 HOST_TRANSPORTS = ("tcp", "rtu-over-tcp")
@@ -44,24 +47,25 @@ def add_transport_options(p: argparse.ArgumentParser, *, several: bool = False) 
 
 def add_line_options(p: argparse.ArgumentParser) -> None:
     where = p.add_mutually_exclusive_group(required=True)
-    where.add_argument("--host", help="TCP host (with --port): Modbus TCP unless "
+    where.add_argument("--host", type=host_name, help="TCP host (with --port): Modbus TCP unless "
                        "--rtu-over-tcp")
-    where.add_argument("--serial", metavar="DEVICE", help="serial port, e.g. /dev/ttyUSB0")
+    where.add_argument("--serial", type=serial_device, metavar="DEVICE",
+                       help="serial port, e.g. /dev/ttyUSB0")
     p.add_argument("--port", type=int, default=502, help="TCP port (502)")
     add_transport_options(p)
-    p.add_argument("--baud", type=int, default=9600)
-    p.add_argument("--parity", default="N", help="N, E or O")
-    p.add_argument("--data-bits", type=int, default=8)
-    p.add_argument("--stop-bits", type=int, default=1)
+    p.add_argument("--baud", type=int, default=None, help="with --serial (9600)")
+    p.add_argument("--parity", type=word, default=None, help="with --serial: N, E or O (N)")
+    p.add_argument("--data-bits", type=int, default=None, help="with --serial (8)")
+    p.add_argument("--stop-bits", type=int, default=None, help="with --serial (1)")
     p.add_argument("--slave", type=int, default=1, help="slave / unit id (1)")
-    p.add_argument("--type", default=None,
+    p.add_argument("--type", type=word, default=None,
                    help="data type (Boolean for coils, discrete inputs and register bits such "
                    "as hr:7.3, else UInt16)")
-    p.add_argument("--format", default="ABCD", help="byte and word order of values of 2 or "
-                   "more registers: ABCD, BADC, CDAB or DCBA")
+    p.add_argument("--format", type=word, default="ABCD", help="byte and word order of "
+                   "values of 2 or more registers: ABCD, BADC, CDAB or DCBA")
     p.add_argument("--byte-swap16", action="store_true",
                    help="swap the two bytes of a one-register value (and of a bit's register)")
-    p.add_argument("--format64", default=None, help="order of 64-bit values (ABCDEFGH, "
+    p.add_argument("--format64", type=word, default=None, help="order of 64-bit values (ABCDEFGH, "
                    "EFGHABCD = first DWord low, ...); default: what --format means for them")
     p.add_argument("--quantity", type=int, default=None, help="registers (String/Binary)")
     p.add_argument("--multiplier", type=float, default=1.0)
@@ -69,6 +73,19 @@ def add_line_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--address-prefix", choices=PREFIXES, default="function-code",
                    help="how a bare number reads: function-code (40001 = holding register "
                    "40001, the default), modicon, or entity (40001 = holding register 0)")
+
+
+SERIAL_DEFAULTS = {"baud": 9600, "parity": "N", "data_bits": 8, "stop_bits": 1}
+"""The serial options (dest: default), given only with --serial."""
+
+
+def serial_options_given(args: argparse.Namespace) -> list[str]:
+    """The serial options given on a --host line, as ``--baud 9600`` (they were ignored,
+    and a bad value went unnoticed: exit code 1 for the refused connection instead of 2)."""
+    if not args.host:
+        return []
+    return [f"--{dest.replace('_', '-')} {getattr(args, dest)}" for dest in SERIAL_DEFAULTS
+            if getattr(args, dest) is not None]
 
 
 def host_transport(args: argparse.Namespace) -> str:

@@ -18,7 +18,12 @@ from typing import Any
 from ..config import ConfigError, DeviceAddressItem, DeviceConfig, load_device_config
 from ..driver import DriverModbusRtu
 from ..protocol.address import parse_address
-from .line_options import host_transport, other_framing_hint
+from .line_options import (
+    SERIAL_DEFAULTS,
+    host_transport,
+    other_framing_hint,
+    serial_options_given,
+)
 from .output import CliError, one_line
 
 __all__ = [
@@ -68,14 +73,20 @@ def one_item_config(args: argparse.Namespace) -> DeviceConfig:
     }
     if args.format64 is not None:
         comm["dataFormat64"] = args.format64
+    if serial_options_given(args):
+        raise CliError(f"{serial_options_given(args)[0]}: applies to --serial (--host is "
+                       "a TCP line)")
     if args.host:
         comm.update(transport=host_transport(args), tcpHost=args.host, tcpPort=args.port)
     elif args.transport is not None:
         raise CliError(f"--transport {args.transport}: applies to --host (a --serial line "
                        "speaks RTU)")
     else:
-        comm.update(transport="rtu", comPort=args.serial, baudRate=args.baud,
-                    parity=args.parity, dataBits=args.data_bits, stopBits=args.stop_bits)
+        serial = {dest: default if getattr(args, dest) is None else getattr(args, dest)
+                  for dest, default in SERIAL_DEFAULTS.items()}
+        comm.update(transport="rtu", comPort=args.serial, baudRate=serial["baud"],
+                    parity=serial["parity"], dataBits=serial["data_bits"],
+                    stopBits=serial["stop_bits"])
     if args.type is None:
         args.type = _default_type(args.address, args.address_prefix)
     item: dict[str, Any] = {"name": "value", "address": args.address,

@@ -32,7 +32,12 @@ from ..protocol.address import Address, parse_address
 from ..protocol.hosts import check_host
 from ..protocol.limits import MAX_ADDRESS, slave_id_problem
 from .exits import OK, CommandFailed
-from .line_options import entity_notice_line, host_transport, other_framing_hint
+from .line_options import (
+    entity_notice_line,
+    host_transport,
+    other_framing_hint,
+    serial_options_given,
+)
 from .output import value_text
 
 __all__ = ["one_shot_item", "read", "read_once"]
@@ -66,6 +71,8 @@ def one_shot_item(args: argparse.Namespace) -> tuple[Address, ValueSpec] | None:
     not take them (they go the polled way, which checks them and names the option)."""
     if not args.host or args.quantity is not None or args.format64 is not None:
         return None
+    if serial_options_given(args):
+        return None  # refused the polled way, naming the option
     if args.verbose:
         return None  # -v logs the line's life, -vv traces its frames: the polled way's
     if not args.host.strip():

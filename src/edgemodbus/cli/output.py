@@ -131,6 +131,18 @@ def one_line(text: str) -> str:
     return " ".join(text.split())
 
 
+MAX_WORD = 200
+"""Characters of one word of an error line: a value given as 5,000 characters is shown
+as its start and its length (argparse echoed it whole)."""
+
+
+def shortened(line: str) -> str:
+    """``line`` with each word longer than :data:`MAX_WORD` cut to its start and length."""
+    return " ".join(word if len(word) <= MAX_WORD
+                    else f"{word[:60]}... ({len(word):,} characters)"
+                    for word in line.split(" "))
+
+
 def in_file(file: str | os.PathLike[str], message: str) -> str:
     """``FILE: message`` on one line (the message as it is when it names the file)."""
     message = one_line(message)

@@ -24,6 +24,7 @@ from ..driver import DriverModbusRtu
 from ..line.endpoint import endpoint_for
 from ..poll.poller import build_plan
 from ..poll.schedule import entity_numbers_notice
+from .arg_types import MAX_SECONDS
 from .exits import FAILED, INTERRUPTED, OK, CommandFailed
 from .line_options import entity_notice_line
 from .oneitem import framing_hint, start_one_item
@@ -83,6 +84,12 @@ def run(args: argparse.Namespace) -> int:
         return run_service(args.config_dir, args.gateway, seconds=args.seconds)
     if not args.files:
         raise CliError("give device files, or --config-dir DIR")
+    if args.gateway is not None:
+        raise CliError(f"--gateway {args.gateway}: applies to --config-dir (a gateway file "
+                       "configures the service)")
+    if not 0 <= args.seconds <= MAX_SECONDS:  # -5 ran until Ctrl-C, 1e20 overflowed
+        raise CliError(f"--seconds {args.seconds}: must be >= 0 and at most "
+                       f"{MAX_SECONDS:,} (0: run until Ctrl-C)")
     drivers: list[tuple[Path, DriverModbusRtu]] = []
     try:
         for file in args.files:

@@ -32,6 +32,7 @@ from ..commission.scan import (
 from ..errors import ModbusConnectionError
 from ..line.endpoint import SerialPort, TcpEndpoint
 from ..protocol.rtu import MAX_SLAVE_ID, parse_slave_ids
+from .arg_types import host_name, serial_device
 from .line_options import add_transport_options
 from .output import CliError, print_json
 
@@ -54,8 +55,9 @@ JSON_HELP = (
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     where = p.add_mutually_exclusive_group(required=True)
-    where.add_argument("--serial", metavar="DEVICE", help="serial port, e.g. /dev/ttyUSB0")
-    where.add_argument("--host", help="TCP host (with --port)")
+    where.add_argument("--serial", type=serial_device, metavar="DEVICE",
+                       help="serial port, e.g. /dev/ttyUSB0")
+    where.add_argument("--host", type=host_name, help="TCP host (with --port)")
     p.add_argument("--port", type=int, default=502, help="TCP port (502)")
     add_transport_options(p, several=True)
     p.add_argument("--baud", default=DEFAULT_BAUDS,
@@ -118,16 +120,9 @@ def _ms(option: str, text: str | None, low: float, high: float) -> float | None:
 
 
 def endpoints_of(args: argparse.Namespace) -> list[ScanEndpoint]:
-    """The settings to sweep, from the options; CliError names a bad one."""
-    if args.host is not None:
-        transports = [t.strip() for t in args.transport.split(",") if t.strip()]
-        bad = [t for t in transports if t not in TRANSPORTS] or ([] if transports else [""])
-        if bad:
-            raise CliError(f"--transport {args.transport!r}: {bad[0]!r} is not one of "
-                           f"{', '.join(TRANSPORTS)} (a comma-separated list)")
-        if not 1 <= args.port <= 65535:
-            raise CliError(f"--port {args.port}: must be 1..65535")
-        return [TcpEndpoint(args.host, args.port, t) for t in dict.fromkeys(transports)]
+    """The settings to sweep, from the options; CliError names a bad one.  Every option is
+    checked, also the serial ones of a TCP scan (``--host H --baud abc`` scanned and
+    failed to connect, exit code 1, with the bad option never named)."""
     bauds = _ints("--baud", args.baud, "e.g. 9600,19200")
     for baud in bauds:
         if not 50 <= baud <= 4_000_000:
@@ -142,6 +137,15 @@ def endpoints_of(args: argparse.Namespace) -> list[ScanEndpoint]:
         raise CliError(f"--stop-bits {args.stop_bits!r}: must be 1, 2 or 1,2")
     if args.rs485 not in RS485_MODES:
         raise CliError(f"--rs485 {args.rs485!r}: must be one of {', '.join(RS485_MODES)}")
+    transports = [t.strip() for t in args.transport.split(",") if t.strip()]
+    bad = [t for t in transports if t not in TRANSPORTS] or ([] if transports else [""])
+    if bad:
+        raise CliError(f"--transport {args.transport!r}: {bad[0]!r} is not one of "
+                       f"{', '.join(TRANSPORTS)} (a comma-separated list)")
+    if not 1 <= args.port <= 65535:
+        raise CliError(f"--port {args.port}: must be 1..65535")
+    if args.host is not None:
+        return [TcpEndpoint(args.host, args.port, t) for t in dict.fromkeys(transports)]
     return list(serial_settings(args.serial, bauds, parities, stops, rs485=args.rs485,
                                 echo=args.echo))
 
@@ -232,7 +236,7 @@ def run(args: argparse.Namespace) -> int:
         raise CliError(f"--slaves {args.slaves!r} and --ids {args.ids!r}: give one (--ids is "
                        "the old name of --slaves)")
     option, text = ("--ids", args.ids) if args.ids is not None else (
-        "--slaves", args.slaves or f"1-{MAX_SLAVE_ID}")
+        "--slaves", f"1-{MAX_SLAVE_ID}" if args.slaves is None else args.slaves)
     ids = parse_ids(option, text, 0 if tcp_unit else 1, 255 if tcp_unit else MAX_SLAVE_ID)
     functions = _ints("--functions", args.functions, "1, 2, 3, 4, e.g. 3,4,1")
     if any(fc not in (1, 2, 3, 4) for fc in functions):
@@ -265,7 +269,29 @@ def run(args: argparse.Namespace) -> int:
     if report.error is not None:
         print(f"edgemodbus scan: {report.error}", file=sys.stderr)
         return 1
+    hint = _other_framing_hint(endpoints, report)
+    if hint is not None:
+        print(f"edgemodbus scan: {hint}", file=sys.stderr)
     return 130 if report.interrupted else 0
+
+
+_OTHER_FRAMING = {
+    "tcp": "nothing answered Modbus TCP; a serial server or a DTU speaks raw RTU frames: "
+           "scan with --transport tcp,rtu-over-tcp",
+    "rtu-over-tcp": "nothing answered raw RTU frames over TCP; a Modbus TCP device speaks "
+                    "MBAP: scan with --transport tcp,rtu-over-tcp",
+}
+
+
+def _other_framing_hint(endpoints: Sequence[ScanEndpoint], report: Report) -> str | None:
+    """After a complete TCP scan of one framing that found nothing, the flag of the other
+    (the line layer's framing hint of read and write, for a whole scan: one probe in the
+    other framing would not tell an empty id from the wrong framing)."""
+    transports = {e.transport for e in endpoints if isinstance(e, TcpEndpoint)}
+    if report.found or report.interrupted or len(transports) != 1 or \
+            len(endpoints) != len(transports):
+        return None
+    return _OTHER_FRAMING.get(transports.pop())
 
 
 @contextlib.contextmanager

@@ -9,11 +9,11 @@ templates shipped with the package.  A device file uses one with ``"template": N
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 from typing import Any
 
 from ..config import ConfigError
 from ..config.templates import TemplateInfo, find_templates, load_template, template_file
+from .arg_types import folder
 from .output import CliError, one_line, print_json
 
 __all__ = ["add_arguments", "run"]
@@ -21,7 +21,7 @@ __all__ = ["add_arguments", "run"]
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("name", nargs="?", help="a template to show (none: list them)")
-    p.add_argument("--dir", action="append", default=[], type=Path, metavar="DIR",
+    p.add_argument("--dir", action="append", default=[], type=folder, metavar="DIR",
                    help="a folder searched first (repeatable)")
     p.add_argument("--json", action="store_true", help="JSON instead of text")
 

@@ -26,7 +26,7 @@ from __future__ import annotations
 import csv
 import io
 import math
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -313,6 +313,21 @@ def _note_entity_lookalike(result: ImportResult, row: int, text: str, prefix: st
         result.notice = f"row {row}: {entity_notice(text.strip(), read_as, entity)}"
 
 
+def _rows(reader: Any) -> Iterator[list[str]]:
+    """The reader's rows; a row the csv module cannot read (a field over its limit of
+    csv.field_size_limit(), a NUL byte) is a ValueError naming the line, not a
+    traceback."""
+    while True:
+        try:
+            cells: list[str] = next(reader)
+        except StopIteration:
+            return
+        except csv.Error as exc:
+            raise ValueError(f"line {reader.line_num}: not CSV the tag list can hold "
+                             f"({exc})") from None
+        yield cells
+
+
 def import_tags(text: str, address_prefix: str = "function-code") -> ImportResult:
     """Convert a CSV tag list (its text); see the module doc.  ``address_prefix`` reads
     the generic form's addresses.  Raises ValueError for a header of neither form."""
@@ -320,7 +335,7 @@ def import_tags(text: str, address_prefix: str = "function-code") -> ImportResul
     header: list[str] | None = None
     result: ImportResult | None = None
     seen: dict[str, int] = {}
-    for cells in reader:
+    for cells in _rows(reader):
         number = reader.line_num
         if not any(c.strip() for c in cells):
             continue

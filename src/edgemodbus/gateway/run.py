@@ -31,9 +31,10 @@ def run_service(config_dir: Path, gateway_config: Path | None = None, *,
     clean stop (SIGTERM, --seconds), 130 after SIGINT (Ctrl-C), 2 for a configuration
     error, a missing optional package or a port in use (one line on stderr)."""
     config_dir = Path(config_dir)
-    if not seconds >= 0:  # also refuses NaN
-        print(f"edgemodbus service: --seconds {seconds}: must be >= 0 (0: run until a "
-              "signal)", file=sys.stderr)
+    if not 0 <= seconds <= MAX_SECONDS:  # also refuses NaN and infinities
+        most = f" and at most {MAX_SECONDS:,}" if seconds > MAX_SECONDS else ""
+        print(f"edgemodbus service: --seconds {seconds}: must be >= 0{most} (0: run until "
+              "a signal)", file=sys.stderr)
         return 2
     if not config_dir.is_dir():
         print(f"edgemodbus service: --config-dir {str(config_dir)!r}: not a directory",
@@ -109,14 +110,25 @@ def run_service(config_dir: Path, gateway_config: Path | None = None, *,
     return 130 if flags["interrupted"] else 0
 
 
+def _path(text: str) -> Path:
+    """A path option's value: not empty (``Path("")`` is the current folder)."""
+    if not text.strip() or "\0" in text:
+        raise argparse.ArgumentTypeError(f"{text!r}: not a path (give a file or folder)")
+    return Path(text)
+
+
+MAX_SECONDS = 10 * 365 * 86400
+"""The longest --seconds: ten years (a wait of 1e20 s overflowed the clock: a traceback)."""
+
+
 def add_arguments(parser: argparse.ArgumentParser, *, config_dir_required: bool) -> None:
     """The service's options (``python -m edgemodbus.gateway``; ``edgemodbus run
     --config-dir`` takes the same ones)."""
-    parser.add_argument("--config-dir", type=Path, required=config_dir_required,
+    parser.add_argument("--config-dir", type=_path, required=config_dir_required,
                         default=None, help="gateway service: every device file (*.json) in "
                         "DIR; MQTT/metrics from DIR/gateway.json or --gateway; SIGHUP "
                         "reloads, SIGTERM stops")
-    parser.add_argument("--gateway", type=Path, default=None,
+    parser.add_argument("--gateway", type=_path, default=None,
                         help=f"gateway file (default: DIR/{GATEWAY_FILE} if present)")
     parser.add_argument("--seconds", type=float, default=0.0,
                         help="stop after N s (0: run until SIGTERM or SIGINT)")

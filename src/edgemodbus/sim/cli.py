@@ -3,13 +3,15 @@
 from __future__ import annotations
 
 import argparse
+import math
 import signal
 import sys
 import threading
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 from ..logs import configure_logging
+from ..protocol.hosts import check_host
 from ..protocol.rtu import MAX_SLAVE_ID, parse_slave_ids
 from .fleet import FLEET_SIZE, DtuFleet
 from .movers import add_demo_movers
@@ -26,9 +28,43 @@ def slave_ids(text: str) -> list[int]:
         raise argparse.ArgumentTypeError(str(exc)) from None
 
 
+def _host(text: str) -> str:
+    """A listen address by the one host rule (protocol/hosts.py); not empty (it listened
+    on every interface, or with --no-tcp nowhere, without a word)."""
+    try:
+        if not text.strip():
+            raise ValueError("empty (give an address, e.g. 127.0.0.1)")
+        return check_host(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(f"{text[:60]!r}: {exc}") from None
+
+
+def _number(low: float, high: float, *, whole: bool = False,
+            above_low: bool = False) -> Callable[[str], float]:
+    """An argparse type: a number in ``low..high`` (a whole one when ``whole``; NaN and
+    infinities never), named with the range (``--heartbeat-interval -5`` was taken and
+    ignored without --dial)."""
+    what = "a whole number" if whole else "a number"
+    bounds = f"more than {low:g} and at most {high:g}" if above_low else f"{low:g}..{high:g}"
+
+    def parse(text: str) -> float:
+        try:
+            value = int(text) if whole else float(text)
+        except ValueError:
+            value = math.nan
+        if not (low < value if above_low else low <= value) or not value <= high:
+            raise argparse.ArgumentTypeError(f"{text[:60]!r}: not {what} in {bounds}")
+        return value
+    return parse
+
+
+_DAY = 86400.0
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The options of ``edgemodbus simulate`` (also ``python -m edgemodbus.sim``)."""
-    parser.add_argument("--host", default="127.0.0.1", help="listen address (127.0.0.1)")
+    parser.add_argument("--host", type=_host, default="127.0.0.1",
+                        help="listen address (127.0.0.1)")
     parser.add_argument("--port", type=int, default=5020, help="TCP port, 0 = any (5020)")
     parser.add_argument("--slaves", type=slave_ids, default=[1],
                         help=f"ids 1..{MAX_SLAVE_ID}, e.g. 1,2,5-8 (1)")
@@ -45,18 +81,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="with --dial: registration packet sent first (text); with --dtus "
                         "a template of the DTU's number {n} (DTU{n:05d})")
     parser.add_argument("--heartbeat", default="", help="with --dial: heartbeat packet (text)")
-    parser.add_argument("--heartbeat-interval", type=float, default=0.0,
+    parser.add_argument("--heartbeat-interval", type=_number(0, _DAY), default=0.0,
                         help="with --dial: seconds between heartbeats (0: none)")
     parser.add_argument("--wrapped", action="store_true",
                         help="speak the edge MCU's wrapped report frames")
-    parser.add_argument("--dtus", type=int, default=None, metavar="N",
+    parser.add_argument("--dtus", type=_number(1, 1_000_000, whole=True), default=None,
+                        metavar="N",
                         help="with --dial: play N DTUs from this one process (asyncio), each "
                         "with its own --slaves, registering as --registration")
-    parser.add_argument("--first-dtu", type=int, default=0, metavar="N",
+    parser.add_argument("--first-dtu", type=_number(0, 10**12, whole=True), default=0,
+                        metavar="N",
                         help="with --dtus: the number {n} of the first DTU (0)")
-    parser.add_argument("--dial-rate", type=float, default=0.0,
+    parser.add_argument("--dial-rate", type=_number(0, 1e6), default=0.0,
                         help="with --dtus: new connections per second (0: no limit)")
-    parser.add_argument("--reconnect", type=float, default=1.0,
+    parser.add_argument("--reconnect", type=_number(0, _DAY, above_low=True), default=1.0,
                         help="with --dtus: seconds before a dropped DTU dials again, doubling "
                         "up to 30 while its connections end before any request (1)")
 

@@ -126,3 +126,28 @@ def test_a_folder_with_problems(tmp_path: Path, capsys: pytest.CaptureFixture[st
 def test_a_path_that_is_not_there(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     code, lines = _check(capsys, str(tmp_path / "missing.json"))
     assert (code, lines) == (2, [f"{tmp_path / 'missing.json'}: no such file or directory"])
+
+
+def test_entity_lookalikes_get_the_notice_in_check_too(tmp_path: Path,
+                                                     capsys: pytest.CaptureFixture[str]) -> None:
+    """Issue 24: ``40001`` without ``addressPrefix: entity`` gets the notice the gateway
+    logs and ``plan`` prints (check said only "ok"); a notice does not fail the check."""
+    path = tmp_path / "meter.json"
+    path.write_text(json.dumps({
+        "communication": {"transport": "tcp", "tcpHost": "127.0.0.1"},
+        "addressList": [{"name": "a", "address": "40001", "deviceDataType": "UInt16"},
+                        {"name": "b", "address": "30002", "deviceDataType": "UInt16"}]}))
+    assert main(["check", str(path)]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].startswith(f"{path}: notice: item 'a': address '40001' is read as "
+                               "holding register 40001 (hr:40001)"), lines
+    assert lines[0].endswith("for Modicon numbering set addressPrefix: entity"), lines
+    assert lines[-1] == ("ok: 1 device file (2 items, 2 requests per cycle), 0 gateway "
+                         "files, 1 notices")
+    path.write_text(json.dumps({
+        "communication": {"transport": "tcp", "tcpHost": "127.0.0.1",
+                          "addressPrefix": "entity"},
+        "addressList": [{"name": "a", "address": "40001", "deviceDataType": "UInt16"}]}))
+    assert main(["check", str(path)]) == 0
+    assert capsys.readouterr().out.splitlines() == [
+        "ok: 1 device file (1 items, 1 requests per cycle), 0 gateway files"]

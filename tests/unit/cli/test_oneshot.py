@@ -69,6 +69,10 @@ def test_the_one_shot_takes_only_what_the_device_check_accepts(words: list[str])
     """Whatever the one-shot read takes, the config models accept, with the same address
     and value spec: it never reads something the polled read would refuse or read
     otherwise."""
+    try:
+        _args(*words)
+    except SystemExit:
+        return  # argparse refuses it (an empty --format, a blank --host): neither reads
     item = one_shot_item(_args(*words))
     try:
         cfg = one_item_config(_args(*words))
