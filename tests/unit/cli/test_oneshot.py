@@ -189,7 +189,8 @@ def test_one_shot_and_polled_reads_print_the_same() -> None:
     from edgemodbus.cli.polling import read as polled_read
 
     with PymodbusSlave("tcp", units=(1,)) as slave:
-        base = ["--host", "127.0.0.1", "--port", str(slave.port)]
+        # a generous timeout: the slave is a process of its own on a loaded machine
+        base = ["--host", "127.0.0.1", "--port", str(slave.port), "--timeout", "10000"]
 
         @settings(max_examples=40, deadline=None)
         @given(st.lists(st.integers(0, 0xFFFF), min_size=4, max_size=4),
