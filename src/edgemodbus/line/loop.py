@@ -9,11 +9,12 @@ eventfd wakes the loop.  One turn is one C call (``Loop.turn``, csrc/emb_loop_tu
 it runs every ready or expired link and comes back only with the links Python must see
 (passes with news, a split, reports, a failure, jobs flagged for an idle link).  A
 link's jobs run while it is idle, on a job thread, the link out of the loop meanwhile
-(line/loop_jobs.py), one between two reads while polling is due (``owed``, the
-fairness rule of csrc/emb_engine.c).  A failed link closes that link only; a DTU line
-waits for the DTU to dial in again, a connect-mode line (RTU over TCP or Modbus TCP)
-connects again after the reconnect backoff through a non-blocking
-:class:`~edgemodbus.line.loop_connect.Dialer` on the same slot.
+(line/loop_jobs.py), by the thread engine's rule while polling is due (line/jobs.py
+``job_gate``: a job owes polling as many reads as it made, and its time).  A failed
+link closes that link only; a DTU line waits for the DTU to dial in again, a
+connect-mode line (RTU over TCP or Modbus TCP) connects again after the reconnect
+backoff through a non-blocking :class:`~edgemodbus.line.loop_connect.Dialer` on the
+same slot.
 
 :data:`~edgemodbus.line.loop_pool.pool` (line/loop_pool.py) spreads the lines over
 ``loopThreads`` workers (least loaded first); a worker starts with its first line and
@@ -150,6 +151,7 @@ class LoopWorker:
         self._news: set[LoopLine] = set()
         self._back: list[_Served] = []  # lines whose jobs ended on a job thread
         self.jobs = loop_jobs.JobThreads(name)
+        self.shares = loop_jobs.Shares()  # lines whose jobs wait for polling's share
         self._lock = threading.Lock()
         self._woken = False  # a wake-up is on its way (_wake_once)
         self._stopping = False
@@ -222,7 +224,7 @@ class LoopWorker:
     def _run(self) -> None:
         while not self._stopping:
             try:
-                turn = self.loop.turn(time.monotonic() + _MAX_IDLE)
+                turn = self.loop.turn(self.shares.next_end(time.monotonic() + _MAX_IDLE))
                 for slot, ev in turn.events:  # before the news: a held link's event
                     served = self._slots.get(slot)
                     if served is None:
@@ -242,6 +244,9 @@ class LoopWorker:
                 for line in news:
                     served = self._by_line.get(line)
                     if served is not None:
+                        self._guarded(self._serve_queue, served)
+                for slot in self.shares.ended(time.monotonic()):  # their jobs' turn
+                    if (served := self._slots.get(slot)) is not None:
                         self._guarded(self._serve_queue, served)
             except Exception:  # a bug must not stop the other lines
                 log.exception("%s: loop turn failed", self.thread.name)
@@ -310,6 +315,7 @@ class LoopWorker:
         abort_dial(served.line.connector)
         served.hold = loop_jobs.let_go(served.hold)
         self.loop.clear_timer(served.slot)  # a reconnect delay
+        self.shares.drop(served.slot)
         del self._slots[served.slot], self._by_line[served.line]
         self._free.append(served.slot)
         served.line._shutdown()
@@ -433,7 +439,7 @@ class LoopWorker:
         """Its jobs ended: the link back in the loop (owing a read), lost, or dropped."""
         served.busy = False
         served.hold = loop_jobs.let_go(served.hold)
-        line, link, ll = served.line, served.link, served.ll
+        link, ll = served.link, served.ll
         if served.leaving is not None:
             future, served.leaving = served.leaving, None
             self._drop(served)
@@ -443,8 +449,7 @@ class LoopWorker:
             self._lost(served)
             return
         os.set_blocking(ll.ctx.fd, False)
-        ll.resume()
-        ll.jobs = ll.owed = not line._queue.empty()
+        ll.resume()  # (idle: _step applies the rule, loop_jobs.job_or_wait)
         self._serve_queue(served)
 
     def _step(self, served: _Served, ev: int | None = None) -> None:
@@ -456,15 +461,15 @@ class LoopWorker:
         assert ll is not None and engine is not None
         while True:
             if ev is None:
-                if ll.state == LS_IDLE:  # a job goes ahead of the next read, unless owed
-                    job = None if ll.owed else loop_jobs.next_job(line)
-                    if job is not None:
-                        self._hand_off(served, job)
-                        return
-                    ll.jobs = not line._queue.empty()
+                if ll.state == LS_IDLE:  # a job, a due read first, or polling's share
                     if served.pollers != line._pollers:
                         served.pollers = list(line._pollers)
                         engine.set_devices([p.device for p in served.pollers])
+                    job = loop_jobs.job_or_wait(line, ll, served.pollers)
+                    if isinstance(job, Job):
+                        return self._hand_off(served, job)
+                    if job is not None:
+                        self.shares.hold(served.slot, job)
                 ev = ll.run()
             pollers, where, link = served.pollers, line.endpoint.describe(), served.link
             hand_ended(engine, pollers, where)
