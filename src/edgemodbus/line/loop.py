@@ -87,6 +87,7 @@ class _Served:
     busy: bool = False  # its jobs run on a job thread, its link out of the loop
     hold: int = -1  # meanwhile a dup of its socket (cut_off: the line stops)
     leaving: Future[None] | None = None  # removed while busy: done once it is back
+    crash: Exception | None = None  # its job thread's unexpected error (_returned)
 
 
 class LoopLine(LineWorker):
@@ -169,10 +170,7 @@ class LoopWorker:
     def _ask(self, add: bool, line: LoopLine) -> Future[None]:
         future: Future[None] = Future()
         self._inbox.put((add, line, future))
-        if add:
-            self._wake_once()
-        else:  # a stop waits for it
-            self.wake_now()
+        self._wake_once() if add else self.wake_now()  # (a stop waits for a removal)
         return future
 
     def news(self, line: LoopLine, job: bool = True) -> None:
@@ -180,10 +178,7 @@ class LoopWorker:
         pollers, a connection."""
         with self._lock:
             self._news.add(line)
-        if job:
-            self.wake_now()
-        else:
-            self._wake_once()
+        self.wake_now() if job else self._wake_once()
 
     def _wake_once(self) -> None:
         """:meth:`wake_now`, or inside ``LoopPool.deferred`` on this thread, at the
@@ -421,6 +416,8 @@ class LoopWorker:
             try:
                 loop_jobs.run_jobs(line, link, job, [p.device for p in served.pollers],
                          lambda: line._stopping or served.leaving is not None)
+            except Exception as exc:  # the line recovers on the loop thread (_returned)
+                served.crash = exc
             finally:
                 with self._lock:
                     self._back.append(served)
@@ -445,6 +442,9 @@ class LoopWorker:
             self._drop(served)
             future.set_result(None)
             return
+        if served.crash is not None:  # as a line worker's error: _guarded's recovery
+            crash, served.crash = served.crash, None
+            raise crash
         if link is None or ll is None or not link.is_open:
             self._lost(served)
             return
