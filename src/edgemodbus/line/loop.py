@@ -418,14 +418,15 @@ class LoopWorker:
                          lambda: line._stopping or served.leaving is not None)
             except Exception as exc:  # the line recovers on the loop thread (_returned)
                 served.crash = exc
-            finally:
-                with self._lock:
-                    self._back.append(served)
-                self.wake_now()
+
+        def back() -> None:  # (its job thread counts as idle: the next jobs may take it)
+            with self._lock:
+                self._back.append(served)
+            self.wake_now()
 
         served.busy, served.hold = True, loop_jobs.hold_of(ll.ctx.fd)
         try:
-            self.jobs.submit(task)
+            self.jobs.submit(task, back)
         except Exception:  # no thread to be had: the recovery fails it with the rest
             served.busy = False
             served.hold = loop_jobs.let_go(served.hold)
@@ -492,8 +493,7 @@ class LoopWorker:
             link.collect()  # the stream's counters (heartbeats, drops) into the stats
 
 
-# this thread's LoopPool.deferred block (line/loop_pool.py): .workers, the loop workers
-# to wake at its end
+# this thread's LoopPool.deferred block (line/loop_pool.py): .workers, to wake at its end
 held_wakeups = threading.local()
 
 

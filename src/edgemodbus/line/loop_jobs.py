@@ -185,7 +185,10 @@ def cut_off(fd: int) -> None:
 class JobThreads:
     """At most ``cap`` threads named ``name`` running the tasks submitted, in order of
     submission; started when a task finds no idle thread, ended after ``idle`` seconds
-    without a task, or by :meth:`stop` (after the tasks submitted before it)."""
+    without a task, or by :meth:`stop` (after the tasks submitted before it).  A thread
+    counts as idle from its start and again before a task's ``then`` runs: a task that
+    ``then`` hands back (a line's jobs) and is submitted again at once finds it idle,
+    not a reason for one more thread."""
 
     def __init__(self, name: str, cap: int = JOB_THREADS, idle: float = IDLE_SECONDS) -> None:
         if not 1 <= cap <= 256:
@@ -193,28 +196,32 @@ class JobThreads:
         self.name = name
         self.cap = cap
         self.idle = idle
-        self._tasks: deque[Callable[[], None]] = deque()
+        self._tasks: deque[tuple[Callable[[], None], Callable[[], None] | None]] = deque()
         self._cond = threading.Condition()
         self._threads: set[threading.Thread] = set()
-        self._waiting = 0  # threads waiting for a task
+        self._waiting = 0  # threads idle: waiting for a task, starting, or done with one
         self._made = 0
         self._stopping = False
 
-    def submit(self, task: Callable[[], None]) -> None:
-        """Run ``task()`` on a job thread (never blocks; an exception is logged)."""
+    def submit(self, task: Callable[[], None], then: Callable[[], None] | None = None
+               ) -> None:
+        """Run ``task()`` on a job thread, then ``then()`` once the thread counts as idle
+        (never blocks; an exception of either is logged)."""
         with self._cond:
             if self._stopping:
                 raise RuntimeError(f"{self.name}: stopped")
-            self._tasks.append(task)
+            self._tasks.append((task, then))
             if len(self._tasks) > self._waiting and len(self._threads) < self.cap:
                 self._made += 1
                 thread = threading.Thread(target=self._run, daemon=True,
                                           name=f"{self.name} job {self._made}")
                 self._threads.add(thread)
+                self._waiting += 1  # (idle from its start: it takes this task)
                 try:
                     thread.start()
                 except RuntimeError:  # no thread to be had: the others take it, if any
                     self._threads.discard(thread)
+                    self._waiting -= 1
                     if not self._threads:
                         self._tasks.pop()
                         raise
@@ -241,9 +248,8 @@ class JobThreads:
     def _run(self) -> None:
         me = threading.current_thread()
         while True:
-            with self._cond:
+            with self._cond:  # (counted idle already: by submit, or after its last task)
                 deadline = time.monotonic() + self.idle
-                self._waiting += 1
                 while not self._tasks and not self._stopping:
                     left = deadline - time.monotonic()
                     if left <= 0:
@@ -253,11 +259,18 @@ class JobThreads:
                 if not self._tasks:
                     self._threads.discard(me)
                     return
-                task = self._tasks.popleft()
+                task, then = self._tasks.popleft()
             try:
                 task()
             except Exception:  # a bug must not end the thread with tasks waiting
                 log.exception("%s: a job task failed", me.name)
+            with self._cond:
+                self._waiting += 1
+            if then is not None:
+                try:
+                    then()
+                except Exception:
+                    log.exception("%s: a job task's hand-back failed", me.name)
 
 
 __all__ = ["IDLE_SECONDS", "JOB_THREADS", "JobThreads", "Shares", "cut_off", "hold_of",
