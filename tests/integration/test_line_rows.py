@@ -1,8 +1,9 @@
 """Issue #25's line-scheduling rows again, with independent masters (pymodbus clients,
 each its own connection, in a closed loop) against the gateway's Modbus TCP server, a
 pymodbus slave in its own process (RTU framing over TCP: an endpoint line on the thread
-engine), and the reads on demand added since (``driver.read_now()``, what MQTT ``$read``
-and Sparkplug read commands call: each a job).  Every row: the bystander device (slave
+engine, or a loop thread whose jobs run on a job thread: the ``engine`` fixture), and the
+reads on demand added since (``driver.read_now()``, what MQTT ``$read`` and Sparkplug
+read commands call: each a job).  Every row: the bystander device (slave
 1, polled every 100 ms) keeps at least half its quiet rate, counted over windows in the
 same test (a loaded machine slows both alike).  docs/fault-checklist.md "The line (jobs
 and polling)" has the figures."""
@@ -19,6 +20,7 @@ from pymodbus.client import ModbusTcpClient
 
 import edgemodbus as em
 from tests.conftest import SlaveFactory
+from tests.engines import with_engine
 from tests.integration.test_line_fairness import (
     BYSTANDER,
     DEAD_UNIT,
@@ -32,6 +34,8 @@ from tests.peers import PymodbusSlave
 from tests.waiting import wait_for
 
 DEMAND = 4  # the slave of the device read on demand
+
+pytestmark = pytest.mark.usefixtures("engine")
 
 
 class Masters:
@@ -92,10 +96,11 @@ def demand_device(peer: PymodbusSlave, blocks: int) -> em.DeviceConfig:
     """Items far apart: one block each, as many transactions per read of them all."""
     return em.load_device_config({
         "organization": {"deviceCode": "demand"},
-        "communication": {"transport": "rtu-over-tcp", "tcpHost": "127.0.0.1",
-                          "tcpPort": peer.port, "slaveId": DEMAND, "readCycle": 60_000,
-                          "readTimeout": 700, "retries": 0, "maxMergeAddressGap": 0,
-                          "reconnectInterval": 300, "offlineAfterFailedCycles": 1000},
+        "communication": with_engine({
+            "transport": "rtu-over-tcp", "tcpHost": "127.0.0.1", "tcpPort": peer.port,
+            "slaveId": DEMAND, "readCycle": 60_000, "readTimeout": 700, "retries": 0,
+            "maxMergeAddressGap": 0, "reconnectInterval": 300,
+            "offlineAfterFailedCycles": 1000}),
         "addressList": [{"name": f"d{k}", "address": f"hr:{8 * k}",
                          "deviceDataType": "UInt16"} for k in range(blocks)],
     })

@@ -231,9 +231,10 @@ class LoopLink:
 
     @property
     def owed(self) -> bool:
-        """A job ran since the link's last read: with :attr:`jobs` set, it comes back
-        ``EV_WAKE`` only after sending its next due read, or when nothing is due (one
-        job between two reads while polling is due, as csrc/emb_engine.c keeps it)."""
+        """A read is owed before the next job: with :attr:`jobs` set, it comes back
+        ``EV_WAKE`` only after sending its next due read, or when nothing is due.  One
+        read per flag: Python counts what a job owes (line/loop_jobs.py
+        ``job_or_wait``: a job of k transactions owes k) and sets it again per read."""
         return bool(self._k.owed)
 
     @owed.setter

@@ -9,11 +9,12 @@ eventfd wakes the loop.  One turn is one C call (``Loop.turn``, csrc/emb_loop_tu
 it runs every ready or expired link and comes back only with the links Python must see
 (passes with news, a split, reports, a failure, jobs flagged for an idle link).  A
 link's jobs run while it is idle, on a job thread, the link out of the loop meanwhile
-(line/loop_jobs.py), one between two reads while polling is due (``owed``, the
-fairness rule of csrc/emb_engine.c).  A failed link closes that link only; a DTU line
-waits for the DTU to dial in again, a connect-mode line (RTU over TCP or Modbus TCP)
-connects again after the reconnect backoff through a non-blocking
-:class:`~edgemodbus.line.loop_connect.Dialer` on the same slot.
+(line/loop_jobs.py), by the thread engine's rule while polling is due (line/jobs.py
+``job_gate``: a job owes polling as many reads as it made, and its time).  A failed
+link closes that link only; a DTU line waits for the DTU to dial in again, a
+connect-mode line (RTU over TCP or Modbus TCP) connects again after the reconnect
+backoff through a non-blocking :class:`~edgemodbus.line.loop_connect.Dialer` on the
+same slot.
 
 :data:`~edgemodbus.line.loop_pool.pool` (line/loop_pool.py) spreads the lines over
 ``loopThreads`` workers (least loaded first); a worker starts with its first line and
@@ -86,6 +87,7 @@ class _Served:
     busy: bool = False  # its jobs run on a job thread, its link out of the loop
     hold: int = -1  # meanwhile a dup of its socket (cut_off: the line stops)
     leaving: Future[None] | None = None  # removed while busy: done once it is back
+    crash: Exception | None = None  # its job thread's unexpected error (_returned)
 
 
 class LoopLine(LineWorker):
@@ -150,6 +152,7 @@ class LoopWorker:
         self._news: set[LoopLine] = set()
         self._back: list[_Served] = []  # lines whose jobs ended on a job thread
         self.jobs = loop_jobs.JobThreads(name)
+        self.shares = loop_jobs.Shares()  # lines whose jobs wait for polling's share
         self._lock = threading.Lock()
         self._woken = False  # a wake-up is on its way (_wake_once)
         self._stopping = False
@@ -167,10 +170,7 @@ class LoopWorker:
     def _ask(self, add: bool, line: LoopLine) -> Future[None]:
         future: Future[None] = Future()
         self._inbox.put((add, line, future))
-        if add:
-            self._wake_once()
-        else:  # a stop waits for it
-            self.wake_now()
+        self._wake_once() if add else self.wake_now()  # (a stop waits for a removal)
         return future
 
     def news(self, line: LoopLine, job: bool = True) -> None:
@@ -178,10 +178,7 @@ class LoopWorker:
         pollers, a connection."""
         with self._lock:
             self._news.add(line)
-        if job:
-            self.wake_now()
-        else:
-            self._wake_once()
+        self.wake_now() if job else self._wake_once()
 
     def _wake_once(self) -> None:
         """:meth:`wake_now`, or inside ``LoopPool.deferred`` on this thread, at the
@@ -224,7 +221,7 @@ class LoopWorker:
     def _run(self) -> None:
         while not self._stopping:
             try:
-                turn = self.loop.turn(time.monotonic() + _MAX_IDLE)
+                turn = self.loop.turn(self.shares.next_end(time.monotonic() + _MAX_IDLE))
                 for slot, ev in turn.events:  # before the news: a held link's event
                     served = self._slots.get(slot)
                     if served is None:
@@ -244,6 +241,9 @@ class LoopWorker:
                 for line in news:
                     served = self._by_line.get(line)
                     if served is not None:
+                        self._guarded(self._serve_queue, served)
+                for slot in self.shares.ended(time.monotonic()):  # their jobs' turn
+                    if (served := self._slots.get(slot)) is not None:
                         self._guarded(self._serve_queue, served)
             except Exception:  # a bug must not stop the other lines
                 log.exception("%s: loop turn failed", self.thread.name)
@@ -312,6 +312,7 @@ class LoopWorker:
         abort_dial(served.line.connector)
         served.hold = loop_jobs.let_go(served.hold)
         self.loop.clear_timer(served.slot)  # a reconnect delay
+        self.shares.drop(served.slot)
         del self._slots[served.slot], self._by_line[served.line]
         self._free.append(served.slot)
         served.line._shutdown()
@@ -417,14 +418,17 @@ class LoopWorker:
             try:
                 loop_jobs.run_jobs(line, link, job, [p.device for p in served.pollers],
                          lambda: line._stopping or served.leaving is not None)
-            finally:
-                with self._lock:
-                    self._back.append(served)
-                self.wake_now()
+            except Exception as exc:  # the line recovers on the loop thread (_returned)
+                served.crash = exc
+
+        def back() -> None:  # (its job thread counts as idle: the next jobs may take it)
+            with self._lock:
+                self._back.append(served)
+            self.wake_now()
 
         served.busy, served.hold = True, loop_jobs.hold_of(ll.ctx.fd)
         try:
-            self.jobs.submit(task)
+            self.jobs.submit(task, back)
         except Exception:  # no thread to be had: the recovery fails it with the rest
             served.busy = False
             served.hold = loop_jobs.let_go(served.hold)
@@ -435,18 +439,20 @@ class LoopWorker:
         """Its jobs ended: the link back in the loop (owing a read), lost, or dropped."""
         served.busy = False
         served.hold = loop_jobs.let_go(served.hold)
-        line, link, ll = served.line, served.link, served.ll
+        link, ll = served.link, served.ll
         if served.leaving is not None:
             future, served.leaving = served.leaving, None
             self._drop(served)
             future.set_result(None)
             return
+        if served.crash is not None:  # as a line worker's error: _guarded's recovery
+            crash, served.crash = served.crash, None
+            raise crash
         if link is None or ll is None or not link.is_open:
             self._lost(served)
             return
         os.set_blocking(ll.ctx.fd, False)
-        ll.resume()
-        ll.jobs = ll.owed = not line._queue.empty()
+        ll.resume()  # (idle: _step applies the rule, loop_jobs.job_or_wait)
         self._serve_queue(served)
 
     def _step(self, served: _Served, ev: int | None = None) -> None:
@@ -458,15 +464,15 @@ class LoopWorker:
         assert ll is not None and engine is not None
         while True:
             if ev is None:
-                if ll.state == LS_IDLE:  # a job goes ahead of the next read, unless owed
-                    job = None if ll.owed else loop_jobs.next_job(line)
-                    if job is not None:
-                        self._hand_off(served, job)
-                        return
-                    ll.jobs = not line._queue.empty()
+                if ll.state == LS_IDLE:  # a job, a due read first, or polling's share
                     if served.pollers != line._pollers:
                         served.pollers = list(line._pollers)
                         engine.set_devices([p.device for p in served.pollers])
+                    job = loop_jobs.job_or_wait(line, ll, served.pollers)
+                    if isinstance(job, Job):
+                        return self._hand_off(served, job)
+                    if job is not None:
+                        self.shares.hold(served.slot, job)
                 ev = ll.run()
             pollers, where, link = served.pollers, line.endpoint.describe(), served.link
             hand_ended(engine, pollers, where)
@@ -489,8 +495,7 @@ class LoopWorker:
             link.collect()  # the stream's counters (heartbeats, drops) into the stats
 
 
-# this thread's LoopPool.deferred block (line/loop_pool.py): .workers, the loop workers
-# to wake at its end
+# this thread's LoopPool.deferred block (line/loop_pool.py): .workers, to wake at its end
 held_wakeups = threading.local()
 
 

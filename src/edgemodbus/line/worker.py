@@ -45,7 +45,6 @@ from .jobs import (
     PollLag,
     TargetBackoff,
     crash_reason,
-    job_gate,
     reconnect_delay,
 )
 from .link import Link
@@ -103,6 +102,7 @@ class LineWorker(LineRequests, JobRunner):
         self._pending = 0  # jobs queued, not yet taken
         self._pending_lock = threading.Lock()
         self._owed = 0  # poll transactions owed while polling is due: the last job's count
+        self._polled = 0  # the engine's requests counted when _owed was last set or paid
         self._share_until = 0.0  # polling's share of the line after the last job ends
         self._backoff = TargetBackoff(self.timing.max_backoff)
         self._lag = PollLag(log, endpoint.describe())
@@ -304,8 +304,7 @@ class LineWorker(LineRequests, JobRunner):
         pollers = self._pollers
         until = time.monotonic() + _MAX_IDLE
         if not self._queue.empty():
-            late, wait = job_gate([p.device for p in pollers], time.monotonic(), self._owed,
-                                  self._share_until)
+            late, wait = self._job_wait([p.device for p in pollers])
             if wait is None:
                 self._waker.clear()
                 self._handle(self._queue.get_nowait(), link, late)
@@ -320,11 +319,9 @@ class LineWorker(LineRequests, JobRunner):
             return
         if self.lease is not None:  # the engine starts no request at or after it
             until = min(until, self.lease())
-        polled = self._counters.counts().requests if self._owed else 0
         event = link.run_engine(self._waker, self._counters, [p.device for p in pollers],
                                 until, self._owed > 0)
-        if self._owed:  # the poll transactions made pay for the last job's
-            self._owed = max(0, self._owed - (self._counters.counts().requests - polled))
+        self._pay_owed()  # the poll transactions made pay for the last job's
         self._dispatch(link, event, pollers)
 
     def _dispatch(self, link: Link, event: tuple[int, int, int], pollers: list[Poller]) -> None:

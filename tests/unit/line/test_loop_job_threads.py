@@ -77,6 +77,32 @@ def test_a_task_finds_the_idle_thread_instead_of_starting_one() -> None:
         jobs.stop()
 
 
+def test_a_task_submitted_again_from_its_hand_back_keeps_one_thread() -> None:
+    """A line's jobs go back and forth (line/loop.py: the hand-back wakes the loop,
+    which submits the line's next jobs at once): the thread that ran them is idle by
+    then, so no thread is added per job (the loop's dead-forward soak grew from 6 to 9-10
+    threads for one master's forwards)."""
+    jobs = JobThreads("test", cap=8, idle=30)
+    done = threading.Event()
+    left = [200]
+
+    def task() -> None:
+        left[0] -= 1
+
+    def back() -> None:  # (on the job thread, as the loop's wake-up would hand it on)
+        if left[0] > 0:
+            threading.Thread(target=jobs.submit, args=(task, back)).start()
+        else:
+            done.set()
+
+    try:
+        jobs.submit(task, back)
+        assert done.wait(30)
+        assert jobs.threads == 1
+    finally:
+        jobs.stop()
+
+
 def test_an_idle_thread_ends() -> None:
     jobs = JobThreads("test", cap=2, idle=0.2)
     ran = threading.Event()
