@@ -69,7 +69,6 @@ class Workers(Protocol):
     """What a loop line needs of its pool (line/loop_pool.py ``LoopPool``)."""
 
     def assign(self, line: LoopLine) -> LoopWorker: ...
-
     def release(self, line: LoopLine, worker: LoopWorker, timeout: float | None) -> None: ...
 
 
@@ -209,8 +208,7 @@ class LoopWorker:
         self._stopping = True
         if not self.thread.is_alive():
             return
-        # the thread may have closed its loop since is_alive() (another stop's): quiet
-        with contextlib.suppress(OSError):
+        with contextlib.suppress(OSError):  # its loop closed since is_alive() (another stop)
             self.loop.wake()
         if self.thread is not threading.current_thread():
             self.thread.join(30)
