@@ -204,11 +204,11 @@ def test_01_silent_slave_costs_one_timeout_per_backoff_interval(rig: Rig) -> Non
     polled = {s: rig.start(hr_items(0, 4), s, wait_ok=s != 2, **extra) for s in (1, 2, 3)}
     dead = polled[2]
     wait_for(lambda: dead.drv.device_driver_status is OFFLINE, what="slave 2 Offline")
-    time.sleep(1.4)  # the backoff doubles from readCycle: 0.1, 0.2, 0.4, then 0.6 (cap)
+    time.sleep(1.4)  # pacing: the backoff doubles from readCycle: 0.1, 0.2, 0.4, then 0.6 (cap)
     before = {s: p.stats() for s, p in polled.items()}
     asked = rig.sim.slave(2).stats()["requests"]
     window = 2.4
-    time.sleep(window)
+    time.sleep(window)  # pacing: the window the probes are counted in
     after = {s: p.stats() for s, p in polled.items()}
     probes = rig.sim.slave(2).stats()["requests"] - asked
     # one probe (one request) per backoff interval of 0.6 s, never more

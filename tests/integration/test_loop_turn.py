@@ -101,7 +101,7 @@ def test_jobs_flag_brings_an_idle_link_back_before_its_next_request() -> None:
         assert seen == [(1, EV_WAKE)]
         assert job.link.state == LS_IDLE
         requests = job.counters.counts().requests
-        time.sleep(0.2)  # not a wait for a condition: the link must stay still (held)
+        time.sleep(0.2)  # pacing: not a wait for a condition: the link must stay still (held)
         assert (1, EV_WAKE) not in turn_and_take(loop, links, time.monotonic() + 0.2)
         assert job.counters.counts().requests == requests  # held: not run by the turn
         job.link.jobs = False
