@@ -45,8 +45,11 @@ LEAK_GRACE_SECONDS = 2.0
 # line.  The example database stays hypothesis's default (.hypothesis/ in the checkout,
 # not in git): in a developer's checkout a failing example is replayed first, so it is
 # reported again until fixed; CI's fresh clone starts without one.
+# On a CI machine hypothesis loads its own "ci" profile first (derandomized, no database):
+# ours is made on top of whichever is loaded, so CI keeps those.
 settings.register_profile(
-    "edgemodbus", deadline=None, suppress_health_check=[HealthCheck.too_slow], print_blob=True
+    "edgemodbus", parent=settings.default, deadline=None,
+    suppress_health_check=[HealthCheck.too_slow], print_blob=True,
 )
 settings.load_profile("edgemodbus")  # pytest --hypothesis-profile=NAME picks another
 
