@@ -368,7 +368,9 @@ class LoopWorker:
             while True:
                 try:
                     item = line._queue.get_nowait()
-                except queue.Empty:
+                except queue.Empty:  # a poller attached meanwhile learns why it is down
+                    if line.last_link_error is not None:
+                        line._notify(False, line.last_link_error, late=True)
                     return
                 line._handle(item, None)
         if ll.state == LS_IDLE:
