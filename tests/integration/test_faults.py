@@ -286,7 +286,10 @@ def test_04_late_reply_still_arriving_when_the_settle_time_ends(rig: Rig) -> Non
     rig.wait_faults("delay", 3)
     stats, late = stop_and_count(rig, p, "delay")
     assert not p.wrong_values()
-    assert stats["timeouts"] == late
+    # every late reply is a timeout (one taken as the next answer would make fewer); a
+    # loaded machine stretching the 6 ms trickle past the 40 ms byte timeout adds some
+    # (6 for 3 late in a run beside two busy processes)
+    assert stats["timeouts"] >= late
     assert stats["crcErrors"] == stats["protocolErrors"] == 0
     assert stats["line"]["discardedBytes"] >= FRAME_10_REGS * (late - 1)
 
