@@ -76,6 +76,7 @@ lint: build
 	$(BIN)/mypy
 	$(BIN)/python tools/check_layout.py
 	$(BIN)/python tools/check_docs.py
+	$(BIN)/python tools/check_tests.py
 
 test: build lint
 	$(PYTEST) tests

@@ -87,9 +87,9 @@ def _poll(conn: Connection, engine: str, ports: list[int]) -> None:
         deadline = start + 120 + len(ports) / 20
         while not all(it.status is ItemStatus.OK for c in configs for it in c.address_list):
             assert time.monotonic() < deadline, f"{engine}: not every value Ok in time"
-            time.sleep(0.05)
+            time.sleep(0.05)  # poll: until all Ok (deadline above)
         all_ok = time.monotonic() - start
-        time.sleep(CYCLE_MS / 1000)  # the start-up reads, in step, are behind us
+        time.sleep(CYCLE_MS / 1000)  # pacing: the start-up reads, in step, are behind us
         threads = len(os.listdir("/proc/self/task"))
         rss = _rss()
 
@@ -99,7 +99,7 @@ def _poll(conn: Connection, engine: str, ports: list[int]) -> None:
         costs, rates = [], []
         for _ in range(WINDOWS):
             reads0, cpu0 = tag_reads(), cpu_seconds()
-            time.sleep(SECONDS)
+            time.sleep(SECONDS)  # pacing: the window measured
             reads, cpu = tag_reads() - reads0, cpu_seconds() - cpu0
             assert reads > 0
             costs.append(1e6 * cpu / reads)

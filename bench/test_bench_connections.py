@@ -56,13 +56,13 @@ def time_cycles(port: int, connections: int, cycles: int) -> float:
         deadline = time.monotonic() + 60
         while not all(d.stats()["cycles"] >= 1 for d in drivers):
             assert time.monotonic() < deadline, "the first cycles did not complete"
-            time.sleep(0.005)
+            time.sleep(0.005)  # poll: until the first cycles (deadline above)
         start = time.monotonic()
         base = [d.stats()["cycles"] for d in drivers]
         while not all(d.stats()["cycles"] >= b + cycles for d, b in zip(drivers, base,
                                                                          strict=True)):
             assert time.monotonic() < deadline + 120, "the cycles did not complete"
-            time.sleep(0.005)
+            time.sleep(0.005)  # poll: until the cycles (deadline above)
         return time.monotonic() - start
 
 

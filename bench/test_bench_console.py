@@ -72,7 +72,7 @@ def gateway(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Gateway]:
             deadline = time.monotonic() + 30
             while time.monotonic() < deadline and not all(
                     d.driver.stats().get("cycles", 0) > 5 for d in gw.devices.values()):
-                time.sleep(0.05)
+                time.sleep(0.05)  # poll: until five cycles (deadline above)
             yield gw
         finally:
             gw.stop()
@@ -86,7 +86,7 @@ def reads(gw: Gateway) -> int:
 def window(gw: Gateway) -> float:
     """CPU seconds per tag read over one window."""
     cpu0, reads0 = cpu_seconds(), reads(gw)
-    time.sleep(WINDOW)
+    time.sleep(WINDOW)  # pacing: the window measured
     return (cpu_seconds() - cpu0) / max(1, reads(gw) - reads0)
 
 

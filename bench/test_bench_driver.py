@@ -245,7 +245,7 @@ class Drivers:
                   for d, c in zip(self.drivers, start, strict=True)):
             if time.monotonic() > deadline:
                 raise AssertionError(f"drivers did not complete {n} cycles in {timeout} s")
-            time.sleep(0.05)
+            time.sleep(0.05)  # poll: until n cycles (deadline above)
 
     @property
     def line(self) -> LineWorker:
@@ -286,7 +286,7 @@ def measure_driver(drivers: Drivers, seconds: float) -> Window:
     """Process CPU and tag reads over ``seconds`` of polling (the main thread sleeps)."""
     reads0, changed0 = drivers.totals()
     cpu0 = cpu_seconds()
-    time.sleep(seconds)
+    time.sleep(seconds)  # pacing: the window measured
     cpu1 = cpu_seconds()
     reads1, changed1 = drivers.totals()
     return Window(cpu1 - cpu0, reads1 - reads0, changed1 - changed0)
@@ -310,7 +310,7 @@ def entries_per_round(drivers: Drivers, seconds: float) -> float:
     start = [drv.stats()["cycles"] for drv in drivers.drivers]
     cls._dispatch = counted  # type: ignore[method-assign]
     try:
-        time.sleep(seconds)
+        time.sleep(seconds)  # pacing: the window counted
     finally:
         cls._dispatch = dispatch  # type: ignore[method-assign]
     cycles = sum(drv.stats()["cycles"] - c for drv, c in zip(drivers.drivers, start,
@@ -435,7 +435,7 @@ def profile_worker(drivers: Drivers, seconds: float) -> str:
     job.  Profiling inflates Python's share; read it for where, not for how much."""
     prof = cProfile.Profile(time.thread_time)
     drivers.on_worker(prof.enable)
-    time.sleep(seconds)
+    time.sleep(seconds)  # pacing: the window profiled
     drivers.on_worker(prof.disable)
     out = io.StringIO()
     stats = pstats.Stats(prof, stream=out)
@@ -664,7 +664,7 @@ def _wait(cond: Callable[[], bool], timeout: float) -> None:
     while not cond():
         if time.monotonic() > deadline:
             raise TimeoutError("not every item was read in time")
-        time.sleep(0.1)
+        time.sleep(0.1)  # poll: until read (deadline above)
 
 
 @pytest.mark.timeout(600)

@@ -80,7 +80,7 @@ def _wait_all_ok(configs: list[em.DeviceConfig], timeout: float) -> None:
     deadline = time.monotonic() + timeout
     while not all(it.status is ItemStatus.OK for cfg in configs for it in cfg.address_list):
         assert time.monotonic() < deadline, f"not every value Ok within {timeout} s"
-        time.sleep(0.05)
+        time.sleep(0.05)  # poll: until all Ok (deadline above)
 
 
 def _cpu_per_tag_read(drivers: list[em.DriverModbusRtu], window: float) -> float:
@@ -90,7 +90,7 @@ def _cpu_per_tag_read(drivers: list[em.DriverModbusRtu], window: float) -> float
         return sum(d.stats()["responses"] for d in drivers) * TAGS
 
     reads0, cpu0 = tag_reads(), cpu_seconds()
-    time.sleep(window)
+    time.sleep(window)  # pacing: the window measured
     reads, cpu = tag_reads() - reads0, cpu_seconds() - cpu0
     assert reads > 0
     return 1e6 * cpu / reads
@@ -132,7 +132,7 @@ def test_200_dtus_on_one_listen_port(benchmark: Any) -> None:
             connect_drivers.append(drv)
             assert drv.start_device(cfg.organization, cfg.communication, cfg.address_list)
         _wait_all_ok(connect_configs, 60)
-        time.sleep(CYCLE_MS / 1000)  # the start-up reads, in step, are behind us
+        time.sleep(CYCLE_MS / 1000)  # pacing: the start-up reads, in step, are behind us
         connect_us_per_tag = min(_cpu_per_tag_read(connect_drivers, window)
                                  for _ in range(2))
     finally:

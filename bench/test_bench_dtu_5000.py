@@ -114,7 +114,7 @@ def _wait_all(done: Any, n: int, deadline_s: float) -> tuple[int, float]:
             last = time.monotonic()
         elif time.monotonic() - last > STALL:
             break
-        time.sleep(0.2)
+        time.sleep(0.2)  # poll: until all finished or stalled
     return n - len(pending), last - started
 
 
@@ -153,7 +153,7 @@ def _measure(engine: str, port: int) -> dict[str, Any]:
                                                        OK_DEADLINE)
         responses0 = sum(d.stats()["responses"] for d in drivers)
         cpu0, fleet0, t0 = cpu_seconds(), fleet.cpu_seconds(), time.monotonic()
-        time.sleep(WINDOW)
+        time.sleep(WINDOW)  # pacing: the window measured
         wall = time.monotonic() - t0
         out["cpu_us_per_dtu_s"] = 1e6 * (cpu_seconds() - cpu0) / wall / max(1, out["dtus_ok"])
         out["fleet_cpu_us_per_dtu_s"] = 1e6 * (fleet.cpu_seconds() - fleet0) / wall / n

@@ -100,7 +100,7 @@ def _measure(tmp: Path, instances: int) -> dict[str, float]:
         cpu = sum(_cpu(pid) for pid in pids)
         other = sum(_cpu(pid) for pid in others)
         sim_cpu = time.process_time()
-        time.sleep(WINDOW)  # the measuring window: CPU is read at both ends
+        time.sleep(WINDOW)  # pacing: the measuring window: CPU is read at both ends
         span = time.monotonic() - started
         cpu = sum(_cpu(pid) for pid in pids) - cpu
         other = sum(_cpu(pid) for pid in others) - other

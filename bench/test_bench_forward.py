@@ -67,7 +67,7 @@ def test_forward_latency_over_a_direct_read(slave: PymodbusSlave, benchmark: Any
         deadline = time.monotonic() + 30
         while drv.device_driver_status is not DeviceDriverStatus.RUNNING:
             assert time.monotonic() < deadline, "the driver's first poll did not complete"
-            time.sleep(0.01)
+            time.sleep(0.01)  # poll: until Running (deadline above)
 
         def direct() -> None:
             assert line.read(1, Area.HOLDING_REGISTER, 0, COUNT).result(5) == EXPECTED

@@ -73,7 +73,7 @@ class SpinnerProcess:
 
     def __enter__(self) -> SpinnerProcess:
         self._proc = subprocess.Popen([sys.executable, "-c", "n = 0\nwhile True: n += 1"])
-        time.sleep(0.05)  # past the interpreter's start-up
+        time.sleep(0.05)  # pacing: past the interpreter's start-up
         return self
 
     def __exit__(self, *exc: object) -> None:
@@ -106,7 +106,7 @@ def cycles_per_second(drivers: Drivers, blocks_per_cycle: float, seconds: float)
         return sum(d.stats()["responses"] for d in drivers.drivers)
 
     r0, t0 = responses(), time.monotonic()
-    time.sleep(seconds)
+    time.sleep(seconds)  # pacing: the window measured
     r1, t1 = responses(), time.monotonic()
     return (r1 - r0) / blocks_per_cycle / len(drivers.drivers) / (t1 - t0)
 

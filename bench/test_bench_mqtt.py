@@ -180,8 +180,8 @@ def test_cpu_per_tag_read_mqtt_on_vs_off(setup: tuple[SimulatorProcess, Mosquitt
         deadline = time.monotonic() + 60
         while not all(it.status is ItemStatus.OK for c in configs for it in c.address_list):
             assert time.monotonic() < deadline, "tags not all read"
-            time.sleep(0.1)
-        time.sleep(1.0)  # warm up
+            time.sleep(0.1)  # poll: until all Ok (deadline above)
+        time.sleep(1.0)  # pacing: warm up
 
         for last in [False] * PHASES + [True]:
             for mode in modes[:1] if last else modes:
@@ -189,10 +189,10 @@ def test_cpu_per_tag_read_mqtt_on_vs_off(setup: tuple[SimulatorProcess, Mosquitt
                 if pub is not None:
                     for drv, cfg in zip(drivers, configs, strict=True):
                         pub.attach(drv, cfg.organization.device_code)
-                time.sleep(0.3)  # let the switch settle
+                time.sleep(0.3)  # pacing: let the switch settle
                 reads0, changed0 = _totals(drivers)
                 cpu0 = cpu_seconds()
-                time.sleep(PHASE_SECONDS)
+                time.sleep(PHASE_SECONDS)  # pacing: the phase measured
                 cpu1 = cpu_seconds()
                 reads1, changed1 = _totals(drivers)
                 acc = results[mode]
@@ -206,7 +206,7 @@ def test_cpu_per_tag_read_mqtt_on_vs_off(setup: tuple[SimulatorProcess, Mosquitt
                     # what it still holds is sent before the next window, not in it
                     deadline = time.monotonic() + 10
                     while pub.stats()["queued"] and time.monotonic() < deadline:
-                        time.sleep(0.05)
+                        time.sleep(0.05)  # poll: until sent (deadline above)
         stats = {mode: pub.stats() for mode, pub in publishers.items()}
         # messages: an update each (per-item), a device's cycle each (batch)
         published = sum(st["batchesPublished"] if mode[0] == "batch" else st["published"]
@@ -215,7 +215,7 @@ def test_cpu_per_tag_read_mqtt_on_vs_off(setup: tuple[SimulatorProcess, Mosquitt
         deadline = time.monotonic() + 15
         while subscriber.count() < published:
             assert time.monotonic() < deadline, (subscriber.count(), published)
-            time.sleep(0.1)
+            time.sleep(0.1)  # poll: until all received (deadline above)
         received = subscriber.count()
 
         # the worker's side: the publisher's listener taking 100 updates

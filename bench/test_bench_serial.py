@@ -78,7 +78,7 @@ class Master:
         self.link.read(1, Area.HOLDING_REGISTER, 0, count)
 
     def libmodbus(self) -> None:
-        time.sleep(self.port.frame_gap)  # the same t3.5 silence as ours (Link._wait_turn)
+        time.sleep(self.port.frame_gap)  # pacing: the same t3.5 silence as ours (Link._wait_turn)
         self.ctx.read_libmodbus(1, 0, 125)
 
     def run(self, fn: Callable[[], object], calls: int,

@@ -53,7 +53,7 @@ def load(port: int, seconds: float, cpu: Any) -> tuple[float, float]:
         [sys.executable, "-m", "bench.tcp_masters", "127.0.0.1", str(port), "1",
          str(MASTERS), str(COUNT), str(seconds)],
         cwd=TOP, stdout=subprocess.PIPE, text=True)
-    time.sleep(0.3)  # the masters' interpreter starting is not the server's time
+    time.sleep(0.3)  # pacing: the masters' interpreter starting is not the server's time
     start = cpu()
     out, _ = proc.communicate(timeout=seconds + 30)
     used = cpu() - start
@@ -96,7 +96,7 @@ def test_serve_mode_against_pymodbus(slave: PymodbusSlave, pymodbus_server: Pymo
         deadline = time.monotonic() + 30
         while drv.device_driver_status is not DeviceDriverStatus.RUNNING:
             assert time.monotonic() < deadline, "the driver's first poll did not complete"
-            time.sleep(0.01)
+            time.sleep(0.01)  # poll: until Running (deadline above)
         pid = pymodbus_server.pid
         assert pid is not None
         ours_rate: list[float] = []

@@ -123,7 +123,7 @@ def _wait_all_ok(configs: list[em.DeviceConfig], timeout: float) -> None:
     deadline = time.monotonic() + timeout
     while not all(it.status is ItemStatus.OK for cfg in configs for it in cfg.address_list):
         assert time.monotonic() < deadline, f"not every value Ok within {timeout} s"
-        time.sleep(0.05)
+        time.sleep(0.05)  # poll: until all Ok (deadline above)
 
 
 def _cpu_per_tag_read(drivers: list[em.DriverModbusRtu], window: float) -> float:
@@ -133,7 +133,7 @@ def _cpu_per_tag_read(drivers: list[em.DriverModbusRtu], window: float) -> float
         return sum(d.stats()["responses"] for d in drivers) * TAGS
 
     reads0, cpu0 = tag_reads(), cpu_seconds()
-    time.sleep(window)
+    time.sleep(window)  # pacing: the window measured
     reads, cpu = tag_reads() - reads0, cpu_seconds() - cpu0
     assert reads > 0
     return 1e6 * cpu / reads
@@ -159,7 +159,7 @@ def test_stream_extras_and_trace_cost(benchmark: Any) -> None:
                 parent.send((kind, port))
                 assert parent.poll(60) and parent.recv() == "dialled"
                 _wait_all_ok(configs, 60)
-                time.sleep(CYCLE_MS / 1000)  # the start-up reads, in step, are behind us
+                time.sleep(CYCLE_MS / 1000)  # pacing: the start-up reads, in step, are behind us
                 cost = min(_cpu_per_tag_read(drivers, window) for _ in range(2))
                 lines = [d.stats()["line"] for d in drivers]
                 stats[kind] = {"heartbeats": sum(s["heartbeats"] for s in lines),
@@ -171,7 +171,7 @@ def test_stream_extras_and_trace_cost(benchmark: Any) -> None:
             configs = [_connect_config(tcp_ports[k], k) for k in range(n)]
             with _polling(configs) as drivers:
                 _wait_all_ok(configs, 60)
-                time.sleep(CYCLE_MS / 1000)
+                time.sleep(CYCLE_MS / 1000)  # pacing: the start-up reads, in step, are behind us
                 return min(_cpu_per_tag_read(drivers, window) for _ in range(2))
 
         costs["plain"] = benchmark.pedantic(lambda: listen_phase("plain"), rounds=1,

@@ -65,7 +65,7 @@ def slow_line() -> Iterator[tuple[SimulatorProcess, em.DriverModbusRtu]]:
             deadline = time.monotonic() + 30
             while not all(i.status is ItemStatus.OK for i in cfg.address_list):
                 assert time.monotonic() < deadline, "the first cycle did not complete"
-                time.sleep(0.05)
+                time.sleep(0.05)  # poll: until Ok (deadline above)
             yield sim, drv
         finally:
             drv.stop_device()
@@ -88,7 +88,7 @@ def test_write_latency_mid_cycle(slow_line: tuple[SimulatorProcess, em.DriverMod
     sim.record_requests(True)
     try:
         def one_write() -> None:
-            time.sleep(rng.uniform(0, BLOCKS * DELAY))  # a random moment of the cycle
+            time.sleep(rng.uniform(0, BLOCKS * DELAY))  # pacing: a random moment of the cycle
             k = len(calls)
             calls.append(time.monotonic())
             ok, err = drv.write_address(f"t{rng.randrange(BLOCKS)}", k)

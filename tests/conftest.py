@@ -29,6 +29,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from hypothesis import HealthCheck, settings
 
 from tests import engines
 from tests.mosquitto import Mosquitto
@@ -36,6 +37,21 @@ from tests.peers import PtyPair, PymodbusSlave, Transport, free_port
 
 DEFAULT_UNITS: tuple[int, ...] = (1, 2, 3)
 LEAK_GRACE_SECONDS = 2.0
+
+# Every hypothesis test runs under this profile (a test's own @settings still wins for the
+# keys it names).  No per-example deadline and no too_slow health check: both measure
+# time, which a loaded machine stretches (pytest-timeout bounds a hang; a test that
+# measures speed does it itself).  print_blob: a failure prints the @reproduce_failure
+# line.  The example database stays hypothesis's default (.hypothesis/ in the checkout,
+# not in git): in a developer's checkout a failing example is replayed first, so it is
+# reported again until fixed; CI's fresh clone starts without one.
+# On a CI machine hypothesis loads its own "ci" profile first (derandomized, no database):
+# ours is made on top of whichever is loaded, so CI keeps those.
+settings.register_profile(
+    "edgemodbus", parent=settings.default, deadline=None,
+    suppress_health_check=[HealthCheck.too_slow], print_blob=True,
+)
+settings.load_profile("edgemodbus")  # pytest --hypothesis-profile=NAME picks another
 
 
 def pytest_configure(config: pytest.Config) -> None:
@@ -205,7 +221,7 @@ def no_leaks(request: pytest.FixtureRequest) -> Iterator[None]:
             continue
         if time.monotonic() >= deadline:
             break
-        time.sleep(0.05)
+        time.sleep(0.05)  # poll: the leak check's step until its grace deadline
     pytest.fail(
         "test left resources behind (use @pytest.mark.no_leak_check only if intended):\n  "
         + "\n  ".join(problems),

@@ -106,7 +106,7 @@ def paced(cond: Callable[[], object], every: float = 0.5) -> Callable[[], object
     def run() -> object:
         wait = last[0] + every - time.monotonic()
         if wait > 0:
-            time.sleep(wait)
+            time.sleep(wait)  # pacing: a condition checked every `every` s, not flat out
         last[0] = time.monotonic()
         return cond()
 

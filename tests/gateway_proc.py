@@ -157,7 +157,7 @@ class GatewayProcess:
                 raise AssertionError(f"gateway exited ({self.proc.returncode}):\n{self.log}")
             if time.monotonic() > deadline:
                 raise AssertionError(f"no log line /{pattern}/ x{count}; log:\n{self.log}")
-            time.sleep(0.05)
+            time.sleep(0.05)  # poll: the step of the log wait (deadline above)
 
     def alive(self) -> bool:
         return self.proc is not None and self.proc.poll() is None
@@ -241,7 +241,7 @@ def idle_connections(port: int, n: int, send: bytes = b"",
                         sock.send(send)
             pending = still
             if pending:
-                time.sleep(0.02)
+                time.sleep(0.02)  # poll: connecting until each is accepted or refused
         yield socks
     finally:
         for sock in socks:

@@ -69,7 +69,7 @@ class HAProxy:
                 if time.monotonic() > deadline:
                     self.stop()
                     raise AssertionError(f"haproxy did not listen: {self.log}") from None
-                time.sleep(0.05)
+                time.sleep(0.05)  # poll: until haproxy listens (deadline above)
 
     def __exit__(self, *exc: object) -> None:
         self.stop()

@@ -125,7 +125,7 @@ class Mosquitto:
                 sock.settimeout(0.5)
                 if sock.connect_ex((self.host, port)) == 0:
                     return True
-            time.sleep(0.05)
+            time.sleep(0.05)  # poll: until it listens (deadline above)
         return False
 
     def stop(self, timeout: float = 5.0) -> None:
@@ -160,7 +160,7 @@ class Mosquitto:
             except BrokerError:
                 if time.monotonic() >= deadline:
                     raise
-                time.sleep(0.2)
+                time.sleep(0.2)  # poll: until the port is free (deadline above)
 
     def _reap(self, kill: bool) -> None:
         proc = self._proc

@@ -68,7 +68,7 @@ def main() -> int:
             if not data:
                 return
             if cfg.get("delay"):
-                time.sleep(cfg["delay"])
+                time.sleep(cfg["delay"])  # pacing: the peer's configured delay
             client.publish(up, data, qos=0)
 
     threading.Thread(target=from_serial, daemon=True).start()

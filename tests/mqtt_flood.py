@@ -36,13 +36,13 @@ def main() -> int:
     end = start + seconds
     while (now := time.monotonic()) < end:
         if rate and sent >= (now - start) * rate:
-            time.sleep(min(0.002, end - now))
+            time.sleep(min(0.002, end - now))  # pacing: the flood's rate
             continue
         info = client.publish(cfg["topic"], payload, qos=0, retain=bool(cfg.get("retain")))
         if info.rc == paho.MQTT_ERR_SUCCESS:
             sent += 1
         else:  # paho's queue is full: let its thread write
-            time.sleep(0.001)
+            time.sleep(0.001)  # pacing: paho's queue full: let its thread write
     if cfg.get("retain"):
         client.publish(cfg["topic"], payload, qos=1, retain=True).wait_for_publish(10)
     client.disconnect()

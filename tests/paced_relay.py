@@ -185,7 +185,7 @@ def relay(a: int, b: int, char: float, gap_log: IO[str] | None = None) -> None:
             except BlockingIOError:
                 continue
             except OSError:  # the other end of the pair went away (EIO): keep serving
-                time.sleep(0.01)
+                time.sleep(0.01)  # pacing: the pair's other end away: retry
                 continue
             if gap_log is not None and data and not wire and last_to == fd:
                 gap_log.write(f"{side[fd]} {now - last_write:.9f}\n")

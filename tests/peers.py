@@ -647,7 +647,7 @@ class PtyPair:
                 log = _read_all(self._log)
                 self._stop_process(kill=True)
                 raise PeerError(f"socat did not create {self.a} and {self.b}:\n{log}")
-            time.sleep(0.01)
+            time.sleep(0.01)  # poll: until socat made both ends (deadline above)
         return self
 
     def unplug(self) -> None:

@@ -309,7 +309,7 @@ class Handler(ServerRequestHandler):
             if pdu.function_code in WRITE_FC:
                 app.writes[self.name] = app.writes.get(self.name, 0) + 1
         if store.delay > 0:
-            await asyncio.sleep(store.delay)
+            await asyncio.sleep(store.delay)  # pacing: the slave's configured response delay
         try:
             if app.rtu and unit == 0 and 0 not in store.units:
                 # RTU broadcast: every unit executes it, nobody answers.
@@ -372,13 +372,13 @@ async def listen(server: ModbusTcpServer | ModbusSerialServer, patience: float) 
             return True
         if loop.time() > deadline:
             return False
-        await asyncio.sleep(0.05)
+        await asyncio.sleep(0.05)  # poll: until it listens (deadline above)
 
 
 async def reopen_serial(server: ModbusSerialServer) -> None:
     """Reopen the serial device when it went away (socat killed) and came back."""
     while True:
-        await asyncio.sleep(0.1)
+        await asyncio.sleep(0.1)  # pacing: checks the serial device now and then
         if not server.active_connections and await server.listen():
             log("serial device reopened")
 

@@ -80,7 +80,7 @@ class RedisServer:
                         return True
             except OSError:
                 pass
-            time.sleep(0.05)
+            time.sleep(0.05)  # poll: until it answers PING (deadline above)
         return False
 
     def stop(self, timeout: float = 5.0) -> None:

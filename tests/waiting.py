@@ -12,5 +12,5 @@ def wait_for(cond: Callable[[], object], timeout: float = 20.0, what: str = "") 
     while time.monotonic() < deadline:
         if cond():
             return
-        time.sleep(0.01)
+        time.sleep(0.01)  # poll: the step of wait_for itself
     raise AssertionError(f"timed out after {timeout} s waiting for {what or cond}")

@@ -244,7 +244,7 @@ class SegmentedDtu:
         self._up.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         for i, segment in enumerate(segments):
             if i:
-                time.sleep(pause)
+                time.sleep(pause)  # pacing: the segments apart
             self._up.sendall(segment)
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._relay, name="segmented-dtu")
@@ -328,7 +328,7 @@ def test_a_full_port_evicts_its_oldest_idle_connection_for_a_dtu() -> None:
         idle = [stack.enter_context(socket.create_connection(("127.0.0.1", port)))
                 for _ in range(3)]
         wait_for(lambda: listener.stats["unregistered"] == 3, what="three waiting")
-        time.sleep(0.6)  # longer than the quiet gap: they are idle now
+        time.sleep(0.6)  # pacing: longer than the quiet gap: they are idle now
         sim.dial("127.0.0.1", port, registration=b"D9\r\n")
         wait_for(ok(cfg), what="the DTU polled")
         stats = listener.stats

@@ -226,7 +226,7 @@ def test_stop_while_every_dial_is_refused() -> None:
         deadline = time.monotonic() + 8.0
         while fleet.stats()["dial_failures"] < 2000:  # dialling flat out
             assert time.monotonic() < deadline, "dials not refused"
-            time.sleep(0.01)
+            time.sleep(0.01)  # poll: until the dials fail (deadline above)
         started = time.monotonic()
         fleet.stop(timeout=5.0)
         assert time.monotonic() - started < 2.0

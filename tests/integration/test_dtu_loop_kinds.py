@@ -52,7 +52,11 @@ def test_a_wrapped_mcu_is_polled_and_its_reports_applied_on_a_loop_thread() -> N
 
 def test_an_echoing_dtu_is_read_with_the_echo_option_on_a_loop_thread() -> None:
     port = free_port()
-    cfg = dtu_device(port, "ECHO1", 1, echo=True, engine="loop", loopThreads=1)
+    # timeouts far above a loaded machine's stall of the simulator between the echo and
+    # the reply (the default 300/50 ms are not: the test failed in a run beside two busy
+    # processes, and it asserts no timeout)
+    cfg = dtu_device(port, "ECHO1", 1, echo=True, engine="loop", loopThreads=1,
+                     readTimeout=3000, byteTimeout=1000)
     with Simulator(slaves=[1]) as sim, running(cfg) as (drv,):
         sim.slave(1).set_faults(echo_request=True)
         sim.dial("127.0.0.1", port, registration=b"ECHO1")

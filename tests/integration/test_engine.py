@@ -80,7 +80,7 @@ def test_a_write_waits_only_for_the_transaction_in_flight(sim: Simulator) -> Non
         wait_for(all_ok(cfg), timeout=10)
         took = []
         for k in range(8):
-            time.sleep(0.037 * (k + 1))  # somewhere in the cycle
+            time.sleep(0.037 * (k + 1))  # pacing: somewhere in the cycle
             start = time.monotonic()
             ok, err = drv.write_address("t5", k)
             took.append(time.monotonic() - start)

@@ -204,11 +204,11 @@ def test_01_silent_slave_costs_one_timeout_per_backoff_interval(rig: Rig) -> Non
     polled = {s: rig.start(hr_items(0, 4), s, wait_ok=s != 2, **extra) for s in (1, 2, 3)}
     dead = polled[2]
     wait_for(lambda: dead.drv.device_driver_status is OFFLINE, what="slave 2 Offline")
-    time.sleep(1.4)  # the backoff doubles from readCycle: 0.1, 0.2, 0.4, then 0.6 (cap)
+    time.sleep(1.4)  # pacing: the backoff doubles from readCycle: 0.1, 0.2, 0.4, then 0.6 (cap)
     before = {s: p.stats() for s, p in polled.items()}
     asked = rig.sim.slave(2).stats()["requests"]
     window = 2.4
-    time.sleep(window)
+    time.sleep(window)  # pacing: the window the probes are counted in
     after = {s: p.stats() for s, p in polled.items()}
     probes = rig.sim.slave(2).stats()["requests"] - asked
     # one probe (one request) per backoff interval of 0.6 s, never more
@@ -286,7 +286,10 @@ def test_04_late_reply_still_arriving_when_the_settle_time_ends(rig: Rig) -> Non
     rig.wait_faults("delay", 3)
     stats, late = stop_and_count(rig, p, "delay")
     assert not p.wrong_values()
-    assert stats["timeouts"] == late
+    # every late reply is a timeout (one taken as the next answer would make fewer); a
+    # loaded machine stretching the 6 ms trickle past the 40 ms byte timeout adds some
+    # (6 for 3 late in a run beside two busy processes)
+    assert stats["timeouts"] >= late
     assert stats["crcErrors"] == stats["protocolErrors"] == 0
     assert stats["line"]["discardedBytes"] >= FRAME_10_REGS * (late - 1)
 
@@ -596,7 +599,10 @@ def test_17_a_slave_answering_a_broadcast_is_ignored_and_the_turnaround_kept(
 
 # --------------------------------------------------------------------------- 20
 def test_20_reply_split_across_tcp_segments(rig: Rig) -> None:
-    p = rig.start(hr_items(0, 10) + hr_items(200, 10))
+    # timeouts far above a loaded machine's stall of the simulator between two segments
+    # (the rig's 30 ms byte timeout is not: the test failed in a run beside two busy
+    # processes); the 4 ms pause is what the link must join
+    p = rig.start(hr_items(0, 10) + hr_items(200, 10), readTimeout=3000, byteTimeout=1000)
     mark = len(p.snapshot())
     rig.sim.slave(1).set_faults(split_reply=5, split_pause=0.004)
     rig.wait_faults("split_reply", 6)

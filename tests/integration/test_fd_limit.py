@@ -72,7 +72,7 @@ def test_the_modbus_tcp_server_backs_off_at_the_fd_limit(
             gw.wait_log(r"serve :\d+: accept failed \d+ times \(EMFILE")
             first = gw.usage()
             polled = slave.request_count(1)
-            time.sleep(3.0)  # the window measured (a spinning loop burns it all)
+            time.sleep(3.0)  # pacing: the window measured (a spinning loop burns it all)
             last = gw.usage()
             cpu, busiest = cpu_share(first, last)
             # (the server's thread spun at 0.8 CPU; polling costs the gateway ~0.005)
@@ -132,7 +132,7 @@ def test_the_metrics_exporter_backs_off_at_the_fd_limit(
             gw.wait_log(r"metrics: (no room for a connection \(Too many open files\)|"
                         r"accept failed \(Too many open files\); pausing)")
             first = gw.usage()
-            time.sleep(3.0)  # the window measured
+            time.sleep(3.0)  # pacing: the window measured
             cpu, busiest = cpu_share(first, gw.usage())
             assert cpu < 0.10 and busiest < 0.05, f"CPU {cpu:.2f}, busiest thread {busiest:.2f}"
             assert has_dev1(port)

@@ -97,14 +97,14 @@ def idle_calls(folder: Path, broker: int, files: int, counts: Counts) -> tuple[i
         while time.monotonic() < quiet_until:
             before = counts.total()
             for _ in range(3):
-                time.sleep(TICK)
+                time.sleep(TICK)  # pacing: run.py's tick
                 gateway.check_statuses()
             if counts.total() - before < files:
                 break
         before = counts.total()
         end = time.monotonic() + WINDOW
         while time.monotonic() < end:  # run.py's loop: a wait, then check_statuses
-            time.sleep(TICK)
+            time.sleep(TICK)  # pacing: run.py's tick
             gateway.check_statuses()
         calls = counts.total() - before
         assert gateway.exporter is not None

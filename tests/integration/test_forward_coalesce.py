@@ -137,7 +137,7 @@ def test_data_older_than_the_age_is_not_used(
     drv = start(drivers, peer, forwardCoalesce=200, readTimeout=200)
     assert forward(drv, 4, *SPANS["ir"]) == expected(peer, "ir", *SPANS["ir"])
     peer.set_offline(1)  # polling fails from now on: the blocks age
-    time.sleep(0.4)
+    time.sleep(0.4)  # pacing: the blocks age past forwardCoalesce
     future = drv.forward(struct.pack(">BHH", 4, *SPANS["ir"]))
     with pytest.raises(ModbusTimeoutError):
         future.result(15)

@@ -116,7 +116,7 @@ def test_a_reader_thread_never_sees_a_torn_reading(sim: tuple[Simulator, int]) -
         while (len(written["bcd"]) < 1000 or len(flips) < 2 or len(seen) < 200_000) \
                 and time.monotonic() < deadline:
             flips.add(bcd.status)
-            time.sleep(0.01)
+            time.sleep(0.01)  # poll: sampling until enough was seen (deadline above)
     finally:
         stop.set()
         if reader.is_alive():

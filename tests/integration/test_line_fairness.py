@@ -121,7 +121,7 @@ class Line:
     def rate(self, seconds: float = WINDOW) -> float:
         """The bystander's cycles per second over a window of ``seconds``."""
         before, start = self.bystander.stats()["cycles"], time.monotonic()
-        time.sleep(seconds)  # a measuring window, not a wait for an event
+        time.sleep(seconds)  # pacing: a measuring window, not a wait for an event
         return (self.bystander.stats()["cycles"] - before) / (time.monotonic() - start)
 
     def close(self) -> None:

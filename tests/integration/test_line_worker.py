@@ -191,7 +191,7 @@ def test_server_killed_and_restarted_reconnects() -> None:
                     values = worker.read(1, Area.HOLDING_REGISTER, 2, 2).result(5)
                     break
                 except ModbusConnectionError:
-                    time.sleep(0.1)
+                    time.sleep(0.1)  # poll: until it reconnects (deadline above)
             else:
                 pytest.fail("the worker did not reconnect")
             assert values == [1002, 1003]
@@ -206,7 +206,7 @@ def test_stop_fails_pending_requests() -> None:
         futures: list[Future[list[int]]] = [
             worker.read(1, Area.HOLDING_REGISTER, i, 1) for i in range(20)
         ]
-        time.sleep(0.05)
+        time.sleep(0.05)  # pacing: the first request under way
         worker.stop()
         done = [f for f in futures if f.exception(5) is None]
         failed = [f for f in futures if f.exception(5) is not None]

@@ -29,7 +29,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
 import edgemodbus as em
@@ -182,9 +182,10 @@ def test_beyond_the_port_cap_new_connections_are_closed_at_once_and_counted() ->
     extra = {"registrationTimeout": 10000, "maxUnregistered": 10,
              "maxUnregisteredPerSource": 1000}
     with legit(port, **extra) as (cfg, _drv, _sim), raw_connections(port, 25) as socks:
-        wait_for(lambda: counter(port, "refusedPortCap") == 15, timeout=5,
+        wait_for(lambda: counter(port, "refusedPortCap") == 15, timeout=5,  # bound: at once
                  what="15 connections refused")
         assert counter(port, "unregistered") == 10
+        # bound: closed at once, well before the 10 s registration timeout
         wait_for(lambda: sum(map(closed_by_peer, socks)) == 15, timeout=5,
                  what="15 connections closed")
         assert not any(closed_by_peer(s) for s in socks[:10])  # the first ten wait
@@ -196,10 +197,11 @@ def test_beyond_the_per_source_cap_new_connections_are_closed_at_once_and_counte
     extra = {"registrationTimeout": 10000, "maxUnregistered": 1000,
              "maxUnregisteredPerSource": 5}
     with legit(port, **extra) as (cfg, _drv, _sim), raw_connections(port, 12) as socks:
-        wait_for(lambda: counter(port, "refusedSourceCap") == 7, timeout=5,
+        wait_for(lambda: counter(port, "refusedSourceCap") == 7, timeout=5,  # bound: at once
                  what="7 connections refused")
         assert counter(port, "unregistered") == 5
         assert counter(port, "refusedPortCap") == 0
+        # bound: closed at once, well before the 10 s registration timeout
         wait_for(lambda: sum(map(closed_by_peer, socks)) == 7, timeout=5,
                  what="7 connections closed")
         assert values(cfg) == REAL
@@ -263,6 +265,7 @@ def test_bytes_before_registration_are_bounded(
         wait_for(ok(cfg), what="GOOD Ok")
         caplog.clear()
         with attacking(port, case, *args) as attacker:
+            # bound: closed by registrationMaxBytes or the 1.5 s timeout, not by the 10 s one
             wait_for(attacker.done, timeout=6, what="every attacking connection closed")
         assert attacker.summary["closed_by_peer"] == n
         if mode == "regex":
@@ -319,9 +322,10 @@ def test_accept_errors_back_off_and_accepting_resumes() -> None:
     try:
         assert json.loads(proc.stdout.readline())["port"] == port
         with raw_connections(port, 120):  # more than the child's 64 fds
-            wait_for(lambda: ask()["stats"].get("acceptErrors", 0) >= 1, timeout=5,
+            wait_for(lambda: ask()["stats"].get("acceptErrors", 0) >= 1, timeout=20,
                      what="EMFILE on accept")
-            time.sleep(1.0)  # a spinning accept loop would fail thousands of times meanwhile
+            # pacing: a spinning accept loop would fail thousands of times meanwhile
+            time.sleep(1.0)
             state = ask()
             assert state["stats"].get("acceptPauses", 0) >= 1
             assert state["stats"]["acceptErrors"] <= 100, state["stats"]
@@ -486,7 +490,7 @@ def test_without_registration_a_dtu_redialling_behind_a_silent_connection_gets_b
         while values(cfg) != [31, 32, 38] and time.monotonic() < deadline:
             with contextlib.suppress(ConnectionResetError):  # refused at once: reset
                 new.dial("127.0.0.1", port)  # a DTU re-dials every second or so
-            time.sleep(1.0)
+            time.sleep(1.0)  # pacing: a DTU re-dials every second or so
         refused = counter(port, "duplicateRefused")
         assert values(cfg) == [31, 32, 38], (
             f"the re-dialled DTU never got its place: {refused} connections refused, "
@@ -513,7 +517,7 @@ def test_challengers_of_a_connected_id_count_against_the_caps() -> None:
             samples = []
             for _ in range(20):
                 samples.append(tcp_fds(port)[1] - 1)
-                time.sleep(0.05)
+                time.sleep(0.05)  # pacing: samples 50 ms apart
             peak = max(min(a, b) for a, b in itertools.pairwise(samples))
             refused = counter(port, "refusedPortCap") + counter(port, "refusedSourceCap")
         assert peak <= 10, f"{peak} challengers held (caps 10), {refused} refused"
@@ -546,7 +550,7 @@ def test_an_id_that_flips_between_two_connections_becomes_contested(
             contested_seen = time.monotonic()
             wait_for(lambda: all(it.status is ItemStatus.INVALID for it in cfg.address_list),
                      what="items Invalid")
-            time.sleep(1.0)  # the impostor keeps dialling: nothing of it may come through
+            time.sleep(1.0)  # pacing: the impostor keeps dialling: nothing of it may come through
         assert counter(port, "replaced") >= 3
         for item in cfg.address_list:
             assert item.status is ItemStatus.INVALID
@@ -679,11 +683,19 @@ def test_an_id_sent_in_segments_never_registers_as_a_shorter_id(
             socks.append(sock)
             timeline += [(at, len(socks) - 1, chunk) for at, chunk in steps]
         start = time.monotonic()
+        sent: dict[int, list[float]] = {}
         for at, k, chunk in sorted(timeline, key=lambda t: t[0]):
-            time.sleep(max(0.0, start + at - time.monotonic()))
+            time.sleep(max(0.0, start + at - time.monotonic()))  # pacing: the timeline's moments
             socks[k].sendall(chunk)
+            sent.setdefault(k, []).append(time.monotonic())
+        # a machine that stalled this thread near the quiet gap between two segments of one
+        # registration played another scenario (a registration complete at the gap, which
+        # may be a shorter id): not this example's, whatever the listener did with it
+        margin = port_settings.quiet_gap - 0.1
+        assume(all(b - a < margin for times in sent.values()
+                   for a, b in itertools.pairwise(times)))
         wait_for(lambda: listener.stats["registered"] + listener.stats["unknown"]
-                 >= len(ids), timeout=5, what="every id registered")
+                 >= len(ids), timeout=20, what="every id registered")
         offered = {i: slot.connections for i, slot in slots.items()}
         assert offered == dict.fromkeys(ids, 1), (plans, offered)
         assert listener.stats["unknown"] == 0

@@ -91,7 +91,7 @@ def test_scrape_reports_device_and_line_counters_from_stats(slave: PymodbusSlave
         while (ok.stats().get("cycles", 0) < 5 or silent.stats().get("timeouts", 0) < 3
                or publisher.stats()["queued"] < 1):
             assert time.monotonic() < deadline, "no progress"
-            time.sleep(0.05)
+            time.sleep(0.05)  # poll: until every count moved (deadline above)
         _, live = scrape(port)
         assert live[("edgemodbus_device_status", lbl(device="dev1", line=line,
                                                      status="Running"))] == 1

@@ -57,7 +57,7 @@ def rss() -> int:
 def rate(drv: em.DriverModbusRtu, seconds: float) -> float:
     """The device's cycles per second over the next ``seconds``."""
     before, start = drv.stats()["cycles"], time.monotonic()
-    time.sleep(seconds)  # a measuring window, not a wait for an event
+    time.sleep(seconds)  # pacing: a measuring window, not a wait for an event
     return float(drv.stats()["cycles"] - before) / (time.monotonic() - start)
 
 
@@ -89,7 +89,7 @@ def test_a_storm_and_an_oversize_message_on_one_uplink_leave_the_hubs_other_dtus
             broker.port, "dtu/s1/up", b"\x02\x83\x02junk" * 4, rate=3000, seconds=4)))
         storm.start()
         try:
-            time.sleep(0.5)  # the storm under way
+            time.sleep(0.5)  # pacing: the storm under way
             stormy = rate(by, 3.0)
         finally:
             storm.join()
@@ -198,7 +198,7 @@ def test_the_broker_going_away_says_why_without_a_spin_and_polling_resumes(
         reason = drv.address_items[0].error_reason or ""
         assert "refused" in reason, reason
         cpu = thread_cpu("edgemodbus-mqtt-dtu") + thread_cpu("edgemodbus-line")
-        time.sleep(3.0)  # a measuring window: the hub and the line while the broker is away
+        time.sleep(3.0)  # pacing: a measuring window: the hub and the line while the broker is away
         used = thread_cpu("edgemodbus-mqtt-dtu") + thread_cpu("edgemodbus-line") - cpu
         assert used < 0.15, used  # below 5 % of a core
         broker.restart()
@@ -268,7 +268,7 @@ def test_no_fd_for_a_dtus_socketpair_is_told_on_its_line_without_a_spin(
             reason = state("e2")["items"][0]["errorReason"]
             assert "mqtt-dtu e2@127.0.0.1" in reason and "cannot open the line" in reason
             first = child.ask("stats")
-            time.sleep(3.0)  # a measuring window while no fd is left
+            time.sleep(3.0)  # pacing: a measuring window while no fd is left
             last = child.ask("stats")
             spent = {name: used - first["cpu"].get(name, 0.0)
                      for name, used in last["cpu"].items()

@@ -100,7 +100,7 @@ class FakeSlave:
             self.request += os.read(self._fd, 8 - len(self.request))
         for i, chunk in enumerate(self._chunks):
             if i:
-                time.sleep(self._pause)
+                time.sleep(self._pause)  # pacing: the chunks apart
             os.write(self._fd, chunk)
 
     def join(self) -> None:

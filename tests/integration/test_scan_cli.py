@@ -120,7 +120,7 @@ def test_ctrl_c_prints_what_was_found_and_exits_130(sim: Simulator, mode: str) -
         while sim.stats()["line"]["unknown_slave"] < 2:
             assert proc.poll() is None, proc.communicate()
             assert time.monotonic() < deadline, "the scan did not get to id 3"
-            time.sleep(0.02)
+            time.sleep(0.02)  # poll: until id 3 (deadline above)
         proc.send_signal(signal.SIGINT)
         out, err = proc.communicate(timeout=10)  # quick: the line closes at once
     finally:
@@ -142,7 +142,7 @@ def test_ctrl_c_prints_what_was_found_and_exits_130(sim: Simulator, mode: str) -
     deadline = time.monotonic() + 5
     while sim.clients():
         assert time.monotonic() < deadline, "the scan left its connection open"
-        time.sleep(0.02)
+        time.sleep(0.02)  # poll: until closed (deadline above)
 
 
 @pytest.mark.parametrize(("args", "message"), [

@@ -128,7 +128,7 @@ def test_a_bad_allow_list_names_the_entry() -> None:
 
 
 @settings(max_examples=40, deadline=None,
-          suppress_health_check=[HealthCheck.function_scoped_fixture])
+          suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
 @given(nets=st.lists(st.tuples(st.integers(0, 2**24 - 1), st.integers(8, 32)), max_size=3),
        source=st.integers(1, 2**24 - 2))
 def test_the_c_allow_list_matches_ipaddress(nets: list[tuple[int, int]], source: int) -> None:

@@ -120,7 +120,7 @@ def test_service_polls_publishes_reloads_and_stops_cleanly(
 
         # SIGTERM while a request is in flight: stop within the response timeout (1 s)
         slave.set_response_delay(0.6)
-        time.sleep(0.3)
+        time.sleep(0.3)  # pacing: a request in flight (0.6 s delay)
         sent = time.monotonic()
         svc.signal(signal.SIGTERM)
         assert svc.wait(15) == 0

@@ -217,7 +217,7 @@ def test_seq_wraps_after_255(broker: Mosquitto, slave: PymodbusSlave) -> None:
                 break
             value += 1
             slave.set_registers(1, "hr", 0, [value])
-            time.sleep(0.012)
+            time.sleep(0.012)  # pacing: one change every few cycles
         assert len(seqs) > 260, f"only {len(seqs)} messages"
         assert seqs[:2] == [0, 1]
         assert all(b == (a + 1) % 256 for a, b in itertools.pairwise(seqs)), seqs
@@ -395,7 +395,7 @@ def test_primary_host_state_gates_births(broker: Mosquitto, slave: PymodbusSlave
             broker.port, device(slave.port), primaryHostId="scada") as node:
         assert node.pub.wait_connected(10)
         wait_for(lambda: node.drv.stats().get("cycles", 0) >= 3, what="3 cycles")
-        time.sleep(0.3)
+        time.sleep(0.3)  # pacing: a window in which no birth may go out
         assert probe.on(f"{BASE}/NBIRTH/{N}") == [] and probe.on(
             f"{BASE}/DBIRTH/{N}/dev1") == []
         now = int(time.time() * 1000)
@@ -414,7 +414,7 @@ def test_primary_host_state_gates_births(broker: Mosquitto, slave: PymodbusSlave
         wait_for(lambda: node.pub.stats()["bdSeq"] == first + 1, what="the new session")
         stats = node.pub.stats()
         assert stats["connects"] == 2 and stats["disconnects"] == 1 and not stats["born"]
-        time.sleep(0.3)  # connected, the host still offline: no birth
+        time.sleep(0.3)  # pacing: connected, the host still offline: no birth
         assert probe.on(f"{BASE}/NBIRTH/{N}")[1:] == []
         assert len(probe.on(f"{BASE}/NDEATH/{N}")) == 1
         mark = probe.mark()

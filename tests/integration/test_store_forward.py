@@ -202,7 +202,7 @@ def test_an_outage_is_kept_on_disk_and_replayed_in_order_per_device(
         count = -1
         while count != len(probe.received):  # acknowledged is not delivered yet: settle
             count = len(probe.received)
-            time.sleep(0.3)
+            time.sleep(0.3)  # pacing: settled: nothing new for 0.3 s
         got = received_data(probe)
         missing = 0
         for code, rec in recorders.items():
@@ -266,7 +266,7 @@ def test_a_kill_9_in_the_middle_of_an_outage_loses_nothing_sqlite_acknowledged(
                      what="every device published")
             broker.stop()
             before = len(probe.received)  # what arrived before the outage
-            time.sleep(OUTAGE_CYCLES * CYCLE_MS / 1000 / 2)  # half the outage
+            time.sleep(OUTAGE_CYCLES * CYCLE_MS / 1000 / 2)  # pacing: half the outage
             first.signal(signal.SIGKILL)
             first.wait()
         kept = spool_rows(conf / "spool.db")  # what SQLite acknowledged
@@ -275,7 +275,7 @@ def test_a_kill_9_in_the_middle_of_an_outage_loses_nothing_sqlite_acknowledged(
         assert len(kept) > 10 * len(SLAVES), len(kept)
         with Service(conf, tmp_path / "second.log") as second:
             second.wait_log(r"messages \(\d+ bytes\) kept from before, replayed first")
-            time.sleep(OUTAGE_CYCLES * CYCLE_MS / 1000 / 2)  # the second half
+            time.sleep(OUTAGE_CYCLES * CYCLE_MS / 1000 / 2)  # pacing: the second half
             broker.restart()
 
             def arrived() -> set[bytes]:

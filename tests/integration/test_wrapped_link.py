@@ -78,7 +78,7 @@ def test_report_only_device_takes_unsolicited_reports_in_listen_mode() -> None:
         good = bytes.fromhex("FFAA0001010302030578B70D")
         bad_crc = bytes.fromhex("FFAA0001010302030578B80D")
         client.send(b"\xfe" + bad_crc + b"\x00\x13" + good[:5])
-        time.sleep(0.05)
+        time.sleep(0.05)  # pacing: the segments apart
         client.send(good[5:])
         wait_for(lambda: value_of(cfg, "r1") == 773, what="single report applied")
         stats = drv.stats()
@@ -203,7 +203,7 @@ class EagerMcu:
                     else:
                         conn.sendall(report)
                         if self.reports % 2:
-                            time.sleep(0.005)  # every other report in a segment of its own
+                            time.sleep(0.005)  # pacing: every other report in a segment of its own
                 conn.sendall(reply)
                 self.replies += 1
 

@@ -394,12 +394,12 @@ class LoopWorker:
             self._connect(served)  # (the resolver has the host's addresses)
         ll = served.ll
         if ll is None:  # down: the jobs fail at once
-            while True:
-                try:
-                    item = line._queue.get_nowait()
-                except queue.Empty:
-                    return
-                line._handle(item, None)
+            with contextlib.suppress(queue.Empty):  # (the queue's other takers: none now)
+                while True:
+                    line._handle(line._queue.get_nowait(), None)
+            if line.last_link_error is not None:  # a poller attached meanwhile learns why
+                line._notify(False, line.last_link_error, late=True)
+            return
         if ll.state == LS_IDLE:
             self._step(served)
         else:  # it comes back EV_WAKE once idle (Loop.turn), and _step runs them

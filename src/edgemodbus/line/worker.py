@@ -75,8 +75,8 @@ class LineWorker(LineRequests, JobRunner):
 
     # thousands of lines on a loop: slots, no dict of 30 keys (docs/scale.md "Memory per DTU")
     __slots__ = ("__weakref__", "_backoff", "_connect_now", "_counters", "_crashes", "_failures",
-                 "_lag", "_last_crash", "_link", "_next_connect", "_pending_lock",
-                 "_pollers", "_pollers_lock", "_queue", "_stopping", "_thread", "_up_since",
+                 "_lag", "_last_crash", "_link", "_next_connect", "_pending_lock", "_pollers",
+                 "_pollers_lock", "_queue", "_stopping", "_thread", "_told", "_up_since",
                  "_waker", "connector", "endpoint", "last_link_error", "lease", "link_up",
                  "max_pending", "stats", "timing")
 
@@ -90,11 +90,11 @@ class LineWorker(LineRequests, JobRunner):
         self.stats = LineStats(native=self._counters.counts)
         self._queue: queue.SimpleQueue[Any] = queue.SimpleQueue()
         self._pollers: list[Poller] = []
+        self._told: tuple[Poller, ...] = ()  # the pollers told of the link down now
         self._pollers_lock = threading.Lock()
         self._thread: threading.Thread | None = None
-        self._stopping = False  # stop() was called (a flag: nothing waits on it)
+        self._stopping = self.link_up = False  # _stopping: stop() was called (nothing waits)
         self._link: Link | None = None
-        self.link_up = False
         self.last_link_error: str | None = None
         self._waker = Waker()  # interrupts the engine when a job is queued
         self._changed = 0.0  # monotonic end of the last job that may have written a slave
@@ -107,14 +107,12 @@ class LineWorker(LineRequests, JobRunner):
         self._backoff = TargetBackoff(self.timing.max_backoff)
         self._lag = PollLag(log, endpoint.describe())
         self._last_crash: str | None = None  # the last unexpected error, logged once
-        self._crashes = 0  # unexpected errors without a calm max_backoff between them
+        self._crashes = self._failures = 0  # crashes: unexpected errors, no calm max_backoff
         self._up_since = self._next_connect = 0.0
-        self._failures = 0
         self.lease: Callable[[], float] | None = None
-        """A redundant pair's lease (gateway/pair.py): the monotonic time before which a
-        request may start.  At or after it the engine (its run's ``until``) and the jobs
-        (:meth:`_gate`, as each request goes out) send nothing, the link is closed and none
-        is opened until the time moves on (the lease renewed)."""
+        """A redundant pair's lease (gateway/pair.py): the monotonic time before which a request
+        may start.  At or after it the engine (its run's ``until``) and the jobs (:meth:`_gate`,
+        as each request goes out) send nothing; the link is closed, none opened until renewed."""
 
     # -- lifecycle -------------------------------------------------------------------
     def start(self) -> None:
@@ -122,9 +120,8 @@ class LineWorker(LineRequests, JobRunner):
             return
         if not self._waker.is_open:
             self._waker = Waker()
-        self._thread = threading.Thread(
-            target=self._run, name=f"edgemodbus-line {self.endpoint.describe()}", daemon=True
-        )
+        self._thread = threading.Thread(target=self._run, daemon=True,
+                                        name=f"edgemodbus-line {self.endpoint.describe()}")
         self._thread.start()
 
     def stop(self, timeout: float | None = None) -> None:
@@ -365,6 +362,8 @@ class LineWorker(LineRequests, JobRunner):
             except queue.Empty:
                 return
             self._handle(item, None)
+            # a poller attached meanwhile learns why the link is down now, not at the next try
+            self._notify(False, self.last_link_error, late=True)
 
     def _connect(self) -> bool:
         first = self.stats.connects == 0 and self.stats.reconnects == 0
@@ -425,8 +424,11 @@ class LineWorker(LineRequests, JobRunner):
         log.warning("%s: link down: %s", self.endpoint.describe(), reason)
         self._notify(False, reason)
 
-    def _notify(self, up: bool, reason: str | None, offline: bool = False) -> None:
-        for poller in self._pollers:
+    def _notify(self, up: bool, reason: str | None, offline: bool = False,
+                late: bool = False) -> None:
+        pollers = [p for p in self._pollers if not (late and p in self._told)]
+        self._told = () if up else (self._told if late else ()) + tuple(pollers)
+        for poller in pollers:
             try:
                 poller.link_changed(up, reason, offline)
             except Exception:

@@ -63,7 +63,7 @@ def test_the_console_backs_off_at_the_fd_limit(tmp_path: Path,
             gw.wait_log(r"console: socket\.accept\(\) out of system resource")
             first = gw.usage()
             polled = slave.request_count(1)
-            time.sleep(3.0)  # the window measured (a spinning loop burns it all)
+            time.sleep(3.0)  # pacing: the window measured (a spinning loop burns it all)
             cpu, busiest = cpu_share(first, gw.usage())
             assert cpu < 0.10 and busiest < 0.05, f"CPU {cpu:.2f}, busiest {busiest:.2f}"
             assert len(gw.lines(r"console: ")) <= 2, gw.log

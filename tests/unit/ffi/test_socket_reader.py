@@ -61,7 +61,7 @@ class Peer:
                 request += got
             for i, chunk in enumerate(self.answer(request)):
                 if i and self.pause:
-                    time.sleep(self.pause)
+                    time.sleep(self.pause)  # pacing: the chunks apart
                 self.sock.sendall(chunk)
         except BaseException as exc:  # handed to the test by join()
             self.error = exc

@@ -340,7 +340,7 @@ def test_request_in_pieces_and_back_to_back(sim: Simulator) -> None:
     try:
         req = frame(1, read_req(3, 10, 1))
         conn.send(req[:3])
-        time.sleep(0.02)
+        time.sleep(0.02)  # pacing: the request in two pieces
         conn.send(req[3:])
         assert regs_of(_reply_pdu(conn, 1)) == [1010]
         conn.send(frame(1, read_req(3, 11, 1)) + frame(2, read_req(3, 12, 1)))
@@ -410,7 +410,7 @@ def test_movers_on_the_wire(sim: Simulator, conn: Client) -> None:
     s2.add_mover(FloatSineMover(area=IR, address=20, period_s=1.0, amplitude=5.0, offset=50.0))
     first = regs_of(conn.ask(2, read_req(3, 9, 3)))
     assert first[0] == 2009 and first[2] == 2011  # neighbours keep their defaults
-    time.sleep(0.13)
+    time.sleep(0.13)  # pacing: the 40 ms mover steps at least twice
     second = regs_of(conn.ask(2, read_req(3, 10, 1)))
     assert second[0] - first[1] >= 2
     hi_lo = regs_of(conn.ask(2, read_req(4, 20, 2)))
@@ -418,7 +418,7 @@ def test_movers_on_the_wire(sim: Simulator, conn: Client) -> None:
     assert 45.0 <= value <= 55.0 and not math.isnan(value)
     s2.clear_movers()
     frozen = s2.get_registers(HR, 10)
-    time.sleep(0.05)
+    time.sleep(0.05)  # pacing: a window in which nothing may move
     assert s2.get_registers(HR, 10) == frozen
 
 
@@ -753,7 +753,7 @@ def test_stop_leaves_no_thread_or_fd() -> None:
     c = Client(port)
     try:
         c.send(frame(1, read_req(3, 0, 1)))
-        time.sleep(0.05)
+        time.sleep(0.05)  # pacing: the request sent before stop()
         assert len(_sim_threads()) == 1
         sim.stop()
         c.sock.settimeout(1.0)
@@ -789,7 +789,7 @@ def test_idle_simulator_uses_no_cpu(sim: Simulator, conn: Client) -> None:
     assert regs_of(conn.ask(1, read_req(3, 0, 1))) == [1000]
     sim.serve_pty()
     r0 = resource.getrusage(resource.RUSAGE_SELF)
-    time.sleep(0.5)
+    time.sleep(0.5)  # pacing: the window measured
     r1 = resource.getrusage(resource.RUSAGE_SELF)
     used = (r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime)
     assert used < 0.05
