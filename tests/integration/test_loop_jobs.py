@@ -97,7 +97,7 @@ class Site:
     def rate(self, seconds: float = WINDOW) -> float:
         """The slowest bystander's cycles per second over a window of ``seconds``."""
         before, start = self.cycles(), time.monotonic()
-        time.sleep(seconds)  # a measuring window, not a wait for an event
+        time.sleep(seconds)  # pacing: a measuring window, not a wait for an event
         elapsed = time.monotonic() - start
         return min(b - a for a, b in zip(before, self.cycles(), strict=True)) / elapsed
 

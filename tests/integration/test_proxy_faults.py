@@ -55,7 +55,7 @@ def test_a_header_sent_byte_by_byte_within_the_timeout_registers_its_dtu() -> No
         try:
             for byte in header:
                 sock.send(bytes([byte]))
-                time.sleep(0.01)  # paces the sender (the attack), waits for nothing
+                time.sleep(0.01)  # pacing: the sender (the attack), waits for nothing
             sock.sendall(b"GOOD\r\n")
             wait_for(lambda: counter(port, "registered") == 1, what="registered")
             assert counter(port, "proxyMalformed") == counter(port, "proxyMissing") == 0

@@ -394,7 +394,7 @@ class LoopWorker:
             self._connect(served)  # (the resolver has the host's addresses)
         ll = served.ll
         if ll is None:  # down: the jobs fail at once
-            with contextlib.suppress(queue.Empty):  # (the queue's other takers: none now)
+            with contextlib.suppress(queue.Empty):
                 while True:
                     line._handle(line._queue.get_nowait(), None)
             if line.last_link_error is not None:  # a poller attached meanwhile learns why
