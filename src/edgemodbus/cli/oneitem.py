@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import shlex
+from collections.abc import Callable
 from typing import Any
 
 from ..config import ConfigError, DeviceAddressItem, DeviceConfig, load_device_config
@@ -53,11 +54,16 @@ _OPTION_OF_FIELD = {
     "addressList[0].dataMultiplier": "multiplier",
 }
 
-def start_one_item(args: argparse.Namespace) -> tuple[DriverModbusRtu, DeviceAddressItem]:
+
+def start_one_item(args: argparse.Namespace,
+                   updated: Callable[[DeviceAddressItem], None] | None = None
+                   ) -> tuple[DriverModbusRtu, DeviceAddressItem]:
     """A driver polling the one item ``args`` name (its config checked first: a problem
-    is a CliError naming the option)."""
+    is a CliError naming the option), ``updated`` its item callback from the start (a
+    line already down tells the item at once, before start_device returns)."""
     cfg = one_item_config(args)
     drv = DriverModbusRtu()
+    drv.address_updated_callback = updated
     drv.start_device(cfg.organization, cfg.communication, cfg.address_list)
     return drv, cfg.address_list[0]
 

@@ -130,9 +130,8 @@ def read(args: argparse.Namespace, notice: bool = True) -> int:
     it printed the notice already)."""
     if notice:
         _notice(args)
-    drv, item = start_one_item(args)
     got = threading.Event()
-    drv.address_updated_callback = lambda it: got.set()
+    drv, item = start_one_item(args, lambda it: got.set())
     try:
         if not got.wait(args.timeout / 1000 * 4 + 5):
             raise CommandFailed(f"{item.address}: no answer")

@@ -65,19 +65,29 @@ def plan_writes(by_name: Mapping[str, ItemState], items: list[tuple[str, Any]],
     return merge_writes(prepare_writes(by_name, items, exact))
 
 
-def exact_problem(asked: Any, held: Any) -> str | None:
+#: How far a value computed by an engineering-units step may be from the one asked and
+#: still be the same: float rounding of the step's arithmetic (0.3 under a 0..1000 ->
+#: 0..100 range is raw 3, read back as 0.30000000000000004), far below a raw step.
+SCALED_REL_TOL = 1e-12
+
+
+def exact_problem(asked: Any, held: Any, scaled: bool = False) -> str | None:
     """Why the value an item would hold after a write (``held``: its encoded registers
     decoded) is not the value ``asked`` (normalized), or None when it is: numbers equal
     exactly (12.5 to a UInt16 with dataMultiplier 0.5 is 25 on the wire, 12.5 back;
-    12.3 would be 12.5), a Float (32-bit) item's value when its shortest float32 text is
-    the number asked (0.1 is taken, 0.1000000001 is not: the float32 of both is one
-    value), text, bytes and times unchanged (no cut, no rounded seconds)."""
+    12.3 would be 12.5), to within float rounding for a ``scaled`` item (an offset, a
+    range, a scale factor, or a multiplier neither whole nor 1/n: SCALED_REL_TOL), a
+    Float (32-bit) item's value when its shortest float32 text is the number asked (0.1
+    is taken, 0.1000000001 is not: the float32 of both is one value), text, bytes and
+    times unchanged (no cut, no rounded seconds)."""
     numbers = all(isinstance(x, (int, float)) and not isinstance(x, bool)
                   for x in (asked, held))
     if numbers and isinstance(held, float) and math.isnan(held):
         same = isinstance(asked, float) and math.isnan(asked)
     elif numbers and isinstance(held, Float32) and math.isfinite(held):
         same = held == asked or float32_short(held) == asked
+    elif numbers and scaled and isinstance(held, float):
+        same = held == asked or math.isclose(held, asked, rel_tol=SCALED_REL_TOL)
     else:  # numbers compare exactly (an int with a float too); bools, text, bytes, times
         same = bool(asked == held)
     if same:
@@ -131,7 +141,9 @@ def prepare_writes(
         decoded = BlockDecoder(state.area, len(registers), [(0, spec)]).decode_values(
             Block.from_values(registers, bits=False)
         )[0]
-        problem = exact_problem(value, decoded) if exact else None
+        m = spec.multiplier  # raw * m rounds (0.3); raw * 10 and raw / 10 do not
+        scaled = spec.scaled or not (m.is_integer() or (1 / m).is_integer())
+        problem = exact_problem(value, decoded, scaled) if exact else None
         if problem is not None:
             raise ValueError(f"{name}: cannot write {short_value(raw)} exactly: {problem}")
         single.append(WriteOp(state.area, state.offset, registers=registers,

@@ -170,7 +170,9 @@ def test_files_of_one_template_are_validated_once_from_load_to_start(
     configs = [load_device_config(_file(tmp_path, f"d{k}.json", template, f"DTU{k}", port))
                for k in range(3)]
     assert len(built) == 20  # the first file's items; the others are copies
-    drivers = [em.DriverModbusRtu() for _ in configs]
+    a, b = configs[0].address_list, configs[1].address_list
+    assert a == b and all(x is not y for x, y in zip(a, b, strict=True))  # (before a
+    drivers = [em.DriverModbusRtu() for _ in configs]  # start tells each why it is down)
     try:
         for drv, cfg in zip(drivers, configs, strict=True):
             assert drv.start_device(cfg.organization, cfg.communication, cfg.address_list)
@@ -178,8 +180,6 @@ def test_files_of_one_template_are_validated_once_from_load_to_start(
         for drv in drivers:
             drv.stop_device()
     assert len(parsed_addresses) == 20, len(parsed_addresses)
-    a, b = configs[0].address_list, configs[1].address_list
-    assert a == b and all(x is not y for x, y in zip(a, b, strict=True))
 
 
 def test_each_file_is_told_its_unknown_item_keys(
