@@ -5,6 +5,7 @@ frames no client sends."""
 
 from __future__ import annotations
 
+import random
 import shutil
 import socket
 import struct
@@ -359,6 +360,43 @@ def test_bad_frames_do_not_disturb_the_others(gateway: Gateway) -> None:
         for s in bad:
             s.close()
         client.close()
+
+
+def test_every_answer_is_counted_before_the_master_holds_it(gateway: Gateway) -> None:
+    """The server's counters (requests, cachedReplies, exceptions by code) already count
+    an answer when the master has it: a stats read right after each reply equals a tally
+    kept here.  cachedReplies was counted after the reply was sent (csrc/emb_serve.c), so
+    about half such reads missed the last reply, and a test asserting the count after
+    its reads failed on a loaded machine."""
+    kinds = [  # (unit, PDU, the exception code expected, 0: a reply from the image)
+        (1, b"\x03\x00\x00\x00\x0a", 0), (1, b"\x01\x00\x00\x00\x08", 0),
+        (1, b"\x04\x00\x00\x00\x04", 0), (5, b"\x03\x03\xe8\x00\x01", None),
+        (1, b"\x03\x00\x0a\x00\x01", 2), (1, b"\x03\x01\x2c\x00\x01", 0x0B),
+        (77, b"\x03\x00\x00\x00\x01", 0x0A), (1, b"\x11", 1)]
+    rng = random.Random(25)
+    first = gateway.server.stats()
+    requests, cached = first["requests"], first["cachedReplies"]
+    exceptions = dict(first["exceptions"])
+    with socket.create_connection(("127.0.0.1", gateway.port)) as sock:
+        sock.settimeout(5)
+        for tid in range(1000):
+            unit, pdu, code = rng.choice(kinds)
+            sock.sendall(mbap(tid, unit, pdu))
+            reply = recv_adu(sock)
+            assert reply[:2] == tid.to_bytes(2, "big"), (tid, reply)
+            got = reply[8] if reply[7] & 0x80 else 0
+            if code is None:  # unit 5 (maxAge 0.5 s): 0B while the polling is late
+                assert got in (0, 0x0B), (unit, pdu, reply)
+            else:
+                assert got == code, (unit, pdu, reply)
+            requests += 1
+            if got:
+                exceptions[got] = exceptions.get(got, 0) + 1
+            else:
+                cached += 1
+            now = gateway.server.stats()
+            assert (now["requests"], now["cachedReplies"], now["exceptions"]) == (
+                requests, cached, exceptions), (tid, unit, pdu)
 
 
 def test_a_function_code_with_the_high_bit_gets_its_own_code_back(gateway: Gateway) -> None:
