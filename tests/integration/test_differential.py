@@ -551,6 +551,7 @@ class Checker:
         self.wrong: list[str] = []
         self.missing: list[str] = []
         self.cycles = 0
+        self.faults = ""  # the line's failures over the run, for a failure's message
 
     def adopt(self, items: list[em.DeviceAddressItem], specs: list[Spec]) -> None:
         for item, spec in zip(items, specs, strict=True):
@@ -665,7 +666,13 @@ def run(setup: Setup, sim: Simulator, port: int, link: str = "connect") -> Check
             client = sim.dial("127.0.0.1", port, registration=b"DIFF1")
         wait_for(lambda: checker.cycles >= CYCLES, timeout=60, what=f"{CYCLES} cycles")
     finally:
+        stats = drv.stats()
         drv.stop_device()
+        # a reply later than readTimeout + settleTimeout is taken for the next request's
+        # (RTU has no transaction id): a wrong value after timeouts may be one
+        checker.faults = ", ".join(f"{k} {stats[k]}" for k in (
+            "timeouts", "crcErrors", "protocolErrors", "retries")) + ", " + ", ".join(
+            f"{k} {stats['line'][k]}" for k in ("discardedBytes", "droppedFrames"))
         if client is not None:
             client.close()
     return checker
@@ -703,8 +710,8 @@ def test_ok_values_equal_an_independent_decode(
 ) -> None:
     _describe(setup)
     checker = run(setup, *sim)
-    assert not checker.wrong, "\n".join(checker.wrong[:5])
-    assert not checker.missing, "\n".join(checker.missing[:5])
+    assert not checker.wrong, "\n".join([*checker.wrong[:5], checker.faults])
+    assert not checker.missing, "\n".join([*checker.missing[:5], checker.faults])
 
 
 @pytest.mark.timeout(max(120, 6 * EXAMPLES))
@@ -718,8 +725,8 @@ def test_ok_values_equal_an_independent_decode_on_the_loop_engine(
     dials in): a connect-mode line and a DTU that dialled in."""
     _describe(setup)
     checker = run(setup, *sim, link=link)
-    assert not checker.wrong, "\n".join(checker.wrong[:5])
-    assert not checker.missing, "\n".join(checker.missing[:5])
+    assert not checker.wrong, "\n".join([*checker.wrong[:5], checker.faults])
+    assert not checker.missing, "\n".join([*checker.missing[:5], checker.faults])
 
 
 def test_reference_decoder_knows_the_documented_cases() -> None:
