@@ -474,9 +474,11 @@ static int emb_sv_request(emb_server *s, emb_sv_conn *c, uint32_t conn, uint32_t
     } else {
         rc = emb_sv_cached(u, c->buf, n, now);
         if (rc == 0) {
+            /* counted before it is sent, as the exceptions are: a master that holds
+             * the reply and reads the counters finds it counted */
+            s->c.cached_replies++;
             modbus_set_socket(s->ctx, c->fd);
             rc = modbus_reply(s->ctx, c->buf, (int)n, u->map) < 0 ? -1 : 0;
-            s->c.cached_replies++;
         } else if (rc > 0) {
             rc = emb_sv_exception(s, c, rc);
         }

@@ -62,6 +62,11 @@ DIFF = settings(
                            HealthCheck.filter_too_much, HealthCheck.function_scoped_fixture],
 )
 CYCLES = 5  # cycles checked per example
+# the hang guard of a whole test (pytest-timeout): an example that stops making cycles
+# fails by itself after 60 s (run's wait_for); an example with wire faults costs up to
+# ~10 s on a loaded 2-core machine (each fault a drain or a timeout of 50-150 ms), and
+# 20 of them once took 161 s there: 120 s cut a test that was making progress
+HANG_GUARD = max(600, 30 * EXAMPLES)
 REG_SPAN = 320  # items live in registers 0..REG_SPAN-1 of hr and ir
 BIT_SPAN = 160  # and bits 0..BIT_SPAN-1 of coils and discrete inputs
 FLT_MAX = 3.4028234663852886e38
@@ -551,6 +556,7 @@ class Checker:
         self.wrong: list[str] = []
         self.missing: list[str] = []
         self.cycles = 0
+        self.faults = ""  # the line's failures over the run, for a failure's message
 
     def adopt(self, items: list[em.DeviceAddressItem], specs: list[Spec]) -> None:
         for item, spec in zip(items, specs, strict=True):
@@ -665,7 +671,13 @@ def run(setup: Setup, sim: Simulator, port: int, link: str = "connect") -> Check
             client = sim.dial("127.0.0.1", port, registration=b"DIFF1")
         wait_for(lambda: checker.cycles >= CYCLES, timeout=60, what=f"{CYCLES} cycles")
     finally:
+        stats = drv.stats()
         drv.stop_device()
+        # a reply later than readTimeout + settleTimeout is taken for the next request's
+        # (RTU has no transaction id): a wrong value after timeouts may be one
+        checker.faults = ", ".join(f"{k} {stats[k]}" for k in (
+            "timeouts", "crcErrors", "protocolErrors", "retries")) + ", " + ", ".join(
+            f"{k} {stats['line'][k]}" for k in ("discardedBytes", "droppedFrames"))
         if client is not None:
             client.close()
     return checker
@@ -695,7 +707,7 @@ def _describe(setup: Setup) -> None:
         event("range scaling")
 
 
-@pytest.mark.timeout(max(120, 6 * EXAMPLES))
+@pytest.mark.timeout(HANG_GUARD)
 @DIFF
 @given(setup=setups())
 def test_ok_values_equal_an_independent_decode(
@@ -703,11 +715,11 @@ def test_ok_values_equal_an_independent_decode(
 ) -> None:
     _describe(setup)
     checker = run(setup, *sim)
-    assert not checker.wrong, "\n".join(checker.wrong[:5])
-    assert not checker.missing, "\n".join(checker.missing[:5])
+    assert not checker.wrong, "\n".join([*checker.wrong[:5], checker.faults])
+    assert not checker.missing, "\n".join([*checker.missing[:5], checker.faults])
 
 
-@pytest.mark.timeout(max(120, 6 * EXAMPLES))
+@pytest.mark.timeout(HANG_GUARD)
 @pytest.mark.parametrize("link", ["connect-loop", "dtu-loop"])
 @settings(DIFF, max_examples=max(4, EXAMPLES // 2))
 @given(setup=setups())
@@ -718,8 +730,8 @@ def test_ok_values_equal_an_independent_decode_on_the_loop_engine(
     dials in): a connect-mode line and a DTU that dialled in."""
     _describe(setup)
     checker = run(setup, *sim, link=link)
-    assert not checker.wrong, "\n".join(checker.wrong[:5])
-    assert not checker.missing, "\n".join(checker.missing[:5])
+    assert not checker.wrong, "\n".join([*checker.wrong[:5], checker.faults])
+    assert not checker.missing, "\n".join([*checker.missing[:5], checker.faults])
 
 
 def test_reference_decoder_knows_the_documented_cases() -> None:

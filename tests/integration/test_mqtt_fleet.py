@@ -127,16 +127,42 @@ def test_a_late_departure_never_overwrites_the_new_holder(broker: Mosquitto,
         assert a.pub.stats()["devices"]["dev1"]["held"] is True
         b.holds = True  # both think they hold it for a moment (A's TCP has not noticed)
         probe.wait_for(STATUS, lambda m: m.json().get("instance") == "B")
+        # "late": A notices after B's claim reached it (before, A cannot know of B, and
+        # its "NotHere" is answered by B: test_a_departure_before_the_new_claim_...)
+        wait_for(lambda: a.pub.stats()["devices"]["dev1"]["retainedHolder"] == "B",
+                 what="A read back B's status")
         a.holds = False
         wait_for(lambda: a.pub.stats()["devices"]["dev1"]["held"] is False,
                  what="A saw the departure")
         body = retained(broker.port)
         assert (body["instance"], body["status"]) != ("A", "NotHere")
         assert body["instance"] == "B"
-        assert not any(m.json().get("status") == "NotHere" for m in probe.on(STATUS))
+        said = [m.json() for m in probe.on(STATUS) if m.json().get("status") == "NotHere"]
+        assert not said, said
         b.holds = False
         probe.wait_for(STATUS, lambda m: m.json().get("status") == "NotHere")
         assert retained(broker.port)["instance"] == "B"
+
+
+def test_a_departure_before_the_new_claim_arrived_is_answered_by_the_holder(
+        broker: Mosquitto, slave: PymodbusSlave) -> None:
+    """A leaves before B's status reached it (A cannot know of B): A's "NotHere" may go
+    out, and B, which holds the device, answers it with its own status (holding.py)."""
+    with ExitStack() as stack:
+        probe = stack.enter_context(MqttProbe(broker.port))
+        a = Instance(stack, broker.port, slave.port, "A")
+        a.holds = True
+        probe.wait_for(STATUS, lambda m: m.json().get("instance") == "A")
+        b = Instance(stack, broker.port, slave.port, "B")
+        b.holds = True
+        a.holds = False  # at once: A's look may come before B's status reaches it
+        wait_for(lambda: a.pub.stats()["devices"]["dev1"]["held"] is False,
+                 what="A saw the departure")
+        wait_for(lambda: b.pub.stats()["devices"]["dev1"]["held"] is True,
+                 what="B saw the arrival")
+        wait_for(lambda: (retained(broker.port)["instance"] == "B"
+                          and retained(broker.port)["status"] != "NotHere"),
+                 what="the retained status names B, holding it")
 
 
 def test_batch_mode_publishes_the_held_device_only(broker: Mosquitto,

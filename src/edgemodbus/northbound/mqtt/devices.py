@@ -51,11 +51,16 @@ class AttachedDevice:
         self.fleet: Holding | None = None  # in a fleet: published only while held here
 
     def stats(self) -> dict[str, Any]:
-        """Its counters in the publisher's stats()."""
+        """Its counters in the publisher's stats(): ``published``, ``dropped``,
+        ``snapshotsPublished``, ``snapshotsCoalesced``; in a fleet ``held`` (its DTU is
+        here, as the MQTT thread last saw) and ``retainedHolder`` (the instance its
+        retained status named when this one last read it back: holding.py)."""
         return {"published": self.published, "dropped": self.dropped,
                 "snapshotsPublished": self.snapshots,
                 "snapshotsCoalesced": self.snapshots_coalesced,
-                "held": self.fleet.holding if self.fleet is not None else None}
+                "held": self.fleet.holding if self.fleet is not None else None,
+                "retainedHolder": self.fleet.seen[0] if self.fleet is not None
+                and self.fleet.seen is not None else None}
 
     def filters(self, writes: bool = True) -> list[str]:
         """Subscriptions for this device's commands (none unless ``writes``), without

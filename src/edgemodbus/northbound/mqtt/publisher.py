@@ -160,7 +160,7 @@ class MqttPublisher:
 
     def stats(self) -> dict[str, Any]:
         """Counters (camelCase): connection, published, dropped, queue depth, commands,
-        and per device ``published``, ``dropped``, ``snapshotsCoalesced``, ``held``."""
+        and per device those of devices.AttachedDevice.stats."""
         with self._lock:
             result: dict[str, Any] = dict(self._outbox.counts)
             result.update(queued=self._outbox.queued, queueLimit=self._outbox.limit(),
