@@ -4,8 +4,9 @@
  * trip to Python:
  *   - a timeout or a CRC error is read again, up to the device's `retries` (none while
  *     the slave is offline); every request, retry and error is counted once, here;
- *   - RTU has no transaction id: after a timeout the line is settled (a late reply is
- *     waited out, so it is never taken for the answer to the next request), after a bad
+ *   - RTU has no transaction id: after a timeout the line is settled (a reply late by
+ *     up to the settle is waited out, not taken for the answer to the next request; one
+ *     later still, to a request alike, cannot be told apart), after a bad
  *     frame it is drained (Modbus over Serial Line 2.5.1.1: frames end with silence);
  *   - a timeout ends the slave's pass: this block and the rest of the pass fail with "not
  *     responding" (and, once the slave is or goes offline, every block); after
