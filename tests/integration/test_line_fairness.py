@@ -16,7 +16,6 @@ import itertools
 import logging
 import socket
 import struct
-import threading
 import time
 from collections import Counter
 from collections.abc import Iterator
@@ -28,6 +27,7 @@ import edgemodbus as em
 from edgemodbus.errors import TargetBackoffError
 from edgemodbus.serve import ModbusTcpServer
 from edgemodbus.sim import Simulator
+from tests.closed_loops import ClosedLoops
 from tests.conftest import SlaveFactory
 from tests.engines import with_engine
 from tests.integration.test_driver import Running, all_ok, device
@@ -130,28 +130,14 @@ class Line:
             drv.stop_device()
 
 
-class Flood:
+class Flood(ClosedLoops):
     """``masters`` raw-socket masters sending ``pdu`` to ``unit`` in a closed loop (the
     next request as soon as the answer came); answers counted by kind."""
 
     def __init__(self, port: int, unit: int, pdu: bytes, masters: int = 2) -> None:
         self.answers: Counter[str] = Counter()
         self.errors: list[str] = []
-        self._stop = threading.Event()
-        self._lock = threading.Lock()
-        self._threads = [threading.Thread(target=self._run, args=(port, unit, pdu),
-                                          name=f"test-master-{k}") for k in range(masters)]
-
-    def __enter__(self) -> Flood:
-        for thread in self._threads:
-            thread.start()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self._stop.set()
-        for thread in self._threads:
-            thread.join(15)
-        assert not any(t.is_alive() for t in self._threads), "a master did not stop"
+        super().__init__([(port, unit, pdu)] * masters, "test-master", join_s=15)
 
     def total(self) -> int:
         with self._lock:

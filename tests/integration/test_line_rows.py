@@ -10,7 +10,6 @@ and polling)" has the figures."""
 
 from __future__ import annotations
 
-import threading
 from collections import Counter
 from collections.abc import Callable
 from typing import Any
@@ -19,6 +18,7 @@ import pytest
 from pymodbus.client import ModbusTcpClient
 
 import edgemodbus as em
+from tests.closed_loops import ClosedLoops
 from tests.conftest import SlaveFactory
 from tests.engines import with_engine
 from tests.integration.test_line_fairness import (
@@ -38,28 +38,14 @@ DEMAND = 4  # the slave of the device read on demand
 pytestmark = pytest.mark.usefixtures("engine")
 
 
-class Masters:
+class Masters(ClosedLoops):
     """``n`` threads each calling ``ask()`` of their own in a closed loop (the next as
     soon as the answer came), answers counted by kind."""
 
     def __init__(self, asks: list[Callable[[], str]]) -> None:
         self.answers: Counter[str] = Counter()
         self.errors: list[str] = []
-        self._stop = threading.Event()
-        self._lock = threading.Lock()
-        self._threads = [threading.Thread(target=self._run, args=(ask,), name=f"test-ask-{k}")
-                         for k, ask in enumerate(asks)]
-
-    def __enter__(self) -> Masters:
-        for thread in self._threads:
-            thread.start()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self._stop.set()
-        for thread in self._threads:
-            thread.join(30)
-        assert not any(t.is_alive() for t in self._threads), "a master did not stop"
+        super().__init__([(ask,) for ask in asks], "test-ask")
 
     def total(self) -> int:
         with self._lock:

@@ -23,6 +23,7 @@ import pytest
 import edgemodbus as em
 from edgemodbus.line.loop_pool import pool
 from edgemodbus.serve import ModbusTcpServer
+from tests.closed_loops import ClosedLoops
 from tests.conftest import SlaveFactory
 from tests.integration.test_dtu import SegmentedDtu, free_port
 from tests.integration.test_line_fairness import Flood
@@ -102,28 +103,14 @@ class Site:
         return min(b - a for a, b in zip(before, self.cycles(), strict=True)) / elapsed
 
 
-class Writes:
+class Writes(ClosedLoops):
     """One thread per driver writing register 1 in a closed loop (the next write as
     soon as the last one ended); outcomes counted."""
 
     def __init__(self, drivers: list[em.DriverModbusRtu]) -> None:
         self.done = 0
         self.failed = 0
-        self._stop = threading.Event()
-        self._lock = threading.Lock()
-        self._threads = [threading.Thread(target=self._run, args=(drv,), name=f"test-writer-{k}")
-                         for k, drv in enumerate(drivers)]
-
-    def __enter__(self) -> Writes:
-        for thread in self._threads:
-            thread.start()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self._stop.set()
-        for thread in self._threads:
-            thread.join(30)
-        assert not any(t.is_alive() for t in self._threads), "a writer did not stop"
+        super().__init__([(drv,) for drv in drivers], "test-writer")
 
     def _run(self, drv: em.DriverModbusRtu) -> None:
         value = 0
